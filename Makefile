@@ -1,0 +1,40 @@
+# asgp_ros: `make demo` and `make test` set everything up on a fresh machine.
+PYTHON ?= python3
+VENV   := .venv
+VPY    := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+SYSSTAMP := $(VENV)/.system-deps
+
+.PHONY: setup test demo firmware bench lint clean
+
+setup: $(STAMP) $(SYSSTAMP)
+
+# Debian packages: the AVR toolchain for the firmware, simavr, socat.
+$(SYSSTAMP): scripts/install-system-deps.sh | $(STAMP)
+	bash scripts/install-system-deps.sh
+	touch $@
+
+$(STAMP): setup.py package.xml
+	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VPY) -m pip install --quiet --upgrade pip wheel setuptools
+	$(VPY) -m pip install --quiet -e '.[ros,test]'
+	touch $@
+
+test: setup
+	$(VPY) -m pytest test
+
+demo: setup
+	$(VENV)/bin/asgp demo
+
+firmware: $(SYSSTAMP)
+	$(MAKE) -C firmware
+
+bench: setup
+	for b in benchmarks/*.py; do echo "== $$b"; $(VPY) $$b || exit 1; done
+
+lint: setup
+	$(VPY) -m ruff check asgp_ros test benchmarks
+	$(VPY) -m mypy asgp_ros/core
+
+clean:
+	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,62 @@
+"""The ``asgp`` command: one entry point, one module per subcommand.
+
+Every module in this package that defines ``register(subparsers)`` contributes a
+subcommand. ``register`` adds its parser and sets ``func`` (``args -> exit code``) as the
+parser default; heavy imports (rclpy, OpenCV, scikit-learn) happen inside ``func`` so that
+``asgp --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+from collections.abc import Sequence
+
+from asgp_ros import __version__
+
+
+class CommandError(Exception):
+    """A user-facing failure: printed as ``error: <message>`` and exit code 2, no traceback."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="asgp",
+        description="Smart-wheelchair motion prediction with an autoregressive sparse GP.",
+    )
+    parser.add_argument("--version", action="version", version=f"asgp_ros {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        register = getattr(module, "register", None)
+        if register is not None:
+            register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except CommandError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

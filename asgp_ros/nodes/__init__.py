@@ -1,0 +1,1 @@
+"""Thin rclpy nodes; message <-> numpy conversions live in :mod:`asgp_ros.nodes.conversions`."""

@@ -1,0 +1,1 @@
+"""ROS-free sparse-feature RGB-D visual odometry (Fovis-like) on OpenCV."""

@@ -1,0 +1,48 @@
+"""Test-suite wide set-up.
+
+ROS 2 isolation: every test run talks DDS on its own domain, restricted to this machine,
+over UDPv4 only, so concurrent runs (or a demo) never see each other. Subprocesses
+started by tests inherit these variables.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run_domain_id() -> int:
+    forced = os.environ.get("ASGP_TEST_DOMAIN_ID")
+    if forced:
+        return int(forced)
+    # 1..232: domain 0 is the default everybody uses, 233+ do not work with Fast DDS ports.
+    return 1 + os.getpid() % 232
+
+
+os.environ["ROS_DOMAIN_ID"] = str(_run_domain_id())
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
+os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO
+
+
+@pytest.fixture
+def rclpy_context():
+    """An rclpy context of its own for an in-process node test; shut down afterwards."""
+    rclpy = pytest.importorskip("rclpy")
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
