@@ -32,6 +32,7 @@ def test_pip_install_puts_data_files_and_entry_points(repo_root, tmp_path):
     target = tmp_path / "prefix"
     r = subprocess.run(
         [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--quiet",
+         "--ignore-installed",  # never touch the venv's own (editable) install
          "--prefix", str(target), str(repo_root)],
         capture_output=True, text=True, cwd=tmp_path,
     )
