@@ -1,0 +1,540 @@
+"""Bag reading and writing with the pure-Python ``rosbags`` library (no ROS install needed).
+
+Reading: ROS 1 ``.bag`` files, ROS 2 bags (a directory with ``metadata.yaml``; sqlite3 or
+mcap storage) through one function, ``read_streams``, into the ``RawStreams`` the core
+resamples.
+
+* joystick topic: ``sensor_msgs/Joy``; which axes are forward and turn, and their signs, is
+  configurable (``JoyAxes``, command-line syntax ``--joy-axes FWD,TURN``, see
+  ``parse_joy_axes``);
+* velocity topic: ``geometry_msgs/TwistStamped``, ``TwistWithCovarianceStamped``, ``Twist``
+  (no header: bag time) or ``nav_msgs/Odometry``; v = linear.x, omega = angular.z;
+* optional ground truth: ``nav_msgs/Odometry`` (pose and twist).
+
+Time stamps: a message's header stamp when it is valid (non-zero and within
+``max_stamp_skew`` seconds of the time the bag recorded it), the bag time otherwise
+(corrected by the topic's median stamp-to-bag latency, so the clocks stay consistent).
+
+Writing (``write_bag``): a ``Recording`` of the simulator as a ROS 2 bag (mcap by default,
+or sqlite3) or a ROS 1 bag, with ``/joy``, ``/vo/twist`` and ``/ground_truth/odom``;
+atomically (nothing partial on failure) and byte-for-byte reproducibly (message times come
+from the recording, never from the wall clock).
+
+Failures raise ``BagError`` naming the file and the problem: no such bag, a corrupt or
+truncated file, a missing topic (with the list of topics the bag has), an unsupported
+message type.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from asgp_ros.core.streams import RawStreams
+from asgp_ros.fileio import atomic_path
+
+if TYPE_CHECKING:
+    from asgp_ros.sim.simulate import Recording
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+JOY_TOPIC = "/joy"
+TWIST_TOPIC = "/vo/twist"
+TRUTH_TOPIC = "/ground_truth/odom"
+STORAGES = ("mcap", "sqlite3", "ros1")
+CUSTOM_DATA_KEY = "asgp_ros.simulation"
+
+TWIST_TYPES = (
+    "geometry_msgs/msg/TwistStamped",
+    "geometry_msgs/msg/TwistWithCovarianceStamped",
+    "geometry_msgs/msg/Twist",
+    "nav_msgs/msg/Odometry",
+)
+JOY_TYPES = ("sensor_msgs/msg/Joy",)
+TRUTH_TYPES = ("nav_msgs/msg/Odometry",)
+
+
+class BagError(Exception):
+    """A bag cannot be read or written as asked; the message names the file."""
+
+
+# ----------------------------------------------------------------------------- joystick axes
+@dataclass(frozen=True)
+class JoyAxes:
+    """Which ``Joy.axes`` entries are the forward and turn deflections, and their signs.
+
+    Attributes:
+        forward, turn: axis indices.
+        forward_sign, turn_sign: +1 or -1 (use -1 when pushing forward / left gives a
+            negative value on that axis).
+    """
+
+    forward: int = 0
+    turn: int = 1
+    forward_sign: float = 1.0
+    turn_sign: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.forward < 0 or self.turn < 0:
+            raise ValueError("joystick axis indices must be >= 0")
+        if self.forward == self.turn:
+            raise ValueError(f"forward and turn must be different axes, both are {self.turn}")
+        if self.forward_sign not in (1.0, -1.0) or self.turn_sign not in (1.0, -1.0):
+            raise ValueError("joystick axis signs must be +1 or -1")
+
+    def __str__(self) -> str:
+        def one(i: int, s: float) -> str:
+            return f"{'-' if s < 0 else ''}{i}"
+
+        return f"{one(self.forward, self.forward_sign)},{one(self.turn, self.turn_sign)}"
+
+
+_AXIS_RE = re.compile(r"^\s*([+-]?)\s*(\d+)\s*$")
+
+
+def parse_joy_axes(spec: str) -> JoyAxes:
+    """Parse the ``--joy-axes`` syntax ``FWD,TURN``.
+
+    Each of FWD and TURN is an index into ``Joy.axes``, optionally prefixed with ``-`` to
+    flip its sign. ``"0,1"`` (the default, as published by this package's bridge) means
+    forward = axes[0], turn = axes[1]; ``"1,-0"`` means forward = axes[1],
+    turn = -axes[0]; a typical gamepad's left stick is ``"1,0"``.
+    """
+    parts = spec.split(",")
+    if len(parts) != 2:
+        raise ValueError(f"--joy-axes {spec!r}: expected FWD,TURN such as '0,1' or '1,-0'")
+    parsed = []
+    for part in parts:
+        m = _AXIS_RE.match(part)
+        if m is None:
+            raise ValueError(
+                f"--joy-axes {spec!r}: {part!r} is not an axis index with an optional '-'"
+            )
+        parsed.append((int(m.group(2)), -1.0 if m.group(1) == "-" else 1.0))
+    (f, fs), (t, ts) = parsed
+    try:
+        return JoyAxes(forward=f, turn=t, forward_sign=fs, turn_sign=ts)
+    except ValueError as exc:
+        raise ValueError(f"--joy-axes {spec!r}: {exc}") from None
+
+
+def add_bag_arguments(parser: Any) -> None:
+    """Add ``--joy-topic``, ``--twist-topic``, ``--joy-axes`` to an argparse parser."""
+    parser.add_argument("--joy-topic", default=JOY_TOPIC,
+                        help=f"sensor_msgs/Joy topic (default {JOY_TOPIC})")
+    parser.add_argument("--twist-topic", default=TWIST_TOPIC,
+                        help="velocity topic: TwistStamped, TwistWithCovarianceStamped, "
+                             f"Twist or Odometry (default {TWIST_TOPIC})")
+    parser.add_argument("--joy-axes", default="0,1", type=parse_joy_axes, metavar="FWD,TURN",
+                        help="Joy.axes indices of forward and turn deflection, '-' flips a "
+                             "sign: '0,1' (default), '1,-0', ...")
+
+
+# ----------------------------------------------------------------------------- reading
+def _resolve(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"{p}: no such bag")
+    if p.is_file() and p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").exists():
+        return p.parent  # a ROS 2 bag's storage file: read the bag it belongs to
+    if p.is_dir() and not (p / "metadata.yaml").exists():
+        raise BagError(f"{p}: not a ROS 2 bag (a directory without metadata.yaml)")
+    if p.is_file() and p.suffix != ".bag":
+        raise BagError(
+            f"{p}: not a bag: expected a ROS 1 .bag file or a ROS 2 bag directory "
+            "(with metadata.yaml)"
+        )
+    return p
+
+
+def _stamp_ns(msg: Any) -> int:
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+
+
+def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray[np.int64],
+                  max_skew: float, source: str) -> FloatArray:
+    """Header stamps where valid, bag time (minus the median latency) elsewhere; seconds."""
+    bag = bag_ns.astype(np.float64) * 1e-9
+    if stamp_ns is None:
+        return bag
+    stamp = stamp_ns.astype(np.float64) * 1e-9
+    valid = (stamp_ns > 0) & (np.abs(stamp - bag) <= max_skew)
+    if not valid.any():
+        log.warning("%s: %s has no valid header stamps; using bag time", source, name)
+        return bag
+    if not valid.all():
+        log.warning("%s: %s: %d of %d header stamps invalid (zero or > %.1f s from bag "
+                    "time); using bag time for those", source, name, int((~valid).sum()),
+                    valid.size, max_skew)
+    latency = float(np.median(bag[valid] - stamp[valid]))
+    return np.where(valid, stamp, bag - latency)
+
+
+def _topics_listing(reader: Any) -> str:
+    items = sorted({(c.topic, c.msgtype) for c in reader.connections})
+    if not items:
+        return "(no topics)"
+    return ", ".join(f"{t} [{m}]" for t, m in items)
+
+
+def _connections(reader: Any, topic: str, allowed: tuple[str, ...], what: str,
+                 source: str) -> list[Any]:
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        raise BagError(
+            f"{source}: {what} topic {topic!r} not found; the bag has: {_topics_listing(reader)}"
+        )
+    bad = sorted({c.msgtype for c in conns if c.msgtype not in allowed})
+    if bad:
+        raise BagError(
+            f"{source}: {what} topic {topic!r} has unsupported type {', '.join(bad)}; "
+            f"supported: {', '.join(allowed)}"
+        )
+    return conns
+
+
+def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple],
+             source: str) -> tuple[list[int], list[tuple]]:
+    bag_ns: list[int] = []
+    rows: list[tuple] = []
+    try:
+        for conn, timestamp, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            bag_ns.append(int(timestamp))
+            rows.append(extract(msg, conn.msgtype))
+    except BagError:
+        raise
+    except Exception as exc:  # rosbags raises several types for damaged data
+        raise BagError(f"{source}: corrupt or truncated bag: {type(exc).__name__}: {exc}"
+                       ) from exc
+    return bag_ns, rows
+
+
+def _yaw(q: Any) -> float:
+    # REP-103 quaternion (x, y, z, w) -> yaw about z.
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def read_streams(
+    path: str | os.PathLike[str],
+    joy_topic: str = JOY_TOPIC,
+    twist_topic: str = TWIST_TOPIC,
+    truth_topic: str | None = None,
+    joy_axes: JoyAxes | str | None = None,
+    max_stamp_skew: float = 10.0,
+) -> RawStreams:
+    """Read the joystick, velocity (and optional ground-truth) streams of a bag.
+
+    Args:
+        path: ROS 1 ``.bag`` file, or ROS 2 bag directory (sqlite3 or mcap), or the
+            storage file inside one.
+        joy_topic: ``sensor_msgs/Joy`` topic.
+        twist_topic: TwistStamped / TwistWithCovarianceStamped / Twist / Odometry topic.
+        truth_topic: ``nav_msgs/Odometry`` ground truth, or None to skip it.
+        joy_axes: axis mapping (or its ``--joy-axes`` string).
+        max_stamp_skew: a header stamp further than this (s) from the bag time is invalid.
+
+    Returns:
+        RawStreams with times in seconds on the bag's clock (header stamps where valid).
+
+    Raises:
+        BagError: missing file or topic, unsupported type, corrupt or truncated bag.
+    """
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if joy_axes is None:
+        joy_axes = JoyAxes()
+    axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
+    bag = _resolve(path)
+    source = str(bag)
+    is_ros1 = bag.is_file()
+    store = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_JAZZY)
+    try:
+        reader = AnyReader([bag], default_typestore=store)
+        reader.open()
+    except BagError:
+        raise
+    except Exception as exc:
+        hint = ("; a bag whose recording was killed may need `rosbag reindex` (ROS 1) "
+                "or `ros2 bag reindex` (ROS 2)")
+        raise BagError(f"{source}: cannot open bag (corrupt or truncated): "
+                       f"{type(exc).__name__}: {exc}{hint}") from exc
+    try:
+        joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
+        tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
+        tr_conns = (_connections(reader, truth_topic, TRUTH_TYPES, "ground truth", source)
+                    if truth_topic else [])
+        need = max(axes.forward, axes.turn) + 1
+
+        def joy_row(msg: Any, _t: str) -> tuple:
+            a = msg.axes
+            if len(a) < need:
+                raise BagError(
+                    f"{source}: {joy_topic} has {len(a)} axes, --joy-axes {axes} needs {need}"
+                )
+            return (_stamp_ns(msg), axes.forward_sign * float(a[axes.forward]),
+                    axes.turn_sign * float(a[axes.turn]))
+
+        def twist_row(msg: Any, msgtype: str) -> tuple:
+            if msgtype == "geometry_msgs/msg/Twist":
+                return (0, msg.linear.x, msg.angular.z)
+            tw = msg.twist if msgtype == "geometry_msgs/msg/TwistStamped" else msg.twist.twist
+            return (_stamp_ns(msg), tw.linear.x, tw.angular.z)
+
+        def truth_row(msg: Any, _t: str) -> tuple:
+            p = msg.pose.pose
+            tw = msg.twist.twist
+            return (_stamp_ns(msg), p.position.x, p.position.y, _yaw(p.orientation),
+                    tw.linear.x, tw.angular.z)
+
+        jb, jr = _collect(reader, joy_conns, joy_row, source)
+        vb, vr = _collect(reader, tw_conns, twist_row, source)
+        tb, tr = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [])
+    finally:
+        reader.close()
+
+    for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
+        if not rows:
+            raise BagError(f"{source}: {name} topic {topic!r} has no messages")
+    j = np.asarray(jr, dtype=np.float64).reshape(-1, 3)
+    v = np.asarray(vr, dtype=np.float64).reshape(-1, 3)
+    has_header = tw_conns[0].msgtype != "geometry_msgs/msg/Twist"
+    joy_t = _choose_times(joy_topic, np.asarray([r[0] for r in jr], dtype=np.int64),
+                          np.asarray(jb, dtype=np.int64), max_stamp_skew, source)
+    vel_t = _choose_times(
+        twist_topic, np.asarray([r[0] for r in vr], dtype=np.int64) if has_header else None,
+        np.asarray(vb, dtype=np.int64), max_stamp_skew, source)
+    truth_t = np.zeros(0)
+    truth = np.zeros((0, 5))
+    if tr:
+        ta = np.asarray(tr, dtype=np.float64).reshape(-1, 6)
+        truth_t = _choose_times(truth_topic or "", np.asarray([r[0] for r in tr], np.int64),
+                                np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
+        truth = ta[:, 1:]
+    try:
+        return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:],
+                          truth_t=truth_t, truth=truth, source=source)
+    except ValueError as exc:
+        raise BagError(f"{source}: {exc}") from exc
+
+
+def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
+    """Topic name -> message type of a bag."""
+    from rosbags.highlevel import AnyReader
+
+    bag = _resolve(path)
+    try:
+        with AnyReader([bag]) as reader:
+            return {c.topic: c.msgtype for c in reader.connections}
+    except Exception as exc:
+        raise BagError(f"{bag}: cannot open bag: {type(exc).__name__}: {exc}") from exc
+
+
+def read_sim_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The simulator's description stored in a ROS 2 bag's metadata (None if absent)."""
+    bag = _resolve(path)
+    if bag.is_file():
+        return None
+    import yaml
+
+    try:
+        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
+        raw = meta["rosbag2_bagfile_information"].get("custom_data") or {}
+        raw = raw.get(CUSTOM_DATA_KEY)
+    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
+        raise BagError(f"{bag}: unreadable metadata.yaml: {exc}") from exc
+    return None if raw is None else json.loads(raw)
+
+
+# ----------------------------------------------------------------------------- writing
+def _to_ns(t: FloatArray, epoch_ns: int) -> NDArray[np.int64]:
+    return np.rint(np.asarray(t) * 1e9).astype(np.int64) + np.int64(epoch_ns)
+
+
+def _layout(serialize: Callable[[Any, str], Any], msgtype: str, make: Callable[..., Any],
+            fields: dict[str, str]) -> tuple[bytes, dict[str, tuple[int, np.dtype]]]:
+    """A serialised template message and the byte offset of each variable field.
+
+    All messages we write of one type have the same layout (fixed frame ids, fixed array
+    lengths), so the typestore serialises one message with a distinct sentinel in every
+    variable field and the sentinels' positions give the offsets. Batches are then filled
+    in with numpy (``_fill``), byte-identical to serialising each message.
+    """
+    sentinels: dict[str, float | int] = {}
+    for k, (name, code) in enumerate(fields.items()):
+        sentinels[name] = (1000.0 + 37.0 * k + 0.125) if code[0] == "f" else 0x3A5C0000 + 257 * k
+    data = bytes(serialize(make(**sentinels), msgtype))
+    offsets = {}
+    for name, code in fields.items():
+        dt = np.dtype("<" + code)
+        pattern = np.array(sentinels[name], dtype=dt).tobytes()
+        i = data.find(pattern)
+        if i < 0 or data.find(pattern, i + 1) >= 0:  # pragma: no cover - layout guard
+            raise RuntimeError(f"cannot locate field {name} in a serialised {msgtype}")
+        offsets[name] = (i, dt)
+    return data, offsets
+
+
+def _fill(template: bytes, offsets: dict[str, tuple[int, np.dtype]],
+          values: dict[str, Any], n: int) -> list[bytes]:
+    """``n`` serialised messages: the template with each field's column written in."""
+    buf = np.tile(np.frombuffer(template, dtype=np.uint8), (n, 1))  # [n, L]
+    for name, (off, dt) in offsets.items():
+        col = np.ascontiguousarray(np.broadcast_to(values[name], (n,)), dtype=dt)
+        buf[:, off:off + dt.itemsize] = col.view(np.uint8).reshape(n, dt.itemsize)
+    return [row.tobytes() for row in buf]
+
+
+def _serialised(rec: Recording, store: Any, ros1: bool, truth: bool
+                ) -> list[tuple[int, str, bytes]]:
+    """(bag time ns, topic, serialised message) for every message of the recording."""
+    T = store.types
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+
+    def header(frame: str, sec: int, nanosec: int, seq: int) -> Any:
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        if ros1:
+            return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def vec(x: float = 0.0, z: float = 0.0) -> Any:
+        return T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=z)
+
+    def twist(v: float, w: float) -> Any:
+        return T["geometry_msgs/msg/Twist"](linear=vec(x=v), angular=vec(z=w))
+
+    def make_joy(sec: int, nanosec: int, a0: float, a1: float, seq: int = 0) -> Any:
+        return T["sensor_msgs/msg/Joy"](
+            header=header("", sec, nanosec, seq), axes=np.array([a0, a1], dtype=np.float32),
+            buttons=np.zeros(0, dtype=np.int32))
+
+    def make_twist(sec: int, nanosec: int, v: float, w: float, seq: int = 0) -> Any:
+        return T["geometry_msgs/msg/TwistStamped"](
+            header=header("base_link", sec, nanosec, seq), twist=twist(v, w))
+
+    def make_odom(sec: int, nanosec: int, x: float, y: float, qz: float, qw: float,
+                  v: float, w: float, seq: int = 0) -> Any:
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw))
+        return T["nav_msgs/msg/Odometry"](
+            header=header("odom", sec, nanosec, seq), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
+                                                           covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist(v, w),
+                                                             covariance=np.zeros(36)))
+
+    stamp_fields = {"sec": "i4", "nanosec": "u4"} | ({"seq": "u4"} if ros1 else {})
+    out: list[tuple[int, str, bytes]] = []
+
+    def add(topic: str, make: Callable[..., Any], fields: dict[str, str],
+            t: FloatArray, bag_t: FloatArray, values: dict[str, Any]) -> None:
+        n = t.shape[0]
+        if n == 0:
+            return
+        t_ns = _to_ns(t, rec.epoch_ns)
+        values = dict(values, sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000,
+                      seq=np.arange(1, n + 1))
+        template, offsets = _layout(serialize, _TOPIC_TYPES[topic], make,
+                                    stamp_fields | fields)
+        data = _fill(template, offsets, values, n)
+        out.extend(zip(_to_ns(bag_t, rec.epoch_ns).tolist(), [topic] * n, data, strict=True))
+
+    add(JOY_TOPIC, make_joy, {"a0": "f4", "a1": "f4"}, rec.joy_t, rec.joy_bag_t,
+        {"a0": rec.joy[:, 0], "a1": rec.joy[:, 1]})
+    add(TWIST_TOPIC, make_twist, {"v": "f8", "w": "f8"}, rec.vo_t, rec.vo_bag_t,
+        {"v": rec.vo[:, 0], "w": rec.vo[:, 1]})
+    if truth:
+        from asgp_ros.sim.simulate import TRUTH_RATE_HZ
+
+        period = float(rec.truth_t[1] - rec.truth_t[0]) if rec.truth_t.size > 1 else 1.0
+        step = max(1, round(1.0 / (TRUTH_RATE_HZ * period)))
+        tt, st = rec.truth_t[::step], rec.truth[::step]
+        add(TRUTH_TOPIC, make_odom,
+            {k: "f8" for k in ("x", "y", "qz", "qw", "v", "w")}, tt, tt,
+            {"x": st[:, 0], "y": st[:, 1], "qz": np.sin(0.5 * st[:, 2]),
+             "qw": np.cos(0.5 * st[:, 2]), "v": st[:, 3], "w": st[:, 4]})
+    return out
+
+
+_TOPIC_TYPES = {
+    JOY_TOPIC: "sensor_msgs/msg/Joy",
+    TWIST_TOPIC: "geometry_msgs/msg/TwistStamped",
+    TRUTH_TOPIC: "nav_msgs/msg/Odometry",
+}
+
+
+def write_bag(
+    path: str | os.PathLike[str],
+    recording: Recording,
+    storage: str = "mcap",
+    truth: bool = True,
+) -> Path:
+    """Write a simulated recording as a bag, atomically.
+
+    Args:
+        path: the bag to create: a ROS 2 bag directory, or a ``.bag`` file for ROS 1.
+            An existing bag at ``path`` is replaced only once the new one is complete.
+        recording: the simulator's output.
+        storage: "mcap" (default) or "sqlite3" for ROS 2, "ros1" for a ROS 1 bag (chosen
+            automatically for a ``.bag`` path).
+        truth: include ``/ground_truth/odom`` (at ``TRUTH_RATE_HZ``, 20 Hz).
+
+    Returns:
+        The path written.
+    """
+    from rosbags.rosbag1 import WriterError as WriterError1
+    from rosbags.rosbag2 import WriterError as WriterError2
+    from rosbags.typesys import Stores, get_typestore
+
+    path = Path(path)
+    if path.suffix == ".bag":
+        storage = "ros1"
+    if storage not in STORAGES:
+        raise BagError(f"{path}: unknown storage {storage!r}; expected one of {STORAGES}")
+    ros1 = storage == "ros1"
+    if ros1 and path.suffix != ".bag":
+        raise BagError(f"{path}: a ROS 1 bag must be a file ending in .bag")
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    records = _serialised(recording, store, ros1, truth)
+    order = sorted(range(len(records)), key=lambda i: (records[i][0], i))
+    try:
+        with atomic_path(path, directory=not ros1) as tmp:
+            if ros1:
+                from rosbags.rosbag1 import Writer as Writer1
+
+                with Writer1(tmp) as w1:
+                    conns = {t: w1.add_connection(t, m, typestore=store)
+                             for t, m in _TOPIC_TYPES.items() if truth or t != TRUTH_TOPIC}
+                    for i in order:
+                        ts, topic, data = records[i]
+                        w1.write(conns[topic], ts, data)
+            else:
+                from rosbags.rosbag2 import StoragePlugin, Writer
+
+                plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+                with Writer(tmp, version=9, storage_plugin=plugin) as w2:
+                    w2.set_custom_data(CUSTOM_DATA_KEY,
+                                       json.dumps(recording.meta, sort_keys=True))
+                    conns = {t: w2.add_connection(t, m, typestore=store)
+                             for t, m in _TOPIC_TYPES.items() if truth or t != TRUTH_TOPIC}
+                    for i in order:
+                        ts, topic, data = records[i]
+                        w2.write(conns[topic], ts, data)
+    except (OSError, WriterError1, WriterError2) as exc:
+        raise BagError(f"{path}: cannot write bag: {exc}") from exc
+    return path

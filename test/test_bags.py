@@ -1,0 +1,310 @@
+"""Bag writing and reading: ROS 2 mcap/sqlite3 and ROS 1, message types, stamps, errors."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from asgp_ros import bags
+from asgp_ros.bags import BagError, JoyAxes, parse_joy_axes, read_streams, write_bag
+from asgp_ros.sim.sensors import SensorParams
+from asgp_ros.sim.simulate import simulate
+
+TRUTH = "/ground_truth/odom"
+STORE2 = get_typestore(Stores.ROS2_JAZZY)
+
+
+@pytest.fixture(scope="module")
+def rec():
+    # A high failure rate so that a 40 s recording contains tracking failures.
+    sp = SensorParams(failure_rate_per_min={"tile": 6.0, "carpet": 6.0, "hybrid": 6.0})
+    r = simulate("hybrid", 40.0 / 60.0, 7, sensor_params=sp)
+    assert r.failures.shape[0] > 0
+    return r
+
+
+@pytest.fixture(scope="module")
+def mcap_bag(rec, tmp_path_factory):
+    return write_bag(tmp_path_factory.mktemp("m") / "drive", rec)
+
+
+def _files(path: Path) -> dict[str, str]:
+    if path.is_file():
+        return {path.name: hashlib.sha256(path.read_bytes()).hexdigest()}
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(path.iterdir())}
+
+
+def _check_streams(s, rec, truth=True):
+    off = rec.epoch_ns * 1e-9
+    assert s.joy.shape == rec.joy.shape
+    np.testing.assert_allclose(s.joy_t, rec.joy_t + off, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(s.joy, rec.joy, rtol=0, atol=1e-6)  # float32 in Joy
+    np.testing.assert_allclose(s.vel_t, rec.vo_t + off, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(s.vel, rec.vo)
+    if truth:
+        ref = rec.to_streams(truth_rate_hz=20.0)
+        np.testing.assert_allclose(s.truth_t, ref.truth_t, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(s.truth[:, [0, 1, 3, 4]], ref.truth[:, [0, 1, 3, 4]])
+        dth = np.angle(np.exp(1j * (s.truth[:, 2] - ref.truth[:, 2])))
+        assert np.abs(dth).max() < 1e-9
+
+
+# ----------------------------------------------------------------------------- round trips
+def test_mcap_round_trip(mcap_bag, rec):
+    assert (mcap_bag / "metadata.yaml").exists()
+    s = read_streams(mcap_bag, truth_topic=TRUTH)
+    _check_streams(s, rec)
+    # The stale reports of the tracking failures are in the bag as repeated values.
+    i = np.flatnonzero(rec.vo_stale)
+    assert np.all(s.vel[i] == s.vel[i - 1])
+    meta = bags.read_sim_metadata(mcap_bag)
+    assert meta["seed"] == 7 and len(meta["vo_failures"]) == rec.failures.shape[0]
+    # The storage file inside the bag directory is accepted too.
+    s2 = read_streams(mcap_bag / "drive.mcap")
+    np.testing.assert_array_equal(s2.vel, s.vel)
+
+
+def test_sqlite3_and_ros1_read_to_same_arrays(rec, tmp_path):
+    sq = write_bag(tmp_path / "sq", rec, storage="sqlite3")
+    assert list(sq.glob("*.db3"))
+    r1 = write_bag(tmp_path / "drive.bag", rec)
+    assert r1.is_file()
+    _check_streams(read_streams(sq, truth_topic=TRUTH), rec)
+    a = read_streams(r1, truth_topic=TRUTH)
+    _check_streams(a, rec)
+    b = read_streams(sq, truth_topic=TRUTH)
+    for name in ("joy_t", "joy", "vel_t", "vel", "truth_t", "truth"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_rosbags_and_rclpy_deserialise_the_same_messages(mcap_bag):
+    serialization = pytest.importorskip("rclpy.serialization")
+    from geometry_msgs.msg import TwistStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Joy
+
+    types = {"/joy": Joy, "/vo/twist": TwistStamped, TRUTH: Odometry}
+    seen = dict.fromkeys(types, 0)
+    with AnyReader([mcap_bag]) as reader:
+        for conn, _t, raw in reader.messages():
+            if seen[conn.topic] >= 50:
+                continue
+            seen[conn.topic] += 1
+            a = reader.deserialize(raw, conn.msgtype)
+            b = serialization.deserialize_message(bytes(raw), types[conn.topic])
+            assert (a.header.stamp.sec, a.header.stamp.nanosec) == (
+                b.header.stamp.sec, b.header.stamp.nanosec)
+            assert a.header.frame_id == b.header.frame_id
+            if conn.topic == "/joy":
+                assert list(a.axes) == list(b.axes) and len(b.buttons) == 0
+            elif conn.topic == "/vo/twist":
+                assert b.header.frame_id == "base_link"
+                assert a.twist.linear.x == b.twist.linear.x
+                assert a.twist.angular.z == b.twist.angular.z
+            else:
+                assert (b.header.frame_id, b.child_frame_id) == ("odom", "base_link")
+                assert a.pose.pose.position.x == b.pose.pose.position.x
+                assert a.pose.pose.orientation.z == b.pose.pose.orientation.z
+                assert a.twist.twist.angular.z == b.twist.twist.angular.z
+    assert all(n == 50 for n in seen.values())
+
+
+@pytest.mark.parametrize("storage", ["mcap", "ros1"])
+def test_batch_serialisation_matches_typestore(rec, tmp_path, storage):
+    """Every message written equals the typestore's own serialisation of its content."""
+    ros1 = storage == "ros1"
+    path = write_bag(tmp_path / ("d.bag" if ros1 else "d"), rec, storage=storage)
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    ser = store.serialize_ros1 if ros1 else store.serialize_cdr
+    n = 0
+    with AnyReader([path]) as reader:
+        for conn, _t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            assert bytes(ser(msg, conn.msgtype)) == bytes(raw), conn.topic
+            n += 1
+    assert n == rec.joy_t.size + rec.vo_t.size + rec.truth_t[::5].size
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3", "ros1"])
+def test_same_seed_gives_byte_identical_bags(tmp_path, storage):
+    name = "drive.bag" if storage == "ros1" else "drive"
+    paths = []
+    for k in range(2):
+        (tmp_path / str(k)).mkdir()
+        paths.append(write_bag(tmp_path / str(k) / name, simulate("carpet", 0.2, 3),
+                               storage=storage))
+    assert _files(paths[0]) == _files(paths[1])
+    (tmp_path / "2").mkdir()
+    other = write_bag(tmp_path / "2" / name, simulate("carpet", 0.2, 4), storage=storage)
+    assert _files(other) != _files(paths[0])
+
+
+# ----------------------------------------------------------------------------- other types
+def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | str = False,
+                  joy_axes=(0.25, -0.5, 0.75), ros1: bool = False) -> None:
+    """A hand-made bag: /joy + /twist of ``twist_type``, header stamps 20 ms before bag time."""
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    T = store.types
+    ser = store.serialize_ros1 if ros1 else store.serialize_cdr
+
+    def header(t_ns: int, frame: str):
+        bad = zero_stamps if isinstance(zero_stamps, bool) else (t_ns // 10**8) % 2 == 1
+        sec, nsec = divmod(0 if bad else t_ns, 10**9)
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        if ros1:
+            return T["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    V3, Tw = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Twist"]
+
+    def twist_msg(i: int, t_ns: int):
+        tw = Tw(linear=V3(x=0.1 * i, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=-0.05 * i))
+        if twist_type == "geometry_msgs/msg/Twist":
+            return tw
+        if twist_type == "geometry_msgs/msg/TwistStamped":
+            return T[twist_type](header=header(t_ns, "base_link"), twist=tw)
+        twc = T["geometry_msgs/msg/TwistWithCovariance"](twist=tw, covariance=np.zeros(36))
+        if twist_type == "geometry_msgs/msg/TwistWithCovarianceStamped":
+            return T[twist_type](header=header(t_ns, "base_link"), twist=twc)
+        pose = T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)),
+            covariance=np.zeros(36))
+        return T[twist_type](header=header(t_ns, "odom"), child_frame_id="base_link",
+                             pose=pose, twist=twc)
+
+    base = 1_600_000_000 * 10**9
+    w = Writer1(path) if ros1 else Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    with w:
+        cj = w.add_connection("/joy", "sensor_msgs/msg/Joy", typestore=store)
+        ct = w.add_connection("/twist", twist_type, typestore=store)
+        for i in range(n):
+            t_ns = base + i * 100_000_000
+            joy = T["sensor_msgs/msg/Joy"](header=header(t_ns, ""),
+                                          axes=np.array(joy_axes, dtype=np.float32),
+                                          buttons=np.zeros(0, dtype=np.int32))
+            w.write(cj, t_ns + 20_000_000, ser(joy, "sensor_msgs/msg/Joy"))
+            w.write(ct, t_ns + 20_000_000, ser(twist_msg(i, t_ns), twist_type))
+
+
+@pytest.mark.parametrize("twist_type", bags.TWIST_TYPES)
+def test_twist_types(tmp_path, twist_type):
+    path = tmp_path / "b"
+    _write_custom(path, twist_type)
+    s = read_streams(path, twist_topic="/twist")
+    i = np.arange(20)
+    np.testing.assert_allclose(s.vel[:, 0], 0.1 * i)
+    np.testing.assert_allclose(s.vel[:, 1], -0.05 * i)
+    t0 = 1_600_000_000.0
+    expect = t0 + 0.1 * i + (0.02 if twist_type == "geometry_msgs/msg/Twist" else 0.0)
+    np.testing.assert_allclose(s.vel_t, expect, atol=1e-6)
+    np.testing.assert_allclose(s.joy_t, t0 + 0.1 * i, atol=1e-6)  # header stamps
+
+
+def test_ros1_custom_bag(tmp_path):
+    path = tmp_path / "old.bag"
+    _write_custom(path, "geometry_msgs/msg/TwistStamped", ros1=True)
+    s = read_streams(path, twist_topic="/twist", joy_axes="1,-0")
+    np.testing.assert_allclose(s.joy[0], [-0.5, -0.25])
+
+
+def test_invalid_header_stamps_fall_back_to_bag_time(tmp_path):
+    path = tmp_path / "b"
+    _write_custom(path, "geometry_msgs/msg/TwistStamped", zero_stamps=True)
+    s = read_streams(path, twist_topic="/twist")
+    np.testing.assert_allclose(s.vel_t, 1_600_000_000.02 + 0.1 * np.arange(20), atol=1e-6)
+    # Some stamps invalid: those use bag time minus the topic's median latency (20 ms),
+    # so the series stays on the header clock.
+    mixed = tmp_path / "mixed"
+    _write_custom(mixed, "geometry_msgs/msg/TwistStamped", zero_stamps="odd")
+    s = read_streams(mixed, twist_topic="/twist")
+    np.testing.assert_allclose(s.vel_t, 1_600_000_000.0 + 0.1 * np.arange(20), atol=1e-6)
+
+
+def test_joy_axes_syntax_and_mapping(tmp_path):
+    assert parse_joy_axes("0,1") == JoyAxes()
+    assert parse_joy_axes("1,-0") == JoyAxes(forward=1, turn=0, turn_sign=-1.0)
+    assert parse_joy_axes(" -3 , 2 ") == JoyAxes(forward=3, turn=2, forward_sign=-1.0)
+    assert str(parse_joy_axes("1,-0")) == "1,-0"
+    for bad in ("0", "0,0", "a,1", "0,1,2", "-,1", ""):
+        with pytest.raises(ValueError, match="joy-axes"):
+            parse_joy_axes(bad)
+    path = tmp_path / "b"
+    _write_custom(path, "geometry_msgs/msg/TwistStamped")
+    s = read_streams(path, twist_topic="/twist", joy_axes="2,-1")
+    np.testing.assert_allclose(s.joy[0], [0.75, 0.5])
+    with pytest.raises(BagError, match=r"needs 4"):
+        read_streams(path, twist_topic="/twist", joy_axes="3,0")
+
+
+# ----------------------------------------------------------------------------- errors
+def test_missing_bag_and_not_a_bag(tmp_path):
+    with pytest.raises(BagError, match="no such bag"):
+        read_streams(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError, match=r"metadata\.yaml"):
+        read_streams(tmp_path / "empty")
+    (tmp_path / "x.txt").write_text("hello")
+    with pytest.raises(BagError, match="not a bag"):
+        read_streams(tmp_path / "x.txt")
+
+
+def test_missing_topic_lists_the_bag_topics(mcap_bag):
+    with pytest.raises(BagError) as err:
+        read_streams(mcap_bag, twist_topic="/vo/odom")
+    msg = str(err.value)
+    assert str(mcap_bag) in msg and "/vo/odom" in msg
+    assert "/vo/twist [geometry_msgs/msg/TwistStamped]" in msg
+    assert "/joy [sensor_msgs/msg/Joy]" in msg
+
+
+def test_unsupported_type(mcap_bag):
+    with pytest.raises(BagError, match="unsupported type sensor_msgs/msg/Joy"):
+        read_streams(mcap_bag, twist_topic="/joy")
+    with pytest.raises(BagError, match="unsupported type"):
+        read_streams(mcap_bag, truth_topic="/vo/twist")
+
+
+def test_truncated_and_corrupt_bags(mcap_bag, rec, tmp_path):
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    data = (bad / "drive.mcap").read_bytes()
+    (bad / "drive.mcap").write_bytes(data[: len(data) // 2])
+    with pytest.raises(BagError, match="drive") as err:
+        read_streams(bad)
+    assert "corrupt" in str(err.value) or "truncated" in str(err.value)
+    r1 = write_bag(tmp_path / "one.bag", rec)
+    raw = r1.read_bytes()
+    r1.write_bytes(raw[: len(raw) // 3])
+    with pytest.raises(BagError, match=r"one\.bag"):
+        read_streams(r1)
+    (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 8)
+    with pytest.raises(BagError, match=r"junk\.bag"):
+        read_streams(tmp_path / "junk.bag")
+
+
+def test_failed_write_leaves_nothing(rec, tmp_path, monkeypatch):
+    target = tmp_path / "drive"
+    real_write = Writer.write
+
+    def failing_write(self, conn, ts, data):
+        if self.counts[conn.id] > 100:
+            raise OSError("disk full")
+        return real_write(self, conn, ts, data)
+
+    monkeypatch.setattr(Writer, "write", failing_write)
+    with pytest.raises(BagError, match="disk full"):
+        write_bag(target, rec)
+    assert not target.exists()
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(BagError, match="storage"):
+        write_bag(tmp_path / "x", rec, storage="zip")
