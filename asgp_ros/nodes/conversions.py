@@ -5,3 +5,479 @@ directly. Sections are grouped by message family.
 """
 
 from __future__ import annotations
+
+from typing import Any
+
+# --------------------------------------------------------------------------------------
+# Predictor: time, Joy, TwistStamped / Odometry, Float32MultiArray plans, Path, MarkerArray
+# (message classes are imported inside the functions so this section is self-contained)
+
+
+def stamp_to_seconds(stamp: Any) -> float:
+    """builtin_interfaces/Time -> seconds (float), computed as the bag reader does
+    (integer nanoseconds * 1e-9), so live and recorded stamps are bit-identical."""
+    return float(int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9
+
+
+def seconds_to_stamp(t: float) -> Any:
+    """Seconds (>= 0) -> builtin_interfaces/Time (rounded to the nanosecond)."""
+    from builtin_interfaces.msg import Time
+
+    ns = round(t * 1e9)
+    if ns < 0:
+        raise ValueError(f"cannot stamp a negative time ({t} s)")
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def yaw_to_quaternion(yaw: float) -> tuple[float, float, float, float]:
+    """Planar yaw -> quaternion (x, y, z, w) about +z (REP-103)."""
+    import math
+
+    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
+
+
+def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw of a quaternion (rotation about +z after the ZYX decomposition)."""
+    import math
+
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def joy_to_sample(msg: Any, forward_axis: int = 0, turn_axis: int = 1
+                  ) -> tuple[float, tuple[float, float]]:
+    """sensor_msgs/Joy -> (stamp s, (forward, turn)); stamp 0.0 if the header is unset.
+
+    Raises:
+        ValueError: the message has too few axes.
+    """
+    axes = msg.axes
+    if len(axes) <= max(forward_axis, turn_axis):
+        raise ValueError(
+            f"Joy has {len(axes)} axes; forward axis {forward_axis} and turn axis "
+            f"{turn_axis} are needed"
+        )
+    return (stamp_to_seconds(msg.header.stamp),
+            (float(axes[forward_axis]), float(axes[turn_axis])))
+
+
+def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -> Any:
+    """(stamp s, forward, turn) -> sensor_msgs/Joy with axes [forward, turn]."""
+    from sensor_msgs.msg import Joy
+
+    msg = Joy()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.axes = [float(forward), float(turn)]
+    return msg
+
+
+def twist_stamped_to_sample(msg: Any) -> tuple[float, tuple[float, float]]:
+    """geometry_msgs/TwistStamped -> (stamp s, (v = linear.x, omega = angular.z))."""
+    tw = msg.twist
+    return (stamp_to_seconds(msg.header.stamp),
+            (float(tw.linear.x), float(tw.angular.z)))
+
+
+def twist_stamped_from_sample(t: float, v: float, omega: float,
+                              frame_id: str = "base_link") -> Any:
+    """(stamp s, v, omega) -> geometry_msgs/TwistStamped."""
+    from geometry_msgs.msg import TwistStamped
+
+    msg = TwistStamped()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.twist.linear.x = float(v)
+    msg.twist.angular.z = float(omega)
+    return msg
+
+
+#: Odometry twist variance at or above which a velocity is taken as a tracking failure.
+ODOM_LOST_VARIANCE = 1e6
+
+
+def odometry_to_sample(msg: Any) -> tuple[float, tuple[float, float], bool,
+                                              tuple[float, float, float]]:
+    """nav_msgs/Odometry -> (stamp s, (v, omega), tracking ok, (x, y, yaw) in the odom frame).
+
+    Tracking is taken as lost when the twist is not finite or its linear-x variance is
+    negative, non-finite or >= ``ODOM_LOST_VARIANCE`` (how odometry sources flag an
+    unusable estimate).
+    """
+    import math
+
+    tw = msg.twist
+    v, w = float(tw.twist.linear.x), float(tw.twist.angular.z)
+    var = float(tw.covariance[0])
+    ok = (math.isfinite(v) and math.isfinite(w) and math.isfinite(var)
+          and 0.0 <= var < ODOM_LOST_VARIANCE)
+    p = msg.pose.pose
+    q = p.orientation
+    yaw = quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
+    return (stamp_to_seconds(msg.header.stamp), (v, w), ok,
+            (float(p.position.x), float(p.position.y), yaw))
+
+
+def plan_from_multiarray(msg: Any) -> Any:
+    """std_msgs/Float32MultiArray -> [m, 2] float64 joystick plan (rows = steps).
+
+    The layout is either empty (data = [f0, t0, f1, t1, ...]) or two dimensions
+    ``[m, 2]``; ``layout.data_offset`` is honoured.
+
+    Raises:
+        ValueError: malformed layout, odd length, empty, or non-finite values.
+    """
+    import numpy as np
+
+    layout = msg.layout
+    data = np.asarray(msg.data, dtype=np.float64)[int(layout.data_offset):]
+    dims = list(layout.dim)
+    if dims:
+        if len(dims) != 2 or int(dims[1].size) != 2:
+            raise ValueError(
+                "joy_plan layout must be [steps, 2], got "
+                + "x".join(str(d.size) for d in dims)
+            )
+        m = int(dims[0].size)
+        if data.shape[0] < 2 * m:
+            raise ValueError(f"joy_plan layout says {m} steps but holds {data.shape[0]} values")
+        data = data[: 2 * m]
+    if data.shape[0] == 0 or data.shape[0] % 2:
+        raise ValueError(f"joy_plan needs 2 values per step, got {data.shape[0]} values")
+    if not np.all(np.isfinite(data)):
+        raise ValueError("joy_plan contains NaN or inf")
+    return data.reshape(-1, 2)
+
+
+def plan_to_multiarray(plan: Any) -> Any:
+    """[m, 2] joystick plan -> std_msgs/Float32MultiArray with layout [steps, axis]."""
+    import numpy as np
+    from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+
+    arr = np.asarray(plan, dtype=np.float32)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"a plan must be [m, 2], got {arr.shape}")
+    msg = Float32MultiArray()
+    msg.layout.dim = [
+        MultiArrayDimension(label="step", size=arr.shape[0], stride=2 * arr.shape[0]),
+        MultiArrayDimension(label="axis", size=2, stride=2),
+    ]
+    msg.data = arr.reshape(-1).tolist()
+    return msg
+
+
+def path_from_poses(poses: Any, times: Any, frame_id: str, stamp: float) -> Any:
+    """[k, 3] (x, y, theta) poses at [k] times -> nav_msgs/Path (header at ``stamp``)."""
+    import numpy as np
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+
+    pose_arr = np.asarray(poses, dtype=np.float64)
+    time_arr = np.asarray(times, dtype=np.float64)
+    msg = Path()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    out = []
+    for (x, y, th), t in zip(pose_arr, time_arr, strict=True):
+        ps = PoseStamped()
+        ps.header.stamp = seconds_to_stamp(float(t))
+        ps.header.frame_id = frame_id
+        ps.pose.position.x = float(x)
+        ps.pose.position.y = float(y)
+        q = yaw_to_quaternion(float(th))
+        ps.pose.orientation.x, ps.pose.orientation.y = q[0], q[1]
+        ps.pose.orientation.z, ps.pose.orientation.w = q[2], q[3]
+        out.append(ps)
+    msg.poses = out
+    return msg
+
+
+def path_to_poses(msg: Any) -> tuple[Any, Any]:
+    """nav_msgs/Path -> (times [k], poses [k, 3] (x, y, yaw))."""
+    import numpy as np
+
+    poses = msg.poses
+    times = np.array([stamp_to_seconds(p.header.stamp) for p in poses])
+    arr = np.array([
+        (p.pose.position.x, p.pose.position.y,
+         quaternion_to_yaw(p.pose.orientation.x, p.pose.orientation.y,
+                           p.pose.orientation.z, p.pose.orientation.w))
+        for p in poses
+    ]).reshape(-1, 3)
+    return times, arr
+
+
+def ellipse_markers(centers: Any, ellipses: Any, frame_id: str, stamp: float,
+                    ns: str = "prediction_95", height: float = 0.02,
+                    rgba: tuple[float, float, float, float] = (0.1, 0.5, 1.0, 0.35)) -> Any:
+    """Position confidence ellipses -> visualization_msgs/MarkerArray for RViz.
+
+    The array starts with a DELETEALL marker, then one flat CYLINDER per step (ids
+    0..k-1): RViz never accumulates old ellipses. An empty ``centers`` gives only the
+    DELETEALL (clears the display when predictions stop).
+
+    Args:
+        centers: [k, 2] ellipse centres (x, y).
+        ellipses: [k, 3] (semi-major, semi-minor, angle of the major axis), see
+            ``asgp_ros.core.online.confidence_ellipses``.
+    """
+    import numpy as np
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    c = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    e = np.asarray(ellipses, dtype=np.float64).reshape(-1, 3)
+    header_stamp = seconds_to_stamp(stamp)
+    clear = Marker()
+    clear.header.frame_id = frame_id
+    clear.header.stamp = header_stamp
+    clear.ns = ns
+    clear.action = Marker.DELETEALL
+    markers = [clear]
+    for i, ((x, y), (major, minor, angle)) in enumerate(zip(c, e, strict=True)):
+        m = Marker()
+        m.header.frame_id = frame_id
+        m.header.stamp = header_stamp
+        m.ns = ns
+        m.id = i
+        m.type = Marker.CYLINDER
+        m.action = Marker.ADD
+        m.pose.position.x = float(x)
+        m.pose.position.y = float(y)
+        q = yaw_to_quaternion(float(angle))
+        m.pose.orientation.z, m.pose.orientation.w = q[2], q[3]
+        m.scale.x = max(2.0 * float(major), 1e-3)
+        m.scale.y = max(2.0 * float(minor), 1e-3)
+        m.scale.z = height
+        m.color.r, m.color.g, m.color.b, m.color.a = (float(v) for v in rgba)
+        markers.append(m)
+    return MarkerArray(markers=markers)
+
+
+# --------------------------------------------------------------------------------------
+# Serial bridge: joystick overrides in, diagnostics out
+
+
+def joy_to_override(msg: Any) -> tuple[float, float]:
+    """sensor_msgs/Joy on ``joy_override`` -> (forward, turn) deflections in [-1, 1].
+
+    Raises:
+        ValueError: fewer than 2 axes, a non-finite value or one outside [-1, 1] (an
+            override is refused, never clipped: a bad command is a bug upstream).
+    """
+    import math
+
+    axes = msg.axes
+    if len(axes) < 2:
+        raise ValueError(f"joy_override needs axes [forward, turn], got {len(axes)} axes")
+    fwd, turn = float(axes[0]), float(axes[1])
+    for name, v in (("forward", fwd), ("turn", turn)):
+        if not (math.isfinite(v) and -1.0 <= v <= 1.0):
+            raise ValueError(f"joy_override {name} deflection {v} is not in [-1, 1]")
+    return fwd, turn
+
+
+def diagnostic_status(name: str, level: str, message: str, hardware_id: str = "",
+                      values: Any = None) -> Any:
+    """-> diagnostic_msgs/DiagnosticStatus; ``level`` is "OK", "WARN", "ERROR" or "STALE",
+    ``values`` a mapping whose items become KeyValue strings (floats with 4 significant
+    digits)."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    levels = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN,
+              "ERROR": DiagnosticStatus.ERROR, "STALE": DiagnosticStatus.STALE}
+    if level not in levels:
+        raise ValueError(f"diagnostic level must be one of {sorted(levels)}, got {level!r}")
+    st = DiagnosticStatus()
+    st.level = levels[level]
+    st.name = name
+    st.message = message
+    st.hardware_id = hardware_id
+    st.values = [KeyValue(key=str(k), value=f"{v:.4g}" if isinstance(v, float) else str(v))
+                 for k, v in (values or {}).items()]
+    return st
+
+
+def diagnostic_array(t: float, statuses: Any) -> Any:
+    """(stamp s, [DiagnosticStatus]) -> diagnostic_msgs/DiagnosticArray."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    msg = DiagnosticArray()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.status = list(statuses)
+    return msg
+
+
+def diagnostic_values(status: Any) -> dict[str, str]:
+    """diagnostic_msgs/DiagnosticStatus -> {key: value} (for tests and monitors)."""
+    return {kv.key: kv.value for kv in status.values}
+
+
+# --------------------------------------------------------------------------------------
+# Simulated hardware (demo): camera images and info out, ground-truth odometry out
+
+#: numpy image layout -> sensor_msgs/Image encoding (REP-118 depth: 16UC1 mm, 32FC1 m).
+_IMAGE_ENCODINGS = {("uint8", 3): "bgr8", ("uint8", 1): "mono8", ("uint16", 1): "16UC1",
+                    ("float32", 1): "32FC1"}
+
+
+def image_from_array(t: float, image: Any, frame_id: str) -> Any:
+    """[h, w, 3] uint8 BGR, [h, w] uint8 grey, [h, w] uint16 depth (mm) or [h, w] float32
+    depth (m) -> sensor_msgs/Image (bgr8, mono8, 16UC1, 32FC1), native byte order.
+
+    Raises:
+        ValueError: any other dtype or shape.
+    """
+    import sys
+
+    import numpy as np
+    from sensor_msgs.msg import Image
+
+    arr = np.ascontiguousarray(image)
+    channels = 1 if arr.ndim == 2 else (arr.shape[2] if arr.ndim == 3 else 0)
+    encoding = _IMAGE_ENCODINGS.get((str(arr.dtype), channels))
+    if encoding is None:
+        raise ValueError(f"no image encoding for a {arr.dtype} array of shape {arr.shape}")
+    msg = Image()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = int(sys.byteorder == "big")
+    msg.step = int(arr.shape[1] * channels * arr.dtype.itemsize)
+    msg.data = arr.tobytes()
+    return msg
+
+
+def camera_info_from_matrix(t: float, camera_matrix: Any, width: int, height: int,
+                            frame_id: str) -> Any:
+    """Pinhole K [3, 3] of an undistorted image -> sensor_msgs/CameraInfo (plumb_bob with
+    zero distortion, R = I, P = [K | 0])."""
+    import numpy as np
+    from sensor_msgs.msg import CameraInfo
+
+    K = np.asarray(camera_matrix, dtype=np.float64).reshape(3, 3)
+    msg = CameraInfo()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = int(width), int(height)
+    msg.distortion_model = "plumb_bob"
+    msg.d = [0.0] * 5
+    msg.k = K.reshape(-1).tolist()
+    msg.r = np.eye(3).reshape(-1).tolist()
+    msg.p = np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist()
+    return msg
+
+
+def odometry_from_pose(t: float, x: float, y: float, yaw: float, v: float, omega: float,
+                       frame_id: str = "odom", child_frame_id: str = "base_link") -> Any:
+    """Planar pose (x, y, yaw) and body twist (v, omega) -> nav_msgs/Odometry (exact:
+    zero covariance)."""
+    from nav_msgs.msg import Odometry
+
+    msg = Odometry()
+    msg.header.stamp = seconds_to_stamp(t)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose.position.x = float(x)
+    msg.pose.pose.position.y = float(y)
+    q = yaw_to_quaternion(float(yaw))
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = q
+    msg.twist.twist.linear.x = float(v)
+    msg.twist.twist.angular.z = float(omega)
+    return msg
+
+
+# --------------------------------------------------------------------------------------
+# Visual odometry: Image / CameraInfo in, Odometry with covariance out (TwistStamped via
+# twist_stamped_from_sample)
+
+#: sensor_msgs/Image encoding -> (numpy dtype, channels) accepted by image_to_array.
+_IMAGE_DECODINGS = {"bgr8": ("uint8", 3), "rgb8": ("uint8", 3), "bgra8": ("uint8", 4),
+                    "rgba8": ("uint8", 4), "mono8": ("uint8", 1), "8UC1": ("uint8", 1),
+                    "8UC3": ("uint8", 3), "16UC1": ("uint16", 1), "mono16": ("uint16", 1),
+                    "32FC1": ("float32", 1)}
+
+
+def image_to_array(msg: Any) -> Any:
+    """sensor_msgs/Image -> numpy, honouring ``step`` (row padding) and ``is_bigendian``.
+
+    Colour comes back as [h, w, 3] uint8 BGR (rgb8/rgba8 are reordered, alpha dropped),
+    mono8 as [h, w] uint8, 16UC1/mono16 as [h, w] uint16 (depth in sensor units, mm for
+    REP-118), 32FC1 as [h, w] float32 (depth in metres). The array owns its memory.
+
+    Raises:
+        ValueError: unsupported encoding, empty image, or a data size that does not match
+            height x step.
+    """
+    import numpy as np
+
+    enc = str(msg.encoding)
+    if enc not in _IMAGE_DECODINGS:
+        raise ValueError(f"unsupported image encoding {enc!r}; expected one of "
+                         f"{sorted(_IMAGE_DECODINGS)}")
+    dtype_name, channels = _IMAGE_DECODINGS[enc]
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise ValueError(f"empty {enc} image ({w}x{h})")
+    dtype = np.dtype(dtype_name).newbyteorder(">" if msg.is_bigendian else "<")
+    row = w * channels * dtype.itemsize
+    if step < row:
+        raise ValueError(f"{enc} image step {step} < {row} bytes for width {w}")
+    try:  # array.array / bytes: no copy
+        buf = np.frombuffer(msg.data, dtype=np.uint8)
+    except TypeError:  # a plain sequence of ints
+        buf = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    if buf.size != h * step:
+        raise ValueError(f"{enc} image data has {buf.size} bytes, expected height {h} x "
+                         f"step {step} = {h * step}")
+    rows = buf.reshape(h, step)[:, :row]
+    arr = np.ascontiguousarray(rows).view(dtype).reshape((h, w) if channels == 1
+                                                       else (h, w, channels))
+    arr = arr.astype(dtype.newbyteorder("="), copy=True)
+    if enc in ("rgb8", "rgba8"):
+        arr = np.ascontiguousarray(arr[..., 2::-1])
+    elif enc == "bgra8":
+        arr = np.ascontiguousarray(arr[..., :3])
+    return arr
+
+
+def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
+    """sensor_msgs/CameraInfo -> (K [3, 3] float64, width, height, has_distortion).
+
+    Raises:
+        ValueError: K unset (all zero), not finite, or not a pinhole matrix.
+    """
+    import numpy as np
+
+    K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
+    if not np.all(np.isfinite(K)) or not np.any(K):
+        raise ValueError("CameraInfo K is unset or not finite (uncalibrated camera)")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or np.any(K[2, :2] != 0):
+        raise ValueError(f"CameraInfo K is not a pinhole matrix: {K.reshape(-1).tolist()}")
+    d = np.asarray(msg.d, dtype=np.float64)
+    return K, int(msg.width), int(msg.height), bool(d.size and np.any(d != 0))
+
+
+def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov: Any,
+                             v: float, omega: float, twist_cov: Any,
+                             frame_id: str = "odom",
+                             child_frame_id: str = "base_link") -> Any:
+    """Planar VO estimate -> nav_msgs/Odometry with covariances.
+
+    Args:
+        pose_cov: [3, 3] covariance of (x, y, yaw) in ``frame_id``; z, roll and pitch are
+            fixed by the planar model and get a variance of 1e-6.
+        twist_cov: [6, 6] covariance of the body twist (vx, vy, vz, wx, wy, wz) in
+            ``child_frame_id``; the message carries v = vx and omega = wz.
+    """
+    import numpy as np
+
+    P3 = np.asarray(pose_cov, dtype=np.float64).reshape(3, 3)
+    T6 = np.asarray(twist_cov, dtype=np.float64).reshape(6, 6)
+    P6 = np.diag([0.0, 0.0, 1e-6, 1e-6, 1e-6, 0.0])
+    idx = [0, 1, 5]
+    P6[np.ix_(idx, idx)] = P3
+    msg = odometry_from_pose(t, x, y, yaw, v, omega, frame_id, child_frame_id)
+    msg.pose.covariance = P6.reshape(-1).tolist()
+    msg.twist.covariance = T6.reshape(-1).tolist()
+    return msg

@@ -1,0 +1,115 @@
+"""``asgp board``: run the simulated joystick interface board on a pty (prints its port),
+or ``--monitor PORT`` a real board's raw joystick readings for calibration."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from asgp_ros.cli import CommandError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "board", help="simulated Arduino joystick board on a pty (or monitor a real one)",
+        description="Start the simulated joystick interface board: it speaks the real link "
+                    "protocol on a pseudo-terminal and prints the port path for "
+                    "serial_bridge_node's `port` parameter. Ctrl-C stops it.")
+    p.add_argument("--link", type=Path, default=None,
+                   help="also expose the port as this stable symlink (like a udev name)")
+    p.add_argument("--rate", type=float, default=100.0, help="sampling rate, Hz (100)")
+    p.add_argument("--source", choices=("auto", "driver", "scripted", "neutral"),
+                   default="auto",
+                   help="joystick: the simulator's driver on a simulated chair that follows "
+                        "the board's output, a scripted smooth joystick, or neutral "
+                        "(auto: driver if available)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", type=float, default=0.5, help="ADC noise, counts (0.5)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many s")
+    p.add_argument("--status-every", type=float, default=0.0,
+                   help="print the board's output every N s (0: never)")
+    p.add_argument("--monitor", metavar="PORT", default=None,
+                   help="instead: read a real board on PORT for --duration s (default 10) "
+                        "and print its raw joystick range and a calibration block")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.monitor:
+        return _monitor(args)
+    from asgp_ros.serial.protocol import Status
+    from asgp_ros.sim.board import ScriptedJoystick, SimulatedBoard, driver_joystick
+
+    if not 1.0 <= args.rate <= 1000.0:
+        raise CommandError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
+    if args.link is not None and args.link.exists() and not args.link.is_symlink():
+        raise CommandError(f"--link {args.link} exists and is not a symlink")
+    board = SimulatedBoard(rate_hz=args.rate, link_path=args.link, noise_counts=args.noise,
+                           seed=args.seed)
+    source_name = args.source
+    if args.source in ("auto", "driver"):
+        source = driver_joystick(args.seed, board)
+        if source is None:
+            if args.source == "driver":
+                raise CommandError("the simulator's driver (asgp_ros.sim.driver) is not "
+                                   "available")
+            source_name = "scripted"
+            source = ScriptedJoystick(args.seed)
+        else:
+            source_name = "driver"
+    elif args.source == "scripted":
+        source = ScriptedJoystick(args.seed)
+    else:
+        def source(t: float) -> tuple[float, float]:
+            return 0.0, 0.0
+    board.set_joystick(source)
+    board.start()
+    print(board.port, flush=True)
+    print(f"simulated board: {args.rate:g} Hz, joystick {source_name}, pty {board.slave_path}"
+          " (Ctrl-C stops)", flush=True)
+    t0 = time.monotonic()
+    next_status = t0
+    try:
+        while args.duration is None or time.monotonic() - t0 < args.duration:
+            time.sleep(0.05)
+            if board.error is not None:
+                raise CommandError(f"simulated board stopped: {board.error}")
+            if args.status_every > 0 and time.monotonic() >= next_status:
+                next_status += args.status_every
+                o = board.output
+                flags = "|".join(f.name or "" for f in Status if f and f in o.status)
+                print(f"t={o.t:7.2f}s user=({o.user_forward:+.2f},{o.user_turn:+.2f}) "
+                      f"out=({o.forward:+.2f},{o.turn:+.2f}) mode={o.mode.name.lower()} "
+                      f"status={flags.lower() or 'none'}", flush=True)
+    finally:
+        board.stop()
+    return 0
+
+
+def _monitor(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from asgp_ros.serial.link import LinkConfig, LinkManager, LinkState
+
+    duration = 10.0 if args.duration is None else args.duration
+    raws: list[tuple[int, int]] = []
+    link = LinkManager(LinkConfig(args.monitor),
+                       on_sample=lambda s: raws.append((s.raw_forward, s.raw_turn)))
+    print(f"reading {args.monitor} for {duration:g} s: leave the joystick at rest for the "
+          f"first {duration / 5:.1f} s, then push it to all four extremes", flush=True)
+    with link:
+        if not link.wait_for_state(LinkState.CONNECTED, 5.0):
+            raise CommandError(f"no board answered on {args.monitor}: "
+                               f"{link.stats().last_error or link.state.value}")
+        print(f"connected: firmware {link.stats().firmware}", flush=True)
+        time.sleep(duration)
+    if len(raws) < 10:
+        raise CommandError(f"only {len(raws)} samples received")
+    r = np.asarray(raws, dtype=float)  # [N, 2]
+    rest = r[: max(1, len(r) // 5)]
+    print("calibration:")
+    for i, axis in enumerate(("forward", "turn")):
+        print(f"  {axis}:\n    neutral: {np.median(rest[:, i]):.1f}\n"
+              f"    minimum: {r[:, i].min():.1f}\n    maximum: {r[:, i].max():.1f}")
+    return 0

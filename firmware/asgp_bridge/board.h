@@ -1,0 +1,45 @@
+/*
+ * The board's link logic without hardware: frames in -> safety state, control ticks ->
+ * SAMPLE / HEARTBEAT / ERROR frames out. Plain C99; the sketch supplies the clock, the ADC
+ * readings, the DAC and a function that writes bytes to the UART.
+ */
+#ifndef ASGP_BOARD_H
+#define ASGP_BOARD_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "protocol.h"
+#include "safety.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+typedef void (*asgp_write_fn)(const uint8_t *data, size_t len, void *ctx);
+
+typedef struct {
+    asgp_parser_t parser;
+    asgp_safety_t safety;
+    asgp_axis_cal_t cal[2];
+    asgp_output_t out;
+    uint8_t tx_seq;
+    uint8_t pending_error;  /* ASGP_ERR_* to report at the next tick, 0 = none */
+    uint8_t pending_detail;
+    uint16_t rx_frames;     /* valid frames from the host */
+    uint16_t tick_count;
+    asgp_write_fn write;
+    void *write_ctx;
+} asgp_board_t;
+
+void asgp_board_init(asgp_board_t *b, asgp_write_fn write, void *ctx);
+/* One received byte; complete frames are acted on at once. */
+void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms);
+/* One control tick (ASGP_SAMPLE_RATE_HZ): returns the output to write to the DAC. */
+const asgp_output_t *asgp_board_tick(asgp_board_t *b, const int16_t raw[2], uint32_t now_ms);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* ASGP_BOARD_H */

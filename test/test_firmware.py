@@ -1,0 +1,320 @@
+"""The firmware: host C unit test of its plain-C logic, agreement between the C and the
+Python mirror (constants, CRC table, parser, whole board logic byte for byte), and the
+real AVR build for the ATmega2560."""
+
+from __future__ import annotations
+
+import os
+import random
+import re
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from asgp_ros.serial import protocol as proto
+from asgp_ros.serial import safety as fw
+from asgp_ros.serial.link import LinkConfig, LinkManager, LinkState
+
+pytestmark = pytest.mark.skipif(shutil.which("gcc") is None or shutil.which("make") is None,
+                                reason="needs gcc and make for the host build of the "
+                                       "firmware logic")
+
+
+@pytest.fixture(scope="module")
+def host_build(repo_root, tmp_path_factory):
+    build = tmp_path_factory.mktemp("fw-host")
+    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={build}", "host"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return build / "host"
+
+
+def _defines(path) -> dict[str, int]:
+    out = {}
+    for m in re.finditer(r"^#define (ASGP_\w+) +\(?(0x[0-9A-Fa-f]+|-?\d+)U?L?\b", path.read_text(),
+                         re.M):
+        out[m.group(1)] = int(m.group(2), 0)
+    return out
+
+
+def test_host_unit_test(repo_root, host_build):
+    r = subprocess.run([str(host_build / "test_host"),
+                        str(repo_root / "firmware/test/vectors.txt")],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stdout + r.stderr
+    checks, failures = map(int, re.search(r"(\d+) checks, (\d+) failures", r.stdout).groups())
+    assert checks > 100 and failures == 0
+
+
+def test_python_mirror_uses_the_firmware_constants(repo_root):
+    src = repo_root / "firmware/asgp_bridge"
+    d = _defines(src / "config.h") | _defines(src / "protocol.h")
+    assert (d["ASGP_FW_MAJOR"], d["ASGP_FW_MINOR"], d["ASGP_FW_PATCH"]) == fw.FW_VERSION
+    for name in ("SAMPLE_RATE_HZ", "HEARTBEAT_EVERY", "WATCHDOG_MS", "HOST_TIMEOUT_MS",
+                 "ADC_NEUTRAL", "ADC_SPAN", "ADC_DEADBAND", "ADC_FAULT_LOW", "ADC_FAULT_HIGH",
+                 "DAC_NEUTRAL", "DAC_SPAN", "DAC_MIN", "DAC_MAX", "FWD_LIMIT_POS",
+                 "FWD_LIMIT_NEG", "TURN_LIMIT_POS", "TURN_LIMIT_NEG", "BAUD"):
+        assert d[f"ASGP_{name}"] == getattr(fw, name), name
+    for name in ("SYNC0", "SYNC1", "PROTOCOL_VERSION", "HEADER_LEN", "CRC_LEN", "MAX_PAYLOAD",
+                 "PERMILLE"):
+        assert d[f"ASGP_{name}"] == getattr(proto, name), name
+    for t in proto.MsgType:
+        assert d[f"ASGP_MSG_{t.name}"] == t.value
+        assert d[f"ASGP_LEN_{t.name}"] == proto.PAYLOAD_LEN[t.value]
+    for s in proto.Status:
+        if s.name != "NONE":
+            assert d[f"ASGP_ST_{s.name}"] == s.value
+    for e in proto.ErrorCode:
+        assert d[f"ASGP_ERR_{e.name}"] == e.value
+    assert d["ASGP_MODE_PASSTHROUGH"] == proto.Mode.PASSTHROUGH
+    assert d["ASGP_MODE_OVERRIDE"] == proto.Mode.OVERRIDE
+
+
+def test_c_crc_table_is_the_polynomial(repo_root):
+    src = (repo_root / "firmware/asgp_bridge/protocol.c").read_text()
+    table = src.split("crc_table[256]")[1].split("};")[0]
+    values = tuple(int(v, 16) for v in re.findall(r"0x([0-9A-F]{4})", table))
+    assert values == proto.CRC16_TABLE
+
+
+def _tool(host_build, commands: list[str]) -> list[str]:
+    r = subprocess.run([str(host_build / "proto_tool")], input="\n".join(commands) + "\n",
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.splitlines()
+
+
+def _hostile(rng: random.Random, n: int) -> bytes:
+    out = bytearray()
+    while len(out) < n:
+        k = rng.random()
+        if k < 0.3:
+            out += bytes(rng.choice((0xA5, 0x5A, rng.randrange(256)))
+                         for _ in range(rng.randrange(1, 40)))
+        else:
+            payload = bytes(rng.randrange(256) for _ in range(rng.randrange(33)))
+            f = bytearray(proto.encode_frame(rng.randrange(256), rng.randrange(256), payload))
+            if k < 0.5:
+                f[rng.randrange(len(f))] ^= 1 << rng.randrange(8)
+            elif k < 0.6:
+                f = f[:rng.randrange(1, len(f))]
+            out += f
+    return bytes(out)
+
+
+def test_c_and_python_parsers_agree(host_build):
+    rng = random.Random(7)
+    streams = [_hostile(rng, 40_000) for _ in range(5)] + [b"", b"\xa5", b"\xa5\x5a\xff"]
+    lines = _tool(host_build, [f"parse {s.hex() or '-'}" for s in streams])
+    expected = []
+    for s in streams:
+        p = proto.StreamParser()
+        for f in p.feed(s):
+            expected.append(f"F {f.type} {f.seq} {f.payload.hex().upper() or '-'}")
+        expected.append(f"S {p.frames_ok % 65536} {p.crc_errors % 65536} "
+                        f"{(p.bytes_dropped) % 65536}")
+    assert lines == expected
+
+
+def _scenario(rng: random.Random, steps: int) -> list[tuple]:
+    """Random board inputs: host frames (good, bad, odd) and control ticks over time."""
+    ops: list[tuple] = []
+    now = 0
+    seq = 0
+    for _ in range(steps):
+        now += rng.choice((0, 1, 5, 10, 10, 10, 50, 150, 199, 200, 201, 400, 1200))
+        k = rng.random()
+        if k < 0.45:
+            near = rng.random() < 0.3
+            raw = tuple(rng.randrange(504, 521) if near else
+                        rng.choice((rng.randrange(0, 1024), rng.randrange(300, 725)))
+                        for _ in range(2))
+            ops.append(("tick", now, raw))
+            continue
+        seq = (seq + 1) & 0xFF
+        if k < 0.6:
+            pm = [rng.choice((rng.randrange(-1000, 1001), rng.randrange(-1200, 1201)))
+                  for _ in range(2)]
+            frame = proto.encode_frame(proto.MsgType.OVERRIDE, seq,
+                                       int(pm[0]).to_bytes(2, "little", signed=True)
+                                       + int(pm[1]).to_bytes(2, "little", signed=True))
+        elif k < 0.7:
+            frame = proto.encode(proto.SetMode(rng.choice((0, 1, 1, 2))), seq)
+        elif k < 0.75:
+            frame = proto.encode(proto.Hello(rng.choice((1, 1, 2))), seq)
+        elif k < 0.8:
+            frame = proto.encode(proto.Heartbeat(now, 1, 0, 0), seq)
+        elif k < 0.85:
+            frame = proto.encode_frame(rng.randrange(256), seq, bytes(rng.randrange(5)))
+        else:
+            frame = bytearray(proto.encode(proto.Override(100, 100), seq))
+            frame[rng.randrange(len(frame))] ^= 1 << rng.randrange(8)
+            frame = bytes(frame[:rng.randrange(1, len(frame) + 1)])
+        ops.append(("rx", now, frame))
+    return ops
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_c_board_and_python_mirror_agree_byte_for_byte(host_build, seed):
+    """The simulated board runs the Python mirror: it must do exactly what the C does."""
+    ops = _scenario(random.Random(seed), 600)
+    commands = [f"rx {now} {data.hex()}" if op == "rx" else f"tick {now} {data[0]} {data[1]}"
+                for op, now, data in ops]
+    got = _tool(host_build, commands)
+    expected: list[str] = []
+    board = fw.BoardLogic(lambda frame: expected.append(f"W {frame.hex().upper()}"))
+    for op, now, data in ops:
+        if op == "rx":
+            board.rx(data, now)
+        else:
+            o = board.tick(data, now)
+            expected.append(f"O {int(o.status)} {o.out_code[0]} {o.out_code[1]} "
+                            f"{o.user_pm[0]} {o.user_pm[1]} {o.out_pm[0]} {o.out_pm[1]}")
+    assert got == expected
+    statuses = {int(line.split()[1]) for line in got if line.startswith("O")}
+    # the scenario reaches the interesting states
+    for flag in (proto.Status.OVERRIDE_ACTIVE, proto.Status.WATCHDOG, proto.Status.ADC_FAULT):
+        assert any(s & flag for s in statuses), flag
+
+
+NO_AVR = pytest.mark.skipif(
+    shutil.which("avr-gcc") is None,
+    reason="avr-gcc not installed (Debian: gcc-avr avr-libc arduino-core-avr)")
+
+
+@pytest.fixture(scope="module")
+def avr_build(repo_root, tmp_path_factory):
+    build = tmp_path_factory.mktemp("fw-avr")
+    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={build}",
+                        "firmware"], capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return build
+
+
+@pytest.mark.firmware
+@NO_AVR
+def test_avr_build_for_the_mega(avr_build):
+    tmp_path = avr_build
+    hexfile = tmp_path / "asgp_bridge.hex"
+    assert hexfile.exists() and hexfile.stat().st_size > 1000
+    size = subprocess.run(["avr-size", "-A", str(tmp_path / "asgp_bridge.elf")],
+                          capture_output=True, text=True, check=True).stdout
+    sections = {m.group(1): int(m.group(2)) for m in re.finditer(r"^\.(\w+)\s+(\d+)", size, re.M)}
+    flash = sections["text"] + sections.get("data", 0)
+    ram = sections.get("data", 0) + sections.get("bss", 0)
+    assert flash < 253_952  # ATmega2560 flash minus the bootloader
+    assert ram < 6_000      # of 8 kB SRAM, leaving room for the stack
+    # the CRC table lives in flash, not in RAM
+    nm = subprocess.run(["avr-nm", "-S", str(tmp_path / "asgp_bridge.elf")],
+                        capture_output=True, text=True, check=True).stdout
+    table = [ln for ln in nm.splitlines() if ln.endswith("crc_table")]
+    assert table and table[0].split()[2] in ("t", "T")
+
+
+class SimavrBoard:
+    """The compiled firmware running in simavr (firmware/sim/asgp_simavr.c)."""
+
+    def __init__(self, exe: Path, elf: Path, forward_mv: int, turn_mv: int) -> None:
+        self.proc = subprocess.Popen([str(exe), str(elf), str(forward_mv), str(turn_mv)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, text=True)
+        self.dac: list[tuple[float, str, int]] = []  # (wall time, channel, code)
+        self.port = ""
+        deadline = time.monotonic() + 10.0
+        while not self.port and time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                break
+            if line.startswith("pty "):
+                self.port = line.split()[1]
+        assert self.port, "simavr did not open its UART pty"
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            parts = line.split()
+            if parts and parts[0] == "dac":
+                self.dac.append((time.monotonic(), parts[1], int(parts[2])))
+
+    def code(self, channel: str) -> int:
+        return next(c for _, ch, c in reversed(self.dac) if ch == channel)
+
+    def joystick(self, forward_mv: int, turn_mv: int) -> None:
+        self.proc.stdin.write(f"joy {forward_mv} {turn_mv}\n")
+        self.proc.stdin.flush()
+
+    def close(self) -> None:
+        try:
+            self.proc.stdin.write("quit\n")
+            self.proc.stdin.flush()
+            self.proc.wait(5)
+        except (BrokenPipeError, subprocess.TimeoutExpired):
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+def _wait(pred, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.005)
+    return bool(pred())
+
+
+@pytest.mark.firmware
+@pytest.mark.slow
+@NO_AVR
+@pytest.mark.skipif(not os.path.exists("/usr/include/simavr/sim_avr.h"),
+                    reason="simavr headers not installed (Debian: simavr libsimavr-dev)")
+def test_compiled_firmware_in_simavr_driven_by_the_host_link(repo_root, avr_build):
+    """The real firmware image on a simulated ATmega2560: the host link handshakes with it,
+    reads its samples, overrides its DAC, and sees its watchdog and neutral rule act."""
+    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={avr_build}",
+                        f"{avr_build}/host/asgp_simavr"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    board = SimavrBoard(avr_build / "host/asgp_simavr", avr_build / "asgp_bridge.elf",
+                        3000, 2500)  # 0.5 V forward of neutral, turn at rest
+    samples: list = []
+    try:
+        with LinkManager(LinkConfig(board.port), on_sample=samples.append) as link:
+            assert link.wait_for_state(LinkState.CONNECTED, 10.0), link.stats()
+            st = link.stats()
+            assert (st.firmware, st.board_rate_hz, st.board_watchdog_ms) == ("1.0.0", 100, 200)
+            assert _wait(lambda: len(samples) > 50, 5.0)
+            s = samples[-1]
+            assert abs(s.raw_forward - 614) <= 2 and abs(s.raw_turn - 512) <= 2
+            cal = fw.default_calibration()
+            user_code, _ = cal[0].permille_to_dac(cal[0].adc_to_permille(s.raw_forward))
+            assert board.code("A") == user_code == s.out_forward  # passthrough
+            assert board.code("B") == fw.DAC_NEUTRAL
+            # override: exact DAC codes (-0.5 -> 2048 - 409.5 rounded away from zero)
+            assert link.set_mode(proto.Mode.OVERRIDE)
+            t_last = 0.0
+            for _ in range(10):
+                link.send_override(-0.5, 0.25)
+                t_last = time.monotonic()
+                time.sleep(0.04)
+            assert (board.code("A"), board.code("B")) == (1638, 2253)
+            # watchdog: back to the user about 200 ms after the last override
+            assert _wait(lambda: board.code("A") == user_code, 2.0)
+            t_revert = next(t for t, ch, c in board.dac if ch == "A" and c == user_code
+                            and t > t_last)
+            print(f"simavr firmware reverted {1000 * (t_revert - t_last):.0f} ms after the "
+                  "last override")
+            assert 0.15 <= t_revert - t_last <= 1.0  # simulated time is paced to real time
+            # neutral rule: the user lets go while an override is fresh -> neutral
+            board.joystick(2500, 2500)
+            for _ in range(10):
+                link.send_override(0.8, 0.0)
+                time.sleep(0.03)
+            assert (board.code("A"), board.code("B")) == (fw.DAC_NEUTRAL, fw.DAC_NEUTRAL)
+            assert proto.Status.NEUTRAL_STOP in samples[-1].status
+            assert link.stats().frames_lost == 0 and link.stats().crc_errors == 0
+    finally:
+        board.close()

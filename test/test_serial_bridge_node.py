@@ -1,0 +1,246 @@
+"""serial_bridge_node in-process against the simulated board on a pty: joy in order and
+calibrated, overrides while fresh (and no longer when stale), unplug/replug seen in
+diagnostics within 1 s, parameter validation."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from sensor_msgs.msg import Joy  # noqa: E402
+
+from asgp_ros.nodes import conversions as conv  # noqa: E402
+from asgp_ros.nodes.serial_bridge_node import SerialBridgeNode  # noqa: E402
+from asgp_ros.serial import safety as fw  # noqa: E402
+from asgp_ros.serial.calibration import AxisCalibration  # noqa: E402
+from asgp_ros.sim.board import SimulatedBoard  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+class Harness:
+    def __init__(self, context, board: SimulatedBoard, **params) -> None:
+        overrides = [Parameter("port", value=board.port)] + [
+            Parameter(k, value=v) for k, v in params.items()]
+        self.board = board
+        self.node = SerialBridgeNode(context=context, parameter_overrides=overrides)
+        self.probe = rclpy.create_node("probe", context=context)
+        self.joy: list[tuple[float, Joy]] = []
+        self.diag: list[DiagnosticArray] = []
+        self.probe.create_subscription(
+            Joy, "joy", lambda m: self.joy.append((time.monotonic(), m)),
+            qos_profile_sensor_data)
+        self.probe.create_subscription(DiagnosticArray, "diagnostics", self.diag.append, 10)
+        self.override_pub = self.probe.create_publisher(Joy, "joy_override", 10)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.probe)
+
+    def spin_until(self, pred, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.01)
+            if pred():
+                return True
+        return bool(pred())
+
+    def spin_for(self, duration: float, each=None) -> None:
+        deadline = time.monotonic() + duration
+        while time.monotonic() < deadline:
+            if each is not None:
+                each()
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def link_status(self) -> DiagnosticStatus | None:
+        for arr in reversed(self.diag):
+            for st in arr.status:
+                if st.name == "serial_bridge: link":
+                    return st
+        return None
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.probe.destroy_node()
+
+
+@pytest.fixture
+def harness(rclpy_context, tmp_path):
+    made: list[Harness] = []
+
+    def make(joystick, **params) -> Harness:
+        board = SimulatedBoard(joystick, link_path=tmp_path / "asgp_joystick",
+                               record=True).start()
+        h = Harness(rclpy_context, board, **params)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+        h.board.stop()
+        assert h.board.error is None, h.board.error
+
+
+def test_joy_in_order_calibrated_and_stamped(harness):
+    h = harness(lambda t: (((2.5 * t) % 2.0) - 1.0, 0.7 * math.sin(6.0 * t)),
+                **{"calibration.turn.invert": True, "calibration.forward.dead_zone": 0.1})
+    assert h.spin_until(lambda: len(h.joy) >= 80, 10.0)
+    msgs = [m for _, m in h.joy]
+    fwd = AxisCalibration(dead_zone=0.1)
+    turn = AxisCalibration(invert=True)
+    expected = [(fwd.deflection(s.raw_forward), turn.deflection(s.raw_turn))
+                for s in h.board.sent]
+    got = [(m.axes[0], m.axes[1]) for m in msgs]
+    # the Joy stream is a contiguous run of the board's samples, in order (the joystick
+    # repeats itself, so look for the run among all alignments)
+    g, e = np.array(got), np.array(expected)
+    runs = [i for i in range(len(e) - len(g) + 1)
+            if np.allclose(e[i:i + len(g)], g, atol=1e-6)]
+    assert runs, "the Joy stream is not the board's samples in order"
+    assert not np.all(g == 0.0)
+    stamps = [conv.stamp_to_seconds(m.header.stamp) for m in msgs]
+    assert all(b >= a for a, b in itertools.pairwise(stamps))
+    # stamped at reception: close to now, and spaced at the board's 100 Hz
+    now = h.node.get_clock().now().nanoseconds * 1e-9
+    assert now - 1.0 < stamps[-1] <= now
+    rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+    assert 60.0 < rate < 140.0
+    assert min(a[0] for a in got) < -0.3 and max(a[0] for a in got) > 0.3
+
+
+def test_override_sent_while_fresh_then_board_falls_back(harness):
+    h = harness(lambda t: (0.5, 0.0))
+    assert h.spin_until(lambda: len(h.joy) > 5, 10.0)
+
+    def publish():
+        h.override_pub.publish(Joy(axes=[-0.25, 0.6]))
+
+    h.spin_for(0.5, each=publish)
+    out = h.board.output
+    assert out.override_active
+    assert (out.forward, out.turn) == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    sent = h.node.link.stats().overrides_sent
+    assert sent >= 5
+    # stop publishing: the node stops sending once stale, the board reverts by itself
+    t_stop = time.monotonic()
+    assert h.spin_until(lambda: not h.board.output.override_active, 2.0)
+    assert time.monotonic() - t_stop < 0.15 + 0.2 + 0.6  # stale + watchdog + slack
+    sent_after = h.node.link.stats().overrides_sent
+    h.spin_for(0.3)
+    assert h.node.link.stats().overrides_sent == sent_after  # nothing sent while stale
+    assert sent_after - sent <= 5  # at most override_timeout's worth after the last msg
+    assert h.board.output.forward == pytest.approx(h.board.output.user_forward, abs=2e-3)
+    # and the node releases override mode after mode_release_after
+    assert h.spin_until(lambda: h.board.mode == 0, 2.0)
+
+
+def test_invalid_overrides_are_refused(harness):
+    h = harness(lambda t: (0.5, 0.0))
+    assert h.spin_until(lambda: len(h.joy) > 5, 10.0)
+    h.spin_for(0.3, each=lambda: h.override_pub.publish(Joy(axes=[1.5, 0.0])))
+    h.spin_for(0.2, each=lambda: h.override_pub.publish(Joy(axes=[math.nan, 0.0])))
+    h.spin_for(0.2, each=lambda: h.override_pub.publish(Joy(axes=[0.2])))
+    assert h.node.link.stats().overrides_sent == 0
+    assert not h.board.output.override_active
+
+
+def test_unplug_replug_reconnects_and_diagnostics_say_so(harness):
+    h = harness(lambda t: (0.3, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: (st := h.link_status()) is not None
+                        and st.level == DiagnosticStatus.OK, 10.0)
+    h.board.unplug()
+    assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.ERROR, 2.0)
+    assert "disconnected" in h.link_status().message
+    h.spin_for(0.3)
+    n_joy = len(h.joy)
+    h.board.replug()
+    t0 = time.monotonic()
+    assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.OK
+                        and "reconnected 1" in h.link_status().message, 2.0)
+    dt = time.monotonic() - t0
+    print(f"diagnostics report the reconnection {dt * 1000:.0f} ms after replug")
+    assert dt < 1.0
+    values = conv.diagnostic_values(h.link_status())
+    assert values["reconnects"] == "1" and values["state"] == "connected"
+    assert h.spin_until(lambda: len(h.joy) > n_joy + 10, 2.0)  # joy flows again
+
+
+def test_parameters_are_validated_at_runtime(harness):
+    h = harness(lambda t: (0.5, 0.0))
+    node = h.node
+    r = node.set_parameters([Parameter("port", value="/dev/other")])
+    assert not r[0].successful
+    r = node.set_parameters([Parameter("calibration.forward.minimum", value=900.0)])
+    assert not r[0].successful and "calibration.forward" in r[0].reason
+    r = node.set_parameters([Parameter("override_rate", value=2.0)])
+    assert not r[0].successful
+    r = node.set_parameters([Parameter("calibration.forward.invert", value=True)])
+    assert r[0].successful
+    n = len(h.joy)
+    assert h.spin_until(lambda: len(h.joy) > n + 5, 5.0)
+    assert h.joy[-1][1].axes[0] < -0.3  # the new calibration is applied to live samples
+
+
+def test_bad_startup_parameters_raise(rclpy_context):
+    with pytest.raises(ValueError, match="reconnect_max"):
+        SerialBridgeNode(context=rclpy_context, parameter_overrides=[
+            Parameter("port", value="/nonexistent"), Parameter("reconnect_min", value=1.0),
+            Parameter("reconnect_max", value=0.5)])
+
+
+def test_params_file_loads_into_the_node(repo_root, tmp_path):
+    """config/bridge.yaml as a --params-file: every value has the declared type."""
+    board = SimulatedBoard(lambda t: (0.2, 0.0), link_path=tmp_path / "joy").start()
+    context = rclpy.context.Context()
+    rclpy.init(context=context, args=[
+        "--ros-args", "--params-file", str(repo_root / "config/bridge.yaml"),
+        "-p", f"port:={board.port}", "-p", "calibration.turn.dead_zone:=0.2"])
+    try:
+        node = SerialBridgeNode(context=context)
+        try:
+            assert node.params.port == board.port
+            assert node.params.calibration.turn.dead_zone == 0.2
+            assert node.params.calibration.forward.maximum == 717.0
+            assert node.link.wait_for_state(node.link.state.CONNECTED, 3.0)
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+        board.stop()
+
+
+@pytest.mark.slow
+def test_node_process_runs_and_stops_cleanly(repo_root, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    board = SimulatedBoard(lambda t: (0.2, 0.0), link_path=tmp_path / "joy").start()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "asgp_ros.nodes.serial_bridge_node", "--ros-args",
+         "--params-file", str(repo_root / "config/bridge.yaml"), "-p", f"port:={board.port}"],
+        cwd=repo_root, env=dict(os.environ, PYTHONPATH=str(repo_root)),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline and board.mode == 0 and board._logic.rx_frames < 5:
+            time.sleep(0.05)
+        assert board._logic.rx_frames >= 5  # handshake and heartbeats from the node
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=15)
+        board.stop()
+    assert proc.returncode == 0, out
+    assert "Traceback" not in out, out
