@@ -1,0 +1,425 @@
+"""k-step prediction by the recurrent sliding window (Fan et al., ICRA 2018, Algorithm 1).
+
+Given the last s joystick and velocity samples (up to the current time t0, the time of
+the last measured V_{t-1}) and k planned joystick commands j_t .. j_{t+k-1}, the predictor
+forms the input row of step t from the window, predicts V_t, shifts the window (the
+prediction takes the place of the unknown measurement) and repeats k times (Algorithm 1,
+lines 2-6). The velocities [V_{t-1}, V_t, ..., V_{t+k-1}] are then integrated by the
+trapezoidal unicycle model from the origin at t0 (eq. 5), giving poses at t0 + dt ..
+t0 + k dt. Everything is vectorised over a batch of B candidate joystick sequences (a
+planner scores many at once); the loop over the k steps is the only Python loop.
+
+Uncertainty (the paper's future work), ``uncertainty=``:
+
+* ``"linear"`` (default): first-order (EKF-style) propagation of the joint state
+  [velocity window (2s), x, y, theta] along the mean rollout. Each step linearises the
+  GP mean in its inputs (``predict_with_grad``: V_new ~ m + G dW + e, with
+  e ~ N(0, diag(var)) the GP's predictive variance at the mean input), and the unicycle
+  step by its Jacobians. It is carried in square-root form: every velocity and pose is
+  written as a linear function S e of the 2k independent unit-normal innovations (two per
+  step), so covariances S S^T are positive semi-definite by construction and all
+  correlations between steps and with the pose are kept. Because the pose does not feed
+  back into the GP, the pose part is the exact Jacobian of the trapezoidal integration
+  applied after the loop (:func:`asgp_ros.core.unicycle.path_sensitivity`), identical
+  to running the EKF on [window, x, y, theta] step by step. Why this rather than Monte
+  Carlo or moment matching: it is deterministic (a planner compares candidates without
+  sampling noise), costs O(B k^2 s) for the window (one [2, 2s] x [2s, 2j] product per
+  step) plus O(B k^2) for the poses, i.e. the same order as the [2s+3]^2 EKF update, and
+  needs one GP evaluation per step and channel, cheap enough for planners' batches. Its
+  approximation (mean curvature and input-dependent variance neglected over the
+  horizon) is tested against ``"mc"`` on a mildly nonlinear model.
+* ``"mc"``: Monte Carlo reference: ``n_samples`` trajectories per sequence, each step
+  sampling V from the GP predictive N(mean, var) at the sampled window (seeded
+  ``numpy.random.Generator``); means and covariances are sample statistics.
+* ``"none"``: the mean recursion only (Algorithm 1 as in the paper); covariances are 0.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import warnings
+import weakref
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from asgp_ros.core.features import build_inputs, input_layout
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.unicycle import integrate_path, sensitivity_time_major
+
+FloatArray = NDArray[np.float64]
+Uncertainty = Literal["linear", "mc", "none"]
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """Result of :func:`rollout` for B joystick sequences of k steps.
+
+    Attributes:
+        vel: [B, k, 2] predicted (v, omega) for steps t .. t+k-1 (times t0 + dt .. t0 + k dt).
+        vel_cov: [B, k, 2, 2] covariance of each predicted velocity.
+        pose: [B, k, 3] (x, y, theta) at t0 + dt .. t0 + k dt, from the origin at t0.
+        pose_cov: [B, k, 3, 3] covariance of the pose.
+        pos_cov: [B, k, 2, 2] covariance of (x, y) (the top-left block of pose_cov).
+        dt: grid period (s).
+        uncertainty: how the covariances were obtained ("linear", "mc" or "none": zeros).
+    """
+
+    vel: FloatArray
+    vel_cov: FloatArray
+    pose: FloatArray
+    pose_cov: FloatArray
+    pos_cov: FloatArray
+    dt: float
+    uncertainty: str
+
+    @property
+    def batch(self) -> int:
+        return int(self.vel.shape[0])
+
+    @property
+    def steps(self) -> int:
+        return int(self.vel.shape[1])
+
+
+def _as_window(name: str, a: ArrayLike, s: int) -> FloatArray:
+    arr = np.asarray(a, dtype=np.float64)
+    if arr.ndim not in (2, 3) or arr.shape[-1] != 2:
+        raise ValueError(f"{name} must have shape [s, 2] or [B, s, 2], got {arr.shape}")
+    if arr.shape[-2] < s:
+        raise ValueError(f"{name} has {arr.shape[-2]} samples, the model needs lags={s}")
+    arr = arr[..., arr.shape[-2] - s:, :]
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return arr
+
+
+def rollout(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike,
+            joy_future: ArrayLike, uncertainty: Uncertainty = "linear", *,
+            n_samples: int = 1000, rng: np.random.Generator | int | None = 0,
+            include_noise: bool = True) -> Rollout:
+    """Predict k steps ahead for a batch of joystick sequences (Algorithm 1, batched).
+
+    Args:
+        model: the two-channel predictor.
+        joy_past: [s, 2] shared or [B, s, 2] per sequence: joystick at t-s .. t-1 (a longer
+            window is cut to its last s samples).
+        vel_past: [s, 2] or [B, s, 2]: measured (v, omega) at t-s .. t-1; V_{t-1} is the
+            velocity at t0, where the pose path starts.
+        joy_future: [B, k, 2] (or [k, 2] for B = 1): planned joystick j_t .. j_{t+k-1}.
+        uncertainty: "linear" (default), "mc" or "none" (see the module docstring).
+        n_samples: Monte Carlo trajectories per sequence ("mc").
+        rng: generator or seed for "mc".
+        include_noise: propagate the predictive variance of a new observation (as the
+            odometry measures it; default) or the latent function's variance.
+
+    Returns:
+        :class:`Rollout` with B sequences of k steps.
+    """
+    s = model.lags
+    jp = _as_window("joy_past", joy_past, s)
+    vp = _as_window("vel_past", vel_past, s)
+    jf = np.asarray(joy_future, dtype=np.float64)
+    if jf.ndim == 2:
+        jf = jf[None]
+    if jf.ndim != 3 or jf.shape[-1] != 2 or jf.shape[1] < 1:
+        raise ValueError(f"joy_future must have shape [B, k, 2] with k >= 1, got {jf.shape}")
+    if not np.all(np.isfinite(jf)):
+        raise ValueError("joy_future contains NaN or inf")
+    B, k = jf.shape[0], jf.shape[1]
+    for name, arr in (("joy_past", jp), ("vel_past", vp)):
+        if arr.ndim == 3 and arr.shape[0] != B:
+            raise ValueError(f"{name} has a batch of {arr.shape[0]}, joy_future of {B}")
+    if uncertainty not in ("linear", "mc", "none"):
+        raise ValueError(f"uncertainty must be 'linear', 'mc' or 'none', got {uncertainty!r}")
+
+    # joystick timeline [B, s+k, 2] and velocity timeline [B, s+k, 2]
+    J = np.empty((B, s + k, 2))
+    J[:, :s] = jp
+    J[:, s:] = jf
+    V = np.empty((B, s + k, 2))
+    V[:, :s] = vp
+    if uncertainty == "mc":
+        return _rollout_mc(model, J, V, s, k, n_samples, rng, include_noise)
+    return _rollout_linear(model, J, V, s, k, uncertainty == "linear", include_noise)
+
+
+def _checked(name: str, mean: FloatArray, var: FloatArray) -> None:
+    """Raise on a non-finite prediction or a negative variance (cheap when all is well)."""
+    if math.isfinite(float(mean.sum()) + float(var.sum())) and float(var.min()) >= 0.0:
+        return
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var))):
+        raise ValueError(f"channel {name} predicted NaN or inf")
+    raise ValueError(f"channel {name} predicted a negative variance")
+
+
+_NAMES = ("v", "omega")
+
+
+class _Workspace(threading.local):
+    """Per-thread scratch arrays reused from one rollout to the next.
+
+    A batch of 1,024 needs several MB of intermediates per rollout; allocating them afresh
+    lets the allocator return them to the OS and page-fault them back every call, which
+    costs more than the arithmetic. Arrays up to ``limit`` bytes are kept (per name, last
+    shape); results handed to the caller never live here.
+    """
+
+    limit = 64 * 2**20
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, FloatArray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...]) -> FloatArray:
+        a = self.arrays.get(name)
+        if a is None or a.shape != shape:
+            a = np.empty(shape)
+            if a.nbytes <= self.limit:
+                self.arrays[name] = a
+        return a
+
+
+_WS = _Workspace()
+
+
+class _Step:
+    """One step of both channels: windows -> mean [B, 2], var [B, 2], grads [2][B, D]."""
+
+    def __init__(self, model: MotionModel, include_noise: bool) -> None:
+        self.model = model
+        self.fc = model.feature_config
+        self.include_noise = include_noise
+        self.fused = _FusedSparseGP.of(model)
+
+    def __call__(self, jp: FloatArray, vp: FloatArray, jn: FloatArray, with_grad: bool
+                 ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+        if self.fused is not None:
+            X = _WS.get("X", (2, jn.shape[0], self.fc.input_dim))
+            for c in range(2):
+                build_inputs(jp, vp, jn, c, self.fc, validate=False, out=X[c])
+            mean, var, grad = self.fused.predict(X, self.include_noise, with_grad)
+        else:
+            rows = [build_inputs(jp, vp, jn, c, self.fc, validate=False) for c in range(2)]
+            mean = np.empty((jn.shape[0], 2))
+            var = np.empty((jn.shape[0], 2))
+            grad = []
+            for c, ch in enumerate(self.model.channels):
+                if with_grad:
+                    m, v, g = ch.predict_with_grad(rows[c], self.include_noise)
+                    g = np.asarray(g, dtype=np.float64)
+                    if g.shape != rows[c].shape:
+                        raise ValueError(f"channel {_NAMES[c]}: input gradient of shape "
+                                         f"{g.shape}, expected {rows[c].shape}")
+                    grad.append(g)
+                else:
+                    m, v = ch.predict(rows[c], self.include_noise)
+                mean[:, c] = m
+                var[:, c] = v
+        if not (math.isfinite(float(mean.sum()) + float(var.sum()))
+                and float(var.min()) >= 0.0):
+            for c in range(2):
+                _checked(_NAMES[c], mean[:, c], var[:, c])
+        return mean, var, grad
+
+
+class _FusedSparseGP:
+    """Both channels of a SparseGP model evaluated together from their cached posteriors.
+
+    The same FITC predictive equations as :meth:`SparseGP.predict_with_grad` (mean
+    k(x, Z) alpha, latent variance sf2 - k C k^T, mean gradient sum_m k_m alpha_m
+    (z_m - x) / l^2, in standardised units), read from :meth:`SparseGP.get_state`; the
+    channels are stacked (the smaller set of pseudo-inputs padded with zero weights, which
+    adds exact zeros) so a step costs one set of numpy calls instead of two. A planner's
+    single-sequence rollout is dominated by per-call overhead, which this halves.
+    """
+
+    def __init__(self, states: list[dict[str, FloatArray]]) -> None:
+        M = max(st["inducing_inputs"].shape[0] for st in states)
+        D = states[0]["inducing_inputs"].shape[1]
+        self.Z = np.zeros((2, M, D))
+        self.alpha = np.zeros((2, M, 1))
+        self.C = np.zeros((2, M, M))
+        for c, st in enumerate(states):
+            m = st["inducing_inputs"].shape[0]
+            self.Z[c, :m] = st["inducing_inputs"]
+            self.alpha[c, :m, 0] = st["alpha"]
+            self.C[c, :m, :m] = st["var_matrix"]
+        ls = np.stack([st["lengthscales"] for st in states])[:, None, :]  # [2, 1, D]
+        self.inv_l2 = 1.0 / np.square(ls)
+        self.ZT = np.ascontiguousarray(np.swapaxes(self.Z * self.inv_l2, 1, 2))  # [2, D, M]
+        self.alpha_Z = self.alpha * self.Z  # [2, M, D]: sum_m k_m alpha_m z_m = k @ alpha_Z
+        zz = np.einsum("cmd,cd->cm", self.Z * self.Z, self.inv_l2[:, 0])[:, None, :]
+        self.mu = np.stack([st["x_mean"] for st in states])[:, None, :]
+        self.sc = np.stack([st["x_scale"] for st in states])[:, None, :]
+        self.sf2 = np.array([float(st["signal_variance"]) for st in states])[:, None]
+        self.log_sf2 = np.log(self.sf2)[:, :, None]  # [2, 1, 1]
+        # log k(x, z) = log sf2 - 0.5 (x'Lx - 2 x'Lz + z'Lz), L = diag(1 / l^2)
+        self.offset = self.log_sf2 - 0.5 * zz  # [2, 1, M]
+        self.sn2 = np.array([float(st["noise_variance"]) for st in states])[:, None]
+        self.ym = np.array([float(st["y_mean"]) for st in states])[:, None]
+        self.ys = np.array([float(st["y_scale"]) for st in states])[:, None]
+        self.gscale = self.ys[:, :, None] * self.inv_l2 / self.sc  # [2, 1, D]
+
+    @classmethod
+    def of(cls, model: MotionModel) -> _FusedSparseGP | None:
+        from asgp_ros.core.sparse_gp import SparseGP
+
+        chans = model.channels
+        if not all(type(ch) is SparseGP for ch in chans):
+            return None
+        gps: list[SparseGP] = [ch for ch in chans if isinstance(ch, SparseGP)]
+        # a refit in place changes the evidence and the noise: rebuild then
+        stamp = tuple(x for gp in gps for x in (gp.log_marginal_likelihood(),
+                                                 gp.noise_variance, gp.signal_variance))
+        hit = _FUSED_CACHE.get(gps[0])
+        if hit is not None and hit[0] is gps[1] and hit[1] == stamp:
+            return hit[2]
+        fused = cls([gp.get_state() for gp in gps])
+        _FUSED_CACHE[gps[0]] = (gps[1], stamp, fused)
+        return fused
+
+    def predict(self, X: FloatArray, include_noise: bool, with_grad: bool
+                ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
+        """X [2, B, D] (overwritten) -> mean [B, 2], var [B, 2], grads [2][B, D].
+
+        The gradients are views of scratch memory, valid until the next call.
+        """
+        B = X.shape[1]
+        M = self.Z.shape[1]
+        Xn = X
+        Xn -= self.mu
+        Xn /= self.sc
+        XL = np.multiply(Xn, self.inv_l2, out=_WS.get("XL", X.shape))
+        logk = np.matmul(Xn, self.ZT, out=_WS.get("K", (2, B, M)))  # x'Lz  [2, B, M]
+        logk -= 0.5 * np.einsum("cbd,cbd->cb", XL, Xn)[:, :, None]
+        logk += self.offset
+        np.minimum(logk, self.log_sf2, out=logk)  # squared distances are >= 0
+        K = np.exp(logk, out=logk)  # k(x, Z) = sf2 exp(-0.5 |x - z|_L^2)
+        k_alpha = (K @ self.alpha)[..., 0]  # [2, B]
+        mean = k_alpha * self.ys
+        KC = np.matmul(K, self.C, out=_WS.get("KC", (2, B, M)))
+        var = self.sf2 - np.einsum("cbm,cbm->cb", KC, K)
+        if float(var.min()) < 0.0:
+            if float(np.min(var / self.sf2)) < -1e-8:
+                warnings.warn("sparse GP: negative latent variance from round-off clipped to 0",
+                              RuntimeWarning, stacklevel=4)
+            np.maximum(var, 0.0, out=var)
+        if include_noise:
+            var += self.sn2
+        var *= np.square(self.ys)
+        mean += self.ym
+        grads: list[FloatArray] = []
+        if with_grad:
+            g = np.matmul(K, self.alpha_Z, out=_WS.get("g", X.shape))
+            g -= Xn * k_alpha[:, :, None]
+            g *= self.gscale
+            grads = [g[0], g[1]]
+        return mean.T, var.T, grads
+
+
+#: fused predictors by the v channel's SparseGP: (omega GP, fingerprint, predictor)
+_FUSED_CACHE: weakref.WeakKeyDictionary[Any, tuple[Any, tuple[float, ...], _FusedSparseGP]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _rollout_linear(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k: int,
+                    with_cov: bool, include_noise: bool) -> Rollout:
+    B = J.shape[0]
+    fc = model.feature_config
+    dt = model.dt
+    step = _Step(model, include_noise)
+    if with_cov:
+        # S[b, i, c, r]: sensitivity of V_{t-s+i}[c] to innovation r (2 per step);
+        # the measured past rows stay 0 (Algorithm 1 treats them as given).
+        S = _WS.get("S", (B, s + k, 2, 2 * k))
+        S[:, :s] = 0.0
+        G = np.zeros((B, 2, s, 2))  # d V_new[c] / d window[lag, comp]
+        Gw = G.reshape(B, 2, 2 * s)  # the same memory, window flattened as (lag, comp)
+        where = []  # per channel: window positions and the input columns feeding them
+        for c in range(2):
+            lay = input_layout(c, fc).vel_past.reshape(-1)  # [2s] column or -1
+            where.append((np.flatnonzero(lay >= 0), lay[lay >= 0]))
+        rows = np.array([0, 1])
+    for j in range(k):
+        mean, var, grad = step(J[:, j:j + s], V[:, j:j + s], J[:, s + j], with_cov)
+        V[:, s + j] = mean
+        if with_cov:
+            for c in range(2):
+                pos, cols = where[c]
+                Gw[:, c, pos] = grad[c][:, cols]
+            if j > 0:
+                window = S[:, j:j + s, :, :2 * j].reshape(B, 2 * s, 2 * j)
+                S[:, s + j, :, :2 * j] = Gw @ window
+            S[:, s + j, :, 2 * j:] = 0.0
+            S[:, s + j, rows, 2 * j + rows] = np.sqrt(var)
+
+    path_v = V[:, s - 1:]  # [B, k+1, 2]: V_{t-1} (measured) .. V_{t+k-1}
+    pose_full = integrate_path(path_v, dt)  # [B, k+1, 3], pose_full[:, 0] = origin
+    pose = pose_full[:, 1:]
+    if with_cov:
+        # time-major sensitivities [k+1, B, 2k] (cumulative sums along time are contiguous)
+        shape = (k + 1, B, 2 * k)
+        Sv, Sw, Sx, Sy, Sth, g, f = (_WS.get(name, shape) for name in
+                                     ("Sv", "Sw", "Sx", "Sy", "Sth", "g", "f"))
+        np.copyto(Sv, S[:, s - 1:, 0, :].transpose(1, 0, 2))
+        np.copyto(Sw, S[:, s - 1:, 1, :].transpose(1, 0, 2))
+        sensitivity_time_major(np.ascontiguousarray(path_v[..., 0].T),
+                               np.ascontiguousarray(pose_full[..., 2].T), Sv, Sw, dt,
+                               out=(Sx, Sy, Sth), scratch=(g, f))
+        vel_cov = _gram([Sv[1:], Sw[1:]])
+        pose_cov = _gram([Sx[1:], Sy[1:], Sth[1:]])
+    else:
+        vel_cov = np.zeros((B, k, 2, 2))
+        pose_cov = np.zeros((B, k, 3, 3))
+    return Rollout(vel=V[:, s:].copy(), vel_cov=vel_cov, pose=pose, pose_cov=pose_cov,
+                   pos_cov=pose_cov[..., :2, :2].copy(), dt=dt,
+                   uncertainty="linear" if with_cov else "none")
+
+
+def _gram(rows: list[FloatArray]) -> FloatArray:
+    """Covariances from time-major square roots: d arrays [k, B, r] -> [B, k, d, d]."""
+    d = len(rows)
+    k, B = rows[0].shape[:2]
+    out = np.empty((B, k, d, d))
+    for a in range(d):
+        for b in range(a, d):
+            np.einsum("kbr,kbr->bk", rows[a], rows[b], out=out[:, :, a, b])
+            if b != a:
+                out[:, :, b, a] = out[:, :, a, b]
+    return out
+
+
+def _rollout_mc(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k: int,
+                n_samples: int, rng: np.random.Generator | int | None,
+                include_noise: bool) -> Rollout:
+    if isinstance(n_samples, bool) or not isinstance(n_samples, int | np.integer) \
+            or n_samples < 2:
+        raise ValueError(f"n_samples must be an integer >= 2, got {n_samples!r}")
+    gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    B = J.shape[0]
+    n = int(n_samples)
+    dt = model.dt
+    Js = np.repeat(J, n, axis=0)  # [B*n, s+k, 2], sample-major within each sequence
+    Vs = np.repeat(V, n, axis=0)
+    step = _Step(model, include_noise)
+    for j in range(k):
+        z = gen.standard_normal((B * n, 2))
+        mean, var, _ = step(Js[:, j:j + s], Vs[:, j:j + s], Js[:, s + j], False)
+        Vs[:, s + j] = mean + np.sqrt(var) * z
+    pose = integrate_path(Vs[:, s - 1:], dt)[:, 1:].reshape(B, n, k, 3)
+    vel = Vs[:, s:].reshape(B, n, k, 2)
+
+    def mean_cov(x: FloatArray) -> tuple[FloatArray, FloatArray]:
+        mu = x.mean(axis=1)
+        d = x - mu[:, None]
+        cov = np.einsum("bnki,bnkj->bkij", d, d) / (n - 1)
+        return mu, cov
+
+    vel_mu, vel_cov = mean_cov(vel)
+    pose_mu, pose_cov = mean_cov(pose)
+    return Rollout(vel=vel_mu, vel_cov=vel_cov, pose=pose_mu, pose_cov=pose_cov,
+                   pos_cov=pose_cov[..., :2, :2].copy(), dt=dt, uncertainty="mc")

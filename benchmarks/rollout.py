@@ -1,0 +1,134 @@
+"""Rollout speed: k-step prediction with uncertainty (paper Algorithm 1, batched).
+
+Trains the two channels (SparseGP, M = 40, s = 4, D = 9) on a simulated first-order-lag
+chair (N ~ 2,000 rows, enough for timing), then times ``rollout`` for one sequence and for
+batches of candidate joystick sequences, with linearised uncertainty ("linear"), without
+("none") and with Monte Carlo ("mc"). Targets (issue 2): k = 10 with variance under
+0.5 ms for one sequence and under 10 ms for a batch of 1,024.
+
+    python benchmarks/rollout.py [--k 10] [--batch 1024] [--repeat 7] [--blas-threads 1]
+
+Prints figures only (no assertions): the best and the median of ``--repeat`` timing runs,
+and the load average, since a shared machine inflates the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from asgp_ros.core.features import FeatureConfig, design_matrix
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.resample import ResampleConfig, Resampled
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.sparse_gp import SparseGP
+
+
+def simulated(T: int, seed: int = 0) -> Resampled:
+    """A 5 Hz recording of a saturating first-order-lag chair with random driving."""
+    rng = np.random.default_rng(seed)
+    joy = np.clip(np.cumsum(rng.normal(0, 0.12, (T, 2)), axis=0) * 0.3, -1, 1)
+    vel = np.zeros((T, 2))
+    for t in range(1, T):
+        vel[t, 0] = 0.7 * vel[t - 1, 0] + 0.45 * np.tanh(2 * joy[t, 0]) + rng.normal(0, 0.02)
+        vel[t, 1] = (0.6 * vel[t - 1, 1] + 0.48 * joy[t, 1] * (1 - 0.3 * abs(vel[t - 1, 0]))
+                     + rng.normal(0, 0.02))
+    ok = np.ones(T, dtype=bool)
+    no = np.zeros(T, dtype=bool)
+    return Resampled(t=np.arange(T) / 5.0, k=np.arange(T, dtype=np.int64), joy=joy, vel=vel,
+                     valid=ok, stale=no, tracking_lost=no, gap=no,
+                     segment=np.zeros(T, dtype=np.int64), truth=np.full((T, 5), np.nan),
+                     truth_valid=no, rate_hz=5.0)
+
+
+def timeit(fn: Callable[[], object], repeat: int,
+           min_time: float = 0.2) -> tuple[float, float, float]:
+    """(best, median, best CPU) seconds per call over ``repeat`` runs of >= ``min_time``.
+
+    The CPU time of this process is less inflated than wall time when other processes
+    compete for the cores.
+    """
+    fn()
+    t0 = time.perf_counter()
+    fn()
+    once = max(time.perf_counter() - t0, 1e-7)
+    number = max(1, int(min_time / once))
+    runs, cpu = [], []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        for _ in range(number):
+            fn()
+        cpu.append((time.process_time() - c0) / number)
+        runs.append((time.perf_counter() - t0) / number)
+    return min(runs), statistics.median(runs), min(cpu)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--k", type=int, default=10, help="horizon in steps (10 = 2 s at 5 Hz)")
+    ap.add_argument("--batch", type=int, default=1024)
+    ap.add_argument("--rows", type=int, default=2000, help="training rows per channel")
+    ap.add_argument("--inducing", type=int, default=40)
+    ap.add_argument("--repeat", type=int, default=7)
+    ap.add_argument("--mc-samples", type=int, default=500)
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS threads (threadpoolctl; 0 = the library default). The "
+                    "matrices are small, so extra threads only add synchronisation, "
+                    "which costs a lot on a loaded machine")
+    args = ap.parse_args()
+    if args.blas_threads > 0:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(args.blas_threads)
+
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"load average {os.getloadavg()[0]:.2f}, BLAS threads "
+          f"{args.blas_threads if args.blas_threads > 0 else 'default'}")
+    res = simulated(args.rows + 4)
+    fc = FeatureConfig(lags=4)
+    gps = []
+    t0 = time.perf_counter()
+    for c in range(2):
+        X, y, _ = design_matrix(res, c, fc)
+        gps.append(SparseGP(num_inducing=args.inducing, seed=0).fit(X, y, max_iter=100))
+    print(f"trained 2 x SparseGP (N={X.shape[0]}, D={X.shape[1]}, M={args.inducing}) in "
+          f"{time.perf_counter() - t0:.2f} s")
+    model = MotionModel("asgp", fc, ResampleConfig(), (gps[0], gps[1]))
+
+    rng = np.random.default_rng(1)
+    t = 500
+    joy_past, vel_past = res.joy[t - 4:t], res.vel[t - 4:t]
+    k = args.k
+    print(f"rollout k={k}, wall time best / median of {args.repeat} runs, and best CPU time:")
+    for batch in (1, 64, args.batch):
+        futures = np.clip(res.joy[t:t + k][None] + rng.normal(0, 0.3, (batch, k, 2)), -1, 1)
+        for unc in ("linear", "none"):
+            best, med, cpu = timeit(
+                lambda f=futures, u=unc: rollout(model, joy_past, vel_past, f, u), args.repeat
+            )
+            label = "with variance (linear)" if unc == "linear" else "mean only (none)"
+            print(f"  batch {batch:5d}  {label:24s} {best * 1e3:8.3f} / {med * 1e3:8.3f} ms"
+                  f"   cpu {cpu * 1e3:8.3f} ms")
+    futures = res.joy[t:t + k][None]
+    n = args.mc_samples
+    best, med, cpu = timeit(
+        lambda: rollout(model, joy_past, vel_past, futures, "mc", n_samples=n),
+        max(3, args.repeat // 2))
+    print(f"  batch     1  Monte Carlo, {n} samples  {best * 1e3:8.3f} / {med * 1e3:8.3f} ms"
+          f"   cpu {cpu * 1e3:8.3f} ms")
+    print("targets: batch 1 with variance < 0.5 ms; batch 1024 with variance < 10 ms")
+
+
+if __name__ == "__main__":
+    main()

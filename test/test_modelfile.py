@@ -1,0 +1,305 @@
+"""The model file: round trip, validation of every corruption, atomic writes."""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from asgp_ros.core import modelfile
+from asgp_ros.core.features import FeatureConfig, design_matrix
+from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.core.models import ModelKind, MotionModel, register_kind
+from asgp_ros.core.resample import ResampleConfig, Resampled
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.sparse_gp import SparseGP
+
+
+def resampled(T: int = 600, seed: int = 0) -> Resampled:
+    rng = np.random.default_rng(seed)
+    joy = np.clip(np.cumsum(rng.normal(0, 0.1, (T, 2)), axis=0) * 0.3, -1, 1)
+    vel = np.zeros((T, 2))
+    for t in range(1, T):
+        vel[t] = 0.7 * vel[t - 1] + 0.4 * np.tanh(1.5 * joy[t]) + rng.normal(0, 0.02, 2)
+    ok = np.ones(T, dtype=bool)
+    no = np.zeros(T, dtype=bool)
+    return Resampled(t=np.arange(T) / 5.0, k=np.arange(T, dtype=np.int64), joy=joy, vel=vel,
+                     valid=ok, stale=no, tracking_lost=no, gap=no,
+                     segment=np.zeros(T, dtype=np.int64), truth=np.full((T, 5), np.nan),
+                     truth_valid=no, rate_hz=5.0)
+
+
+@pytest.fixture(scope="module")
+def model() -> MotionModel:
+    res = resampled()
+    fc = FeatureConfig(lags=3)
+    gps = []
+    for c in range(2):
+        X, y, _ = design_matrix(res, c, fc)
+        gps.append(SparseGP(num_inducing=8, seed=0).fit(X, y, max_iter=30))
+    return MotionModel("asgp", fc, ResampleConfig(rate_hz=5.0, max_gap_vel_s=0.8),
+                       (gps[0], gps[1]), meta={"train": {"bags": ["a.mcap"], "rows": 597}})
+
+
+@pytest.fixture()
+def saved(model: MotionModel, tmp_path: Path) -> Path:
+    path = tmp_path / "chair.npz"
+    save_model(path, model)
+    return path
+
+
+def rewrite(path: Path, edit: Callable[[dict[str, np.ndarray]], None]) -> None:
+    """Load every entry of an .npz, let ``edit`` change the dict, write it back."""
+    with np.load(path, allow_pickle=False) as data:
+        arrays = {name: data[name] for name in data.files}
+    edit(arrays)
+    with open(path, "wb") as fh:
+        np.savez(fh, **arrays)
+
+
+def edit_meta(change: Callable[[dict[str, Any]], None]) -> Callable[[dict[str, np.ndarray]],
+                                                                      None]:
+    def edit(arrays: dict[str, np.ndarray]) -> None:
+        meta = json.loads(str(arrays["__meta__"][()]))
+        change(meta)
+        arrays["__meta__"] = np.array(json.dumps(meta))
+    return edit
+
+
+def expect_error(path: Path, match: str, **kwargs: Any) -> ModelFileError:
+    with pytest.raises(ModelFileError, match=match) as info:
+        load_model(path, **kwargs)
+    assert str(path) in str(info.value)
+    assert info.value.path == str(path)
+    return info.value
+
+
+def test_round_trip_gives_identical_predictions(model: MotionModel, saved: Path) -> None:
+    loaded = load_model(saved, kind="asgp")
+    assert loaded.kind == "asgp"
+    assert loaded.feature_config == model.feature_config
+    assert loaded.resample_config == model.resample_config
+    assert loaded.meta == model.meta
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(50, model.feature_config.input_dim))
+    for a, b in zip(model.channels, loaded.channels, strict=True):
+        for ma, mb in zip(a.predict_with_grad(X), b.predict_with_grad(X), strict=True):
+            np.testing.assert_array_equal(ma, mb)
+    jp, vp, jf = rng.normal(size=(3, 2)), rng.normal(size=(3, 2)), rng.normal(size=(4, 10, 2))
+    ra, rb = rollout(model, jp, vp, jf), rollout(loaded, jp, vp, jf)
+    np.testing.assert_array_equal(ra.pose, rb.pose)
+    np.testing.assert_array_equal(ra.pos_cov, rb.pos_cov)
+
+
+def test_metadata_is_plain_json(saved: Path) -> None:
+    with np.load(saved, allow_pickle=False) as data:
+        meta = json.loads(str(data["__meta__"][()]))
+        names = set(data.files)
+    assert meta["format"] == "asgp_ros.motion_model"
+    assert meta["format_version"] == modelfile.FORMAT_VERSION
+    assert meta["kind"] == "asgp" and meta["channels"] == ["v", "omega"]
+    assert meta["features"] == {"lags": 3, "coupled": False}
+    assert meta["rate_hz"] == 5.0 and meta["resample"]["max_gap_vel_s"] == 0.8
+    assert meta["meta"]["train"]["rows"] == 597
+    assert "normalisation" in meta
+    assert set(meta["arrays"]) | {"__meta__"} == names
+    assert meta["arrays"]["v.alpha"] == [8]
+
+
+def test_missing_file_and_directory(tmp_path: Path) -> None:
+    expect_error(tmp_path / "nope.npz", "no such file")
+    expect_error(tmp_path, "directory")
+
+
+def test_not_an_npz(tmp_path: Path) -> None:
+    path = tmp_path / "model.npz"
+    path.write_bytes(b"this is not a zip archive at all\n" * 10)
+    expect_error(path, "not an .npz")
+    path.write_bytes(b"")
+    expect_error(path, "not an .npz")
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    expect_error(tmp_path / "plain.npy", "single .npy")
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.7, 0.98])
+def test_truncated(saved: Path, fraction: float) -> None:
+    data = saved.read_bytes()
+    saved.write_bytes(data[: int(len(data) * fraction)])
+    expect_error(saved, "truncated|not an .npz")
+
+
+def test_corrupted_member(saved: Path) -> None:
+    """A flipped bit inside an array's data is caught by the archive's CRC-32."""
+    with zipfile.ZipFile(saved) as zf:
+        info = zf.getinfo("omega.var_matrix.npy")
+    data = bytearray(saved.read_bytes())
+    off = info.header_offset  # local header: name and extra lengths at bytes 26 and 28
+    start = off + 30 + int.from_bytes(data[off + 26:off + 28], "little") + int.from_bytes(
+        data[off + 28:off + 30], "little")
+    assert data[start:start + 6] == b"\x93NUMPY"
+    data[start + 128 + 8 * 5] ^= 0x01  # a mantissa bit of one matrix entry
+    saved.write_bytes(bytes(data))
+    expect_error(saved, "omega.var_matrix.*cannot be read.*CRC")
+
+
+def test_wrong_version(saved: Path) -> None:
+    rewrite(saved, edit_meta(lambda m: m.update(format_version=2)))
+    expect_error(saved, "format version 2 .*newer.* reads 1")
+    rewrite(saved, edit_meta(lambda m: m.update(format_version="1")))
+    expect_error(saved, "format_version")
+
+
+def test_wrong_format_name(saved: Path) -> None:
+    rewrite(saved, edit_meta(lambda m: m.update(format="something.else")))
+    expect_error(saved, "not an asgp_ros model file")
+
+
+def test_unknown_and_unexpected_kind(saved: Path) -> None:
+    expect_error(saved, "holds a 'asgp' model, expected 'mlp'", kind="mlp")
+    rewrite(saved, edit_meta(lambda m: m.update(kind="quantum")))
+    expect_error(saved, "unknown model kind 'quantum'")
+
+
+def test_missing_unexpected_and_misshaped_arrays(saved: Path) -> None:
+    original = saved.read_bytes()
+    rewrite(saved, lambda a: a.pop("omega.alpha"))
+    expect_error(saved, "missing array.*omega.alpha")
+    saved.write_bytes(original)
+    rewrite(saved, lambda a: a.update(extra=np.zeros(2)))
+    expect_error(saved, "unexpected array.*extra")
+    saved.write_bytes(original)
+    rewrite(saved, lambda a: a.update({"v.alpha": np.zeros(9)}))
+    expect_error(saved, "v.alpha.*shape \\[9\\].*manifest")
+
+    # a consistent manifest, but the kind's own check sees the shape is wrong
+    def shrink(a: dict[str, np.ndarray]) -> None:
+        a["v.alpha"] = np.zeros(9)
+        edit_meta(lambda m: m["arrays"].update({"v.alpha": [9]}))(a)
+
+    saved.write_bytes(original)
+    rewrite(saved, shrink)
+    expect_error(saved, "invalid 'asgp' model.*alpha")
+
+
+def test_wrong_lags_for_the_arrays(saved: Path) -> None:
+    rewrite(saved, edit_meta(lambda m: m.update(features={"lags": 5, "coupled": False})))
+    expect_error(saved, "7 columns but lags=5")
+
+
+def test_non_finite_values(saved: Path) -> None:
+    def poison(a: dict[str, np.ndarray]) -> None:
+        a["omega.var_matrix"] = a["omega.var_matrix"].copy()
+        a["omega.var_matrix"][1, 2] = np.nan
+
+    rewrite(saved, poison)
+    expect_error(saved, "omega.var_matrix.*NaN or inf")
+
+
+def test_metadata_problems(saved: Path) -> None:
+    original = saved.read_bytes()
+    rewrite(saved, lambda a: a.update(__meta__=np.array("{not json")))
+    expect_error(saved, "not valid JSON")
+    saved.write_bytes(original)
+    rewrite(saved, lambda a: a.update(__meta__=np.array("[1, 2]")))
+    expect_error(saved, "not a JSON object")
+    saved.write_bytes(original)
+    rewrite(saved, lambda a: a.update(__meta__=np.frombuffer(b"{}", dtype=np.uint8)))
+    expect_error(saved, "not a JSON string")
+    saved.write_bytes(original)
+    rewrite(saved, lambda a: a.pop("__meta__"))
+    expect_error(saved, "no metadata")
+    saved.write_bytes(original)
+    rewrite(saved, edit_meta(lambda m: m.update(features={"lags": 0})))
+    expect_error(saved, "invalid settings.*lags")
+    saved.write_bytes(original)
+    rewrite(saved, edit_meta(lambda m: m.pop("arrays")))
+    expect_error(saved, "lacks 'arrays'")
+
+
+def test_pickled_object_arrays_are_refused(saved: Path) -> None:
+    with np.load(saved, allow_pickle=False) as data:
+        arrays: dict[str, Any] = {name: data[name] for name in data.files}
+    arrays["v.alpha"] = np.array([{"evil": 1}], dtype=object)
+    with open(saved, "wb") as fh:
+        np.savez(fh, **arrays)
+    expect_error(saved, "v.alpha.*cannot be read")
+
+
+def test_failed_save_leaves_the_existing_file_intact(model: MotionModel, saved: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    before = saved.read_bytes()
+
+    def half_written(fh: Any, **arrays: Any) -> None:
+        fh.write(b"PK\x03\x04 partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(modelfile.np, "savez", half_written)
+    with pytest.raises(OSError, match="disk full"):
+        save_model(saved, model)
+    monkeypatch.undo()
+    assert saved.read_bytes() == before
+    assert sorted(os.listdir(saved.parent)) == [saved.name]  # no temporaries left
+    load_model(saved)
+
+
+def test_save_refuses_bad_models(model: MotionModel, tmp_path: Path) -> None:
+    path = tmp_path / "m.npz"
+    bad_meta = MotionModel("asgp", model.feature_config, model.resample_config,
+                           model.channels, meta={"x": float("nan")})
+    with pytest.raises(ModelFileError, match="JSON"):
+        save_model(path, bad_meta)
+    unknown = MotionModel("nosuchkind", model.feature_config, model.resample_config,
+                          model.channels)
+    with pytest.raises(ModelFileError, match="unknown model kind"):
+        save_model(path, unknown)
+    assert not path.exists()
+    assert os.listdir(tmp_path) == []
+
+
+class ScaleChannel:
+    """A registered stand-in kind: mean = a . x, variance 0."""
+
+    def __init__(self, a: np.ndarray) -> None:
+        self.a = a
+
+    def predict(self, X: np.ndarray, include_noise: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
+        return X @ self.a, np.zeros(X.shape[0])
+
+    def predict_with_grad(self, X: np.ndarray, include_noise: bool = True
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        m, v = self.predict(X)
+        return m, v, np.tile(self.a, (X.shape[0], 1))
+
+
+def test_registered_kinds_use_the_same_file_format(tmp_path: Path) -> None:
+    def to_arrays(m: MotionModel) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return ({f"{n}.a": ch.a for n, ch in zip(("v", "omega"), m.channels, strict=True)},
+                {"note": "linear"})
+
+    def from_arrays(arrays: Mapping[str, np.ndarray], params: Mapping[str, Any],
+                    features: FeatureConfig) -> tuple[ScaleChannel, ScaleChannel]:
+        assert params == {"note": "linear"}
+        if arrays["v.a"].shape != (features.input_dim,):
+            raise ValueError(f"v.a must have {features.input_dim} entries")
+        return ScaleChannel(arrays["v.a"]), ScaleChannel(arrays["omega.a"])
+
+    register_kind(ModelKind("test_scale", to_arrays, from_arrays), replace=True)
+    fc = FeatureConfig(lags=2)
+    m = MotionModel("test_scale", fc, ResampleConfig(),
+                    (ScaleChannel(np.arange(5.0)), ScaleChannel(-np.arange(5.0))))
+    path = tmp_path / "scale.model"  # any suffix: nothing is appended
+    save_model(path, m)
+    assert os.listdir(tmp_path) == ["scale.model"]
+    loaded = load_model(path, kind="test_scale")
+    np.testing.assert_array_equal(loaded.channels[1].predict(np.ones((1, 5)))[0], [-10.0])
+    rewrite(path, edit_meta(lambda meta: meta.update(features={"lags": 3, "coupled": False})))
+    expect_error(path, "invalid 'test_scale' model: v.a must have 7 entries")
+    with pytest.raises(ValueError, match="already registered"):
+        register_kind(ModelKind("test_scale", to_arrays, from_arrays))

@@ -1,0 +1,306 @@
+"""Resampling onto the absolute 5 Hz grid: interpolation, gaps, stale odometry, windows."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from asgp_ros.core.resample import ResampleConfig, grid_indices, resample, stale_samples
+from asgp_ros.core.streams import RawStreams
+
+
+def jittery_times(rng: np.random.Generator, t0: float, t1: float, lo: float,
+                  hi: float) -> np.ndarray:
+    """Sample times with intervals uniform in [lo, hi]."""
+    n = int((t1 - t0) / lo) + 2
+    t = t0 + np.cumsum(rng.uniform(lo, hi, n))
+    return t[t < t1]
+
+
+def recording(seed: int = 0, duration: float = 60.0, t0: float = 1000.03) -> RawStreams:
+    """Joystick at ~30 Hz and odometry at 4-7 Hz with jitter, smooth noisy signals."""
+    rng = np.random.default_rng(seed)
+    jt = jittery_times(rng, t0, t0 + duration, 1 / 40, 1 / 24)
+    vt = jittery_times(rng, t0, t0 + duration, 1 / 7, 1 / 4)
+    joy = np.stack([np.sin(0.5 * jt), 0.8 * np.cos(0.3 * jt)], axis=1)
+    vel = np.stack([1.2 * np.sin(0.5 * vt - 0.3), 0.9 * np.cos(0.3 * vt - 0.2)], axis=1)
+    vel += rng.normal(0, 0.01, vel.shape)
+    return RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel, source="test")
+
+
+def test_grid_is_absolute_and_covers_the_overlap() -> None:
+    s = recording()
+    res = resample(s)
+    assert np.all(np.diff(res.k) == 1)
+    np.testing.assert_array_equal(res.t, res.k / 5.0)
+    start = max(s.joy_t[0], s.vel_t[0])
+    end = min(s.joy_t[-1], s.vel_t[-1])
+    assert res.t[0] >= start and res.t[0] - 0.2 < start
+    assert res.t[-1] <= end and res.t[-1] + 0.2 > end
+    np.testing.assert_array_equal(grid_indices(0.2, 0.6, 5.0), [1, 2, 3])
+    np.testing.assert_array_equal(grid_indices(0.21, 0.59, 5.0), [2])
+    assert grid_indices(0.21, 0.39, 5.0).size == 0
+
+
+def test_linear_signals_are_interpolated_exactly() -> None:
+    rng = np.random.default_rng(5)
+    jt = jittery_times(rng, 10.0, 40.0, 0.02, 0.05)
+    vt = jittery_times(rng, 10.0, 40.0, 0.14, 0.25)
+    joy = np.stack([0.1 + 0.01 * jt, -0.2 - 0.02 * jt], axis=1)
+    vel = np.stack([3.0 - 0.05 * vt, 0.5 + 0.03 * vt], axis=1)
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    t = res.t
+    np.testing.assert_allclose(res.joy, np.stack([0.1 + 0.01 * t, -0.2 - 0.02 * t], 1),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(res.vel, np.stack([3.0 - 0.05 * t, 0.5 + 0.03 * t], 1),
+                               rtol=0, atol=1e-12)
+    assert res.valid.all() and len(res.segments()) == 1
+
+
+def test_exact_hit_returns_the_sample() -> None:
+    jt = np.array([0.0, 0.2, 0.4])
+    vt = np.array([0.0, 0.1, 0.4])
+    joy = np.array([[0.1, 0.0], [0.3, 0.0], [0.7, 0.0]])
+    vel = np.array([[1.0, 0.0], [1.1, 0.0], [1.7, 0.3]])
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    np.testing.assert_array_equal(res.k, [0, 1, 2])
+    np.testing.assert_array_equal(res.joy[:, 0], [0.1, 0.3, 0.7])
+    assert res.vel[2, 0] == 1.7 and res.vel[2, 1] == 0.3
+    np.testing.assert_allclose(res.vel[1], [1.1 + 0.6 / 3, 0.1], atol=1e-15)
+
+
+def test_jittery_timing_tracks_smooth_signals() -> None:
+    s = recording(seed=2)
+    res = resample(s)
+    assert res.valid.all() and len(res.segments()) == 1
+    t = res.t
+    np.testing.assert_allclose(res.joy[:, 0], np.sin(0.5 * t), atol=2e-3)
+    np.testing.assert_allclose(res.joy[:, 1], 0.8 * np.cos(0.3 * t), atol=2e-3)
+    # odometry: interpolation error (<= (0.25 s)^2 / 8 * 0.3) plus its 0.01 noise
+    np.testing.assert_allclose(res.vel[:, 0], 1.2 * np.sin(0.5 * t - 0.3), atol=0.05)
+
+
+def test_gaps_split_segments() -> None:
+    s = recording(seed=3, duration=30.0, t0=0.0)
+    # remove odometry in (10, 11.5) s and joystick in (20, 20.6) s
+    vkeep = (s.vel_t < 10.0) | (s.vel_t > 11.5)
+    jkeep = (s.joy_t < 20.0) | (s.joy_t > 20.6)
+    s2 = RawStreams(joy_t=s.joy_t[jkeep], joy=s.joy[jkeep], vel_t=s.vel_t[vkeep],
+                    vel=s.vel[vkeep])
+    res = resample(s2)
+    segs = res.segments()
+    assert len(segs) == 3
+    gap_t = res.t[res.gap]
+    assert np.all(((gap_t > 9.8) & (gap_t < 11.7)) | ((gap_t > 19.9) & (gap_t < 20.7)))
+    assert np.any((gap_t > 10.0) & (gap_t < 11.5)) and np.any((gap_t > 20.0) & (gap_t < 20.6))
+    for sl in segs:
+        assert res.valid[sl].all()
+        assert np.all(res.segment[sl] == res.segment[sl.start])
+    assert np.all(res.segment[~res.valid] == -1)
+    assert sorted(set(res.segment[res.valid].tolist())) == [0, 1, 2]
+    # a larger limit bridges the odometry gap (but the joystick limit still splits)
+    res_wide = resample(s2, ResampleConfig(max_gap_vel_s=2.0))
+    assert len(res_wide.segments()) == 2
+
+
+def driven_stale_recording(value: tuple[float, float], joy_fwd: float,
+                           repeat: tuple[float, float] = (20.0, 22.0)) -> RawStreams:
+    """Odometry at exactly 5 Hz phase-shifted, frozen at ``value`` during ``repeat``."""
+    s = recording(seed=4, duration=40.0, t0=0.0)
+    vel = s.vel.copy()
+    frozen = (s.vel_t >= repeat[0]) & (s.vel_t <= repeat[1])
+    vel[frozen] = value
+    joy = s.joy.copy()
+    joy[(s.joy_t > repeat[0] - 1) & (s.joy_t < repeat[1] + 1)] = (joy_fwd, 0.0)
+    return RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel)
+
+
+def test_stale_odometry_is_flagged() -> None:
+    s = driven_stale_recording((0.8, 0.1), joy_fwd=0.6)
+    res = resample(s)
+    frozen_t = s.vel_t[(s.vel_t >= 20.0) & (s.vel_t <= 22.0)]
+    inside = (res.t > frozen_t[0]) & (res.t <= frozen_t[-1])
+    assert res.stale[inside].all()
+    assert not res.valid[inside].any()
+    assert np.all(res.segment[inside] == -1)
+    # only points that use a repeated reading are stale; the first frozen sample is genuine
+    assert not res.stale[res.t < frozen_t[0]].any()
+    assert not res.stale[res.t > frozen_t[-1] + 0.3].any()
+    assert len(res.segments()) == 2
+
+
+def test_stale_zero_velocity_only_while_driven() -> None:
+    # zero odometry while the joystick is released: a chair at rest, not stale
+    rest = resample(driven_stale_recording((0.0, 0.0), joy_fwd=0.0))
+    assert not rest.stale.any()
+    # the same zeros while the joystick is pushed: the odometry is frozen, flagged once
+    # the stick has been deflected for stale_still_after_s (0.6 s) since the zeros began
+    s = driven_stale_recording((0.0, 0.0), joy_fwd=0.6)
+    first_zero = s.vel_t[s.vel_t >= 20.0][0]
+    driven = resample(s)
+    assert driven.stale[(driven.t > first_zero + 0.85) & (driven.t < 21.9)].all()
+    # (a grid point is flagged when the next odometry sample, <= 0.25 s later, is stale)
+    assert not driven.stale[driven.t < first_zero + 0.6 - 0.25].any()
+    # a chair that starts late (start-up lag shorter than the limit) is not flagged
+    late = resample(s, ResampleConfig(stale_still_after_s=3.0))
+    assert not late.stale.any()
+
+
+def test_short_repeats_and_tolerance() -> None:
+    short = resample(driven_stale_recording((0.8, 0.1), 0.6, repeat=(20.0, 20.3)))
+    assert not short.stale.any()
+    # nearly repeated readings: flagged only when within the configured tolerance
+    s = driven_stale_recording((0.8, 0.1), joy_fwd=0.6)
+    vel = s.vel.copy()
+    frozen = (s.vel_t >= 20.0) & (s.vel_t <= 22.0)
+    vel[frozen, 0] += np.arange(frozen.sum()) * 1e-7
+    s2 = RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=vel)
+    assert not resample(s2).stale.any()
+    assert resample(s2, ResampleConfig(stale_tolerance=1e-6)).stale.any()
+    # detection can be switched off
+    assert not resample(s, ResampleConfig(stale_after_s=math.inf)).stale.any()
+
+
+def test_stale_samples_marks_repeats_not_the_first() -> None:
+    vt = np.arange(10) * 0.2
+    vel = np.tile([0.5, 0.0], (10, 1))
+    vel[:3] = [[0.1, 0], [0.2, 0], [0.3, 0]]  # samples 3..9 repeat 0.5
+    stale = stale_samples(vt, vel, np.array([0.0, 2.0]), np.zeros((2, 2)), ResampleConfig())
+    np.testing.assert_array_equal(stale, [False] * 4 + [True] * 6)
+
+
+def test_tracking_failures_are_invalid() -> None:
+    s = recording(seed=6, duration=20.0, t0=0.0)
+    ok = np.ones(s.vel_t.shape[0], dtype=bool)
+    ok[(s.vel_t > 8.0) & (s.vel_t < 9.0)] = False
+    res = resample(RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=s.vel, vel_ok=ok))
+    lost = res.tracking_lost
+    assert lost[(res.t > 8.3) & (res.t < 8.7)].all()
+    assert not lost[(res.t < 7.7) | (res.t > 9.3)].any()
+    assert not res.valid[lost].any()
+    assert not res.stale.any()
+
+
+def test_non_finite_samples_are_dropped_and_counted() -> None:
+    s = recording(seed=7, duration=20.0, t0=0.0)
+    joy = s.joy.copy()
+    vel = s.vel.copy()
+    joy[5, 1] = np.nan
+    vel[(s.vel_t > 10.0) & (s.vel_t < 11.0)] = np.inf  # a 1 s hole -> a gap
+    res = resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel))
+    assert res.dropped_joy == 1
+    assert res.dropped_vel == int(((s.vel_t > 10.0) & (s.vel_t < 11.0)).sum())
+    assert np.all(np.isfinite(res.joy)) and np.all(np.isfinite(res.vel))
+    assert res.gap[(res.t > 10.2) & (res.t < 10.8)].all()
+    assert len(res.segments()) == 2
+
+
+def test_no_overlap_gives_an_empty_result() -> None:
+    s = RawStreams(joy_t=[0.0, 1.0], joy=np.zeros((2, 2)), vel_t=[2.0, 3.0],
+                   vel=np.zeros((2, 2)))
+    res = resample(s)
+    assert len(res) == 0 and res.segments() == []
+    assert res.joy.shape == (0, 2)
+
+
+def test_ground_truth_interpolated_with_unwrapped_heading() -> None:
+    s = recording(seed=8, duration=10.0, t0=0.0)
+    tt = np.arange(0.0, 10.0, 0.01)
+    theta = np.mod(2.0 * tt + np.pi, 2 * np.pi) - np.pi  # wraps every pi s
+    truth = np.stack([tt, -tt, theta, np.ones_like(tt), 2.0 * np.ones_like(tt)], 1)
+    res = resample(RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=s.vel,
+                              truth_t=tt, truth=truth))
+    ok = res.truth_valid
+    assert ok.sum() >= len(res) - 1
+    np.testing.assert_allclose(res.truth[ok, 0], res.t[ok], atol=1e-9)
+    wrapped = np.mod(res.truth[ok, 2] - 2.0 * res.t[ok] + np.pi, 2 * np.pi) - np.pi
+    np.testing.assert_allclose(wrapped, 0.0, atol=1e-9)
+    assert np.all(np.isnan(res.truth[~ok]))
+
+
+def messy_recording() -> RawStreams:
+    """A jittery recording with a gap, a tracking failure and a stale run."""
+    s = driven_stale_recording((0.8, 0.1), joy_fwd=0.6, repeat=(20.0, 22.0))
+    keep = (s.vel_t < 9.0) | (s.vel_t > 10.0)
+    ok = np.ones(int(keep.sum()), dtype=bool)
+    vt = s.vel_t[keep]
+    ok[(vt > 30.0) & (vt < 31.0)] = False
+    return RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=vt, vel=s.vel[keep], vel_ok=ok)
+
+
+def window(s: RawStreams, a: float, b: float) -> RawStreams:
+    jk = (s.joy_t >= a) & (s.joy_t <= b)
+    vk = (s.vel_t >= a) & (s.vel_t <= b)
+    return RawStreams(joy_t=s.joy_t[jk], joy=s.joy[jk], vel_t=s.vel_t[vk], vel=s.vel[vk],
+                      vel_ok=s.vel_ok[vk])
+
+
+def common(whole_k: np.ndarray, part_k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    _, iw, ip = np.intersect1d(whole_k, part_k, return_indices=True)
+    return iw, ip
+
+
+@pytest.mark.parametrize(("a", "b"), [(5.37, 14.91), (15.0, 25.0), (28.11, 35.0),
+                                      (0.0, 40.0), (20.9, 21.3), (20.9, 21.8)])
+def test_window_equals_whole_recording(a: float, b: float) -> None:
+    s = messy_recording()
+    whole = resample(s)
+    part = resample(window(s, a, b))
+    assert len(part) > 0
+    iw, ip = common(whole.k, part.k)
+    assert ip.size == len(part)  # every grid point of the window is in the whole
+    for name in ("t", "joy", "vel", "gap", "tracking_lost"):
+        np.testing.assert_array_equal(getattr(part, name), getattr(whole, name)[iw], name)
+    # stale flags agree wherever the window holds the whole run of repeated readings
+    frozen = s.vel_t[(s.vel_t >= 20.0) & (s.vel_t <= 22.0)]
+    run_inside = a <= frozen[0] and frozen[-1] <= b
+    run_outside = b < frozen[0] or a > frozen[-1] + 0.3
+    if run_inside or run_outside:
+        np.testing.assert_array_equal(part.stale, whole.stale[iw])
+        np.testing.assert_array_equal(part.valid, whole.valid[iw])
+        # the same segmentation (ids may be numbered differently)
+        assert [(sl.stop - sl.start) for sl in part.segments()][1:-1] == [
+            (sl.stop - sl.start) for sl in whole.segments()
+            if whole.k[sl.start] > part.k[0] and whole.k[sl.stop - 1] < part.k[-1]
+        ]
+    else:
+        # a run cut by the window edge: values identical, and the window can only see
+        # less of the run: its flags are a subset of the whole recording's
+        assert whole.stale[iw].all()
+        assert np.all(~part.stale | whole.stale[iw])
+        if b - a < ResampleConfig().stale_after_s:
+            assert not part.stale.any()
+
+
+def test_online_sliding_windows_reproduce_offline_values() -> None:
+    s = recording(seed=9, duration=30.0, t0=500.0)
+    whole = resample(s)
+    for end in np.arange(505.0, 530.0, 0.37):
+        part = resample(window(s, end - 3.0, end))
+        iw, _ = common(whole.k, part.k)
+        np.testing.assert_array_equal(part.vel, whole.vel[iw])
+        np.testing.assert_array_equal(part.joy, whole.joy[iw])
+        np.testing.assert_array_equal(part.valid, whole.valid[iw])
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("rate_hz", 0.0), ("rate_hz", math.inf), ("max_gap_joy_s", -1.0),
+    ("max_gap_vel_s", math.nan), ("stale_after_s", 0.0), ("stale_tolerance", -1e-3),
+    ("stale_still_after_s", -1.0),
+    ("rate_hz", "5"), ("rate_hz", True),
+])
+def test_config_validation(field: str, value: object) -> None:
+    with pytest.raises(ValueError, match=field):
+        ResampleConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_config_round_trip() -> None:
+    cfg = ResampleConfig(rate_hz=10, stale_after_s=math.inf, stale_still_after_s=math.inf)
+    assert cfg.dt == 0.1
+    d = cfg.to_dict()
+    assert d["stale_after_s"] is None and d["stale_still_after_s"] is None
+    assert ResampleConfig.from_dict(d) == cfg
+    with pytest.raises(ValueError, match="unknown"):
+        ResampleConfig.from_dict({"rate": 5})
