@@ -1,0 +1,555 @@
+"""Online motion prediction over sliding sensor buffers (ROS-free).
+
+``Predictor`` is the object a planner embeds in its own process and the one the ROS node
+wraps: feed it joystick and VO samples as they arrive, optionally a planned joystick
+sequence, and ask for the predicted path of the next k steps (paper Algorithm 1 with
+linearised uncertainty), or for the paths of a batch of candidate joystick sequences.
+
+Same features as offline, by construction: the buffers are turned into a
+``RawStreams`` and resampled with :func:`asgp_ros.core.resample.resample`, on the
+absolute-aligned grid ``t_k = k * dt`` of the stream clock, and the rollout
+(:func:`asgp_ros.core.rollout.rollout`) builds its inputs with
+:func:`asgp_ros.core.features.build_inputs`, exactly as training and evaluation do. Linear
+interpolation at a grid point depends only on the samples around it, so a buffer that
+holds enough history gives the same grid values, and hence the same features, as the
+whole bag.
+
+Indexing (paper Algorithm 1, as in ``rollout``): the *last complete step* ``L`` is the
+newest grid point covered by both streams (a joystick and a VO sample at or after
+``t_L``). The window ``J_{L-s+1..L}``, ``V_{L-s+1..L}`` is the measured past, ``t0 = t_L``
+is the prediction time (origin of the path) and the predicted poses are at
+``t0 + i * dt``, ``i = 1..k``, driven by the future joystick ``J_{L+1..L+k}``:
+
+* a planner's plans: row ``r`` of a plan received at ``stamp`` is the command over
+  ``[stamp + r*dt, stamp + (r+1)*dt)`` (its last row is held); each future grid time
+  uses the newest fresh plan issued at or before it, since a plan cannot revise a command
+  already executed when it was issued. A plan published just after ``t_L`` with rows
+  ``J_{L+1}, J_{L+2}, ...`` therefore maps row r to ``t_{L+1+r}``, and a prediction gives
+  the same future whether or not the next plan has already arrived;
+* no fresh plan: the newest joystick sample is held (the user keeps the stick where it is).
+
+Time: stamps and ``now`` are seconds on one clock. A stamp or a ``now`` further back than
+``reset_jump_s`` from what was seen (a bag replayed in a loop, a restarted clock) resets
+the buffers; smaller disorder (out-of-order, duplicate stamps) is tolerated (the
+resampler sorts and de-duplicates). Non-finite samples are dropped and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.resample import resample
+from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
+from asgp_ros.core.streams import RawStreams
+
+FloatArray = NDArray[np.float64]
+
+CHI2_2DOF_95 = -2.0 * math.log(1.0 - 0.95)  # 5.991: chi-square quantile, 2 dof, p = 0.95
+
+# Reasons why no prediction is available (stable codes for diagnostics and tests).
+OK = "ok"
+NO_INPUT = "no_input"
+STALE_JOYSTICK = "stale_joystick"
+STALE_VO = "stale_vo"
+VO_TRACKING_LOST = "vo_tracking_lost"
+VO_STALE_REPEAT = "vo_stale_repeat"
+NOT_ENOUGH_HISTORY = "not_enough_history"
+CLOCK_RESET = "clock_reset"
+NO_POSE = "no_odometry_pose"
+
+_EPS_T = 1e-9
+MAX_PLANS = 16  # plans kept: only those issued within about one step before now matter
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """Online prediction settings (validated on construction).
+
+    Attributes:
+        horizon_steps: k, steps predicted ahead (k * dt seconds).
+        joy_timeout_s: no prediction when the newest joystick sample is older than this.
+        vo_timeout_s: no prediction when the newest VO sample is older than this.
+        plan_timeout_s: a planner's plan older than this is ignored (hold the command).
+        buffer_s: history kept in the buffers (must cover the lags and the resampler's
+            gap/staleness look-back).
+        reset_jump_s: a stamp or clock going back by more than this resets the buffers.
+        uncertainty: "linear" (EKF-style), "mc" or "none", passed to the rollout.
+    """
+
+    horizon_steps: int = 10
+    joy_timeout_s: float = 0.5
+    vo_timeout_s: float = 0.5
+    plan_timeout_s: float = 1.0
+    buffer_s: float = 10.0
+    reset_jump_s: float = 1.0
+    uncertainty: str = "linear"
+
+    def __post_init__(self) -> None:
+        steps = self.horizon_steps
+        if isinstance(steps, bool) or int(steps) != steps or not 1 <= int(steps) <= 200:
+            raise ValueError(f"horizon_steps must be an integer in [1, 200], "
+                             f"got {self.horizon_steps}")
+        for name in ("joy_timeout_s", "vo_timeout_s", "plan_timeout_s", "reset_jump_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 < value <= 60.0):
+                raise ValueError(f"{name} must be in (0, 60] s, got {value}")
+        if not (math.isfinite(self.buffer_s) and 1.0 <= self.buffer_s <= 600.0):
+            raise ValueError(f"buffer_s must be in [1, 600] s, got {self.buffer_s}")
+        if self.uncertainty not in ("linear", "mc", "none"):
+            raise ValueError(
+                f"uncertainty must be 'linear', 'mc' or 'none', got {self.uncertainty!r}"
+            )
+
+
+@dataclass
+class PredictorStats:
+    """Counters for diagnostics."""
+
+    joy_samples: int = 0
+    vo_samples: int = 0
+    dropped_nonfinite: int = 0
+    out_of_order: int = 0
+    resets: int = 0
+    predictions: int = 0
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The predicted path of one (or a batch of) future joystick sequence(s).
+
+    ``ok`` False means no prediction: ``reason`` is one of the module's codes and
+    ``detail`` says why in words; the arrays are then empty.
+
+    Attributes (single: shapes below; batch: a leading [B]):
+        t0: prediction time = grid time of the last complete step (the path's origin).
+        step: grid index of t0 (t0 = step * dt).
+        times: [k] t0 + i*dt, i = 1..k.
+        pose: [k, 3] (x, y, theta) in the base frame at t0.
+        pos_cov: [k, 2, 2] covariance of (x, y).
+        ellipses: [k, 3] 95% position ellipse (semi-major, semi-minor, angle of the major
+            axis from x), from ``pos_cov``.
+        vel: [k, 2] predicted (v, omega) at t0 .. t0 + (k-1) dt (V_{L+1} .. V_{L+k}).
+        vel_cov: [k, 2, 2].
+        joy_future: [k, 2] the joystick commands the prediction assumed.
+        joy_past, vel_past: [s, 2] the measured window (grid t_{L-s+1} .. t_L).
+        origin: (x, y, yaw) of the base frame at t0 in the odometry frame, when odometry
+            poses were fed; None otherwise.
+        from_plan: True when the future joystick came from a planner's plan.
+    """
+
+    ok: bool
+    reason: str
+    detail: str = ""
+    t0: float = float("nan")
+    step: int = -1
+    dt: float = float("nan")
+    times: FloatArray = field(default_factory=lambda: np.zeros(0))
+    pose: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    pos_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    ellipses: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    vel: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    vel_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    joy_future: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    joy_past: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    vel_past: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
+    origin: FloatArray | None = None
+    from_plan: bool = False
+
+
+def confidence_ellipses(cov: FloatArray, chi2: float = CHI2_2DOF_95) -> FloatArray:
+    """Semi-axes and orientation of the ``chi2`` confidence ellipses of 2x2 covariances.
+
+    Args:
+        cov: [..., 2, 2] symmetric positive semi-definite.
+        chi2: squared Mahalanobis radius (5.991 = 95% for 2 dof).
+
+    Returns:
+        [..., 3]: (semi-major, semi-minor, angle of the major axis from x, rad).
+    """
+    cov = np.asarray(cov, dtype=np.float64)
+    sym = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    evals, evecs = np.linalg.eigh(sym)  # ascending eigenvalues
+    evals = np.clip(evals, 0.0, None)  # round-off only: the rollout returns PSD covariances
+    major = np.sqrt(chi2 * evals[..., 1])
+    minor = np.sqrt(chi2 * evals[..., 0])
+    angle = np.arctan2(evecs[..., 1, 1], evecs[..., 0, 1])
+    return np.stack([major, minor, angle], axis=-1)
+
+
+def to_frame(pose: FloatArray, pos_cov: FloatArray, origin: FloatArray
+             ) -> tuple[FloatArray, FloatArray]:
+    """Express base-frame poses and covariances in the frame where the base is at ``origin``.
+
+    Args:
+        pose: [..., k, 3] (x, y, theta) relative to the base at t0.
+        pos_cov: [..., k, 2, 2].
+        origin: [3] (x, y, yaw) of the base at t0 in the target frame.
+
+    Returns:
+        (pose [..., k, 3], pos_cov [..., k, 2, 2]) in the target frame (R P R^T).
+    """
+    c, s = math.cos(float(origin[2])), math.sin(float(origin[2]))
+    R = np.array([[c, -s], [s, c]])
+    xy = pose[..., :2] @ R.T + origin[:2]
+    theta = pose[..., 2:3] + origin[2]
+    return np.concatenate([xy, theta], axis=-1), R @ pos_cov @ R.T
+
+
+def interpolate_pose(t: float, stamps: FloatArray, poses: FloatArray) -> FloatArray | None:
+    """Pose [3] at ``t`` interpolated linearly (yaw unwrapped) from [N] stamps, [N, 3] poses.
+
+    None when ``t`` is outside the stamps (no extrapolation).
+    """
+    if stamps.shape[0] == 0 or t < stamps[0] - _EPS_T or t > stamps[-1] + _EPS_T:
+        return None
+    yaw = np.unwrap(poses[:, 2])
+    return np.array([
+        np.interp(t, stamps, poses[:, 0]),
+        np.interp(t, stamps, poses[:, 1]),
+        np.interp(t, stamps, yaw),
+    ])
+
+
+class _Buffer:
+    """Time-stamped samples, pruned to a window behind the newest stamp."""
+
+    def __init__(self, width: int) -> None:
+        self.width = width
+        self.items: deque[tuple[float, ...]] = deque()
+        self.newest = -math.inf
+
+    def add(self, t: float, values: tuple[float, ...]) -> bool:
+        """Append; True if the stamp was out of order (older than the newest)."""
+        self.items.append((t, *values))
+        late = t < self.newest
+        self.newest = max(self.newest, t)
+        return late
+
+    def prune(self, horizon_s: float) -> None:
+        cutoff = self.newest - horizon_s
+        while self.items and self.items[0][0] < cutoff:
+            self.items.popleft()
+
+    def arrays(self) -> tuple[FloatArray, FloatArray]:
+        if not self.items:
+            return np.zeros(0), np.zeros((0, self.width))
+        data = np.array(self.items, dtype=np.float64)
+        return data[:, 0], data[:, 1:]
+
+    def clear(self) -> None:
+        self.items.clear()
+        self.newest = -math.inf
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+
+class Predictor:
+    """Sliding-buffer k-step motion predictor over a trained ``MotionModel``.
+
+    Args:
+        model: a trained ``MotionModel`` (from ``asgp_ros.core.modelfile.load_model``).
+        config: online settings.
+
+    Typical use (a planner at 5 Hz)::
+
+        pred = Predictor(load_model("chair.npz"), PredictorConfig(horizon_steps=10))
+        pred.feed_joy(t, (fwd, turn)); pred.feed_vo(t, (v, omega))   # as they arrive
+        result = pred.predict(now)                                 # held command
+        batch = pred.predict_batch(candidates, now)                # [B, k, 2] commands
+    """
+
+    def __init__(self, model: MotionModel, config: PredictorConfig | None = None) -> None:
+        self.model = model
+        self.config = config or PredictorConfig()
+        self.resample_config = model.resample_config
+        self.dt = 1.0 / float(model.resample_config.rate_hz)
+        self.lags = int(model.feature_config.lags)
+        self.stats = PredictorStats()
+        self._joy = _Buffer(2)
+        self._vo = _Buffer(3)  # v, omega, tracking ok (1.0 / 0.0)
+        self._pose = _Buffer(3)
+        self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
+        self._last_now = -math.inf
+        self.last_reset_detail = ""
+        self.last_resampled: object = None  # the newest window's Resampled (diagnostics)
+
+    # ---- input ---------------------------------------------------------------------
+
+    def reset(self, detail: str = "") -> None:
+        """Forget all samples and the plan (a clock jump; a restart of the inputs)."""
+        self._joy.clear()
+        self._vo.clear()
+        self._pose.clear()
+        self._plans = []
+        self._last_now = -math.inf
+        self.stats.resets += 1
+        self.last_reset_detail = detail
+
+    def _newest(self) -> float:
+        return max(self._joy.newest, self._vo.newest)
+
+    def _admit(self, t: float, values: tuple[float, ...]) -> bool:
+        if not (math.isfinite(t) and all(math.isfinite(v) for v in values)):
+            self.stats.dropped_nonfinite += 1
+            return False
+        newest = self._newest()
+        if t < newest - self.config.reset_jump_s:
+            self.reset(f"sample stamped {t:.3f} s is {newest - t:.3f} s behind the newest")
+        return True
+
+    def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray) -> bool:
+        """Add a joystick sample (forward, turn) at time t; False if dropped (non-finite)."""
+        values = (float(joy[0]), float(joy[1]))
+        if not self._admit(float(t), values):
+            return False
+        self.stats.joy_samples += 1
+        self.stats.out_of_order += self._joy.add(float(t), values)
+        self._joy.prune(self.config.buffer_s)
+        return True
+
+    def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True) -> bool:
+        """Add a VO velocity (v, omega) at time t; ``ok`` False = VO reported tracking loss.
+
+        A sample with tracking loss may carry non-finite velocities: it is kept (as a
+        tracking failure) with zeros, since the resampler invalidates it anyway.
+        """
+        v, w = float(vel[0]), float(vel[1])
+        if not ok and not (math.isfinite(v) and math.isfinite(w)):
+            v, w = 0.0, 0.0
+        if not self._admit(float(t), (v, w)):
+            return False
+        self.stats.vo_samples += 1
+        self.stats.out_of_order += self._vo.add(float(t), (v, w, 1.0 if ok else 0.0))
+        self._vo.prune(self.config.buffer_s)
+        return True
+
+    def feed_pose(self, t: float, x: float, y: float, yaw: float) -> bool:
+        """Add an odometry pose of the base in the odom frame (for paths in that frame)."""
+        if not all(math.isfinite(v) for v in (t, x, y, yaw)):
+            self.stats.dropped_nonfinite += 1
+            return False
+        self._pose.add(float(t), (float(x), float(y), float(yaw)))
+        self._pose.prune(self.config.buffer_s)
+        return True
+
+    def set_plan(self, plan: FloatArray, stamp: float) -> None:
+        """A planner's future joystick commands: [m, 2] rows from ``stamp`` on, dt apart.
+
+        Raises:
+            ValueError: wrong shape, empty, or non-finite values.
+        """
+        arr = np.asarray(plan, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+            raise ValueError(f"a plan must be [m, 2] joystick commands, got shape {arr.shape}")
+        if not np.all(np.isfinite(arr)) or not math.isfinite(stamp):
+            raise ValueError("a plan must be finite")
+        plans = [p for p in self._plans if p[0] != float(stamp)]
+        plans.append((float(stamp), arr.copy()))
+        plans.sort(key=lambda p: p[0])
+        self._plans = plans[-MAX_PLANS:]
+
+    def clear_plan(self) -> None:
+        self._plans = []
+
+    # ---- queries -------------------------------------------------------------------
+
+    def newest_stamps(self) -> tuple[float, float]:
+        """(newest joystick stamp, newest VO stamp); -inf when empty."""
+        return self._joy.newest, self._vo.newest
+
+    def ready_step(self) -> int | None:
+        """Grid index of the newest point covered by both streams (cheap), or None."""
+        if not self._joy or not self._vo:
+            return None
+        return math.floor(min(self._joy.newest, self._vo.newest) / self.dt + 1e-6)
+
+    def plan_future(self, t0: float, now: float, k: int,
+                    held: FloatArray | None = None) -> FloatArray | None:
+        """[k, 2] commands at t0 + i*dt (i = 1..k) from the fresh plans, or None if none.
+
+        Each grid time uses the newest plan issued at or before it (a plan cannot revise
+        a command already executed before it was issued); row r of a plan issued at
+        ``stamp`` covers [stamp + r dt, stamp + (r+1) dt), the last row is held. Grid times
+        before every fresh plan use ``held`` (default: that plan's first row).
+        """
+        plans = [p for p in self._plans if now - p[0] <= self.config.plan_timeout_s]
+        self._plans = plans
+        if not plans:
+            return None
+        stamps = np.array([p[0] for p in plans])
+        times = t0 + self.dt * np.arange(1, k + 1)
+        which = np.searchsorted(stamps, times + _EPS_T, side="right") - 1  # [k]
+        out = np.empty((k, 2))
+        for j in range(k):
+            if which[j] < 0:
+                out[j] = plans[0][1][0] if held is None else held
+                continue
+            stamp, rows = plans[which[j]]
+            r = math.floor((times[j] - stamp) / self.dt + 1e-6)
+            out[j] = rows[min(max(r, 0), rows.shape[0] - 1)]
+        return out
+
+    def _check_clock(self, now: float) -> Prediction | None:
+        jump = self.config.reset_jump_s
+        if now < self._last_now - jump or self._newest() > now + jump:
+            detail = (f"clock went back from {self._last_now:.3f} s to {now:.3f} s"
+                      if now < self._last_now - jump
+                      else f"samples stamped up to {self._newest():.3f} s are ahead of "
+                           f"the clock ({now:.3f} s)")
+            self.reset(detail)
+            self._last_now = now
+            return Prediction(False, CLOCK_RESET, f"{detail}: buffers reset")
+        self._last_now = max(self._last_now, now)
+        return None
+
+    def status(self, now: float) -> Prediction | None:
+        """Cheap input check (no resampling): why no prediction is possible, else None.
+
+        Also detects a clock jump (and resets), so a watchdog may call it periodically.
+        """
+        cfg = self.config
+        if (reset := self._check_clock(now)) is not None:
+            return reset
+        if not self._joy or not self._vo:
+            return Prediction(False, NO_INPUT, "waiting for joystick and VO samples")
+        joy_age = now - self._joy.newest
+        if joy_age > cfg.joy_timeout_s:
+            return Prediction(False, STALE_JOYSTICK,
+                              f"joystick is {joy_age:.2f} s old (limit {cfg.joy_timeout_s} s)")
+        vo_age = now - self._vo.newest
+        if vo_age > cfg.vo_timeout_s:
+            return Prediction(False, STALE_VO,
+                              f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")
+        newest_vo = max(self._vo.items, key=lambda item: item[0])
+        if newest_vo[3] < 0.5:
+            return Prediction(False, VO_TRACKING_LOST, "VO reports tracking loss")
+        return None
+
+    def _window(self, now: float) -> Prediction | tuple[int, float, FloatArray, FloatArray]:
+        """The measured window at the last complete step, or a not-ok Prediction."""
+        if (bad := self.status(now)) is not None:
+            return bad
+        joy_t, joy = self._joy.arrays()
+        vo_t, vo = self._vo.arrays()
+        streams = RawStreams(joy_t=joy_t, joy=joy, vel_t=vo_t, vel=vo[:, :2],
+                             vel_ok=vo[:, 2] > 0.5, source="live")
+        res = resample(streams, self.resample_config)
+        self.last_resampled = res
+        s = self.lags
+        t_ready = min(self._joy.newest, self._vo.newest)
+        n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
+        if n < s:
+            return Prediction(False, NOT_ENOUGH_HISTORY,
+                              f"{n} grid steps buffered, the model needs {s}")
+        last = n - 1
+        window = slice(last - s + 1, last + 1)
+        if bool(res.tracking_lost[last]):
+            return Prediction(False, VO_TRACKING_LOST, "VO reported tracking loss")
+        if bool(res.stale[last]):
+            return Prediction(False, VO_STALE_REPEAT,
+                              "VO repeats the same velocity while the chair is driven")
+        valid = np.asarray(res.valid[window], dtype=bool)
+        segment = np.asarray(res.segment[window])
+        if not (np.all(valid) and np.all(segment == segment[-1])):
+            why = ("tracking loss" if np.any(res.tracking_lost[window])
+                   else "stale VO" if np.any(res.stale[window])
+                   else "a gap in the input")
+            return Prediction(
+                False, NOT_ENOUGH_HISTORY,
+                f"only {_trailing_true(valid)} of the last {s} grid steps are valid ({why})",
+            )
+        t0 = float(res.t[last])
+        return (int(res.k[last]), t0, np.asarray(res.joy[window], dtype=np.float64),
+                np.asarray(res.vel[window], dtype=np.float64))
+
+    def _rollout(self, joy_past: FloatArray, vel_past: FloatArray, futures: FloatArray
+                 ) -> Rollout:
+        unc = self.config.uncertainty
+        mode: Uncertainty = "mc" if unc == "mc" else "none" if unc == "none" else "linear"
+        return rollout(self.model, joy_past, vel_past, futures, uncertainty=mode)
+
+    def predict(self, now: float, joy_future: FloatArray | None = None) -> Prediction:
+        """The predicted path at the last complete step, or why there is none.
+
+        Args:
+            now: current time on the stamps' clock (staleness and clock jumps).
+            joy_future: [k, 2] future commands for t0 + dt .. t0 + k*dt; default: a fresh
+                plan if any, else the newest joystick sample held.
+        """
+        got = self._window(now)
+        if isinstance(got, Prediction):
+            return got
+        step, t0, joy_past, vel_past = got
+        k = self.config.horizon_steps
+        from_plan = False
+        if joy_future is None:
+            joy_t, joy = self._joy.arrays()
+            held = joy[np.argmax(joy_t)]
+            planned = self.plan_future(t0, now, k, held)
+            if planned is not None:
+                joy_future, from_plan = planned, True
+            else:
+                joy_future = np.repeat(held[None, :], k, axis=0)
+        future = np.asarray(joy_future, dtype=np.float64)
+        if future.ndim != 2 or future.shape[1] != 2 or not np.all(np.isfinite(future)):
+            raise ValueError(f"joy_future must be finite [k, 2], got shape {future.shape}")
+        out = self._rollout(joy_past, vel_past, future[None])
+        return self._result(step, t0, joy_past, vel_past, future[None], out, from_plan,
+                            batch=False)
+
+    def predict_batch(self, candidates: FloatArray, now: float) -> Prediction:
+        """Paths for a batch of candidate future joystick sequences (for planners).
+
+        Args:
+            candidates: [B, k, 2] commands for t0 + dt .. t0 + k*dt (any k >= 1).
+            now: current time.
+
+        Returns:
+            A Prediction whose arrays have a leading [B] axis (times, t0 and the measured
+            window are shared).
+        """
+        cand = np.asarray(candidates, dtype=np.float64)
+        if cand.ndim != 3 or cand.shape[2] != 2 or cand.shape[0] == 0 or cand.shape[1] == 0:
+            raise ValueError(f"candidates must be [B, k, 2], got shape {cand.shape}")
+        if not np.all(np.isfinite(cand)):
+            raise ValueError("candidates contain NaN or inf")
+        got = self._window(now)
+        if isinstance(got, Prediction):
+            return got
+        step, t0, joy_past, vel_past = got
+        out = self._rollout(joy_past, vel_past, cand)
+        return self._result(step, t0, joy_past, vel_past, cand, out, False, batch=True)
+
+    def _result(self, step: int, t0: float, joy_past: FloatArray, vel_past: FloatArray,
+                futures: FloatArray, out: Rollout, from_plan: bool, batch: bool) -> Prediction:
+        pose = np.asarray(out.pose, dtype=np.float64)
+        pos_cov = np.asarray(out.pos_cov, dtype=np.float64)
+        vel = np.asarray(out.vel, dtype=np.float64)
+        vel_cov = np.asarray(out.vel_cov, dtype=np.float64)
+        k = futures.shape[1]
+        pose_t, pose_v = self._pose.arrays()
+        origin = interpolate_pose(t0, pose_t[np.argsort(pose_t)], pose_v[np.argsort(pose_t)])
+        if not batch:
+            pose, pos_cov, vel, vel_cov, futures = (
+                pose[0], pos_cov[0], vel[0], vel_cov[0], futures[0])
+        self.stats.predictions += 1
+        return Prediction(
+            ok=True, reason=OK, t0=t0, step=step, dt=self.dt,
+            times=t0 + self.dt * np.arange(1, k + 1),
+            pose=pose, pos_cov=pos_cov, ellipses=confidence_ellipses(pos_cov),
+            vel=vel, vel_cov=vel_cov, joy_future=futures,
+            joy_past=joy_past, vel_past=vel_past, origin=origin, from_plan=from_plan,
+        )
+
+
+def _trailing_true(mask: NDArray[np.bool_]) -> int:
+    """Length of the run of True at the end of ``mask``."""
+    falses = np.flatnonzero(~mask)
+    return int(mask.shape[0] if falses.size == 0 else mask.shape[0] - 1 - falses[-1])

@@ -1,0 +1,513 @@
+"""ROS 2 node: online k-step motion prediction of the wheelchair.
+
+Subscribes ``joy`` (sensor_msgs/Joy), ``vo/twist`` (geometry_msgs/TwistStamped, or
+nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (std_msgs/Float32MultiArray,
+[k, 2] future joystick commands from a planner); publishes ``predicted_path``
+(nav_msgs/Path), ``predicted_path/uncertainty`` (visualization_msgs/MarkerArray, a 95%
+position ellipse per step) and ``diagnostics``.
+
+The numerics are :class:`asgp_ros.core.online.Predictor`; this node only converts
+messages and wires callbacks. A prediction is made once per grid step of the model
+(its rate), as soon as the sample that completes the step arrives (the VO message,
+usually), so the path is published within the prediction's latency of the data; a timer
+at the model's rate is the watchdog (staleness, clock jumps, clearing the RViz ellipses)
+and another publishes diagnostics. Stale input means no path and a diagnostic saying
+why; fresh input resumes prediction without a restart.
+
+Run: ``predictor_node --ros-args --params-file config/predictor.yaml -p model_path:=M.npz``
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry, Path
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import Joy
+from std_msgs.msg import Float32MultiArray
+from visualization_msgs.msg import MarkerArray
+
+from asgp_ros.bags import parse_joy_axes
+from asgp_ros.core import online
+from asgp_ros.core.modelfile import ModelFileError, load_model
+from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.nodes import conversions as conv
+
+NODE_NAME = "predictor_node"
+PREDICTION_ERROR = "prediction_error"
+
+
+class StartupError(Exception):
+    """The node cannot start (bad model file, inconsistent parameters)."""
+
+
+@dataclass(frozen=True)
+class PredictorNodeParams:
+    """The node's parameters, validated on construction (see config/predictor.yaml)."""
+
+    model_path: str = ""
+    horizon_steps: int = 0
+    horizon_s: float = 2.0
+    rate_hz: float = 0.0
+    joy_topic: str = "joy"
+    vo_topic: str = "vo/twist"
+    vo_type: str = "twist"
+    plan_topic: str = "joy_plan"
+    path_topic: str = "predicted_path"
+    joy_axes: str = "0,1"
+    joy_timeout_s: float = 0.5
+    vo_timeout_s: float = 0.5
+    plan_timeout_s: float = 1.0
+    buffer_s: float = 10.0
+    reset_jump_s: float = 1.0
+    base_frame: str = "base_link"
+    odom_frame: str = "odom"
+    path_frame: str = "base"
+    uncertainty: str = "linear"
+    publish_uncertainty: bool = True
+    diagnostics_period_s: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.model_path:
+            raise ValueError("model_path is required (a model file from `asgp train`)")
+        if not 0 <= self.horizon_steps <= 200:
+            raise ValueError(f"horizon_steps must be in [0, 200], got {self.horizon_steps}")
+        if not (math.isfinite(self.horizon_s) and 0.0 < self.horizon_s <= 40.0):
+            raise ValueError(f"horizon_s must be in (0, 40] s, got {self.horizon_s}")
+        if not (math.isfinite(self.rate_hz) and 0.0 <= self.rate_hz <= 100.0):
+            raise ValueError(f"rate_hz must be in [0, 100] Hz, got {self.rate_hz}")
+        for name in ("joy_topic", "vo_topic", "plan_topic", "path_topic", "base_frame",
+                     "odom_frame"):
+            if not getattr(self, name).strip():
+                raise ValueError(f"{name} must not be empty")
+        if self.vo_type not in ("twist", "odometry"):
+            raise ValueError(f"vo_type must be 'twist' or 'odometry', got {self.vo_type!r}")
+        if self.path_frame not in ("base", "odom"):
+            raise ValueError(f"path_frame must be 'base' or 'odom', got {self.path_frame!r}")
+        if self.path_frame == "odom" and self.vo_type != "odometry":
+            raise ValueError("path_frame 'odom' needs odometry poses: set vo_type to 'odometry'")
+        parse_joy_axes(self.joy_axes)
+        if not (math.isfinite(self.diagnostics_period_s)
+                and 0.1 <= self.diagnostics_period_s <= 60.0):
+            raise ValueError(
+                f"diagnostics_period_s must be in [0.1, 60] s, got {self.diagnostics_period_s}"
+            )
+        # the predictor's own settings are validated by PredictorConfig
+        self.predictor_config(5.0)
+
+    def steps(self, model_rate_hz: float) -> int:
+        """k: horizon_steps, or horizon_s at the model's rate."""
+        if self.horizon_steps > 0:
+            return self.horizon_steps
+        return max(1, round(self.horizon_s * model_rate_hz))
+
+    def predictor_config(self, model_rate_hz: float) -> PredictorConfig:
+        return PredictorConfig(
+            horizon_steps=self.steps(model_rate_hz),
+            joy_timeout_s=self.joy_timeout_s,
+            vo_timeout_s=self.vo_timeout_s,
+            plan_timeout_s=self.plan_timeout_s,
+            buffer_s=self.buffer_s,
+            reset_jump_s=self.reset_jump_s,
+            uncertainty=self.uncertainty,
+        )
+
+    def decimation(self, model_rate_hz: float) -> int:
+        """Predict every n-th grid step: n = model rate / rate_hz (rate_hz 0 = every step)."""
+        if self.rate_hz == 0.0:
+            return 1
+        n = model_rate_hz / self.rate_hz
+        if n < 1.0 - 1e-9 or abs(n - round(n)) > 1e-6:
+            raise ValueError(
+                f"rate_hz {self.rate_hz} must be the model's rate ({model_rate_hz} Hz) divided "
+                "by an integer, or 0 for the model's rate"
+            )
+        return round(n)
+
+
+# name -> (description, range or None, read_only)
+_DESCRIPTORS: dict[str, tuple[str, tuple[float, float, float] | None, bool]] = {
+    "model_path": ("model file (.npz) written by `asgp train`", None, True),
+    "horizon_steps": ("k, steps predicted ahead; 0 = use horizon_s", (0, 200, 1), False),
+    "horizon_s": ("prediction horizon in seconds when horizon_steps is 0", (0.1, 40.0, 0.0),
+                  False),
+    "rate_hz": ("prediction rate; 0 = the model's grid rate, else that rate / an integer",
+                (0.0, 100.0, 0.0), True),
+    "joy_topic": ("joystick input (sensor_msgs/Joy)", None, True),
+    "vo_topic": ("VO velocity input (TwistStamped, or Odometry with vo_type odometry)", None,
+                 True),
+    "vo_type": ("'twist' (geometry_msgs/TwistStamped) or 'odometry' (nav_msgs/Odometry)",
+                None, True),
+    "plan_topic": ("planned future joystick (std_msgs/Float32MultiArray, [k, 2])", None, True),
+    "path_topic": ("predicted path output; ellipses on <path_topic>/uncertainty", None, True),
+    "joy_axes": ("Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
+                 "flips a sign (as `asgp train --joy-axes`)", None, True),
+    "joy_timeout_s": ("no prediction when the joystick is older than this", (0.01, 60.0, 0.0),
+                      False),
+    "vo_timeout_s": ("no prediction when VO is older than this", (0.01, 60.0, 0.0), False),
+    "plan_timeout_s": ("ignore a plan older than this (hold the command)", (0.01, 60.0, 0.0),
+                       False),
+    "buffer_s": ("history kept for resampling", (1.0, 600.0, 0.0), False),
+    "reset_jump_s": ("a clock or stamp going back by more than this resets the buffers",
+                     (0.01, 60.0, 0.0), False),
+    "base_frame": ("frame of the chair (paths in it are relative to the pose at t0)", None,
+                   True),
+    "odom_frame": ("odometry frame", None, True),
+    "path_frame": ("'base' (base_frame at the prediction time) or 'odom' (needs odometry)",
+                   None, True),
+    "uncertainty": ("'linear', 'mc' or 'none' uncertainty propagation", None, False),
+    "publish_uncertainty": ("publish the 95% ellipses", None, False),
+    "diagnostics_period_s": ("diagnostics period", (0.1, 60.0, 0.0), True),
+}
+
+
+def _descriptor(name: str) -> ParameterDescriptor:
+    text, rng, read_only = _DESCRIPTORS[name]
+    d = ParameterDescriptor(description=text, read_only=read_only)
+    if rng is not None:
+        if isinstance(getattr(PredictorNodeParams, name), int):
+            d.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]),
+                                            step=int(rng[2]))]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=rng[0], to_value=rng[1],
+                                                         step=rng[2])]
+    return d
+
+
+class _RateMeter:
+    """Arrivals per second over the last few seconds (for diagnostics)."""
+
+    def __init__(self, window_s: float = 5.0) -> None:
+        self.window_s = window_s
+        self.times: deque[float] = deque()
+
+    def tick(self, t: float) -> None:
+        self.times.append(t)
+        while self.times and self.times[0] < t - self.window_s:
+            self.times.popleft()
+
+    def rate(self, now: float) -> float:
+        while self.times and self.times[0] < now - self.window_s:
+            self.times.popleft()
+        if len(self.times) < 2:
+            return 0.0
+        return (len(self.times) - 1) / max(self.times[-1] - self.times[0], 1e-9)
+
+
+class PredictorNode(Node):
+    """The online predictor (see the module docstring).
+
+    Raises:
+        StartupError: missing or invalid model file, invalid parameters.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        try:
+            self._setup()
+        except StartupError:
+            self.destroy_node()
+            raise
+
+    def _setup(self) -> None:
+        defaults = PredictorNodeParams.__dataclass_fields__
+        for name in _DESCRIPTORS:
+            self.declare_parameter(name, defaults[name].default, _descriptor(name))
+        try:
+            self.params = PredictorNodeParams(**{
+                name: self.get_parameter(name).value for name in _DESCRIPTORS
+            })
+        except (ValueError, TypeError) as exc:
+            raise StartupError(f"invalid parameters: {exc}") from exc
+        p = self.params
+
+        try:
+            self.model = load_model(p.model_path)
+        except (ModelFileError, OSError, ValueError) as exc:
+            raise StartupError(f"cannot load the model: {exc}") from exc
+        rate = float(self.model.resample_config.rate_hz)
+        self.joy_axes = parse_joy_axes(p.joy_axes)
+        try:
+            self.every_n = p.decimation(rate)
+            self.predictor = Predictor(self.model, p.predictor_config(rate))
+        except ValueError as exc:
+            raise StartupError(str(exc)) from exc
+
+        self._last_step: int | None = None  # newest grid step a prediction was tried for
+        self._last_result: Prediction = Prediction(False, online.NO_INPUT, "starting")
+        self._published_step: int | None = None
+        self._markers_shown = False
+        self._latency_ms: deque[float] = deque(maxlen=1000)
+        self._joy_rate = _RateMeter()
+        self._vo_rate = _RateMeter()
+        self._paths_published = 0
+        self._bad_messages = 0
+        self._resets_seen = 0
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.path_pub = self.create_publisher(Path, p.path_topic, reliable)
+        self.marker_pub = self.create_publisher(
+            MarkerArray, f"{p.path_topic}/uncertainty", reliable)
+        self.diag_pub = self.create_publisher(DiagnosticArray, "diagnostics", reliable)
+        self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        if p.vo_type == "twist":
+            self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
+                                     qos_profile_sensor_data)
+        else:
+            self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
+                                     qos_profile_sensor_data)
+        self.create_subscription(Float32MultiArray, p.plan_topic, self._on_plan, reliable)
+        self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
+        self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        self.get_logger().info(
+            f"model {p.model_path} ({self.model.kind}, lags {self.model.feature_config.lags}, "
+            f"{rate:g} Hz); horizon {self.predictor.config.horizon_steps} steps; "
+            f"inputs {p.joy_topic}, {p.vo_topic} ({p.vo_type}), plan {p.plan_topic}; "
+            f"output {p.path_topic} in "
+            f"{p.base_frame if p.path_frame == 'base' else p.odom_frame}"
+        )
+
+    # ---- parameters ------------------------------------------------------------------
+
+    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        changes = {prm.name: prm.value for prm in params if prm.name in _DESCRIPTORS}
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            candidate = replace(self.params, **changes)
+            candidate.predictor_config(self.model.resample_config.rate_hz)
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params: list[Parameter]) -> None:
+        changes = {prm.name: prm.value for prm in params if prm.name in _DESCRIPTORS}
+        if not changes:
+            return
+        self.params = replace(self.params, **changes)
+        self.predictor.config = self.params.predictor_config(self.model.resample_config.rate_hz)
+        self.get_logger().info(f"parameters changed: {changes}")
+
+    # ---- input -----------------------------------------------------------------------
+
+    def _now(self) -> float | None:
+        """Node clock in seconds; None before a simulated clock has started."""
+        ns = self.get_clock().now().nanoseconds
+        return None if ns == 0 else ns * 1e-9
+
+    def _warn_dropped(self, what: str) -> None:
+        self.get_logger().warning(
+            f"dropping non-finite {what} samples ({self.predictor.stats.dropped_nonfinite} "
+            "so far)", throttle_duration_sec=5.0)
+
+    def _stamp(self, t: float, now: float | None) -> float:
+        """Header stamp, or the arrival time when the sender left the stamp at zero."""
+        if t > 0.0 or now is None:
+            return t
+        return now
+
+    def _on_joy(self, msg: Joy) -> None:
+        now = self._now()
+        ax = self.joy_axes
+        try:
+            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
+            return
+        t = self._stamp(t, now)
+        self._joy_rate.tick(time.monotonic())
+        if not self.predictor.feed_joy(t, (ax.forward_sign * fwd, ax.turn_sign * turn)):
+            self._warn_dropped("joystick")
+            return
+        self._maybe_predict(now, time.perf_counter())
+
+    def _on_twist(self, msg: TwistStamped) -> None:
+        arrival = time.perf_counter()
+        now = self._now()
+        t, vel = conv.twist_stamped_to_sample(msg)
+        self._vo_rate.tick(time.monotonic())
+        if not self.predictor.feed_vo(self._stamp(t, now), vel):
+            self._warn_dropped("VO")
+            return
+        self._maybe_predict(now, arrival)
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        arrival = time.perf_counter()
+        now = self._now()
+        t, vel, ok, pose = conv.odometry_to_sample(msg)
+        t = self._stamp(t, now)
+        self._vo_rate.tick(time.monotonic())
+        if ok:
+            self.predictor.feed_pose(t, *pose)
+        if not self.predictor.feed_vo(t, vel, ok=ok):
+            self._warn_dropped("VO")
+            return
+        self._maybe_predict(now, arrival)
+
+    def _on_plan(self, msg: Float32MultiArray) -> None:
+        now = self._now()
+        if now is None:
+            return
+        try:
+            plan = conv.plan_from_multiarray(msg)
+            self.predictor.set_plan(plan, now)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+
+    # ---- prediction ------------------------------------------------------------------
+
+    def _maybe_predict(self, now: float | None, arrival: float) -> None:
+        """Predict once per newly completed grid step (every n-th with rate_hz)."""
+        if now is None:
+            return
+        if self.predictor.stats.resets != self._resets_seen:
+            self._resets_seen = self.predictor.stats.resets
+            self._last_step = None
+            self._published_step = None
+        step = self.predictor.ready_step()
+        if step is None or (self._last_step is not None and step <= self._last_step):
+            return
+        self._last_step = step
+        if step % self.every_n:
+            return
+        try:
+            result = self.predictor.predict(now)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure of one step
+            result = Prediction(False, PREDICTION_ERROR, f"{type(exc).__name__}: {exc}")
+            self.get_logger().error(f"prediction failed at step {step}: {result.detail}",
+                                    throttle_duration_sec=5.0)
+        self._last_result = result
+        if not result.ok or (self._published_step is not None
+                             and result.step <= self._published_step):
+            return
+        self._publish(result)
+        self._published_step = result.step
+        self._latency_ms.append(1e3 * (time.perf_counter() - arrival))
+
+    def _publish(self, result: Prediction) -> None:
+        p = self.params
+        pose, cov = result.pose, result.pos_cov
+        frame = p.base_frame
+        if p.path_frame == "odom":
+            if result.origin is None:
+                self._last_result = replace(result, ok=False, reason=online.NO_POSE,
+                                            detail="no odometry pose at the prediction time")
+                return
+            pose, cov = online.to_frame(pose, cov, result.origin)
+            frame = p.odom_frame
+        self.path_pub.publish(conv.path_from_poses(pose, result.times, frame, result.t0))
+        self._paths_published += 1
+        if p.publish_uncertainty:
+            ellipses = online.confidence_ellipses(cov)
+            self.marker_pub.publish(
+                conv.ellipse_markers(pose[:, :2], ellipses, frame, result.t0))
+            self._markers_shown = True
+
+    def _on_watchdog(self) -> None:
+        now = self._now()
+        if now is None:
+            self._last_result = Prediction(False, online.NO_INPUT, "waiting for /clock")
+            return
+        bad = self.predictor.status(now)
+        if bad is not None:
+            self._last_result = bad
+            if self._markers_shown:  # clear the ellipses of the last path in RViz
+                self.marker_pub.publish(conv.ellipse_markers(
+                    np.zeros((0, 2)), np.zeros((0, 3)), self._output_frame(), now))
+                self._markers_shown = False
+            return
+        self._maybe_predict(now, time.perf_counter())
+
+    def _output_frame(self) -> str:
+        return self.params.base_frame if self.params.path_frame == "base" else \
+            self.params.odom_frame
+
+    # ---- diagnostics -----------------------------------------------------------------
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """The node's state: prediction, why none, input rates and ages, latency."""
+        now = self._now()
+        result = self._last_result
+        if result.ok and now is not None:  # the inputs may have gone bad since that path
+            result = self.predictor.status(now) or result
+        stats = self.predictor.stats
+        joy_newest, vo_newest = self.predictor.newest_stamps()
+        lat = np.asarray(self._latency_ms)
+        wall = time.monotonic()
+
+        def age(newest: float) -> str:
+            return "inf" if now is None or not math.isfinite(newest) else f"{now - newest:.3f}"
+
+        values = {
+            "reason": result.reason,
+            "joy_rate_hz": f"{self._joy_rate.rate(wall):.1f}",
+            "vo_rate_hz": f"{self._vo_rate.rate(wall):.1f}",
+            "joy_age_s": age(joy_newest),
+            "vo_age_s": age(vo_newest),
+            "last_latency_ms": f"{lat[-1]:.3f}" if lat.size else "nan",
+            "latency_p99_ms": f"{np.percentile(lat, 99):.3f}" if lat.size else "nan",
+            "paths_published": str(self._paths_published),
+            "horizon_steps": str(self.predictor.config.horizon_steps),
+            "dropped_nonfinite": str(stats.dropped_nonfinite),
+            "out_of_order": str(stats.out_of_order),
+            "bad_messages": str(self._bad_messages),
+            "buffer_resets": str(stats.resets),
+            "last_reset": self.predictor.last_reset_detail,
+            "plan_used": str(result.from_plan),
+        }
+        message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
+                   else f"no path: {result.reason}: {result.detail}")
+        return conv.diagnostic_status(f"{self.get_name()}: prediction",
+                                      "OK" if result.ok else "WARN", message,
+                                      hardware_id=self.params.model_path, values=values)
+
+    def _publish_diagnostics(self) -> None:
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [self.diagnostic_status()]
+        self.diag_pub.publish(msg)
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node: PredictorNode | None = None
+    try:
+        node = PredictorNode()
+        rclpy.spin(node)
+    except StartupError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

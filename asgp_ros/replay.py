@@ -1,0 +1,407 @@
+"""Replay a ROS 1 or ROS 2 bag into a live ROS 2 graph, with ``/clock``.
+
+This replaces ``ros2 bag play`` (not installable from PyPI) and also plays ROS 1 ``.bag``
+files such as the paper's recordings. Messages are read with ``rosbags`` (``AnyReader``
+opens ROS 1 ``.bag`` files, ROS 2 sqlite3 and mcap bags), deserialised with the bag's own
+message definitions, and rebuilt field by field as instances of the *installed* ROS 2
+Python classes (``<pkg>.msg.<Name>``). Building the message by field name is what makes
+ROS 1 data publishable: ``std_msgs/Header.seq`` has no ROS 2 counterpart and is dropped,
+ROS 1 ``time``/``duration`` arrive from rosbags as ``builtin_interfaces`` (sec, nanosec)
+already, and fields the installed definition lacks are ignored (fields the bag lacks keep
+their defaults; both are logged once per type).
+
+Timing: a message recorded at bag time ``t`` is published at wall time
+``start + (t - t_first) / rate``; before it, ``/clock`` (rosgraph_msgs/Clock) is set to
+``t``, and between messages the clock advances at ``clock_rate_hz`` so that nodes with
+``use_sim_time`` see time pass smoothly. With ``loop`` the bag restarts and the clock
+jumps back, which a ``use_sim_time`` node must treat as a time reset.
+"""
+
+from __future__ import annotations
+
+import array
+import functools
+import importlib
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+LOG = logging.getLogger(__name__)
+
+
+class ReplayError(Exception):
+    """A bag that cannot be replayed (missing, unreadable, nothing to play)."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """What and how to replay.
+
+    Attributes:
+        rate: playback speed factor (2.0 = twice as fast as recorded).
+        loop: restart at the end (the clock jumps back to the start).
+        topics: topics to play; empty = all topics whose types are installed.
+        start_s: skip this many seconds from the beginning of the bag.
+        clock_rate_hz: /clock updates per wall second between messages; 0 = only at
+            message times. Ignored when ``publish_clock`` is False.
+        publish_clock: publish rosgraph_msgs/Clock on /clock.
+        wait_subscribers_s: before playing, wait up to this long until every played topic
+            has a subscriber (0 = do not wait).
+        remap: (bag topic, published topic) pairs.
+    """
+
+    rate: float = 1.0
+    loop: bool = False
+    topics: tuple[str, ...] = ()
+    start_s: float = 0.0
+    clock_rate_hz: float = 100.0
+    publish_clock: bool = True
+    wait_subscribers_s: float = 0.5
+    remap: tuple[tuple[str, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.rate) and self.rate > 0.0):
+            raise ValueError(f"rate must be a positive number, got {self.rate}")
+        if not (np.isfinite(self.start_s) and self.start_s >= 0.0):
+            raise ValueError(f"start must be >= 0 s, got {self.start_s}")
+        if not (np.isfinite(self.clock_rate_hz) and 0.0 <= self.clock_rate_hz <= 10000.0):
+            raise ValueError(f"clock rate must be in [0, 10000] Hz, got {self.clock_rate_hz}")
+        if not (np.isfinite(self.wait_subscribers_s) and self.wait_subscribers_s >= 0.0):
+            raise ValueError(f"wait for subscribers must be >= 0 s, got {self.wait_subscribers_s}")
+        for src, dst in self.remap:
+            if not src or not dst:
+                raise ValueError(f"a remapping needs two topic names, got {src!r}:={dst!r}")
+
+
+# --------------------------------------------------------------------------------------
+# Type mapping and message conversion (no rclpy: only the generated message classes)
+
+
+def message_class(msgtype: str) -> type:
+    """The installed ROS 2 Python class for a bag type name.
+
+    Accepts ``pkg/msg/Name`` (rosbags, ROS 2) and ``pkg/Name`` (ROS 1).
+
+    Raises:
+        ImportError: the package or the message is not installed.
+    """
+    parts = msgtype.split("/")
+    if len(parts) == 2:
+        pkg, name = parts
+    elif len(parts) == 3 and parts[1] == "msg":
+        pkg, name = parts[0], parts[2]
+    else:
+        raise ImportError(f"not a message type name: {msgtype!r}")
+    try:
+        module = importlib.import_module(f"{pkg}.msg")
+    except ImportError as exc:
+        raise ImportError(f"message package {pkg!r} is not installed") from exc
+    cls = getattr(module, name, None)
+    if cls is None or not hasattr(cls, "get_fields_and_field_types"):
+        raise ImportError(f"{pkg}/msg/{name} is not in the installed {pkg} package")
+    return cls  # type: ignore[no-any-return]
+
+
+_INT_TYPES = {"int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64"}
+_FLOAT_TYPES = {"float", "double", "float32", "float64"}
+
+
+def _element_type(type_str: str) -> tuple[str, bool]:
+    """('elem', is_array) for 'sequence<elem[, N]>', 'elem[N]' or 'elem'."""
+    if type_str.startswith("sequence<") and type_str.endswith(">"):
+        return type_str[len("sequence<"):-1].split(",")[0].strip(), True
+    if type_str.endswith("]") and "[" in type_str:
+        return type_str[: type_str.index("[")], True
+    return type_str, False
+
+
+@functools.cache
+def _fields(cls: type) -> tuple[tuple[str, str, bool, type | None], ...]:
+    """(name, element type, is_array, nested class or None) for every field of ``cls``."""
+    out = []
+    for name, type_str in cls.get_fields_and_field_types().items():  # type: ignore[attr-defined]
+        elem, is_array = _element_type(type_str)
+        elem = elem.split("<")[0]  # bounded strings: string<10>
+        nested = message_class(elem) if "/" in elem else None
+        out.append((name, elem, is_array, nested))
+    return tuple(out)
+
+
+_warned_fields: set[tuple[str, str]] = set()
+
+
+def _scalar(elem: str, value: Any) -> Any:
+    if elem in _FLOAT_TYPES:
+        return float(value)
+    if elem in _INT_TYPES:
+        return int(value)
+    if elem == "boolean":
+        return bool(value)
+    if elem == "octet":
+        if isinstance(value, (bytes, bytearray)):
+            return bytes(value[:1])
+        return bytes([int(value) & 0xFF])
+    if elem in ("char",):
+        return str(value) if isinstance(value, str) else chr(int(value) & 0xFF)
+    if elem.startswith(("string", "wstring")):
+        return str(value)
+    return value
+
+
+def to_ros2(obj: Any, cls: type) -> Any:
+    """Build an instance of the installed ROS 2 class ``cls`` from a rosbags message.
+
+    Fields are matched by name, recursively; numeric arrays are converted in bulk.
+    """
+    msg = cls()
+    present = set(getattr(obj, "__dataclass_fields__", {}) or vars(obj))
+    for name, elem, is_array, nested in _fields(cls):
+        if name not in present:
+            key = (cls.__name__, name)
+            if key not in _warned_fields:
+                _warned_fields.add(key)
+                LOG.warning("%s.%s is not in the bag's definition: left at its default",
+                            cls.__name__, name)
+            continue
+        value = getattr(obj, name)
+        if nested is not None:
+            if is_array:
+                converted: Any = [to_ros2(v, nested) for v in value]
+            else:
+                converted = to_ros2(value, nested)
+        elif is_array:
+            default = getattr(msg, name)
+            if isinstance(default, array.array):
+                data = np.asarray(value, dtype=np.dtype(default.typecode))
+                converted = array.array(default.typecode, data.tobytes())
+            elif isinstance(default, np.ndarray):
+                converted = np.asarray(value, dtype=default.dtype).reshape(default.shape)
+            else:
+                converted = [_scalar(elem, v) for v in value]
+        else:
+            converted = _scalar(elem, value)
+        setattr(msg, name, converted)
+    return msg
+
+
+# --------------------------------------------------------------------------------------
+# The player
+
+
+@dataclass
+class _Topic:
+    name: str
+    msgtype: str
+    cls: type
+    connections: list[Any]
+    transient_local: bool
+    out_name: str = ""
+    publisher: Any = None
+
+
+def _is_transient_local(connection: Any) -> bool:
+    """ROS 2: the recorded offered QoS was transient local; ROS 1: the topic was latched."""
+    ext = getattr(connection, "ext", None)
+    if getattr(ext, "latching", 0):
+        return True
+    profiles = str(getattr(ext, "offered_qos_profiles", "") or "")
+    return "durability: 1" in profiles or "transient_local" in profiles.lower()
+
+
+class BagReplayer:
+    """Publishes a bag into ROS 2. Use as ``with BagReplayer(path, config, node) as r: r.run()``.
+
+    Args:
+        path: a ROS 1 ``.bag`` file or a ROS 2 bag directory (sqlite3 or mcap).
+        config: what and how to replay.
+        node: an rclpy node to create the publishers on.
+        should_stop: polled between messages; True ends the replay.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        config: ReplayConfig,
+        node: Any,
+        should_stop: Callable[[], bool] = lambda: False,
+    ) -> None:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        self.config = config
+        self.node = node
+        self.should_stop = should_stop
+        if not self.path.exists():
+            raise ReplayError(f"{self.path}: no such bag")
+        try:
+            self.reader = AnyReader(
+                [self.path], default_typestore=get_typestore(Stores.ROS2_JAZZY)
+            )
+            self.reader.open()
+        except (AnyReaderError, OSError, ValueError) as exc:
+            raise ReplayError(f"{self.path}: cannot open the bag: {exc}") from exc
+        self.published = 0
+        self.skipped_types: dict[str, str] = {}
+        self.topics: dict[str, _Topic] = {}
+        self._select_topics()
+        self._clock_pub: Any = None
+
+    def __enter__(self) -> BagReplayer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.reader is not None and self.reader.stack is not None:
+            self.reader.close()
+
+    def _select_topics(self) -> None:
+        by_topic: dict[str, list[Any]] = {}
+        for conn in self.reader.connections:
+            by_topic.setdefault(conn.topic, []).append(conn)
+        wanted = set(self.config.topics)
+        remap = dict(self.config.remap)
+        unknown = sorted(wanted - set(by_topic))
+        if unknown:
+            raise ReplayError(
+                f"{self.path}: topics not in the bag: {', '.join(unknown)} "
+                f"(the bag has: {', '.join(sorted(by_topic))})"
+            )
+        for topic, conns in sorted(by_topic.items()):
+            if wanted and topic not in wanted:
+                continue
+            msgtype = conns[0].msgtype
+            try:
+                cls = message_class(msgtype)
+                _fields(cls)
+            except ImportError as exc:
+                self.skipped_types[topic] = f"{msgtype} ({exc})"
+                continue
+            self.topics[topic] = _Topic(
+                topic, msgtype, cls, conns, any(_is_transient_local(c) for c in conns),
+                out_name=remap.get(topic, topic),
+            )
+        if self.skipped_types:
+            LOG.warning(
+                "skipping topics whose message types are not installed: %s",
+                "; ".join(f"{t}: {why}" for t, why in self.skipped_types.items()),
+            )
+        if not self.topics:
+            raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type)")
+
+    def create_publishers(self) -> None:
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from rosgraph_msgs.msg import Clock
+
+        for topic in self.topics.values():
+            qos = QoSProfile(
+                depth=10,
+                reliability=ReliabilityPolicy.RELIABLE,
+                durability=(
+                    DurabilityPolicy.TRANSIENT_LOCAL
+                    if topic.transient_local
+                    else DurabilityPolicy.VOLATILE
+                ),
+            )
+            topic.publisher = self.node.create_publisher(topic.cls, topic.out_name or topic.name,
+                                                         qos)
+        if self.config.publish_clock:
+            self._clock_pub = self.node.create_publisher(Clock, "/clock", QoSProfile(depth=10))
+
+    def wait_for_subscribers(self) -> list[str]:
+        """Wait (bounded) until every played topic has a subscriber; topics still without."""
+        deadline = time.monotonic() + self.config.wait_subscribers_s
+        while True:
+            missing = [
+                t.out_name or t.name for t in self.topics.values()
+                if t.publisher.get_subscription_count() == 0
+            ]
+            if not missing or time.monotonic() >= deadline or self.should_stop():
+                return missing
+            time.sleep(0.02)
+
+    def _publish_clock(self, t_ns: int) -> None:
+        from rosgraph_msgs.msg import Clock
+
+        if self._clock_pub is None:
+            return
+        msg = Clock()
+        msg.clock.sec = int(t_ns // 1_000_000_000)
+        msg.clock.nanosec = int(t_ns % 1_000_000_000)
+        self._clock_pub.publish(msg)
+
+    def _sleep_until(self, wall_target: float, wall_start: float, t_first: int) -> bool:
+        """Sleep until ``wall_target`` ticking /clock; False if asked to stop."""
+        cfg = self.config
+        tick = 1.0 / cfg.clock_rate_hz if cfg.publish_clock and cfg.clock_rate_hz > 0 else None
+        while True:
+            if self.should_stop():
+                return False
+            now = time.monotonic()
+            remaining = wall_target - now
+            if remaining <= 0.0:
+                return True
+            if tick is None:
+                time.sleep(min(remaining, 0.05))
+                continue
+            time.sleep(min(remaining, tick))
+            now = time.monotonic()
+            if now < wall_target:
+                self._publish_clock(t_first + int((now - wall_start) * cfg.rate * 1e9))
+
+    def play_once(self) -> bool:
+        """Play the bag once from ``start_s``; False if stopped early."""
+        connections = [c for t in self.topics.values() for c in t.connections]
+        topic_of = {id(c): self.topics[c.topic] for c in connections}
+        start_ns = self.reader.start_time + int(self.config.start_s * 1e9)
+        wall_start = time.monotonic()
+        t_first: int | None = None
+        for conn, t_ns, raw in self.reader.messages(connections=connections, start=start_ns):
+            if t_first is None:
+                t_first = t_ns
+            target = wall_start + (t_ns - t_first) / 1e9 / self.config.rate
+            if not self._sleep_until(target, wall_start, t_first):
+                return False
+            topic = topic_of[id(conn)]
+            try:
+                msg = to_ros2(self.reader.deserialize(raw, conn.msgtype), topic.cls)
+            except (ValueError, TypeError, AssertionError, AttributeError) as exc:
+                LOG.warning("%s at %.3f s: cannot convert the message: %s",
+                            topic.name, t_ns / 1e9, exc)
+                continue
+            self._publish_clock(t_ns)
+            topic.publisher.publish(msg)
+            self.published += 1
+        if t_first is None:
+            raise ReplayError(f"{self.path}: no messages after {self.config.start_s} s")
+        return True
+
+    def run(self) -> None:
+        """Create publishers, wait for subscribers, play (once or in a loop)."""
+        self.create_publishers()
+        if self.config.wait_subscribers_s > 0:
+            missing = self.wait_for_subscribers()
+            if missing:
+                LOG.info("no subscriber yet on: %s", ", ".join(missing))
+        while self.play_once() and self.config.loop:
+            LOG.info("end of bag: looping (the clock jumps back)")
+        from rclpy.duration import Duration
+
+        for topic in self.topics.values():  # let reliable readers get the last messages
+            topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
+
+
+def summary(replayer: BagReplayer) -> Sequence[str]:
+    """One line per played topic: name, type, message count."""
+    counts: dict[str, int] = {}
+    for conn in replayer.reader.connections:
+        counts[conn.topic] = counts.get(conn.topic, 0) + conn.msgcount
+    return [f"{t.name}{f' -> {t.out_name}' if t.out_name != t.name else ''} [{t.msgtype}] "
+            f"{counts.get(t.name, 0)} messages" for t in replayer.topics.values()]

@@ -1,0 +1,215 @@
+"""Latency and CPU of the predictor node, measured across processes.
+
+    .venv/bin/python benchmarks/predictor_latency.py [--steps 1000] [--cpu-seconds 20]
+
+Set-up: a model is trained with `asgp train` on a simulated bag (ASGP, s = 4, M = 20/40,
+the paper's configuration) unless ``--model`` is given; the predictor node runs as its own
+process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) and VO
+(5 Hz) and subscribes to ``predicted_path``.
+
+1. Latency: for each of ``--steps`` grid steps, the joystick samples of the step are sent
+   first, then the VO message that completes the step; the latency is the wall time from
+   publishing that VO message to receiving the step's path here (so it includes DDS
+   delivery both ways and the node's executor, not only the prediction). The next step
+   starts when the path has arrived. The node's own figure (VO callback entry to path
+   publication) is read from its diagnostics.
+2. CPU: the same inputs at their real rates (5 Hz steps) for ``--cpu-seconds``; the node
+   process's user + system time from /proc/<pid>/stat divided by the wall time.
+
+Targets: p99 latency under 5 ms; CPU under 5% of one core.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DT = 0.2
+
+
+def _cli(*args: str) -> None:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    subprocess.run([sys.executable, "-m", "asgp_ros.cli", *args], cwd=REPO, env=env,
+                   check=True, capture_output=True, text=True)
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    utime, stime = int(fields[11]), int(fields[12])  # fields 14 and 15 of proc(5)
+    return (utime + stime) / os.sysconf("SC_CLK_TCK")
+
+
+class Driver:
+    """Publishes the clock and the inputs; receives the paths."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import TwistStamped
+        from nav_msgs.msg import Path as PathMsg
+        from rclpy.qos import QoSProfile, qos_profile_sensor_data
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import Joy
+
+        from asgp_ros.nodes import conversions as conv
+
+        self.conv = conv
+        self.Clock = Clock
+        self.node = rclpy.create_node("predictor_latency_bench")
+        self.executor = rclpy.executors.SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.clock_pub = self.node.create_publisher(Clock, "/clock", QoSProfile(depth=10))
+        self.joy_pub = self.node.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        self.vo_pub = self.node.create_publisher(TwistStamped, "vo/twist",
+                                                 qos_profile_sensor_data)
+        self.received: dict[int, float] = {}
+        self.diag: dict[str, str] = {}
+        self.node.create_subscription(PathMsg, "predicted_path", self._on_path,
+                                      QoSProfile(depth=10))
+        self.node.create_subscription(DiagnosticArray, "diagnostics", self._on_diag,
+                                      QoSProfile(depth=10))
+
+    def _on_path(self, msg) -> None:
+        t0 = self.conv.stamp_to_seconds(msg.header.stamp)
+        self.received[round(t0 / DT)] = time.perf_counter()
+
+    def _on_diag(self, msg) -> None:
+        for status in msg.status:
+            self.diag = {kv.key: kv.value for kv in status.values}
+
+    def spin_until(self, cond, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                return False
+            self.executor.spin_once(timeout_sec=0.001)
+        return True
+
+    def send_step_inputs(self, n: int) -> None:
+        """/clock and the six joystick samples of grid step n (the last one after t_n)."""
+        t_prev = n * DT - DT
+        for j in range(6):
+            t = t_prev + 0.04 + j * (DT / 6)
+            self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
+            self.joy_pub.publish(self.conv.joy_from_sample(
+                t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t)))
+        self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(n * DT + 0.03)))
+
+    def send_vo(self, n: int) -> float:
+        t = n * DT + 0.01
+        msg = self.conv.twist_stamped_from_sample(
+            t, 0.45 + 0.35 * math.sin(0.3 * t - 0.1), 0.25 * math.cos(0.2 * t - 0.1))
+        sent = time.perf_counter()
+        self.vo_pub.publish(msg)
+        return sent
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--steps", type=int, default=1000, help="latency samples (1000)")
+    parser.add_argument("--cpu-seconds", type=float, default=20.0,
+                        help="duration of the real-rate CPU measurement (20)")
+    parser.add_argument("--horizon", type=int, default=10, help="k steps (10 = 2.0 s)")
+    parser.add_argument("--model", help="model file (default: train one on a simulated bag)")
+    args = parser.parse_args(argv)
+
+    import rclpy
+
+    with tempfile.TemporaryDirectory() as tmp:
+        model = args.model
+        if model is None:
+            bag = Path(tmp) / "train_bag"
+            model = str(Path(tmp) / "chair.npz")
+            print("training an ASGP model on a 3-minute simulated bag ...", flush=True)
+            _cli("simulate", "--minutes", "3", "--seed", "5", "--out", str(bag), "--no-truth")
+            _cli("train", "--out", model, str(bag))
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        node = subprocess.Popen(
+            [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
+             "-p", f"model_path:={model}", "-p", "use_sim_time:=true",
+             "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
+             "--log-level", "warn"],
+            cwd=REPO, env=env)
+        rclpy.init()
+        drv = Driver()
+        try:
+            if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
+                                  and drv.node.count_publishers("predicted_path") > 0, 30.0):
+                print("the predictor node did not come up", file=sys.stderr)
+                return 1
+            # discovery of every endpoint, then warm-up steps (buffers, first allocations)
+            n = 1000
+            while not drv.received:
+                drv.send_step_inputs(n)
+                drv.send_vo(n)
+                drv.spin_until(lambda n=n: n in drv.received, 0.5)
+                n += 1
+                if n > 1100:
+                    print("no path from the node", file=sys.stderr)
+                    return 1
+            for _ in range(20):
+                drv.send_step_inputs(n)
+                drv.send_vo(n)
+                drv.spin_until(lambda n=n: n in drv.received, 1.0)
+                n += 1
+
+            # ---- 1. latency -------------------------------------------------------------
+            latencies, missed = [], 0
+            for _ in range(args.steps):
+                drv.send_step_inputs(n)
+                drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
+                sent = drv.send_vo(n)
+                if drv.spin_until(lambda n=n: n in drv.received, 1.0):
+                    latencies.append(drv.received[n] - sent)
+                else:
+                    missed += 1
+                n += 1
+            lat_ms = 1e3 * np.asarray(latencies)
+            drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
+            node_p99 = drv.diag.get("latency_p99_ms", "nan")
+
+            # ---- 2. CPU at the real rate ------------------------------------------------
+            cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
+            steps_cpu = round(args.cpu_seconds / DT)
+            start = time.monotonic()
+            for i in range(steps_cpu):
+                drv.send_step_inputs(n)
+                drv.send_vo(n)
+                n += 1
+                drv.spin_until(lambda i=i: time.monotonic() >= start + (i + 1) * DT, DT + 0.1)
+            cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
+        finally:
+            drv.executor.shutdown()
+            drv.node.destroy_node()
+            rclpy.try_shutdown()
+            node.send_signal(signal.SIGINT)
+            try:
+                node.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                print("the node did not stop within 10 s of SIGINT: killed", file=sys.stderr)
+                node.kill()
+                node.wait()
+
+    print(f"predictor node, horizon {args.horizon} steps, {len(lat_ms)} steps "
+          f"({missed} without a path)")
+    print(f"  VO publish -> path received (across processes): p50 "
+          f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
+          f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")
+    print(f"  inside the node (VO callback -> path published): p99 {node_p99} ms")
+    print(f"  CPU at 5 Hz (joystick 30 Hz, VO 5 Hz): {100 * cpu:.1f}% of one core "
+          f"(target < 5%)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,390 @@
+"""Tests of the ROS-free online Predictor (asgp_ros.core.online).
+
+The reference for "online equals offline" is the offline pipeline on the whole recording:
+``resample`` of all samples, ``design_matrix`` rows and ``rollout`` on the offline
+windows. The online predictor is fed the same samples one by one in arrival order and asked
+for a prediction whenever a new grid step completes, as the node does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from asgp_ros.core import online
+from asgp_ros.core.features import FeatureConfig, build_inputs, design_matrix
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.online import Predictor, PredictorConfig, confidence_ellipses, to_frame
+from asgp_ros.core.resample import ResampleConfig, resample
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.streams import RawStreams
+
+LAGS = 4
+
+
+@dataclass
+class LinearChannel:
+    """A deterministic linear channel model: mean = X w + b, constant variance."""
+
+    w: np.ndarray
+    b: float = 0.0
+    var: float = 1e-3
+
+    def predict(self, X, include_noise=True):
+        X = np.asarray(X, dtype=float)
+        return X @ self.w + self.b, np.full(X.shape[0], self.var)
+
+    def predict_with_grad(self, X, include_noise=True):
+        mean, var = self.predict(X, include_noise)
+        return mean, var, np.broadcast_to(self.w, X.shape).copy()
+
+
+def linear_model(lags: int = LAGS) -> MotionModel:
+    """V_t = 0.6 V_{t-1} + 0.35 j_t + 0.05 j_{t-1} per channel (paper's uncoupled layout)."""
+    D = 2 * lags + 1
+    w = np.zeros(D)
+    w[lags - 1] = 0.05  # j_{t-1}
+    w[2 * lags - 1] = 0.6  # V_{t-1}
+    w[2 * lags] = 0.35  # j_t
+    return MotionModel(kind="linear_test", feature_config=FeatureConfig(lags=lags),
+                       resample_config=ResampleConfig(rate_hz=5.0),
+                       channels=(LinearChannel(w), LinearChannel(0.8 * w, var=2e-3)))
+
+
+def make_streams(duration: float = 40.0, seed: int = 0, t_start: float = 1000.0):
+    """Joystick at ~30 Hz and VO at a jittery 4-7 Hz (as in the paper), velocity lagging.
+
+    Returns (joy_t [Nj], joy [Nj, 2], vel_t [Nv], vel [Nv, 2]).
+    """
+    rng = np.random.default_rng(seed)
+    jt = t_start + np.cumsum(rng.uniform(0.028, 0.039, size=int(duration * 40)))
+    jt = jt[jt < t_start + duration]
+    vt = t_start + 0.05 + np.cumsum(rng.uniform(1 / 7, 1 / 4, size=int(duration * 8)))
+    vt = vt[vt < t_start + duration]
+
+    def fwd(t):
+        return 0.6 * np.sin(0.5 * (t - t_start)) + 0.25 * np.sin(1.7 * (t - t_start) + 1.0)
+
+    def turn(t):
+        return 0.5 * np.sin(0.3 * (t - t_start) + 2.0)
+
+    joy = np.stack([fwd(jt), turn(jt)], axis=1)
+    vel = np.stack([0.9 * fwd(vt - 0.3), 0.7 * turn(vt - 0.3)], axis=1)
+    vel += rng.normal(0.0, 0.01, size=vel.shape)
+    return jt, joy, vt, vel
+
+
+def arrival_order(jt, joy, vt, vel):
+    """Events (t, kind, values) merged by time, as a node would receive them."""
+    events = [(t, "joy", x) for t, x in zip(jt, joy, strict=True)]
+    events += [(t, "vo", x) for t, x in zip(vt, vel, strict=True)]
+    events.sort(key=lambda e: e[0])
+    return events
+
+
+def feed(pred: Predictor, event) -> None:
+    t, kind, x = event
+    if kind == "joy":
+        pred.feed_joy(t, x)
+    else:
+        pred.feed_vo(t, x)
+
+
+def run_online(pred: Predictor, events, joy_future_of=None):
+    """Feed events; predict on every newly completed step. Returns {step: Prediction}."""
+    out = {}
+    last = None
+    for ev in events:
+        feed(pred, ev)
+        step = pred.ready_step()
+        if step is None or (last is not None and step <= last):
+            continue
+        last = step
+        fut = None if joy_future_of is None else joy_future_of(step)
+        result = pred.predict(ev[0], joy_future=fut)
+        if result.ok:
+            out[result.step] = result
+    return out
+
+
+@pytest.fixture(scope="module")
+def data():
+    jt, joy, vt, vel = make_streams()
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel), ResampleConfig())
+    return jt, joy, vt, vel, res
+
+
+def test_online_features_equal_offline_features(data):
+    jt, joy, vt, vel, res = data
+    model = linear_model()
+    pred = Predictor(model, PredictorConfig(horizon_steps=3, buffer_s=5.0))
+    results = run_online(pred, arrival_order(jt, joy, vt, vel))
+    pos = {int(k): i for i, k in enumerate(res.k)}
+    fcfg = model.feature_config
+    offline = {c: design_matrix(res, c, fcfg) for c in (0, 1)}
+    compared = 0
+    for step, r in results.items():
+        i = pos[step]
+        # the measured window is bit-identical to the offline resampling
+        np.testing.assert_array_equal(r.joy_past, res.joy[i - LAGS + 1:i + 1])
+        np.testing.assert_array_equal(r.vel_past, res.vel[i - LAGS + 1:i + 1])
+        for c in (0, 1):
+            X, _, index = offline[c]
+            rows = np.flatnonzero(index == i + 1)
+            if rows.size == 0:
+                continue
+            online_row = build_inputs(r.joy_past, r.vel_past, res.joy[i + 1], c, fcfg)
+            np.testing.assert_array_equal(online_row, X[rows[0]])
+            compared += 1
+    # every step whose window is valid offline was predicted online
+    valid_offline = set(int(res.k[j]) for j in offline[0][2] - 1)
+    assert compared > 300
+    assert len(valid_offline - set(results)) <= 2, sorted(valid_offline - set(results))[:10]
+
+
+def test_prediction_equals_core_rollout_on_offline_windows(data):
+    jt, joy, vt, vel, res = data
+    model = linear_model()
+    k = 6
+    pos = {int(kk): i for i, kk in enumerate(res.k)}
+
+    def recorded_future(step):
+        i = pos.get(step, -1)
+        fut = res.joy[i + 1:i + 1 + k] if i >= 0 else np.zeros((0, 2))
+        return fut if fut.shape[0] == k else np.zeros((k, 2))
+
+    pred = Predictor(model, PredictorConfig(horizon_steps=k))
+    results = run_online(pred, arrival_order(jt, joy, vt, vel), recorded_future)
+    assert len(results) > 150
+    for step, r in list(results.items())[::7]:
+        i = pos[step]
+        ref = rollout(model, res.joy[i - LAGS + 1:i + 1], res.vel[i - LAGS + 1:i + 1],
+                      recorded_future(step)[None])
+        np.testing.assert_allclose(r.pose, ref.pose[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(r.pos_cov, ref.pos_cov[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(r.vel, ref.vel[0], rtol=0, atol=1e-12)
+        assert r.t0 == pytest.approx(step * 0.2)
+        np.testing.assert_allclose(r.times, r.t0 + 0.2 * np.arange(1, k + 1))
+        assert r.pose.shape == (k, 3) and r.ellipses.shape == (k, 3)
+
+
+def test_without_plan_the_newest_joystick_command_is_held(data):
+    jt, joy, vt, vel, _ = data
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=5))
+    events = [e for e in arrival_order(jt, joy, vt, vel) if e[0] < 1010.0]
+    for ev in events:
+        feed(pred, ev)
+    r = pred.predict(events[-1][0])
+    assert r.ok and not r.from_plan
+    newest = joy[np.flatnonzero(jt < 1010.0)[-1]]
+    np.testing.assert_array_equal(r.joy_future, np.repeat(newest[None], 5, axis=0))
+
+
+def _fed(until: float, **cfg):
+    jt, joy, vt, vel = make_streams(duration=until - 1000.0)
+    pred = Predictor(linear_model(), PredictorConfig(**cfg))
+    for ev in arrival_order(jt, joy, vt, vel):
+        feed(pred, ev)
+    return pred, (jt, joy, vt, vel)
+
+
+def test_stale_vo_stops_prediction_then_it_resumes():
+    pred, (jt, _, vt, _) = _fed(1015.0, vo_timeout_s=0.5, joy_timeout_s=0.5)
+    now = max(jt[-1], vt[-1])
+    assert pred.predict(now).ok
+    # joystick continues for 1 s, VO is silent
+    for i, t in enumerate(np.arange(now + 0.033, now + 1.0, 0.033)):
+        pred.feed_joy(t, (0.3, 0.0 + 0.001 * i))
+    r = pred.predict(now + 1.0)
+    assert not r.ok and r.reason == online.STALE_VO and "VO is" in r.detail
+    assert pred.status(now + 1.0).reason == online.STALE_VO
+    # VO resumes: enough fresh samples to make a valid window again
+    times = now + 1.0 + 0.033 * np.arange(1, 61)
+    for i, t in enumerate(times):
+        pred.feed_joy(t, (0.3, 0.0))
+        if i % 6 == 0:
+            pred.feed_vo(t + 0.01, (0.2 + 0.05 * math.sin(t), 0.01 * math.cos(t)))
+    t = times[-1]
+    pred.feed_vo(t + 0.01, (0.21, 0.0))
+    pred.feed_joy(t + 0.02, (0.3, 0.0))
+    r = pred.predict(t + 0.03)
+    assert r.ok, r.detail
+    assert r.t0 > now + 2.0
+
+
+def test_stale_joystick_stops_prediction():
+    pred, (jt, _, vt, _) = _fed(1010.0, joy_timeout_s=0.3)
+    now = max(jt[-1], vt[-1])
+    pred.feed_vo(now + 0.2, (0.1, 0.0))
+    pred.feed_vo(now + 0.4, (0.1, 0.0))
+    r = pred.predict(now + 0.45)
+    assert not r.ok and r.reason == online.STALE_JOYSTICK
+
+
+def test_vo_tracking_loss_stops_prediction():
+    pred, (jt, _, vt, _) = _fed(1010.0)
+    now = max(jt[-1], vt[-1])
+    pred.feed_vo(now + 0.01, (float("nan"), float("nan")), ok=False)
+    r = pred.predict(now + 0.02)
+    assert not r.ok and r.reason == online.VO_TRACKING_LOST
+    assert pred.stats.dropped_nonfinite == 0  # a reported failure is not "bad data"
+
+
+def test_backward_clock_jump_resets_and_prediction_resumes():
+    pred, (jt, _, vt, _) = _fed(1012.0)
+    now = max(jt[-1], vt[-1])
+    assert pred.predict(now).ok
+    # the bag loops: samples start again 12 s earlier
+    jt2, joy2, vt2, vel2 = make_streams(duration=6.0, seed=3, t_start=1000.0)
+    events = arrival_order(jt2, joy2, vt2, vel2)
+    feed(pred, events[0])
+    assert pred.stats.resets == 1
+    assert "behind the newest" in pred.last_reset_detail
+    for ev in events[1:]:
+        feed(pred, ev)
+    r = pred.predict(events[-1][0])
+    assert r.ok, r.detail
+    assert 1004.0 < r.t0 <= 1006.0
+    # the clock itself jumping back (a replay loop seen by the watchdog) also resets
+    r = pred.predict(events[-1][0] - 5.0)
+    assert not r.ok and r.reason == online.CLOCK_RESET
+    assert pred.stats.resets == 2 and pred.ready_step() is None
+
+
+def test_nonfinite_samples_are_dropped_and_counted(data):
+    jt, joy, vt, vel, _ = data
+    events = [e for e in arrival_order(jt, joy, vt, vel) if e[0] < 1012.0]
+    clean = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    dirty = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    for n, ev in enumerate(events):
+        feed(clean, ev)
+        feed(dirty, ev)
+        if n % 50 == 10:
+            assert not dirty.feed_joy(ev[0] + 0.001, (float("nan"), 0.0))
+            assert not dirty.feed_vo(ev[0] + 0.002, (0.1, float("inf")))
+            assert not dirty.feed_joy(float("nan"), (0.1, 0.0))
+    assert dirty.stats.dropped_nonfinite == 3 * len(range(10, len(events), 50))
+    now = events[-1][0]
+    a, b = clean.predict(now), dirty.predict(now)
+    assert a.ok and b.ok
+    np.testing.assert_array_equal(a.pose, b.pose)
+
+
+def test_out_of_order_and_duplicate_stamps_give_the_same_prediction(data):
+    jt, joy, vt, vel, _ = data
+    events = [e for e in arrival_order(jt, joy, vt, vel) if e[0] < 1015.0]
+    shuffled = list(events)
+    rng = np.random.default_rng(1)
+    for i in rng.choice(len(events) - 2, size=len(events) // 4, replace=False):
+        shuffled[i], shuffled[i + 1] = shuffled[i + 1], shuffled[i]
+    shuffled += events[-30:-10]  # duplicates (same stamp, same values), late
+    ordered = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    disorder = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    for ev in events:
+        feed(ordered, ev)
+    for ev in shuffled:
+        feed(disorder, ev)
+    assert disorder.stats.out_of_order > 0
+    now = events[-1][0]
+    a, b = ordered.predict(now), disorder.predict(now)
+    assert a.ok and b.ok and a.step == b.step
+    np.testing.assert_array_equal(a.pose, b.pose)
+
+
+def test_plan_drives_the_future_joystick_and_changes_the_path():
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=5, plan_timeout_s=1.0)
+    now = max(jt[-1], vt[-1])
+    held = pred.predict(now)
+    assert held.ok and not held.from_plan
+    t0 = held.t0
+    # plan published half a step after t0: row r is the command at t_{L+1+r}
+    plan = np.column_stack([np.linspace(0.1, 0.9, 8), np.linspace(-0.5, 0.5, 8)])
+    pred.set_plan(plan, stamp=t0 + 0.1)
+    planned = pred.predict(now)
+    assert planned.ok and planned.from_plan and planned.step == held.step
+    np.testing.assert_array_equal(planned.joy_future, plan[:5])
+    assert np.max(np.abs(planned.pose - held.pose)) > 1e-3
+    # a plan published one step earlier maps its rows one later: same commands per time
+    pred.set_plan(np.vstack([[0.0, 0.0], plan]), stamp=t0 - 0.1)
+    np.testing.assert_array_equal(pred.predict(now).joy_future, plan[:5])
+    # a plan shorter than the horizon holds its last row
+    pred.set_plan(plan[:2], stamp=t0 + 0.1)
+    np.testing.assert_array_equal(pred.predict(now).joy_future,
+                                  np.vstack([plan[:2], plan[1:2], plan[1:2], plan[1:2]]))
+    # a plan issued after t_{L+1} does not revise the command there (the older plan's
+    # row holds), but drives the later steps
+    pred.set_plan(plan, stamp=t0 + 0.1)
+    pred.set_plan(-plan, stamp=t0 + 0.3)
+    np.testing.assert_array_equal(pred.predict(now).joy_future,
+                                  np.vstack([plan[:1], -plan[:4]]))
+    # a stale plan is ignored
+    pred.clear_plan()
+    pred.set_plan(plan, stamp=now - 1.5)
+    stale = pred.predict(now)
+    assert not stale.from_plan
+    np.testing.assert_array_equal(stale.pose, held.pose)
+    with pytest.raises(ValueError, match=r"\[m, 2\]"):
+        pred.set_plan(np.zeros((3, 3)), stamp=now)
+    with pytest.raises(ValueError, match="finite"):
+        pred.set_plan(np.full((3, 2), np.nan), stamp=now)
+
+
+def test_predict_batch_matches_single_predictions():
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=4)
+    now = max(jt[-1], vt[-1])
+    rng = np.random.default_rng(2)
+    cands = rng.uniform(-1, 1, size=(7, 6, 2))
+    batch = pred.predict_batch(cands, now)
+    assert batch.ok and batch.pose.shape == (7, 6, 3) and batch.pos_cov.shape == (7, 6, 2, 2)
+    assert batch.ellipses.shape == (7, 6, 3) and batch.times.shape == (6,)
+    for b in (0, 3, 6):
+        single = pred.predict(now, joy_future=cands[b])
+        np.testing.assert_allclose(batch.pose[b], single.pose, atol=1e-12)
+    with pytest.raises(ValueError, match=r"\[B, k, 2\]"):
+        pred.predict_batch(np.zeros((6, 2)), now)
+    not_ready = Predictor(linear_model()).predict_batch(cands, now)
+    assert not not_ready.ok and not_ready.reason == online.NO_INPUT
+
+
+def test_not_enough_history():
+    pred = Predictor(linear_model())
+    pred.feed_joy(100.0, (0.1, 0.0))
+    pred.feed_vo(100.05, (0.0, 0.0))
+    pred.feed_joy(100.5, (0.1, 0.0))
+    pred.feed_vo(100.45, (0.05, 0.0))
+    r = pred.predict(100.5)
+    assert not r.ok and r.reason == online.NOT_ENOUGH_HISTORY and "needs 4" in r.detail
+
+
+def test_confidence_ellipses_and_frame_change():
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]]])
+    e = confidence_ellipses(cov)
+    chi = math.sqrt(online.CHI2_2DOF_95)
+    np.testing.assert_allclose(e[0, :2], [2 * chi, chi])
+    np.testing.assert_allclose(e[1, :2], [3 * chi, chi])
+    assert abs(math.sin(e[0, 2])) < 1e-12 and abs(math.cos(e[1, 2])) < 1e-12
+    pose = np.array([[1.0, 0.0, 0.1]])
+    p2, c2 = to_frame(pose, cov[:1], np.array([2.0, 3.0, math.pi / 2]))
+    np.testing.assert_allclose(p2[0], [2.0, 4.0, 0.1 + math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(c2[0], [[1.0, 0.0], [0.0, 4.0]], atol=1e-12)
+
+
+def test_odometry_poses_give_the_origin():
+    pred, (jt, _, vt, _) = _fed(1010.0)
+    for t in np.arange(1005.0, 1010.0, 0.1):
+        pred.feed_pose(t, 0.5 * (t - 1005.0), 1.0, 0.2)
+    r = pred.predict(max(jt[-1], vt[-1]))
+    assert r.ok and r.origin is not None
+    np.testing.assert_allclose(r.origin, [0.5 * (r.t0 - 1005.0), 1.0, 0.2], atol=1e-9)
+
+
+@pytest.mark.parametrize("bad", [
+    {"horizon_steps": 0}, {"horizon_steps": 2.5}, {"joy_timeout_s": 0.0},
+    {"vo_timeout_s": math.nan}, {"buffer_s": 0.5}, {"uncertainty": "ukf"},
+])
+def test_config_validation(bad):
+    with pytest.raises(ValueError):
+        PredictorConfig(**bad)

@@ -1,0 +1,423 @@
+"""In-process tests of the predictor node (tier 2: rclpy context fixture, DDS, no sleeps).
+
+The node runs with ``use_sim_time``; the test publishes ``/clock`` itself and waits (by
+polling the executor with a deadline) until the node has seen each clock value and each
+input sample, so the test is deterministic and takes no wall time beyond the spinning.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry, Path
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Joy
+from std_msgs.msg import Float32MultiArray
+from visualization_msgs.msg import Marker, MarkerArray
+
+from asgp_ros.core import online
+from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
+
+pytestmark = pytest.mark.ros
+
+DT = 0.2
+K = 5
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    """A small ASGP model fitted on synthetic data (see test_predictor.make_streams)."""
+    from test_predictor import make_streams
+
+    from asgp_ros.core.features import FeatureConfig, design_matrix
+    from asgp_ros.core.modelfile import save_model
+    from asgp_ros.core.models import MotionModel
+    from asgp_ros.core.resample import ResampleConfig, resample
+    from asgp_ros.core.sparse_gp import SparseGP
+    from asgp_ros.core.streams import RawStreams
+
+    jt, joy, vt, vel = make_streams(60.0)
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    fc = FeatureConfig(lags=4)
+    channels = []
+    for c in (0, 1):
+        X, y, _ = design_matrix(res, c, fc)
+        channels.append(SparseGP(num_inducing=10, seed=0).fit(X, y, max_iter=30))
+    path = tmp_path_factory.mktemp("model") / "chair.npz"
+    save_model(path, MotionModel(kind="asgp", feature_config=fc,
+                                 resample_config=ResampleConfig(), channels=tuple(channels)))
+    return str(path)
+
+
+class Harness:
+    """The node under test plus a test node that publishes inputs and the clock."""
+
+    def __init__(self, context, model_path: str, odometry: bool = False, **params) -> None:
+        if odometry:
+            params = {"vo_type": "odometry", "path_frame": "odom", **params}
+        self.odometry = odometry
+        overrides = [Parameter("model_path", value=model_path),
+                     Parameter("use_sim_time", value=True),
+                     Parameter("horizon_steps", value=K),
+                     Parameter("diagnostics_period_s", value=0.5)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.node = PredictorNode(context=context, parameter_overrides=overrides)
+        self.test = __import__("rclpy").create_node("predictor_test", context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.test)
+        t = self.test
+        self.clock_pub = t.create_publisher(Clock, "/clock", QoSProfile(depth=10))
+        self.joy_pub = t.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        self.vo_pub = t.create_publisher(Odometry if odometry else TwistStamped, "vo/twist",
+                                         qos_profile_sensor_data)
+        self.plan_pub = t.create_publisher(Float32MultiArray, "joy_plan", QoSProfile(depth=10))
+        self.paths: list[Path] = []
+        self.markers: list[MarkerArray] = []
+        self.diags: list[DiagnosticArray] = []
+        t.create_subscription(Path, "predicted_path", self.paths.append, QoSProfile(depth=50))
+        t.create_subscription(MarkerArray, "predicted_path/uncertainty", self.markers.append,
+                              QoSProfile(depth=50))
+        t.create_subscription(DiagnosticArray, "diagnostics", self.diags.append,
+                              QoSProfile(depth=50))
+        self.now = 0.0
+        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in (
+            self.clock_pub, self.joy_pub, self.vo_pub, self.plan_pub)) and all(
+            self.test.count_publishers(n) > 0 for n in (
+                "predicted_path", "predicted_path/uncertainty", "diagnostics")),
+            what="discovery")
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.test.destroy_node()
+
+    def spin_until(self, cond, timeout: float = 5.0, what: str = "") -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def clock(self, t: float) -> None:
+        self.now = t
+        self.clock_pub.publish(Clock(clock=conv.seconds_to_stamp(t)))
+        ns = round(t * 1e9)
+        self.spin_until(lambda: self.node.get_clock().now().nanoseconds == ns, what="clock")
+
+    def joy(self, t: float, fwd: float, turn: float) -> None:
+        n = self.node.predictor.stats.joy_samples + self.node.predictor.stats.dropped_nonfinite
+        self.joy_pub.publish(conv.joy_from_sample(t, fwd, turn))
+        self.spin_until(lambda: self.node.predictor.stats.joy_samples
+                        + self.node.predictor.stats.dropped_nonfinite > n, what="joy")
+
+    def vo(self, t: float, v: float, w: float, lost: bool = False) -> None:
+        n = self.node.predictor.stats.vo_samples + self.node.predictor.stats.dropped_nonfinite
+        if self.odometry:  # the chair drives along x at 0.5 m/s in the odom frame
+            msg = conv.odometry_from_pose(t, 0.5 * (t - 100.0), 2.0, 0.0, v, w)
+            msg.twist.covariance[0] = -1.0 if lost else 1e-4
+            self.vo_pub.publish(msg)
+        else:
+            self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, w))
+        self.spin_until(lambda: self.node.predictor.stats.vo_samples
+                        + self.node.predictor.stats.dropped_nonfinite > n, what="vo")
+
+    def drive(self, t_from: float, t_to: float, vo: bool = True, joy=None, vel=None,
+              joy_nan: bool = False) -> None:
+        """Joystick at 10 Hz and VO at 5 Hz (offset 0.03 s) from t_from to t_to."""
+        joy = joy or (lambda t: (0.5 + 0.3 * math.sin(t), 0.4 * math.cos(0.5 * t)))
+        vel = vel or (lambda t: (0.45 + 0.25 * math.sin(t - 0.3), 0.3 * math.cos(0.5 * t)))
+        for i in range(round((t_to - t_from) / 0.1)):
+            t = t_from + 0.1 * (i + 1)
+            self.clock(t)
+            self.joy(t, *((math.nan, 0.0) if joy_nan and i % 3 == 0 else joy(t)))
+            if vo and i % 2 == 1:
+                self.clock(t + 0.03)
+                self.vo(t + 0.03, *vel(t + 0.03))
+
+
+def _t0(path: Path) -> float:
+    return conv.stamp_to_seconds(path.header.stamp)
+
+
+def _reason(h: Harness) -> str:
+    return h.node.diagnostic_status().values[0].value
+
+
+def test_bad_model_path_refuses_to_start(rclpy_context, tmp_path):
+    with pytest.raises(StartupError, match=r"nonexistent\.npz"):
+        PredictorNode(context=rclpy_context,
+                      parameter_overrides=[Parameter("model_path", value="/nonexistent.npz")])
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"not a model")
+    with pytest.raises(StartupError, match=r"corrupt\.npz"):
+        PredictorNode(context=rclpy_context,
+                      parameter_overrides=[Parameter("model_path", value=str(corrupt))])
+    with pytest.raises(StartupError, match="model_path is required"):
+        PredictorNode(context=rclpy_context)
+
+
+def test_bad_parameters_refuse_to_start(rclpy_context, model_file):
+    with pytest.raises(StartupError, match="vo_type"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("vo_type", value="imu")])
+    with pytest.raises(StartupError, match="path_frame 'odom' needs odometry"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("path_frame", value="odom")])
+    with pytest.raises(StartupError, match="divided by an integer"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("rate_hz", value=3.0)])
+
+
+def test_node_process_exits_nonzero_with_a_clear_message(repo_root):
+    proc = subprocess.run(
+        [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
+         "-p", "model_path:=/nonexistent/chair.npz"],
+        cwd=repo_root, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "refusing to start" in proc.stderr and "/nonexistent/chair.npz" in proc.stderr
+
+
+def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file)
+    try:
+        h.drive(100.0, 103.0)
+        h.spin_until(lambda: len(h.paths) >= 8, what="paths")
+        steps = []
+        for path in h.paths:
+            times, poses = conv.path_to_poses(path)
+            t0 = conv.stamp_to_seconds(path.header.stamp)
+            assert path.header.frame_id == "base_link"
+            assert len(path.poses) == K and poses.shape == (K, 3)
+            np.testing.assert_allclose(times, t0 + DT * np.arange(1, K + 1), atol=1e-9)
+            assert np.all(np.isfinite(poses))
+            steps.append(round(t0 / DT))
+        # one path per grid step, none skipped, in order
+        assert steps == list(range(steps[0], steps[0] + len(steps)))
+        m = h.markers[-1].markers
+        assert m[0].action == Marker.DELETEALL
+        assert [x.id for x in m[1:]] == list(range(K))
+        assert all(x.scale.x >= x.scale.y > 0 for x in m[1:])
+        # the ellipses grow along the horizon
+        assert m[K].scale.x > m[1].scale.x
+        assert _reason(h) == online.OK
+        h.spin_until(lambda: h.diags, what="diagnostics")
+        keys = {kv.key for kv in h.diags[-1].status[0].values}
+        assert {"joy_rate_hz", "vo_rate_hz", "joy_age_s", "vo_age_s",
+                "last_latency_ms", "reason"} <= keys
+    finally:
+        h.close()
+
+
+def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file, vo_timeout_s=0.5)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= 3, what="first paths")
+        # VO goes silent for 1.5 s; the joystick keeps coming
+        h.drive(102.0, 103.5, vo=False)
+        h.executor.spin_once(timeout_sec=0.05)
+        n_stale = len(h.paths)
+        assert _reason(h) == online.STALE_VO
+        # the watchdog cleared the ellipses
+        h.spin_until(lambda: len(h.markers[-1].markers) == 1, what="DELETEALL")
+        h.spin_until(lambda: any("stale_vo" in s.message for d in h.diags for s in d.status),
+                     what="stale diagnostic")
+        # no path was made from the stale input
+        last_t0 = conv.stamp_to_seconds(h.paths[-1].header.stamp)
+        assert last_t0 <= 102.0 + 1e-9
+        # fresh VO returns: prediction resumes without restart
+        h.drive(103.5, 105.5)
+        h.spin_until(lambda: len(h.paths) > n_stale + 2, what="resumed paths")
+        assert conv.stamp_to_seconds(h.paths[-1].header.stamp) > 104.5
+        assert _reason(h) == online.OK
+    finally:
+        h.close()
+
+
+def test_nan_inputs_are_dropped_and_prediction_continues(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file)
+    try:
+        h.drive(100.0, 103.0, joy_nan=True)
+        h.spin_until(lambda: len(h.paths) >= 5, what="paths")
+        dropped = h.node.predictor.stats.dropped_nonfinite
+        assert dropped == 10
+        status = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+        assert status["dropped_nonfinite"] == "10"
+        for path in h.paths:
+            assert np.all(np.isfinite(conv.path_to_poses(path)[1]))
+    finally:
+        h.close()
+
+
+def test_joy_plan_changes_the_path(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file)
+    try:
+        def still(t):
+            return (0.0, 0.0)
+
+        h.drive(100.0, 102.0, joy=still, vel=still)
+        h.spin_until(lambda: h.paths and _t0(h.paths[-1]) > 102.0 - 1e-9, what="paths")
+        held = conv.path_to_poses(h.paths[-1])[1]
+        assert np.max(np.abs(held[:, :2])) < 0.05  # standing still, stick centred
+        plan = np.tile([[1.0, 0.8]], (K + 2, 1))
+        h.plan_pub.publish(conv.plan_to_multiarray(plan))
+        h.spin_until(lambda: h.node.predictor.plan_future(h.now, h.now, 1) is not None,
+                     what="plan")
+        h.drive(102.0, 102.6, joy=still, vel=still)
+        h.spin_until(lambda: _t0(h.paths[-1]) > 102.4 - 1e-9, what="planned path")
+        planned = conv.path_to_poses(h.paths[-1])[1]
+        assert planned[-1, 0] > held[-1, 0] + 0.05  # full forward: the chair moves ahead
+        assert planned[-1, 2] > held[-1, 2] + 0.02  # turn left: heading increases
+        assert h.node.diagnostic_status().values[-1].value == "True"
+        # a malformed plan is refused with a warning and does not replace the good one
+        bad = Float32MultiArray(data=[1.0, 2.0, 3.0])
+        h.plan_pub.publish(bad)
+        h.spin_until(lambda: h.node._bad_messages == 1, what="bad plan")
+    finally:
+        h.close()
+
+
+def test_runtime_parameter_changes_are_validated(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file)
+    try:
+        ok = h.node.set_parameters([Parameter("vo_timeout_s", value=0.8),
+                                    Parameter("horizon_steps", value=7)])
+        assert all(r.successful for r in ok)
+        assert h.node.predictor.config.vo_timeout_s == 0.8
+        assert h.node.predictor.config.horizon_steps == 7
+        bad = h.node.set_parameters([Parameter("uncertainty", value="ukf")])[0]
+        assert not bad.successful and "uncertainty" in bad.reason
+        assert h.node.predictor.config.uncertainty == "linear"
+        ro = h.node.set_parameters([Parameter("model_path", value="other.npz")])[0]
+        assert not ro.successful
+        out_of_range = h.node.set_parameters([Parameter("joy_timeout_s", value=-1.0)])[0]
+        assert not out_of_range.successful
+    finally:
+        h.close()
+
+
+def test_clock_jump_back_resets_and_predicts_again(rclpy_context, model_file):
+    h = Harness(rclpy_context, model_file)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= 3, what="paths")
+        resets = h.node.predictor.stats.resets
+        # the bag loops: time goes back by 2 s
+        h.drive(98.0, 100.0)
+        assert h.node.predictor.stats.resets > resets
+        h.spin_until(lambda: conv.stamp_to_seconds(h.paths[-1].header.stamp) < 100.0,
+                     what="paths after the jump")
+        t0s = [conv.stamp_to_seconds(p.header.stamp) for p in h.paths]
+        after = [t for t in t0s if t < 100.0]
+        assert after == sorted(after) and len(after) >= 3
+    finally:
+        h.close()
+
+
+def test_odometry_input_gives_paths_in_odom_and_tracking_loss_stops_them(rclpy_context,
+                                                                          model_file):
+    h = Harness(rclpy_context, model_file, odometry=True)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and abs(
+            conv.stamp_to_seconds(h.paths[-1].header.stamp) - 102.0) < 1e-9, what="paths")
+        path = h.paths[-1]
+        assert path.header.frame_id == "odom"
+        t0 = conv.stamp_to_seconds(path.header.stamp)
+        _, poses = conv.path_to_poses(path)
+        # the path starts from the odometry pose at t0 (x = 0.5 (t0 - 100), y = 2)
+        first_step = np.linalg.norm(poses[0, :2] - [0.5 * (t0 - 100.0), 2.0])
+        assert first_step < 0.3
+        assert h.markers[-1].markers[1].header.frame_id == "odom"
+        # VO reports tracking loss (negative twist variance): no path, reason given
+        n = len(h.paths)
+        h.clock(102.13)
+        h.vo(102.13, 0.4, 0.0, lost=True)
+        h.executor.spin_once(timeout_sec=0.05)
+        assert _reason(h) == online.VO_TRACKING_LOST
+        assert len(h.paths) == n
+    finally:
+        h.close()
+
+
+# ---- conversions used by the node (built directly, no DDS) --------------------------
+
+
+def test_stamp_conversion_matches_the_bag_reader():
+    from builtin_interfaces.msg import Time
+
+    for sec, nsec in ((1_700_000_000, 123_456_789), (0, 1), (12, 999_999_999)):
+        t = conv.stamp_to_seconds(Time(sec=sec, nanosec=nsec))
+        assert t == float(sec * 1_000_000_000 + nsec) * 1e-9  # asgp_ros.bags' formula
+        back = conv.seconds_to_stamp(t)
+        assert abs((back.sec * 10**9 + back.nanosec) - (sec * 10**9 + nsec)) <= 256
+    with pytest.raises(ValueError, match="negative"):
+        conv.seconds_to_stamp(-1.0)
+
+
+def test_plan_conversion_and_validation():
+    plan = np.array([[0.1, -0.2], [0.3, 0.4], [1.0, 0.0]])
+    back = conv.plan_from_multiarray(conv.plan_to_multiarray(plan))
+    np.testing.assert_allclose(back, plan, rtol=1e-6)
+    flat = Float32MultiArray(data=[0.5, 0.25, 0.75, -0.5])
+    np.testing.assert_array_equal(conv.plan_from_multiarray(flat), [[0.5, 0.25], [0.75, -0.5]])
+    for bad, why in ((Float32MultiArray(data=[1.0, 2.0, 3.0]), "2 values per step"),
+                     (Float32MultiArray(data=[]), "2 values per step"),
+                     (Float32MultiArray(data=[1.0, float("nan")]), "NaN"),
+                     (conv.plan_to_multiarray(np.zeros((4, 2))), None)):
+        if why is None:  # layout promising more steps than the data holds
+            bad.layout.dim[0].size = 5
+            why = "holds"
+        with pytest.raises(ValueError, match=why):
+            conv.plan_from_multiarray(bad)
+
+
+def test_path_and_markers_conversion():
+    poses = np.array([[0.1, 0.0, 0.05], [0.25, 0.01, 0.1], [0.4, 0.03, -3.0]])
+    times = 10.0 + 0.2 * np.arange(1, 4)
+    msg = conv.path_from_poses(poses, times, "base_link", 10.0)
+    assert msg.header.frame_id == "base_link" and len(msg.poses) == 3
+    t, back = conv.path_to_poses(msg)
+    np.testing.assert_allclose(t, times, atol=1e-9)
+    np.testing.assert_allclose(back, poses, atol=1e-12)
+    ell = np.array([[0.2, 0.1, 0.3], [0.3, 0.0, 0.0], [0.4, 0.2, -1.0]])
+    arr = conv.ellipse_markers(poses[:, :2], ell, "odom", 10.0)
+    assert arr.markers[0].action == Marker.DELETEALL
+    assert [m.id for m in arr.markers[1:]] == [0, 1, 2]
+    assert arr.markers[1].scale.x == pytest.approx(0.4)
+    assert arr.markers[2].scale.y == pytest.approx(1e-3)  # degenerate axis still drawn
+    assert len(conv.ellipse_markers(np.zeros((0, 2)), np.zeros((0, 3)), "odom", 0.0)
+               .markers) == 1
+
+
+def test_odometry_and_joy_conversion():
+    msg = conv.odometry_from_pose(5.0, 1.0, 2.0, 0.7, 0.3, -0.1)
+    t, vel, ok, pose = conv.odometry_to_sample(msg)
+    assert t == 5.0 and vel == (0.3, -0.1) and ok
+    np.testing.assert_allclose(pose, (1.0, 2.0, 0.7))
+    for cov in (-1.0, 1e9, float("nan")):
+        msg.twist.covariance[0] = cov
+        assert not conv.odometry_to_sample(msg)[2]
+    msg.twist.covariance[0] = 0.01
+    msg.twist.twist.linear.x = float("nan")
+    assert not conv.odometry_to_sample(msg)[2]
+    joy = conv.joy_from_sample(3.0, 0.5, -0.25)
+    assert conv.joy_to_sample(joy) == (3.0, (0.5, -0.25))
+    assert conv.joy_to_sample(joy, 1, 0) == (3.0, (-0.25, 0.5))
+    with pytest.raises(ValueError, match="2 axes"):
+        conv.joy_to_sample(joy, 0, 3)

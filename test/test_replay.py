@@ -1,0 +1,297 @@
+"""Tests of bag replay (asgp_ros.replay, `asgp replay`).
+
+Message conversion is tested on ROS 1 and ROS 2 bags written here with rosbags (Joy with
+a ROS 1 header ``seq``, Odometry with fixed-size covariance arrays, Image with a byte
+payload, and a custom type that is not installed). Playback is tested across processes:
+``asgp replay`` in a subprocess, a subscriber in the test.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from asgp_ros.replay import ReplayConfig, message_class, to_ros2
+
+N_MSGS = 20
+T0_NS = 1_700_000_000_000_000_000
+PERIOD_NS = 50_000_000  # 20 Hz: the bags last ~1 s
+GIZMO = "uint32 count\nstring label\n"
+
+
+def _typestore(ros1: bool):
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(GIZMO, "acme_msgs/msg/Gizmo"))
+    return store
+
+
+def _messages(store, ros1: bool):
+    """(topic, msgtype, t_ns, message) of the test bags."""
+    T = store.types
+    Time = T["builtin_interfaces/msg/Time"]
+
+    def header(i: int, t_ns: int, frame: str):
+        stamp = Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+        if ros1:
+            return T["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    P, Q, V3 = T["geometry_msgs/msg/Point"], T["geometry_msgs/msg/Quaternion"], \
+        T["geometry_msgs/msg/Vector3"]
+    for i in range(N_MSGS):
+        t = T0_NS + i * PERIOD_NS
+        yield "/joy", "sensor_msgs/msg/Joy", t, T["sensor_msgs/msg/Joy"](
+            header=header(i, t, "js"), axes=np.array([0.1 * i, -0.5], dtype=np.float32),
+            buttons=np.array([i % 2], dtype=np.int32))
+        odom = T["nav_msgs/msg/Odometry"](
+            header=header(i, t, "odom"), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](
+                pose=T["geometry_msgs/msg/Pose"](position=P(x=float(i), y=2.0, z=0.0),
+                                                 orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0)),
+                covariance=np.arange(36, dtype=np.float64)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](linear=V3(x=0.5, y=0.0, z=0.0),
+                                                   angular=V3(x=0.0, y=0.0, z=0.1 * i)),
+                covariance=np.zeros(36)))
+        yield "/odom", "nav_msgs/msg/Odometry", t + 1000, odom
+        if i % 5 == 0:
+            yield "/image", "sensor_msgs/msg/Image", t + 2000, T["sensor_msgs/msg/Image"](
+                header=header(i, t, "cam"), height=2, width=3, encoding="mono8",
+                is_bigendian=0, step=3, data=np.arange(6, dtype=np.uint8) + i)
+        yield "/gizmo", "acme_msgs/msg/Gizmo", t + 3000, T["acme_msgs/msg/Gizmo"](
+            count=i, label="x")
+
+
+def write_test_bag(path: Path, ros1: bool) -> Path:
+    store = _typestore(ros1)
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer = Writer(path)
+        serialize = store.serialize_ros1
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        serialize = store.serialize_cdr
+    conns = {}
+    with writer:
+        for topic, msgtype, t, msg in _messages(store, ros1):
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(conns[topic], t, serialize(msg, msgtype))
+    return path
+
+
+@pytest.fixture(scope="module", params=["ros1", "ros2"])
+def bag(request, tmp_path_factory):
+    ros1 = request.param == "ros1"
+    d = tmp_path_factory.mktemp(request.param)
+    return write_test_bag(d / ("test.bag" if ros1 else "test_bag"), ros1)
+
+
+@pytest.fixture(scope="module")
+def ros2_bag(tmp_path_factory):
+    return write_test_bag(tmp_path_factory.mktemp("ros2_only") / "bag", ros1=False)
+
+
+def _read_all(path: Path):
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([path]) as reader:
+        for conn, t, raw in reader.messages():
+            yield conn, t, reader.deserialize(raw, conn.msgtype)
+
+
+def test_message_class_maps_ros1_and_ros2_names():
+    from sensor_msgs.msg import Joy
+
+    assert message_class("sensor_msgs/msg/Joy") is Joy
+    assert message_class("sensor_msgs/Joy") is Joy
+    with pytest.raises(ImportError, match="acme_msgs"):
+        message_class("acme_msgs/msg/Gizmo")
+    with pytest.raises(ImportError, match="Nonexistent"):
+        message_class("sensor_msgs/msg/Nonexistent")
+    with pytest.raises(ImportError, match="not a message type"):
+        message_class("Joy")
+
+
+def test_conversion_to_installed_classes(bag):
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Image, Joy
+
+    seen = {"/joy": 0, "/odom": 0, "/image": 0}
+    for conn, _t, obj in _read_all(bag):
+        if conn.topic == "/gizmo":
+            continue
+        msg = to_ros2(obj, message_class(conn.msgtype))
+        i = seen[conn.topic]
+        seen[conn.topic] += 1
+        if conn.topic == "/joy":
+            assert isinstance(msg, Joy)
+            assert msg.header.frame_id == "js"
+            assert not hasattr(msg.header, "seq")
+            stamp = T0_NS + i * PERIOD_NS
+            assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == divmod(stamp, 10**9)
+            np.testing.assert_allclose(list(msg.axes), [np.float32(0.1 * i), -0.5])
+            assert list(msg.buttons) == [i % 2]
+        elif conn.topic == "/odom":
+            assert isinstance(msg, Odometry)
+            assert msg.pose.pose.position.x == float(i)
+            np.testing.assert_array_equal(msg.pose.covariance, np.arange(36.0))
+            assert msg.twist.twist.angular.z == pytest.approx(0.1 * i)
+            assert msg.child_frame_id == "base_link"
+        else:
+            assert isinstance(msg, Image)
+            assert bytes(msg.data) == bytes(np.arange(6, dtype=np.uint8) + 5 * i)
+            assert (msg.height, msg.width, msg.encoding) == (2, 3, "mono8")
+    assert seen == {"/joy": N_MSGS, "/odom": N_MSGS, "/image": N_MSGS // 5}
+
+
+def test_config_validation():
+    for bad in ({"rate": 0.0}, {"rate": float("nan")}, {"start_s": -1.0},
+                {"clock_rate_hz": -5.0}, {"wait_subscribers_s": -1.0}):
+        with pytest.raises(ValueError):
+            ReplayConfig(**bad)
+
+
+def _cli(repo_root, *args, **kw):
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    return subprocess.Popen([sys.executable, "-m", "asgp_ros.cli", "replay", *map(str, args)],
+                            cwd=repo_root, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def test_cli_errors(repo_root, tmp_path, ros2_bag):
+    bag = ros2_bag
+    proc = _cli(repo_root, tmp_path / "missing_bag")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "no such bag" in err
+    proc = _cli(repo_root, bag, "--topics", "/nope")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "/nope" in err and "/joy" in err
+    proc = _cli(repo_root, bag, "--rate", "-1")
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2 and "rate" in err
+
+
+class _Listener:
+    def __init__(self, context):
+        import rclpy
+        from nav_msgs.msg import Odometry
+        from rclpy.qos import QoSProfile
+        from rosgraph_msgs.msg import Clock
+        from sensor_msgs.msg import Image, Joy
+
+        self.node = rclpy.create_node("replay_listener", context=context)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.got: dict[str, list] = {"/joy": [], "/odom": [], "/image": [], "/clock": []}
+        self.wall: list[float] = []
+        qos = QoSProfile(depth=100)
+        for topic, cls in (("/joy", Joy), ("/odom", Odometry), ("/image", Image),
+                           ("/clock", Clock)):
+            self.node.create_subscription(cls, topic, self._cb(topic), qos)
+
+    def _cb(self, topic):
+        def cb(msg):
+            self.got[topic].append(msg)
+            if topic == "/joy":
+                self.wall.append(time.monotonic())
+        return cb
+
+    def spin_until(self, cond, timeout=30.0, what=""):
+        deadline = time.monotonic() + timeout
+        while not cond():
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+
+
+@pytest.mark.e2e
+def test_replay_publishes_messages_with_timing_and_clock(rclpy_context, repo_root, bag):
+    from asgp_ros.nodes.conversions import stamp_to_seconds
+
+    lis = _Listener(rclpy_context)
+    try:
+        proc = _cli(repo_root, bag, "--rate", "2", "--wait-subscribers", "20",
+                    "--topics", "/joy", "/odom", "/image", "/gizmo")
+        lis.spin_until(lambda: proc.poll() is not None and len(lis.got["/joy"]) == N_MSGS
+                       and len(lis.got["/odom"]) == N_MSGS, what="all messages")
+        _out, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        # the custom type is skipped with a warning naming it
+        assert "acme_msgs/msg/Gizmo" in err and "not installed" in err
+        joy = lis.got["/joy"]
+        assert [round(m.axes[0], 4) for m in joy] == [round(0.1 * i, 4) for i in range(N_MSGS)]
+        assert lis.got["/image"][1].data.tolist() == list(range(5, 11))
+        # /clock runs through the bag's times and never goes back within one pass
+        clock = np.array([stamp_to_seconds(c.clock) for c in lis.got["/clock"]])
+        assert np.all(np.diff(clock) >= 0)
+        assert clock[0] == pytest.approx(T0_NS * 1e-9, abs=1e-3)
+        assert clock[-1] == pytest.approx((T0_NS + (N_MSGS - 1) * PERIOD_NS + 3000) * 1e-9,
+                                          abs=1e-3)
+        # original timing scaled by --rate: 19 periods of 50 ms at rate 2 -> 0.475 s
+        span = lis.wall[-1] - lis.wall[0]
+        assert 0.3 < span < 2.0, span
+    finally:
+        lis.close()
+
+
+@pytest.mark.e2e
+def test_loop_jumps_the_clock_back_and_ctrl_c_is_clean(rclpy_context, repo_root, bag):
+    from asgp_ros.nodes.conversions import stamp_to_seconds
+
+    lis = _Listener(rclpy_context)
+    try:
+        proc = _cli(repo_root, bag, "--rate", "4", "--loop", "--wait-subscribers", "20",
+                    "--topics", "/joy")
+        lis.spin_until(lambda: len(lis.got["/joy"]) > 2 * N_MSGS + 2, what="two passes")
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=20)
+        assert proc.returncode in (0, 130), err
+        assert "Traceback" not in err
+        clock = np.array([stamp_to_seconds(c.clock) for c in lis.got["/clock"]])
+        assert np.any(np.diff(clock) < -0.5)  # the loop restarted the clock
+    finally:
+        lis.close()
+
+
+@pytest.mark.e2e
+def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
+    import rclpy
+    from rclpy.qos import QoSProfile
+    from sensor_msgs.msg import Joy
+
+    node = rclpy.create_node("remap_listener", context=rclpy_context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    got: list = []
+    node.create_subscription(Joy, "/joy_replayed", got.append, QoSProfile(depth=100))
+    try:
+        proc = _cli(repo_root, ros2_bag, "--rate", "4", "--start", "0.5", "--topics", "/joy",
+                    "--remap", "/joy:=/joy_replayed", "--wait-subscribers", "20")
+        deadline = time.monotonic() + 30
+        while proc.poll() is None or len(got) < N_MSGS - 10:
+            assert time.monotonic() < deadline, "timed out"
+            executor.spin_once(timeout_sec=0.01)
+        _, err = proc.communicate(timeout=10)
+        assert proc.returncode == 0, err
+        # 0.5 s into the bag: the joystick messages from i = 10 on, on the new name
+        assert [round(m.axes[0], 4) for m in got] == [round(0.1 * i, 4)
+                                                     for i in range(10, N_MSGS)]
+    finally:
+        executor.shutdown()
+        node.destroy_node()
