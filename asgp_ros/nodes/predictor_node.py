@@ -43,6 +43,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Joy
 from std_msgs.msg import Float32MultiArray
+from threadpoolctl import threadpool_limits
 from visualization_msgs.msg import MarkerArray
 
 from asgp_ros.bags import parse_joy_axes
@@ -492,6 +493,10 @@ class PredictorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    # The rollout works on small matrices: extra BLAS threads only add contention with the
+    # other nodes on the wheelchair laptop (a loaded 2-core machine ran batched rollouts
+    # about twice as slowly with OpenBLAS's default two threads).
+    threadpool_limits(limits=1)
     rclpy.init(args=args)
     node: PredictorNode | None = None
     try:
