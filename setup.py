@@ -25,6 +25,7 @@ setup(
         "pyserial>=3.5",
         "rosbags>=0.10",
         "scikit-learn>=1.3",
+        "threadpoolctl>=3.1",
         "matplotlib>=3.7",
         "PyYAML>=6",
     ],
