@@ -1,0 +1,66 @@
+"""``asgp train``: fit a motion predictor (ASGP or a baseline) on bags, save the model file."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+
+KINDS = ("asgp", "mlp", "constant_velocity", "first_order_lag")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "train",
+        help="train a motion predictor on bags and save the model file",
+        description="Resample the bags to the model grid (5 Hz), build the autoregressive "
+                    "features and fit one regressor per channel (v, omega). Progress goes "
+                    "to stderr.",
+    )
+    p.add_argument("bags", nargs="+", metavar="BAG", help="training bags (ROS 1 or ROS 2)")
+    p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (.npz)")
+    p.add_argument("--model", choices=KINDS, default="asgp", help="model kind (%(default)s)")
+    p.add_argument("--lags", type=int, default=None,
+                   help="s, past samples per input (asgp 4, mlp 10, others 1)")
+    p.add_argument("--inducing-v", type=int, default=20, help="pseudo-inputs for v (20)")
+    p.add_argument("--inducing-w", type=int, default=40, help="pseudo-inputs for omega (40)")
+    p.add_argument("--max-iter", type=int, default=200,
+                   help="L-BFGS-B iterations (asgp) or epochs (mlp) (%(default)s)")
+    p.add_argument("--coupled", action="store_true",
+                   help="feed both joystick axes and both velocities to each channel")
+    p.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
+    p.add_argument("--rate", type=float, default=None, help="grid rate in Hz (default 5)")
+    add_topic_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from asgp_ros.cli import CommandError
+    from asgp_ros.core.modelfile import save_model
+    from asgp_ros.core.resample import ResampleConfig
+    from asgp_ros.training import TrainingError, TrainOptions, train
+
+    try:
+        rc = ResampleConfig() if args.rate is None else ResampleConfig(rate_hz=args.rate)
+        opts = TrainOptions(kind=args.model, lags=args.lags, inducing_v=args.inducing_v,
+                            inducing_w=args.inducing_w, max_iter=args.max_iter,
+                            coupled=args.coupled, seed=args.seed)
+        opts.validate()
+    except (TrainingError, ValueError) as exc:
+        raise CommandError(str(exc)) from exc
+    series = read_series_or_fail(args.bags, args, resample_config=rc)
+
+    def progress(channel: str, message: str) -> None:
+        print(f"[{args.model} {channel}] {message}", file=sys.stderr, flush=True)
+
+    try:
+        model = train(series, opts, resample_config=rc, progress=progress)
+    except (TrainingError, ValueError) as exc:
+        raise CommandError(str(exc)) from exc
+    save_model(args.out, model)
+    summary = model.meta["training_data"]
+    print(f"wrote {args.out}: {args.model}, s={opts.resolved_lags()}, "
+          f"{summary['training_rows']} rows from {len(summary['bags'])} bag(s), "
+          f"{summary['segments']} segments, stale {100 * summary['stale_fraction']:.1f}%")
+    return 0

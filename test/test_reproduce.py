@@ -1,0 +1,100 @@
+"""``asgp reproduce``: the paper's protocol end to end (quick mode) and its bad inputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from asgp_ros.cli import main
+from asgp_ros.reproduce import ReproduceError, discover, split
+
+
+def _touch_bags(root: Path, counts: dict[str, int]) -> None:
+    for surface, n in counts.items():
+        for i in range(1, n + 1):
+            d = root / surface / f"{surface}_{i:02d}"
+            d.mkdir(parents=True)
+            (d / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+
+
+def test_split_follows_the_paper_layout(tmp_path):
+    _touch_bags(tmp_path, {"tile": 8, "carpet": 8, "hybrid": 2})
+    train, test = split(discover(tmp_path))
+    names = {k: [p.name for p in v] for k, v in train.items()}
+    assert names["Tile"] == [f"tile_{i:02d}" for i in range(1, 7)]
+    assert names["Carpet"] == [f"carpet_{i:02d}" for i in range(1, 7)]
+    assert names["Both"] == ["tile_01", "tile_02", "tile_03",
+                             "carpet_01", "carpet_02", "carpet_03"]
+    assert [p.name for p in test["Tile"]] == ["tile_07", "tile_08"]
+    assert [p.name for p in test["Hybrid"]] == ["hybrid_01", "hybrid_02"]
+    # a manifest's split wins over the name order
+    manifest = {"bags": [{"path": "tile/tile_01", "split": "test"},
+                         {"path": "tile/tile_02", "split": "test"},
+                         {"path": "carpet/carpet_07", "split": "test"},
+                         {"path": "carpet/carpet_08", "split": "test"}]}
+    train, test = split(discover(tmp_path), manifest)
+    assert [p.name for p in test["Tile"]] == ["tile_01", "tile_02"]
+    assert "tile_01" not in [p.name for p in train["Tile"]]
+    assert len(train["Tile"]) == 6
+
+
+def test_missing_or_incomplete_dataset_is_refused(tmp_path, capsys):
+    with pytest.raises(ReproduceError, match="does not exist"):
+        discover(tmp_path / "nope")
+    _touch_bags(tmp_path, {"tile": 8, "carpet": 2})
+    with pytest.raises(ReproduceError, match=r"2 carpet bag.*0 hybrid"):
+        split(discover(tmp_path))
+    out = tmp_path / "report"
+    assert main(["reproduce", "--data", str(tmp_path), "--out", str(out)]) == 2
+    assert "carpet" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.slow
+def test_reproduce_quick_end_to_end(tmp_path, capsys):
+    data, out = tmp_path / "data", tmp_path / "report"
+    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 0
+    printed = capsys.readouterr().out
+    assert "Table I (tested on Tile)" in printed and "Table III (tested on Hybrid)" in printed
+    # the dataset was built in the paper's layout
+    assert len(list((data / "tile").iterdir())) == 8 and (data / "manifest.json").exists()
+    files = {p.name for p in out.iterdir()}
+    assert {"report.md", "results.json", "tables.json", "success_vs_horizon.png",
+            "error_distributions.png", "example_paths.png", "models"} <= files
+    assert len(list((out / "models").glob("*.npz"))) == 15
+    res = json.loads((out / "results.json").read_text())
+    assert res["quick"] is True
+    tables = res["tables"]
+    assert list(tables) == ["Table I", "Table II", "Table III"]
+    assert [t["test_set"] for t in tables.values()] == ["Tile", "Carpet", "Hybrid"]
+    for t in tables.values():
+        assert len(t["rows"]) == 15  # 3 train sets x 5 models
+        assert all(n > 0 for n in t["cases"].values())
+        for row in t["rows"]:
+            for h in ("1.0", "1.4", "2.0"):
+                assert 0.0 <= row[h]["success_rate_pct"] <= 100.0
+                assert row[h]["paper_success_rate_pct"] is None
+                has_var = row["model"] in ("asgp", "asgp_coupled")
+                assert (row[h]["coverage_95_pct"] is None) == (not has_var)
+    # identical case sets across models: one count per horizon and test set
+    for ev in res["evaluations"]:
+        for test, e in ev["tests"].items():
+            table = next(t for t in tables.values() if t["test_set"] == test)
+            assert {h: v["cases"] for h, v in e["horizons"].items()} == table["cases"]
+    assert len(res["claims"]) == 6
+    checks = res["calibration"]["propagation_check"]
+    assert [c["test"] for c in checks] == ["Tile", "Carpet", "Hybrid"]
+    for c in checks:
+        for h in ("1.0", "2.0"):
+            assert set(c[h]) == {"linear", "mc", "linear_latent_only"}
+            assert all(0.0 <= v <= 1.0 for v in c[h].values())
+    report = (out / "report.md").read_text()
+    assert "Quick mode" in report and "## Table II: tested on Carpet" in report
+    assert "not included" in report  # the paper's numbers are not invented
+    # a second run replaces the report as a whole, reusing the dataset
+    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick",
+                 "--jobs", "1"]) == 0
+    assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 1
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
