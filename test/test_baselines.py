@@ -203,3 +203,19 @@ def test_baseline_kind_refuses_foreign_channels(tmp_path):
         save_model(tmp_path / "x.npz", wrong)
     assert not (tmp_path / "x.npz").exists()
     assert baselines.BASELINE_CHANNELS["mlp"] is MLPChannel
+
+
+@pytest.mark.parametrize("kind,lags", [("mlp", 10), ("first_order_lag", 1)])
+def test_baseline_model_files_load_in_a_fresh_process(tmp_path, kind, lags):
+    """A node loads a baseline model without importing the baselines module itself."""
+    import subprocess
+    import sys
+
+    path = tmp_path / f"{kind}.npz"
+    save_model(path, _model(kind, lags))
+    code = ("import sys\nfrom asgp_ros.core.modelfile import load_model\n"
+            "assert 'asgp_ros.core.baselines' not in sys.modules\n"
+            f"print(load_model({str(path)!r}).kind)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == kind

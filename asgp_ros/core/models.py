@@ -144,8 +144,18 @@ def register_kind(kind: ModelKind, *, replace: bool = False) -> None:
     _REGISTRY[kind.name] = kind
 
 
+def _import_builtin_kinds() -> None:
+    """Register the kinds that ship with the package (the baselines live in their own module).
+
+    Imported lazily because baselines.py itself registers through this module.
+    """
+    import asgp_ros.core.baselines  # noqa: F401  (registers "mlp", ... on import)
+
+
 def get_kind(name: str) -> ModelKind:
     """The registered kind ``name``; KeyError listing the known kinds otherwise."""
+    if name not in _REGISTRY:
+        _import_builtin_kinds()
     try:
         return _REGISTRY[name]
     except KeyError:
@@ -155,6 +165,7 @@ def get_kind(name: str) -> ModelKind:
 
 
 def registered_kinds() -> list[str]:
+    _import_builtin_kinds()
     return sorted(_REGISTRY)
 
 
