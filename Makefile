@@ -23,7 +23,8 @@ $(STAMP): setup.py package.xml
 test: setup
 	$(VPY) -m pytest test
 
-demo: setup
+# The demo needs the Python environment only (no AVR toolchain).
+demo: $(STAMP)
 	$(VENV)/bin/asgp demo
 
 firmware: $(SYSSTAMP)

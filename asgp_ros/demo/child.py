@@ -1,0 +1,43 @@
+"""Run a node's entry point as a child of the demo that dies with it.
+
+    python -m asgp_ros.demo.child PARENT_PID MODULE:FUNCTION [ARGS...]
+
+Asks the kernel for SIGTERM when the parent dies (``prctl(PR_SET_PDEATHSIG)``, Linux),
+checks that the parent is still there (it may have died before the request), then calls
+``FUNCTION()`` with ``sys.argv = [MODULE, *ARGS]`` (how a console script runs) and exits
+with its return value.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib
+import os
+import signal
+import sys
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def main() -> int:
+    if len(sys.argv) < 3 or ":" not in sys.argv[2]:
+        print("usage: python -m asgp_ros.demo.child PARENT_PID MODULE:FUNCTION [ARGS...]",
+              file=sys.stderr)
+        return 2
+    parent = int(sys.argv[1])
+    module, function = sys.argv[2].split(":", 1)
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        print(f"warning: prctl(PR_SET_PDEATHSIG) failed: {os.strerror(ctypes.get_errno())}",
+              file=sys.stderr)
+    if os.getppid() != parent:
+        print(f"the demo (pid {parent}) is gone; not starting {module}", file=sys.stderr)
+        return 1
+    sys.argv = [module, *sys.argv[3:]]
+    entry = getattr(importlib.import_module(module), function)
+    rc = entry()
+    return int(rc or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,226 @@
+"""The demo's monitoring node: live figures, online success rate, and the run's bag.
+
+Subscribes to what the system publishes (``joy``, ``vo/twist``, ``vo/odom``,
+``ground_truth/odom``, ``predicted_path`` and its uncertainty markers, ``joy_plan``,
+``diagnostics``, and ``camera/color/camera_info`` for the camera rate) and records all but
+the camera info to a ROS 2 bag (mcap, with the ``rosbags`` library: the serialized
+messages as received, stamped with their arrival time on the node clock, as ``ros2 bag
+record`` does). A topic is subscribed once a publisher of it is discovered, with the
+publisher's reliability (like rosbag2's QoS adaptation), so a reliable stream is recorded
+without loss and a best-effort one is still received. The figures are computed by
+:mod:`asgp_ros.demo.monitor`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from sensor_msgs.msg import CameraInfo, Joy
+from std_msgs.msg import Float32MultiArray
+from visualization_msgs.msg import Marker, MarkerArray
+
+from asgp_ros.demo.monitor import (
+    LatencyStats,
+    OnlineScore,
+    PathRecord,
+    RateMeter,
+    TruthTrack,
+)
+from asgp_ros.nodes import conversions as conv
+
+log = logging.getLogger(__name__)
+
+#: topic -> (message class, ROS 2 type name, recorded in the bag)
+TOPICS: dict[str, tuple[Any, str, bool]] = {
+    "joy": (Joy, "sensor_msgs/msg/Joy", True),
+    "vo/twist": (TwistStamped, "geometry_msgs/msg/TwistStamped", True),
+    "vo/odom": (Odometry, "nav_msgs/msg/Odometry", True),
+    "ground_truth/odom": (Odometry, "nav_msgs/msg/Odometry", True),
+    "predicted_path": (PathMsg, "nav_msgs/msg/Path", True),
+    "predicted_path/uncertainty": (MarkerArray, "visualization_msgs/msg/MarkerArray", True),
+    "joy_plan": (Float32MultiArray, "std_msgs/msg/Float32MultiArray", True),
+    "diagnostics": (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
+    "camera/color/camera_info": (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
+}
+
+
+class BagRecorder:
+    """Serialized messages into a ROS 2 bag (mcap) at ``path``; see ``close``."""
+
+    def __init__(self, path: str | Path) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        self._store = get_typestore(Stores.ROS2_JAZZY)
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self._writer.open()
+        self._conns: dict[str, Any] = {}
+        self.messages = 0
+
+    def add_topic(self, topic: str, msgtype: str) -> None:
+        if topic not in self._conns:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype,
+                                                             typestore=self._store)
+
+    def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
+        self._writer.write(self._conns[topic], stamp_ns, data)
+        self.messages += 1
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+@dataclass
+class DiagEntry:
+    level: int
+    message: str
+    values: dict[str, str]
+    arrival: float
+
+
+class MonitorNode(Node):
+    """See the module docstring.
+
+    Args:
+        recorder: where to record (None: nothing recorded).
+        horizons_s, threshold_m: the online score's settings.
+    """
+
+    def __init__(self, recorder: BagRecorder | None = None,
+                 score: OnlineScore | None = None, **kwargs: Any) -> None:
+        super().__init__("demo_monitor", **kwargs)
+        self.recorder = recorder
+        self.score = score or OnlineScore()
+        self.truth = TruthTrack()
+        self.rates = {name: RateMeter() for name in TOPICS}
+        self.latency = {name: LatencyStats() for name in ("joy", "vo/twist", "predicted_path")}
+        self.counts = dict.fromkeys(TOPICS, 0)
+        self.diag: dict[str, DiagEntry] = {}
+        self.vo_ok: bool | None = None
+        self.vo_lost = 0
+        self.first_truth_wall: float | None = None
+        self._by_t0: dict[int, PathRecord] = {}
+        self._subscribed: set[str] = set()
+        self.create_timer(0.2, self._discover)
+        self._discover()
+
+    # ---- subscriptions following discovery ---------------------------------------------
+
+    def _discover(self) -> None:
+        for topic, (cls, msgtype, record) in TOPICS.items():
+            if topic in self._subscribed:
+                continue
+            infos = self.get_publishers_info_by_topic(self.resolve_topic_name(topic))
+            if not infos:
+                continue
+            reliable = all(i.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+                           for i in infos)
+            qos = QoSProfile(
+                history=HistoryPolicy.KEEP_LAST, depth=200,
+                reliability=(ReliabilityPolicy.RELIABLE if reliable
+                             else ReliabilityPolicy.BEST_EFFORT),
+                durability=DurabilityPolicy.VOLATILE)
+            if record and self.recorder is not None:
+                self.recorder.add_topic("/" + topic, msgtype)
+            self.create_subscription(cls, topic, self._callback(topic, cls, record), qos,
+                                     raw=True)
+            self._subscribed.add(topic)
+            log.debug("monitor subscribed %s (%s)", topic,
+                      "reliable" if reliable else "best effort")
+
+    def _callback(self, topic: str, cls: Any, record: bool):
+        handler = getattr(self, "_on_" + topic.replace("/", "_"))
+        bag_topic = "/" + topic
+
+        def on_message(data: bytes) -> None:
+            now_ns = self.get_clock().now().nanoseconds
+            if record and self.recorder is not None:
+                self.recorder.write(bag_topic, now_ns, data)
+            self.counts[topic] += 1
+            self.rates[topic].tick(time.monotonic())
+            handler(deserialize_message(data, cls), now_ns * 1e-9)
+
+        return on_message
+
+    # ---- handlers ----------------------------------------------------------------------
+
+    def _on_joy(self, msg: Joy, now: float) -> None:
+        self.latency["joy"].add(now - conv.stamp_to_seconds(msg.header.stamp))
+
+    def _on_vo_twist(self, msg: TwistStamped, now: float) -> None:
+        self.latency["vo/twist"].add(now - conv.stamp_to_seconds(msg.header.stamp))
+
+    def _on_vo_odom(self, msg: Odometry, now: float) -> None:
+        _, _, ok, _ = conv.odometry_to_sample(msg)
+        self.vo_ok = ok
+        self.vo_lost += not ok
+
+    def _on_ground_truth_odom(self, msg: Odometry, now: float) -> None:
+        t, _, _, (x, y, yaw) = conv.odometry_to_sample(msg)
+        if self.first_truth_wall is None:
+            self.first_truth_wall = time.monotonic()
+        self.truth.add(t, x, y, yaw)
+        self.score.update(self.truth)
+
+    def _on_predicted_path(self, msg: PathMsg, now: float) -> None:
+        t0 = conv.stamp_to_seconds(msg.header.stamp)
+        times, poses = conv.path_to_poses(msg)
+        if times.size == 0:
+            return
+        rec = PathRecord(t0=t0, times=times, pose=poses, arrival=now)
+        self.latency["predicted_path"].add(now - t0)
+        self.score.add(rec)
+        self._by_t0[round(t0 * 1e6)] = rec
+        if len(self._by_t0) > 50:
+            self._by_t0.pop(next(iter(self._by_t0)))
+
+    def _on_predicted_path_uncertainty(self, msg: MarkerArray, now: float) -> None:
+        cyl = [m for m in msg.markers if m.action == Marker.ADD]
+        if not cyl:
+            return
+        rec = self._by_t0.get(round(conv.stamp_to_seconds(cyl[0].header.stamp) * 1e6))
+        if rec is None:
+            return
+        cyl.sort(key=lambda m: m.id)
+        rec.ellipses = np.array([
+            (0.5 * m.scale.x, 0.5 * m.scale.y,
+             conv.quaternion_to_yaw(m.pose.orientation.x, m.pose.orientation.y,
+                                    m.pose.orientation.z, m.pose.orientation.w))
+            for m in cyl])
+
+    def _on_joy_plan(self, msg: Float32MultiArray, now: float) -> None:
+        pass
+
+    def _on_diagnostics(self, msg: DiagnosticArray, now: float) -> None:
+        for st in msg.status:
+            self.diag[st.name] = DiagEntry(int.from_bytes(st.level, "little")
+                                           if isinstance(st.level, bytes) else int(st.level),
+                                           st.message, conv.diagnostic_values(st), now)
+
+    def _on_camera_color_camera_info(self, msg: CameraInfo, now: float) -> None:
+        pass
+
+    # ---- summaries ---------------------------------------------------------------------
+
+    def rate(self, topic: str) -> float:
+        return self.rates[topic].rate(time.monotonic())
+
+    def diag_value(self, name_part: str, key: str) -> str | None:
+        """A value of the newest diagnostic status whose name contains ``name_part``."""
+        for name, entry in self.diag.items():
+            if name_part in name and key in entry.values:
+                return entry.values[key]
+        return None

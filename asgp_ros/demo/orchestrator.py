@@ -1,0 +1,505 @@
+"""``asgp demo``: train, start the nodes on simulated hardware, watch, stop, report.
+
+Sequence:
+
+1. **Model**: unless one is given, simulate ``train_minutes`` of driving on tile in the demo
+   room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live drive's),
+   write it as a bag, and train the ASGP on it (:func:`asgp_ros.training.train`), as
+   ``asgp simulate`` + ``asgp train --model asgp`` would.
+2. **Nodes**, each its own process on a demo-only ROS domain (localhost, UDPv4): the
+   simulated hardware (:mod:`asgp_ros.demo.hardware`), ``serial_bridge_node`` on the
+   board's pty, ``vo_node`` and ``predictor_node`` with the model; the monitor
+   (:mod:`asgp_ros.demo.monitor_node`) runs in this process and records the bag.
+3. **Drive**: the hardware starts driving when the bridge, VO and predictor are there;
+   the run lasts ``minutes`` from then, with a live status line.
+4. **Stop** (also on Ctrl-C or when a node dies): SIGINT to the nodes, deadlines, SIGTERM,
+   SIGKILL; the bag is closed and moved into place.
+5. **Report** (:mod:`asgp_ros.demo.report`): ``asgp evaluate --truth`` on the recorded bag,
+   the figure, the tables, where the time went. The exit code is 0 only when every node
+   produced output and the report was written.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import resource
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+Printer = Callable[[str], None]
+
+#: topic -> the component that publishes it (for "silent component" messages)
+PRODUCERS = {
+    "ground_truth/odom": "the simulated hardware (asgp_ros.demo.hardware)",
+    "joy": "serial_bridge_node (or the simulated board behind it)",
+    "vo/twist": "vo_node",
+    "predicted_path": "predictor_node",
+}
+
+
+class DemoError(Exception):
+    """The demo cannot run as asked (bad option, missing model...); the message says why."""
+
+
+@dataclass(frozen=True)
+class DemoOptions:
+    """Settings of one demo run (the ``asgp demo`` options).
+
+    Attributes:
+        minutes: live driving time.
+        out: output directory (model, bag, report, logs).
+        seed: seed of the live drive (the training drive uses seed + 1000).
+        train: train a model at the start (else ``model`` or ``out/model.npz`` is used).
+        model: a model file to use instead of training.
+        domain_id: ROS_DOMAIN_ID of the run (None: picked from the process id, 150..229).
+        train_minutes: length of the simulated training drive.
+        camera_rate_hz, width, height: the simulated RGB-D camera.
+        plan: the hardware publishes the driver's upcoming commands on ``joy_plan`` (else
+            the predictor holds the last command).
+        startup_timeout_s: the drive must start within this time.
+        surface: floor of the demo room.
+    """
+
+    minutes: float = 2.0
+    out: Path = Path("demo-output")
+    seed: int = 0
+    train: bool = True
+    model: Path | None = None
+    domain_id: int | None = None
+    train_minutes: float = 10.0
+    camera_rate_hz: float = 15.0
+    width: int = 320
+    height: int = 240
+    plan: bool = True
+    startup_timeout_s: float = 120.0
+    surface: str = "tile"
+
+    def validate(self) -> None:
+        if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
+            raise DemoError(f"--minutes must be in [0.05, 600], got {self.minutes}")
+        if self.seed < 0:
+            raise DemoError(f"--seed must be >= 0, got {self.seed}")
+        if self.domain_id is not None and not 1 <= self.domain_id <= 232:
+            raise DemoError(f"--domain-id must be in 1..232 (Fast DDS), got {self.domain_id}")
+        if not (math.isfinite(self.train_minutes) and 0.5 <= self.train_minutes <= 120.0):
+            raise DemoError(f"--train-minutes must be in [0.5, 120], got {self.train_minutes}")
+        if not 1.0 <= self.camera_rate_hz <= 30.0:
+            raise DemoError(f"--camera-rate must be in [1, 30] Hz, got {self.camera_rate_hz}")
+        if self.surface not in ("tile", "carpet", "hybrid"):
+            raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
+
+
+@dataclass
+class RunState:
+    """What happened, for the report."""
+
+    options: dict[str, Any]
+    domain_id: int
+    model_path: str = ""
+    train_info: dict[str, Any] = field(default_factory=dict)
+    drive_start_wall: float | None = None
+    drive_seconds: float = 0.0
+    stopped_by: str = ""
+    errors: list[str] = field(default_factory=list)
+    cpu: dict[str, float] = field(default_factory=dict)
+    lifetimes: dict[str, float] = field(default_factory=dict)
+    returncodes: dict[str, int | None] = field(default_factory=dict)
+    stop_signals: dict[str, str] = field(default_factory=dict)
+
+
+def package_root() -> Path:
+    """Directory that contains the ``asgp_ros`` package."""
+    import asgp_ros
+
+    return Path(asgp_ros.__file__).resolve().parent.parent
+
+
+def config_file(name: str) -> Path | None:
+    """A node's YAML: the source tree's config/ (editable install) or share/asgp_ros/config."""
+    candidates = [package_root() / "config" / name]
+    prefixes = [sys.prefix, *os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep)]
+    candidates += [Path(p) / "share" / "asgp_ros" / "config" / name for p in prefixes if p]
+    return next((c for c in candidates if c.is_file()), None)
+
+
+def child_env(domain_id: int) -> dict[str, str]:
+    """Environment of the node processes: the demo's ROS domain on localhost over UDPv4,
+    one BLAS/OpenMP thread each (two cores for everything), this asgp_ros importable."""
+    env = dict(os.environ)
+    env.update({
+        "ROS_DOMAIN_ID": str(domain_id),
+        "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
+        "FASTDDS_BUILTIN_TRANSPORTS": "UDPv4",
+        "OMP_NUM_THREADS": "1",
+        "OPENBLAS_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+        "PYTHONUNBUFFERED": "1",
+        "RCUTILS_COLORIZED_OUTPUT": "0",
+        "MPLBACKEND": "Agg",
+    })
+    env.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+    root = str(package_root())
+    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    if root not in paths:
+        env["PYTHONPATH"] = os.pathsep.join([root, *paths])
+    return env
+
+
+def silent_components(counts: dict[str, int]) -> list[str]:
+    """One message per output that never arrived, naming the component that owes it."""
+    return [f"{topic} never arrived: {who} produced no output"
+            for topic, who in PRODUCERS.items() if counts.get(topic, 0) == 0]
+
+
+def default_domain_id() -> int:
+    return 150 + os.getpid() % 80
+
+
+# ------------------------------------------------------------------------------------ model
+
+def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
+                ) -> tuple[Path, dict[str, Any]]:
+    """Simulate a training drive, write its bag, train the ASGP; returns (model, info)."""
+    from asgp_ros.bags import write_bag
+    from asgp_ros.core.modelfile import save_model
+    from asgp_ros.sim.simulate import simulate
+    from asgp_ros.training import TrainOptions, read_series, train
+
+    start = time.perf_counter()
+    cpu0 = _self_cpu()
+    bag = out / "train" / f"{surface}_seed{seed + 1000}"
+    if bag.exists():
+        shutil.rmtree(bag)
+    say(f"training: simulating {minutes:g} min of driving on {surface} (seed {seed + 1000})")
+    rec = simulate(surface, minutes, seed + 1000)
+    write_bag(bag, rec)
+    series = read_series([str(bag)])
+    say(f"training: ASGP (M = 20 / 40 pseudo-inputs, s = 4) on {bag}")
+    model = train(series, TrainOptions(kind="asgp", seed=seed),
+                  progress=lambda ch, msg: log.debug("train %s: %s", ch, msg))
+    path = out / "model.npz"
+    save_model(path, model)
+    info = {"bag": str(bag), "minutes": minutes, "seed": seed + 1000,
+            "rows": model.meta["training_data"].get("training_rows"),
+            "seconds": round(time.perf_counter() - start, 2),
+            "cpu_s": round(_self_cpu() - cpu0, 2)}
+    say(f"training: wrote {path} ({info['rows']} rows, {info['seconds']:.1f} s)")
+    return path, info
+
+
+def _self_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+# ------------------------------------------------------------------------------------ run
+
+class _Stop:
+    """Signal handlers: the first Ctrl-C (or SIGTERM) asks for a clean stop."""
+
+    def __init__(self) -> None:
+        self.reason = ""
+        self._old: dict[int, Any] = {}
+
+    def install(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            self._old[sig] = signal.signal(sig, self._handler)
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+    def _handler(self, signum: int, _frame: Any) -> None:
+        if not self.reason:
+            self.reason = signal.Signals(signum).name
+
+    def __bool__(self) -> bool:
+        return bool(self.reason)
+
+
+def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, str, list[str]]]:
+    """(name, entry point, arguments) of the node processes."""
+    def params(name: str) -> list[str]:
+        path = config_file(name)
+        return ["--params-file", str(path)] if path is not None else []
+
+    hw = ["--ros-args", "-p", f"seed:={opts.seed}", "-p", f"port:={port}",
+          "-p", f"surface:={opts.surface}",
+          "-p", f"camera_rate_hz:={float(opts.camera_rate_hz)}",
+          "-p", f"width:={opts.width}", "-p", f"height:={opts.height}",
+          "-p", f"plan_rows:={13 if opts.plan else 0}",
+          # drive anyway a while before the demo gives up, so that a silent node is
+          # named from the data (what never arrived), not guessed
+          "-p", f"start_timeout_s:={0.75 * float(opts.startup_timeout_s)}"]
+    return [
+        ("hardware", "asgp_ros.demo.hardware:main", hw),
+        ("serial_bridge", "asgp_ros.nodes.serial_bridge_node:main",
+         ["--ros-args", *params("bridge.yaml"), "-p", f"port:={port}"]),
+        ("vo", "asgp_ros.nodes.vo_node:main", ["--ros-args", *params("vo.yaml")]),
+        ("predictor", "asgp_ros.nodes.predictor_node:main",
+         ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}"]),
+    ]
+
+
+class Status:
+    """The live status line: rewritten in place on a terminal, a line every 10 s otherwise."""
+
+    def __init__(self, stream: Any = None) -> None:
+        self.stream = stream or sys.stdout
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._last = 0.0
+        self._width = 0
+
+    def show(self, line: str, force: bool = False) -> None:
+        now = time.monotonic()
+        period = 1.0 if self.tty else 10.0
+        if not force and now - self._last < period:
+            return
+        self._last = now
+        if self.tty:
+            pad = max(0, self._width - len(line))
+            self.stream.write("\r" + line + " " * pad)
+            self._width = len(line)
+        else:
+            self.stream.write(line + "\n")
+        self.stream.flush()
+
+    def end(self) -> None:
+        if self.tty and self._width:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._width = 0
+
+
+def _status_line(mon: Any, elapsed: float, total: float) -> str:
+    from asgp_ros.demo.monitor import format_status
+
+    rates = {"joy": mon.rate("joy"), "img": mon.rate("camera/color/camera_info"),
+             "vo": mon.rate("vo/twist"), "path": mon.rate("predicted_path")}
+    vo_state = "-" if mon.vo_ok is None else ("tracking" if mon.vo_ok else "LOST")
+    lat = mon.diag_value("predictor", "last_latency_ms")
+    try:
+        latency = float(lat) if lat is not None else float("nan")
+    except ValueError:
+        latency = float("nan")
+    return format_status(elapsed, total, rates, vo_state, latency, mon.score)
+
+
+def run_demo(opts: DemoOptions, say: Printer = print) -> int:
+    """Run the demo (module docstring); returns the exit code (0 = every node produced
+    output and the report was written)."""
+    opts.validate()
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    domain = opts.domain_id if opts.domain_id is not None else default_domain_id()
+    state = RunState(options={k: str(v) if isinstance(v, Path) else v
+                              for k, v in asdict(opts).items()}, domain_id=domain)
+
+    # 1. the model
+    if opts.model is not None:
+        model = Path(opts.model)
+    elif opts.train:
+        model, state.train_info = train_model(out, opts.seed, opts.train_minutes,
+                                              opts.surface, say)
+    else:
+        model = out / "model.npz"
+    import asgp_ros.core.baselines  # noqa: F401  (registers the baseline model kinds)
+    from asgp_ros.core.modelfile import ModelFileError, load_model
+
+    try:
+        motion_model = load_model(model)
+    except (ModelFileError, OSError, ValueError) as exc:
+        raise DemoError(f"cannot use the model {model}: {exc}") from exc
+    state.model_path = str(model.resolve())
+
+    # 2. environment of this process and the nodes
+    env = child_env(domain)
+    for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTDDS_BUILTIN_TRANSPORTS",
+                "AMENT_PREFIX_PATH"):
+        os.environ[key] = env[key]
+    say(f"ROS_DOMAIN_ID={domain} (watch with: ROS_DOMAIN_ID={domain} "
+        "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ros2 topic list)")
+
+    from asgp_ros.demo.processes import ProcessGroup
+
+    runtime = Path(tempfile.mkdtemp(prefix="asgp-demo-"))
+    port = str(runtime / "joystick")
+    group = ProcessGroup(env, out / "logs")
+    stop = _Stop()
+    stop.install()
+    bag_final = out / "run_bag"
+    bag_tmp = out / ".run_bag.partial"
+    monitor = None
+    executor = None
+    context = None
+    status = Status()
+    cpu_before = _self_cpu()
+    t_mon = time.monotonic()
+    try:
+        monitor, executor, context = _start_monitor(domain, bag_tmp)
+        for name, entry, args in node_commands(opts, model.resolve(), port):
+            group.start(name, entry, args)
+        say(f"started {', '.join(c.name for c in group.children)} (logs in {out / 'logs'}); "
+            f"board on {port}")
+        _drive(opts, monitor, executor, group, stop, status, state, say)
+    finally:
+        status.end()
+        group.stop_all()
+        stop.restore()
+        for c in group.children:
+            state.cpu[c.name] = round(c.cpu_s, 3)
+            state.lifetimes[c.name] = round(c.lifetime_s, 3)
+            state.returncodes[c.name] = c.returncode
+            state.stop_signals[c.name] = c.signal_used
+        if monitor is not None:
+            _stop_monitor(monitor, executor, context, bag_tmp, bag_final)
+        state.cpu["asgp demo (monitor, recorder)"] = round(_self_cpu() - cpu_before, 3)
+        state.lifetimes["asgp demo (monitor, recorder)"] = round(time.monotonic() - t_mon, 3)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+    # 3. what every component produced
+    silent = silent_components(monitor.counts)
+    for c in group.children:
+        if c.returncode not in (0, None) and c.signal_used in ("", "SIGINT") and \
+                c.returncode != -signal.SIGINT:
+            state.errors.append(f"{c.name} exited with code {c.returncode} "
+                                f"(log {c.log_path}):\n{c.log_tail()}")
+    state.errors[:0] = silent
+
+    # 4. the report
+    from asgp_ros.demo.report import write_report
+
+    try:
+        paths = write_report(out, state, monitor, motion_model, bag_final, env, say)
+    except (DemoError, OSError, ValueError, RuntimeError) as exc:
+        log.exception("report failed")
+        state.errors.append(f"the report could not be written: {type(exc).__name__}: {exc}")
+        paths = {}
+    for key, p in paths.items():
+        say(f"{key}: {p}")
+    if state.errors:
+        for e in state.errors:
+            say(f"error: {e}")
+        return 1
+    if state.stopped_by:
+        say(f"stopped early by {state.stopped_by}")
+        return 130 if state.stopped_by == "SIGINT" else 143
+    return 0
+
+
+def _start_monitor(domain: int, bag_tmp: Path):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from asgp_ros.demo.monitor_node import BagRecorder, MonitorNode
+
+    if bag_tmp.exists():
+        shutil.rmtree(bag_tmp)
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain,
+               signal_handler_options=SignalHandlerOptions.NO)
+    recorder = BagRecorder(bag_tmp)
+    node = MonitorNode(recorder=recorder, context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    return node, executor, context
+
+
+def _stop_monitor(node: Any, executor: Any, context: Any, bag_tmp: Path, bag_final: Path
+                  ) -> None:
+    import rclpy
+
+    recorder = node.recorder
+    executor.remove_node(node)
+    node.destroy_node()
+    executor.shutdown()
+    rclpy.try_shutdown(context=context)
+    if recorder is not None:
+        recorder.close()
+        if bag_final.exists():
+            shutil.rmtree(bag_final)
+        os.replace(bag_tmp, bag_final)
+
+
+def _drive(opts: DemoOptions, mon: Any, executor: Any, group: Any, stop: _Stop,
+           status: Status, state: RunState, say: Printer) -> None:
+    """Spin the monitor until the drive has lasted ``minutes`` (or a stop / failure)."""
+    total = 60.0 * opts.minutes
+    start_deadline = time.monotonic() + opts.startup_timeout_s
+    t_start: float | None = None
+    say("waiting for the nodes (bridge joy, camera, VO, predictor) before driving")
+    last_wait = 0.0
+    while True:
+        executor.spin_once(timeout_sec=0.05)
+        now = time.monotonic()
+        if stop:
+            state.stopped_by = stop.reason
+            break
+        dead = [c for c in group.poll()]
+        if dead:
+            for c in dead:
+                state.errors.append(f"{c.name} stopped during the run (exit code "
+                                    f"{c.returncode}, log {c.log_path}):\n{c.log_tail()}")
+            break
+        if t_start is None:
+            if mon.first_truth_wall is not None:
+                t_start = mon.first_truth_wall
+                state.drive_start_wall = time.time() - (now - t_start)
+                say(f"driving for {opts.minutes:g} min (Ctrl-C stops early)")
+            elif now > start_deadline:
+                state.errors.append(
+                    f"the drive did not start within {opts.startup_timeout_s:.0f} s: "
+                    + _waiting_for(mon))
+                break
+            elif now - last_wait > 10.0:
+                last_wait = now
+                if now - (start_deadline - opts.startup_timeout_s) > 5.0:
+                    say("  still waiting: " + _waiting_for(mon))
+            continue
+        elapsed = now - t_start
+        state.drive_seconds = elapsed
+        status.show(_status_line(mon, elapsed, total))
+        if elapsed >= total:
+            break
+    # the last paths' horizons: keep receiving the ground truth a little longer
+    end = time.monotonic() + (2.5 if t_start is not None and not stop else 0.0)
+    while time.monotonic() < end and not stop:
+        executor.spin_once(timeout_sec=0.05)
+    if t_start is not None:
+        status.show(_status_line(mon, time.monotonic() - t_start, total), force=True)
+
+
+def _waiting_for(mon: Any) -> str:
+    """What has not been heard from yet (for start-up messages)."""
+    missing = [f"{topic} ({who})" for topic, who in PRODUCERS.items()
+               if mon.counts.get(topic, 0) == 0 and topic != "ground_truth/odom"]
+    text = ("no messages yet on " + ", ".join(missing)) if missing else "all inputs seen"
+    hw = next((e.message for name, e in mon.diag.items() if "demo_hardware" in name), None)
+    return text + (f"; hardware: {hw}" if hw else "; no diagnostics from the hardware yet")
+
+
+def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
+                 timeout_s: float = 300.0) -> dict[str, Any]:
+    """``asgp evaluate MODEL BAG --truth --json OUT`` in a subprocess; its JSON."""
+    argv = [sys.executable, "-m", "asgp_ros.cli", "evaluate", str(model), str(bag), "--truth",
+            "--json", str(out_json)]
+    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s,
+                          check=False)
+    if proc.returncode != 0:
+        raise DemoError(f"asgp evaluate failed ({proc.returncode}): "
+                        f"{(proc.stderr or proc.stdout).strip()[-2000:]}")
+    return json.loads(out_json.read_text())

@@ -1,0 +1,391 @@
+"""`asgp demo`: its ROS-free parts, then a shortened demo end to end (several processes).
+
+The end-to-end tests run the real command (`python -m asgp_ros.cli demo`) on this test
+run's ROS domain (conftest.py), check the exit code, the report files, that every
+component produced output, that online and offline success rates agree on the same cases,
+that Ctrl-C stops everything, and that no node process outlives the demo.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from asgp_ros.demo.monitor import (
+    OnlineScore,
+    PathRecord,
+    RateMeter,
+    TruthTrack,
+    format_status,
+    horizon_key,
+)
+from asgp_ros.demo.orchestrator import (
+    DemoError,
+    DemoOptions,
+    child_env,
+    node_commands,
+    silent_components,
+)
+from asgp_ros.demo.processes import proc_cpu_seconds
+from asgp_ros.demo.simhw import (
+    HardwareConfig,
+    JoystickPath,
+    SimulatedHardware,
+    depth_to_mm,
+    look_ahead,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# ------------------------------------------------------------------ simulated hardware
+
+
+def _run(hw: SimulatedHardware, steps: int, plan_every: int | None = None,
+         rows: int = 8) -> tuple[list[tuple[float, float, float]], dict[int, np.ndarray],
+                                 dict[int, np.ndarray]]:
+    """Step hw; return its poses, look-ahead plans by step, and the reported joystick at
+    every hand update."""
+    poses, plans, reported = [], {}, {}
+    for _ in range(steps):
+        n = hw.step_index
+        if plan_every and n % plan_every == 0:
+            plans[n] = look_ahead(hw.snapshot(), hw.path, plan_every * 0.01, rows)
+        hw.step()
+        if n % 2 == 0:
+            reported[n] = np.asarray(hw.path.reported(hw.command))
+        poses.append(hw.state.pose)
+    return poses, plans, reported
+
+
+def test_look_ahead_predicts_the_drive_exactly_without_board_delay():
+    hw = SimulatedHardware(HardwareConfig(seed=3), board=False)
+    _, plans, reported = _run(hw, 3000, plan_every=20)
+    moving = 0
+    for n, plan in plans.items():
+        for r in range(plan.shape[0]):
+            m = n + 20 * (r + 1)
+            if m in reported:
+                np.testing.assert_array_equal(plan[r], reported[m])
+                moving += bool(np.any(plan[r] != 0.0))
+    assert moving > 100  # the driver did drive (not a trivially zero plan)
+
+
+def test_look_ahead_leaves_the_live_drive_untouched():
+    a, _, _ = _run(SimulatedHardware(HardwareConfig(seed=5), board=False), 1500, 20)
+    b, _, _ = _run(SimulatedHardware(HardwareConfig(seed=5), board=False), 1500, None)
+    assert a == b
+    assert np.hypot(*np.subtract(a[-1][:2], a[0][:2])) > 0.5  # it moved
+
+
+def test_look_ahead_rejects_bad_grid():
+    hw = SimulatedHardware(HardwareConfig(seed=1), board=False)
+    with pytest.raises(ValueError, match="multiple"):
+        look_ahead(hw.snapshot(), hw.path, 0.015, 3)
+    with pytest.raises(ValueError, match="rows"):
+        look_ahead(hw.snapshot(), hw.path, 0.2, 0)
+
+
+def test_joystick_path_matches_board_and_bridge_rules():
+    path = JoystickPath()
+    assert path.chair_input(np.zeros(2)) == (0.0, 0.0)
+    assert path.reported(np.zeros(2)) == (0.0, 0.0)
+    f, t = path.reported(np.array([1.0, -1.0]))
+    assert f == pytest.approx(1.0) and t == pytest.approx(-1.0)
+    cf, ct = path.chair_input(np.array([0.5, 0.0]))
+    assert 0.45 < cf < 0.55 and ct == 0.0
+    # inside the dead band: both the firmware and the host read exactly zero
+    assert path.chair_input(np.array([0.02, 0.0]))[0] == 0.0
+    assert path.reported(np.array([0.02, 0.0]))[0] == 0.0
+
+
+def test_hardware_config_validation():
+    with pytest.raises(ValueError, match="surface"):
+        HardwareConfig(surface="ice")
+    with pytest.raises(ValueError, match="seed"):
+        HardwareConfig(seed=-1)
+
+
+def test_render_gives_bgr_and_millimetre_depth():
+    hw = SimulatedHardware(HardwareConfig(seed=0, width=160, height=120), board=False)
+    image, depth = hw.render(hw.state)
+    assert image.shape == (120, 160, 3) and image.dtype == np.uint8
+    assert depth.shape == (120, 160) and depth.dtype == np.uint16
+    valid = depth[depth > 0]
+    assert valid.size > 0.3 * depth.size
+    assert valid.min() >= 300 and valid.max() <= 6000  # the sensor's 0.3-6 m range
+
+
+def test_depth_to_mm():
+    d = np.array([[0.0, 1.2345, np.nan], [np.inf, -1.0, 70.0]], dtype=np.float32)
+    mm = depth_to_mm(d)
+    assert mm.dtype == np.uint16
+    np.testing.assert_array_equal(mm, [[0, 1234, 0], [0, 0, 0]])
+
+
+# ------------------------------------------------------------------ conversions
+
+
+@pytest.mark.ros
+def test_image_messages_round_trip():
+    from asgp_ros.nodes import conversions as conv
+
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 255, (6, 8, 3), dtype=np.uint8)
+    depth = rng.integers(0, 6000, (6, 8)).astype(np.uint16)
+    m = conv.image_from_array(12.5, bgr, "cam")
+    assert (m.encoding, m.width, m.height, m.step) == ("bgr8", 8, 6, 24)
+    assert conv.stamp_to_seconds(m.header.stamp) == pytest.approx(12.5)
+    np.testing.assert_array_equal(np.frombuffer(bytes(m.data), np.uint8).reshape(6, 8, 3), bgr)
+    d = conv.image_from_array(12.5, depth, "cam")
+    assert (d.encoding, d.step) == ("16UC1", 16)
+    np.testing.assert_array_equal(np.frombuffer(bytes(d.data), np.uint16).reshape(6, 8), depth)
+    assert conv.image_from_array(0.0, depth.astype(np.float32), "c").encoding == "32FC1"
+    with pytest.raises(ValueError, match="encoding"):
+        conv.image_from_array(0.0, depth.astype(np.int64), "c")
+
+
+@pytest.mark.ros
+def test_camera_info_and_ground_truth_messages():
+    from asgp_ros.nodes import conversions as conv
+
+    K = np.array([[262.5, 0.0, 159.5], [0.0, 262.5, 119.5], [0.0, 0.0, 1.0]])
+    info = conv.camera_info_from_matrix(3.0, K, 320, 240, "cam")
+    assert (info.width, info.height) == (320, 240)
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3)), K)
+    np.testing.assert_allclose(np.reshape(info.p, (3, 4))[:, :3], K)
+    assert list(info.d) == [0.0] * 5
+    odom = conv.odometry_from_pose(4.0, 1.0, -2.0, 3.0, 0.5, -0.25)
+    t, vel, ok, pose = conv.odometry_to_sample(odom)
+    assert t == pytest.approx(4.0) and ok
+    assert vel == pytest.approx((0.5, -0.25)) and pose == pytest.approx((1.0, -2.0, 3.0))
+    assert (odom.header.frame_id, odom.child_frame_id) == ("odom", "base_link")
+
+
+# ------------------------------------------------------------------ monitor
+
+
+def _straight_truth(v: float = 0.5, yaw: float = 0.3, t_end: float = 10.0) -> TruthTrack:
+    tr = TruthTrack()
+    for t in np.arange(0.0, t_end, 0.02):
+        tr.add(float(t), v * t * math.cos(yaw), v * t * math.sin(yaw), yaw)
+    return tr
+
+
+def _path(t0: float, offset: float = 0.0, v: float = 0.5) -> PathRecord:
+    times = t0 + 0.2 * np.arange(1, 11)
+    x = v * (times - t0) + offset
+    pose = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
+    return PathRecord(t0=t0, times=times, pose=pose, arrival=t0 + 0.05)
+
+
+def test_online_score_against_ground_truth():
+    score = OnlineScore()
+    score.add(_path(1.0))  # exact: straight ahead in base_link at t0
+    score.add(_path(1.2, offset=0.15))  # 15 cm off at every horizon
+    score.add(_path(9.0))  # its horizons are beyond the ground truth
+    assert score.update(_straight_truth()) == 2
+    for h in (1.0, 1.4, 2.0):
+        rate, n = score.success(h)
+        assert n == 2 and rate == 0.5
+        err = score.errors(h)
+        assert err[0] == pytest.approx(0.0, abs=1e-9)
+        assert err[1] == pytest.approx(0.15, abs=1e-9)
+    # restricted to a case set by grid index (round(t0 / dt))
+    assert score.success(1.0, t0_filter={5}, dt=0.2) == (1.0, 1)
+    assert score.success(1.0, t0_filter={7}, dt=0.2)[1] == 0
+
+
+def test_online_score_uses_the_body_frame_at_t0():
+    tr = TruthTrack()
+    for t in np.arange(0.0, 5.0, 0.02):  # driving along +y: heading pi/2
+        tr.add(float(t), 0.0, 0.4 * t, math.pi / 2)
+    score = OnlineScore(horizons_s=(1.0,))
+    rec = _path(1.0, v=0.4)  # straight ahead in base_link = +y in the world
+    score.add(rec)
+    score.update(tr)
+    assert rec.errors["1.0"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_truth_track_unwraps_and_interpolates():
+    tr = TruthTrack()
+    tr.add(0.0, 0.0, 0.0, math.pi - 0.1)
+    tr.add(1.0, 1.0, 2.0, -math.pi + 0.1)  # +0.2 rad across the wrap
+    p = tr.at(0.5)
+    assert p == pytest.approx([0.5, 1.0, math.pi])
+    assert tr.at(-0.1) is None and tr.at(1.1) is None
+    with pytest.raises(ValueError):
+        tr.add(2.0, float("nan"), 0.0, 0.0)
+
+
+def test_rate_meter():
+    m = RateMeter(window_s=2.0)
+    for i in range(21):
+        m.tick(10.0 + 0.1 * i)
+    assert m.rate(12.0) == pytest.approx(10.0, rel=0.06)
+    assert m.rate(20.0) == 0.0
+
+
+def test_status_line_and_keys():
+    score = OnlineScore()
+    line = format_status(12.0, 120.0, {"joy": 100.0, "vo": 14.9}, "tracking", 3.2, score)
+    assert "12/120 s" in line and "joy 100.0" in line and "VO tracking" in line
+    assert horizon_key(1.0) == "1.0" and horizon_key(1.4) == "1.4"
+
+
+# ------------------------------------------------------------------ orchestration
+
+
+def test_options_are_validated():
+    with pytest.raises(DemoError, match="minutes"):
+        DemoOptions(minutes=0.0).validate()
+    with pytest.raises(DemoError, match="domain"):
+        DemoOptions(domain_id=233).validate()
+    DemoOptions().validate()
+
+
+def test_child_environment_isolates_the_demo():
+    env = child_env(42)
+    assert env["ROS_DOMAIN_ID"] == "42"
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"
+    assert env["FASTDDS_BUILTIN_TRANSPORTS"] == "UDPv4"
+    assert str(REPO) in env["PYTHONPATH"].split(os.pathsep)
+    names = [name for name, _, _ in node_commands(DemoOptions(), Path("m.npz"), "/tmp/p")]
+    assert names == ["hardware", "serial_bridge", "vo", "predictor"]
+
+
+def test_silent_components_are_named():
+    counts = {"ground_truth/odom": 10, "joy": 5, "vo/twist": 0}
+    msgs = silent_components(counts)
+    assert len(msgs) == 2
+    assert "vo/twist" in msgs[0] and "vo_node" in msgs[0]
+    assert "predicted_path" in msgs[1] and "predictor_node" in msgs[1]
+    assert silent_components(dict.fromkeys(("ground_truth/odom", "joy", "vo/twist",
+                                            "predicted_path"), 1)) == []
+
+
+def test_proc_cpu_seconds():
+    assert proc_cpu_seconds(os.getpid()) > 0.0
+    assert proc_cpu_seconds(2**22 + 12345) is None
+
+
+# ------------------------------------------------------------------ end to end
+
+
+def _demo_argv(out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "asgp_ros.cli", "demo", "--out", str(out),
+            "--domain-id", os.environ["ROS_DOMAIN_ID"], "--startup-timeout", "60", *extra]
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), *filter(None, [env.get("PYTHONPATH")])])
+    return env
+
+
+def _demo_children(demo_pid: int | None = None) -> list[str]:
+    """Command lines of live node processes started by a demo (``asgp_ros.demo.child``):
+    those of the demo ``demo_pid``, or with None the orphans (their demo is gone or they
+    were re-parented)."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+            stat = (proc / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] == "Z" or b"asgp_ros.demo.child" not in cmd:
+            continue
+        i = cmd.index(b"asgp_ros.demo.child")
+        parent = int(cmd[i + 1])
+        if demo_pid is not None:
+            match = parent == demo_pid
+        else:
+            match = int(fields[1]) != parent or not Path(f"/proc/{parent}").exists()
+        if match:
+            found.append(" ".join(c.decode(errors="replace") for c in cmd))
+    return found
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    proc = subprocess.run(_demo_argv(out, "--minutes", "0.4", "--train-minutes", "2",
+                                     "--seed", "3"),
+                          env=_env(), capture_output=True, text=True, timeout=170)
+    return proc, out
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_demo_runs_end_to_end(demo_run):
+    proc, out = demo_run
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for name in ("report.md", "report.json", "demo.png", "evaluate.json", "model.npz",
+                 "run_bag/metadata.yaml", "logs/hardware.log", "logs/predictor.log"):
+        assert (out / name).exists(), name
+    assert (out / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = json.loads((out / "report.json").read_text())
+    msgs = report["messages"]
+    for topic in ("joy", "vo/twist", "predicted_path", "ground_truth/odom", "joy_plan"):
+        assert msgs[topic] > 0, f"no {topic}"
+    assert msgs["joy"] > 50 * 20  # ~100 Hz for 24 s
+    assert msgs["predicted_path"] > 40  # ~5 Hz
+    run = report["run"]
+    assert run["errors"] == []
+    assert set(run["returncodes"].values()) == {0}  # every node stopped cleanly on SIGINT
+    assert all(cpu > 0 for cpu in run["cpu"].values())
+    row = report["success"][0]
+    assert row["horizon_s"] == 1.0 and row["online_n"] > 40
+    # like with like: the same cases online and offline (same model, same run)
+    assert abs(row["online_cases_success"] - row["offline_truth_success"]) <= 0.10
+    assert "| 1 s |" in (out / "report.md").read_text()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_demo_leaves_no_processes_and_stops_on_ctrl_c(demo_run, tmp_path):
+    _, first_out = demo_run
+    assert not _demo_children()  # nothing left behind by the first run
+    out = tmp_path / "interrupted"
+    proc = subprocess.Popen(_demo_argv(out, "--minutes", "5", "--model",
+                                       str(first_out / "model.npz"), "--no-train"),
+                            env=_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 90
+    try:
+        # let it drive until the first predictions have been scored, then Ctrl-C
+        while time.monotonic() < deadline and not any("(n=" in ln and "(n=0)" not in ln
+                                                      for ln in lines):
+            assert proc.poll() is None, "".join(lines)
+            time.sleep(0.2)
+        assert len(_demo_children(proc.pid)) == 4, "the four nodes should be running"
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    reader.join(5)
+    text = "".join(lines)
+    assert rc == 130, text[-3000:]
+    assert "stopped early by SIGINT" in text
+    assert (out / "run_bag" / "metadata.yaml").exists()
+    assert (out / "report.md").exists()
+    assert not _demo_children(proc.pid)
+    assert not _demo_children()
