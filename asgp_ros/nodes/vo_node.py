@@ -1,0 +1,304 @@
+"""vo_node: Fovis-like RGB-D visual odometry (:mod:`asgp_ros.vo`) on ROS 2.
+
+Subscribes colour, depth (sensor-data QoS) and the colour camera_info; pairs colour and
+depth by approximate time (``sync_tolerance_s``); publishes, for every tracked frame,
+
+* ``vo/twist`` (geometry_msgs/TwistStamped, ``base_frame``): linear.x = v, angular.z =
+  omega of base_link, from the camera motion and the camera extrinsic (``camera_*``);
+* ``vo/odom`` (nav_msgs/Odometry, ``odom_frame`` -> ``base_frame``) with the pose and
+  twist covariances (on the first frame tracked after a loss the pose is known but the
+  twist is not: it is zero with a variance of ``ODOM_LOST_VARIANCE``, and no vo/twist);
+
+and the tracking state on ``diagnostics``. A frame that is not tracked (no features, no
+inliers, no depth, bad input, ...) publishes nothing: never the last twist again. The
+diagnostics say why, at once when the state changes and every ``diagnostics_period_s``.
+
+Work flow: the image callbacks only store the message and wake a guard condition; its
+callback processes the newest complete colour/depth pair and drops older ones, so a slow
+frame never builds a backlog. Parameters are read once at start-up and validated
+(:mod:`asgp_ros.vo.params`); runtime changes are refused with a reason.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+from asgp_ros.nodes import conversions as conv
+from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
+from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
+from asgp_ros.vo.planar import PlanarOdometry
+
+#: Diagnostic level per VO status.
+_LEVEL = {
+    Status.OK: "OK",
+    Status.REFERENCE_SET: "WARN",
+    Status.INSUFFICIENT_FEATURES: "WARN",
+    Status.INSUFFICIENT_INLIERS: "WARN",
+    Status.OPTIMIZATION_FAILURE: "WARN",
+    Status.REPROJECTION_ERROR_TOO_HIGH: "WARN",
+    Status.NO_DEPTH: "ERROR",
+    Status.BAD_INPUT: "ERROR",
+}
+_BUFFER = 8  # messages kept per image stream while waiting for a partner
+_JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry
+
+
+def _descriptor(spec) -> ParameterDescriptor:
+    d = ParameterDescriptor(description=spec.description, read_only=False)
+    if spec.low is not None and not isinstance(spec.default, bool):
+        if isinstance(spec.default, int):
+            d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high),
+                                            step=0)]
+        elif isinstance(spec.default, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
+                                                         to_value=float(spec.high), step=0.0)]
+    return d
+
+
+class VONode(Node):
+    """See the module docstring."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("vo_node", **kwargs)
+        for spec in PARAMS:
+            self.declare_parameter(spec.name, spec.default, _descriptor(spec))
+        # raises ValueError naming the parameter: the node does not start with bad values
+        self.params: VONodeParams = vo_node_params(
+            {spec.name: self.get_parameter(spec.name).value for spec in PARAMS})
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        p = self.params
+        reliable = QoSProfile(depth=10)
+        self._twist_pub = self.create_publisher(TwistStamped, "vo/twist", reliable)
+        self._odom_pub = (self.create_publisher(Odometry, "vo/odom", reliable)
+                          if p.publish_odom else None)
+        self._diag_pub = self.create_publisher(DiagnosticArray, "diagnostics", reliable)
+        self._color: collections.deque = collections.deque(maxlen=_BUFFER)
+        self._depth: collections.deque = collections.deque(maxlen=_BUFFER)
+        self._wake = self.create_guard_condition(self._process_newest)
+        self.create_subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data)
+        self.create_subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
+        self.create_subscription(CameraInfo, p.camera_info_topic, self._on_info,
+                                 qos_profile_sensor_data)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+
+        self.vo: VisualOdometry | None = None
+        self.planar = PlanarOdometry(p.extrinsic)
+        self._K: np.ndarray | None = None
+        self._info_size: tuple[int, int] | None = None
+        self._last_stamp: float | None = None  # last processed pair (colour stamp)
+        self._last_processed_wall = None  # time.monotonic() of the last processed pair
+        self.last_result: VOResult | None = None
+        self._last_problem = ""  # conversion error of the last pair, if any
+        self._elapsed = collections.deque(maxlen=100)
+        self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
+                      "twists": 0, "resets": 0, "camera_info_errors": 0}
+        self.get_logger().info(
+            f"VO on {p.color_topic} + {p.depth_topic} ({p.camera_info_topic}); camera at "
+            f"({p.extrinsic.x:.2f}, {p.extrinsic.y:.2f}, {p.extrinsic.z:.2f}) m, yaw "
+            f"{p.extrinsic.yaw:.2f} rad, pitch {p.extrinsic.pitch:.2f} rad in {p.base_frame}")
+
+    # -- parameters ----------------------------------------------------------------------
+
+    def _on_set_parameters(self, changes) -> SetParametersResult:
+        for change in changes:
+            if change.name in SPECS:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"{change.name} is read at start-up: restart vo_node to change it")
+        return SetParametersResult(successful=True)
+
+    # -- input ---------------------------------------------------------------------------
+
+    def _on_color(self, msg: Image) -> None:
+        self._color.append((conv.stamp_to_seconds(msg.header.stamp), msg))
+        self._wake.trigger()
+
+    def _on_depth(self, msg: Image) -> None:
+        self._depth.append((conv.stamp_to_seconds(msg.header.stamp), msg))
+        self._wake.trigger()
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        try:
+            K, w, h, distorted = conv.camera_info_to_matrix(msg)
+        except ValueError as exc:
+            self.stats["camera_info_errors"] += 1
+            self.get_logger().warn(f"camera_info refused: {exc}", throttle_duration_sec=5.0)
+            return
+        if self._K is not None and np.allclose(K, self._K) and self._info_size == (w, h):
+            return
+        if distorted:
+            self.get_logger().warn("camera_info has non-zero distortion: vo_node expects "
+                                   "rectified images (image_rect) and uses K only")
+        if self._K is not None:
+            self.get_logger().warn("camera_info changed: odometry restarts")
+        self._K, self._info_size = K, (w, h)
+        size = (w, h) if w > 0 and h > 0 else None
+        self.vo = VisualOdometry(K, extrinsic=self.params.extrinsic, image_size=size,
+                                 **self.params.vo_options)
+        self.planar.reset()
+        self._last_stamp = None
+        self._wake.trigger()
+
+    def _take_pair(self):
+        """Newest colour message with a depth partner within tolerance; drops older ones."""
+        tol = self.params.sync_tolerance_s
+        if not self._color or not self._depth:
+            return None
+        depth = list(self._depth)
+        for tc, cmsg in sorted(self._color, key=lambda x: x[0], reverse=True):
+            td, dmsg = min(depth, key=lambda x: abs(x[0] - tc))
+            if abs(td - tc) <= tol:
+                older = [c for c in self._color if c[0] < tc]
+                self.stats["dropped"] += len(older)
+                self._color = collections.deque((c for c in self._color if c[0] > tc),
+                                                maxlen=_BUFFER)
+                self._depth = collections.deque((d for d in self._depth if d[0] > td),
+                                                maxlen=_BUFFER)
+                return tc, cmsg, dmsg
+        return None
+
+    # -- processing ------------------------------------------------------------------------
+
+    def _process_newest(self) -> None:
+        if self.vo is None:
+            return  # waiting for camera_info; images stay buffered (bounded)
+        pair = self._take_pair()
+        if pair is None:
+            return
+        stamp, cmsg, dmsg = pair
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            if stamp < self._last_stamp - _JUMP_BACK_S:
+                self.get_logger().warn(f"image stamps jumped back by "
+                                       f"{self._last_stamp - stamp:.2f} s: odometry restarts")
+                self.vo.reset()
+                self.planar.reset()
+                self.stats["resets"] += 1
+            else:
+                return  # an old or repeated pair
+        self._last_stamp = stamp
+        self._last_processed_wall = time.monotonic()
+        self.stats["frames"] += 1
+        try:
+            image = conv.image_to_array(cmsg)
+            depth = conv.image_to_array(dmsg)
+            if image.dtype != np.uint8:
+                raise ValueError(f"colour image has encoding {cmsg.encoding!r}")
+            if depth.dtype == np.uint8:
+                raise ValueError(f"depth image has encoding {dmsg.encoding!r}")
+            if depth.ndim != 2:
+                raise ValueError(f"depth image must have one channel, got {dmsg.encoding!r}")
+        except ValueError as exc:
+            self.stats["bad_input"] += 1
+            self.stats["lost"] += 1
+            self._last_problem = str(exc)
+            self._report(VOResult(status=Status.BAD_INPUT, stamp=stamp, pose=self.vo.pose,
+                                  message=str(exc)))
+            return
+        self._last_problem = ""
+        result = self.vo.process(image, depth, stamp)
+        self._elapsed.append(result.elapsed)
+        if result.status is Status.BAD_INPUT:
+            self.stats["bad_input"] += 1
+        x, y, yaw, pose_cov = self.planar.update(result)
+        p = self.params
+        if result.ok:
+            self.stats["tracked"] += 1
+            if result.twist is not None and result.twist_covariance is not None:
+                v, w = result.twist
+                twist_cov = result.twist_covariance
+                self._twist_pub.publish(conv.twist_stamped_from_sample(stamp, v, w,
+                                                                       p.base_frame))
+                self.stats["twists"] += 1
+            else:
+                # tracked again after a gap: the pose is known, the current twist is not
+                v, w = 0.0, 0.0
+                twist_cov = np.eye(6) * conv.ODOM_LOST_VARIANCE
+            if self._odom_pub is not None:
+                self._odom_pub.publish(conv.odometry_with_covariance(
+                    stamp, x, y, yaw, pose_cov, v, w, twist_cov, p.odom_frame, p.base_frame))
+        elif result.status is not Status.REFERENCE_SET:
+            self.stats["lost"] += 1
+        self._report(result)
+
+    def _report(self, result: VOResult) -> None:
+        previous = self.last_result
+        self.last_result = result
+        if previous is None or previous.status is not result.status:
+            if not result.ok:
+                self.get_logger().warn(f"VO {result.status.value}: {result.message}",
+                                       throttle_duration_sec=1.0)
+            self._publish_diagnostics()
+
+    # -- diagnostics -----------------------------------------------------------------------
+
+    def _publish_diagnostics(self) -> None:
+        p = self.params
+        r = self.last_result
+        age = (time.monotonic() - self._last_processed_wall
+               if self._last_processed_wall is not None else None)
+        if self.vo is None:
+            level, msg = "WARN", f"waiting for camera_info on {p.camera_info_topic}"
+        elif r is None or age is None:
+            level, msg = "WARN", f"waiting for colour/depth pairs on {p.color_topic}, " \
+                                 f"{p.depth_topic}"
+        elif age > p.stale_timeout_s:
+            level, msg = "ERROR", f"no colour/depth pair for {age:.2f} s: no twist published"
+        elif r.ok:
+            level, msg = "OK", f"tracking ({r.num_inliers} inliers)"
+        elif r.status is Status.REFERENCE_SET:
+            level, msg = "WARN", "initialising: reference frame set, no twist yet"
+        else:
+            level = _LEVEL[r.status]
+            msg = f"tracking lost ({r.status.value}): {r.message}; no twist published"
+        values: dict[str, object] = dict(self.stats)
+        values["status"] = r.status.value if r is not None else "none"
+        if r is not None:
+            values.update({"features": r.num_features, "matches": r.num_matches,
+                           "inliers": r.num_inliers,
+                           "reprojection_error_px": float(r.reprojection_error),
+                           "keyframe_changed": r.keyframe_changed})
+            if r.ok and r.twist is not None:
+                values["v"], values["omega"] = float(r.twist[0]), float(r.twist[1])
+        if self._elapsed:
+            values["process_ms_mean"] = 1e3 * float(np.mean(self._elapsed))
+            values["process_ms_max"] = 1e3 * float(np.max(self._elapsed))
+        if age is not None:
+            values["last_frame_age_s"] = float(age)
+        status = conv.diagnostic_status("vo_node: tracking", level, msg, p.color_topic, values)
+        self._diag_pub.publish(conv.diagnostic_array(
+            self.get_clock().now().nanoseconds * 1e-9, [status]))
+
+
+def main(args=None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = VONode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,374 @@
+"""vo_node: message conversions, parameters, and the node end to end on rendered frames."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip("rclpy")
+pytest.importorskip("sensor_msgs")
+
+from asgp_ros.nodes import conversions as conv
+from asgp_ros.vo.params import PARAMS, params_yaml, vo_node_params
+
+# ---- conversions -------------------------------------------------------------------------
+
+
+def test_image_round_trips():
+    rng = np.random.default_rng(0)
+    arrays = [rng.integers(0, 256, (4, 5, 3), dtype=np.uint8),
+              rng.integers(0, 256, (4, 5), dtype=np.uint8),
+              rng.integers(0, 65535, (4, 5), dtype=np.uint16),
+              rng.uniform(0, 6, (4, 5)).astype(np.float32)]
+    for a in arrays:
+        msg = conv.image_from_array(1.5, a, "camera")
+        b = conv.image_to_array(msg)
+        assert b.dtype == a.dtype and b.shape == a.shape
+        np.testing.assert_array_equal(a, b)
+
+
+def test_image_encodings_padding_and_byte_order():
+    from sensor_msgs.msg import Image
+
+    bgr = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3)
+    msg = Image(height=2, width=3, encoding="rgb8", step=12)  # 3 bytes of row padding
+    rows = [np.r_[bgr[r, :, ::-1].reshape(-1), [0, 0, 0]] for r in range(2)]
+    msg.data = np.concatenate(rows).astype(np.uint8).tobytes()
+    np.testing.assert_array_equal(conv.image_to_array(msg), bgr)
+    msg = Image(height=2, width=3, encoding="bgra8", step=12)
+    msg.data = np.dstack([bgr, np.full((2, 3), 255, np.uint8)]).tobytes()
+    np.testing.assert_array_equal(conv.image_to_array(msg), bgr)
+    depth = np.array([[1000, 2000, 0]], dtype=">u2")  # big-endian 16UC1
+    msg = Image(height=1, width=3, encoding="16UC1", step=6, is_bigendian=1)
+    msg.data = depth.tobytes()
+    out = conv.image_to_array(msg)
+    assert out.dtype == np.uint16 and out.tolist() == [[1000, 2000, 0]]
+
+
+def test_bad_images_are_refused_with_a_reason():
+    from sensor_msgs.msg import Image
+
+    msg = Image(height=2, width=2, encoding="yuv422", step=4, data=bytes(8))
+    with pytest.raises(ValueError, match="unsupported image encoding"):
+        conv.image_to_array(msg)
+    msg = Image(height=2, width=2, encoding="bgr8", step=6, data=bytes(10))
+    with pytest.raises(ValueError, match="expected height"):
+        conv.image_to_array(msg)
+    msg = Image(height=2, width=2, encoding="bgr8", step=4, data=bytes(8))
+    with pytest.raises(ValueError, match="step"):
+        conv.image_to_array(msg)
+    msg = Image(height=0, width=2, encoding="mono8", step=2, data=b"")
+    with pytest.raises(ValueError, match="empty"):
+        conv.image_to_array(msg)
+
+
+def test_camera_info_to_matrix():
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    msg = conv.camera_info_from_matrix(0.0, K, 640, 480, "camera")
+    K2, w, h, distorted = conv.camera_info_to_matrix(msg)
+    np.testing.assert_array_equal(K, K2)
+    assert (w, h, distorted) == (640, 480, False)
+    msg.d = [0.1, 0.0, 0.0, 0.0, 0.0]
+    assert conv.camera_info_to_matrix(msg)[3] is True
+    msg.k = [0.0] * 9
+    with pytest.raises(ValueError, match="unset"):
+        conv.camera_info_to_matrix(msg)
+
+
+def test_odometry_with_covariance():
+    P = np.array([[0.01, 0.002, 0.0], [0.002, 0.02, 0.001], [0.0, 0.001, 0.003]])
+    T = np.diag([1e-4, 2e-4, 3e-4, 4e-4, 5e-4, 6e-4])
+    msg = conv.odometry_with_covariance(2.0, 1.0, -2.0, 0.5, P, 0.4, -0.2, T)
+    assert msg.header.frame_id == "odom" and msg.child_frame_id == "base_link"
+    cov = np.array(msg.pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(cov[np.ix_([0, 1, 5], [0, 1, 5])], P)
+    np.testing.assert_allclose(np.array(msg.twist.covariance).reshape(6, 6), T)
+    t, (v, w), ok, (x, y, yaw) = conv.odometry_to_sample(msg)
+    assert (t, v, w, ok) == (2.0, 0.4, -0.2, True)
+    assert (x, y, yaw) == pytest.approx((1.0, -2.0, 0.5))
+
+
+# ---- parameters --------------------------------------------------------------------------
+
+
+def _flatten(d, prefix=""):
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def test_config_file_matches_the_parameter_table(repo_root):
+    shipped = yaml.safe_load((repo_root / "config" / "vo.yaml").read_text())
+    values = _flatten(shipped["vo_node"]["ros__parameters"])
+    assert set(values) == {p.name for p in PARAMS}
+    for p in PARAMS:
+        assert type(values[p.name]) is type(p.default), p.name
+        if isinstance(p.default, float):
+            assert values[p.name] == pytest.approx(p.default), p.name
+        else:
+            assert values[p.name] == p.default, p.name
+    assert _flatten(yaml.safe_load(params_yaml())) == _flatten(shipped)
+    vo_node_params(values)
+
+
+def test_parameter_validation_names_the_problem():
+    with pytest.raises(ValueError, match="sync_tolerance_s"):
+        vo_node_params({"sync_tolerance_s": -1.0})
+    with pytest.raises(ValueError, match=r"vo\.num_levels"):
+        vo_node_params({"vo.num_levels": 2.5})
+    with pytest.raises(ValueError, match="max_depth"):
+        vo_node_params({"vo.min_depth": 7.0})
+    with pytest.raises(ValueError, match="color_topic"):
+        vo_node_params({"color_topic": ""})
+    p = vo_node_params({"camera_yaw": 0.0, "vo.max_depth": 4.0})
+    assert p.extrinsic.yaw == 0.0 and p.vo_options["max_depth"] == 4.0
+
+
+# ---- the node ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """Rendered frames of a chair arc (v = 0.4 m/s, omega = 0.25 rad/s) at 15 Hz."""
+    from asgp_ros.sim.render import RGBDRenderer
+    from asgp_ros.sim.scene import build_scene, segment_drive
+
+    scene = build_scene(preset="rich", seed=0)
+    r = RGBDRenderer(scene, seed=7)
+    drive = segment_drive((0.0, 0.5, 0.3), [(0.4, 0.25, 1.2)], 15.0)
+    out = [r.render_chair(x, y, th)
+           for x, y, th in zip(drive.x, drive.y, drive.theta, strict=True)]
+    return r.K, drive, out
+
+
+class _Harness:
+    """The node under test plus a driver node in one executor, polled with deadlines."""
+
+    def __init__(self, context, overrides=()):
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import TwistStamped
+        from nav_msgs.msg import Odometry
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.parameter import Parameter
+        from rclpy.qos import QoSProfile, qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, Image
+
+        from asgp_ros.nodes.vo_node import VONode
+
+        params = [Parameter("diagnostics_period_s", value=0.2), *overrides]
+        self.node = VONode(context=context, parameter_overrides=params)
+        self.driver = rclpy.create_node("vo_test_driver", context=context)
+        self.color = self.driver.create_publisher(Image, "camera/color/image_raw",
+                                                  qos_profile_sensor_data)
+        self.depth = self.driver.create_publisher(Image, "camera/depth/image_raw",
+                                                  qos_profile_sensor_data)
+        self.info = self.driver.create_publisher(CameraInfo, "camera/color/camera_info",
+                                                 qos_profile_sensor_data)
+        self.twists, self.odoms, self.diags = [], [], []
+        self.driver.create_subscription(TwistStamped, "vo/twist", self.twists.append,
+                                        QoSProfile(depth=100))
+        self.driver.create_subscription(Odometry, "vo/odom", self.odoms.append,
+                                        QoSProfile(depth=100))
+        self.driver.create_subscription(DiagnosticArray, "diagnostics", self.diags.append,
+                                        QoSProfile(depth=100))
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.driver)
+
+    def spin_until(self, predicate, timeout=5.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate():
+                return True
+            self.executor.spin_once(timeout_sec=0.02)
+        return predicate()
+
+    def connect(self, K):
+        ok = self.spin_until(lambda: self.color.get_subscription_count() >= 1
+                             and self.depth.get_subscription_count() >= 1
+                             and self.info.get_subscription_count() >= 1
+                             and self.node._twist_pub.get_subscription_count() >= 1
+                             and self.node._diag_pub.get_subscription_count() >= 1)
+        assert ok, "discovery timed out"
+        for _ in range(20):
+            self.info.publish(conv.camera_info_from_matrix(0.0, K, 640, 480, "camera"))
+            if self.spin_until(lambda: self.node.vo is not None, 0.5):
+                return
+        raise AssertionError("camera_info never arrived")
+
+    def send(self, t, color_msg, depth_msg) -> None:
+        """Publish one pair and spin until the node has processed it (re-sent if lost)."""
+        before = self.node.stats["frames"]
+        for _ in range(10):
+            color_msg.header.stamp = conv.seconds_to_stamp(t)
+            depth_msg.header.stamp = conv.seconds_to_stamp(t)
+            self.color.publish(color_msg)
+            self.depth.publish(depth_msg)
+            if self.spin_until(lambda: self.node.stats["frames"] > before, 1.0):
+                # let the outputs of this frame arrive
+                self.spin_until(lambda: False, 0.05)
+                return
+        raise AssertionError(f"frame at {t} was never processed")
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.driver.destroy_node()
+
+
+def _level(status) -> int:
+    lv = status.level  # a byte field: bytes in rclpy
+    return int.from_bytes(lv, "little") if isinstance(lv, bytes) else int(lv)
+
+
+def _levels(diags, name="vo_node: tracking"):
+    """[(level 0 OK / 1 WARN / 2 ERROR, message, values)] of the VO tracking status."""
+    return [(_level(s), s.message, conv.diagnostic_values(s))
+            for d in diags for s in d.status if s.name == name]
+
+
+@pytest.mark.ros
+def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, frames):
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        t0 = 100.0
+        for k, (img, depth) in enumerate(images):
+            mm = np.rint(depth * 1000).astype(np.uint16)  # 16UC1 millimetres, as drivers do
+            h.send(t0 + drive.t[k], conv.image_from_array(0.0, img, "camera"),
+                   conv.image_from_array(0.0, mm, "camera"))
+        n = len(images)
+        assert len(h.twists) == n - 1  # every frame but the first (the reference)
+        for msg in h.twists:
+            assert msg.header.frame_id == "base_link"
+            assert msg.twist.linear.x == pytest.approx(0.4, abs=0.04)
+            assert msg.twist.angular.z == pytest.approx(0.25, abs=0.03)
+        stamps = [conv.stamp_to_seconds(m.header.stamp) for m in h.twists]
+        np.testing.assert_allclose(stamps, t0 + drive.t[1:], atol=1e-6)
+        assert len(h.odoms) == n - 1
+        last = h.odoms[-1]
+        assert (last.header.frame_id, last.child_frame_id) == ("odom", "base_link")
+        _, _, ok, (x, y, yaw) = conv.odometry_to_sample(last)
+        assert ok and yaw == pytest.approx(drive.theta[-1] - drive.theta[0], abs=0.02)
+        dist = math.hypot(drive.x[-1] - drive.x[0], drive.y[-1] - drive.y[0])
+        assert math.hypot(x, y) == pytest.approx(dist, abs=0.03)
+        assert np.array(last.pose.covariance)[0] > 0
+        assert any(level == 0 for level, _, _ in _levels(h.diags))  # OK while tracking
+
+        # failures: bad encoding, no depth, mismatched sizes, a blank image -> no twist
+        img, depth = images[-1]
+        mm = np.rint(depth * 1000).astype(np.uint16)
+        bad = conv.image_from_array(0.0, img, "camera")
+        bad.encoding = "yuv422"
+        t = t0 + drive.t[-1]
+        dt = 1.0 / 15.0
+        cases = [
+            (bad, conv.image_from_array(0.0, mm, "camera"), "bad_input"),
+            (conv.image_from_array(0.0, img, "camera"),
+             conv.image_from_array(0.0, np.zeros_like(mm), "camera"), "no_depth"),
+            (conv.image_from_array(0.0, img, "camera"),
+             conv.image_from_array(0.0, mm[:240, :320].copy(), "camera"), "bad_input"),
+            (conv.image_from_array(0.0, np.zeros_like(img), "camera"),
+             conv.image_from_array(0.0, depth, "camera"), "insufficient_features"),
+        ]
+        count = len(h.twists)
+        for color_msg, depth_msg, status in cases:
+            t += dt
+            h.send(t, color_msg, depth_msg)
+            assert h.node.last_result.status.value == status
+            assert len(h.twists) == count  # never the last twist again
+            assert h.spin_until(lambda s=status: any(
+                vals.get("status") == s and level > 0 for level, _, vals in _levels(h.diags)))
+        levels = {vals["status"]: (level, msg) for level, msg, vals in _levels(h.diags)}
+        assert levels["bad_input"][0] == 2 and "no twist published" in levels["bad_input"][1]
+        assert levels["insufficient_features"][0] == 1
+        # texture and depth return: tracking against the last good reference again
+        t += dt
+        h.send(t, conv.image_from_array(0.0, img, "camera"),
+               conv.image_from_array(0.0, depth, "camera"))  # 32FC1 metres this time
+        assert h.node.last_result.ok
+        assert len(h.twists) == count + 1
+        assert h.twists[-1].twist.linear.x == pytest.approx(0.0, abs=0.05)  # same pose
+        assert h.node.stats["bad_input"] == 2 and h.node.stats["lost"] == 4
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
+def test_node_refuses_runtime_changes_and_bad_start_values(rclpy_context):
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes.vo_node import VONode
+
+    node = VONode(context=rclpy_context)
+    try:
+        res = node.set_parameters([Parameter("sync_tolerance_s", value=0.05)])
+        assert not res[0].successful and "restart" in res[0].reason
+        assert node.get_parameter("sync_tolerance_s").value == pytest.approx(0.02)
+    finally:
+        node.destroy_node()
+    with pytest.raises(ValueError, match="max_depth"):
+        VONode(context=rclpy_context,
+               parameter_overrides=[Parameter("vo.min_depth", value=7.0)])
+
+
+@pytest.mark.ros
+def test_newest_pair_is_processed_and_older_frames_dropped(rclpy_context):
+    from sensor_msgs.msg import Image
+
+    from asgp_ros.nodes.vo_node import VONode
+
+    node = VONode(context=rclpy_context)
+    try:
+        msgs = {t: Image() for t in (1.0, 1.1, 1.2, 1.3)}
+        node._color.extend((t, m) for t, m in msgs.items())
+        node._depth.extend([(1.005, Image()), (1.105, Image()), (1.203, Image())])
+        stamp, cmsg, _ = node._take_pair()
+        assert stamp == 1.2 and cmsg is msgs[1.2]  # 1.3 has no depth partner yet
+        assert node.stats["dropped"] == 2
+        assert [t for t, _ in node._color] == [1.3] and not node._depth
+        assert node._take_pair() is None
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_vo_node_process_starts_with_the_shipped_config(repo_root, tmp_path):
+    """The console entry point runs with config/vo.yaml and shuts down on SIGINT."""
+    import signal
+    import subprocess
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from asgp_ros.nodes.vo_node import main; main()",
+         "--ros-args", "--params-file", str(repo_root / "config" / "vo.yaml"),
+         "-r", "__node:=vo_node"],
+        cwd=repo_root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        out = ""
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            out += line
+            if "VO on camera/color/image_raw" in line or proc.poll() is not None:
+                break
+        assert "VO on camera/color/image_raw" in out, out
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode in (0, -signal.SIGINT), proc.returncode
