@@ -41,7 +41,6 @@ setup(
     maintainer_email="maintainers@asgp-ros.dev",
     description="Autoregressive sparse GP motion prediction for smart wheelchairs (ROS 2).",
     license="BSD-3-Clause",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "asgp = asgp_ros.cli:main",

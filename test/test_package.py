@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -70,6 +71,9 @@ def test_colcon_build_and_test(repo_root, tmp_path):
         cwd=ws, env=env, capture_output=True, text=True,
     )
     assert test.returncode == 0, test.stdout + test.stderr
+    report = (ws / "build/asgp_ros/pytest.xml").read_text()
+    ran = re.search(r'tests="(\d+)"', report)
+    assert ran is not None and int(ran.group(1)) > 0, report[:500]
 
     # a failing test must fail the colcon run
     (ws / "src/asgp_ros/test/test_zz_must_fail.py").write_text(
