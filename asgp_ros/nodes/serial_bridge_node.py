@@ -21,12 +21,7 @@ from dataclasses import replace
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -34,6 +29,7 @@ from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Joy
 
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode
@@ -48,27 +44,12 @@ _LEVEL = {
 }
 
 
-def _descriptor(spec) -> ParameterDescriptor:
-    d = ParameterDescriptor(description=spec.description, read_only=not spec.runtime)
-    if spec.low is not None and not isinstance(spec.default, bool):
-        if isinstance(spec.default, int):
-            d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high),
-                                            step=0)]
-        elif isinstance(spec.default, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
-                                                         to_value=float(spec.high), step=0.0)]
-    return d
-
-
 class SerialBridgeNode(Node):
     """See the module docstring. ``link_factory`` lets tests substitute the link."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("serial_bridge_node", **kwargs)
-        for spec in PARAMS:
-            self.declare_parameter(spec.name, spec.default, _descriptor(spec))
-        self.params: BridgeParams = bridge_params(
-            {spec.name: self.get_parameter(spec.name).value for spec in PARAMS})
+        self.params: BridgeParams = bridge_params(declare(self, PARAMS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._joy_pub = self.create_publisher(Joy, "joy", qos_profile_sensor_data)
@@ -99,8 +80,9 @@ class SerialBridgeNode(Node):
         values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMS}
         for p in changes:
             if p.name in SPECS and not SPECS[p.name].runtime:
-                return SetParametersResult(successful=False,
-                                           reason=f"{p.name} is fixed at start-up")
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"{p.name} is read at start-up: restart the node to change it")
             values[p.name] = p.value
         try:
             new = bridge_params(values)

@@ -29,18 +29,14 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.parameters import declare
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
 from asgp_ros.vo.planar import PlanarOdometry
@@ -60,28 +56,13 @@ _BUFFER = 8  # messages kept per image stream while waiting for a partner
 _JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry
 
 
-def _descriptor(spec) -> ParameterDescriptor:
-    d = ParameterDescriptor(description=spec.description, read_only=False)
-    if spec.low is not None and not isinstance(spec.default, bool):
-        if isinstance(spec.default, int):
-            d.integer_range = [IntegerRange(from_value=int(spec.low), to_value=int(spec.high),
-                                            step=0)]
-        elif isinstance(spec.default, float):
-            d.floating_point_range = [FloatingPointRange(from_value=float(spec.low),
-                                                         to_value=float(spec.high), step=0.0)]
-    return d
-
-
 class VONode(Node):
     """See the module docstring."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("vo_node", **kwargs)
-        for spec in PARAMS:
-            self.declare_parameter(spec.name, spec.default, _descriptor(spec))
         # raises ValueError naming the parameter: the node does not start with bad values
-        self.params: VONodeParams = vo_node_params(
-            {spec.name: self.get_parameter(spec.name).value for spec in PARAMS})
+        self.params: VONodeParams = vo_node_params(declare(self, PARAMS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         p = self.params
         reliable = QoSProfile(depth=10)

@@ -3,24 +3,13 @@ the node's declarations and ``config/bridge.yaml``, validated into a frozen data
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from asgp_ros.paramspec import ParamSpec, check_values
 from asgp_ros.serial.calibration import AxisCalibration, JoystickCalibration
 from asgp_ros.serial.link import LinkConfig
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    name: str
-    default: Any
-    description: str
-    low: float | None = None   # inclusive range for numbers
-    high: float | None = None
-    runtime: bool = False      # may change while running (else read-only)
-
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("port", "/dev/asgp_joystick",
@@ -94,25 +83,7 @@ def bridge_params(values: Mapping[str, Any]) -> BridgeParams:
     Raises:
         ValueError: naming the offending parameter.
     """
-    v: dict[str, Any] = {}
-    for spec in PARAMS:
-        value = values.get(spec.name, spec.default)
-        if isinstance(spec.default, bool):
-            if not isinstance(value, bool):
-                raise ValueError(f"parameter {spec.name} must be a bool, got {value!r}")
-        elif isinstance(spec.default, (int, float)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"parameter {spec.name} must be a number, got {value!r}")
-            if not math.isfinite(value):
-                raise ValueError(f"parameter {spec.name} must be finite, got {value!r}")
-            if spec.low is not None and spec.high is not None \
-                    and not spec.low <= value <= spec.high:
-                raise ValueError(f"parameter {spec.name}={value} outside "
-                                 f"[{spec.low}, {spec.high}]")
-            value = int(value) if isinstance(spec.default, int) else float(value)
-        elif not isinstance(value, str):
-            raise ValueError(f"parameter {spec.name} must be a string, got {value!r}")
-        v[spec.name] = value
+    v = check_values(PARAMS, values)
     axes = {}
     for axis in ("forward", "turn"):
         try:

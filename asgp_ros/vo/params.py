@@ -8,18 +8,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from asgp_ros.paramspec import ParamSpec, check_values
 from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic
 from asgp_ros.vo.odometry import VOOptions
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    name: str
-    default: Any
-    description: str
-    low: float | None = None  # inclusive range for numbers
-    high: float | None = None
-
 
 _E = DEFAULT_EXTRINSIC
 _O = VOOptions()
@@ -129,27 +120,7 @@ def vo_node_params(values: Mapping[str, Any]) -> VONodeParams:
     Raises:
         ValueError: naming the offending parameter.
     """
-    v: dict[str, Any] = {}
-    for spec in PARAMS:
-        value = values.get(spec.name, spec.default)
-        if isinstance(spec.default, bool):
-            if not isinstance(value, bool):
-                raise ValueError(f"{spec.name} must be a boolean, got {value!r}")
-        elif isinstance(spec.default, int):
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ValueError(f"{spec.name} must be an integer, got {value!r}")
-        elif isinstance(spec.default, float):
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ValueError(f"{spec.name} must be a number, got {value!r}")
-            value = float(value)
-            if not math.isfinite(value):
-                raise ValueError(f"{spec.name} must be finite, got {value}")
-        elif isinstance(spec.default, str) and not isinstance(value, str):
-            raise ValueError(f"{spec.name} must be a string, got {value!r}")
-        if (spec.low is not None and spec.high is not None and not isinstance(value, bool)
-                and not spec.low <= value <= spec.high):
-            raise ValueError(f"{spec.name} = {value} is outside [{spec.low}, {spec.high}]")
-        v[spec.name] = value
+    v = check_values(PARAMS, values)
     for name in ("color_topic", "depth_topic", "camera_info_topic", "base_frame",
                  "odom_frame"):
         if not v[name]:
