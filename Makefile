@@ -9,7 +9,7 @@ SYSSTAMP := $(VENV)/.system-deps
 
 setup: $(STAMP) $(SYSSTAMP)
 
-# Debian packages: the AVR toolchain for the firmware, simavr, socat.
+# Debian packages: the AVR toolchain for the firmware, and simavr to run it.
 $(SYSSTAMP): scripts/install-system-deps.sh | $(STAMP)
 	bash scripts/install-system-deps.sh
 	touch $@

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# Installs the Debian packages the project needs (firmware toolchain, simulator, socat).
+# Installs the Debian packages the project needs (AVR firmware toolchain, simavr).
 # Idempotent: does nothing when every package is already installed.
 set -euo pipefail
-pkgs=(gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev socat)
+pkgs=(gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
