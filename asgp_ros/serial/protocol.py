@@ -16,8 +16,8 @@ from __future__ import annotations
 import enum
 import struct
 from collections.abc import Iterable
-from dataclasses import dataclass
-from typing import ClassVar, Union
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Union
 
 SYNC0 = 0xA5
 SYNC1 = 0x5A
@@ -111,8 +111,24 @@ def encode_frame(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
 # --- messages ---------------------------------------------------------------------------
 
 
+class _Packed:
+    """A message whose payload is its fields in order, packed with ``FORMAT``."""
+
+    FORMAT: ClassVar[str]
+
+    def _fields(self) -> tuple[int, ...]:
+        return tuple(int(getattr(self, f.name)) for f in fields(self))  # type: ignore[arg-type]
+
+    def payload(self) -> bytes:
+        return struct.pack(self.FORMAT, *self._fields())
+
+    @classmethod
+    def unpack(cls, p: bytes) -> Any:
+        return cls(*struct.unpack(cls.FORMAT, p))
+
+
 @dataclass(frozen=True)
-class Sample:
+class Sample(_Packed):
     """Joystick sample (board -> host): raw 10-bit ADC readings and what the board output."""
 
     TYPE: ClassVar[MsgType] = MsgType.SAMPLE
@@ -123,10 +139,6 @@ class Sample:
     out_forward: int  # DAC code written to the chair
     out_turn: int
 
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.raw_forward, self.raw_turn, int(self.status),
-                           self.out_forward, self.out_turn)
-
     @classmethod
     def unpack(cls, p: bytes) -> Sample:
         f, t, s, of, ot = struct.unpack(cls.FORMAT, p)
@@ -134,7 +146,7 @@ class Sample:
 
 
 @dataclass(frozen=True)
-class Override:
+class Override(_Packed):
     """Override command (host -> board): deflections in per mille, |value| <= 1000."""
 
     TYPE: ClassVar[MsgType] = MsgType.OVERRIDE
@@ -146,11 +158,7 @@ class Override:
         for name, v in (("forward", self.forward), ("turn", self.turn)):
             if not -PERMILLE <= v <= PERMILLE:
                 raise ValueError(f"override {name}={v} outside [-1000, 1000] per mille")
-        return struct.pack(self.FORMAT, self.forward, self.turn)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> Override:
-        return cls(*struct.unpack(cls.FORMAT, p))
+        return super().payload()
 
     @classmethod
     def from_deflection(cls, forward: float, turn: float) -> Override:
@@ -164,22 +172,14 @@ class Override:
 
 
 @dataclass(frozen=True)
-class SetMode:
+class SetMode(_Packed):
     TYPE: ClassVar[MsgType] = MsgType.MODE
     FORMAT: ClassVar[str] = "<B"
     mode: int
 
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.mode)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> SetMode:
-        (m,) = struct.unpack(cls.FORMAT, p)
-        return cls(m)
-
 
 @dataclass(frozen=True)
-class Heartbeat:
+class Heartbeat(_Packed):
     """Heartbeat (both ways): sender's uptime, frames received, CRC errors seen, its mode."""
 
     TYPE: ClassVar[MsgType] = MsgType.HEARTBEAT
@@ -189,33 +189,22 @@ class Heartbeat:
     rx_crc_errors: int
     mode: int
 
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.uptime_ms & 0xFFFFFFFF, self.rx_frames & 0xFFFF,
-                           self.rx_crc_errors & 0xFFFF, self.mode)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> Heartbeat:
-        return cls(*struct.unpack(cls.FORMAT, p))
+    def _fields(self) -> tuple[int, ...]:  # the counters wrap
+        return (self.uptime_ms & 0xFFFFFFFF, self.rx_frames & 0xFFFF,
+                self.rx_crc_errors & 0xFFFF, self.mode)
 
 
 @dataclass(frozen=True)
-class Hello:
+class Hello(_Packed):
     """Version handshake request (host -> board)."""
 
     TYPE: ClassVar[MsgType] = MsgType.HELLO
     FORMAT: ClassVar[str] = "<B"
     protocol_version: int = PROTOCOL_VERSION
 
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.protocol_version)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> Hello:
-        return cls(*struct.unpack(cls.FORMAT, p))
-
 
 @dataclass(frozen=True)
-class Version:
+class Version(_Packed):
     """Version handshake reply (board -> host)."""
 
     TYPE: ClassVar[MsgType] = MsgType.VERSION
@@ -231,30 +220,15 @@ class Version:
     def firmware(self) -> str:
         return f"{self.fw_major}.{self.fw_minor}.{self.fw_patch}"
 
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.protocol_version, self.fw_major, self.fw_minor,
-                           self.fw_patch, self.sample_rate_hz, self.watchdog_ms)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> Version:
-        return cls(*struct.unpack(cls.FORMAT, p))
-
 
 @dataclass(frozen=True)
-class ErrorReport:
+class ErrorReport(_Packed):
     """Error report (board -> host): an ``ErrorCode`` and a detail byte."""
 
     TYPE: ClassVar[MsgType] = MsgType.ERROR
     FORMAT: ClassVar[str] = "<BB"
     code: int
     detail: int
-
-    def payload(self) -> bytes:
-        return struct.pack(self.FORMAT, self.code, self.detail)
-
-    @classmethod
-    def unpack(cls, p: bytes) -> ErrorReport:
-        return cls(*struct.unpack(cls.FORMAT, p))
 
     def describe(self) -> str:
         try:
@@ -266,7 +240,7 @@ class ErrorReport:
 
 Message = Union[Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorReport]  # noqa: UP007
 
-MESSAGE_CLASSES: dict[int, type] = {
+MESSAGE_CLASSES: dict[int, type[_Packed]] = {
     cls.TYPE: cls for cls in (Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorReport)
 }
 PAYLOAD_LEN: dict[int, int] = {
