@@ -96,12 +96,12 @@ def test_executables_and_parameter_files_exist(repo_root, launch_name):
 
 def test_predictor_yaml_matches_the_node_parameters(repo_root):
     pytest.importorskip("rclpy")
-    from asgp_ros.nodes.predictor_node import _DESCRIPTORS, PredictorNodeParams
+    from asgp_ros.nodes.predictor_node import SPECS, PredictorNodeParams
 
     data = yaml.safe_load((repo_root / "config" / "predictor.yaml").read_text())
     params = dict(data["predictor_node"]["ros__parameters"])
     params.pop("use_sim_time", None)
-    assert set(params) == set(_DESCRIPTORS)
+    assert set(params) == set(SPECS)
     defaults = PredictorNodeParams.__dataclass_fields__
     for name, value in params.items():
         # same type as the declared default (ROS refuses 2 for a double parameter)

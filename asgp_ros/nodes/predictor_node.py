@@ -31,12 +31,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    SetParametersResult,
-)
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -51,6 +46,8 @@ from asgp_ros.core import online
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.parameters import declare
+from asgp_ros.paramspec import ParamSpec, check_value, check_values
 
 NODE_NAME = "predictor_node"
 PREDICTION_ERROR = "prediction_error"
@@ -144,53 +141,42 @@ class PredictorNodeParams:
         return round(n)
 
 
-# name -> (description, range or None, read_only)
-_DESCRIPTORS: dict[str, tuple[str, tuple[float, float, float] | None, bool]] = {
-    "model_path": ("model file (.npz) written by `asgp train`", None, True),
-    "horizon_steps": ("k, steps predicted ahead; 0 = use horizon_s", (0, 200, 1), False),
-    "horizon_s": ("prediction horizon in seconds when horizon_steps is 0", (0.1, 40.0, 0.0),
-                  False),
-    "rate_hz": ("prediction rate; 0 = the model's grid rate, else that rate / an integer",
-                (0.0, 100.0, 0.0), True),
-    "joy_topic": ("joystick input (sensor_msgs/Joy)", None, True),
-    "vo_topic": ("VO velocity input (TwistStamped, or Odometry with vo_type odometry)", None,
-                 True),
-    "vo_type": ("'twist' (geometry_msgs/TwistStamped) or 'odometry' (nav_msgs/Odometry)",
-                None, True),
-    "plan_topic": ("planned future joystick (std_msgs/Float32MultiArray, [k, 2])", None, True),
-    "path_topic": ("predicted path output; ellipses on <path_topic>/uncertainty", None, True),
-    "joy_axes": ("Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
-                 "flips a sign (as `asgp train --joy-axes`)", None, True),
-    "joy_timeout_s": ("no prediction when the joystick is older than this", (0.01, 60.0, 0.0),
-                      False),
-    "vo_timeout_s": ("no prediction when VO is older than this", (0.01, 60.0, 0.0), False),
-    "plan_timeout_s": ("ignore a plan older than this (hold the command)", (0.01, 60.0, 0.0),
-                       False),
-    "buffer_s": ("history kept for resampling", (1.0, 600.0, 0.0), False),
-    "reset_jump_s": ("a clock or stamp going back by more than this resets the buffers",
-                     (0.01, 60.0, 0.0), False),
-    "base_frame": ("frame of the chair (paths in it are relative to the pose at t0)", None,
-                   True),
-    "odom_frame": ("odometry frame", None, True),
-    "path_frame": ("'base' (base_frame at the prediction time) or 'odom' (needs odometry)",
-                   None, True),
-    "uncertainty": ("'linear', 'mc' or 'none' uncertainty propagation", None, False),
-    "publish_uncertainty": ("publish the 95% ellipses", None, False),
-    "diagnostics_period_s": ("diagnostics period", (0.1, 60.0, 0.0), True),
-}
+def _spec(name: str, description: str, low: float | None = None, high: float | None = None,
+          runtime: bool = False) -> ParamSpec:
+    default = PredictorNodeParams.__dataclass_fields__[name].default
+    return ParamSpec(name, default, description, low, high, runtime)
 
 
-def _descriptor(name: str) -> ParameterDescriptor:
-    text, rng, read_only = _DESCRIPTORS[name]
-    d = ParameterDescriptor(description=text, read_only=read_only)
-    if rng is not None:
-        if isinstance(getattr(PredictorNodeParams, name), int):
-            d.integer_range = [IntegerRange(from_value=int(rng[0]), to_value=int(rng[1]),
-                                            step=int(rng[2]))]
-        else:
-            d.floating_point_range = [FloatingPointRange(from_value=rng[0], to_value=rng[1],
-                                                         step=rng[2])]
-    return d
+PARAMS: tuple[ParamSpec, ...] = (
+    _spec("model_path", "model file (.npz) written by `asgp train`"),
+    _spec("horizon_steps", "k, steps predicted ahead; 0 = use horizon_s", 0, 200, runtime=True),
+    _spec("horizon_s", "prediction horizon in seconds when horizon_steps is 0", 0.1, 40.0,
+          runtime=True),
+    _spec("rate_hz", "prediction rate; 0 = the model's grid rate, else that rate / an integer",
+          0.0, 100.0),
+    _spec("joy_topic", "joystick input (sensor_msgs/Joy)"),
+    _spec("vo_topic", "VO velocity input (TwistStamped, or Odometry with vo_type odometry)"),
+    _spec("vo_type", "'twist' (geometry_msgs/TwistStamped) or 'odometry' (nav_msgs/Odometry)"),
+    _spec("plan_topic", "planned future joystick (std_msgs/Float32MultiArray, [k, 2])"),
+    _spec("path_topic", "predicted path output; ellipses on <path_topic>/uncertainty"),
+    _spec("joy_axes", "Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
+          "flips a sign (as `asgp train --joy-axes`)"),
+    _spec("joy_timeout_s", "no prediction when the joystick is older than this", 0.01, 60.0,
+          runtime=True),
+    _spec("vo_timeout_s", "no prediction when VO is older than this", 0.01, 60.0, runtime=True),
+    _spec("plan_timeout_s", "ignore a plan older than this (hold the command)", 0.01, 60.0,
+          runtime=True),
+    _spec("buffer_s", "history kept for resampling", 1.0, 600.0, runtime=True),
+    _spec("reset_jump_s", "a clock or stamp going back by more than this resets the buffers",
+          0.01, 60.0, runtime=True),
+    _spec("base_frame", "frame of the chair (paths in it are relative to the pose at t0)"),
+    _spec("odom_frame", "odometry frame"),
+    _spec("path_frame", "'base' (base_frame at the prediction time) or 'odom' (needs odometry)"),
+    _spec("uncertainty", "'linear', 'mc' or 'none' uncertainty propagation", runtime=True),
+    _spec("publish_uncertainty", "publish the 95% ellipses", runtime=True),
+    _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
+)
+SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}
 
 
 class _RateMeter:
@@ -229,13 +215,9 @@ class PredictorNode(Node):
             raise
 
     def _setup(self) -> None:
-        defaults = PredictorNodeParams.__dataclass_fields__
-        for name in _DESCRIPTORS:
-            self.declare_parameter(name, defaults[name].default, _descriptor(name))
+        values = declare(self, PARAMS)
         try:
-            self.params = PredictorNodeParams(**{
-                name: self.get_parameter(name).value for name in _DESCRIPTORS
-            })
+            self.params = PredictorNodeParams(**check_values(PARAMS, values))
         except (ValueError, TypeError) as exc:
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params
@@ -291,10 +273,14 @@ class PredictorNode(Node):
     # ---- parameters ------------------------------------------------------------------
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
-        changes = {prm.name: prm.value for prm in params if prm.name in _DESCRIPTORS}
+        changes = {prm.name: prm.value for prm in params if prm.name in SPECS}
         if not changes:
             return SetParametersResult(successful=True)
         try:
+            for name, value in changes.items():
+                if not SPECS[name].runtime:
+                    raise ValueError(f"{name} is read at start-up: restart the node to change it")
+                changes[name] = check_value(SPECS[name], value)
             candidate = replace(self.params, **changes)
             candidate.predictor_config(self.model.resample_config.rate_hz)
         except (ValueError, TypeError) as exc:
@@ -302,7 +288,8 @@ class PredictorNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, params: list[Parameter]) -> None:
-        changes = {prm.name: prm.value for prm in params if prm.name in _DESCRIPTORS}
+        changes = {prm.name: check_value(SPECS[prm.name], prm.value)
+                   for prm in params if prm.name in SPECS}
         if not changes:
             return
         self.params = replace(self.params, **changes)
