@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
-from asgp_ros.core.resample import ResampleConfig, grid_indices, resample, stale_samples
+from asgp_ros.core.resample import (
+    RESAMPLE_RANGES,
+    ResampleConfig,
+    grid_indices,
+    resample,
+    stale_samples,
+)
 from asgp_ros.core.streams import RawStreams
 
 
@@ -304,3 +312,76 @@ def test_config_round_trip() -> None:
     assert ResampleConfig.from_dict(d) == cfg
     with pytest.raises(ValueError, match="unknown"):
         ResampleConfig.from_dict({"rate": 5})
+
+
+# ---- ranges: nothing from a user, a file or a message can make the grid hang ----------
+
+def _run_with_deadline(code: str, deadline_s: float = 20.0) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter; a hang fails the test instead of the suite."""
+    try:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=deadline_s, check=False)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"hung for {deadline_s} s: {code}")
+
+
+@pytest.mark.parametrize("rate", [1e20, 1e300, 1e-300, 0.1, 1000.0])
+def test_rate_outside_its_documented_range_is_refused(rate: float) -> None:
+    low, high = RESAMPLE_RANGES["rate_hz"]
+    assert not low <= rate <= high
+    with pytest.raises(ValueError, match=r"rate_hz must be in \[0.5, 100\]"):
+        ResampleConfig(rate_hz=rate)
+
+
+def test_every_setting_accepts_its_bounds_and_refuses_beyond() -> None:
+    for name, (low, high) in RESAMPLE_RANGES.items():
+        assert math.isfinite(low) and math.isfinite(high)
+        assert getattr(ResampleConfig(**{name: low}), name) == low
+        assert getattr(ResampleConfig(**{name: high}), name) == high
+        for bad in (high * 2 + 1, -1.0, math.nan, -math.inf):
+            with pytest.raises(ValueError, match=name):
+                ResampleConfig(**{name: bad})
+    for name in ("stale_after_s", "stale_still_after_s"):  # inf disables
+        assert getattr(ResampleConfig(**{name: math.inf}), name) == math.inf
+    with pytest.raises(ValueError, match="max_gap_vel_s"):
+        ResampleConfig(max_gap_vel_s=math.inf)
+
+
+@pytest.mark.parametrize("call", [
+    "grid_indices(1.7e9, 1.7e9 + 10.0, 1e20)",  # a bag's clock at an absurd rate
+    "grid_indices(1e300, 1e300, 5.0)",          # an absurd time at the paper's rate
+    "grid_indices(0.0, 1e12, 5.0)",             # more points than memory holds
+])
+def test_grid_indices_refuses_instead_of_hanging(call: str) -> None:
+    proc = _run_with_deadline(
+        "from asgp_ros.core.resample import grid_indices\n"
+        f"try:\n    {call}\nexcept ValueError as exc:\n    print('refused:', exc)\n")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("refused:"), proc.stdout
+
+
+def test_grid_indices_is_exact_near_the_range_limit() -> None:
+    t = 1e10  # MAX_ABS_TIME_S at the highest rate: |t * rate| = 1e12 << 2**50
+    k = grid_indices(t, t + 0.05, 100.0)
+    assert k.tolist() == [10**12 + i for i in range(6)]
+    assert np.all(k / 100.0 >= t) and np.all(k / 100.0 <= t + 0.05)
+    with pytest.raises(ValueError, match="rate"):
+        grid_indices(0.0, 1.0, math.nan)
+
+
+def test_out_of_range_samples_are_dropped_like_non_finite_ones() -> None:
+    s = recording(seed=3, duration=20.0, t0=0.0)
+    joy, vel = s.joy.copy(), s.vel.copy()
+    joy[7, 0] = 1e30
+    joy[9, 1] = -1.2
+    joy[11, 0] = 1.04  # calibration overshoot within JOY_TOLERANCE: kept
+    vel[3, 0] = 6.0  # faster than any wheelchair
+    vel[4, 1] = -1e30
+    res = resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel))
+    assert (res.dropped_joy, res.dropped_vel) == (2, 2)
+    assert np.all(np.abs(res.joy) <= 1.05) and np.all(np.abs(res.vel) <= 10.0)
+
+
+def test_time_stamps_beyond_the_range_are_refused() -> None:
+    with pytest.raises(ValueError, match="joystick: time stamps beyond"):
+        RawStreams(joy_t=[0.0, 1e11], joy=np.zeros((2, 2)), vel_t=[0.0], vel=[[0.0, 0.0]])

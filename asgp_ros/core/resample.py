@@ -34,8 +34,16 @@ Validity of a grid point (``Resampled.valid``):
   The first sample of a run (the last genuine measurement) is kept; the flagged grid
   points are in ``Resampled.stale``.
 
-Non-finite raw samples are dropped before anything else (and counted in
+Raw samples that are not finite or lie outside the physical ranges of
+:mod:`asgp_ros.core.streams` (``MAX_ABS_JOY``, ``MAX_ABS_SPEED_M_S``,
+``MAX_ABS_YAW_RATE_RAD_S``) are dropped before anything else (and counted in
 ``Resampled.dropped_joy`` / ``dropped_vel``); the hole they leave is then an ordinary gap.
+
+Ranges (every setting of :class:`ResampleConfig` is checked against ``RESAMPLE_RANGES`` on
+construction, so a model file or a command line cannot bring in a grid the code cannot
+handle): the grid rate is 0.5-100 Hz; grid indices stay within ``MAX_GRID_INDEX`` (so
+``k / rate_hz`` is exact in float64) and one call makes at most ``MAX_GRID_POINTS`` points;
+:func:`grid_indices` raises ValueError beyond either.
 """
 
 from __future__ import annotations
@@ -48,7 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.core.streams import RawStreams
+from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -57,9 +65,34 @@ BoolArray = NDArray[np.bool_]
 logger = logging.getLogger(__name__)
 
 
+#: Documented range (inclusive) of every :class:`ResampleConfig` setting. The grid rate
+#: spans 2 s steps to the joystick's 100 Hz; durations are at most an hour (a gap or a
+#: staleness window longer than that is not a sensor property); the staleness durations
+#: in ``RESAMPLE_MAY_BE_INF`` may also be ``math.inf`` (disabled).
+RESAMPLE_RANGES: dict[str, tuple[float, float]] = {
+    "rate_hz": (0.5, 100.0),
+    "max_gap_joy_s": (1e-3, 3600.0),
+    "max_gap_vel_s": (1e-3, 3600.0),
+    "stale_after_s": (1e-3, 3600.0),
+    "stale_tolerance": (0.0, 1.0),
+    "stale_joy_threshold": (0.0, 1.0),
+    "stale_still_speed": (0.0, 1.0),
+    "stale_still_after_s": (1e-3, 3600.0),
+}
+RESAMPLE_MAY_BE_INF = ("stale_after_s", "stale_still_after_s")
+
+#: Largest |t * rate_hz| on the grid: below 2**50 a grid index and ``k / rate_hz`` are exact
+#: in float64 (times within ``streams.MAX_ABS_TIME_S`` at 100 Hz are far below it).
+MAX_GRID_INDEX = 2**50
+#: Most grid points one call may produce (23 days at 5 Hz, 28 hours at 100 Hz): beyond it
+#: the arrays of one resample would not fit in a laptop's memory.
+MAX_GRID_POINTS = 10_000_000
+
+
 @dataclass(frozen=True)
 class ResampleConfig:
-    """Settings of :func:`resample` (validated on construction).
+    """Settings of :func:`resample` (validated on construction against
+    ``RESAMPLE_RANGES``: a value outside its range raises ValueError naming the setting).
 
     Attributes:
         rate_hz: grid rate; grid points at integer multiples of 1 / rate_hz.
@@ -87,30 +120,16 @@ class ResampleConfig:
     stale_still_after_s: float = 0.6
 
     def __post_init__(self) -> None:
-        for name in ("rate_hz", "max_gap_joy_s", "max_gap_vel_s", "stale_after_s",
-                     "stale_tolerance", "stale_joy_threshold", "stale_still_speed",
-                     "stale_still_after_s"):
+        for name, (low, high) in RESAMPLE_RANGES.items():
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+            if isinstance(value, bool) or not isinstance(value, int | float | np.number):
                 raise ValueError(f"{name} must be a number, got {value!r}")
-            object.__setattr__(self, name, float(value))
-        if not (math.isfinite(self.rate_hz) and self.rate_hz > 0.0):
-            raise ValueError(f"rate_hz must be positive and finite, got {self.rate_hz}")
-        for name in ("max_gap_joy_s", "max_gap_vel_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"{name} must be positive and finite, got {value}")
-        if not self.stale_after_s > 0.0 or math.isnan(self.stale_after_s):
-            raise ValueError(
-                f"stale_after_s must be positive (inf disables), got {self.stale_after_s}"
-            )
-        if not self.stale_still_after_s > 0.0 or math.isnan(self.stale_still_after_s):
-            raise ValueError("stale_still_after_s must be positive (inf disables), got "
-                             f"{self.stale_still_after_s}")
-        for name in ("stale_tolerance", "stale_joy_threshold", "stale_still_speed"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"{name} must be non-negative and finite, got {value}")
+            value = float(value)
+            disabled = name in RESAMPLE_MAY_BE_INF and value == math.inf
+            if not (disabled or low <= value <= high):
+                extra = " or inf (disabled)" if name in RESAMPLE_MAY_BE_INF else ""
+                raise ValueError(f"{name} must be in [{low:g}, {high:g}]{extra}, got {value}")
+            object.__setattr__(self, name, value)
 
     @property
     def dt(self) -> float:
@@ -157,8 +176,8 @@ class Resampled:
             the streams have no ground truth.
         truth_valid: [T] ground truth available around this point.
         rate_hz: grid rate.
-        dropped_joy: number of non-finite joystick samples dropped.
-        dropped_vel: number of non-finite odometry samples dropped.
+        dropped_joy: number of joystick samples dropped (non-finite or out of range).
+        dropped_vel: number of odometry samples dropped (non-finite or out of range).
     """
 
     t: FloatArray
@@ -204,22 +223,39 @@ def _drop_nonfinite(t: FloatArray, x: FloatArray) -> BoolArray:
 
 
 def grid_indices(t_start: float, t_end: float, rate_hz: float) -> IntArray:
-    """Integer k with ``t_start <= k / rate_hz <= t_end`` (consecutive, possibly empty)."""
-    if not t_end >= t_start:
+    """Integer k with ``t_start <= k / rate_hz <= t_end`` (consecutive, possibly empty).
+
+    Raises:
+        ValueError: ``rate_hz`` not positive and finite, ``|t * rate_hz|`` beyond
+            ``MAX_GRID_INDEX`` (the grid index would not be exact), or more than
+            ``MAX_GRID_POINTS`` points.
+    """
+    if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+        raise ValueError(f"grid rate must be positive and finite, got {rate_hz}")
+    if not t_end >= t_start:  # also NaN
         return np.zeros(0, dtype=np.int64)
+    for t in (t_start, t_end):
+        if not abs(t) * rate_hz <= MAX_GRID_INDEX:
+            raise ValueError(f"time {t} s at {rate_hz:g} Hz is beyond the grid's range "
+                             f"(|t * rate| <= 2**50)")
     lo = math.ceil(t_start * rate_hz)
     hi = math.floor(t_end * rate_hz)
-    # guard the float rounding of t * rate at both ends
-    while (lo - 1) / rate_hz >= t_start:
-        lo -= 1
-    while lo / rate_hz < t_start:
-        lo += 1
-    while (hi + 1) / rate_hz <= t_end:
-        hi += 1
-    while hi / rate_hz > t_end:
-        hi -= 1
+    # The float rounding of t * rate can put lo or hi one index off (never more below
+    # MAX_GRID_INDEX); two corrections each way are always enough.
+    for _ in range(2):
+        if (lo - 1) / rate_hz >= t_start:
+            lo -= 1
+        elif lo / rate_hz < t_start:
+            lo += 1
+        if (hi + 1) / rate_hz <= t_end:
+            hi += 1
+        elif hi / rate_hz > t_end:
+            hi -= 1
     if hi < lo:
         return np.zeros(0, dtype=np.int64)
+    if hi - lo + 1 > MAX_GRID_POINTS:
+        raise ValueError(f"{t_start:.3f} .. {t_end:.3f} s at {rate_hz:g} Hz is "
+                         f"{hi - lo + 1} grid points, more than {MAX_GRID_POINTS}")
     return np.arange(lo, hi + 1, dtype=np.int64)
 
 
@@ -304,13 +340,13 @@ def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resam
     See the module docstring for validity, staleness and the window property.
     """
     cfg = config if config is not None else ResampleConfig()
-    keep_j = _drop_nonfinite(streams.joy_t, streams.joy)
-    keep_v = _drop_nonfinite(streams.vel_t, streams.vel)
+    keep_j = joy_in_range(streams.joy)
+    keep_v = vel_in_range(streams.vel)
     dropped_joy = int(keep_j.size - np.count_nonzero(keep_j))
     dropped_vel = int(keep_v.size - np.count_nonzero(keep_v))
     if dropped_joy or dropped_vel:
-        logger.debug("%s: dropped %d joystick and %d odometry non-finite samples",
-                     streams.source or "streams", dropped_joy, dropped_vel)
+        logger.debug("%s: dropped %d joystick and %d odometry samples (non-finite or out "
+                     "of range)", streams.source or "streams", dropped_joy, dropped_vel)
     joy_t, joy = streams.joy_t[keep_j], streams.joy[keep_j]
     vel_t, vel, vel_ok = streams.vel_t[keep_v], streams.vel[keep_v], streams.vel_ok[keep_v]
 

@@ -9,16 +9,87 @@ This is the hand-over type between the bag reader / simulator and the resampler:
 Times are seconds on one clock (header stamps, or bag receive time when a message has
 no valid header). Arrays are sorted by time on construction; exact duplicate stamps are
 dropped (the first sample wins).
+
+Ranges (inclusive; defined here and nowhere else). A sample outside them is not data
+about a wheelchair: the resampler drops it as it drops a non-finite one, and the online
+``Predictor`` refuses it with a reason code.
+
+* time stamps: ``|t| <= MAX_ABS_TIME_S`` = 1e10 s (Unix time until 2286; keeps
+  ``t * rate`` exact on the grid);
+* joystick deflections: ``|j| <= MAX_ABS_JOY`` = 1 + ``JOY_TOLERANCE`` (0.05 of stick
+  calibration overshoot beyond [-1, 1]);
+* forward speed: ``|v| <= MAX_ABS_SPEED`` = 5 m/s (powered wheelchairs are limited to
+  about 4 m/s, 15 km/h);
+* yaw rate: ``|omega| <= MAX_ABS_YAW_RATE`` = 10 rad/s (a chair spinning on the spot turns
+  at 2-3 rad/s).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+#: Largest |time stamp| (s) accepted anywhere.
+MAX_ABS_TIME_S = 1e10
+#: How far a joystick deflection may overshoot [-1, 1] (calibration of a real stick).
+JOY_TOLERANCE = 0.05
+#: Largest |deflection| accepted (forward and turn).
+MAX_ABS_JOY = 1.0 + JOY_TOLERANCE
+#: Largest |v| (m/s) accepted: beyond any powered wheelchair.
+MAX_ABS_SPEED = 5.0
+#: Largest |omega| (rad/s) accepted: beyond any powered wheelchair.
+MAX_ABS_YAW_RATE = 10.0
+
+
+def joy_in_range(joy: object) -> BoolArray:
+    """[N] True where the [N, 2] deflections are finite and within ``MAX_ABS_JOY``."""
+    arr = np.asarray(joy, dtype=np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(np.all(np.abs(arr) <= MAX_ABS_JOY, axis=1), dtype=bool)
+
+
+def vel_in_range(vel: object) -> BoolArray:
+    """[N] True where the [N, 2] (v, omega) are finite and within the physical limits."""
+    arr = np.asarray(vel, dtype=np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        ok = (np.abs(arr[:, 0]) <= MAX_ABS_SPEED) & (np.abs(arr[:, 1]) <= MAX_ABS_YAW_RATE)
+    return np.asarray(ok, dtype=bool)
+
+
+def joy_problem(forward: float, turn: float) -> str | None:
+    """Why a joystick sample is refused (non-finite or out of range), or None."""
+    for name, value in (("forward", forward), ("turn", turn)):
+        if not math.isfinite(value):
+            return f"{name} deflection is {value}"
+        if abs(value) > MAX_ABS_JOY:
+            return f"{name} deflection {value:g} is outside [-{MAX_ABS_JOY:g}, {MAX_ABS_JOY:g}]"
+    return None
+
+
+def vel_problem(v: float, omega: float) -> str | None:
+    """Why a velocity sample is refused (non-finite or beyond physical limits), or None."""
+    for name, value, limit, unit in (("v", v, MAX_ABS_SPEED, "m/s"),
+                                     ("omega", omega, MAX_ABS_YAW_RATE, "rad/s")):
+        if not math.isfinite(value):
+            return f"{name} is {value}"
+        if abs(value) > limit:
+            return f"|{name}| = {abs(value):g} {unit} is beyond {limit:g} {unit}"
+    return None
+
+
+def time_problem(t: float) -> str | None:
+    """Why a time stamp is refused (non-finite or beyond ``MAX_ABS_TIME_S``), or None."""
+    if not math.isfinite(t):
+        return f"time stamp is {t}"
+    if abs(t) > MAX_ABS_TIME_S:
+        return f"time stamp {t:g} s is beyond +-{MAX_ABS_TIME_S:g} s"
+    return None
 
 
 def _sorted_unique(t: FloatArray, *values: FloatArray) -> tuple[FloatArray, ...]:
@@ -41,6 +112,8 @@ def _as_series(name: str, t: object, x: object, width: int) -> tuple[FloatArray,
         )
     if not np.all(np.isfinite(t_arr)):
         raise ValueError(f"{name}: time stamps contain NaN or inf")
+    if t_arr.size and float(np.max(np.abs(t_arr))) > MAX_ABS_TIME_S:
+        raise ValueError(f"{name}: time stamps beyond +-{MAX_ABS_TIME_S:g} s")
     return t_arr, x_arr
 
 
