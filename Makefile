@@ -23,9 +23,10 @@ $(STAMP): setup.py package.xml
 test: setup
 	$(VPY) -m pytest test
 
-# The demo needs the Python environment only (no AVR toolchain).
+# The demo needs the Python environment only (no AVR toolchain). --force: a second
+# `make demo` replaces the first one's demo-output/ (and nothing that is not a demo's).
 demo: $(STAMP)
-	$(VENV)/bin/asgp demo
+	$(VENV)/bin/asgp demo --force
 
 firmware: $(SYSSTAMP)
 	$(MAKE) -C firmware

@@ -1,26 +1,109 @@
-"""Atomic file output: a file a user keeps is either complete or not there at all."""
+"""Files a user keeps: atomic output, output paths checked before work, temporaries that
+go away on signals as they do on exceptions.
+
+The rule every command follows: **nothing is deleted or replaced that the command did not
+create, unless the user asked for it** (``--force``), and even then only an output of the
+same kind (a model file by a model file, a bag by a bag, a report directory that carries
+the report's own marker file). :func:`check_output` enforces it before any work starts;
+:func:`atomic_path` never removes anything it did not make itself.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
+import signal
+import stat
+import sys
 import tempfile
-from collections.abc import Iterator
+import zipfile
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
+from typing import Any
+
+MARKER_NAME = ".asgp-output"
+"""The marker file a directory output carries: JSON ``{"format": MARKER_FORMAT, "kind": K}``."""
+MARKER_FORMAT = "asgp_ros.output"
+_MARKER_MAX_BYTES = 4096
+_JSON_MAX_BYTES = 64 * 1024 * 1024
 
 
+class OutputError(Exception):
+    """An output path that must not be written: a one-line, user-facing reason."""
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM/SIGHUP, so that ``finally`` blocks (and with
+    them every temporary) run as they do on Ctrl-C. ``signum`` says which signal."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def raise_on_termination() -> None:
+    """Turn SIGTERM and SIGHUP into :class:`Terminated` in the calling (main) thread.
+
+    The first signal raises; a repeat while the clean-up runs is ignored, so that a
+    supervisor that sends SIGTERM twice does not cut the clean-up short (SIGINT still
+    interrupts as usual, and SIGKILL always works).
+    """
+    fired = False
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        nonlocal fired
+        if fired:
+            return
+        fired = True
+        raise Terminated(signum)
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, handler)
+
+
+def quiet_worker_exit() -> None:
+    """Pool-worker initialiser: SIGTERM/SIGINT/SIGHUP end the worker through ``SystemExit``.
+
+    ``finally`` blocks run (a worker's own temporaries go), and multiprocessing ends a
+    worker on SystemExit without printing a traceback per worker.
+    """
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
+        sys.exit(128 + signum)
+
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, handler)
+
+
+# ----------------------------------------------------------------------------- atomic output
 @contextlib.contextmanager
-def atomic_path(final: str | os.PathLike[str], *, directory: bool = False) -> Iterator[Path]:
+def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
+                replace: bool = True) -> Iterator[Path]:
     """Yield a temporary path next to ``final``; move it into place only on success.
 
     The temporary path is in the same directory as ``final`` (so the rename is atomic on
     POSIX) and does not exist yet when yielded: the caller creates the file (or, with
-    ``directory=True``, the directory, e.g. a ROS 2 bag) there. On an exception the
-    temporary is removed and ``final`` is left untouched.
+    ``directory=True``, the directory, e.g. a ROS 2 bag) there. On an exception, or on a
+    signal turned into one (:func:`raise_on_termination`), the temporary is removed and
+    ``final`` is left untouched.
+
+    What may be replaced: with ``directory=False``, an existing regular file (unless
+    ``replace=False``). With ``directory=True``, an existing directory only when
+    ``replace=True`` and only after the new one is complete: the old directory is moved
+    aside, the new one moved in, and the old one removed last (moved back if the move in
+    fails). Anything of another kind at ``final`` (a directory where a file goes, a file
+    where a directory goes, a FIFO, a device) raises :class:`FileExistsError` before the
+    caller writes anything. Whether the user allowed a replacement at all is
+    :func:`check_output`'s business; this function is the last line of defence.
     """
     final = Path(final)
     parent = final.parent if str(final.parent) else Path(".")
+    _refuse_other_kind(final, directory=directory, replace=replace)
     parent.mkdir(parents=True, exist_ok=True)
     tmpdir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=parent))
     tmp = tmpdir / final.name
@@ -28,14 +111,39 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False) -> It
         yield tmp
         if not tmp.exists():
             raise FileNotFoundError(f"nothing was written to {tmp} for {final}")
+        if directory != tmp.is_dir():
+            raise FileExistsError(f"{tmp} is not the {'directory' if directory else 'file'} "
+                                  f"expected for {final}")
         if not directory:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
-        if final.is_dir() and not final.is_symlink():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
+        _refuse_other_kind(final, directory=directory, replace=replace)
+        if directory and os.path.lexists(final):
+            old = tmpdir / ".replaced"
+            os.rename(final, old)
+            try:
+                os.rename(tmp, final)
+            except BaseException:
+                os.rename(old, final)
+                raise
+        else:
+            os.replace(tmp, final)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
+    if not os.path.lexists(final):
+        return
+    if final.is_symlink():
+        raise FileExistsError(f"{final} is a symbolic link; refusing to replace it")
+    mode = os.stat(final).st_mode
+    wanted = stat.S_ISDIR(mode) if directory else stat.S_ISREG(mode)
+    if not wanted:
+        raise FileExistsError(f"{final} exists and is {describe_kind(final)}, not a "
+                              f"{'directory' if directory else 'regular file'}")
+    if not replace:
+        raise FileExistsError(f"{final} exists")
 
 
 def atomic_write_bytes(final: str | os.PathLike[str], data: bytes) -> None:
@@ -45,3 +153,201 @@ def atomic_write_bytes(final: str | os.PathLike[str], data: bytes) -> None:
 
 def atomic_write_text(final: str | os.PathLike[str], text: str) -> None:
     atomic_write_bytes(final, text.encode("utf-8"))
+
+
+def write_marker(directory: str | os.PathLike[str], kind: str, **extra: Any) -> None:
+    """Mark ``directory`` as an output of ``kind`` (so that ``--force`` may replace it)."""
+    atomic_write_text(Path(directory) / MARKER_NAME,
+                      json.dumps({"format": MARKER_FORMAT, "kind": kind, **extra}) + "\n")
+
+
+def read_marker(directory: str | os.PathLike[str]) -> str | None:
+    """The kind named by ``directory``'s marker file, or None (absent, not ours, unreadable)."""
+    path = Path(directory) / MARKER_NAME
+    try:
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > _MARKER_MAX_BYTES:
+            return None
+        data = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return None
+    if isinstance(data, dict) and data.get("format") == MARKER_FORMAT:
+        kind = data.get("kind")
+        return kind if isinstance(kind, str) else None
+    return None
+
+
+# ----------------------------------------------------------------------------- output kinds
+def describe_kind(path: str | os.PathLike[str]) -> str:
+    """'a directory', 'a regular file', 'a FIFO', ... for an existing path."""
+    try:
+        mode = os.lstat(path).st_mode
+    except OSError:
+        return "missing"
+    for test, name in ((stat.S_ISLNK, "a symbolic link"), (stat.S_ISDIR, "a directory"),
+                       (stat.S_ISREG, "a regular file"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "a special file"
+
+
+def is_model_file(path: Path) -> bool:
+    """A regular file that is a zip archive holding the model file's ``__meta__`` member."""
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False
+        with zipfile.ZipFile(path) as zf:
+            return "__meta__.npy" in zf.namelist()
+    except (OSError, zipfile.BadZipFile, ValueError, EOFError):
+        return False
+
+
+def is_ros1_bag(path: Path) -> bool:
+    try:
+        if not stat.S_ISREG(os.stat(path).st_mode):
+            return False
+        with open(path, "rb") as fh:
+            return fh.read(13) == b"#ROSBAG V2.0\n"
+    except OSError:
+        return False
+
+
+def is_ros2_bag(path: Path) -> bool:
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
+def is_bag(path: Path) -> bool:
+    return is_ros2_bag(path) or is_ros1_bag(path)
+
+
+def is_json_object_with(path: Path, key: str) -> bool:
+    """A regular JSON file (at most 64 MB) holding an object with ``key``."""
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > _JSON_MAX_BYTES:
+            return False
+        data = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and key in data
+
+
+@dataclass(frozen=True)
+class OutputKind:
+    """What a command writes at an output path.
+
+    Attributes:
+        name: how messages call it ("model file", "bag", ...).
+        directory: True for a directory, False for a regular file, None if either (a bag:
+            a ROS 2 bag directory or a ROS 1 ``.bag`` file).
+        same_kind: recognises an existing output of this kind (``--force`` may replace
+            it; nothing else is ever replaced).
+        resumable: an existing output of this kind is reused without ``--force`` (the
+            command adds to it and replaces nothing in it that is not its own).
+    """
+
+    name: str
+    directory: bool | None
+    same_kind: Callable[[Path], bool]
+    resumable: bool = False
+
+
+def marked(kind: str) -> Callable[[Path], bool]:
+    return lambda p: p.is_dir() and not p.is_symlink() and read_marker(p) == kind
+
+
+MODEL_FILE = OutputKind("model file", False, is_model_file)
+ROS1_BAG = OutputKind("ROS 1 bag", False, is_ros1_bag)
+ROS2_BAG = OutputKind("ROS 2 bag", True, is_ros2_bag)
+
+
+def bag_kind(path: str | os.PathLike[str]) -> OutputKind:
+    """The bag written at ``path``: a ROS 1 file for a ``.bag`` name, else a ROS 2 directory."""
+    return ROS1_BAG if Path(path).suffix == ".bag" else ROS2_BAG
+
+
+SCORES_JSON = OutputKind("evaluation JSON file", False,
+                         lambda p: is_json_object_with(p, "horizons"))
+REPORT_DIR = OutputKind("reproduction report directory", True, marked("reproduce-report"))
+DEMO_DIR = OutputKind("demo output directory", True, marked("demo"))
+
+
+def _is_dataset(p: Path) -> bool:
+    if not p.is_dir() or p.is_symlink():
+        return False
+    if read_marker(p) == "dataset":
+        return True
+    manifest = p / "manifest.json"
+    try:
+        st = os.stat(manifest)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > _JSON_MAX_BYTES:
+            return False
+        data = json.loads(manifest.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return False
+    return isinstance(data, dict) and data.get("format") == "asgp_ros.dataset"
+
+
+DATASET_DIR = OutputKind("dataset directory", True, _is_dataset, resumable=True)
+
+
+def _absolute(path: Path) -> Path:
+    """Absolute, with '..' and symlinks of existing parts resolved."""
+    return Path(os.path.realpath(path))
+
+
+def check_output(path: str | os.PathLike[str], kind: OutputKind, *,
+                 inputs: Iterable[str | os.PathLike[str]] = (), force: bool = False,
+                 option: str = "--out") -> Path:
+    """Check an output path before any work starts; return it as a Path.
+
+    Refused, with a one-line :class:`OutputError`:
+    - a path equal to, inside or containing one of ``inputs`` (symlinks resolved);
+    - a path whose parent is not a directory (``m.npz/x.npz`` with a file ``m.npz``);
+    - an existing symbolic link at the path itself;
+    - an existing path of another kind (a directory where a file goes, a FIFO, a file
+      where a directory goes, a directory that is not this kind's);
+    - an existing output of the same kind, unless ``force`` (or the kind is resumable).
+    An existing empty directory is taken as a new directory output.
+    """
+    raw = os.fspath(path)
+    if not raw or "\0" in raw:
+        raise OutputError(f"{option}: empty or invalid path {raw!r}")
+    out = Path(raw)
+    if out.name in ("", ".", ".."):
+        raise OutputError(f"{option} {raw}: names a directory, not a {kind.name}"
+                          if kind.directory is not True
+                          else f"{option} {raw}: give the {kind.name} a name of its own")
+    here = _absolute(out)
+    for item in inputs:
+        there = _absolute(Path(item))
+        if here == there:
+            raise OutputError(f"{option} {raw} is the input {item}; refusing to overwrite it")
+        if there in here.parents:
+            raise OutputError(f"{option} {raw} is inside the input {item}")
+        if here in there.parents:
+            raise OutputError(f"{option} {raw} contains the input {item}")
+    for parent in out.parents:
+        if os.path.lexists(parent) and not parent.is_dir():
+            raise OutputError(f"{option} {raw}: {parent} exists and is not a directory")
+    if not os.path.lexists(out):
+        return out
+    if out.is_symlink():
+        raise OutputError(f"{option} {raw} is a symbolic link; refusing to write through it")
+    what = describe_kind(out)
+    if kind.directory is not False and out.is_dir() and not any(out.iterdir()):
+        return out
+    if kind.directory is True and not out.is_dir():
+        raise OutputError(f"{option} {raw} exists and is {what}, not a {kind.name}")
+    if kind.directory is False and not stat.S_ISREG(os.stat(out).st_mode):
+        raise OutputError(f"{option} {raw} exists and is {what}, not a {kind.name}")
+    if not kind.same_kind(out):
+        raise OutputError(f"{option} {raw} exists and is not a {kind.name} ({what}); "
+                          f"refusing to replace it, even with --force")
+    if kind.resumable or force:
+        return out
+    raise OutputError(f"{option} {raw}: a {kind.name} exists there; use --force to replace "
+                      f"it")
+

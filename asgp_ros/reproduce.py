@@ -278,10 +278,13 @@ def _pool_map(fn: Any, items: Sequence[Any], jobs: int) -> list[Any]:
         return [fn(x) for x in items]
     import multiprocessing
 
+    from asgp_ros.fileio import quiet_worker_exit
+
     ctx = multiprocessing.get_context("fork")
     _STATE["parallel"] = True
     try:
-        with ctx.Pool(processes=min(jobs, len(items))) as pool:
+        # Leaving the block on an error or a signal terminates the workers at once.
+        with ctx.Pool(processes=min(jobs, len(items)), initializer=quiet_worker_exit) as pool:
             return list(pool.imap(fn, items))
     finally:
         _STATE["parallel"] = False
@@ -289,9 +292,13 @@ def _pool_map(fn: Any, items: Sequence[Any], jobs: int) -> list[Any]:
 
 # ---------------------------------------------------------------------------- run
 def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: bool = False,
-        jobs: int | None = None, seed: int = 0, command: str | None = None) -> dict[str, Any]:
+        jobs: int | None = None, seed: int = 0, command: str | None = None,
+        force: bool = False) -> dict[str, Any]:
     """Run the protocol on the dataset in ``data``; write the report directory ``out``.
 
+    ``out`` is checked first (:func:`asgp_ros.fileio.check_output`): it must not be, hold
+    or lie inside ``data``, and an existing report directory (one carrying the report's
+    marker file) is replaced only with ``force``; anything else there is refused.
     Everything is written into a temporary directory that replaces ``out`` only when
     complete. With ``quick``, a small dataset is simulated into ``data`` if it has no bags,
     and training budgets are reduced (stated in the report).
@@ -301,8 +308,12 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     """
     import asgp_ros.core.baselines  # noqa: F401  (registers the baseline model kinds)
     from asgp_ros.bags import BagError
-    from asgp_ros.fileio import atomic_path
+    from asgp_ros.fileio import REPORT_DIR, OutputError, atomic_path, check_output, write_marker
 
+    try:
+        check_output(out, REPORT_DIR, inputs=[data], force=force)
+    except OutputError as exc:
+        raise ReproduceError(str(exc)) from exc
     t_start = time.perf_counter()
     st = Settings.for_mode(quick, jobs, seed)
     data = Path(data)
@@ -327,8 +338,9 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     series = dict(zip(all_paths, read, strict=True))
     t_read = time.perf_counter()
 
-    with atomic_path(out, directory=True) as tmp:
+    with atomic_path(out, directory=True, replace=force) as tmp:
         tmp.mkdir(parents=True)
+        write_marker(tmp, "reproduce-report")
         (tmp / "models").mkdir()
         _STATE.update(
             series=series,

@@ -43,11 +43,12 @@ def test_split_follows_the_paper_layout(tmp_path):
 def test_missing_or_incomplete_dataset_is_refused(tmp_path, capsys):
     with pytest.raises(ReproduceError, match="does not exist"):
         discover(tmp_path / "nope")
-    _touch_bags(tmp_path, {"tile": 8, "carpet": 2})
+    data = tmp_path / "data"
+    _touch_bags(data, {"tile": 8, "carpet": 2})
     with pytest.raises(ReproduceError, match=r"2 carpet bag.*0 hybrid"):
-        split(discover(tmp_path))
+        split(discover(data))
     out = tmp_path / "report"
-    assert main(["reproduce", "--data", str(tmp_path), "--out", str(out)]) == 2
+    assert main(["reproduce", "--data", str(data), "--out", str(out)]) == 2
     assert "carpet" in capsys.readouterr().err
     assert not out.exists()
 
@@ -93,8 +94,10 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     report = (out / "report.md").read_text()
     assert "Quick mode" in report and "## Table II: tested on Carpet" in report
     assert "not included" in report  # the paper's numbers are not invented
-    # a second run replaces the report as a whole, reusing the dataset
+    # a second run replaces the report only when asked, as a whole, reusing the dataset
+    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 2
+    assert "--force" in capsys.readouterr().err
     assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick",
-                 "--jobs", "1"]) == 0
+                 "--jobs", "1", "--force"]) == 0
     assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 1
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

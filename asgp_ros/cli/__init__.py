@@ -13,13 +13,20 @@ import importlib
 import logging
 import pkgutil
 import sys
+import threading
 from collections.abc import Sequence
 
 from asgp_ros import __version__
+from asgp_ros.fileio import OutputError, Terminated, raise_on_termination
 
 
 class CommandError(Exception):
-    """A user-facing failure: printed as ``error: <message>`` and exit code 2, no traceback."""
+    """A user-facing failure: printed as ``error: <message>`` and exit code 2, no traceback.
+
+    :class:`asgp_ros.fileio.OutputError` (an output path refused before work starts) and
+    unforeseen :class:`OSError` are reported the same way. SIGTERM and SIGHUP end a command
+    as Ctrl-C does, so that every temporary is removed (exit 128 + signal number).
+    """
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,11 +55,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
+    if threading.current_thread() is threading.main_thread():
+        raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
     try:
         return int(args.func(args) or 0)
-    except CommandError as exc:
+    except (CommandError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        # A file system failure the command did not foresee (disk full, permission denied):
+        # the user needs the path and the reason, not a traceback.
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except Terminated as exc:
+        print(f"terminated ({exc})", file=sys.stderr)
+        return 128 + exc.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

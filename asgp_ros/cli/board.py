@@ -4,6 +4,7 @@ or ``--monitor PORT`` a real board's raw joystick readings for calibration."""
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
@@ -24,6 +25,8 @@ def register(subparsers) -> None:
                    help="joystick: the simulator's driver on a simulated chair that follows "
                         "the board's output, a scripted smooth joystick, or neutral "
                         "(auto: driver if available)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing symlink at --link (nothing else is replaced)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--noise", type=float, default=0.5, help="ADC noise, counts (0.5)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many s")
@@ -43,8 +46,13 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1.0 <= args.rate <= 1000.0:
         raise CommandError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
-    if args.link is not None and args.link.exists() and not args.link.is_symlink():
-        raise CommandError(f"--link {args.link} exists and is not a symlink")
+    if args.link is not None and os.path.lexists(args.link):
+        if not args.link.is_symlink():
+            raise CommandError(f"--link {args.link} exists and is not a symlink; refusing to "
+                               "replace it")
+        if not args.force:
+            raise CommandError(f"--link {args.link}: a symlink exists there; use --force to "
+                               "replace it")
     board = SimulatedBoard(rate_hz=args.rate, link_path=args.link, noise_counts=args.noise,
                            seed=args.seed)
     source_name = args.source
@@ -64,13 +72,13 @@ def run(args: argparse.Namespace) -> int:
         def source(t: float) -> tuple[float, float]:
             return 0.0, 0.0
     board.set_joystick(source)
-    board.start()
-    print(board.port, flush=True)
-    print(f"simulated board: {args.rate:g} Hz, joystick {source_name}, pty {board.slave_path}"
-          " (Ctrl-C stops)", flush=True)
-    t0 = time.monotonic()
-    next_status = t0
-    try:
+    try:  # from start() on, stop() runs on every exit: it removes the pty and the link
+        board.start()
+        print(board.port, flush=True)
+        print(f"simulated board: {args.rate:g} Hz, joystick {source_name}, pty "
+              f"{board.slave_path} (Ctrl-C stops)", flush=True)
+        t0 = time.monotonic()
+        next_status = t0
         while args.duration is None or time.monotonic() - t0 < args.duration:
             time.sleep(0.05)
             if board.error is not None:

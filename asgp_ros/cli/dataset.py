@@ -17,6 +17,7 @@ surface, seed and length are kept (an interrupted run resumes).
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from typing import Any
@@ -42,7 +43,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
-    p.add_argument("--force", action="store_true", help="re-simulate bags that exist")
+    p.add_argument("--force", action="store_true",
+                   help="re-simulate bags that exist (only bags are replaced)")
     p.set_defaults(func=run)
 
 
@@ -65,18 +67,24 @@ def _make(job: tuple[str, dict[str, Any], str, bool]) -> dict[str, Any]:
     from pathlib import Path
 
     from asgp_ros.bags import read_sim_metadata, write_bag
+    from asgp_ros.fileio import describe_kind, is_ros2_bag
     from asgp_ros.sim.simulate import simulate
 
     root, bag, storage, force = job
     path = Path(root) / bag["path"]
     start = time.perf_counter()
-    if path.exists() and not force:
-        meta = read_sim_metadata(path)
+    if os.path.lexists(path):
+        if path.is_symlink() or not is_ros2_bag(path):
+            raise RuntimeError(f"{path} exists and is {describe_kind(path)}, not a bag; "
+                               "refusing to replace it")
+        meta = read_sim_metadata(path) if not force else None
         if (meta and meta.get("seed") == bag["seed"] and meta.get("surface") == bag["surface"]
                 and abs(meta.get("duration_s", -1) - 60.0 * bag["minutes"]) < 1e-6):
             return {**bag, **meta.get("summary", {}), "reused": True,
                     "seconds": time.perf_counter() - start}
-        raise RuntimeError(f"{path} exists and is not this dataset's bag; use --force")
+        if not force:
+            raise RuntimeError(f"{path} exists and is not this dataset's bag; use --force "
+                               "to replace it")
     rec = simulate(bag["surface"], bag["minutes"], bag["seed"])
     summary = {"joy_messages": int(rec.joy_t.size), "vo_messages": int(rec.vo_t.size),
                "vo_failures": int(rec.failures.shape[0]),
@@ -98,11 +106,16 @@ def _progress(done: int, total: int, label: str, elapsed: float) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
-    from concurrent.futures import ProcessPoolExecutor
-    from pathlib import Path
+    import multiprocessing
 
     from asgp_ros.bags import BagError
-    from asgp_ros.fileio import atomic_write_text
+    from asgp_ros.fileio import (
+        DATASET_DIR,
+        atomic_write_text,
+        check_output,
+        quiet_worker_exit,
+        write_marker,
+    )
 
     if not args.scale > 0.0 or BAG_MINUTES * args.scale < 0.1:
         raise CommandError(f"--scale must give bags of at least 0.1 min, got {args.scale}")
@@ -110,9 +123,9 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--jobs must be >= 1")
     if args.seed < 0:
         raise CommandError("--seed must be >= 0")
-    root = Path(args.out)
-    if root.exists() and not root.is_dir():
-        raise CommandError(f"{root} exists and is not a directory")
+    root = check_output(args.out, DATASET_DIR)
+    root.mkdir(parents=True, exist_ok=True)
+    write_marker(root, "dataset")  # from here on an interrupted run resumes here
     bags = plan(args.seed, args.scale)
     jobs = [(str(root), b, args.storage, args.force) for b in bags]
     start = time.perf_counter()
@@ -125,8 +138,11 @@ def run(args: argparse.Namespace) -> int:
                 results[r["name"]] = r
                 _progress(len(results), len(jobs), r["name"], time.perf_counter() - start)
         else:
-            with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-                for r in pool.map(_make, jobs):
+            # On an error or a signal, terminate() stops the workers at once (each removes
+            # its own temporaries on the way out) instead of finishing the queue.
+            ctx = multiprocessing.get_context("fork")
+            with ctx.Pool(args.jobs, initializer=quiet_worker_exit) as pool:
+                for r in pool.imap(_make, jobs):
                     results[r["name"]] = r
                     _progress(len(results), len(jobs), r["name"], time.perf_counter() - start)
     except (RuntimeError, ValueError, OSError, BagError) as exc:

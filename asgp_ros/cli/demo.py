@@ -23,7 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="output directory: model, bag, report, logs (%(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed of the live drive (%(default)s)")
     p.add_argument("--no-train", action="store_true",
-                   help="do not train: use --model, or OUT/model.npz from an earlier run")
+                   help="do not train: use --model, or OUT/model.npz from an earlier run (whose "
+                        "other outputs in OUT are then replaced)")
     p.add_argument("--model", default=None,
                    help="model file (.npz from asgp train) to use instead of training")
     p.add_argument("--domain-id", type=int, default=None,
@@ -39,6 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "UDP between processes)")
     p.add_argument("--no-plan", action="store_true",
                    help="publish no joy_plan: the predictor holds the last command")
+    p.add_argument("--force", action="store_true",
+                   help="replace the output of an earlier demo in --out (a directory the "
+                        "demo wrote; anything else there is refused)")
     p.add_argument("--startup-timeout", type=float, default=120.0,
                    help="seconds the nodes have to come up (%(default)s)")
     p.set_defaults(func=run)
@@ -60,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         train=not args.no_train and args.model is None,
         model=Path(args.model) if args.model else None, domain_id=args.domain_id,
         train_minutes=args.train_minutes, camera_rate_hz=args.camera_rate, width=w, height=h,
-        plan=not args.no_plan, startup_timeout_s=args.startup_timeout, surface=args.surface)
+        plan=not args.no_plan, startup_timeout_s=args.startup_timeout, surface=args.surface,
+        force=args.force)
     try:
         return run_demo(opts, say=lambda line: print(line, flush=True))
     except DemoError as exc:

@@ -31,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--uncertainty", choices=("linear", "mc", "none"), default=None,
                    help="uncertainty propagation (default linear for asgp, none otherwise)")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the scores as JSON")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing evaluation JSON file at --json")
     add_topic_args(p, truth=True)
     p.set_defaults(func=run)
 
@@ -64,8 +66,11 @@ def run(args: argparse.Namespace) -> int:
     from asgp_ros.cli import CommandError
     from asgp_ros.core.modelfile import ModelFileError, load_model
     from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
-    from asgp_ros.fileio import atomic_write_text
+    from asgp_ros.fileio import SCORES_JSON, atomic_write_text, check_output
 
+    if args.json:
+        check_output(args.json, SCORES_JSON, inputs=[args.model, *args.bags],
+                     force=args.force, option="--json")
     try:
         model = load_model(args.model)
     except (ModelFileError, OSError, ValueError) as exc:

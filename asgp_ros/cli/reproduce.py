@@ -24,6 +24,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=int, default=None,
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--seed", type=int, default=0, help="training seed (%(default)s)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing report directory at --out (one this command "
+                        "wrote; nothing else is replaced)")
     p.set_defaults(func=run)
 
 
@@ -36,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--jobs must be >= 1")
     try:
         summary = reproduce(args.data, args.out, quick=args.quick, jobs=args.jobs,
-                            seed=args.seed, command=command_line())
+                            seed=args.seed, command=command_line(), force=args.force)
     except ReproduceError as exc:
         raise CommandError(str(exc)) from exc
     for name, tab in summary["tables"].items():

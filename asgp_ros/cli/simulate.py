@@ -23,20 +23,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                    help="ROS 2 storage (default mcap; ignored for a .bag path)")
     p.add_argument("--no-truth", action="store_true", help="omit /ground_truth/odom")
-    p.add_argument("--force", action="store_true", help="replace an existing bag")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing bag at --out (nothing else is replaced)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import time
-    from pathlib import Path
 
     from asgp_ros.bags import BagError, write_bag
+    from asgp_ros.fileio import bag_kind, check_output
     from asgp_ros.sim.simulate import simulate
 
-    out = Path(args.out)
-    if out.exists() and not args.force:
-        raise CommandError(f"{out} exists; use --force to replace it")
+    out = check_output(args.out, bag_kind(args.out), force=args.force)
     if args.seed < 0:
         raise CommandError(f"--seed must be >= 0, got {args.seed}")
     start = time.perf_counter()

@@ -20,6 +20,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("bags", nargs="+", metavar="BAG", help="training bags (ROS 1 or ROS 2)")
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (.npz)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing model file at --out (nothing else is replaced)")
     p.add_argument("--model", choices=KINDS, default="asgp", help="model kind (%(default)s)")
     p.add_argument("--lags", type=int, default=None,
                    help="s, past samples per input (asgp 4, mlp 10, others 1)")
@@ -39,8 +41,10 @@ def run(args: argparse.Namespace) -> int:
     from asgp_ros.cli import CommandError
     from asgp_ros.core.modelfile import save_model
     from asgp_ros.core.resample import ResampleConfig
+    from asgp_ros.fileio import MODEL_FILE, check_output
     from asgp_ros.training import TrainingError, TrainOptions, train
 
+    check_output(args.out, MODEL_FILE, inputs=args.bags, force=args.force)
     try:
         rc = ResampleConfig() if args.rate is None else ResampleConfig(rate_hz=args.rate)
         opts = TrainOptions(kind=args.model, lags=args.lags, inducing_v=args.inducing_v,

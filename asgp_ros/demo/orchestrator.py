@@ -71,6 +71,8 @@ class DemoOptions:
             the predictor holds the last command).
         startup_timeout_s: the drive must start within this time.
         surface: floor of the demo room.
+        force: replace the output of an earlier demo at ``out`` (a directory carrying the
+            demo's marker file); anything else at ``out`` is refused.
     """
 
     minutes: float = 2.0
@@ -86,6 +88,7 @@ class DemoOptions:
     plan: bool = True
     startup_timeout_s: float = 120.0
     surface: str = "tile"
+    force: bool = False
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -98,6 +101,13 @@ class DemoOptions:
             raise DemoError(f"--train-minutes must be in [0.5, 120], got {self.train_minutes}")
         if not 1.0 <= self.camera_rate_hz <= 30.0:
             raise DemoError(f"--camera-rate must be in [1, 30] Hz, got {self.camera_rate_hz}")
+        if not (32 <= self.width <= 4096 and 24 <= self.height <= 4096):
+            raise DemoError(f"--resolution must be between 32x24 and 4096x4096, got "
+                            f"{self.width}x{self.height}")
+        if not (math.isfinite(self.startup_timeout_s) and 1.0 <= self.startup_timeout_s
+                <= 3600.0):
+            raise DemoError(f"--startup-timeout must be in [1, 3600] s, got "
+                            f"{self.startup_timeout_s}")
         if self.surface not in ("tile", "carpet", "hybrid"):
             raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
 
@@ -302,8 +312,16 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     """Run the demo (module docstring); returns the exit code (0 = every node produced
     output and the report was written)."""
     opts.validate()
-    out = Path(opts.out)
+    from asgp_ros.fileio import DEMO_DIR, OutputError, check_output, write_marker
+
+    reuse = opts.model is None and not opts.train  # OUT/model.npz of an earlier run
+    try:
+        out = check_output(opts.out, DEMO_DIR, force=opts.force or reuse,
+                           inputs=[opts.model] if opts.model is not None else [])
+    except OutputError as exc:
+        raise DemoError(str(exc)) from exc
     out.mkdir(parents=True, exist_ok=True)
+    write_marker(out, "demo")
     domain = opts.domain_id if opts.domain_id is not None else default_domain_id()
     state = RunState(options={k: str(v) if isinstance(v, Path) else v
                               for k, v in asdict(opts).items()}, domain_id=domain)

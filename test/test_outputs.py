@@ -1,0 +1,339 @@
+"""No command deletes or replaces what it did not create: every writing command pointed at
+its own input, at an existing directory, at ``.``, at a file of another kind, through a
+file, at a FIFO and at a symlink. In every case: exit code 2, one line on stderr, no
+traceback, and every input byte-identical afterwards. Signals remove temporaries as
+exceptions do."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from asgp_ros.cli import main
+from asgp_ros.fileio import (
+    MODEL_FILE,
+    OutputError,
+    atomic_path,
+    check_output,
+    read_marker,
+)
+
+pytestmark = pytest.mark.slow
+
+
+def _snapshot(*roots: Path) -> dict[str, str]:
+    """Every file and directory under ``roots`` with its content hash (or 'dir')."""
+    out: dict[str, str] = {}
+    for root in roots:
+        root = Path(root)
+        if not os.path.lexists(root):
+            out[str(root)] = "missing"
+            continue
+        items = [root] + (sorted(root.rglob("*")) if root.is_dir() else [])
+        for p in items:
+            if p.is_symlink():
+                out[str(p)] = "link:" + os.readlink(p)
+            elif p.is_dir():
+                out[str(p)] = "dir"
+            elif p.is_file():
+                out[str(p)] = hashlib.sha256(p.read_bytes()).hexdigest()
+            else:
+                out[str(p)] = "special"
+    return out
+
+
+def _refused(argv: list[str], capsys, *watched: Path) -> str:
+    """Run the command: it must fail with one line on stderr, and change nothing watched."""
+    before = _snapshot(*watched)
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 2, (argv, rc, err)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), (argv, err)
+    assert "Traceback" not in err
+    assert _snapshot(*watched) == before, argv
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory):
+    """A bag, a model trained on it, a scores JSON, a stranger's file and directory."""
+    root = tmp_path_factory.mktemp("outputs")
+    bag = root / "drive"
+    assert main(["simulate", "--minutes", "0.3", "--seed", "3", "--out", str(bag)]) == 0
+    model = root / "m.npz"
+    assert main(["train", "--model", "first_order_lag", str(bag), "--out", str(model)]) == 0
+    scores = root / "scores.json"
+    assert main(["evaluate", str(model), str(bag), "--json", str(scores)]) == 0
+    notes = root / "notes.txt"
+    notes.write_text("a user's own file\n")
+    stranger = root / "photos"
+    stranger.mkdir()
+    (stranger / "a.jpg").write_bytes(b"\xff\xd8 not ours")
+    empty = root / "empty"
+    empty.mkdir()
+    fifo = root / "pipe"
+    os.mkfifo(fifo)
+    link = root / "link_to_bag"
+    link.symlink_to(bag)
+    link_notes = root / "link_to_notes"
+    link_notes.symlink_to(notes)
+    return {"root": root, "bag": bag, "model": model, "scores": scores, "notes": notes,
+            "stranger": stranger, "empty": empty, "fifo": fifo, "link": link,
+            "link_notes": link_notes}
+
+
+def test_train_refuses_every_bad_output(work, capsys, monkeypatch):
+    w = work
+    monkeypatch.chdir(w["root"])
+    base = ["train", "--model", "first_order_lag", str(w["bag"])]
+    watched = (w["root"],)
+    for out, why in [
+        (w["bag"], "is the input"),                       # the bag it trains on
+        (w["bag"] / "metadata.yaml", "inside the input"),
+        (w["root"], "contains the input"),
+        (Path("."), "directory"),
+        (w["stranger"], "a directory"),
+        (w["empty"], "a directory"),
+        (w["notes"], "not a model file"),                 # a file of another kind
+        (w["scores"], "not a model file"),
+        (w["model"] / "x.npz", "not a directory"),        # through a file
+        (w["fifo"], "FIFO"),
+        (w["link"], "is the input"),                      # a symlink to the input
+        (w["link_notes"], "symbolic link"),
+        (w["model"], "--force"),                          # same kind, not asked
+    ]:
+        line = _refused([*base, "--out", str(out)], capsys, *watched)
+        assert why in line, (out, line)
+    # --force does not make a stranger's file a model file.
+    for out in (w["notes"], w["stranger"], w["fifo"]):
+        _refused([*base, "--out", str(out), "--force"], capsys, *watched)
+
+
+def test_train_force_replaces_only_a_model(work, capsys, tmp_path):
+    target = tmp_path / "copy.npz"
+    target.write_bytes(work["model"].read_bytes())
+    argv = ["train", "--model", "constant_velocity", str(work["bag"]), "--out", str(target)]
+    assert main([*argv, "--force"]) == 0
+    assert "constant_velocity" in capsys.readouterr().out
+
+
+def test_evaluate_json_refuses_every_bad_output(work, capsys, monkeypatch):
+    w = work
+    monkeypatch.chdir(w["root"])
+    base = ["evaluate", str(w["model"]), str(w["bag"])]
+    for out, why in [
+        (w["model"], "is the input"),
+        (w["bag"], "is the input"),
+        (w["bag"] / "metadata.yaml", "inside the input"),
+        (Path("."), "directory"),
+        (w["stranger"], "a directory"),
+        (w["notes"], "not a evaluation JSON file"),
+        (w["notes"] / "s.json", "not a directory"),
+        (w["fifo"], "FIFO"),
+        (w["scores"], "--force"),
+    ]:
+        line = _refused([*base, "--json", str(out)], capsys, w["root"])
+        assert why in line, (out, line)
+    assert main([*base, "--json", str(w["scores"]), "--force"]) == 0
+
+
+def test_simulate_refuses_every_bad_output(work, capsys, monkeypatch):
+    w = work
+    monkeypatch.chdir(w["root"])
+    base = ["simulate", "--minutes", "0.1"]
+    for out in (Path("."), w["stranger"], w["notes"], w["model"], w["fifo"], w["link"],
+                w["notes"] / "bag", w["bag"]):
+        _refused([*base, "--out", str(out)], capsys, w["root"])
+    for out in (Path("."), w["stranger"], w["notes"], w["model"], w["fifo"]):
+        _refused([*base, "--out", str(out), "--force"], capsys, w["root"])
+    # A ROS 2 bag where a ROS 1 file goes (and back) is another kind.
+    ros1 = w["root"] / "x.bag"
+    ros1.mkdir()
+    _refused([*base, "--out", str(ros1), "--force"], capsys, w["root"])
+    ros1.rmdir()
+
+
+def test_simulate_force_replaces_a_bag(tmp_path, capsys):
+    bag = tmp_path / "b"
+    assert main(["simulate", "--minutes", "0.1", "--seed", "1", "--out", str(bag)]) == 0
+    assert main(["simulate", "--minutes", "0.1", "--seed", "2", "--out", str(bag),
+                 "--force"]) == 0
+    from asgp_ros.bags import read_sim_metadata
+
+    assert read_sim_metadata(bag)["seed"] == 2
+    assert [p.name for p in tmp_path.iterdir()] == ["b"]  # no temporaries left
+
+
+def test_dataset_refuses_other_directories(work, capsys, monkeypatch, tmp_path):
+    w = work
+    monkeypatch.chdir(w["root"])
+    for out in (Path("."), w["stranger"], w["notes"], w["fifo"], w["bag"], w["link"]):
+        _refused(["dataset", "--out", str(out), "--scale", "0.006"], capsys, w["root"])
+    # A stranger's file where one of the dataset's bags goes: refused even with --force.
+    data = tmp_path / "data"
+    (data / "tile").mkdir(parents=True)
+    (data / "tile" / "tile_01").write_text("mine\n")
+    from asgp_ros.fileio import write_marker
+
+    write_marker(data, "dataset")
+    before = _snapshot(data / "tile" / "tile_01")
+    rc = main(["dataset", "--out", str(data), "--scale", "0.006", "--force"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "not a bag" in err and "Traceback" not in err
+    assert _snapshot(data / "tile" / "tile_01") == before
+
+
+def test_reproduce_refuses_its_own_data(work, capsys, tmp_path):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "keep.txt").write_text("dataset\n")
+    for out, why in [(data, "is the input"), (data / "report", "inside the input"),
+                     (tmp_path, "contains the input"), (work["stranger"], "not a"),
+                     (work["notes"], "not a"), (work["fifo"], "not a")]:
+        line = _refused(["reproduce", "--data", str(data), "--out", str(out), "--quick"],
+                        capsys, data, work["root"])
+        assert why in line, (out, line)
+
+
+def test_demo_refuses_a_stranger_directory(work, capsys):
+    for out in (work["stranger"], work["notes"], work["fifo"]):
+        _refused(["demo", "--out", str(out), "--minutes", "0.1"], capsys, work["root"])
+    # The model is an input: an output directory holding it is refused.
+    _refused(["demo", "--out", str(work["root"]), "--model", str(work["model"])], capsys,
+             work["root"])
+
+
+def test_board_link_refuses_to_replace(work, capsys, tmp_path):
+    _refused(["board", "--link", str(work["notes"]), "--duration", "0.1"], capsys,
+             work["root"])
+    link = tmp_path / "ttyX"
+    link.symlink_to("/dev/null")
+    _refused(["board", "--link", str(link), "--duration", "0.1"], capsys, tmp_path)
+
+
+# ------------------------------------------------------------------------ the library level
+def test_atomic_path_never_removes_another_kind(tmp_path):
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "x").write_text("keep")
+    with pytest.raises(FileExistsError), atomic_path(d) as tmp:
+        tmp.write_text("new")
+    assert (d / "x").read_text() == "keep"
+    f = tmp_path / "f"
+    f.write_text("keep")
+    with pytest.raises(FileExistsError), atomic_path(f, directory=True) as tmp:
+        tmp.mkdir()
+    assert f.read_text() == "keep"
+    # A directory output replaces an existing directory only when asked.
+    with pytest.raises(FileExistsError), atomic_path(d, directory=True, replace=False) as tmp:
+        tmp.mkdir()
+    assert (d / "x").read_text() == "keep"
+    with atomic_path(d, directory=True, replace=True) as tmp:
+        tmp.mkdir()
+        (tmp / "y").write_text("new")
+    assert sorted(p.name for p in d.iterdir()) == ["y"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "f"]
+
+
+def test_check_output_resolves_symlinked_parents(tmp_path):
+    real = tmp_path / "real"
+    real.mkdir()
+    bag = real / "bag"
+    bag.mkdir()
+    alias = tmp_path / "alias"
+    alias.symlink_to(real)
+    with pytest.raises(OutputError, match="is the input"):
+        check_output(alias / "bag", MODEL_FILE, inputs=[bag])
+    with pytest.raises(OutputError, match="inside the input"):
+        check_output(alias / "bag" / "m.npz", MODEL_FILE, inputs=[bag])
+
+
+def test_markers(tmp_path):
+    from asgp_ros.fileio import write_marker
+
+    write_marker(tmp_path, "demo")
+    assert read_marker(tmp_path) == "demo"
+    (tmp_path / ".asgp-output").write_text("[" * 100000)
+    assert read_marker(tmp_path) is None
+
+
+# ------------------------------------------------------------------------------- signals
+def _start(args: list[str], cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "asgp_ros.cli", *args], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_for(cond, timeout: float, proc: subprocess.Popen) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        if proc.poll() is not None:
+            _out, err = proc.communicate()
+            pytest.fail(f"process ended early ({proc.returncode}): {err[-2000:]}")
+        time.sleep(0.02)
+    proc.kill()
+    pytest.fail("the command never reached the state to interrupt")
+
+
+def _temporaries(root: Path) -> list[Path]:
+    return [p for p in root.rglob(".*.tmp")]
+
+
+def _stop_and_check(proc: subprocess.Popen, sig: int, root: Path) -> None:
+    proc.send_signal(sig)
+    t0 = time.monotonic()
+    try:
+        _out, err = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail(f"no exit within 10 s of {signal.Signals(sig).name}")
+    took = time.monotonic() - t0
+    assert took < 2.0, f"exit took {took:.1f} s after {signal.Signals(sig).name}"
+    assert proc.returncode == 128 + sig, (proc.returncode, err)
+    assert "Traceback" not in err, err
+    assert _temporaries(root) == []
+
+
+def test_sigterm_while_simulate_writes_removes_temporaries(tmp_path):
+    # 60 minutes: the bag's temporary exists for about a second while it is written.
+    proc = _start(["simulate", "--minutes", "60", "--out", str(tmp_path / "long")], tmp_path)
+    _wait_for(lambda: bool(_temporaries(tmp_path)), 120, proc)
+    _stop_and_check(proc, signal.SIGTERM, tmp_path)
+    assert not (tmp_path / "long").exists()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_during_dataset_removes_temporaries(tmp_path, sig):
+    out = tmp_path / "data"
+    proc = _start(["dataset", "--out", str(out), "--scale", "0.3", "--jobs", "2"], tmp_path)
+    _wait_for(lambda: bool(_temporaries(tmp_path)), 120, proc)
+    _stop_and_check(proc, sig, tmp_path)
+
+
+def test_sigterm_during_train_leaves_nothing(work, tmp_path):
+    proc = _start(["train", "--model", "asgp", "--max-iter", "100000", str(work["bag"]),
+                   "--out", str(tmp_path / "m.npz")], tmp_path)
+    assert proc.stderr is not None
+    line = proc.stderr.readline()  # the first progress line: training has started
+    assert "[asgp" in line, line
+    _stop_and_check(proc, signal.SIGTERM, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sigterm_to_board_removes_its_link(tmp_path):
+    link = tmp_path / "ttyASGP"
+    proc = _start(["board", "--link", str(link), "--source", "neutral"], tmp_path)
+    _wait_for(lambda: link.is_symlink(), 30, proc)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=10)
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert not os.path.lexists(link)
