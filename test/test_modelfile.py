@@ -303,3 +303,228 @@ def test_registered_kinds_use_the_same_file_format(tmp_path: Path) -> None:
     expect_error(path, "invalid 'test_scale' model: v.a must have 7 entries")
     with pytest.raises(ValueError, match="already registered"):
         register_kind(ModelKind("test_scale", to_arrays, from_arrays))
+
+
+# ---- untrusted files: every size and number is checked before it is used ---------------
+
+def _replace_member(path: Path, member: str, payload: bytes) -> None:
+    """Rewrite the archive with ``member``'s bytes replaced by ``payload`` (others kept)."""
+    with zipfile.ZipFile(path) as zf:
+        entries = [(info.filename, zf.read(info)) for info in zf.infolist()]
+    with zipfile.ZipFile(path, "w") as zf:
+        for name, data in entries:
+            zf.writestr(name, payload if name == member else data)
+
+
+def _npy(shape: tuple[int, ...], dtype: str, data: bytes) -> bytes:
+    """An .npy member whose header declares ``shape`` whatever ``data`` holds."""
+    import io
+
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        buf, {"descr": np.dtype(dtype).str, "fortran_order": False, "shape": shape})
+    return buf.getvalue() + data
+
+
+def _run_with_deadline(code: str, deadline_s: float = 20.0) -> Any:
+    import subprocess
+    import sys
+
+    try:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=deadline_s, check=False)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"hung for {deadline_s} s: {code}")
+
+
+def test_a_header_declaring_a_huge_shape_allocates_nothing(saved: Path) -> None:
+    """Issue 16: a header with shape 10**10 made np.load allocate 80 GB (MemoryError)."""
+    _replace_member(saved, "v.alpha.npy", _npy((10**10,), "<f8", np.zeros(8).tobytes()))
+    proc = _run_with_deadline(
+        "import resource, sys\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (2 * 2**30, 2 * 2**30))\n"
+        "from asgp_ros.core.modelfile import ModelFileError, load_model\n"
+        f"try:\n    load_model({str(saved)!r})\n"
+        "except ModelFileError as exc:\n    print(exc)\n")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert str(saved) in proc.stdout and "'v.alpha'" in proc.stdout
+    assert "10000000000" in proc.stdout and "MemoryError" not in proc.stderr
+    expect_error(saved, r"array 'v.alpha' cannot be read: its header's shape \[10000000000\]")
+
+
+def test_headers_must_match_the_data_they_hold(saved: Path) -> None:
+    original = saved.read_bytes()
+    _replace_member(saved, "v.alpha.npy", _npy((100,), "<f8", np.zeros(8).tobytes()))
+    expect_error(saved, "'v.alpha' cannot be read: its header declares 800 data bytes, "
+                        "the archive holds 64")
+    saved.write_bytes(original)
+    _replace_member(saved, "v.alpha.npy", _npy((2, 2, 2, 1, 1), "<f8", np.zeros(8).tobytes()))
+    expect_error(saved, "'v.alpha'.*more than 4 dimensions")
+    saved.write_bytes(original)
+    _replace_member(saved, "v.alpha.npy", _npy((8,), "<c16", np.zeros(16).tobytes()))
+    expect_error(saved, "'v.alpha' cannot be read: non-numeric dtype complex128")
+
+
+def test_a_manifest_with_absurd_shapes_is_refused(saved: Path) -> None:
+    original = saved.read_bytes()
+    for shape, match in (([10**10], "size outside"), ([-1], "size outside"),
+                         ([True], "size outside"), ([4096, 4096], "more than 4194304"),
+                         ("8", "not a list")):
+        saved.write_bytes(original)
+        rewrite(saved, edit_meta(lambda m, s=shape: m["arrays"].update({"v.alpha": s})))
+        expect_error(saved, f"manifest entry 'v.alpha': .*{match}")
+
+
+def test_deeply_nested_metadata_is_refused_without_recursing(saved: Path) -> None:
+    """Issue 16: deeply nested JSON metadata raised RecursionError."""
+    original = saved.read_bytes()
+    deep = "[" * 100_000 + "]" * 100_000
+    rewrite(saved, edit_meta(lambda m: m.update(meta={"x": "__DEEP__"})))
+    rewrite(saved, lambda a: a.update(__meta__=np.array(
+        str(a["__meta__"][()]).replace('"__DEEP__"', deep))))
+    expect_error(saved, "metadata is not valid JSON: nested 100002 levels deep, more than "
+                        "the limit of 32")
+    saved.write_bytes(original)
+    # brackets inside strings do not count
+    rewrite(saved, edit_meta(lambda m: m.update(meta={"note": "[[[{{{" * 1000})))
+    assert load_model(saved).meta["note"].startswith("[[[{{{")
+
+
+def test_metadata_size_and_numbers_are_bounded(saved: Path) -> None:
+    original = saved.read_bytes()
+    rewrite(saved, edit_meta(lambda m: m.update(meta={"blob": "x" * (2**20 + 1)})))
+    expect_error(saved, "metadata is .*characters, more than the limit of 1048576")
+    for literal in ("NaN", "Infinity", "-Infinity", "1e999"):
+        saved.write_bytes(original)
+        rewrite(saved, edit_meta(lambda m: m.update(meta={"x": "__NUM__"})))
+        rewrite(saved, lambda a, lit=literal: a.update(__meta__=np.array(
+            str(a["__meta__"][()]).replace('"__NUM__"', lit))))
+        expect_error(saved, "metadata is not valid JSON: .*(finite|beyond the range)")
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("rate_hz", 1e300), ("rate_hz", 1e20), ("rate_hz", 1e-300), ("max_gap_vel_s", 1e300),
+    ("stale_tolerance", 10.0), ("stale_joy_threshold", 2.0),
+])
+def test_resample_settings_out_of_range_are_refused(saved: Path, field: str,
+                                                    value: float) -> None:
+    """Issue 16: a file with rate_hz 1e300 loaded, then hung Predictor.predict."""
+    def change(m: dict[str, Any]) -> None:
+        m["resample"][field] = value
+        if field == "rate_hz":
+            m["rate_hz"] = value
+
+    rewrite(saved, edit_meta(change))
+    expect_error(saved, f"invalid settings: {field} must be in")
+
+
+def test_top_level_rate_must_be_a_number(saved: Path) -> None:
+    rewrite(saved, edit_meta(lambda m: m.update(rate_hz=True)))
+    expect_error(saved, "rate_hz True disagrees")
+
+
+def test_lags_out_of_range_are_refused(saved: Path) -> None:
+    rewrite(saved, edit_meta(lambda m: m.update(features={"lags": 10**9, "coupled": False})))
+    expect_error(saved, r"invalid settings: lags must be in \[1, 1000\]")
+
+
+@pytest.mark.parametrize(("name", "value", "match"), [
+    ("v.x_scale", 0.0, r"normalisation entry 0 = 0 is outside \[1e-12, 1e\+06\]"),
+    ("omega.y_scale", 1e9, r"normalisation entry 0 = 1e\+09 is outside"),
+    ("v.x_mean", -1e7, r"normalisation entry 0 = -1e\+07 is outside"),
+    ("v.var_matrix", 1e200, r"has a value beyond \+-1e\+15"),
+])
+def test_array_values_out_of_range_are_refused(saved: Path, name: str, value: float,
+                                               match: str) -> None:
+    def poison(a: dict[str, np.ndarray]) -> None:
+        arr = a[name].copy()
+        arr.reshape(-1)[0] = value
+        a[name] = arr
+
+    rewrite(saved, poison)
+    expect_error(saved, f"array '{name}' {match}")
+
+
+def test_mlp_normalisation_is_checked_per_entry(tmp_path: Path) -> None:
+    from asgp_ros.core.baselines import MLPChannel
+
+    rng = np.random.default_rng(0)
+    fc = FeatureConfig(lags=2)
+    chans = [MLPChannel([rng.normal(size=(5, 3)), rng.normal(size=(3, 1))],
+                        [np.zeros(3), np.zeros(1)], np.zeros(5), np.ones(5), 0.1, 0.5)
+             for _ in range(2)]
+    path = tmp_path / "mlp.npz"
+    save_model(path, MotionModel("mlp", fc, ResampleConfig(), (chans[0], chans[1])))
+    assert load_model(path).kind == "mlp"
+    rewrite(path, lambda a: a.update({"omega.y_norm": np.array([0.1, -2.0])}))
+    expect_error(path, r"array 'omega.y_norm' normalisation entry 1 = -2 is outside")
+
+
+def test_save_refuses_what_load_would_refuse(model: MotionModel, tmp_path: Path) -> None:
+    from asgp_ros.core import models
+
+    arrays, _params = models.get_kind("asgp").to_arrays(model)
+    arrays["v.x_scale"] = np.full_like(arrays["v.x_scale"], 1e9)
+    with pytest.raises(ModelFileError, match=r"'v\.x_scale' normalisation entry 0"):
+        modelfile._check_arrays(tmp_path / "m.npz", arrays)
+
+
+def test_a_fifo_is_refused_at_once(tmp_path: Path) -> None:
+    """Issue 16: a model path that is a FIFO blocked the reader (and the node) forever."""
+    fifo = tmp_path / "model.npz"
+    os.mkfifo(fifo)
+    proc = _run_with_deadline(
+        "from asgp_ros.core.modelfile import ModelFileError, load_model\n"
+        f"try:\n    load_model({str(fifo)!r})\n"
+        "except ModelFileError as exc:\n    print(exc)\n")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == f"model file {fifo}: is a FIFO (named pipe), not a regular file"
+    link = tmp_path / "link.npz"
+    link.symlink_to(fifo)
+    expect_error(link, "is a FIFO")
+
+
+def test_devices_sockets_and_oversized_files_are_refused(tmp_path: Path) -> None:
+    import socket
+
+    if os.path.exists("/dev/zero"):
+        with pytest.raises(ModelFileError, match="/dev/zero: is a character device"):
+            load_model("/dev/zero")
+    sock_path = tmp_path / "s.npz"
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.bind(str(sock_path))
+        expect_error(sock_path, "is a socket, not a regular file")
+    big = tmp_path / "big.npz"
+    with open(big, "wb") as fh:
+        fh.truncate(modelfile.MAX_FILE_BYTES + 1)  # sparse: no disk used
+    expect_error(big, f"is {modelfile.MAX_FILE_BYTES + 1} bytes, more than the limit")
+
+
+def test_a_forged_member_count_is_refused_before_parsing(saved: Path) -> None:
+    data = bytearray(saved.read_bytes())
+    at = data.rfind(b"PK\x05\x06")
+    data[at + 8:at + 12] = (60000).to_bytes(2, "little") * 2
+    saved.write_bytes(bytes(data))
+    expect_error(saved, "60000 members, more than 256")
+
+
+def test_loads_bounded_directly() -> None:
+    assert modelfile.loads_bounded('{"a": [1, 2.5, "]]]"]}') == {"a": [1, 2.5, "]]]"]}
+    with pytest.raises(ValueError, match="nested 3 levels"):
+        modelfile.loads_bounded("[[[1]]]", max_depth=2)
+    with pytest.raises(ValueError, match="more than the limit of 4"):
+        modelfile.loads_bounded("[1, 2]", max_chars=4)
+
+
+def test_save_refuses_metadata_that_load_would_refuse(model: MotionModel,
+                                                      tmp_path: Path) -> None:
+    nested: dict[str, Any] = {}
+    inner = nested
+    for _ in range(40):
+        inner["x"] = {}
+        inner = inner["x"]
+    deep = MotionModel("asgp", model.feature_config, model.resample_config, model.channels,
+                       meta=nested)
+    with pytest.raises(ModelFileError, match=r"metadata cannot be stored: nested 4\d levels"):
+        save_model(tmp_path / "m.npz", deep)
+    assert os.listdir(tmp_path) == []

@@ -34,13 +34,18 @@ IntArray = NDArray[np.int64]
 #: Names of the two output channels, in order.
 CHANNELS = ("v", "omega")
 
+#: Range of the number of lags s (inclusive): the paper uses 4, its MLP 10; 1000 steps are
+#: 200 s at 5 Hz, beyond any history a prediction can use.
+LAGS_RANGE = (1, 1000)
+
 
 @dataclass(frozen=True)
 class FeatureConfig:
     """Autoregressive feature settings.
 
     Attributes:
-        lags: s, the number of past steps of joystick and velocity (the paper uses 4).
+        lags: s, the number of past steps of joystick and velocity (the paper uses 4),
+            in ``LAGS_RANGE``.
         coupled: feed both joystick axes and both velocities to each channel.
     """
 
@@ -50,8 +55,9 @@ class FeatureConfig:
     def __post_init__(self) -> None:
         if isinstance(self.lags, bool) or not isinstance(self.lags, int | np.integer):
             raise ValueError(f"lags must be an integer, got {self.lags!r}")
-        if not 1 <= int(self.lags) <= 1000:
-            raise ValueError(f"lags must be in [1, 1000], got {self.lags}")
+        low, high = LAGS_RANGE
+        if not low <= int(self.lags) <= high:
+            raise ValueError(f"lags must be in [{low}, {high}], got {self.lags}")
         if not isinstance(self.coupled, bool | np.bool_):
             raise ValueError(f"coupled must be a bool, got {self.coupled!r}")
         object.__setattr__(self, "lags", int(self.lags))

@@ -14,10 +14,25 @@ Layout (format version 1):
   as the kind's ``to_arrays`` produced them (:mod:`asgp_ros.core.models`).
 
 The file is written atomically (:func:`asgp_ros.fileio.atomic_path`: a failed save leaves
-any previous file untouched) and read with ``np.load(allow_pickle=False)``; nothing in it
-is executable. :func:`load_model` validates everything (container, version, kind, the
-array manifest, shapes, finiteness, and the kind's own checks) and raises
-:class:`ModelFileError` naming the file and the problem.
+any previous file untouched). Nothing in it is executable, and nothing in it is trusted:
+:func:`load_model` reads it in this order and refuses (:class:`ModelFileError`, naming the
+file and the problem) at the first thing that does not validate:
+
+1. the path: ``os.stat`` before opening; only a regular file of at most ``MAX_FILE_BYTES``
+   (a FIFO, a device, a socket or a directory is refused without being opened, so a
+   reader never blocks on it);
+2. the archive's directory: at most ``MAX_MEMBERS`` ``.npy`` members, stored or deflated;
+3. every member's ``.npy`` header (``numpy.lib.format``): a plain numeric dtype (unicode
+   for the metadata), at most ``MAX_NDIM`` dimensions and ``MAX_ARRAY_ELEMENTS`` elements,
+   and exactly as many data bytes as the header declares (``MAX_DATA_BYTES`` in all) --
+   before any array data is read, so a header declaring 10**10 elements allocates nothing;
+4. the metadata: at most ``MAX_META_CHARS`` characters nested at most ``MAX_META_DEPTH``
+   deep, finite numbers only (:func:`loads_bounded`); every number the model uses is
+   checked against its documented range (``rate_hz`` and the resampling settings:
+   :data:`asgp_ros.core.resample.RESAMPLE_RANGES`; ``lags``:
+   :data:`asgp_ros.core.features.LAGS_RANGE`; array shapes as in 3.);
+5. the manifest against the headers, then the data: finite, ``|x| <= MAX_ABS_VALUE``,
+   normalisation entries within ``NORMALISATION_RANGES``; then the kind's own checks.
 """
 
 from __future__ import annotations
@@ -27,10 +42,14 @@ import logging
 import math
 import os
 import re
+import stat
+import struct
 import zipfile
 import zlib
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -47,6 +66,38 @@ META_KEY = "__meta__"
 _NAME_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.]{0,127}")
 _READ_ERRORS = (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error)
 
+# Limits of a model file (a trained model is a few hundred kB; these are generous). Each
+# is checked before the thing it bounds is read or allocated.
+#: Size of the whole file (bytes).
+MAX_FILE_BYTES = 64 * 2**20
+#: Members of the archive (a model has a few dozen arrays).
+MAX_MEMBERS = 256
+#: Dimensions of one array.
+MAX_NDIM = 4
+#: Elements of one array (a 2048 x 2048 covariance).
+MAX_ARRAY_ELEMENTS = 2**22
+#: Data bytes of all arrays together, uncompressed.
+MAX_DATA_BYTES = 64 * 2**20
+#: Characters of the JSON metadata.
+MAX_META_CHARS = 2**20
+#: Nesting depth of the JSON metadata (the writer nests 3 levels).
+MAX_META_DEPTH = 32
+#: Largest |value| of any array element (squares stay far from float64 overflow).
+MAX_ABS_VALUE = 1e15
+_MEAN_RANGE = (-1e6, 1e6)
+_SCALE_RANGE = (1e-12, 1e6)
+#: Normalisation arrays (the name after ``<channel>.``): the range of every element, or a
+#: tuple with one range per element (the MLP's ``y_norm`` = (mean, scale)).
+NORMALISATION_RANGES: dict[str, Any] = {
+    "x_mean": _MEAN_RANGE,
+    "x_scale": _SCALE_RANGE,
+    "y_mean": _MEAN_RANGE,
+    "y_scale": _SCALE_RANGE,
+    "y_norm": (_MEAN_RANGE, _SCALE_RANGE),
+}
+_NPY_MAGIC = b"\x93NUMPY"
+_EOCD = struct.Struct("<4s4H2LH")  # end of central directory record
+
 
 class ModelFileError(ValueError):
     """A model file that cannot be written or does not validate.
@@ -62,17 +113,172 @@ class ModelFileError(ValueError):
         super().__init__(f"model file {self.path}: {problem}")
 
 
+# ----------------------------------------------------------------------- reading safely
+
+_FILE_TYPES = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+               (stat.S_ISSOCK, "a socket"))
+
+
+def file_type_problem(mode: int) -> str | None:
+    """Why a path whose ``st_mode`` is ``mode`` is not a regular file, or None if it is."""
+    if stat.S_ISREG(mode):
+        return None
+    for is_type, what in _FILE_TYPES:
+        if is_type(mode):
+            return f"is {what}, not a regular file"
+    return "is not a regular file"
+
+
+def regular_file_problem(path: str | os.PathLike[str],
+                         max_bytes: int | None = None) -> str | None:
+    """Why ``path`` cannot be read as a regular file (``os.stat``, nothing is opened).
+
+    Returns None for a regular file of at most ``max_bytes``; otherwise "no such file",
+    "is a FIFO (named pipe), not a regular file", ..., in words to follow the path.
+    """
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return "no such file"
+    except (OSError, ValueError) as exc:
+        return f"cannot be read: {getattr(exc, 'strerror', None) or exc}"
+    problem = file_type_problem(st.st_mode)
+    if problem is None and max_bytes is not None and st.st_size > max_bytes:
+        problem = f"is {st.st_size} bytes, more than the limit of {max_bytes}"
+    return problem
+
+
+@contextmanager
+def open_regular_file(path: str | os.PathLike[str],
+                      max_bytes: int | None = None) -> Iterator[IO[bytes]]:
+    """Open a regular file for binary reading without ever blocking on anything else.
+
+    The path is checked with :func:`regular_file_problem` before it is opened, and opened
+    non-blocking and checked again with ``fstat``, so a path replaced by a FIFO or a
+    device between the two is refused too.
+
+    Raises:
+        ValueError: the problem in words (the caller names the path).
+    """
+    problem = regular_file_problem(path, max_bytes)
+    if problem is not None:
+        raise ValueError(problem)
+    flags = (os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+             | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise ValueError(f"cannot be opened: {exc.strerror or exc}") from exc
+    try:
+        st = os.fstat(fd)
+        problem = file_type_problem(st.st_mode)
+        if problem is None and max_bytes is not None and st.st_size > max_bytes:
+            problem = f"is {st.st_size} bytes, more than the limit of {max_bytes}"
+        if problem is not None:
+            raise ValueError(problem)
+        os.set_blocking(fd, True)
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    with fh:
+        yield fh
+
+
+def _finite_float(text: str) -> float:
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"number {text} is beyond the range of a float")
+    return value
+
+
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a finite number")
+
+
+def loads_bounded(text: str, max_chars: int = MAX_META_CHARS,
+                  max_depth: int = MAX_META_DEPTH) -> Any:
+    """``json.loads`` for untrusted text: size and nesting bounded, numbers finite.
+
+    The nesting is measured on the text before parsing (brackets outside strings), so a
+    deeply nested document is refused without recursing into it.
+
+    Raises:
+        ValueError: too long, nested too deeply, NaN / Infinity / an overflowing number,
+            or not JSON.
+    """
+    if len(text) > max_chars:
+        raise ValueError(f"{len(text)} characters, more than the limit of {max_chars}")
+    code = np.frombuffer(_JSON_STRING.sub('""', text).encode("utf-8", "surrogatepass"),
+                         dtype=np.uint8)
+    step = (np.isin(code, _JSON_OPEN).astype(np.int64)
+            - np.isin(code, _JSON_CLOSE).astype(np.int64))
+    depth = int(np.cumsum(step).max()) if step.size else 0
+    if depth > max_depth:
+        raise ValueError(f"nested {depth} levels deep, more than the limit of {max_depth}")
+    try:
+        return json.loads(text, parse_float=_finite_float, parse_constant=_no_constant)
+    except RecursionError:  # pragma: no cover - the depth check comes first
+        raise ValueError(f"nested more than {max_depth} levels deep") from None
+
+
+_JSON_STRING = re.compile(r'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_JSON_OPEN = np.frombuffer(b"[{", dtype=np.uint8)
+_JSON_CLOSE = np.frombuffer(b"]}", dtype=np.uint8)
+
+
+def _shape_problem(shape: object) -> str | None:
+    """Why ``shape`` (a manifest entry or a header's shape) is not allowed, or None."""
+    if not isinstance(shape, list | tuple):
+        return f"shape {shape!r} is not a list"
+    if len(shape) > MAX_NDIM:
+        return f"shape {list(shape)} has more than {MAX_NDIM} dimensions"
+    for n in shape:
+        if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= MAX_ARRAY_ELEMENTS:
+            return f"shape {list(shape)} has a size outside [0, {MAX_ARRAY_ELEMENTS}]"
+    if math.prod(shape) > MAX_ARRAY_ELEMENTS:
+        return f"shape {list(shape)} has more than {MAX_ARRAY_ELEMENTS} elements"
+    return None
+
+
+def _value_problem(name: str, arr: np.ndarray) -> str | None:
+    """Why the values of array ``name`` are not allowed (non-finite, huge, normalisation
+    outside ``NORMALISATION_RANGES``), or None."""
+    if arr.dtype.kind not in "fiub":
+        return f"has non-numeric dtype {arr.dtype}"
+    if arr.dtype.kind == "b" or arr.size == 0:
+        return None
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        return "contains NaN or inf"
+    if float(np.max(np.abs(arr.astype(np.float64)))) > MAX_ABS_VALUE:
+        return f"has a value beyond +-{MAX_ABS_VALUE:g}"
+    ranges = NORMALISATION_RANGES.get(name.rsplit(".", 1)[-1])
+    if ranges is None:
+        return None
+    flat = arr.astype(np.float64).reshape(-1)
+    per_element = isinstance(ranges[0], tuple)
+    if per_element and flat.shape[0] != len(ranges):
+        return f"must have {len(ranges)} entries, has {flat.shape[0]}"
+    for i, x in enumerate(flat):
+        low, high = ranges[i] if per_element else ranges
+        if not low <= x <= high:
+            return f"normalisation entry {i} = {x:g} is outside [{low:g}, {high:g}]"
+    return None
+
+
 def _check_arrays(path: str | os.PathLike[str],
                   arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    if len(arrays) >= MAX_MEMBERS:
+        raise ModelFileError(path, f"{len(arrays)} arrays, more than {MAX_MEMBERS - 1}")
     out: dict[str, np.ndarray] = {}
     for name, value in arrays.items():
         if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
             raise ModelFileError(path, f"array name {name!r} is not allowed")
         arr = np.asarray(value)
-        if arr.dtype.kind not in "fiub":
-            raise ModelFileError(path, f"array {name!r} has non-numeric dtype {arr.dtype}")
-        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-            raise ModelFileError(path, f"array {name!r} contains NaN or inf")
+        problem = _shape_problem(list(arr.shape)) or _value_problem(name, arr)
+        if problem is not None:
+            raise ModelFileError(path, f"array {name!r} {problem}")
         out[name] = arr
     return out
 
@@ -81,8 +287,9 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
     """Write ``model`` to ``path`` (one .npz, atomically; see the module docstring).
 
     Raises:
-        ModelFileError: the model cannot be stored (unknown kind, non-finite arrays,
-            metadata that is not JSON).
+        ModelFileError: the model cannot be stored (unknown kind, arrays or metadata that
+            :func:`load_model` would refuse: non-finite or out-of-range values, too large,
+            metadata that is not JSON or nested too deeply).
     """
     try:
         kind = get_kind(model.kind)
@@ -107,6 +314,10 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
         text = json.dumps(meta, allow_nan=False, sort_keys=True)
     except (TypeError, ValueError) as exc:
         raise ModelFileError(path, f"metadata is not plain JSON: {exc}") from exc
+    try:
+        loads_bounded(text)  # never write a file that load_model would refuse
+    except ValueError as exc:
+        raise ModelFileError(path, f"metadata cannot be stored: {exc}") from exc
     payload: dict[str, Any] = {META_KEY: np.array(text), **arrays}
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         # a file object, so numpy does not append ".npz" to the temporary name
@@ -114,38 +325,139 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
     logger.info("saved %s model to %s", model.kind, path)
 
 
-def _read_npz(path: Path) -> tuple[str, dict[str, np.ndarray]]:
-    """The metadata text and the arrays of an .npz, or ModelFileError."""
+class _Member:
+    """One ``.npy`` member of the archive, its header checked (nothing of its data read)."""
+
+    def __init__(self, info: zipfile.ZipInfo, shape: tuple[int, ...], fortran: bool,
+                 dtype: np.dtype[Any], offset: int) -> None:
+        self.info = info
+        self.shape = shape
+        self.fortran = fortran
+        self.dtype = dtype
+        self.offset = offset  # bytes of magic and header before the data
+        self.nbytes = math.prod(shape) * dtype.itemsize
+
+
+def _zip_directory_problem(fh: IO[bytes], size: int) -> str | None:
+    """Check the archive's end record (entry count, directory size) before zipfile parses
+    the directory, so a forged count cannot make it build millions of entries."""
+    tail = min(size, _EOCD.size + 0xFFFF)
+    fh.seek(size - tail)
+    data = fh.read(tail)
+    at = data.rfind(b"PK\x05\x06")
+    if at < 0 or len(data) - at < _EOCD.size:
+        return None  # not a zip: zipfile says so below
+    _sig, _disk, _cd_disk, _here, entries, cd_size, _cd_off, _comment = _EOCD.unpack_from(data, at)
+    if entries > MAX_MEMBERS:
+        return f"the archive has {entries} members, more than {MAX_MEMBERS}"
+    if cd_size > MAX_MEMBERS * (46 + 3 * 0xFFFF):
+        return f"the archive's directory is {cd_size} bytes"
+    return None
+
+
+def _read_header(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, key: str) -> _Member:
+    """The checked ``.npy`` header of one member (reads only the header)."""
+    what = "metadata" if key == META_KEY else f"array {key!r}"
+    if info.flag_bits & 0x1:
+        raise ModelFileError(path, f"{what} cannot be read: it is encrypted")
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        raise ModelFileError(path, f"{what} cannot be read: unsupported compression "
+                                   f"{info.compress_type}")
+    if info.file_size > MAX_DATA_BYTES + 4096:
+        raise ModelFileError(path, f"{what} is {info.file_size} bytes, more than the limit "
+                                   f"of {MAX_DATA_BYTES}")
     try:
-        data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise ModelFileError(path, "no such file") from None
-    except IsADirectoryError:
-        raise ModelFileError(path, "is a directory, not a model file") from None
+        with zf.open(info) as f:
+            version = np.lib.format.read_magic(f)
+            if version == (1, 0):
+                header = np.lib.format.read_array_header_1_0(f, max_header_size=4096)
+            elif version == (2, 0):
+                header = np.lib.format.read_array_header_2_0(f, max_header_size=4096)
+            else:
+                raise ValueError(f"unsupported .npy format version {version}")
+            offset = f.tell()
     except _READ_ERRORS as exc:
         raise ModelFileError(
-            path, f"not an .npz model file (unreadable or truncated archive: {exc})"
-        ) from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ModelFileError(path, "not an .npz model file (a single .npy array)")
-    arrays: dict[str, np.ndarray] = {}
+            path, f"{what} cannot be read (truncated or corrupt header: {exc})") from exc
+    shape, fortran, dtype = header
+    if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
+        raise ModelFileError(path, f"{what} cannot be read: dtype {dtype} is not a plain "
+                                   "numeric type (objects are never unpickled)")
+    if key == META_KEY:
+        if dtype.kind != "U" or shape != ():
+            raise ModelFileError(path, f"metadata {META_KEY!r} is not a JSON string")
+        if dtype.itemsize > 4 * MAX_META_CHARS:
+            raise ModelFileError(path, f"metadata is {dtype.itemsize // 4} characters, more "
+                                       f"than the limit of {MAX_META_CHARS}")
+    else:
+        if dtype.kind not in "fiub" or dtype.itemsize > 16:
+            raise ModelFileError(path, f"array {key!r} cannot be read: non-numeric dtype "
+                                       f"{dtype}")
+        problem = _shape_problem(shape)
+        if problem is not None:
+            raise ModelFileError(path, f"array {key!r} cannot be read: its header's {problem}")
+    member = _Member(info, tuple(shape), bool(fortran), dtype, offset)
+    if info.file_size - offset != member.nbytes:
+        raise ModelFileError(
+            path, f"{what} cannot be read: its header declares {member.nbytes} data bytes, "
+                  f"the archive holds {info.file_size - offset}")
+    return member
+
+
+def _read_data(path: Path, zf: zipfile.ZipFile, member: _Member, key: str) -> np.ndarray:
+    """The data of a member whose header :func:`_read_header` checked."""
+    what = "metadata" if key == META_KEY else f"array {key!r}"
     try:
-        names = list(data.files)
-        if META_KEY not in names:
+        with zf.open(member.info) as f:
+            f.read(member.offset)
+            data = f.read(member.nbytes)
+            if len(data) != member.nbytes or f.read(1):
+                raise EOFError(f"{len(data)} of {member.nbytes} data bytes")
+    except _READ_ERRORS as exc:
+        raise ModelFileError(
+            path, f"{what} cannot be read (truncated or corrupt: {exc})") from exc
+    flat = np.frombuffer(data, dtype=member.dtype)
+    arr = flat.reshape(member.shape[::-1]).T if member.fortran else flat.reshape(member.shape)
+    return np.array(arr, dtype=member.dtype.newbyteorder("="))
+
+
+@contextmanager
+def _open_npz(path: Path) -> Iterator[tuple[zipfile.ZipFile, dict[str, _Member]]]:
+    """The archive and the checked headers of its members (steps 1-3 of the module doc)."""
+    with ExitStack() as stack:
+        try:
+            fh = stack.enter_context(open_regular_file(path, MAX_FILE_BYTES))
+        except ValueError as exc:
+            raise ModelFileError(path, str(exc)) from None
+        size = os.fstat(fh.fileno()).st_size
+        if fh.read(len(_NPY_MAGIC)) == _NPY_MAGIC:
+            raise ModelFileError(path, "not an .npz model file (a single .npy array)")
+        problem = _zip_directory_problem(fh, size)
+        if problem is not None:
+            raise ModelFileError(path, f"not a model file: {problem}")
+        fh.seek(0)
+        try:
+            zf = stack.enter_context(zipfile.ZipFile(fh))
+        except _READ_ERRORS as exc:
+            raise ModelFileError(
+                path, f"not an .npz model file (unreadable or truncated archive: {exc})"
+            ) from exc
+        members: dict[str, _Member] = {}
+        total = 0
+        for info in zf.infolist():
+            name = info.filename
+            key = name[:-4] if name.endswith(".npy") else name
+            if not name.endswith(".npy") or not (key == META_KEY or _NAME_RE.fullmatch(key)):
+                raise ModelFileError(path, f"unexpected archive member {name!r}")
+            if key in members:
+                raise ModelFileError(path, f"archive member {name!r} appears twice")
+            members[key] = _read_header(path, zf, info, key)
+            total += members[key].nbytes
+            if total > MAX_DATA_BYTES:
+                raise ModelFileError(path, f"the arrays hold more than {MAX_DATA_BYTES} bytes")
+        if META_KEY not in members:
             raise ModelFileError(path, f"no metadata entry {META_KEY!r} (not a model file)")
-        for name in names:
-            try:
-                arrays[name] = np.asarray(data[name])
-            except _READ_ERRORS as exc:
-                raise ModelFileError(
-                    path, f"array {name!r} cannot be read (truncated or corrupt: {exc})"
-                ) from exc
-    finally:
-        data.close()
-    meta_arr = arrays.pop(META_KEY)
-    if meta_arr.ndim != 0 or meta_arr.dtype.kind != "U":
-        raise ModelFileError(path, f"metadata {META_KEY!r} is not a JSON string")
-    return str(meta_arr[()]), arrays
+        yield zf, members
 
 
 def _require(path: Path, meta: dict[str, Any], key: str, typ: type | tuple[type, ...]) -> Any:
@@ -157,24 +469,9 @@ def _require(path: Path, meta: dict[str, Any], key: str, typ: type | tuple[type,
     return value
 
 
-def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionModel:
-    """Read and validate a model file.
-
-    Args:
-        path: the .npz written by :func:`save_model`.
-        kind: if given, the file must hold a model of this kind.
-
-    Raises:
-        ModelFileError: naming the file and the problem (missing, not an .npz, truncated,
-            metadata not JSON, wrong format or version, unknown or unexpected kind,
-            missing, unexpected, mis-shaped or non-finite arrays, invalid model).
-    """
-    p = Path(path)
-    text, arrays = _read_npz(p)
-    try:
-        meta = json.loads(text)
-    except ValueError as exc:
-        raise ModelFileError(p, f"metadata is not valid JSON: {exc}") from exc
+def _check_meta(p: Path, meta: Any, kind: str | None
+                ) -> tuple[str, FeatureConfig, ResampleConfig, dict[str, Any]]:
+    """Kind, settings and array manifest of parsed metadata (every number range-checked)."""
     if not isinstance(meta, dict):
         raise ModelFileError(p, "metadata is not a JSON object")
     fmt = meta.get("format")
@@ -189,12 +486,6 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionM
     kind_name = _require(p, meta, "kind", str)
     if kind is not None and kind_name != kind:
         raise ModelFileError(p, f"holds a {kind_name!r} model, expected {kind!r}")
-    try:
-        model_kind = get_kind(kind_name)
-    except KeyError:
-        raise ModelFileError(
-            p, f"unknown model kind {kind_name!r} (known: {', '.join(registered_kinds())})"
-        ) from None
     channels = _require(p, meta, "channels", list)
     if channels != list(CHANNELS):
         raise ModelFileError(p, f"channels {channels!r}, expected {list(CHANNELS)!r}")
@@ -206,25 +497,64 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionM
             raise
         raise ModelFileError(p, f"invalid settings: {exc}") from exc
     rate = meta.get("rate_hz", resample_cfg.rate_hz)
-    if not isinstance(rate, int | float) or not math.isclose(rate, resample_cfg.rate_hz):
+    if (isinstance(rate, bool) or not isinstance(rate, int | float)
+            or not math.isclose(rate, resample_cfg.rate_hz)):
         raise ModelFileError(p, f"rate_hz {rate!r} disagrees with the resample settings")
     manifest = _require(p, meta, "arrays", dict)
-    missing = sorted(set(manifest) - set(arrays))
-    if missing:
-        raise ModelFileError(p, f"missing array(s) {', '.join(map(repr, missing))}")
-    extra = sorted(set(arrays) - set(manifest))
-    if extra:
-        raise ModelFileError(p, f"unexpected array(s) {', '.join(map(repr, extra))}")
+    if len(manifest) >= MAX_MEMBERS:
+        raise ModelFileError(p, f"the manifest lists {len(manifest)} arrays, more than "
+                                f"{MAX_MEMBERS - 1}")
+    for name, shape in manifest.items():
+        problem = _shape_problem(shape)
+        if problem is not None:
+            raise ModelFileError(p, f"manifest entry {name!r}: {problem}")
+    return kind_name, features, resample_cfg, manifest
+
+
+def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionModel:
+    """Read and validate a model file (in the order of the module docstring).
+
+    Args:
+        path: the .npz written by :func:`save_model`.
+        kind: if given, the file must hold a model of this kind.
+
+    Raises:
+        ModelFileError: naming the file and the problem (missing, not a regular file, too
+            large, not an .npz, truncated, a member's header out of range, metadata not
+            bounded JSON, wrong format or version, unknown or unexpected kind, a setting
+            out of its range, missing, unexpected, mis-shaped, non-finite or out-of-range
+            arrays, invalid model).
+    """
+    p = Path(path)
+    with _open_npz(p) as (zf, members):
+        text = str(_read_data(p, zf, members.pop(META_KEY), META_KEY)[()])
+        try:
+            meta = loads_bounded(text)
+        except ValueError as exc:
+            raise ModelFileError(p, f"metadata is not valid JSON: {exc}") from exc
+        kind_name, features, resample_cfg, manifest = _check_meta(p, meta, kind)
+        missing = sorted(set(manifest) - set(members))
+        if missing:
+            raise ModelFileError(p, f"missing array(s) {', '.join(map(repr, missing))}")
+        extra = sorted(set(members) - set(manifest))
+        if extra:
+            raise ModelFileError(p, f"unexpected array(s) {', '.join(map(repr, extra))}")
+        for name, member in members.items():
+            if list(member.shape) != manifest[name]:
+                raise ModelFileError(
+                    p, f"array {name!r} has shape {list(member.shape)}, the manifest says "
+                       f"{manifest[name]!r}")
+        arrays = {name: _read_data(p, zf, member, name) for name, member in members.items()}
     for name, arr in arrays.items():
-        shape = manifest[name]
-        if not isinstance(shape, list) or list(arr.shape) != shape:
-            raise ModelFileError(
-                p, f"array {name!r} has shape {list(arr.shape)}, the manifest says {shape!r}"
-            )
-        if arr.dtype.kind not in "fiub":
-            raise ModelFileError(p, f"array {name!r} has non-numeric dtype {arr.dtype}")
-        if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-            raise ModelFileError(p, f"array {name!r} contains NaN or inf")
+        problem = _value_problem(name, arr)
+        if problem is not None:
+            raise ModelFileError(p, f"array {name!r} {problem}")
+    try:
+        model_kind = get_kind(kind_name)
+    except KeyError:
+        raise ModelFileError(
+            p, f"unknown model kind {kind_name!r} (known: {', '.join(registered_kinds())})"
+        ) from None
     params = meta.get("kind_params", {})
     if not isinstance(params, dict):
         raise ModelFileError(p, "metadata 'kind_params' is not an object")
