@@ -388,3 +388,101 @@ def test_odometry_poses_give_the_origin():
 def test_config_validation(bad):
     with pytest.raises(ValueError):
         PredictorConfig(**bad)
+
+
+# ---- bad input never drives a prediction (issue 16) ------------------------------------
+
+@pytest.mark.parametrize("now", [math.nan, math.inf, -math.inf, 1e300])
+def test_predict_at_an_invalid_time_is_not_ok(now):
+    pred, (jt, _, vt, _) = _fed(1010.0)
+    good = max(jt[-1], vt[-1])
+    for call in (lambda: pred.predict(now), lambda: pred.predict_batch(np.zeros((1, 3, 2)), now),
+                 lambda: pred.status(now)):
+        r = call()
+        assert r is not None and not r.ok and r.reason == online.INVALID_TIME
+        assert r.detail.startswith("now: time stamp")
+    assert pred.stats.resets == 0  # an invalid clock is not a clock jump
+    assert pred.predict(good).ok
+
+
+def test_out_of_range_samples_are_refused_with_a_reason(data):
+    jt, joy, vt, vel, _ = data
+    events = [e for e in arrival_order(jt, joy, vt, vel) if e[0] < 1012.0]
+    clean = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    dirty = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+    bad = 0
+    for n, ev in enumerate(events):
+        feed(clean, ev)
+        feed(dirty, ev)
+        if n % 50 == 10:
+            t = ev[0]
+            assert not dirty.feed_joy(t + 0.001, (1e30, 0.0))
+            assert not dirty.feed_joy(t + 0.002, (0.0, -1.2))
+            assert not dirty.feed_vo(t + 0.003, (6.0, 0.0))  # faster than any wheelchair
+            assert not dirty.feed_vo(t + 0.004, (0.1, -1e30))
+            assert not dirty.feed_joy(1e300, (0.1, 0.0))
+            assert not dirty.feed_vo(-1e11, (0.1, 0.0))
+            bad += 1
+    assert dirty.stats.rejected == {online.REJECT_JOY: 2 * bad, online.REJECT_VO: 2 * bad,
+                                    online.REJECT_TIME: 2 * bad}
+    assert dirty.stats.last_rejected == (
+        "time_out_of_range: VO: time stamp -1e+11 s is beyond +-1e+10 s")
+    assert dirty.stats.dropped_nonfinite == 0 and dirty.stats.resets == 0
+    now = events[-1][0]
+    a, b = clean.predict(now), dirty.predict(now)
+    assert a.ok and b.ok
+    np.testing.assert_array_equal(a.pose, b.pose)
+
+
+def test_the_reasons_name_the_problem():
+    pred = Predictor(linear_model())
+    assert pred.feed_joy(1.0, (1.04, -1.05))  # calibration overshoot is tolerated
+    assert not pred.feed_joy(1.0, (1.06, 0.0))
+    assert pred.stats.last_rejected == ("joy_out_of_range: joystick: forward deflection 1.06 "
+                                        "is outside [-1.05, 1.05]")
+    assert pred.feed_vo(1.0, (-5.0, 10.0))
+    assert not pred.feed_vo(1.0, (0.0, 10.5))
+    assert pred.stats.last_rejected == "vo_out_of_range: VO: |omega| = 10.5 rad/s is beyond " \
+                                       "10 rad/s"
+    assert not pred.feed_vo(1.0, (math.nan, 0.0))
+    assert pred.stats.last_rejected == "nonfinite: VO: v is nan"
+    assert pred.stats.dropped_nonfinite == 1
+    # a sample reporting tracking loss carries no velocity: kept as a failure, any values
+    assert pred.feed_vo(1.1, (1e30, math.nan), ok=False)
+    assert not pred.feed_pose(1.0, 2e6, 0.0, 0.0)
+    assert pred.stats.last_rejected == "pose_out_of_range: pose |x| = 2e+06 is beyond 1e+06"
+    assert pred.feed_pose(1.0, -1e6, 1e6, 3.0)
+    assert pred.stats.rejected == {online.REJECT_JOY: 1, online.REJECT_VO: 1,
+                                   online.REJECT_NONFINITE: 1, online.REJECT_POSE: 1}
+
+
+def test_plans_and_futures_out_of_range_are_refused():
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=4)
+    now = max(jt[-1], vt[-1])
+    for plan, stamp, reason, match in (
+            (np.full((3, 2), 1e30), now, online.REJECT_PLAN, "plan row 0: forward deflection"),
+            (np.array([[0.1, 0.0], [0.2, -1.5]]), now, online.REJECT_PLAN,
+             r"plan row 1: turn deflection -1.5 is outside \[-1.05, 1.05\]"),
+            (np.zeros((online.MAX_PLAN_STEPS + 1, 2)), now, online.REJECT_PLAN,
+             "1001 steps, more than 1000"),
+            (np.zeros((3, 2)), math.nan, online.REJECT_NONFINITE, "plan: time stamp is nan"),
+            (np.zeros((3, 2)), 1e12, online.REJECT_TIME, "plan: time stamp 1e\\+12 s")):
+        with pytest.raises(online.RejectedInputError, match=match) as info:
+            pred.set_plan(plan, stamp)
+        assert info.value.reason == reason
+        assert pred.stats.last_rejected.startswith(f"{reason}: ")
+    assert not pred.predict(now).from_plan  # none of them was kept
+    with pytest.raises(online.RejectedInputError, match="joy_future row 2"):
+        pred.predict(now, joy_future=np.array([[0.0, 0.0]] * 2 + [[2.0, 0.0]]))
+    with pytest.raises(online.RejectedInputError, match="candidates 1 row 1: turn deflection 1e"):
+        pred.predict_batch(np.array([[[0.5, 0.5]] * 2, [[0.5, 0.5], [0.5, 1e30]]]), now)
+
+
+def test_stamps_at_the_edge_of_the_time_range_still_predict():
+    jt, joy, vt, vel = make_streams(duration=10.0, t_start=9.9e9)
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=3))
+    for ev in arrival_order(jt, joy, vt, vel):
+        feed(pred, ev)
+    r = pred.predict(max(jt[-1], vt[-1]))
+    assert r.ok, r.detail
+    assert pred.stats.rejected == {}

@@ -31,7 +31,14 @@ is the prediction time (origin of the path) and the predicted poses are at
 Time: stamps and ``now`` are seconds on one clock. A stamp or a ``now`` further back than
 ``reset_jump_s`` from what was seen (a bag replayed in a loop, a restarted clock) resets
 the buffers; smaller disorder (out-of-order, duplicate stamps) is tolerated (the
-resampler sorts and de-duplicates). Non-finite samples are dropped and counted.
+resampler sorts and de-duplicates).
+
+Bad input never drives a prediction: a sample or a plan that is not finite or lies
+outside the ranges of :mod:`asgp_ros.core.streams` (time stamps, joystick deflections,
+v, omega, poses; plans at most ``MAX_PLAN_STEPS`` rows) is refused, counted in
+``PredictorStats.rejected`` under one of the ``REJECT_*`` codes and described in
+``PredictorStats.last_rejected``; a ``now`` that is not a valid time gives a not-ok
+prediction with reason ``INVALID_TIME``.
 """
 
 from __future__ import annotations
@@ -46,7 +53,14 @@ from numpy.typing import NDArray
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import resample
 from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
-from asgp_ros.core.streams import RawStreams
+from asgp_ros.core.streams import (
+    RawStreams,
+    joy_in_range,
+    joy_problem,
+    pose_problem,
+    time_problem,
+    vel_problem,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -62,9 +76,34 @@ VO_STALE_REPEAT = "vo_stale_repeat"
 NOT_ENOUGH_HISTORY = "not_enough_history"
 CLOCK_RESET = "clock_reset"
 NO_POSE = "no_odometry_pose"
+INVALID_TIME = "invalid_time"
+
+# Reasons why an input is refused (keys of PredictorStats.rejected).
+REJECT_NONFINITE = "nonfinite"
+REJECT_TIME = "time_out_of_range"
+REJECT_JOY = "joy_out_of_range"
+REJECT_VO = "vo_out_of_range"
+REJECT_POSE = "pose_out_of_range"
+REJECT_PLAN = "plan_out_of_range"
 
 _EPS_T = 1e-9
 MAX_PLANS = 16  # plans kept: only those issued within about one step before now matter
+#: Most rows of a plan or of a future joystick sequence (200 s at 5 Hz).
+MAX_PLAN_STEPS = 1000
+
+
+class RejectedInputError(ValueError):
+    """A plan or a future joystick sequence the Predictor refuses.
+
+    Attributes:
+        reason: one of the module's ``REJECT_*`` codes.
+        detail: why, in words.
+    """
+
+    def __init__(self, reason: str, detail: str) -> None:
+        self.reason = reason
+        self.detail = detail
+        super().__init__(f"{reason}: {detail}")
 
 
 @dataclass(frozen=True)
@@ -109,7 +148,11 @@ class PredictorConfig:
 
 @dataclass
 class PredictorStats:
-    """Counters for diagnostics."""
+    """Counters for diagnostics.
+
+    ``rejected`` counts refused inputs by ``REJECT_*`` code (non-finite ones are also in
+    ``dropped_nonfinite``); ``last_rejected`` is "<code>: <why>" of the newest one.
+    """
 
     joy_samples: int = 0
     vo_samples: int = 0
@@ -117,6 +160,8 @@ class PredictorStats:
     out_of_order: int = 0
     resets: int = 0
     predictions: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    last_rejected: str = ""
 
 
 @dataclass(frozen=True)
@@ -295,61 +340,127 @@ class Predictor:
     def _newest(self) -> float:
         return max(self._joy.newest, self._vo.newest)
 
-    def _admit(self, t: float, values: tuple[float, ...]) -> bool:
-        if not (math.isfinite(t) and all(math.isfinite(v) for v in values)):
+    def _reject(self, reason: str, detail: str) -> None:
+        if reason == REJECT_NONFINITE:
             self.stats.dropped_nonfinite += 1
-            return False
+        self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
+        self.stats.last_rejected = f"{reason}: {detail}"
+
+    def _time_ok(self, t: float, what: str) -> bool:
+        problem = time_problem(t)
+        if problem is not None:
+            self._reject(REJECT_NONFINITE if not math.isfinite(t) else REJECT_TIME,
+                         f"{what}: {problem}")
+        return problem is None
+
+    def _admit(self, t: float) -> None:
         newest = self._newest()
         if t < newest - self.config.reset_jump_s:
             self.reset(f"sample stamped {t:.3f} s is {newest - t:.3f} s behind the newest")
-        return True
 
     def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray) -> bool:
-        """Add a joystick sample (forward, turn) at time t; False if dropped (non-finite)."""
+        """Add a joystick sample (forward, turn) at time t.
+
+        Returns:
+            False if refused (a stamp or a deflection not finite or out of range; see
+            ``stats.last_rejected``).
+        """
+        t = float(t)
         values = (float(joy[0]), float(joy[1]))
-        if not self._admit(float(t), values):
+        if not self._time_ok(t, "joystick"):
             return False
+        problem = joy_problem(*values)
+        if problem is not None:
+            finite = all(math.isfinite(v) for v in values)
+            self._reject(REJECT_JOY if finite else REJECT_NONFINITE, f"joystick: {problem}")
+            return False
+        self._admit(t)
         self.stats.joy_samples += 1
-        self.stats.out_of_order += self._joy.add(float(t), values)
+        self.stats.out_of_order += self._joy.add(t, values)
         self._joy.prune(self.config.buffer_s)
         return True
 
     def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True) -> bool:
         """Add a VO velocity (v, omega) at time t; ``ok`` False = VO reported tracking loss.
 
-        A sample with tracking loss may carry non-finite velocities: it is kept (as a
-        tracking failure) with zeros, since the resampler invalidates it anyway.
+        A sample with tracking loss carries no velocity: it is kept (as a tracking
+        failure, which the resampler invalidates) with zeros whatever its values.
+
+        Returns:
+            False if refused (a stamp, or the velocity of a tracked sample, not finite or
+            beyond the physical limits; see ``stats.last_rejected``).
         """
-        v, w = float(vel[0]), float(vel[1])
-        if not ok and not (math.isfinite(v) and math.isfinite(w)):
-            v, w = 0.0, 0.0
-        if not self._admit(float(t), (v, w)):
+        t = float(t)
+        v, w = (float(vel[0]), float(vel[1])) if ok else (0.0, 0.0)
+        if not self._time_ok(t, "VO"):
             return False
+        problem = vel_problem(v, w)
+        if problem is not None:
+            finite = math.isfinite(v) and math.isfinite(w)
+            self._reject(REJECT_VO if finite else REJECT_NONFINITE, f"VO: {problem}")
+            return False
+        self._admit(t)
         self.stats.vo_samples += 1
-        self.stats.out_of_order += self._vo.add(float(t), (v, w, 1.0 if ok else 0.0))
+        self.stats.out_of_order += self._vo.add(t, (v, w, 1.0 if ok else 0.0))
         self._vo.prune(self.config.buffer_s)
         return True
 
     def feed_pose(self, t: float, x: float, y: float, yaw: float) -> bool:
-        """Add an odometry pose of the base in the odom frame (for paths in that frame)."""
-        if not all(math.isfinite(v) for v in (t, x, y, yaw)):
-            self.stats.dropped_nonfinite += 1
+        """Add an odometry pose of the base in the odom frame (for paths in that frame).
+
+        Returns:
+            False if refused (not finite or out of range; see ``stats.last_rejected``).
+        """
+        t = float(t)
+        if not self._time_ok(t, "pose"):
             return False
-        self._pose.add(float(t), (float(x), float(y), float(yaw)))
+        problem = pose_problem(float(x), float(y), float(yaw))
+        if problem is not None:
+            finite = all(math.isfinite(float(v)) for v in (x, y, yaw))
+            self._reject(REJECT_POSE if finite else REJECT_NONFINITE, problem)
+            return False
+        self._pose.add(t, (float(x), float(y), float(yaw)))
         self._pose.prune(self.config.buffer_s)
         return True
+
+    def _check_commands(self, commands: FloatArray, what: str) -> None:
+        """Refuse joystick commands [..., k, 2] that are not finite or out of range."""
+        if commands.shape[-2] > MAX_PLAN_STEPS:
+            raise RejectedInputError(REJECT_PLAN, f"{what} has {commands.shape[-2]} steps, more "
+                                             f"than {MAX_PLAN_STEPS}")
+        flat = commands.reshape(-1, 2)
+        bad = np.flatnonzero(~joy_in_range(flat))
+        if bad.size:
+            fwd, turn = flat[bad[0]]
+            problem = joy_problem(float(fwd), float(turn))
+            index = [int(i) for i in np.unravel_index(bad[0], commands.shape[:-1])]
+            where = f"row {index[-1]}" if len(index) == 1 else \
+                f"{index[0]} row {index[-1]}"
+            finite = bool(np.all(np.isfinite(flat)))
+            raise RejectedInputError(REJECT_PLAN if finite else REJECT_NONFINITE,
+                                f"{what} {where}: {problem}")
 
     def set_plan(self, plan: FloatArray, stamp: float) -> None:
         """A planner's future joystick commands: [m, 2] rows from ``stamp`` on, dt apart.
 
         Raises:
-            ValueError: wrong shape, empty, or non-finite values.
+            ValueError: wrong shape or empty; :class:`RejectedInputError` (a ValueError,
+                counted in ``stats.rejected``) for more than ``MAX_PLAN_STEPS`` rows, a
+                value not finite or outside the joystick range, or a stamp that is not a
+                valid time.
         """
         arr = np.asarray(plan, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
             raise ValueError(f"a plan must be [m, 2] joystick commands, got shape {arr.shape}")
-        if not np.all(np.isfinite(arr)) or not math.isfinite(stamp):
-            raise ValueError("a plan must be finite")
+        try:
+            problem = time_problem(float(stamp))
+            if problem is not None:
+                raise RejectedInputError(REJECT_TIME if math.isfinite(stamp) else REJECT_NONFINITE,
+                                    f"plan: {problem}")
+            self._check_commands(arr, "plan")
+        except RejectedInputError as exc:
+            self._reject(exc.reason, exc.detail)
+            raise
         plans = [p for p in self._plans if p[0] != float(stamp)]
         plans.append((float(stamp), arr.copy()))
         plans.sort(key=lambda p: p[0])
@@ -415,6 +526,9 @@ class Predictor:
         Also detects a clock jump (and resets), so a watchdog may call it periodically.
         """
         cfg = self.config
+        problem = time_problem(now)
+        if problem is not None:
+            return Prediction(False, INVALID_TIME, f"now: {problem}")
         if (reset := self._check_clock(now)) is not None:
             return reset
         if not self._joy or not self._vo:
@@ -498,8 +612,9 @@ class Predictor:
             else:
                 joy_future = np.repeat(held[None, :], k, axis=0)
         future = np.asarray(joy_future, dtype=np.float64)
-        if future.ndim != 2 or future.shape[1] != 2 or not np.all(np.isfinite(future)):
-            raise ValueError(f"joy_future must be finite [k, 2], got shape {future.shape}")
+        if future.ndim != 2 or future.shape[1] != 2 or future.shape[0] == 0:
+            raise ValueError(f"joy_future must be [k, 2], got shape {future.shape}")
+        self._check_commands(future, "joy_future")
         out = self._rollout(joy_past, vel_past, future[None])
         return self._result(step, t0, joy_past, vel_past, future[None], out, from_plan,
                             batch=False)
@@ -518,8 +633,7 @@ class Predictor:
         cand = np.asarray(candidates, dtype=np.float64)
         if cand.ndim != 3 or cand.shape[2] != 2 or cand.shape[0] == 0 or cand.shape[1] == 0:
             raise ValueError(f"candidates must be [B, k, 2], got shape {cand.shape}")
-        if not np.all(np.isfinite(cand)):
-            raise ValueError("candidates contain NaN or inf")
+        self._check_commands(cand, "candidates")
         got = self._window(now)
         if isinstance(got, Prediction):
             return got

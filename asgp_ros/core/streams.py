@@ -21,7 +21,9 @@ about a wheelchair: the resampler drops it as it drops a non-finite one, and the
 * forward speed: ``|v| <= MAX_ABS_SPEED`` = 5 m/s (powered wheelchairs are limited to
   about 4 m/s, 15 km/h);
 * yaw rate: ``|omega| <= MAX_ABS_YAW_RATE`` = 10 rad/s (a chair spinning on the spot turns
-  at 2-3 rad/s).
+  at 2-3 rad/s);
+* odometry poses: ``|x|, |y| <= MAX_ABS_POSITION`` = 1e6 m (1000 km from the odometry
+  origin), ``|yaw| <= MAX_ABS_YAW`` = 1e4 rad (yaw unwrapped over 1500 turns).
 """
 
 from __future__ import annotations
@@ -45,6 +47,10 @@ MAX_ABS_JOY = 1.0 + JOY_TOLERANCE
 MAX_ABS_SPEED = 5.0
 #: Largest |omega| (rad/s) accepted: beyond any powered wheelchair.
 MAX_ABS_YAW_RATE = 10.0
+#: Largest |x|, |y| (m) of an odometry pose accepted.
+MAX_ABS_POSITION = 1e6
+#: Largest |yaw| (rad) of an odometry pose accepted.
+MAX_ABS_YAW = 1e4
 
 
 def joy_in_range(joy: object) -> BoolArray:
@@ -80,6 +86,17 @@ def vel_problem(v: float, omega: float) -> str | None:
             return f"{name} is {value}"
         if abs(value) > limit:
             return f"|{name}| = {abs(value):g} {unit} is beyond {limit:g} {unit}"
+    return None
+
+
+def pose_problem(x: float, y: float, yaw: float) -> str | None:
+    """Why an odometry pose is refused (non-finite or beyond the ranges), or None."""
+    for name, value, limit in (("x", x, MAX_ABS_POSITION), ("y", y, MAX_ABS_POSITION),
+                               ("yaw", yaw, MAX_ABS_YAW)):
+        if not math.isfinite(value):
+            return f"pose {name} is {value}"
+        if abs(value) > limit:
+            return f"pose |{name}| = {abs(value):g} is beyond {limit:g}"
     return None
 
 
