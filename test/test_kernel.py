@@ -47,7 +47,7 @@ def test_cross_is_clipped_at_the_signal_variance(setting) -> None:
     _, Z, ls, sf2 = setting
     far = Z * 1e4  # |x|_l^2 ~ 1e8: the expanded square cancels badly
     K = kernel.cross(np.vstack([Z, far]), kernel.cross_factors(Z, ls, sf2))
-    assert np.all(K <= sf2)
+    assert np.all(np.less_equal(K, sf2))
     np.testing.assert_allclose(np.diag(K[: len(Z)]), sf2, rtol=1e-12)
     assert np.all(np.isfinite(K))
 
@@ -91,7 +91,7 @@ def test_input_gradient_matches_finite_differences(setting) -> None:
 
 
 def test_parameter_gradients_match_finite_differences(setting) -> None:
-    """K3, K4 for F = sum G o k(Z, X) + sum Gu o (k(Z, Z) + jitter sf2 I)."""
+    """K3, K4 for sum G o k(Z, X) + sum Gu o (k(Z, Z) + jitter sf2 I)."""
     X, Z, ls, sf2 = setting
     rng = np.random.default_rng(3)
     M, D = Z.shape
@@ -100,7 +100,7 @@ def test_parameter_gradients_match_finite_differences(setting) -> None:
     Gu = Gu + Gu.T
     jitter = 1e-3
 
-    def F(log_l: np.ndarray, log_sf2: float, Zp: np.ndarray) -> float:
+    def objective(log_l: np.ndarray, log_sf2: float, Zp: np.ndarray) -> float:
         ls_, sf2_ = np.exp(log_l), math.exp(log_sf2)
         Kuu = kernel.se_ard_jittered(Zp, ls_, sf2_, jitter)
         return float(np.sum(G * kernel.se_ard(Zp, X, ls_, sf2_)) + np.sum(Gu * Kuu))
@@ -116,13 +116,13 @@ def test_parameter_gradients_match_finite_differences(setting) -> None:
     for d in range(D):
         e = np.zeros(D)
         e[d] = h
-        fd = (F(log_l + e, log_sf2, Z) - F(log_l - e, log_sf2, Z)) / (2 * h)
+        fd = (objective(log_l + e, log_sf2, Z) - objective(log_l - e, log_sf2, Z)) / (2 * h)
         assert d_log_l[d] == pytest.approx(fd, rel=1e-6, abs=1e-8)
-    fd = (F(log_l, log_sf2 + h, Z) - F(log_l, log_sf2 - h, Z)) / (2 * h)
+    fd = (objective(log_l, log_sf2 + h, Z) - objective(log_l, log_sf2 - h, Z)) / (2 * h)
     assert d_log_sf2 == pytest.approx(fd, rel=1e-6)
     for m in range(M):
         for d in range(D):
             e = np.zeros_like(Z)
             e[m, d] = h
-            fd = (F(log_l, log_sf2, Z + e) - F(log_l, log_sf2, Z - e)) / (2 * h)
+            fd = (objective(log_l, log_sf2, Z + e) - objective(log_l, log_sf2, Z - e)) / (2 * h)
             assert dZ[m, d] == pytest.approx(fd, rel=1e-6, abs=1e-8)

@@ -1,11 +1,25 @@
 """Sparse GP regression with pseudo-inputs (SPGP / FITC) and an ARD squared-exponential kernel.
 
 Model (Snelson & Ghahramani 2006, "Sparse Gaussian Processes using Pseudo-inputs", NIPS;
-the FITC name is from Quiñonero-Candela & Rasmussen 2005, JMLR 6, section 5)::
+the FITC name is from Quiñonero-Candela & Rasmussen 2005, JMLR 6, section 5), with
+X [N, D], y [N], pseudo-inputs Z [M, D], Kuf = k(Z, X) [M, N], Kuu = k(Z, Z) [M, M]::
 
-    k(x, x') = sf2 * exp(-0.5 * sum_d (x_d - x'_d)^2 / l_d^2)          (ARD SE kernel)
+    k(x, x') = sf2 * exp(-0.5 * sum_d (x_d - x'_d)^2 / l_d^2)   (ARD SE, kernel.py K1)
     y | f ~ N(f, sn2),   p(y) = N(y | 0, Qff + Lambda)                  (S&G eq. 6)
     Qff = Kfu Kuu^-1 Kuf,   Lambda = diag(Kff - Qff) + sn2 I
+
+The pieces, each citing the equations it implements:
+
+* the kernel and its derivatives: :mod:`asgp_ros.core.kernel` (K1 - K4);
+* the FITC terms (:class:`FitcTerms`, :func:`_fitc_terms`): the shared Cholesky factors and
+  the log marginal likelihood (S&G eq. 6 and 8 by the matrix inversion and determinant
+  lemmas);
+* the gradient (:func:`_fitc_grad`): Snelson's derivatives of the likelihood in Lambda,
+  Kuf and Kuu and the chain rule through the kernel (K3, K4);
+* the prediction cache (:class:`asgp_ros.core.posterior.FitcPosterior`): alpha and C of
+  the predictive equations (S&G eq. 5), built from the FITC terms once after fitting and
+  read by :meth:`SparseGP.predict`, the fused rollout and the model file;
+* :class:`SparseGP`: standardisation, initialisation and the optimiser.
 
 The M pseudo-inputs Z and the hyperparameters (log lengthscales, log signal variance,
 log noise variance) are learned jointly by maximising the FITC log marginal likelihood
@@ -62,6 +76,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.cluster.vq import kmeans2
 from threadpoolctl import ThreadpoolController, threadpool_limits
 
+from asgp_ros.core import kernel, posterior
+from asgp_ros.core.posterior import FitcPosterior, PosteriorError
+
 FloatArray = NDArray[np.float64]
 ProgressCallback = Callable[[int, float], None]
 _T = TypeVar("_T")
@@ -78,19 +95,9 @@ _LOG_NOISE_VAR_BOUNDS = (math.log(1e-6), math.log(1e1))
 _BLOCK_COLUMNS = 4096
 _MIN_BLOCK_COLUMNS = 1000
 
-# Keys of get_state() / from_state(), with their expected number of dimensions.
-_STATE_NDIM: dict[str, int] = {
-    "x_mean": 1,  # [D]
-    "x_scale": 1,  # [D]
-    "y_mean": 0,
-    "y_scale": 0,
-    "inducing_inputs": 2,  # [M, D] standardised
-    "lengthscales": 1,  # [D] standardised
-    "signal_variance": 0,  # standardised
-    "noise_variance": 0,  # standardised
-    "jitter": 0,
-    "alpha": 1,  # [M] posterior weights: mean = k(x, Z) @ alpha
-    "var_matrix": 2,  # [M, M] Kuu^-1 - (Kuu + Kuf Lambda^-1 Kfu)^-1
+# Keys of get_state() / from_state() besides the posterior's (posterior.STATE_NDIM), with
+# their expected number of dimensions.
+_FIT_STATE_NDIM: dict[str, int] = {
     "log_marginal_likelihood": 0,  # original units
     "num_data": 0,
 }
@@ -104,12 +111,16 @@ class _FactorisationError(Exception):
     """A Cholesky factorisation failed or FITC's diagonal went non-positive."""
 
 
+# ---------------------------------------------------------------------- the FITC terms
+
+
 class FitcTerms(NamedTuple):
     """Shared FITC factors of one parameter setting (standardised units).
 
-    One instance feeds the log marginal likelihood, its gradient and the cached posterior.
-    The O(N M) factors (Kuf, V = L^-1 Kuf, Lambda) live in the column blocks of
-    ``workspace`` and are valid until the workspace is used again.
+    One instance feeds the log marginal likelihood, its gradient and the cached posterior
+    (:func:`asgp_ros.core.posterior.from_factors`).  The O(N M) factors (Kuf,
+    V = L^-1 Kuf, Lambda) live in the column blocks of ``workspace`` and are valid until
+    the workspace is used again.
     """
 
     Kuu: FloatArray  # [M, M] k(Z, Z) + jitter * sf2 * I
@@ -121,21 +132,13 @@ class FitcTerms(NamedTuple):
     workspace: _Workspace
 
 
-class _Predictor(NamedTuple):
-    """The cached posterior of a fitted model, in the units predictions need."""
+class _Scales(NamedTuple):
+    """Standardisation: inputs (x - x_mean) / x_scale, outputs (y - y_mean) / y_scale."""
 
     x_mean: FloatArray  # [D]
-    in_scale: FloatArray  # [D] 1 / (x_scale * lengthscale)
-    zl_t: FloatArray  # [D, M] pseudo-inputs in lengthscale units, transposed
-    log_k0: FloatArray  # [M] log sf2 - |zl|^2 / 2
-    alpha: FloatArray  # [M] mean weights (standardised output)
-    alpha_zl: FloatArray  # [M, D] alpha * zl, for the input gradient
-    var_matrix: FloatArray  # [M, M] Kuu^-1 - (Kuu + Kuf Lambda^-1 Kfu)^-1
-    signal_variance: float  # standardised
-    noise_variance: float  # standardised
+    x_scale: FloatArray  # [D]
     y_mean: float
     y_scale: float
-    grad_scale: FloatArray  # [D] y_scale * in_scale
 
 
 class _Params(NamedTuple):
@@ -159,15 +162,14 @@ class _Block:
     """One column block of the training data with its reusable O(n M) buffers."""
 
     def __init__(self, X: FloatArray, y: FloatArray, M: int) -> None:
-        n, D = X.shape
+        n = X.shape[0]
         self.y = y  # [n]
         X_sq = X * X
         self.X_sq = X_sq  # [n, D]
+        # [X, X^2, 1]: the moments of dL/dKuf o Kuf the kernel's chain rule needs
         self.X1 = np.hstack([X, X_sq, np.ones((n, 1))])  # [n, 2D + 1]
-        # [X^T; 1; |x|^2_l] so that log Kuf is one matrix product (row D + 1 set per call).
-        self.xaug_t = np.empty((D + 2, n))
-        self.xaug_t[:D] = X.T
-        self.xaug_t[D] = 1.0
+        # [X^T; 1; |x|^2_l] so that log Kuf is one matrix product (K2; last row per call).
+        self.xaug_t = kernel.augmented_inputs(X)  # [D + 2, n]
         self.kuf = np.empty((M, n))  # Kuf
         self.v = np.empty((M + 1, n))  # [V; r^T]: V = L^-1 Kuf and a row for the residual
         self.a = np.empty((M, n))
@@ -230,28 +232,6 @@ def _trsm_inplace(L: FloatArray, B: FloatArray) -> FloatArray:
     return B
 
 
-def _sq_dist_scaled(A: FloatArray, B: FloatArray, inv_l2: FloatArray) -> FloatArray:
-    """Squared ARD distances sum_d (a_d - b_d)^2 / l_d^2.  A [P, D], B [Q, D] -> [P, Q]."""
-    d2 = (A * inv_l2) @ B.T  # [P, Q]
-    d2 *= -2.0
-    d2 += ((A * A) @ inv_l2)[:, None]
-    d2 += ((B * B) @ inv_l2)[None, :]
-    np.maximum(d2, 0.0, out=d2)
-    return d2
-
-
-def se_ard(
-    A: FloatArray, B: FloatArray, lengthscales: FloatArray, signal_variance: float
-) -> FloatArray:
-    """ARD squared-exponential kernel matrix k(A, B).  A [P, D], B [Q, D] -> [P, Q]."""
-    inv_l2 = 1.0 / np.square(lengthscales)
-    K = _sq_dist_scaled(A, B, inv_l2)
-    K *= -0.5
-    np.exp(K, out=K)
-    K *= signal_variance
-    return K
-
-
 def _fitc_terms(
     X: FloatArray, y: FloatArray, p: _Params, jitter: float, ws: _Workspace | None = None
 ) -> FitcTerms:
@@ -259,28 +239,23 @@ def _fitc_terms(
 
     Raises _FactorisationError when Kuu or A is not positive definite or Lambda <= 0.
     """
-    N, D = X.shape
+    N = X.shape[0]
     M = p.Z.shape[0]
     if ws is None or not ws.fits(X, y, M):
         ws = _Workspace(X, y, M)
     sf2, sn2 = p.signal_variance, p.noise_variance
-    inv_l2 = 1.0 / np.square(p.lengthscales)
-    Kuu = se_ard(p.Z, p.Z, p.lengthscales, sf2)  # [M, M]
-    Kuu[np.diag_indices(M)] = sf2 * (1.0 + jitter)
+    Kuu = kernel.se_ard_jittered(p.Z, p.lengthscales, sf2, jitter)  # [M, M] (K1)
     L = _cholesky(Kuu)
-    # log k(z, x) = log sf2 - 0.5 (|z|^2 - 2 z.x + |x|^2) in lengthscale units, as one
-    # product [Z / l^2, log sf2 - |z|^2 / 2, -1/2] @ [X^T; 1; |x|^2].
-    z_aug = np.empty((M, D + 2))
-    z_aug[:, :D] = p.Z * inv_l2
-    z_aug[:, D] = math.log(sf2) - 0.5 * ((p.Z * p.Z) @ inv_l2)
-    z_aug[:, D + 1] = -0.5
+    # log Kuf = [Z / l^2, log sf2 - |z|_l^2 / 2, -1/2] @ [X^T; 1; |x|_l^2]  (K2)
+    factors = kernel.cross_factors(p.Z, p.lengthscales, sf2)
+    inv_l2 = factors.inv_l2[0]
+    z_aug = kernel.augmented_pseudo_inputs(factors)  # [M, D + 2]
 
     def forward(b: _Block) -> tuple[FloatArray, FloatArray, float, float] | None:
-        np.matmul(b.X_sq, inv_l2, out=b.xaug_t[D + 1])
-        Kuf = np.matmul(z_aug, b.xaug_t, out=b.kuf)  # [M, n]
-        np.exp(Kuf, out=Kuf)
+        kernel.set_augmented_norms(b.xaug_t, b.X_sq, inv_l2)
+        kernel.cross_t(z_aug, b.xaug_t, out=b.kuf)  # [M, n] Kuf
         V = b.v[:M]
-        np.copyto(V, Kuf)
+        np.copyto(V, b.kuf)
         _trsm_inplace(L, V)  # [M, n] L^-1 Kuf
         # Lambda = diag(Kff - Qff) + sn2  (S&G eq. 6)
         np.subtract(sf2 + sn2, np.einsum("mn,mn->n", V, V), out=b.lam)
@@ -322,6 +297,9 @@ def _fitc_terms(
     return FitcTerms(Kuu, L, LA, c, alpha, lml, ws)
 
 
+# ---------------------------------------------------------------------- the gradient
+
+
 def _fitc_grad(p: _Params, t: FitcTerms) -> tuple[FloatArray, float, float, FloatArray]:
     """Gradient of the FITC log marginal likelihood at the factors ``t`` of ``p``.
 
@@ -334,8 +312,9 @@ def _fitc_grad(p: _Params, t: FitcTerms) -> tuple[FloatArray, float, float, Floa
         dL/dKuf = alpha (beta r)^T - P Kuf beta - 2 Kuu^-1 Kuf dL/dLambda
         dL/dKuu = 0.5 (Kuu^-1 - P - alpha alpha^T) + Kuu^-1 Kuf dL/dLambda Kfu Kuu^-1
 
-    followed by the chain rule through the SE kernel, all as matrix products (no [N, M, D]
-    temporaries).  Cost: three O(N M^2) BLAS-3 calls and one O(N M D) product per block.
+    followed by the chain rule through the SE kernel (:func:`asgp_ros.core.kernel.param_grads`,
+    K3 and K4), all as matrix products (no [N, M, D] temporaries).  Cost: three O(N M^2)
+    BLAS-3 calls and one O(N M D) product per block.
     """
     M, D = p.Z.shape
     sf2, sn2 = p.signal_variance, p.noise_variance
@@ -387,21 +366,12 @@ def _fitc_grad(p: _Params, t: FitcTerms) -> tuple[FloatArray, float, float, Floa
     dKuu -= 0.5 * np.outer(alpha, alpha)
     dKuu = 0.5 * (dKuu + dKuu.T)
 
-    # Chain rule through k, with Wu = dL/dKuu o Kuu.
-    Wu = dKuu * t.Kuu  # [M, M] (its diagonal includes the jitter, which scales with sf2)
-    d_log_sf2 = float(w_row.sum() + np.sum(Wu) + sf2 * sum_dlam)
+    # Chain rule through k (K3, K4), with Wu = dL/dKuu o Kuu (its diagonal includes the
+    # jitter, which scales with sf2); Lambda's diag(Kff) = sf2 adds sf2 sum(dL/dLambda).
+    d_log_l, d_log_sf2_k, dZ = kernel.param_grads(p.Z, inv_l2, WX, WX_sq, w_row,
+                                                  dKuu * t.Kuu)
+    d_log_sf2 = float(d_log_sf2_k + sf2 * sum_dlam)
     d_log_sn2 = float(sn2 * sum_dlam)
-    Wu[np.diag_indices(M)] = 0.0  # the diagonal does not depend on l or Z
-    Z = p.Z
-    wu_row = Wu.sum(axis=1)
-    WuZ = Wu @ Z
-    # d k(a, b) / d log l_d = k (a_d - b_d)^2 / l_d^2, summed against W (Kuf) and Wu (Kuu,
-    # symmetric, so each pair counts twice).
-    sum_sq = w_row @ (Z * Z) - 2.0 * np.einsum("md,md->d", Z, WX) + WX_sq.sum(axis=0)
-    sum_sq += 2.0 * (wu_row @ (Z * Z) - np.einsum("md,md->d", Z, WuZ))
-    d_log_l = sum_sq * inv_l2
-    # d k(z_m, x_n) / d z_md = k (x_nd - z_md) / l_d^2
-    dZ = (WX - w_row[:, None] * Z + 2.0 * (WuZ - wu_row[:, None] * Z)) * inv_l2
     return d_log_l, d_log_sf2, d_log_sn2, dZ
 
 
@@ -586,19 +556,13 @@ class SparseGP:
         self.optimisation_log: list[tuple[int, float]] = []
         #: scipy's OptimizeResult of the run that was kept (None before fit).
         self.optimiser_result: scipy.optimize.OptimizeResult | None = None
-        self._params: _Params | None = None
-        self._x_mean = np.zeros(0)
-        self._x_scale = np.ones(0)
-        self._y_mean = 0.0
-        self._y_scale = 1.0
-        self._alpha = np.zeros(0)
-        self._var_matrix = np.zeros((0, 0))
+        self._posterior: FitcPosterior | None = None
         self._lml = math.nan
         self._num_data = 0
-        self._pred: _Predictor
 
     # ------------------------------------------------------------------ data handling
-    def _set_standardisation(self, X: FloatArray, y: FloatArray) -> None:
+    @staticmethod
+    def _standardisation(X: FloatArray, y: FloatArray) -> _Scales:
         x_scale = X.std(axis=0)
         const = np.nonzero(~(x_scale > 1e-12 * np.maximum(1.0, np.abs(X).max(axis=0))))[0]
         if const.size:
@@ -609,14 +573,12 @@ class SparseGP:
         y_scale = float(y.std())
         if not y_scale > 1e-12 * max(1.0, float(np.abs(y).max())):
             raise SparseGPError("y is constant; there is nothing to regress")
-        self._x_mean = X.mean(axis=0)
-        self._x_scale = x_scale
-        self._y_mean = float(y.mean())
-        self._y_scale = y_scale
+        return _Scales(X.mean(axis=0), x_scale, float(y.mean()), y_scale)
 
-    def _standardise(self, X: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
-        Xs = (X - self._x_mean) / self._x_scale
-        ys = (y - self._y_mean) / self._y_scale
+    @staticmethod
+    def _standardise(X: FloatArray, y: FloatArray, sc: _Scales) -> tuple[FloatArray, FloatArray]:
+        Xs = (X - sc.x_mean) / sc.x_scale
+        ys = (y - sc.y_mean) / sc.y_scale
         return np.ascontiguousarray(Xs), ys
 
     def _check_sizes(self, X: FloatArray) -> None:
@@ -665,14 +627,14 @@ class SparseGP:
         Xa = _validate_inputs(X, "X")
         ya = _validate_y(y, Xa.shape[0])
         self._check_sizes(Xa)
-        self._set_standardisation(Xa, ya)
-        Xs, _ = self._standardise(Xa, ya)
+        sc = self._standardisation(Xa, ya)
+        Xs, _ = self._standardise(Xa, ya, sc)
         p = self._initial_params(Xs, self.seed)
         return {
-            "inducing_inputs": p.Z * self._x_scale + self._x_mean,
-            "lengthscales": p.lengthscales * self._x_scale,
-            "signal_variance": np.asarray(p.signal_variance * self._y_scale**2),
-            "noise_variance": np.asarray(p.noise_variance * self._y_scale**2),
+            "inducing_inputs": p.Z * sc.x_scale + sc.x_mean,
+            "lengthscales": p.lengthscales * sc.x_scale,
+            "signal_variance": np.asarray(p.signal_variance * sc.y_scale**2),
+            "noise_variance": np.asarray(p.noise_variance * sc.y_scale**2),
         }
 
     def _initial_params(self, Xs: FloatArray, seed: int) -> _Params:
@@ -723,11 +685,11 @@ class SparseGP:
         Xa = _validate_inputs(X, "X")
         ya = _validate_y(y, Xa.shape[0])
         self._check_sizes(Xa)
-        self._set_standardisation(Xa, ya)
-        Xs, ys = self._standardise(Xa, ya)
+        sc = self._standardisation(Xa, ya)
+        Xs, ys = self._standardise(Xa, ya, sc)
         ws = _Workspace(Xs, ys, self.num_inducing, self.threads)
         try:
-            return self._optimise(Xs, ys, ws, max_iter, max_fun, callback)
+            return self._optimise(Xs, ys, sc, ws, max_iter, max_fun, callback)
         finally:
             ws.close()
 
@@ -735,6 +697,7 @@ class SparseGP:
         self,
         Xs: FloatArray,
         ys: FloatArray,
+        sc: _Scales,
         ws: _Workspace,
         max_iter: int,
         max_fun: int | None,
@@ -742,7 +705,7 @@ class SparseGP:
     ) -> SparseGP:
         N, D = Xs.shape
         M = self.num_inducing
-        lml_offset = -N * math.log(self._y_scale)
+        lml_offset = -N * math.log(sc.y_scale)
         self.optimisation_log = []
         if max_fun is None:
             max_fun = 2 * int(max_iter) + 20
@@ -813,7 +776,7 @@ class SparseGP:
         assert best is not None
         self.optimiser_result = best[2]
         self._num_data = N
-        self._set_posterior(Xs, ys, unpack(best[1].copy()), lml_offset, ws)
+        self._set_posterior(Xs, ys, sc, unpack(best[1].copy()), lml_offset, ws)
         _LOG.info(
             "SPGP fit: N=%d D=%d M=%d, %d iterations, log marginal likelihood %.6g",
             N, D, M, int(getattr(best[2], "nit", 0)), self._lml,
@@ -869,10 +832,12 @@ class SparseGP:
         self,
         Xs: FloatArray,
         ys: FloatArray,
+        sc: _Scales,
         p: _Params,
         offset: float,
         ws: _Workspace | None = None,
     ) -> None:
+        """Cache the posterior of the FITC terms at ``p`` (posterior.from_factors, P1, P2)."""
         try:
             t = _fitc_terms(Xs, ys, p, self.jitter, ws)
         except _FactorisationError as err:
@@ -881,18 +846,13 @@ class SparseGP:
                 f"is singular for these parameters; increase jitter (now {self.jitter:g}), "
                 "remove duplicated pseudo-inputs or shorten the lengthscales"
             ) from err
-        self._params = p
+        self._posterior = posterior.from_factors(
+            x_mean=sc.x_mean, x_scale=sc.x_scale, y_mean=sc.y_mean, y_scale=sc.y_scale,
+            Z=p.Z, lengthscales=p.lengthscales, signal_variance=p.signal_variance,
+            noise_variance=p.noise_variance, jitter=self.jitter, L=t.L, LA=t.LA,
+            alpha=t.alpha,
+        )
         self._lml = t.lml + offset
-        # Posterior cache: mean = Ksu alpha; var_f = sf2 - ks^T (Kuu^-1 - (Kuu + Kuf
-        # Lambda^-1 Kfu)^-1) ks  (S&G eq. 5; Q-C & R eq. 24b) = sf2 - ks^T S ks with
-        # S = L^-T (I - A^-1) L^-1 built by triangular solves.
-        M = p.Z.shape[0]
-        Linv = scipy.linalg.solve_triangular(t.L, np.eye(M), lower=True, check_finite=False)
-        B = scipy.linalg.solve_triangular(t.LA, Linv, lower=True, check_finite=False)
-        S = Linv.T @ Linv - B.T @ B
-        self._var_matrix = 0.5 * (S + S.T)
-        self._alpha = t.alpha.copy()
-        self._build_predictor()
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -922,156 +882,86 @@ class SparseGP:
         sf2 = float(_positive(signal_variance, "signal_variance", ()))
         sn2 = float(_positive(noise_variance, "noise_variance", ()))
         gp = cls(num_inducing=Za.shape[0], jitter=jitter)
-        gp._set_standardisation(Xa, ya)
-        Xs, ys = gp._standardise(Xa, ya)
-        y2 = gp._y_scale**2
-        p = _Params(ls / gp._x_scale, sf2 / y2, sn2 / y2, (Za - gp._x_mean) / gp._x_scale)
+        sc = gp._standardisation(Xa, ya)
+        Xs, ys = gp._standardise(Xa, ya, sc)
+        y2 = sc.y_scale**2
+        p = _Params(ls / sc.x_scale, sf2 / y2, sn2 / y2, (Za - sc.x_mean) / sc.x_scale)
         gp._num_data = Xa.shape[0]
-        gp._set_posterior(Xs, ys, p, -Xa.shape[0] * math.log(gp._y_scale))
+        gp._set_posterior(Xs, ys, sc, p, -Xa.shape[0] * math.log(sc.y_scale))
         return gp
 
     def get_state(self) -> dict[str, FloatArray]:
-        """Arrays that restore this fitted model exactly (see :meth:`from_state`)."""
-        p = self._fitted()
-        f = np.float64
-        return {
-            "x_mean": self._x_mean.copy(),
-            "x_scale": self._x_scale.copy(),
-            "y_mean": np.asarray(self._y_mean, dtype=f),
-            "y_scale": np.asarray(self._y_scale, dtype=f),
-            "inducing_inputs": p.Z.copy(),
-            "lengthscales": p.lengthscales.copy(),
-            "signal_variance": np.asarray(p.signal_variance, dtype=f),
-            "noise_variance": np.asarray(p.noise_variance, dtype=f),
-            "jitter": np.asarray(self.jitter, dtype=f),
-            "alpha": self._alpha.copy(),
-            "var_matrix": self._var_matrix.copy(),
-            "log_marginal_likelihood": np.asarray(self._lml, dtype=f),
-            "num_data": np.asarray(float(self._num_data), dtype=f),
-        }
+        """Arrays that restore this fitted model exactly (see :meth:`from_state`).
+
+        The posterior's arrays (:func:`asgp_ros.core.posterior.to_state`: standardisation,
+        kernel parameters, pseudo-inputs, ``alpha``, ``var_matrix`` and ``chol_a``) and
+        the fit's ``log_marginal_likelihood`` and ``num_data``.
+        """
+        state = posterior.to_state(self._fitted())
+        state["log_marginal_likelihood"] = np.asarray(self._lml, dtype=np.float64)
+        state["num_data"] = np.asarray(float(self._num_data), dtype=np.float64)
+        return state
 
     @classmethod
     def from_state(cls, state: Mapping[str, ArrayLike]) -> SparseGP:
         """Rebuild a fitted model from :meth:`get_state` arrays (no training data needed).
 
+        States written before ``chol_a`` was stored load too (see
+        :func:`asgp_ros.core.posterior.from_state`).
+
         Raises:
             ValueError (SparseGPError) naming the missing, mis-shaped or non-finite entry.
         """
-        arrs: dict[str, FloatArray] = {}
-        for key, ndim in _STATE_NDIM.items():
-            if key not in state:
-                raise SparseGPError(f"SparseGP state: missing entry {key!r}")
-            try:
-                a = np.asarray(state[key], dtype=np.float64)
-            except (TypeError, ValueError) as err:
-                raise SparseGPError(f"SparseGP state: entry {key!r} is not numeric") from err
-            if a.ndim != ndim:
-                raise SparseGPError(
-                    f"SparseGP state: entry {key!r} must have {ndim} dimension(s), "
-                    f"got shape {a.shape}"
-                )
-            if not np.all(np.isfinite(a)):
-                raise SparseGPError(f"SparseGP state: entry {key!r} contains NaN or inf")
-            arrs[key] = a
-        M, D = arrs["inducing_inputs"].shape
-        expected = {
-            "x_mean": (D,), "x_scale": (D,), "lengthscales": (D,),
-            "alpha": (M,), "var_matrix": (M, M),
-        }
-        for key, shape in expected.items():
-            if arrs[key].shape != shape:
-                raise SparseGPError(
-                    f"SparseGP state: entry {key!r} has shape {arrs[key].shape}, expected "
-                    f"{shape} for M={M} pseudo-inputs in D={D} dimensions"
-                )
-        if M < 1 or D < 1:
-            raise SparseGPError("SparseGP state: entry 'inducing_inputs' is empty")
-        for key in ("x_scale", "y_scale", "lengthscales", "signal_variance", "noise_variance"):
-            if not np.all(arrs[key] > 0.0):
-                raise SparseGPError(f"SparseGP state: entry {key!r} must be > 0")
-        if arrs["jitter"] < 0.0:
-            raise SparseGPError("SparseGP state: entry 'jitter' must be >= 0")
-        gp = cls(num_inducing=M, jitter=float(arrs["jitter"]))
-        gp._x_mean = arrs["x_mean"].copy()
-        gp._x_scale = arrs["x_scale"].copy()
-        gp._y_mean = float(arrs["y_mean"])
-        gp._y_scale = float(arrs["y_scale"])
-        gp._params = _Params(
-            arrs["lengthscales"].copy(),
-            float(arrs["signal_variance"]),
-            float(arrs["noise_variance"]),
-            np.ascontiguousarray(arrs["inducing_inputs"]),
-        )
-        gp._alpha = arrs["alpha"].copy()
-        gp._var_matrix = arrs["var_matrix"].copy()
-        gp._build_predictor()
-        gp._lml = float(arrs["log_marginal_likelihood"])
-        gp._num_data = int(arrs["num_data"])
+        try:
+            post = posterior.from_state(state)
+            fit = {key: posterior.state_array(state, key, ndim)
+                   for key, ndim in _FIT_STATE_NDIM.items()}
+        except PosteriorError as err:
+            raise SparseGPError(f"SparseGP state: {err}") from err
+        gp = cls(num_inducing=post.num_inducing, jitter=post.jitter)
+        gp._posterior = post
+        gp._lml = float(fit["log_marginal_likelihood"])
+        gp._num_data = int(fit["num_data"])
         return gp
 
     # ------------------------------------------------------------------ prediction
-    def _fitted(self) -> _Params:
-        if self._params is None:
-            raise SparseGPError("the SparseGP is not fitted: call fit() or from_params() first")
-        return self._params
+    @property
+    def posterior(self) -> FitcPosterior:
+        """The cached posterior (immutable; standardised units) that every prediction reads.
 
-    def _build_predictor(self) -> None:
-        """Cache everything a prediction needs, folded into the original input units."""
-        p = self._fitted()
-        in_scale = 1.0 / (self._x_scale * p.lengthscales)  # x -> u = (x - x_mean) / (sx l)
-        Zl = p.Z / p.lengthscales  # [M, D] pseudo-inputs in u units
-        self._pred = _Predictor(
-            x_mean=self._x_mean,
-            in_scale=in_scale,
-            zl_t=np.ascontiguousarray(Zl.T),
-            # log k(u, zl) = (log sf2 - |zl|^2 / 2) + u.zl - |u|^2 / 2
-            log_k0=math.log(p.signal_variance) - 0.5 * np.sum(Zl * Zl, axis=1),
-            alpha=self._alpha,
-            alpha_zl=self._alpha[:, None] * Zl,  # [M, D]
-            var_matrix=self._var_matrix,
-            signal_variance=p.signal_variance,
-            noise_variance=p.noise_variance,
-            y_mean=self._y_mean,
-            y_scale=self._y_scale,
-            grad_scale=self._y_scale * in_scale,
-        )
+        Assigning a new :class:`~asgp_ros.core.posterior.FitcPosterior` (e.g. after an
+        online update) replaces it atomically: a prediction or rollout in progress keeps
+        the one it started with.  The log marginal likelihood and the number of data
+        still describe the last fit.
+        """
+        return self._fitted()
+
+    @posterior.setter
+    def posterior(self, post: FitcPosterior) -> None:
+        if not isinstance(post, FitcPosterior):
+            raise SparseGPError(f"posterior must be a FitcPosterior, got {type(post).__name__}")
+        if self._posterior is not None and post.num_features != self._posterior.num_features:
+            raise SparseGPError(
+                f"posterior has D={post.num_features} inputs, the model "
+                f"{self._posterior.num_features}"
+            )
+        self.num_inducing = post.num_inducing
+        self._posterior = post
+
+    def _fitted(self) -> FitcPosterior:
+        if self._posterior is None:
+            raise SparseGPError("the SparseGP is not fitted: call fit() or from_params() first")
+        return self._posterior
 
     def _predict(
         self, Xs: ArrayLike, include_noise: bool, with_grad: bool
     ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-        self._fitted()
-        c = self._pred
-        Xa = _validate_inputs(Xs, "Xs", c.x_mean.shape[0])
-        u = (Xa - c.x_mean) * c.in_scale  # [N*, D]
-        with _blas_single_thread(u.shape[0]):
-            Ksu = u @ c.zl_t  # [N*, M]
-            Ksu += c.log_k0
-            Ksu -= 0.5 * np.einsum("sd,sd->s", u, u)[:, None]
-            np.exp(Ksu, out=Ksu)  # k(x, Z), S&G eq. 1 (ARD SE)
-            mean = Ksu @ c.alpha  # O(M) per point (S&G eq. 5 mean)
-            KS = Ksu @ c.var_matrix  # O(M^2) per point (S&G eq. 5 variance)
-            KaZ = Ksu @ c.alpha_zl if with_grad else None  # [N*, D]
-        var = c.signal_variance - np.einsum("sm,sm->s", KS, Ksu)
-        if not var.min(initial=0.0) >= 0.0:
-            neg = var < 0.0
-            worst = float(var.min())
-            if worst < -1e-8 * c.signal_variance:
-                warnings.warn(
-                    f"SparseGP: {int(neg.sum())} negative latent variance(s) (min {worst:.3g}, "
-                    "standardised) from round-off clipped to 0; the model is ill-conditioned, "
-                    "consider a larger jitter",
-                    RuntimeWarning,
-                    stacklevel=3,
-                )
-            var = np.maximum(var, 0.0)
-        if include_noise:
-            var += c.noise_variance
-        var *= c.y_scale**2
-        grad = None
-        if KaZ is not None:
-            # d/du sum_m k(u, zl_m) alpha_m = sum_m k alpha_m (zl_m - u), du/dx = in_scale.
-            grad = (KaZ - u * mean[:, None]) * c.grad_scale  # [N*, D]
-        return c.y_mean + c.y_scale * mean, var, grad
+        post = self._fitted()
+        Xa = _validate_inputs(Xs, "Xs", post.num_features)
+        with _blas_single_thread(Xa.shape[0]):
+            mean, var, grad = posterior.predict(post.stacked, Xa[None], include_noise,
+                                                with_grad, stacklevel=3)
+        return mean[0], var[0], None if grad is None else grad[0]
 
     def predict(self, Xs: ArrayLike, include_noise: bool = True) -> tuple[FloatArray, FloatArray]:
         """Predictive mean [N*] and variance [N*] at Xs [N*, D] (original units).
@@ -1103,30 +993,34 @@ class SparseGP:
     @property
     def inducing_inputs(self) -> FloatArray:
         """[M, D] pseudo-inputs Z in original input units."""
-        return self._fitted().Z * self._x_scale + self._x_mean
+        post = self._fitted()
+        return post.Z * post.x_scale + post.x_mean
 
     @property
     def lengthscales(self) -> FloatArray:
         """[D] ARD lengthscales in original input units."""
-        return self._fitted().lengthscales * self._x_scale
+        post = self._fitted()
+        return post.lengthscales * post.x_scale
 
     @property
     def signal_variance(self) -> float:
         """Kernel amplitude sf2 in squared output units."""
-        return self._fitted().signal_variance * self._y_scale**2
+        post = self._fitted()
+        return post.signal_variance * post.y_scale**2
 
     @property
     def noise_variance(self) -> float:
         """Gaussian observation noise variance sn2 in squared output units."""
-        return self._fitted().noise_variance * self._y_scale**2
+        post = self._fitted()
+        return post.noise_variance * post.y_scale**2
 
     @property
     def num_features(self) -> int:
         """D, the input dimension."""
-        return int(self._fitted().Z.shape[1])
+        return self._fitted().num_features
 
     def __repr__(self) -> str:
-        if self._params is None:
+        if self._posterior is None:
             return f"SparseGP(num_inducing={self.num_inducing}, seed={self.seed}, unfitted)"
         return (
             f"SparseGP(M={self.num_inducing}, D={self.num_features}, N={self._num_data}, "
