@@ -38,16 +38,17 @@ from __future__ import annotations
 
 import math
 import threading
-import warnings
 import weakref
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from asgp_ros.core import posterior
 from asgp_ros.core.features import build_inputs, input_layout
 from asgp_ros.core.models import MotionModel
+from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.unicycle import integrate_path, sensitivity_time_major
 
 FloatArray = NDArray[np.float64]
@@ -192,7 +193,7 @@ class _Step:
         self.model = model
         self.fc = model.feature_config
         self.include_noise = include_noise
-        self.fused = _FusedSparseGP.of(model)
+        self.fused = _fused_posterior(model)
 
     def __call__(self, jp: FloatArray, vp: FloatArray, jn: FloatArray, with_grad: bool
                  ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
@@ -200,7 +201,10 @@ class _Step:
             X = _WS.get("X", (2, jn.shape[0], self.fc.input_dim))
             for c in range(2):
                 build_inputs(jp, vp, jn, c, self.fc, validate=False, out=X[c])
-            mean, var, grad = self.fused.predict(X, self.include_noise, with_grad)
+            m, v, g = posterior.predict(self.fused, X, self.include_noise, with_grad,
+                                        scratch=_WS.get, stacklevel=4)
+            mean, var = m.T, v.T
+            grad = [] if g is None else [g[0], g[1]]
         else:
             rows = [build_inputs(jp, vp, jn, c, self.fc, validate=False) for c in range(2)]
             mean = np.empty((jn.shape[0], 2))
@@ -208,16 +212,16 @@ class _Step:
             grad = []
             for c, ch in enumerate(self.model.channels):
                 if with_grad:
-                    m, v, g = ch.predict_with_grad(rows[c], self.include_noise)
-                    g = np.asarray(g, dtype=np.float64)
-                    if g.shape != rows[c].shape:
+                    mc, vc, gc = ch.predict_with_grad(rows[c], self.include_noise)
+                    gc = np.asarray(gc, dtype=np.float64)
+                    if gc.shape != rows[c].shape:
                         raise ValueError(f"channel {_NAMES[c]}: input gradient of shape "
-                                         f"{g.shape}, expected {rows[c].shape}")
-                    grad.append(g)
+                                         f"{gc.shape}, expected {rows[c].shape}")
+                    grad.append(gc)
                 else:
-                    m, v = ch.predict(rows[c], self.include_noise)
-                mean[:, c] = m
-                var[:, c] = v
+                    mc, vc = ch.predict(rows[c], self.include_noise)
+                mean[:, c] = mc
+                var[:, c] = vc
         if not (math.isfinite(float(mean.sum()) + float(var.sum()))
                 and float(var.min()) >= 0.0):
             for c in range(2):
@@ -225,105 +229,33 @@ class _Step:
         return mean, var, grad
 
 
-class _FusedSparseGP:
-    """Both channels of a SparseGP model evaluated together from their cached posteriors.
+def _fused_posterior(model: MotionModel) -> posterior.Stacked | None:
+    """Both channels' posteriors stacked, for a model of two SparseGP channels; else None.
 
-    The same FITC predictive equations as :meth:`SparseGP.predict_with_grad` (mean
-    k(x, Z) alpha, latent variance sf2 - k C k^T, mean gradient sum_m k_m alpha_m
-    (z_m - x) / l^2, in standardised units), read from :meth:`SparseGP.get_state`; the
-    channels are stacked (the smaller set of pseudo-inputs padded with zero weights, which
-    adds exact zeros) so a step costs one set of numpy calls instead of two. A planner's
-    single-sequence rollout is dominated by per-call overhead, which this halves.
+    The channels are then evaluated together by :func:`asgp_ros.core.posterior.predict`
+    (the function behind :meth:`SparseGP.predict`) from the posteriors they hold: a step
+    costs one set of numpy calls instead of two, which halves the per-call overhead that
+    dominates a planner's single-sequence rollout.  The stack is cached by the identity of
+    the two (immutable) posterior objects, so a refit or an online update, which replaces
+    a channel's posterior, is picked up by the next rollout.
     """
-
-    def __init__(self, states: list[dict[str, FloatArray]]) -> None:
-        M = max(st["inducing_inputs"].shape[0] for st in states)
-        D = states[0]["inducing_inputs"].shape[1]
-        self.Z = np.zeros((2, M, D))
-        self.alpha = np.zeros((2, M, 1))
-        self.C = np.zeros((2, M, M))
-        for c, st in enumerate(states):
-            m = st["inducing_inputs"].shape[0]
-            self.Z[c, :m] = st["inducing_inputs"]
-            self.alpha[c, :m, 0] = st["alpha"]
-            self.C[c, :m, :m] = st["var_matrix"]
-        ls = np.stack([st["lengthscales"] for st in states])[:, None, :]  # [2, 1, D]
-        self.inv_l2 = 1.0 / np.square(ls)
-        self.ZT = np.ascontiguousarray(np.swapaxes(self.Z * self.inv_l2, 1, 2))  # [2, D, M]
-        self.alpha_Z = self.alpha * self.Z  # [2, M, D]: sum_m k_m alpha_m z_m = k @ alpha_Z
-        zz = np.einsum("cmd,cd->cm", self.Z * self.Z, self.inv_l2[:, 0])[:, None, :]
-        self.mu = np.stack([st["x_mean"] for st in states])[:, None, :]
-        self.sc = np.stack([st["x_scale"] for st in states])[:, None, :]
-        self.sf2 = np.array([float(st["signal_variance"]) for st in states])[:, None]
-        self.log_sf2 = np.log(self.sf2)[:, :, None]  # [2, 1, 1]
-        # log k(x, z) = log sf2 - 0.5 (x'Lx - 2 x'Lz + z'Lz), L = diag(1 / l^2)
-        self.offset = self.log_sf2 - 0.5 * zz  # [2, 1, M]
-        self.sn2 = np.array([float(st["noise_variance"]) for st in states])[:, None]
-        self.ym = np.array([float(st["y_mean"]) for st in states])[:, None]
-        self.ys = np.array([float(st["y_scale"]) for st in states])[:, None]
-        self.gscale = self.ys[:, :, None] * self.inv_l2 / self.sc  # [2, 1, D]
-
-    @classmethod
-    def of(cls, model: MotionModel) -> _FusedSparseGP | None:
-        from asgp_ros.core.sparse_gp import SparseGP
-
-        chans = model.channels
-        if not all(type(ch) is SparseGP for ch in chans):
-            return None
-        gps: list[SparseGP] = [ch for ch in chans if isinstance(ch, SparseGP)]
-        # a refit in place changes the evidence and the noise: rebuild then
-        stamp = tuple(x for gp in gps for x in (gp.log_marginal_likelihood(),
-                                                 gp.noise_variance, gp.signal_variance))
-        hit = _FUSED_CACHE.get(gps[0])
-        if hit is not None and hit[0] is gps[1] and hit[1] == stamp:
-            return hit[2]
-        fused = cls([gp.get_state() for gp in gps])
-        _FUSED_CACHE[gps[0]] = (gps[1], stamp, fused)
-        return fused
-
-    def predict(self, X: FloatArray, include_noise: bool, with_grad: bool
-                ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
-        """X [2, B, D] (overwritten) -> mean [B, 2], var [B, 2], grads [2][B, D].
-
-        The gradients are views of scratch memory, valid until the next call.
-        """
-        B = X.shape[1]
-        M = self.Z.shape[1]
-        Xn = X
-        Xn -= self.mu
-        Xn /= self.sc
-        XL = np.multiply(Xn, self.inv_l2, out=_WS.get("XL", X.shape))
-        logk = np.matmul(Xn, self.ZT, out=_WS.get("K", (2, B, M)))  # x'Lz  [2, B, M]
-        logk -= 0.5 * np.einsum("cbd,cbd->cb", XL, Xn)[:, :, None]
-        logk += self.offset
-        np.minimum(logk, self.log_sf2, out=logk)  # squared distances are >= 0
-        K = np.exp(logk, out=logk)  # k(x, Z) = sf2 exp(-0.5 |x - z|_L^2)
-        k_alpha = (K @ self.alpha)[..., 0]  # [2, B]
-        mean = k_alpha * self.ys
-        KC = np.matmul(K, self.C, out=_WS.get("KC", (2, B, M)))
-        var = self.sf2 - np.einsum("cbm,cbm->cb", KC, K)
-        if float(var.min()) < 0.0:
-            if float(np.min(var / self.sf2)) < -1e-8:
-                warnings.warn("sparse GP: negative latent variance from round-off clipped to 0",
-                              RuntimeWarning, stacklevel=4)
-            np.maximum(var, 0.0, out=var)
-        if include_noise:
-            var += self.sn2
-        var *= np.square(self.ys)
-        mean += self.ym
-        grads: list[FloatArray] = []
-        if with_grad:
-            g = np.matmul(K, self.alpha_Z, out=_WS.get("g", X.shape))
-            g -= Xn * k_alpha[:, :, None]
-            g *= self.gscale
-            grads = [g[0], g[1]]
-        return mean.T, var.T, grads
+    chans = model.channels
+    if not all(type(ch) is SparseGP for ch in chans):
+        return None
+    post_v = cast(SparseGP, chans[0]).posterior
+    post_w = cast(SparseGP, chans[1]).posterior
+    hit = _FUSED_CACHE.get(post_v)
+    if hit is not None and hit[0] is post_w:
+        return hit[1]
+    fused = posterior.stack([post_v, post_w])
+    _FUSED_CACHE[post_v] = (post_w, fused)
+    return fused
 
 
-#: fused predictors by the v channel's SparseGP: (omega GP, fingerprint, predictor)
-_FUSED_CACHE: weakref.WeakKeyDictionary[Any, tuple[Any, tuple[float, ...], _FusedSparseGP]] = (
-    weakref.WeakKeyDictionary()
-)
+#: stacked posteriors by the v channel's posterior: (omega channel's posterior, stack)
+_FUSED_CACHE: weakref.WeakKeyDictionary[
+    posterior.FitcPosterior, tuple[posterior.FitcPosterior, posterior.Stacked]
+] = weakref.WeakKeyDictionary()
 
 
 def _rollout_linear(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k: int,
