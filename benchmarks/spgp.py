@@ -4,6 +4,7 @@ Usage::
 
     python benchmarks/spgp.py            # the paper's scale: N = 36,000, D = 9, M = 40
     python benchmarks/spgp.py --quick    # small smoke run (N = 3,000, 30 iterations)
+    python benchmarks/spgp.py --reference none   # no side-by-side prediction timing
 
 Both models start from the same pseudo-inputs and hyperparameters (SparseGP's k-means
 initialisation, converted to original units) and get the same L-BFGS-B budget
@@ -12,6 +13,11 @@ marginal likelihoods are the same quantity: GPy is given y minus its mean, which
 prior mean SparseGP uses.  The data look like the paper's autoregressive wheelchair
 features for the v channel: X_t = [j_{t-4..t-1}, v_{t-4..t-1}, j_t], y = v_t from a
 nonlinear first-order-lag chair driven by a smooth, held joystick signal, with VO noise.
+
+Prediction is also timed side by side with ``SparseGP`` of a reference revision
+(``--reference REV``, default the commit before the FITC posterior and the kernel became
+shared modules; see ``benchmarks/rollout.py``), restored from the same state, in
+alternating runs.
 
 Prints figures only (no assertions).  Timings depend on the machine's load.
 """
@@ -22,6 +28,7 @@ import argparse
 import importlib.util
 import platform
 import time
+from types import ModuleType
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -120,6 +127,42 @@ def time_gpy(
     return elapsed, float(model.log_likelihood()), int(getattr(opt, "funct_eval", -1))
 
 
+def rollout_benchmark() -> ModuleType:
+    """benchmarks/rollout.py, for its reference-revision loader and paired timer."""
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "_bench_rollout", Path(__file__).resolve().parent / "rollout.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def time_predict_against(gp: SparseGP, X: np.ndarray, rev: str) -> None:
+    """predict / predict_with_grad of ``gp`` next to revision ``rev``'s, same state."""
+    bench = rollout_benchmark()
+    try:
+        ref = bench.load_reference(rev, ("sparse_gp",))["sparse_gp"]
+    except RuntimeError as err:
+        print(f"  reference {rev}: not available ({err})")
+        return
+    old = ref.SparseGP.from_state(gp.get_state())
+    print(f"  side by side with the reference {rev[:12]} (interleaved, best of 7; "
+          "ratio = current / reference):")
+    for batch in (1, 1024, 36_000):
+        Xb = np.resize(X, (batch, X.shape[1]))
+        for name in ("predict", "predict_with_grad"):
+            f_new, f_old = getattr(gp, name), getattr(old, name)
+            new_t, old_t = bench.timeit_pair(
+                (lambda f=f_new, a=Xb: f(a), lambda f=f_old, a=Xb: f(a)), 7)
+            diff = max(float(np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), 1e-300))
+                       for a, b in zip(f_new(Xb), f_old(Xb), strict=True))
+            print(f"    batch {batch:6d} {name:18s} current {new_t[0] * 1e3:8.3f} ms  "
+                  f"reference {old_t[0] * 1e3:8.3f} ms  ratio {new_t[0] / old_t[0]:5.3f}  "
+                  f"(cpu {new_t[2] / old_t[2]:5.3f})  max |diff| / max |ref| {diff:.1e}")
+
+
 def time_predict(gp: SparseGP, X: np.ndarray) -> None:
     for batch in (1, 1024, 36_000):
         Xb = np.resize(X, (batch, X.shape[1]))
@@ -185,6 +228,9 @@ def main() -> None:
     parser.add_argument("--m", type=int, default=40, help="pseudo-inputs (40)")
     parser.add_argument("--iters", type=int, default=None, help="L-BFGS-B budget (200)")
     parser.add_argument("--no-gpy", action="store_true", help="skip the GPy reference")
+    parser.add_argument("--reference", default=None,
+                        help="git revision whose SparseGP.predict is timed side by side "
+                        "('none' to skip; default that of benchmarks/rollout.py)")
     args = parser.parse_args()
     n = args.n or (3000 if args.quick else 36_000)
     iters = args.iters or (30 if args.quick else 200)
@@ -225,6 +271,9 @@ def main() -> None:
 
     print("prediction (cached posterior):")
     time_predict(gp, X)
+    reference = args.reference or rollout_benchmark().REFERENCE
+    if reference.lower() != "none":
+        time_predict_against(gp, X, reference)
 
     print("rollout:")
     gp_w = SparseGP(num_inducing=args.m, seed=1).fit(X, y, max_iter=1)  # stand-in channel

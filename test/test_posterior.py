@@ -213,11 +213,13 @@ def test_fits_are_identical_to_the_reference(reference) -> None:
 
 
 def test_predictions_match_the_reference(reference, chair) -> None:
-    """The same state predicts as before, to 1e-12 of the size of each quantity.
+    """The same state predicts as before: means and gradients to 1e-12 of their size, the
+    variance to 1e-11 of sf2.
 
     The single-step prediction now runs the arithmetic of the old fused rollout (inputs
     standardised, then K2 with 1 / l^2) instead of its own (inputs in lengthscale units):
-    the same equations, rounded differently.
+    the same equations, rounded differently.  The variance sf2 - ks^T C ks cancels (near
+    the data it is a small fraction of sf2), so its round-off is relative to sf2.
     """
     model, _, _ = chair
     rng = np.random.default_rng(7)
@@ -231,7 +233,7 @@ def test_predictions_match_the_reference(reference, chair) -> None:
             m_old, v_old, g_old = old.predict_with_grad(Xs, include_noise=noise)
             _assert_close_to_scale(m_new, m_old, 1e-12, "mean")
             _assert_close_to_scale(g_new, g_old, 1e-12, "gradient")
-            _assert_close_to_scale(v_new, v_old, 1e-12, "variance")
+            assert float(np.max(np.abs(v_new - v_old))) <= 1e-11 * gp.signal_variance
         np.testing.assert_array_equal(gp.predict(Xs)[0], gp.predict_with_grad(Xs)[0])
 
 
