@@ -13,10 +13,11 @@ L = chol(Kuu) and LA = chol(A) with A = I + V Lambda^-1 V^T, V = L^-1 Kuf:
     (P1)  alpha = L^-T LA^-T c,   c = LA^-1 V Lambda^-1 y
     (P2)  C = L^-T (I - A^-1) L^-1 = L^-T L^-1 - B^T B,   B = LA^-1 L^-1
 
-so alpha costs O(M) and C O(M^2) per test point.  :class:`FitcPosterior` holds these
-cached terms (alpha, C, the pseudo-inputs, the kernel parameters, the input and output
-scales, and the Cholesky factors L and LA they come from).  It is immutable (its arrays
-are read-only): an update (a refit, a rank-one update of LA) builds a new object and
+so a prediction costs O(M) for the mean and O(M^2) for the variance per test point.
+:class:`FitcPosterior` holds these cached terms (alpha, C, the pseudo-inputs, the kernel
+parameters, the input and output scales, and the Cholesky factors L and LA they come
+from).  It is immutable (its arrays are read-only): an update (a refit, a rank-one update
+of LA and c) builds a new object, with :func:`from_factors` (P2 from the new factors), and
 replaces the old one in a single assignment, so a reader holding the old one keeps a
 consistent posterior and caches keyed on the object (the fused rollout's) cannot go stale.
 
