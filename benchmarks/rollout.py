@@ -168,7 +168,8 @@ def compare_with_reference(model: MotionModel, joy_past: np.ndarray, vel_past: n
         print(f"reference {rev}: not available ({err})")
         return
     print(f"side by side with the reference {rev[:12]} (interleaved runs; best / median ms,"
-          " ratio = current / reference):")
+          " ratio = current / reference; max |diff| over vel, pose and their covariances,"
+          " relative to each array's largest value):")
     for batch, fut in futures.items():
         for unc in ("linear", "none"):
             new, old = timeit_pair(
@@ -179,6 +180,7 @@ def compare_with_reference(model: MotionModel, joy_past: np.ndarray, vel_past: n
             print(f"  batch {batch:5d} {unc:6s}  current {new[0] * 1e3:8.3f} / "
                   f"{new[1] * 1e3:8.3f}   reference {old[0] * 1e3:8.3f} / {old[1] * 1e3:8.3f}"
                   f"   ratio {new[0] / old[0]:5.3f} / {new[1] / old[1]:5.3f}"
+                  f" (best cpu {new[2] / old[2]:5.3f})"
                   f"   max |diff| {diff_abs:.1e} (relative {diff_rel:.1e})")
 
 
