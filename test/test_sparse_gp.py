@@ -307,6 +307,7 @@ def test_state_round_trip_restores_identical_predictions(tmp_path):
     ("key", "value", "message"),
     [
         ("alpha", None, "missing entry 'alpha'"),
+        ("num_data", None, "missing entry 'num_data'"),
         ("var_matrix", np.ones((3, 3)), "'var_matrix' has shape"),
         ("lengthscales", np.ones(2), "'lengthscales' has shape"),
         ("inducing_inputs", np.ones(4), "'inducing_inputs' must have 2"),

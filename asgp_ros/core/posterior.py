@@ -224,6 +224,8 @@ def to_state(post: FitcPosterior) -> dict[str, FloatArray]:
 
 def state_array(state: Mapping[str, ArrayLike], key: str, ndim: int) -> FloatArray:
     """Entry ``key`` of a state as a finite float64 array of ``ndim`` dimensions."""
+    if key not in state:
+        raise PosteriorError(f"missing entry {key!r}")
     try:
         a = np.asarray(state[key], dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -249,8 +251,6 @@ def from_state(state: Mapping[str, ArrayLike]) -> FitcPosterior:
     """
     arrs: dict[str, FloatArray] = {}
     for key, ndim in STATE_NDIM.items():
-        if key not in state:
-            raise PosteriorError(f"missing entry {key!r}")
         arrs[key] = state_array(state, key, ndim)
     for key, ndim in OPTIONAL_STATE_NDIM.items():
         if key in state:
