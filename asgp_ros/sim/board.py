@@ -68,6 +68,7 @@ class SentSample:
                       # are conservative (they include the write call itself)
     raw_forward: int
     raw_turn: int
+    status: Status = Status.NONE
 
 
 class ScriptedJoystick:
@@ -99,7 +100,7 @@ class SimulatedBoard:
         rate_hz: sampling rate (the firmware's is ``safety.SAMPLE_RATE_HZ``).
         link_path: optional stable path, a symlink to the current pty.
         calibration: the firmware's (forward, turn) calibration.
-        noise_counts: standard deviation of ADC noise in counts (0: none).
+        noise_counts: standard deviation of ADC noise in counts, in [0, 100] (0: none).
         record: keep a log of every SAMPLE written (:attr:`sent`).
     """
 
@@ -107,8 +108,10 @@ class SimulatedBoard:
                  link_path: str | os.PathLike[str] | None = None,
                  calibration: tuple[fw.AxisCal, fw.AxisCal] | None = None,
                  noise_counts: float = 0.0, seed: int = 0, record: bool = False) -> None:
-        if not 1.0 <= rate_hz <= 1000.0:
+        if not 1.0 <= rate_hz <= 1000.0:  # also refuses NaN
             raise ValueError(f"rate_hz must be in [1, 1000], got {rate_hz}")
+        if not 0.0 <= noise_counts <= 100.0:
+            raise ValueError(f"noise_counts must be in [0, 100] counts, got {noise_counts}")
         self._joystick: JoystickSource = joystick or (lambda t: (0.0, 0.0))
         self.rate_hz = float(rate_hz)
         self.link_path = Path(link_path) if link_path is not None else None
@@ -122,7 +125,8 @@ class SimulatedBoard:
         self.error: BaseException | None = None
         self._logic = fw.BoardLogic(self._write, self._cal, round(rate_hz), fw.WATCHDOG_MS)
         self._lock = threading.Lock()
-        self._requests: queue.Queue[tuple[str, threading.Event]] = queue.Queue()
+        self._requests: queue.Queue[tuple[str | tuple[str, bytes], threading.Event]] = \
+            queue.Queue()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._master: int | None = None
@@ -132,6 +136,9 @@ class SimulatedBoard:
         self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self._silent = False
+        self._deaf = False
+        self._raw_override: tuple[int, int] | None = None
+        self._held: list[bytes] | None = None  # a tick's frames, until its output is set
         self._output = BoardOutput(0.0, 0.0, 0.0, fw.DAC_NEUTRAL, fw.DAC_NEUTRAL, 0.0, 0.0,
                                    Status.NONE, Mode.PASSTHROUGH)
 
@@ -166,6 +173,26 @@ class SimulatedBoard:
     def set_silent(self, silent: bool) -> None:
         """Stop (or resume) sending anything while keeping the port open: a hung board."""
         self._silent = silent
+
+    def set_deaf(self, deaf: bool) -> None:
+        """Ignore (or again act on) everything the host sends while still sampling and
+        sending: a broken host -> board wire."""
+        self._deaf = deaf
+
+    def set_raw_override(self, raw: tuple[int, int] | None) -> None:
+        """Replace the joystick's ADC readings by fixed counts (0..1023), e.g. ``(1023, 512)``
+        for a forward wire shorted to 5 V; ``None`` reconnects the joystick."""
+        if raw is not None:
+            if len(raw) != 2 or not all(isinstance(r, int) and 0 <= r <= 1023 for r in raw):
+                raise ValueError(f"raw ADC readings must be two integers in [0, 1023], "
+                                 f"got {raw!r}")
+            raw = (int(raw[0]), int(raw[1]))
+        self._raw_override = raw
+
+    def inject(self, data: bytes, timeout: float = 2.0) -> None:
+        """Write ``data`` to the host between two ticks (never inside a frame the board is
+        sending): a frame from a reset or line noise that happens to pass the CRC."""
+        self._request(("inject", bytes(data)), timeout)
 
     def start(self) -> SimulatedBoard:
         if self._thread is not None:
@@ -205,14 +232,15 @@ class SimulatedBoard:
 
     # -- internals ---------------------------------------------------------------------
 
-    def _request(self, what: str, timeout: float) -> None:
+    def _request(self, what: str | tuple[str, bytes], timeout: float) -> None:
         if self._thread is None:
             raise RuntimeError("board not started")
         done = threading.Event()
         self._requests.put((what, done))
         self._wake()
         if not done.wait(timeout):
-            raise TimeoutError(f"simulated board did not {what} within {timeout} s")
+            name = what if isinstance(what, str) else what[0]
+            raise TimeoutError(f"simulated board did not {name} within {timeout} s")
 
     def _wake(self) -> None:
         with contextlib.suppress(OSError):
@@ -245,10 +273,19 @@ class SimulatedBoard:
         return int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
 
     def _write(self, frame: bytes) -> None:
+        if self._held is not None:
+            self._held.append(frame)
+            return
         if self._master is None or self._silent:
             self.frames_dropped += 1
             return
         t_write = time.monotonic()
+        # recorded before the write, so that whoever reads the frame finds it in ``sent``
+        record = self._record and frame[3] == MsgType.SAMPLE
+        if record:
+            self.sent.append(SentSample(frame[4], t_write,
+                                        frame[5] | frame[6] << 8, frame[7] | frame[8] << 8,
+                                        Status(frame[9])))
         try:
             n = os.write(self._master, frame)
         except OSError as exc:
@@ -257,10 +294,8 @@ class SimulatedBoard:
             n = 0
         if n != len(frame):
             self.frames_dropped += 1  # a UART with nobody reading: bytes are simply lost
-            return
-        if self._record and frame[3] == MsgType.SAMPLE:
-            self.sent.append(SentSample(frame[4], t_write,
-                                        frame[5] | frame[6] << 8, frame[7] | frame[8] << 8))
+            if record:
+                self.sent.pop()
 
     def _raw(self, deflection: float, axis: int) -> int:
         if not math.isfinite(deflection):
@@ -276,9 +311,14 @@ class SimulatedBoard:
         now_ms = self._now_ms()
         t = now_ms / 1000.0
         fwd, turn = self._joystick(t)
-        raw = (self._raw(fwd, 0), self._raw(turn, 1))
+        raw = self._raw_override or (self._raw(fwd, 0), self._raw(turn, 1))
         before = self._logic.out.status
-        out = self._logic.tick(raw, now_ms)
+        self._held = []
+        try:
+            out = self._logic.tick(raw, now_ms)
+        except BaseException:
+            self._held = None
+            raise
         if Status.OVERRIDE_ACTIVE in before and Status.OVERRIDE_ACTIVE not in out.status \
                 and Status.NEUTRAL_STOP not in out.status:
             self.revert_events.append((now_ms, self._logic.safety.override_ms))
@@ -291,6 +331,11 @@ class SimulatedBoard:
             mode=Mode(self._logic.safety.mode))
         with self._lock:
             self._output = output
+        # the frames go out once ``output`` says what the chair got: whoever reads a SAMPLE
+        # finds the same tick's output there
+        frames, self._held = self._held, None
+        for frame in frames:
+            self._write(frame)
 
     def _service_requests(self) -> None:
         while True:
@@ -302,6 +347,9 @@ class SimulatedBoard:
                 self._close_pty()
             elif what == "replug" and self._master is None:
                 self._open_pty()
+            elif isinstance(what, tuple) and what[0] == "inject" and self._master is not None:
+                with contextlib.suppress(OSError):
+                    os.write(self._master, what[1])
             done.set()
 
     def _run(self) -> None:
@@ -322,7 +370,7 @@ class SimulatedBoard:
                         if exc.errno not in (errno.EIO, errno.EAGAIN):
                             raise
                         data = b""
-                    if data and not self._silent:
+                    if data and not (self._silent or self._deaf):
                         self._logic.rx(data, self._now_ms())
                 now = time.monotonic()
                 if now >= next_tick:
