@@ -45,24 +45,63 @@ class Terminated(KeyboardInterrupt):
         self.signum = signum
 
 
-def raise_on_termination() -> None:
-    """Turn SIGTERM and SIGHUP into :class:`Terminated` in the calling (main) thread.
+_received: list[int] = []  # the stop signals this process has received, oldest first
+_deferring: list[int] = [0]  # depth of signals_deferred() blocks
 
-    The first signal raises; a repeat while the clean-up runs is ignored, so that a
-    supervisor that sends SIGTERM twice does not cut the clean-up short (SIGINT still
-    interrupts as usual, and SIGKILL always works).
+
+def raise_on_termination() -> None:
+    """Turn SIGTERM and SIGHUP into :class:`Terminated`, and SIGINT into KeyboardInterrupt,
+    in the calling (main) thread, so that ``finally`` blocks remove every temporary.
+
+    A repeated SIGTERM while the clean-up runs is ignored, so that a supervisor that sends
+    it twice does not cut the clean-up short; a repeated Ctrl-C interrupts as usual. An
+    inherited SIG_IGN for SIGINT (a background job) is kept.
+
+    An exception raised by a signal handler is lost when the signal lands in code whose
+    exceptions Python discards (an at-fork hook, a ``__del__``): long waits therefore also
+    call :func:`check_signals`, which raises again for a signal already received.
     """
-    fired = False
+    del _received[:]
 
     def handler(signum: int, _frame: FrameType | None) -> None:
-        nonlocal fired
-        if fired:
-            return
-        fired = True
-        raise Terminated(signum)
+        first = not _received
+        _received.append(signum)
+        if _deferring[0]:
+            return  # raised when the signals_deferred() block ends
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if first:
+            raise Terminated(signum)
 
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, handler)
+    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        signal.signal(signal.SIGINT, handler)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold back the exception of a stop signal until the block ends.
+
+    For code that must not be interrupted half-way (creating a temporary and taking
+    ownership of it) or whose exceptions Python would discard (forking runs at-fork hooks).
+    """
+    _deferring[0] += 1
+    try:
+        yield
+    finally:
+        _deferring[0] -= 1
+    if not _deferring[0]:
+        check_signals()
+
+
+def check_signals() -> None:
+    """Raise for a stop signal received earlier whose exception was lost (see
+    :func:`raise_on_termination`); do nothing if none was received."""
+    if _received:
+        if _received[0] == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise Terminated(_received[0])
 
 
 def quiet_worker_exit() -> None:
@@ -78,6 +117,28 @@ def quiet_worker_exit() -> None:
 
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, handler)
+
+
+def interruptible_imap(pool: Any, fn: Callable[[Any], Any], items: Iterable[Any]
+                       ) -> Iterator[Any]:
+    """``pool.imap(fn, items)`` that a signal interrupts at once.
+
+    A wait with no timeout in the main thread is not woken by a signal that the kernel
+    delivers to one of the pool's helper threads, so Ctrl-C or SIGTERM would wait for the
+    next result (minutes, for a training job). Waiting in short slices lets the signal's
+    handler run within 0.1 s.
+    """
+    import multiprocessing
+
+    it = pool.imap(fn, items)
+    while True:
+        check_signals()
+        try:
+            yield it.next(timeout=0.1)
+        except multiprocessing.TimeoutError:
+            continue
+        except StopIteration:
+            return
 
 
 # ----------------------------------------------------------------------------- atomic output
@@ -105,9 +166,12 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     parent = final.parent if str(final.parent) else Path(".")
     _refuse_other_kind(final, directory=directory, replace=replace)
     parent.mkdir(parents=True, exist_ok=True)
-    tmpdir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=parent))
-    tmp = tmpdir / final.name
+    tmpdir: Path | None = None
     try:
+        with signals_deferred():  # no signal between creating and owning tmpdir
+            tmpdir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp",
+                                           dir=parent))
+        tmp = tmpdir / final.name
         yield tmp
         if not tmp.exists():
             raise FileNotFoundError(f"nothing was written to {tmp} for {final}")
@@ -129,7 +193,8 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         else:
             os.replace(tmp, final)
     finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
+        if tmpdir is not None:
+            shutil.rmtree(tmpdir, ignore_errors=True)
 
 
 def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:

@@ -227,6 +227,9 @@ def _job(task: tuple[str, str]) -> dict[str, Any]:
         limiter = None
     try:
         return _run_job(train_name, kind)
+    except ValueError as exc:  # training/evaluation errors; a plain message crosses the pool
+        raise ReproduceError(f"{KIND_LABEL.get(kind, kind)} on the {train_name} train set: "
+                             f"{exc}") from None
     finally:
         if limiter is not None:
             limiter.unregister()
@@ -278,14 +281,16 @@ def _pool_map(fn: Any, items: Sequence[Any], jobs: int) -> list[Any]:
         return [fn(x) for x in items]
     import multiprocessing
 
-    from asgp_ros.fileio import quiet_worker_exit
+    from asgp_ros.fileio import interruptible_imap, quiet_worker_exit, signals_deferred
 
     ctx = multiprocessing.get_context("fork")
     _STATE["parallel"] = True
     try:
+        with signals_deferred():  # a signal inside fork's hooks would be lost
+            pool = ctx.Pool(processes=min(jobs, len(items)), initializer=quiet_worker_exit)
         # Leaving the block on an error or a signal terminates the workers at once.
-        with ctx.Pool(processes=min(jobs, len(items)), initializer=quiet_worker_exit) as pool:
-            return list(pool.imap(fn, items))
+        with pool:
+            return list(interruptible_imap(pool, fn, items))
     finally:
         _STATE["parallel"] = False
 

@@ -266,9 +266,16 @@ def test_markers(tmp_path):
 
 
 # ------------------------------------------------------------------------------- signals
+def _default_sigint() -> None:
+    # A shell without job control starts background jobs with SIGINT ignored, and Python
+    # keeps an inherited SIG_IGN: give the command the SIGINT a terminal would deliver.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(args: list[str], cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "asgp_ros.cli", *args], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
 
 
 def _wait_for(cond, timeout: float, proc: subprocess.Popen) -> None:
@@ -337,3 +344,43 @@ def test_sigterm_to_board_removes_its_link(tmp_path):
     proc.communicate(timeout=10)
     assert proc.returncode == 128 + signal.SIGTERM
     assert not os.path.lexists(link)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_signal_during_reproduce_stops_workers_and_removes_temporaries(tmp_path, sig):
+    data = tmp_path / "data"
+    assert main(["dataset", "--out", str(data), "--scale", "0.02", "--jobs", "2"]) == 0
+    before = _snapshot(data)
+    out = tmp_path / "report"
+    proc = _start(["reproduce", "--data", str(data), "--out", str(out), "--quick", "--jobs",
+                   "2"], tmp_path)
+    # The report's temporary directory exists once training and evaluation have started.
+    _wait_for(lambda: any(p.name.startswith(".report.") for p in tmp_path.iterdir()), 120, proc)
+    _stop_and_check(proc, sig, tmp_path)
+    assert not out.exists() and _snapshot(data) == before
+    workers = subprocess.run(["pgrep", "-f", f"--out {out}"], capture_output=True, text=True)
+    assert workers.stdout.strip() == ""
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_termination_lost_in_a_hook_is_raised_again():
+    """A signal handler's exception raised inside a ``__del__`` or an at-fork hook is
+    discarded by Python (seen as a 10 s hang of reproduce after SIGTERM): the next
+    check_signals() raises it again."""
+    from asgp_ros import fileio
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
+    try:
+        fileio.raise_on_termination()
+
+        class Hook:
+            def __del__(self) -> None:
+                signal.raise_signal(signal.SIGTERM)
+
+        Hook()  # the Terminated raised in __del__ is lost ("Exception ignored in ...")
+        with pytest.raises(fileio.Terminated):
+            fileio.check_signals()
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        fileio._received.clear()

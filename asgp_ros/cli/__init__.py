@@ -15,6 +15,7 @@ import pkgutil
 import sys
 import threading
 from collections.abc import Sequence
+from typing import NoReturn
 
 from asgp_ros import __version__
 from asgp_ros.fileio import OutputError, Terminated, raise_on_termination
@@ -29,8 +30,15 @@ class CommandError(Exception):
     """
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors in one line (``asgp train: error: ... (asgp train --help)``), exit 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="asgp",
         description="Smart-wheelchair motion prediction with an autoregressive sparse GP.",
     )

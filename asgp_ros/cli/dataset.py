@@ -113,7 +113,9 @@ def run(args: argparse.Namespace) -> int:
         DATASET_DIR,
         atomic_write_text,
         check_output,
+        interruptible_imap,
         quiet_worker_exit,
+        signals_deferred,
         write_marker,
     )
 
@@ -141,8 +143,10 @@ def run(args: argparse.Namespace) -> int:
             # On an error or a signal, terminate() stops the workers at once (each removes
             # its own temporaries on the way out) instead of finishing the queue.
             ctx = multiprocessing.get_context("fork")
-            with ctx.Pool(args.jobs, initializer=quiet_worker_exit) as pool:
-                for r in pool.imap(_make, jobs):
+            with signals_deferred():  # a signal inside fork's hooks would be lost
+                pool = ctx.Pool(args.jobs, initializer=quiet_worker_exit)
+            with pool:
+                for r in interruptible_imap(pool, _make, jobs):
                     results[r["name"]] = r
                     _progress(len(results), len(jobs), r["name"], time.perf_counter() - start)
     except (RuntimeError, ValueError, OSError, BagError) as exc:
