@@ -1,28 +1,34 @@
 """serial_bridge_node: the joystick interface board on ROS 2.
 
 Publishes ``joy`` (sensor_msgs/Joy, axes [forward, turn], + forward / + left, sensor-data
-QoS) for every joystick sample the board sends, stamped at reception; subscribes
-``joy_override`` and forwards it to the board while it is fresh (then simply stops, so
-the firmware's 200 ms watchdog returns the chair to the user); publishes the link state
-on ``diagnostics``. The serial work (port, reader thread, reconnection, handshake,
-heartbeats) lives in :mod:`asgp_ros.serial.link`; this node only converts and wires.
+QoS) for every joystick sample the board sends that carries a reading, stamped at
+reception (a sample with ADC_FAULT carries none: it is withheld, never published as a
+deflection); subscribes ``joy_override`` and forwards it to the board while it is fresh
+(then simply stops, so the firmware's 200 ms watchdog returns the chair to the user);
+publishes the link state, the joystick reading's and the override's fate on
+``diagnostics`` (:mod:`asgp_ros.serial.status` decides levels and messages). The serial
+work (port, reader thread, reconnection, handshake, heartbeats) lives in
+:mod:`asgp_ros.serial.link`; this node only converts and wires.
 
 Each Joy is published straight from the link's reader thread (rclpy publishers are
 thread-safe) rather than handed to the executor: that saves the executor's wake-up, the
-largest share of the frame-to-Joy latency (benchmarks/serial_bridge.py). Link state
-changes reach the executor through a guard condition and publish diagnostics at once.
+largest share of the frame-to-Joy latency (benchmarks/serial_bridge.py). Diagnostics are
+published at once, from that thread too, when a sample changes a diagnostic level (an ADC
+fault is an ERROR from its first sample); link state changes reach the executor through a
+guard condition and publish diagnostics at once.
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from dataclasses import replace
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
@@ -30,9 +36,10 @@ from sensor_msgs.msg import Joy
 
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
-from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState
+from asgp_ros.serial import status as board_status
+from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
-from asgp_ros.serial.protocol import Mode
+from asgp_ros.serial.protocol import Mode, Status
 
 _LEVEL = {
     LinkState.CONNECTED: "OK",
@@ -59,12 +66,16 @@ class SerialBridgeNode(Node):
                                  QoSProfile(depth=10))
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)
+        self._diag_lock = threading.Lock()  # diagnostics come from two threads
+        self._diag_levels: tuple[str, ...] = ()  # levels of the last diagnostics published
         self._override: tuple[float, float] | None = None
         self._override_t = -float("inf")  # time.monotonic() of the last valid override
-        self._override_mode = False       # we asked the board for override mode
         self._override_rejected = 0
         self._last_state_reason = ""
         self._published = 0
+        self._withheld = 0                 # samples without a reading (ADC_FAULT)
+        self._last_sample: JoystickSample | None = None
+        self._last_status_seen: tuple[Status, bool] | None = None  # None: judge the next
         self._last_stamp_ns = 0
 
         self.link = LinkManager(self.params.link_config(), on_sample=self._on_sample,
@@ -95,6 +106,19 @@ class SerialBridgeNode(Node):
     # -- link -> ROS -----------------------------------------------------------------------
 
     def _on_sample(self, s: JoystickSample) -> None:  # reader thread
+        self._last_sample = s
+        if s.valid:
+            self._publish_joy(s)
+        else:
+            self._withheld += 1  # no reading: saying nothing is the truth, never a deflection
+        seen = (s.status, self.link.host_lost)
+        if seen != self._last_status_seen:
+            self._last_status_seen = seen
+            with self._shutdown_guard():
+                self._publish_diagnostics(only_if_levels_change=True)
+
+    def _publish_joy(self, s: JoystickSample) -> None:  # reader thread
+        assert s.forward is not None and s.turn is not None
         # stamped at reception: the node's clock now, minus how long ago the bytes arrived
         age_ns = int((time.monotonic() - s.t_rx) * 1e9)
         stamp_ns = self.get_clock().now().nanoseconds - max(0, age_ns)
@@ -112,8 +136,7 @@ class SerialBridgeNode(Node):
 
     def _on_state(self, state: LinkState, reason: str) -> None:  # reader thread
         self._last_state_reason = reason
-        if state != LinkState.CONNECTED:
-            self._override_mode = False  # a new connection starts in passthrough
+        self._last_status_seen = None  # the first sample of a connection is judged afresh
         with self._shutdown_guard():
             self._state_gc.trigger()
 
@@ -139,27 +162,45 @@ class SerialBridgeNode(Node):
         self._override_t = time.monotonic()
 
     def _send_override(self) -> None:
+        # the board's mode as its samples report it, not as we last asked: the board may
+        # have reset it (HOST_LOST, a restart), and then the next override needs MODE first
+        board_mode = self.link.board_mode
         age = time.monotonic() - self._override_t
         if self._override is not None and age <= self.params.override_timeout:
-            if not self._override_mode:
-                self._override_mode = self.link.set_mode(Mode.OVERRIDE)
+            if board_mode != Mode.OVERRIDE:
+                self.link.set_mode(Mode.OVERRIDE)
             self.link.send_override(*self._override)
-        elif (self._override_mode and age > self.params.mode_release_after
-              and self.link.set_mode(Mode.PASSTHROUGH)):
+        elif board_mode == Mode.OVERRIDE and age > self.params.mode_release_after:
             # the firmware already fell back to the user after 200 ms; tidy the mode up
-            self._override_mode = False
+            self.link.set_mode(Mode.PASSTHROUGH)
 
     # -- diagnostics -------------------------------------------------------------------------
 
-    def _publish_diagnostics(self) -> None:
-        st = self.link.stats()
+    def _publish_diagnostics(self, only_if_levels_change: bool = False) -> None:
+        """Publishes the three statuses (link, joystick, override); with
+        ``only_if_levels_change`` only when a level differs from the last publication.
+        Called from the executor and from the reader thread."""
+        with self._diag_lock:
+            st = self.link.stats()
+            statuses = (self._link_status(st), self._joystick_status(st),
+                        self._override_status(st))
+            levels = tuple(x.level for x in statuses)
+            if only_if_levels_change and levels == self._diag_levels:
+                return
+            self._diag_levels = levels
+            self._diag_pub.publish(conv.diagnostic_array(
+                self.get_clock().now().nanoseconds * 1e-9, list(statuses)))
+
+    def _link_status(self, st: LinkStats):
         level = _LEVEL[st.state]
         msg = st.state.value
         if st.state == LinkState.CONNECTED:
             msg = f"connected, firmware {st.firmware}"
             if st.reconnects:
                 msg += f", reconnected {st.reconnects} time(s)"
-            if st.last_sample_age > self.params.sample_timeout:
+            if st.host_lost:
+                level, msg = "ERROR", f"{board_status.HOST_LOST_MESSAGE} ({msg})"
+            elif st.last_sample_age > self.params.sample_timeout:
                 level, msg = "WARN", msg + f", no joystick sample for {st.last_sample_age:.2f} s"
         elif st.state == LinkState.CONNECTING:
             msg = f"disconnected, retrying: {st.last_error}"
@@ -167,8 +208,9 @@ class SerialBridgeNode(Node):
             msg = f"no heartbeat from the board for {st.last_heartbeat_age:.2f} s"
         elif st.state == LinkState.INCOMPATIBLE:
             msg = st.last_error
-        fresh = time.monotonic() - self._override_t <= self.params.override_timeout
-        link_status = conv.diagnostic_status(
+        elif st.state == LinkState.HANDSHAKE and st.unsolicited_versions:
+            msg = f"handshake again after an unsolicited VERSION ({st.last_error})"
+        return conv.diagnostic_status(
             "serial_bridge: link", level, msg, st.port, {
                 "state": st.state.value, "reason": self._last_state_reason,
                 "connects": st.connects, "reconnects": st.reconnects,
@@ -180,18 +222,49 @@ class SerialBridgeNode(Node):
                 "decode_errors": st.decode_errors, "board_errors": st.board_errors,
                 "last_board_error": st.last_board_error,
                 "board_crc_errors": st.board_crc_errors,
+                "board_rx_frames": st.board_rx_frames,
+                "unsolicited_versions": st.unsolicited_versions,
+                "version_mismatches": st.version_mismatches,
+                "host_lost": st.host_lost, "host_lost_events": st.host_lost_events,
                 "last_sample_age_s": st.last_sample_age,
                 "last_heartbeat_age_s": st.last_heartbeat_age,
             })
+
+    def _joystick_status(self, st: LinkStats):
+        s = self._last_sample
+        counts = {f"samples_{bit.name.lower()}": st.status_counts.get(bit.name, 0)
+                  for bit in board_status.STATUS_BITS if bit.name}
+        if s is None or st.state not in (LinkState.CONNECTED, LinkState.STALE) \
+                or st.last_sample_age > self.params.sample_timeout:
+            level, msg = "STALE", "no recent joystick sample"
+            values: dict = {"status": "", "sample_seq": ""}
+        else:
+            verdict = board_status.joystick_verdict(s.status, (s.raw_forward, s.raw_turn))
+            level, msg = verdict.level, verdict.message
+            values = {"status": board_status.flag_names(s.status), "sample_seq": s.seq,
+                      "raw_forward": s.raw_forward, "raw_turn": s.raw_turn,
+                      "out_forward": s.out_forward, "out_turn": s.out_turn}
+        values.update({"joy_published": self._published, "joy_withheld": self._withheld,
+                       **counts})
+        return conv.diagnostic_status("serial_bridge: joystick", level, msg, st.port, values)
+
+    def _override_status(self, st: LinkStats):
+        fresh = time.monotonic() - self._override_t <= self.params.override_timeout
         board_mode = "override" if st.board_mode == Mode.OVERRIDE else "passthrough"
-        override_status = conv.diagnostic_status(
-            "serial_bridge: override", "OK",
-            f"{'sending' if fresh else 'idle'} (board mode {board_mode})", st.port, {
+        s = self._last_sample
+        if s is None or st.state not in (LinkState.CONNECTED, LinkState.STALE):
+            verdict = board_status.Verdict("OK", f"{'sending' if fresh else 'idle'}")
+            flags = ""
+        else:
+            verdict = board_status.override_verdict(s.status, fresh)
+            flags = board_status.flag_names(s.status)
+        return conv.diagnostic_status(
+            "serial_bridge: override", verdict.level,
+            f"{verdict.message} (board mode {board_mode})", st.port, {
                 "fresh": fresh, "overrides_sent": st.overrides_sent,
                 "overrides_refused": self._override_rejected, "board_mode": board_mode,
+                "status": flags,
             })
-        self._diag_pub.publish(conv.diagnostic_array(
-            self.get_clock().now().nanoseconds * 1e-9, [link_status, override_status]))
 
     def destroy_node(self) -> None:
         self.link.stop()
@@ -199,13 +272,24 @@ class SerialBridgeNode(Node):
 
 
 def main(args=None) -> None:
+    """Runs the node until SIGINT or SIGTERM (rclpy's handlers shut the context down), then
+    stops the link (the board is asked for passthrough) and exits with status 0.
+
+    The signal may come at any moment, also while the node is being built or before the
+    executor exists (the link thread already publishes then): whatever fails because the
+    context was shut down under it is the shutdown, not an error."""
     rclpy.init(args=args)
     node = None
     try:
+        executor = SingleThreadedExecutor()
         node = SerialBridgeNode()
-        rclpy.spin(node)
+        executor.add_node(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise  # a real failure
     finally:
         if node is not None:
             node.destroy_node()

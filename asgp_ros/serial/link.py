@@ -31,7 +31,17 @@ class LinkState(enum.Enum):
     HANDSHAKE = "handshake"      # port open, waiting for the board's VERSION
     CONNECTED = "connected"      # handshake done, board heartbeats arriving
     STALE = "stale"              # port open but no heartbeat within heartbeat_timeout
-    INCOMPATIBLE = "incompatible"  # the board speaks another protocol version
+    INCOMPATIBLE = "incompatible"  # the board keeps answering with another protocol version
+
+
+#: Consecutive VERSION replies (one per HELLO) with another protocol version that make the
+#: link incompatible, and with ours that make an incompatible link usable again. One odd
+#: frame (line noise that passes the CRC) never decides.
+INCOMPATIBLE_AFTER = 3
+
+_UP = (LinkState.CONNECTED, LinkState.STALE)
+_STATUS_BITS = tuple(bit for bit in proto.Status if bit)
+_ASKING = (LinkState.HANDSHAKE, LinkState.INCOMPATIBLE)
 
 
 @dataclass(frozen=True)
@@ -72,11 +82,18 @@ class JoystickSample:
     seq: int
     raw_forward: int
     raw_turn: int
-    forward: float       # calibrated deflection in [-1, 1], + forward
-    turn: float          # calibrated deflection in [-1, 1], + left
+    forward: float | None  # calibrated deflection in [-1, 1], + forward; None: no reading
+    turn: float | None     # calibrated deflection in [-1, 1], + left; None: no reading
     status: proto.Status
     out_forward: int     # DAC codes the board wrote to the chair
     out_turn: int
+
+    @property
+    def valid(self) -> bool:
+        """The raw counts are a joystick position. False with ADC_FAULT (open wire, short):
+        the counts are no deflection at all, ``forward`` and ``turn`` are None and the board
+        drives the chair neutral."""
+        return proto.Status.ADC_FAULT not in self.status
 
 
 @dataclass(frozen=True)
@@ -102,7 +119,15 @@ class LinkStats:
     board_watchdog_ms: int
     board_mode: int
     board_crc_errors: int      # CRC errors the board saw in our frames
+    board_rx_frames: int       # valid frames the board received from us (its last heartbeat)
     overrides_sent: int
+    unsolicited_versions: int  # VERSION frames that answered no HELLO (each -> new handshake)
+    version_mismatches: int    # replies with another protocol version
+    last_status: proto.Status  # status byte of the last SAMPLE
+    last_sample_seq: int       # its SEQ, -1 if none
+    host_lost: bool            # the board reported HOST_LOST and has not heard us since
+    host_lost_events: int
+    status_counts: dict[str, int]  # samples received with each status bit, by bit name
     last_sample_age: float     # s, inf if none
     last_heartbeat_age: float  # s, inf if none
 
@@ -144,7 +169,23 @@ class LinkManager:
         self._version: proto.Version | None = None
         self._board_mode = proto.Mode.PASSTHROUGH
         self._board_crc_errors = 0
+        self._board_rx_frames: int | None = None
         self._overrides_sent = 0
+        self._unsolicited_versions = 0
+        self._version_mismatches = 0
+        self._last_status = proto.Status.NONE
+        self._last_sample_seq = -1
+        self._host_lost = False
+        self._host_lost_rx: int | None = None  # board's frame count when it lost us
+        self._host_lost_events = 0
+        self._status_counts = [0] * len(_STATUS_BITS)
+        # handshake: HELLOs are sent by the reader thread at _t_hello; each VERSION reply is
+        # judged once per HELLO (_hello_judged); _streak counts consecutive replies that
+        # disagree with the current state (mismatches while asking, matches while incompatible)
+        self._t_hello = -float("inf")
+        self._hellos_unanswered = 0
+        self._hello_judged = True
+        self._streak = 0
         self._last_seq: int | None = None
         self._last_sample_t = -float("inf")
         self._last_heartbeat_t = -float("inf")
@@ -160,6 +201,16 @@ class LinkManager:
     def version(self) -> proto.Version | None:
         return self._version
 
+    @property
+    def board_mode(self) -> proto.Mode:
+        """The board's mode as its latest SAMPLE reports it (passthrough until one came)."""
+        return self._board_mode
+
+    @property
+    def host_lost(self) -> bool:
+        """The board reported HOST_LOST and its heartbeats show it has not heard us since."""
+        return self._host_lost
+
     def start(self) -> None:
         if self._thread is not None:
             raise RuntimeError("link already started")
@@ -169,7 +220,7 @@ class LinkManager:
 
     def stop(self, timeout: float = 2.0) -> None:
         """Stops the reader; asks the board for passthrough first if connected."""
-        if self._state in (LinkState.CONNECTED, LinkState.STALE):
+        if self._state in _UP:
             self.set_mode(proto.Mode.PASSTHROUGH)
         self._stop.set()
         if self._thread is not None:
@@ -226,7 +277,15 @@ class LinkManager:
                 last_board_error=self._last_board_error, last_error=self._last_error,
                 firmware=v.firmware if v else "", board_rate_hz=v.sample_rate_hz if v else 0,
                 board_watchdog_ms=v.watchdog_ms if v else 0, board_mode=int(self._board_mode),
-                board_crc_errors=self._board_crc_errors, overrides_sent=self._overrides_sent,
+                board_crc_errors=self._board_crc_errors,
+                board_rx_frames=self._board_rx_frames or 0,
+                overrides_sent=self._overrides_sent,
+                unsolicited_versions=self._unsolicited_versions,
+                version_mismatches=self._version_mismatches,
+                last_status=self._last_status, last_sample_seq=self._last_sample_seq,
+                host_lost=self._host_lost, host_lost_events=self._host_lost_events,
+                status_counts={bit.name or "": n for bit, n in
+                               zip(_STATUS_BITS, self._status_counts, strict=True)},
                 last_sample_age=now - self._last_sample_t,
                 last_heartbeat_age=now - self._last_heartbeat_t,
             )
@@ -243,10 +302,12 @@ class LinkManager:
             self._on_state(state, reason)
 
     def _send(self, msg: proto.Message) -> bool:
+        """Writes one frame: HELLO while asking for the version, anything else only once the
+        board's protocol is confirmed."""
+        allowed = _ASKING if isinstance(msg, proto.Hello) else _UP
         with self._write_lock:
             ser = self._ser
-            if ser is None or self._state not in (LinkState.CONNECTED, LinkState.STALE,
-                                                  LinkState.HANDSHAKE):
+            if ser is None or self._state not in allowed:
                 return False
             frame = proto.encode(msg, self._tx_seq)
             self._tx_seq = (self._tx_seq + 1) & 0xFF
@@ -299,20 +360,24 @@ class LinkManager:
             self._last_seq = None
             self._version = None
             self._connects += 1
+            self._board_rx_frames = None
+            self._host_lost = False
+            self._board_mode = proto.Mode.PASSTHROUGH
         with self._write_lock:
             self._ser = ser
-        self._set_state(LinkState.HANDSHAKE, f"opened {cfg.port}")
+        self._begin_handshake(f"opened {cfg.port}")
         t_open = self._clock()
         self._last_rx_t = t_open
-        t_hello = -float("inf")
         t_beat = -float("inf")
         while not self._stop.is_set():
             now = self._clock()
             state = self._state
-            if state in (LinkState.HANDSHAKE, LinkState.INCOMPATIBLE):
-                if now - t_hello >= cfg.handshake_timeout:
-                    self._send(proto.Hello(proto.PROTOCOL_VERSION))
-                    t_hello = now
+            if state in _ASKING:
+                if now - self._t_hello >= cfg.handshake_timeout:
+                    self._t_hello = now
+                    self._hello_judged = False
+                    if self._send(proto.Hello(proto.PROTOCOL_VERSION)):
+                        self._hellos_unanswered += 1
             elif now - t_beat >= cfg.heartbeat_period:
                 self._send(proto.Heartbeat(int(now * 1000) & 0xFFFFFFFF, self._frames_rx & 0xFFFF,
                                        self._parser.crc_errors & 0xFFFF, 0))
@@ -335,6 +400,15 @@ class LinkManager:
             for frame in frames:
                 self._handle(frame, t_rx)
 
+    def _begin_handshake(self, reason: str) -> None:
+        """(Re)starts the version handshake: the next loop turn sends HELLO; samples are
+        withheld until the board answers with our protocol version."""
+        self._t_hello = -float("inf")
+        self._hellos_unanswered = 0
+        self._hello_judged = True
+        self._streak = 0
+        self._set_state(LinkState.HANDSHAKE, reason)
+
     def _handle(self, frame: proto.Frame, t_rx: float) -> None:
         try:
             msg = frame.decode()
@@ -350,45 +424,110 @@ class LinkManager:
                 self._frames_lost += (frame.seq - self._last_seq - 1) & 0xFF
             self._last_seq = frame.seq
         if isinstance(msg, proto.Sample):
-            if self._state not in (LinkState.CONNECTED, LinkState.STALE):
+            if self._state not in _UP:
                 return  # protocol not confirmed yet
             cal = self.config.calibration
+            fault = proto.Status.ADC_FAULT in msg.status
             sample = JoystickSample(
                 t_rx=t_rx, seq=frame.seq, raw_forward=msg.raw_forward, raw_turn=msg.raw_turn,
-                forward=cal.forward.deflection(msg.raw_forward),
-                turn=cal.turn.deflection(msg.raw_turn), status=msg.status,
+                # a faulty reading (open wire, short) is no deflection: never calibrate it
+                forward=None if fault else cal.forward.deflection(msg.raw_forward),
+                turn=None if fault else cal.turn.deflection(msg.raw_turn), status=msg.status,
                 out_forward=msg.out_forward, out_turn=msg.out_turn)
             with self._lock:
                 self._samples_rx += 1
                 self._last_sample_t = t_rx
+                self._last_status = msg.status
+                self._last_sample_seq = frame.seq
+                if msg.status:
+                    for i, bit in enumerate(_STATUS_BITS):
+                        if bit in msg.status:
+                            self._status_counts[i] += 1
                 self._board_mode = (proto.Mode.OVERRIDE if proto.Status.MODE_OVERRIDE in msg.status
                                     else proto.Mode.PASSTHROUGH)
+                if proto.Status.HOST_LOST in msg.status:
+                    self._host_lost = True
+                    self._host_lost_rx = self._board_rx_frames
+                    self._host_lost_events += 1
             if self._on_sample is not None:
                 self._on_sample(sample)
         elif isinstance(msg, proto.Heartbeat):
             with self._lock:
                 self._last_heartbeat_t = t_rx
                 self._board_crc_errors = msg.rx_crc_errors
+                self._board_rx_frames = msg.rx_frames
+                if self._host_lost and msg.rx_frames != self._host_lost_rx:
+                    self._host_lost = False  # the board hears us again
             if self._state == LinkState.STALE:
                 self._set_state(LinkState.CONNECTED, "heartbeat back")
         elif isinstance(msg, proto.Version):
-            if msg.protocol_version != proto.PROTOCOL_VERSION:
-                with self._lock:
-                    self._last_error = (f"board speaks protocol {msg.protocol_version}, "
-                                        f"host {proto.PROTOCOL_VERSION}")
-                self._set_state(LinkState.INCOMPATIBLE, self._last_error)
-                return
-            with self._lock:
-                self._version = msg
-                self._last_heartbeat_t = t_rx  # the handshake counts as a heartbeat
-            if self._state == LinkState.HANDSHAKE:
-                reason = (f"firmware {msg.firmware}, {msg.sample_rate_hz} Hz, "
-                          f"watchdog {msg.watchdog_ms} ms")
-                if self._connects > 1:
-                    reason = f"reconnected ({self._connects - 1}), " + reason
-                self._set_state(LinkState.CONNECTED, reason)
+            self._on_version(msg, t_rx)
         elif isinstance(msg, proto.ErrorReport):
             with self._lock:
                 self._board_errors += 1
                 self._last_board_error = msg.describe()
             log.debug("board reports %s", msg.describe())
+
+    def _on_version(self, msg: proto.Version, t_rx: float) -> None:
+        """The handshake (docs/serial_protocol.md, "HELLO / VERSION").
+
+        The board sends VERSION only in reply to HELLO. Outside the handshake a VERSION is a
+        board that restarted its conversation or line noise that passed the CRC: either way
+        the protocol is confirmed again with a new handshake (samples are withheld for the
+        few milliseconds it takes). While asking, each HELLO's reply is judged once; the link
+        is incompatible only after INCOMPATIBLE_AFTER consecutive replies with another
+        version, and usable again only after as many with ours.
+        """
+        ours = msg.protocol_version == proto.PROTOCOL_VERSION
+        state = self._state
+        if state in _UP:
+            if (ours and msg == self._version and self._hellos_unanswered > 0
+                    and t_rx - self._t_hello <= 2.0 * self.config.handshake_timeout):
+                self._hellos_unanswered -= 1  # a late reply to one of our HELLOs
+                return
+            with self._lock:
+                self._unsolicited_versions += 1
+                self._last_error = (f"unsolicited VERSION (protocol {msg.protocol_version}, "
+                                    f"firmware {msg.firmware}) while {state.value}")
+            log.warning("serial link %s: %s; new handshake", self.config.port,
+                        self._last_error)
+            self._begin_handshake("unsolicited VERSION: new handshake")
+            return
+        if state not in _ASKING:
+            return
+        if self._hello_judged:
+            if not ours:  # a second answer to the same HELLO, or noise: not a new vote
+                with self._lock:
+                    self._unsolicited_versions += 1
+                return
+            if state == LinkState.INCOMPATIBLE:
+                return
+        self._hello_judged = True
+        self._hellos_unanswered = max(0, self._hellos_unanswered - 1)
+        if not ours:
+            with self._lock:
+                self._version_mismatches += 1
+                self._last_error = (f"board speaks protocol {msg.protocol_version}, "
+                                    f"host {proto.PROTOCOL_VERSION}")
+            if state == LinkState.INCOMPATIBLE:
+                self._streak = 0
+                return
+            self._streak += 1
+            if self._streak >= INCOMPATIBLE_AFTER:
+                self._streak = 0
+                self._set_state(LinkState.INCOMPATIBLE,
+                                f"{self._last_error} ({INCOMPATIBLE_AFTER} replies)")
+            return
+        if state == LinkState.INCOMPATIBLE:
+            self._streak += 1
+            if self._streak < INCOMPATIBLE_AFTER:
+                return
+        self._streak = 0
+        with self._lock:
+            self._version = msg
+            self._last_heartbeat_t = t_rx  # the handshake counts as a heartbeat
+        reason = (f"firmware {msg.firmware}, {msg.sample_rate_hz} Hz, "
+                  f"watchdog {msg.watchdog_ms} ms")
+        if self._connects > 1:
+            reason = f"reconnected ({self._connects - 1}), " + reason
+        self._set_state(LinkState.CONNECTED, reason)
