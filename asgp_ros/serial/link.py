@@ -62,12 +62,14 @@ class LinkConfig:
     def __post_init__(self) -> None:
         if not self.port:
             raise ValueError("serial port path is empty")
-        if self.baud <= 0:
-            raise ValueError(f"baud must be positive, got {self.baud}")
+        if isinstance(self.baud, bool) or not isinstance(self.baud, int) \
+                or not 1200 <= self.baud <= 2_000_000:
+            raise ValueError(f"baud must be an integer in [1200, 2000000], got {self.baud!r}")
         for name in ("read_timeout", "handshake_timeout", "heartbeat_period",
                      "heartbeat_timeout", "silence_reopen", "reconnect_min", "reconnect_max"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0 s, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not 0.0 < value <= 60.0:  # also refuses NaN and infinity
+                raise ValueError(f"{name} must be in (0, 60] s, got {value!r}")
         if self.reconnect_max < self.reconnect_min:
             raise ValueError("reconnect_max must be >= reconnect_min")
         if self.heartbeat_timeout <= self.heartbeat_period:

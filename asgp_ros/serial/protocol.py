@@ -28,6 +28,8 @@ CRC_LEN = 2
 MAX_PAYLOAD = 32
 MAX_FRAME = HEADER_LEN + MAX_PAYLOAD + CRC_LEN
 PERMILLE = 1000
+ADC_MAX = 1023    # 10-bit joystick readings
+DAC_MAX = 4095    # 12-bit output codes
 
 
 class MsgType(enum.IntEnum):
@@ -112,9 +114,22 @@ def encode_frame(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
 
 
 class _Packed:
-    """A message whose payload is its fields in order, packed with ``FORMAT``."""
+    """A message whose payload is its fields in order, packed with ``FORMAT``.
+
+    ``RANGES`` gives the documented range of fields narrower than their wire type
+    (docs/serial_protocol.md, "Messages"); :meth:`Frame.decode` refuses a frame outside them.
+    """
 
     FORMAT: ClassVar[str]
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {}
+
+    def check(self) -> None:
+        """``ProtocolError`` naming the first field outside its documented range."""
+        for name, (low, high) in self.RANGES.items():
+            value = int(getattr(self, name))
+            if not low <= value <= high:
+                raise ProtocolError(f"{type(self).__name__} {name}={value} outside "
+                                    f"[{low}, {high}]")
 
     def _fields(self) -> tuple[int, ...]:
         return tuple(int(getattr(self, f.name)) for f in fields(self))  # type: ignore[arg-type]
@@ -133,6 +148,9 @@ class Sample(_Packed):
 
     TYPE: ClassVar[MsgType] = MsgType.SAMPLE
     FORMAT: ClassVar[str] = "<HHBHH"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {
+        "raw_forward": (0, ADC_MAX), "raw_turn": (0, ADC_MAX), "status": (0, 0x7F),
+        "out_forward": (0, DAC_MAX), "out_turn": (0, DAC_MAX)}
     raw_forward: int
     raw_turn: int
     status: Status
@@ -151,6 +169,8 @@ class Override(_Packed):
 
     TYPE: ClassVar[MsgType] = MsgType.OVERRIDE
     FORMAT: ClassVar[str] = "<hh"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {
+        "forward": (-PERMILLE, PERMILLE), "turn": (-PERMILLE, PERMILLE)}
     forward: int
     turn: int
 
@@ -175,6 +195,7 @@ class Override(_Packed):
 class SetMode(_Packed):
     TYPE: ClassVar[MsgType] = MsgType.MODE
     FORMAT: ClassVar[str] = "<B"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {"mode": (0, 1)}
     mode: int
 
 
@@ -184,6 +205,7 @@ class Heartbeat(_Packed):
 
     TYPE: ClassVar[MsgType] = MsgType.HEARTBEAT
     FORMAT: ClassVar[str] = "<IHHB"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {"mode": (0, 1)}
     uptime_ms: int
     rx_frames: int
     rx_crc_errors: int
@@ -209,6 +231,8 @@ class Version(_Packed):
 
     TYPE: ClassVar[MsgType] = MsgType.VERSION
     FORMAT: ClassVar[str] = "<BBBBHH"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {
+        "sample_rate_hz": (1, 1000), "watchdog_ms": (1, 60000)}
     protocol_version: int
     fw_major: int
     fw_minor: int
@@ -227,6 +251,7 @@ class ErrorReport(_Packed):
 
     TYPE: ClassVar[MsgType] = MsgType.ERROR
     FORMAT: ClassVar[str] = "<BB"
+    RANGES: ClassVar[dict[str, tuple[int, int]]] = {"code": (1, max(ErrorCode))}
     code: int
     detail: int
 
@@ -262,7 +287,9 @@ class Frame:
     payload: bytes
 
     def decode(self) -> Message:
-        """The message in this frame; ``ProtocolError`` for an unknown type or bad length."""
+        """The message in this frame; ``ProtocolError`` for an unknown type, a bad length or
+        a field outside its documented range (a 10-bit reading of 2000, a mode of 7: a
+        frame no board sends, whatever its CRC says)."""
         cls = MESSAGE_CLASSES.get(self.type)
         if cls is None:
             raise ProtocolError(f"unknown message type 0x{self.type:02X}")
@@ -271,6 +298,7 @@ class Frame:
                 f"{cls.__name__} payload of {len(self.payload)} bytes, "
                 f"expected {PAYLOAD_LEN[self.type]}")
         msg: Message = cls.unpack(self.payload)
+        msg.check()
         return msg
 
 
