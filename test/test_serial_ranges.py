@@ -83,6 +83,7 @@ def test_impossible_sample_is_never_delivered(tmp_path):
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"read_timeout": math.inf}, "read_timeout"),
+    ({"read_timeout": 5.0}, "read_timeout"),
     ({"silence_reopen": 1e30}, "silence_reopen"),
     ({"heartbeat_period": math.nan}, "heartbeat_period"),
     ({"reconnect_max": math.inf}, "reconnect_max"),

@@ -68,8 +68,9 @@ class LinkConfig:
         for name in ("read_timeout", "handshake_timeout", "heartbeat_period",
                      "heartbeat_timeout", "silence_reopen", "reconnect_min", "reconnect_max"):
             value = getattr(self, name)
-            if not 0.0 < value <= 60.0:  # also refuses NaN and infinity
-                raise ValueError(f"{name} must be in (0, 60] s, got {value!r}")
+            high = 0.5 if name == "read_timeout" else 60.0  # the reader checks stop() this often
+            if not 0.0 < value <= high:  # also refuses NaN and infinity
+                raise ValueError(f"{name} must be in (0, {high:g}] s, got {value!r}")
         if self.reconnect_max < self.reconnect_min:
             raise ValueError("reconnect_max must be >= reconnect_min")
         if self.heartbeat_timeout <= self.heartbeat_period:
