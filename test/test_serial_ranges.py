@@ -144,3 +144,15 @@ def test_node_refuses_huge_and_non_finite_parameters_at_runtime(rclpy_context, t
         assert node.params.calibration.forward.neutral == 512.0  # unchanged
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"adc_neutral": 5000}, "adc_neutral"), ({"adc_span": 0}, "span"),
+    ({"dac_max": 70000}, "dac_max"), ({"adc_fault_high": 100}, "window"),
+    ({"adc_neutral": 512.5}, "integer"), ({"limit_pos": 2000}, "limits"),
+])
+def test_firmware_mirror_calibration_ranges(kwargs, match):
+    from asgp_ros.serial import safety as fw
+
+    with pytest.raises(ValueError, match=match):
+        fw.AxisCal(**kwargs)

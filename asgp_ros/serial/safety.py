@@ -70,6 +70,23 @@ class AxisCal:
     dac_max: int = DAC_MAX
 
     def __post_init__(self) -> None:
+        for name in ("adc_neutral", "adc_span", "adc_deadband", "adc_fault_low",
+                     "adc_fault_high", "limit_pos", "limit_neg", "dac_neutral", "dac_span",
+                     "dac_min", "dac_max"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise ValueError(f"{name} must be an integer (the firmware's arithmetic), "
+                                 f"got {value!r}")
+        for name, high in (("adc_neutral", proto.ADC_MAX), ("adc_span", proto.ADC_MAX),
+                           ("adc_fault_low", proto.ADC_MAX), ("adc_fault_high", proto.ADC_MAX),
+                           ("dac_neutral", proto.DAC_MAX), ("dac_span", proto.DAC_MAX),
+                           ("dac_min", proto.DAC_MAX), ("dac_max", proto.DAC_MAX)):
+            if not 0 <= getattr(self, name) <= high:
+                raise ValueError(f"{name} must be in [0, {high}], got {getattr(self, name)}")
+        if self.adc_span < 1 or self.dac_span < 1:
+            raise ValueError("adc_span and dac_span must be at least 1")
+        if not self.adc_fault_low <= self.adc_neutral <= self.adc_fault_high:
+            raise ValueError("the plausible ADC window must contain the neutral reading")
         if not 0 <= self.adc_deadband < self.adc_span:
             raise ValueError(f"dead band {self.adc_deadband} must be in [0, {self.adc_span})")
         if not self.dac_min <= self.dac_neutral <= self.dac_max:
