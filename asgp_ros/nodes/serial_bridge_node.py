@@ -52,7 +52,7 @@ _LEVEL = {
 
 
 class SerialBridgeNode(Node):
-    """See the module docstring. ``link_factory`` lets tests substitute the link."""
+    """See the module docstring."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("serial_bridge_node", **kwargs)
@@ -67,7 +67,7 @@ class SerialBridgeNode(Node):
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)
         self._diag_lock = threading.Lock()  # diagnostics come from two threads
-        self._diag_levels: tuple[str, ...] = ()  # levels of the last diagnostics published
+        self._diag_levels: tuple[object, ...] = ()  # levels of the last diagnostics published
         self._override: tuple[float, float] | None = None
         self._override_t = -float("inf")  # time.monotonic() of the last valid override
         self._override_rejected = 0
@@ -118,7 +118,8 @@ class SerialBridgeNode(Node):
                 self._publish_diagnostics(only_if_levels_change=True)
 
     def _publish_joy(self, s: JoystickSample) -> None:  # reader thread
-        assert s.forward is not None and s.turn is not None
+        if s.forward is None or s.turn is None:
+            return  # no reading (callers only pass valid samples)
         # stamped at reception: the node's clock now, minus how long ago the bytes arrived
         age_ns = int((time.monotonic() - s.t_rx) * 1e9)
         stamp_ns = self.get_clock().now().nanoseconds - max(0, age_ns)
