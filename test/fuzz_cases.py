@@ -19,8 +19,9 @@ Environment:
     ASGP_FUZZ_SEED      vary the examples (default: derandomised, the same every run)
     ASGP_FUZZ_COLLECT   JSON-lines file: log every case and do not fail on findings
                         (benchmarks/fuzz.py collects every finding of a long run this way)
-    ASGP_FUZZ_KEEP      directory: keep the files of the first case of every finding
-    ASGP_FUZZ_DEADLINE  Unix time after which remaining cases are skipped (collect mode)
+    ASGP_FUZZ_KEEP      directory: keep the files of the shortest case of every finding
+    ASGP_FUZZ_BUDGET    seconds per target (collect mode): later cases of a target that
+                        has used its time are skipped, so that every target gets its turn
     ASGP_FUZZ_MEMORY    address-space limit of a case in bytes (default 6 GiB)
 """
 
@@ -59,7 +60,7 @@ CASE_TIMEOUT = float(os.environ.get("ASGP_FUZZ_TIMEOUT", "10"))
 FUZZ_SEED = os.environ.get("ASGP_FUZZ_SEED")
 COLLECT = os.environ.get("ASGP_FUZZ_COLLECT")
 KEEP = os.environ.get("ASGP_FUZZ_KEEP")
-DEADLINE = float(os.environ.get("ASGP_FUZZ_DEADLINE", "0"))
+BUDGET = float(os.environ.get("ASGP_FUZZ_BUDGET", "0"))
 MEMORY_LIMIT = int(os.environ.get("ASGP_FUZZ_MEMORY", str(6 * 2**30)))
 #: Files at most this large are hashed in a snapshot; larger (sparse) ones by size and time.
 HASH_LIMIT = 16 * 2**20
@@ -641,6 +642,7 @@ class Finding:
     signature: str
     outcome: Outcome
     files: dict[str, str] = field(default_factory=dict)  # case file -> what it is
+    argv: list[str] | None = None
 
     def report(self) -> str:
         o = self.outcome
@@ -649,19 +651,39 @@ class Finding:
         lines.append(f"  problems: {'; '.join(self.problems)}")
         lines.append(f"  exit code {o.code}, signal {o.signum}, {o.elapsed:.1f} s")
         if o.stderr.strip():
-            lines.append("  stderr:\n" + _indent(_tail(o.stderr, 40)))
+            lines.append("  stderr:\n" + _indent(_tail(compact_trace(o.stderr), 40)))
         if o.timed_out and o.stacks.strip():
-            lines.append("  stacks when stopped:\n" + _indent(_tail(o.stacks, 40)))
+            lines.append("  stacks when stopped:\n"
+                         + _indent(_tail(compact_trace(o.stacks), 40)))
         return "\n".join(lines)
 
     def to_json(self) -> dict[str, Any]:
         o = self.outcome
         return {"target": self.target, "signature": self.signature,
-                "reproducer": self.reproducer, "files": self.files,
+                "reproducer": self.reproducer, "argv": self.argv, "files": self.files,
                 "problems": self.problems, "exit_code": o.code, "signal": o.signum,
                 "timed_out": o.timed_out, "seconds": round(o.elapsed, 2),
-                "stderr": _tail(o.stderr, 60), "stacks": _tail(o.stacks, 60) if
-                o.timed_out else ""}
+                "stderr": _tail(compact_trace(o.stderr), 60),
+                "stacks": _tail(compact_trace(o.stacks), 60) if o.timed_out else ""}
+
+
+_HARNESS_FRAME = re.compile(r'File "[^"]*(/test/fuzz_cases\.py|/_pytest/|/pluggy/|'
+                            r'/pytest/|/hypothesis/|<frozen runpy>)')
+
+
+def compact_trace(text: str) -> str:
+    """Tracebacks and stack dumps without source lines, carets, the harness's and pytest's
+    frames and the list of extension modules; other text as it is."""
+    if "Traceback (most recent call last)" not in text and "File \"" not in text:
+        return text
+    out = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("Extension modules:") or _HARNESS_FRAME.search(line):
+            continue
+        if stripped.startswith("File \"") or not line.startswith(" ") or not stripped:
+            out.append(line.rstrip())
+    return "\n".join(out)
 
 
 def _tail(text: str, n: int) -> str:
@@ -674,15 +696,16 @@ def _indent(text: str) -> str:
 
 
 # ----------------------------------------------------------------------------- a case
-_kept: set[str] = set()
+_kept: dict[str, int] = {}  # signature -> size of the kept reproducer
 _failed: dict[tuple[str, ...], str] = {}
+_started: dict[str, float] = {}  # budget group -> when its first case ran
 
 
 def run_case(arena: Arena, target: str, *, argv: list[str] | None = None,
              call: tuple[Callable[..., Any], tuple] | None = None,
              prepare: Callable[[Path], dict[str, str]] | None = None,
              timeout: float = CASE_TIMEOUT, tokens: Iterable[str] = (),
-             subprocess_run: bool = False) -> None:
+             subprocess_run: bool = False, group: str | None = None) -> None:
     """Run one case and check it; a finding fails the test (or, collecting, is logged).
 
     Args:
@@ -694,8 +717,11 @@ def run_case(arena: Arena, target: str, *, argv: list[str] | None = None,
         tokens: more paths to make from ``MATERIALS`` (every argument is one already).
         subprocess_run: run ``python -m asgp_ros.cli`` instead of forking (slower; the
             real process, for hang and signal behaviour).
+        group: what shares one ASGP_FUZZ_BUDGET (default: the target).
     """
-    if COLLECT and DEADLINE and time.time() > DEADLINE:
+    group = group or target
+    started = _started.setdefault(group, time.monotonic())
+    if COLLECT and BUDGET and time.monotonic() - started > BUDGET:
         _log({"target": target, "skipped": True})
         return
     case = arena.new_case()
@@ -736,13 +762,17 @@ def run_case(arena: Arena, target: str, *, argv: list[str] | None = None,
     finding = None
     if problems:
         finding = Finding(target, reproducer, problems, signature(target, outcome, problems),
-                          outcome, files)
+                          outcome, files, list(argv) if argv is not None else None)
     if COLLECT:
-        _log({"target": target, "ok": finding is None, "seconds": round(outcome.elapsed, 3),
-              **({"finding": finding.to_json()} if finding else {})})
-        if finding is not None and KEEP and finding.signature not in _kept:
-            _kept.add(finding.signature)
-            _keep(case, finding)
+        record: dict[str, Any] = {"target": target, "ok": finding is None,
+                                  "seconds": round(outcome.elapsed, 3)}
+        if finding is not None:
+            record["finding"] = finding.to_json()
+            size = len(reproducer) + sum(len(k) + len(v) for k, v in files.items())
+            if KEEP and size < _kept.get(finding.signature, 1 << 62):
+                _kept[finding.signature] = size
+                record["finding"]["kept"] = str(_keep(case, finding))
+        _log(record)
         arena.clear_case()
         return
     arena.clear_case()
@@ -820,15 +850,18 @@ def _log(record: dict[str, Any]) -> None:
         fh.write(json.dumps(record) + "\n")
 
 
-def _keep(case: Path, finding: Finding) -> None:
-    """Copy the case directory (FIFOs as FIFOs, sparse giants as sparse files)."""
+def _keep(case: Path, finding: Finding) -> Path:
+    """Copy the case directory (FIFOs as FIFOs, sparse giants as sparse files) next to the
+    finding's JSON; a shorter case of the same finding replaces it."""
     assert KEEP
     dest = Path(KEEP) / hashlib.sha1(finding.signature.encode()).hexdigest()[:12]
     if dest.exists():
-        return
+        _make_removable(dest)
+        shutil.rmtree(dest)
     dest.mkdir(parents=True)
     (dest / "finding.json").write_text(json.dumps(finding.to_json(), indent=2) + "\n")
     copy_tree(case, dest / "case")
+    return dest
 
 
 def copy_tree(src: Path, dest: Path) -> None:

@@ -149,7 +149,8 @@ def test_bag_train_evaluate(arena, case, command):
     argv = (["train", "--model", "first_order_lag", bag, "--out", "out.npz"]
             if command == "train" else
             ["evaluate", "fol.npz", bag, *(["--truth"] if command == "evaluate-truth" else [])])
-    fc.run_case(arena, f"bag -> asgp {command.split('-')[0]}", argv=argv, prepare=prepare)
+    fc.run_case(arena, f"bag -> asgp {command.split('-')[0]}", argv=argv, prepare=prepare,
+                group="bag -> asgp train/evaluate")
 
 
 @fuzz(weight=1)
@@ -193,7 +194,8 @@ def test_special_files(arena, case):
         fc._special(kind, case_dir / where)
         return {where: kind}
 
-    fc.run_case(arena, f"special file -> {slot}", argv=argv, prepare=prepare)
+    fc.run_case(arena, f"special file -> {slot}", argv=argv, prepare=prepare,
+                group="special files")
 
 
 # ------------------------------------------------------------------------ command line
