@@ -119,22 +119,25 @@ class Harness:
         ns = round(t * 1e9)
         self.spin_until(lambda: self.node.get_clock().now().nanoseconds == ns, what="clock")
 
+    def _seen(self, kind: str) -> int:
+        """Samples of ``kind`` the predictor took plus every input it refused."""
+        stats = self.node.predictor.stats
+        return getattr(stats, f"{kind}_samples") + sum(stats.rejected.values())
+
     def joy(self, t: float, fwd: float, turn: float) -> None:
-        n = self.node.predictor.stats.joy_samples + self.node.predictor.stats.dropped_nonfinite
+        n = self._seen("joy")
         self.joy_pub.publish(conv.joy_from_sample(t, fwd, turn))
-        self.spin_until(lambda: self.node.predictor.stats.joy_samples
-                        + self.node.predictor.stats.dropped_nonfinite > n, what="joy")
+        self.spin_until(lambda: self._seen("joy") > n, what="joy")
 
     def vo(self, t: float, v: float, w: float, lost: bool = False) -> None:
-        n = self.node.predictor.stats.vo_samples + self.node.predictor.stats.dropped_nonfinite
+        n = self._seen("vo")
         if self.odometry:  # the chair drives along x at 0.5 m/s in the odom frame
             msg = conv.odometry_from_pose(t, 0.5 * (t - 100.0), 2.0, 0.0, v, w)
             msg.twist.covariance[0] = -1.0 if lost else 1e-4
             self.vo_pub.publish(msg)
         else:
             self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, w))
-        self.spin_until(lambda: self.node.predictor.stats.vo_samples
-                        + self.node.predictor.stats.dropped_nonfinite > n, what="vo")
+        self.spin_until(lambda: self._seen("vo") > n, what="vo")
 
     def drive(self, t_from: float, t_to: float, vo: bool = True, joy=None, vel=None,
               joy_nan: bool = False) -> None:
@@ -264,6 +267,40 @@ def test_nan_inputs_are_dropped_and_prediction_continues(rclpy_context, model_fi
         h.close()
 
 
+def test_out_of_range_inputs_are_refused_with_reasons_in_diagnostics(rclpy_context,
+                                                                     model_file):
+    """Issue 16: joystick or plan values of 1e30 were accepted silently."""
+    h = Harness(rclpy_context, model_file)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and _t0(h.paths[-1]) > 102.0 - 1e-9, what="paths")
+        good = h.node._last_result
+        h.joy(102.05, 1e30, 0.0)
+        h.joy(102.06, 0.2, -1.3)
+        h.vo(102.07, 6.0, 0.0)  # faster than any wheelchair
+        h.vo(102.08, 0.3, 1e30)
+        n_plans = h.node.predictor.stats.rejected.get(online.REJECT_PLAN, 0)
+        h.plan_pub.publish(conv.plan_to_multiarray(np.array([[0.2, 0.0], [1e30, 0.0]])))
+        h.spin_until(lambda: h.node.predictor.stats.rejected.get(online.REJECT_PLAN, 0)
+                     > n_plans, what="plan")
+        status = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+        assert status["rejected"] == ("joy_out_of_range=2, plan_out_of_range=1, "
+                                      "vo_out_of_range=2")
+        assert status["last_rejected"].startswith(
+            "plan_out_of_range: plan row 1: forward deflection 1e+30 is outside")
+        assert status["dropped_nonfinite"] == "0"
+        # nothing of it reached the buffers: the next step predicts from the good data
+        assert h.node.predictor.newest_stamps() == (102.0, 102.03)
+        h.drive(102.0, 103.0)
+        h.spin_until(lambda: _t0(h.paths[-1]) > 103.0 - 1e-9, what="paths")
+        result = h.node._last_result
+        assert result.ok and not result.from_plan
+        assert np.all(np.abs(result.joy_past) <= 1.0) and np.all(np.abs(result.vel_past) < 1.0)
+        assert good.ok
+    finally:
+        h.close()
+
+
 def test_joy_plan_changes_the_path(rclpy_context, model_file):
     h = Harness(rclpy_context, model_file)
     try:
@@ -379,6 +416,7 @@ def test_plan_conversion_and_validation():
     for bad, why in ((Float32MultiArray(data=[1.0, 2.0, 3.0]), "2 values per step"),
                      (Float32MultiArray(data=[]), "2 values per step"),
                      (Float32MultiArray(data=[1.0, float("nan")]), "NaN"),
+                     (Float32MultiArray(data=[0.0] * 2002), "2002 values, more than 1000"),
                      (conv.plan_to_multiarray(np.zeros((4, 2))), None)):
         if why is None:  # layout promising more steps than the data holds
             bad.layout.dim[0].size = 5

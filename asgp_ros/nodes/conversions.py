@@ -124,12 +124,21 @@ def plan_from_multiarray(msg: Any) -> Any:
     ``[m, 2]``; ``layout.data_offset`` is honoured.
 
     Raises:
-        ValueError: malformed layout, odd length, empty, or non-finite values.
+        ValueError: malformed layout, odd length, empty, more than
+            ``asgp_ros.core.online.MAX_PLAN_STEPS`` steps (checked before the data is
+            converted), or non-finite values. The values' range is the Predictor's check.
     """
     import numpy as np
 
+    from asgp_ros.core.online import MAX_PLAN_STEPS
+
     layout = msg.layout
-    data = np.asarray(msg.data, dtype=np.float64)[int(layout.data_offset):]
+    offset = int(layout.data_offset)
+    values = len(msg.data) - offset
+    if values > 2 * MAX_PLAN_STEPS:
+        raise ValueError(f"joy_plan holds {values} values, more than {MAX_PLAN_STEPS} steps "
+                         "of 2")
+    data = np.asarray(msg.data[offset:], dtype=np.float64)
     dims = list(layout.dim)
     if dims:
         if len(dims) != 2 or int(dims[1].size) != 2:

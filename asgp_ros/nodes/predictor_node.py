@@ -12,7 +12,15 @@ messages and wires callbacks. A prediction is made once per grid step of the mod
 usually), so the path is published within the prediction's latency of the data; a timer
 at the model's rate is the watchdog (staleness, clock jumps, clearing the RViz ellipses)
 and another publishes diagnostics. Stale input means no path and a diagnostic saying
-why; fresh input resumes prediction without a restart.
+why; fresh input resumes prediction without a restart. Input that is not finite or out of
+its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a reason
+code; the diagnostics count the refusals by code (``rejected``) and give the newest one
+(``last_rejected``).
+
+Signals: SIGINT and SIGTERM end the node within a fraction of a second in every state.
+The model is read in a worker thread while the main thread watches the ROS context, so
+even a read that blocks (a hung network file system) cannot keep the node alive; a path
+that is not a regular file (a FIFO, a device) is refused before it is opened.
 
 Run: ``predictor_node --ros-args --params-file config/predictor.yaml -p model_path:=M.npz``
 """
@@ -21,6 +29,7 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, replace
@@ -32,7 +41,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -44,6 +53,7 @@ from visualization_msgs.msg import MarkerArray
 from asgp_ros.bags import parse_joy_axes
 from asgp_ros.core import online
 from asgp_ros.core.modelfile import ModelFileError, load_model
+from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
@@ -55,6 +65,14 @@ PREDICTION_ERROR = "prediction_error"
 
 class StartupError(Exception):
     """The node cannot start (bad model file, inconsistent parameters)."""
+
+
+class StartupInterruptedError(Exception):
+    """Shutdown (SIGINT, SIGTERM) was requested while the node was starting."""
+
+
+#: How often the main thread checks for a shutdown while the model loads (s).
+_LOAD_POLL_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -210,7 +228,7 @@ class PredictorNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         try:
             self._setup()
-        except StartupError:
+        except (StartupError, StartupInterruptedError):
             self.destroy_node()
             raise
 
@@ -222,10 +240,7 @@ class PredictorNode(Node):
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params
 
-        try:
-            self.model = load_model(p.model_path)
-        except (ModelFileError, OSError, ValueError) as exc:
-            raise StartupError(f"cannot load the model: {exc}") from exc
+        self.model = self._load_model(p.model_path)
         rate = float(self.model.resample_config.rate_hz)
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
@@ -270,6 +285,37 @@ class PredictorNode(Node):
             f"{p.base_frame if p.path_frame == 'base' else p.odom_frame}"
         )
 
+    def _load_model(self, path: str) -> MotionModel:
+        """``load_model`` in a worker thread; the main thread returns as soon as the context
+        shuts down (a signal), whatever the read is doing.
+
+        Raises:
+            StartupError: the file does not load. StartupInterruptedError: shutdown requested.
+        """
+        self.get_logger().info(f"loading model {path}")
+        box: dict[str, Any] = {}
+        done = threading.Event()
+
+        def work() -> None:
+            try:
+                box["model"] = load_model(path)
+            except BaseException as exc:  # handed to the main thread
+                box["error"] = exc
+            finally:
+                done.set()
+
+        threading.Thread(target=work, name="model_loader", daemon=True).start()
+        while not done.wait(_LOAD_POLL_S):
+            if not self.context.ok():
+                raise StartupInterruptedError(f"shutdown requested while loading {path}")
+        error = box.get("error")
+        if isinstance(error, ModelFileError | OSError | ValueError):
+            raise StartupError(f"cannot load the model: {error}") from error
+        if error is not None:
+            raise error
+        model: MotionModel = box["model"]
+        return model
+
     # ---- parameters ------------------------------------------------------------------
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -303,9 +349,10 @@ class PredictorNode(Node):
         ns = self.get_clock().now().nanoseconds
         return None if ns == 0 else ns * 1e-9
 
-    def _warn_dropped(self, what: str) -> None:
+    def _warn_rejected(self) -> None:
+        stats = self.predictor.stats
         self.get_logger().warning(
-            f"dropping non-finite {what} samples ({self.predictor.stats.dropped_nonfinite} "
+            f"refusing input: {stats.last_rejected} ({sum(stats.rejected.values())} refused "
             "so far)", throttle_duration_sec=5.0)
 
     def _stamp(self, t: float, now: float | None) -> float:
@@ -326,7 +373,7 @@ class PredictorNode(Node):
         t = self._stamp(t, now)
         self._joy_rate.tick(time.monotonic())
         if not self.predictor.feed_joy(t, (ax.forward_sign * fwd, ax.turn_sign * turn)):
-            self._warn_dropped("joystick")
+            self._warn_rejected()
             return
         self._maybe_predict(now, time.perf_counter())
 
@@ -336,7 +383,7 @@ class PredictorNode(Node):
         t, vel = conv.twist_stamped_to_sample(msg)
         self._vo_rate.tick(time.monotonic())
         if not self.predictor.feed_vo(self._stamp(t, now), vel):
-            self._warn_dropped("VO")
+            self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
 
@@ -346,10 +393,10 @@ class PredictorNode(Node):
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
         self._vo_rate.tick(time.monotonic())
-        if ok:
-            self.predictor.feed_pose(t, *pose)
+        if ok and not self.predictor.feed_pose(t, *pose):
+            self._warn_rejected()
         if not self.predictor.feed_vo(t, vel, ok=ok):
-            self._warn_dropped("VO")
+            self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
 
@@ -359,7 +406,15 @@ class PredictorNode(Node):
             return
         try:
             plan = conv.plan_from_multiarray(msg)
+        except ValueError as exc:  # malformed message
+            self._bad_messages += 1
+            self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        try:
             self.predictor.set_plan(plan, now)
+        except online.RejectedInputError:  # counted with its reason by the predictor
+            self._warn_rejected()
         except ValueError as exc:
             self._bad_messages += 1
             self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
@@ -460,6 +515,9 @@ class PredictorNode(Node):
             "paths_published": str(self._paths_published),
             "horizon_steps": str(self.predictor.config.horizon_steps),
             "dropped_nonfinite": str(stats.dropped_nonfinite),
+            "rejected": ", ".join(f"{code}={n}" for code, n in sorted(stats.rejected.items()))
+            or "none",
+            "last_rejected": stats.last_rejected,
             "out_of_order": str(stats.out_of_order),
             "bad_messages": str(self._bad_messages),
             "buffer_resets": str(stats.resets),
@@ -484,17 +542,28 @@ def main(args: list[str] | None = None) -> int:
     # other nodes on the wheelchair laptop (a loaded 2-core machine ran batched rollouts
     # about twice as slowly with OpenBLAS's default two threads).
     threadpool_limits(limits=1)
+    # rclpy's handlers (installed by init) turn SIGINT and SIGTERM into a context shutdown:
+    # spin returns, and so does a start-up that is loading the model.
     rclpy.init(args=args)
+    # the executor exists before the node: a signal during start-up finds it ready to stop
+    executor = SingleThreadedExecutor()
     node: PredictorNode | None = None
     try:
         node = PredictorNode()
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except StartupError as exc:
+        if not rclpy.ok():  # a failure caused by the shutdown itself
+            return 0
         rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
         return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except (KeyboardInterrupt, ExternalShutdownException, StartupInterruptedError):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # rclpy calls made while the context shuts down fail: the node is stopping anyway
     finally:
+        executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()

@@ -22,6 +22,7 @@ frame never builds a backlog. Parameters are read once at start-up and validated
 from __future__ import annotations
 
 import collections
+import sys
 import time
 
 import numpy as np
@@ -30,7 +31,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
@@ -267,19 +268,36 @@ class VONode(Node):
             self.get_clock().now().nanoseconds * 1e-9, [status]))
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
+    """Run the node until SIGINT or SIGTERM (rclpy's handlers shut the context down, which
+    ends the spin at once, whatever the node is doing). Exit code 1: bad parameters."""
     rclpy.init(args=args)
+    # the executor exists before the node: a signal during start-up finds it ready to stop
+    executor = SingleThreadedExecutor()
     node = None
     try:
-        node = VONode()
-        rclpy.spin(node)
+        try:
+            node = VONode()
+        except ValueError as exc:  # a parameter out of its range
+            if not rclpy.ok():
+                return 0
+            rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
+            return 1
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # a callback (a publish) or the executor met the context a signal had just shut
+        # down: the node is stopping anyway
     finally:
+        executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
