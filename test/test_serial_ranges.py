@@ -156,3 +156,26 @@ def test_firmware_mirror_calibration_ranges(kwargs, match):
 
     with pytest.raises(ValueError, match=match):
         fw.AxisCal(**kwargs)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("param, name", [
+    ("calibration.forward.neutral:=1e30", "calibration.forward.neutral"),
+    ("calibration.turn.dead_zone:=.nan", "calibration.turn.dead_zone"),
+    ("reconnect_max:=0.01", "reconnect_max"),
+])
+def test_node_process_refuses_bad_startup_parameters_in_one_line(repo_root, param, name):
+    import os
+    import subprocess
+    import sys
+
+    r = subprocess.run(
+        [sys.executable, "-m", "asgp_ros.nodes.serial_bridge_node", "--ros-args",
+         "-p", "port:=/nonexistent/asgp_joystick", "-p", param],
+        cwd=repo_root, env=dict(os.environ, PYTHONPATH=str(repo_root)),
+        capture_output=True, text=True, timeout=60)
+    out = r.stdout + r.stderr
+    assert r.returncode == 1, out
+    assert "refusing to start" in out and name in out, out
+    assert "Traceback" not in out, out

@@ -21,6 +21,7 @@ guard condition and publish diagnostics at once.
 from __future__ import annotations
 
 import contextlib
+import sys
 import threading
 import time
 from dataclasses import replace
@@ -28,6 +29,7 @@ from dataclasses import replace
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
@@ -272,18 +274,26 @@ class SerialBridgeNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args=None) -> int:
     """Runs the node until SIGINT or SIGTERM (rclpy's handlers shut the context down), then
-    stops the link (the board is asked for passthrough) and exits with status 0.
+    stops the link (the board is asked for passthrough) and returns 0. Exit code 1: a
+    parameter refused at start-up (out of its range, NaN, inconsistent), said in one line.
 
     The signal may come at any moment, also while the node is being built or before the
-    executor exists (the link thread already publishes then): whatever fails because the
+    executor spins (the link thread already publishes then): whatever fails because the
     context was shut down under it is the shutdown, not an error."""
     rclpy.init(args=args)
+    # the executor exists before the node: a signal during start-up finds it ready to stop
+    executor = SingleThreadedExecutor()
     node = None
     try:
-        executor = SingleThreadedExecutor()
-        node = SerialBridgeNode()
+        try:
+            node = SerialBridgeNode()
+        except (ValueError, ParameterException) as exc:
+            if not rclpy.ok():
+                return 0
+            rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
+            return 1
         executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
@@ -292,10 +302,12 @@ def main(args=None) -> None:
         if rclpy.ok():
             raise  # a real failure
     finally:
+        executor.shutdown()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
