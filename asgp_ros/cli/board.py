@@ -7,8 +7,10 @@ import argparse
 import os
 import time
 from pathlib import Path
+from typing import Any
 
 from asgp_ros.cli import CommandError
+from asgp_ros.cli._argtypes import cli_integer, cli_number
 
 
 def register(subparsers) -> None:
@@ -19,7 +21,8 @@ def register(subparsers) -> None:
                     "serial_bridge_node's `port` parameter. Ctrl-C stops it.")
     p.add_argument("--link", type=Path, default=None,
                    help="also expose the port as this stable symlink (like a udev name)")
-    p.add_argument("--rate", type=float, default=100.0, help="sampling rate, Hz (100)")
+    p.add_argument("--rate", type=cli_number("board_rate_hz", "Hz"), default=100.0,
+                   help="sampling rate, Hz (100)")
     p.add_argument("--source", choices=("auto", "driver", "scripted", "neutral"),
                    default="auto",
                    help="joystick: the simulator's driver on a simulated chair that follows "
@@ -27,10 +30,12 @@ def register(subparsers) -> None:
                         "(auto: driver if available)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing symlink at --link (nothing else is replaced)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--noise", type=float, default=0.5, help="ADC noise, counts (0.5)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many s")
-    p.add_argument("--status-every", type=float, default=0.0,
+    p.add_argument("--seed", type=cli_integer("seed"), default=0)
+    p.add_argument("--noise", type=cli_number("noise_counts"), default=0.5,
+                   help="ADC noise, counts (0.5)")
+    p.add_argument("--duration", type=cli_number("duration_s", "s"), default=None,
+                   help="stop after this many s")
+    p.add_argument("--status-every", type=cli_number("status_every_s", "s"), default=0.0,
                    help="print the board's output every N s (0: never)")
     p.add_argument("--monitor", metavar="PORT", default=None,
                    help="instead: read a real board on PORT for --duration s (default 10) "
@@ -102,8 +107,16 @@ def _monitor(args: argparse.Namespace) -> int:
 
     duration = 10.0 if args.duration is None else args.duration
     raws: list[tuple[int, int]] = []
-    link = LinkManager(LinkConfig(args.monitor),
-                       on_sample=lambda s: raws.append((s.raw_forward, s.raw_turn)))
+    faulty = [0]
+
+    def on_sample(s: Any) -> None:
+        # A faulty reading (open or shorted stick, ADC_FAULT) is no end stop of the stick.
+        if s.valid:
+            raws.append((s.raw_forward, s.raw_turn))
+        else:
+            faulty[0] += 1
+
+    link = LinkManager(LinkConfig(args.monitor), on_sample=on_sample)
     print(f"reading {args.monitor} for {duration:g} s: leave the joystick at rest for the "
           f"first {duration / 5:.1f} s, then push it to all four extremes", flush=True)
     with link:
@@ -112,8 +125,11 @@ def _monitor(args: argparse.Namespace) -> int:
                                f"{link.stats().last_error or link.state.value}")
         print(f"connected: firmware {link.stats().firmware}", flush=True)
         time.sleep(duration)
+    if faulty[0]:
+        print(f"skipped {faulty[0]} samples the board flagged as faulty (ADC_FAULT: check the "
+              "joystick wiring)", flush=True)
     if len(raws) < 10:
-        raise CommandError(f"only {len(raws)} samples received")
+        raise CommandError(f"only {len(raws)} valid samples received")
     r = np.asarray(raws, dtype=float)  # [N, 2]
     rest = r[: max(1, len(r) // 5)]
     print("calibration:")
