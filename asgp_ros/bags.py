@@ -20,9 +20,15 @@ or sqlite3) or a ROS 1 bag, with ``/joy``, ``/vo/twist`` and ``/ground_truth/odo
 atomically (nothing partial on failure) and byte-for-byte reproducibly (message times come
 from the recording, never from the wall clock).
 
-Failures raise ``BagError`` naming the file and the problem: no such bag, a corrupt or
-truncated file, a missing topic (with the list of topics the bag has), an unsupported
-message type.
+Failures raise ``BagError`` naming the file and the problem, in one line: no such bag,
+not a bag, a corrupt or truncated file, a missing topic (with the list of topics the bag
+has), an unsupported message type.
+
+Paths are checked with ``os.stat`` before anything is opened (:func:`resolve_bag`): a bag
+is a regular ROS 1 ``.bag`` file or a ROS 2 bag directory whose ``metadata.yaml`` (at
+most ``MAX_BAG_METADATA_BYTES``) and storage files are regular files; a FIFO, a device,
+a socket, a dangling link or a directory where a file goes is refused, naming the path,
+so a reader never blocks on it.
 """
 
 from __future__ import annotations
@@ -32,6 +38,7 @@ import logging
 import math
 import os
 import re
+import stat
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +47,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.streams import RawStreams
 from asgp_ros.fileio import atomic_path
 
@@ -64,6 +72,8 @@ TWIST_TYPES = (
 )
 JOY_TYPES = ("sensor_msgs/msg/Joy",)
 TRUTH_TYPES = ("nav_msgs/msg/Odometry",)
+#: Largest ``metadata.yaml`` of a ROS 2 bag read (a real one is a few kB).
+MAX_BAG_METADATA_BYTES = 16 * 2**20
 
 
 class BagError(Exception):
@@ -143,20 +153,91 @@ def add_bag_arguments(parser: Any) -> None:
 
 
 # ----------------------------------------------------------------------------- reading
-def _resolve(path: str | os.PathLike[str]) -> Path:
+def _one_line(text: object) -> str:
+    """An error text on one line (library messages may span several)."""
+    return " ".join(str(text).split())
+
+
+def _bag_metadata(bag: Path) -> dict[str, Any]:
+    """The parsed ``metadata.yaml`` of a ROS 2 bag directory (size checked first)."""
+    import yaml
+
+    meta_path = bag / "metadata.yaml"
+    problem = regular_file_problem(meta_path, MAX_BAG_METADATA_BYTES)
+    if problem == "no such file":
+        raise BagError(f"{bag}: not a ROS 2 bag (a directory without metadata.yaml)")
+    if problem is not None:
+        raise BagError(f"{meta_path}: {problem}")
+    try:
+        meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
+        info = meta["rosbag2_bagfile_information"]
+        if not isinstance(info, dict):
+            raise TypeError("rosbag2_bagfile_information is not a mapping")
+    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, RecursionError) as exc:
+        raise BagError(f"{meta_path}: unreadable metadata.yaml: "
+                       f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
+    return info
+
+
+def _check_bag_directory(bag: Path) -> None:
+    """Refuse a ROS 2 bag whose metadata or storage files are not regular files."""
+    info = _bag_metadata(bag)
+    files = info.get("relative_file_paths")
+    names = files if isinstance(files, list) and all(isinstance(f, str) for f in files) else []
+    for name in names:
+        problem = regular_file_problem(bag / name)
+        if problem is not None:
+            raise BagError(f"{bag / name}: {problem} (a storage file of the bag {bag})")
+    try:
+        entries = list(os.scandir(bag))
+    except OSError as exc:
+        raise BagError(f"{bag}: cannot list the bag directory: {exc.strerror}") from exc
+    for entry in entries:  # whatever else a reader might open
+        try:
+            mode = os.stat(entry.path).st_mode
+        except OSError:
+            continue  # not named by the metadata (checked above): never opened
+        if not stat.S_ISDIR(mode) and (problem := file_type_problem(mode)) is not None:
+            raise BagError(f"{entry.path}: {problem} (in the bag {bag})")
+
+
+def resolve_bag(path: str | os.PathLike[str]) -> Path:
+    """The bag ``path`` names, checked with ``os.stat`` before anything is opened.
+
+    A ROS 1 ``.bag`` file, a ROS 2 bag directory, or a storage file inside one (which
+    stands for its directory).
+
+    Raises:
+        BagError: no such path, not a bag, or a FIFO / device / socket / dangling link
+            where a bag or one of its files should be (naming that path).
+    """
     p = Path(path)
-    if not p.exists():
-        raise BagError(f"{p}: no such bag")
-    if p.is_file() and p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").exists():
-        return p.parent  # a ROS 2 bag's storage file: read the bag it belongs to
-    if p.is_dir() and not (p / "metadata.yaml").exists():
-        raise BagError(f"{p}: not a ROS 2 bag (a directory without metadata.yaml)")
-    if p.is_file() and p.suffix != ".bag":
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        raise BagError(f"{p}: no such bag") from None
+    except (OSError, ValueError) as exc:
+        raise BagError(f"{p}: cannot be read: "
+                       f"{_one_line(getattr(exc, 'strerror', None) or exc)}") from None
+    if stat.S_ISDIR(mode):
+        _check_bag_directory(p)
+        return p
+    problem = file_type_problem(mode)
+    if problem is not None:
+        raise BagError(f"{p}: {problem}: a bag is a ROS 1 .bag file or a ROS 2 bag directory")
+    if p.suffix in (".mcap", ".db3") and os.path.lexists(p.parent / "metadata.yaml"):
+        bag = p.parent if str(p.parent) else Path(".")
+        _check_bag_directory(bag)
+        return bag  # a ROS 2 bag's storage file: read the bag it belongs to
+    if p.suffix != ".bag":
         raise BagError(
             f"{p}: not a bag: expected a ROS 1 .bag file or a ROS 2 bag directory "
             "(with metadata.yaml)"
         )
     return p
+
+
+_resolve = resolve_bag
 
 
 def _stamp_ns(msg: Any) -> int:
@@ -218,8 +299,8 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple]
     except BagError:
         raise
     except Exception as exc:  # rosbags raises several types for damaged data
-        raise BagError(f"{source}: corrupt or truncated bag: {type(exc).__name__}: {exc}"
-                       ) from exc
+        raise BagError(f"{source}: corrupt or truncated bag: "
+                       f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
     return bag_ns, rows
 
 
@@ -259,7 +340,7 @@ def read_streams(
     if joy_axes is None:
         joy_axes = JoyAxes()
     axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
-    bag = _resolve(path)
+    bag = resolve_bag(path)
     source = str(bag)
     is_ros1 = bag.is_file()
     store = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_JAZZY)
@@ -272,7 +353,7 @@ def read_streams(
         hint = ("; a bag whose recording was killed may need `rosbag reindex` (ROS 1) "
                 "or `ros2 bag reindex` (ROS 2)")
         raise BagError(f"{source}: cannot open bag (corrupt or truncated): "
-                       f"{type(exc).__name__}: {exc}{hint}") from exc
+                       f"{_one_line(f'{type(exc).__name__}: {exc}')}{hint}") from exc
     try:
         joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
         tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
@@ -336,28 +417,41 @@ def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
     """Topic name -> message type of a bag."""
     from rosbags.highlevel import AnyReader
 
-    bag = _resolve(path)
+    bag = resolve_bag(path)
     try:
         with AnyReader([bag]) as reader:
             return {c.topic: c.msgtype for c in reader.connections}
     except Exception as exc:
-        raise BagError(f"{bag}: cannot open bag: {type(exc).__name__}: {exc}") from exc
+        raise BagError(f"{bag}: cannot open bag: "
+                       f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
 
 
 def read_sim_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
-    """The simulator's description stored in a ROS 2 bag's metadata (None if absent)."""
-    bag = _resolve(path)
-    if bag.is_file():
-        return None
-    import yaml
+    """The simulator's description stored in a ROS 2 bag's metadata (None if absent).
 
+    Raises:
+        BagError: not a bag (see :func:`resolve_bag`), or metadata that does not parse
+            (the description is JSON, read with
+            :func:`asgp_ros.core.modelfile.loads_bounded`: size and nesting bounded).
+    """
+    bag = resolve_bag(path)
+    if not bag.is_dir():
+        return None
+    meta_path = bag / "metadata.yaml"
+    custom = _bag_metadata(bag).get("custom_data") or {}
+    raw = custom.get(CUSTOM_DATA_KEY) if isinstance(custom, dict) else None
+    if raw is None:
+        return None
     try:
-        meta = yaml.safe_load((bag / "metadata.yaml").read_text())
-        raw = meta["rosbag2_bagfile_information"].get("custom_data") or {}
-        raw = raw.get(CUSTOM_DATA_KEY)
-    except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
-        raise BagError(f"{bag}: unreadable metadata.yaml: {exc}") from exc
-    return None if raw is None else json.loads(raw)
+        if not isinstance(raw, str):
+            raise TypeError(f"{CUSTOM_DATA_KEY} is not a JSON string")
+        desc = loads_bounded(raw)
+        if not isinstance(desc, dict):
+            raise TypeError(f"{CUSTOM_DATA_KEY} is not a JSON object")
+    except (ValueError, TypeError) as exc:
+        raise BagError(f"{meta_path}: unreadable simulation description: "
+                       f"{_one_line(exc)}") from exc
+    return desc
 
 
 # ----------------------------------------------------------------------------- writing

@@ -308,3 +308,135 @@ def test_failed_write_leaves_nothing(rec, tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(BagError, match="storage"):
         write_bag(tmp_path / "x", rec, storage="zip")
+
+
+# ----------------------------------------------------------------------------- untrusted paths
+def _read_with_deadline(call: str, deadline_s: float = 30.0) -> str:
+    """Run a reader call in a fresh interpreter; a hang fails the test, not the suite.
+
+    Returns what the call printed (the BagError's message, or "read").
+    """
+    import subprocess
+    import sys
+
+    code = ("import resource\n"  # a reader that slurps a device fails, not the machine
+            "resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))\n"
+            "from asgp_ros import bags\n"
+            f"try:\n    {call}\n    print('read')\n"
+            "except bags.BagError as exc:\n    print(exc)\n")
+    try:
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=deadline_s, check=False)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"hung for {deadline_s} s: {call}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout.strip()
+
+
+def test_a_fifo_bag_is_refused_without_blocking(tmp_path):
+    """Issue 16: readers opened FIFOs and blocked forever."""
+    import os
+
+    fifo = tmp_path / "drive.bag"
+    os.mkfifo(fifo)
+    out = _read_with_deadline(f"bags.read_streams({str(fifo)!r})")
+    assert out == (f"{fifo}: is a FIFO (named pipe), not a regular file: a bag is a ROS 1 "
+                   ".bag file or a ROS 2 bag directory")
+    link = tmp_path / "link.bag"
+    link.symlink_to(fifo)
+    with pytest.raises(BagError, match=r"link\.bag: is a FIFO"):
+        bags.bag_topics(link)
+
+
+def test_a_fifo_storage_file_inside_a_bag_is_refused(mcap_bag, tmp_path):
+    import os
+
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    (bad / "drive.mcap").unlink()
+    os.mkfifo(bad / "drive.mcap")
+    for call in (f"bags.read_streams({str(bad)!r})", f"bags.bag_topics({str(bad)!r})",
+                 f"bags.read_streams({str(bad / 'drive.mcap')!r})"):
+        out = _read_with_deadline(call)
+        assert out.startswith(f"{bad / 'drive.mcap'}: is a FIFO (named pipe), not a regular "
+                              "file"), call
+
+
+@pytest.mark.parametrize("kind", ["fifo", "directory", "dev_zero", "huge", "dangling"])
+def test_special_metadata_yaml_is_refused(mcap_bag, tmp_path, kind):
+    import os
+
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    meta = bad / "metadata.yaml"
+    meta.unlink()
+    if kind == "fifo":
+        os.mkfifo(meta)
+        why = "is a FIFO"
+    elif kind == "directory":
+        meta.mkdir()
+        why = "is a directory, not a regular file"
+    elif kind == "dev_zero":
+        meta.symlink_to("/dev/zero")
+        why = "is a character device"
+    elif kind == "huge":
+        with open(meta, "wb") as fh:
+            fh.truncate(bags.MAX_BAG_METADATA_BYTES + 1)
+        why = "more than the limit"
+    else:
+        meta.symlink_to(tmp_path / "nowhere")
+        why = "not a ROS 2 bag"
+    out = _read_with_deadline(f"bags.read_streams({str(bad)!r})")
+    assert why in out and (str(meta) in out or str(bad) in out), out
+    with pytest.raises(BagError, match=why):
+        bags.read_sim_metadata(bad)
+
+
+def test_devices_and_sockets_are_not_bags(tmp_path):
+    import os
+    import socket
+
+    dev = tmp_path / "zero.bag"
+    dev.symlink_to("/dev/zero")
+    assert _read_with_deadline(f"bags.read_streams({str(dev)!r})").startswith(
+        f"{dev}: is a character device")
+    sock = tmp_path / "s.bag"
+    with socket.socket(socket.AF_UNIX) as s:
+        s.bind(str(sock))
+        with pytest.raises(BagError, match=r"s\.bag: is a socket"):
+            read_streams(sock)
+    loop = tmp_path / "loop.bag"
+    os.symlink(loop.name, loop)
+    with pytest.raises(BagError, match=r"loop\.bag: cannot be read"):
+        read_streams(loop)
+
+
+def test_errors_are_one_line_naming_the_bag(mcap_bag, tmp_path):
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    meta = bad / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("rosbag2_bagfile_information:",
+                                             "rosbag2_bagfile_information:\x1f", 1))
+    for reader in (read_streams, bags.bag_topics, bags.read_sim_metadata):
+        with pytest.raises(BagError) as err:
+            reader(bad)
+        assert "\n" not in str(err.value) and str(bad) in str(err.value)
+
+
+def test_deeply_nested_simulation_metadata_is_refused(mcap_bag, tmp_path):
+    """The simulator's JSON description in metadata.yaml is parsed with bounded depth."""
+    import yaml
+
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    meta = yaml.safe_load((bad / "metadata.yaml").read_text())
+    custom = meta["rosbag2_bagfile_information"]["custom_data"]
+    custom[bags.CUSTOM_DATA_KEY] = "[" * 50_000 + "]" * 50_000
+    (bad / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(BagError, match="unreadable simulation description: nested 50000 "
+                                       "levels deep"):
+        bags.read_sim_metadata(bad)
+    custom[bags.CUSTOM_DATA_KEY] = '{"seed": NaN}'
+    (bad / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    with pytest.raises(BagError, match="not a finite number"):
+        bags.read_sim_metadata(bad)
