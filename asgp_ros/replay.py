@@ -35,12 +35,30 @@ LOG = logging.getLogger(__name__)
 
 
 class ReplayError(Exception):
-    """A bag that cannot be replayed (missing, unreadable, nothing to play)."""
+    """A bag that cannot be replayed (missing, not a bag, corrupt, nothing to play); the
+    message names the bag and fits on one line."""
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(f"{type(exc).__name__}: {exc}".split())
+
+
+#: Documented range (inclusive) of every number of :class:`ReplayConfig`: playback from a
+#: thousandth to a thousand times real time, a start up to a year into the bag, /clock
+#: updates up to 10 kHz, a wait for subscribers up to an hour.
+REPLAY_RANGES: dict[str, tuple[float, float]] = {
+    "rate": (1e-3, 1000.0),
+    "start_s": (0.0, 365 * 86400.0),
+    "clock_rate_hz": (0.0, 10000.0),
+    "wait_subscribers_s": (0.0, 3600.0),
+}
 
 
 @dataclass(frozen=True)
 class ReplayConfig:
     """What and how to replay.
+
+    Every number is checked against ``REPLAY_RANGES`` on construction.
 
     Attributes:
         rate: playback speed factor (2.0 = twice as fast as recorded).
@@ -65,14 +83,12 @@ class ReplayConfig:
     remap: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.rate) and self.rate > 0.0):
-            raise ValueError(f"rate must be a positive number, got {self.rate}")
-        if not (np.isfinite(self.start_s) and self.start_s >= 0.0):
-            raise ValueError(f"start must be >= 0 s, got {self.start_s}")
-        if not (np.isfinite(self.clock_rate_hz) and 0.0 <= self.clock_rate_hz <= 10000.0):
-            raise ValueError(f"clock rate must be in [0, 10000] Hz, got {self.clock_rate_hz}")
-        if not (np.isfinite(self.wait_subscribers_s) and self.wait_subscribers_s >= 0.0):
-            raise ValueError(f"wait for subscribers must be >= 0 s, got {self.wait_subscribers_s}")
+        for name, (low, high) in REPLAY_RANGES.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+                raise ValueError(f"{name} must be a number, got {value!r}")
+            if not low <= float(value) <= high:  # also NaN
+                raise ValueError(f"{name} must be in [{low:g}, {high:g}], got {value}")
         for src, dst in self.remap:
             if not src or not dst:
                 raise ValueError(f"a remapping needs two topic names, got {src!r}:={dst!r}")
@@ -216,6 +232,12 @@ def _is_transient_local(connection: Any) -> bool:
 class BagReplayer:
     """Publishes a bag into ROS 2. Use as ``with BagReplayer(path, config, node) as r: r.run()``.
 
+    The path is checked as every bag reader checks it (:func:`asgp_ros.bags.resolve_bag`:
+    ``os.stat`` first, FIFOs, devices and sockets refused); any failure to read the bag,
+    when opening it or further into it (a message that does not deserialise), is a
+    :class:`ReplayError` naming it. A message that deserialises but does not fit the
+    installed message class is skipped with a warning.
+
     Args:
         path: a ROS 1 ``.bag`` file or a ROS 2 bag directory (sqlite3 or mcap).
         config: what and how to replay.
@@ -230,26 +252,34 @@ class BagReplayer:
         node: Any,
         should_stop: Callable[[], bool] = lambda: False,
     ) -> None:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
-        self.path = Path(path)
+        from asgp_ros.bags import BagError, resolve_bag
+
         self.config = config
         self.node = node
         self.should_stop = should_stop
-        if not self.path.exists():
-            raise ReplayError(f"{self.path}: no such bag")
+        self.reader: Any = None
         try:
-            self.reader = AnyReader(
-                [self.path], default_typestore=get_typestore(Stores.ROS2_JAZZY)
-            )
-            self.reader.open()
-        except (AnyReaderError, OSError, ValueError) as exc:
-            raise ReplayError(f"{self.path}: cannot open the bag: {exc}") from exc
+            self.path = resolve_bag(path)  # os.stat first: never opens a FIFO or a device
+        except BagError as exc:
+            raise ReplayError(str(exc)) from None
+        try:
+            reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+            reader.open()
+        except Exception as exc:  # rosbags raises many types for damaged files
+            raise ReplayError(f"{self.path}: cannot open the bag (corrupt or truncated): "
+                              f"{_one_line(exc)}") from exc
+        self.reader = reader
         self.published = 0
         self.skipped_types: dict[str, str] = {}
         self.topics: dict[str, _Topic] = {}
-        self._select_topics()
+        try:
+            self._select_topics()
+        except BaseException:
+            self.close()
+            raise
         self._clock_pub: Any = None
 
     def __enter__(self) -> BagReplayer:
@@ -260,7 +290,10 @@ class BagReplayer:
 
     def close(self) -> None:
         if self.reader is not None and self.reader.stack is not None:
-            self.reader.close()
+            try:
+                self.reader.close()
+            except Exception as exc:  # closing a damaged bag: nothing left to do with it
+                LOG.debug("%s: closing the reader: %s", self.path, _one_line(exc))
 
     def _select_topics(self) -> None:
         by_topic: dict[str, list[Any]] = {}
@@ -363,7 +396,15 @@ class BagReplayer:
         start_ns = self.reader.start_time + int(self.config.start_s * 1e9)
         wall_start = time.monotonic()
         t_first: int | None = None
-        for conn, t_ns, raw in self.reader.messages(connections=connections, start=start_ns):
+        messages = self.reader.messages(connections=connections, start=start_ns)
+        while True:
+            try:
+                conn, t_ns, raw = next(messages)
+            except StopIteration:
+                break
+            except Exception as exc:  # damaged data further into the bag
+                raise ReplayError(f"{self.path}: corrupt or truncated bag after "
+                                  f"{self.published} messages: {_one_line(exc)}") from exc
             if t_first is None:
                 t_first = t_ns
             target = wall_start + (t_ns - t_first) / 1e9 / self.config.rate
@@ -371,10 +412,15 @@ class BagReplayer:
                 return False
             topic = topic_of[id(conn)]
             try:
-                msg = to_ros2(self.reader.deserialize(raw, conn.msgtype), topic.cls)
+                obj = self.reader.deserialize(raw, conn.msgtype)
+            except Exception as exc:  # damaged bytes: the bag is corrupt, as train says
+                raise ReplayError(f"{self.path}: corrupt message on {topic.name} at "
+                                  f"{t_ns / 1e9:.3f} s: {_one_line(exc)}") from exc
+            try:
+                msg = to_ros2(obj, topic.cls)
             except (ValueError, TypeError, AssertionError, AttributeError) as exc:
                 LOG.warning("%s at %.3f s: cannot convert the message: %s",
-                            topic.name, t_ns / 1e9, exc)
+                            topic.name, t_ns / 1e9, _one_line(exc))
                 continue
             self._publish_clock(t_ns)
             topic.publisher.publish(msg)

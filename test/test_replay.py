@@ -295,3 +295,100 @@ def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
     finally:
         executor.shutdown()
         node.destroy_node()
+
+
+# ---- damaged and special files: one clear error, never a traceback or a hang (issue 16) ---
+
+def _corrupt_first_joy(path: Path) -> None:
+    """Overwrite the CDR encapsulation header of the bag's first /joy message."""
+    store = _typestore(ros1=False)
+    _topic, msgtype, _t, msg = next(iter(_messages(store, ros1=False)))
+    raw = bytes(store.serialize_cdr(msg, msgtype))
+    storage = next(path.glob("*.mcap"))
+    data = bytearray(storage.read_bytes())
+    at = data.find(raw)
+    assert at > 0, "the message is stored uncompressed"
+    data[at:at + 4] = b"\xff\xff\xff\xff"
+    storage.write_bytes(bytes(data))
+
+
+def _corrupt_summary(path: Path) -> None:
+    """Make the schema name in the mcap summary invalid UTF-8 (fails when opening)."""
+    storage = next(path.glob("*.mcap"))
+    data = bytearray(storage.read_bytes())
+    at = data.rfind(b"sensor_msgs/msg/Joy")
+    assert at > 0
+    data[at:at + 2] = b"\xff\xfe"
+    storage.write_bytes(bytes(data))
+
+
+def _one_error_line(err: str, bag: Path) -> str:
+    lines = [line for line in err.splitlines() if line.strip()]
+    errors = [line for line in lines if line.startswith("error: ")]
+    assert "Traceback" not in err, err
+    assert len(errors) == 1 and str(bag) in errors[0], err
+    return errors[0]
+
+
+@pytest.mark.parametrize("damage", [_corrupt_first_joy, _corrupt_summary])
+def test_replay_of_a_corrupt_mcap_is_one_clear_error(repo_root, tmp_path, damage):
+    """Issue 16: `asgp replay` on a corrupt mcap printed a raw ReaderError traceback."""
+    bag = write_test_bag(tmp_path / "bag", ros1=False)
+    damage(bag)
+    proc = _cli(repo_root, bag, "--rate", "1000", "--wait-subscribers", "0",
+                "--topics", "/joy", "/odom")
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2, err
+    line = _one_error_line(err, bag)
+    assert "corrupt" in line
+
+
+def test_replayer_raises_replay_error_for_corrupt_data(rclpy_context, tmp_path):
+    import rclpy
+
+    from asgp_ros.replay import BagReplayer, ReplayError
+
+    bag = write_test_bag(tmp_path / "bag", ros1=False)
+    _corrupt_first_joy(bag)
+    node = rclpy.create_node("corrupt_replay", context=rclpy_context)
+    try:
+        config = ReplayConfig(rate=1000.0, wait_subscribers_s=0.0, publish_clock=False,
+                              topics=("/joy",))
+        with BagReplayer(bag, config, node) as player, \
+                pytest.raises(ReplayError, match=r"corrupt message on /joy at 1700000000\.000"):
+            player.run()
+    finally:
+        node.destroy_node()
+
+
+def test_replay_refuses_a_fifo_at_once(repo_root, tmp_path):
+    """A FIFO where the bag goes is refused before it is opened (no hang)."""
+    fifo = tmp_path / "drive.bag"
+    os.mkfifo(fifo)
+    proc = _cli(repo_root, fifo, "--wait-subscribers", "0")
+    try:
+        _out, err = proc.communicate(timeout=60)  # a deadline for the failure, not a timing
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        pytest.fail("asgp replay blocked on a FIFO")
+    assert proc.returncode == 2, err
+    assert "is a FIFO (named pipe), not a regular file" in _one_error_line(err, fifo)
+
+
+def test_replay_ranges_are_checked_in_the_config_and_on_the_command_line(repo_root,
+                                                                        ros2_bag):
+    from asgp_ros.replay import REPLAY_RANGES
+
+    for name, (low, high) in REPLAY_RANGES.items():
+        ReplayConfig(**{name: low})
+        ReplayConfig(**{name: high})
+        for bad in (high * 2 + 1, low - 1.0, float("nan"), float("inf")):
+            with pytest.raises(ValueError, match=name):
+                ReplayConfig(**{name: bad})
+    proc = _cli(repo_root, ros2_bag, "--rate", "1e300")
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.strip().splitlines() == [
+        "asgp replay: error: argument --rate: must be in [0.001, 1000], got 1e300 "
+        "(see asgp replay --help)"]

@@ -23,6 +23,7 @@ import time
 from typing import Any
 
 from asgp_ros.cli import CommandError
+from asgp_ros.cli._argtypes import cli_integer, cli_number
 
 LAYOUT = (("tile", 8), ("carpet", 8), ("hybrid", 2))
 BAG_MINUTES = 20.0
@@ -38,10 +39,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "manifest.json.",
     )
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--scale", type=float, default=1.0,
+    p.add_argument("--scale", type=cli_number("scale"), default=1.0,
                    help="bag length = 20 min x scale (default 1; 0.05 gives 1-min bags)")
-    p.add_argument("--seed", type=int, default=0, help="base seed (default 0)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1)")
+    p.add_argument("--seed", type=cli_integer("seed"), default=0,
+                   help="base seed (default 0)")
+    p.add_argument("--jobs", type=cli_integer("jobs"), default=1,
+                   help="parallel processes (default 1)")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     p.add_argument("--force", action="store_true",
                    help="re-simulate bags that exist (only bags are replaced)")

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 
+from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.core.features import LAGS_RANGE
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,11 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("model", metavar="MODEL", help="model file (.npz) from asgp train")
     p.add_argument("bags", nargs="+", metavar="BAG", help="test bags")
-    p.add_argument("--horizons", type=float, nargs="+", default=[1.0, 1.4, 2.0],
+    p.add_argument("--horizons", type=cli_number("horizon_s", "s"), nargs="+",
+                   default=[1.0, 1.4, 2.0],
                    metavar="SECONDS", help="prediction horizons (1.0 1.4 2.0)")
-    p.add_argument("--threshold", type=float, default=0.10,
+    p.add_argument("--threshold", type=cli_number("threshold_m", "m"), default=0.10,
                    help="success threshold on the position error in m (%(default)s)")
-    p.add_argument("--case-lags", type=int, default=None,
+    p.add_argument("--case-lags", type=integer(*LAGS_RANGE), default=None,
                    help="past samples a test step needs (default the model's s; set it to "
                         "the largest s of models you compare for identical case sets)")
     p.add_argument("--truth", action="store_true",

@@ -7,6 +7,8 @@ import logging
 from typing import Any
 
 from asgp_ros.cli import CommandError
+from asgp_ros.cli._argtypes import number
+from asgp_ros.replay import REPLAY_RANGES
 
 LOG = logging.getLogger(__name__)
 
@@ -22,18 +24,23 @@ def register(subparsers: Any) -> None:
         ),
     )
     p.add_argument("bag", help="ROS 1 .bag file or ROS 2 bag directory")
-    p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
+    p.add_argument("--rate", type=number(*REPLAY_RANGES["rate"]), default=1.0,
+                   help="playback speed factor (default 1)")
     p.add_argument("--loop", action="store_true", help="restart at the end (clock jumps back)")
     p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC",
                    help="only these topics (default: all with installed types)")
-    p.add_argument("--start", type=float, default=0.0, metavar="S",
+    p.add_argument("--start", type=number(*REPLAY_RANGES["start_s"], unit="s"), default=0.0,
+                   metavar="S",
                    help="skip the first S seconds of the bag")
-    p.add_argument("--clock-rate", type=float, default=100.0, metavar="HZ",
+    p.add_argument("--clock-rate", type=number(*REPLAY_RANGES["clock_rate_hz"], unit="Hz"),
+                   default=100.0, metavar="HZ",
                    help="/clock updates per second between messages (default 100)")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--remap", nargs="+", default=[], metavar="FROM:=TO",
                    help="publish bag topic FROM on topic TO")
-    p.add_argument("--wait-subscribers", type=float, default=0.5, metavar="S",
+    p.add_argument("--wait-subscribers",
+                   type=number(*REPLAY_RANGES["wait_subscribers_s"], unit="s"), default=0.5,
+                   metavar="S",
                    help="wait up to S seconds until every played topic has a subscriber "
                         "(default 0.5; 0 = do not wait)")
     p.set_defaults(func=run)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from asgp_ros.cli._argtypes import cli_integer
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -21,9 +23,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true",
                    help="CI smoke run: builds a small dataset in DIR if it has none, reduced "
                         "training budgets (under 2 minutes)")
-    p.add_argument("--jobs", type=int, default=None,
+    p.add_argument("--jobs", type=cli_integer("jobs"), default=None,
                    help="worker processes (default: min(2, cores))")
-    p.add_argument("--seed", type=int, default=0, help="training seed (%(default)s)")
+    p.add_argument("--seed", type=cli_integer("seed"), default=0,
+                   help="training seed (%(default)s)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing report directory at --out (one this command "
                         "wrote; nothing else is replaced)")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from asgp_ros.cli import CommandError
+from asgp_ros.cli._argtypes import cli_integer, cli_number
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -16,8 +17,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "/joy, /vo/twist and /ground_truth/odom to a bag.",
     )
     p.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile")
-    p.add_argument("--minutes", type=float, default=20.0, help="length (default 20)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--minutes", type=cli_number("minutes", "min"), default=20.0,
+                   help="length (default 20)")
+    p.add_argument("--seed", type=cli_integer("seed"), default=0,
+                   help="random seed (default 0)")
     p.add_argument("--out", required=True,
                    help="bag to write: a ROS 2 bag directory, or FILE.bag for ROS 1")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",

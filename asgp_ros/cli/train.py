@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.core.features import LAGS_RANGE
+from asgp_ros.core.resample import RESAMPLE_RANGES
 
 KINDS = ("asgp", "mlp", "constant_velocity", "first_order_lag")
 
@@ -23,16 +26,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace an existing model file at --out (nothing else is replaced)")
     p.add_argument("--model", choices=KINDS, default="asgp", help="model kind (%(default)s)")
-    p.add_argument("--lags", type=int, default=None,
+    p.add_argument("--lags", type=integer(*LAGS_RANGE), default=None,
                    help="s, past samples per input (asgp 4, mlp 10, others 1)")
-    p.add_argument("--inducing-v", type=int, default=20, help="pseudo-inputs for v (20)")
-    p.add_argument("--inducing-w", type=int, default=40, help="pseudo-inputs for omega (40)")
-    p.add_argument("--max-iter", type=int, default=200,
+    p.add_argument("--inducing-v", type=cli_integer("inducing"), default=20,
+                   help="pseudo-inputs for v (20)")
+    p.add_argument("--inducing-w", type=cli_integer("inducing"), default=40,
+                   help="pseudo-inputs for omega (40)")
+    p.add_argument("--max-iter", type=cli_integer("max_iter"), default=200,
                    help="L-BFGS-B iterations (asgp) or epochs (mlp) (%(default)s)")
     p.add_argument("--coupled", action="store_true",
                    help="feed both joystick axes and both velocities to each channel")
-    p.add_argument("--seed", type=int, default=0, help="random seed (%(default)s)")
-    p.add_argument("--rate", type=float, default=None, help="grid rate in Hz (default 5)")
+    p.add_argument("--seed", type=cli_integer("seed"), default=0,
+                   help="random seed (%(default)s)")
+    p.add_argument("--rate", type=number(*RESAMPLE_RANGES["rate_hz"], unit="Hz"),
+                   default=None, help="grid rate in Hz (default 5)")
     add_topic_args(p)
     p.set_defaults(func=run)
 
