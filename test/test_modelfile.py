@@ -528,3 +528,15 @@ def test_save_refuses_metadata_that_load_would_refuse(model: MotionModel,
     with pytest.raises(ModelFileError, match=r"metadata cannot be stored: nested 4\d levels"):
         save_model(tmp_path / "m.npz", deep)
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("header", [
+    b"{'descr': '<f8', 'fortran_order': False, 'shape': (8,",  # never closed
+    b"{'descr': '<f8', 'fortran_order': False, 'shape': (8,), 'x': __import__('os')}",
+    b"not a dict at all",
+])
+def test_a_malformed_npy_header_is_a_model_file_error(saved: Path, header: bytes) -> None:
+    text = header + b" " * (127 - 10 - len(header) % 64) + b"\n"
+    member = b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text
+    _replace_member(saved, "v.alpha.npy", member + np.zeros(8).tobytes())
+    expect_error(saved, "array 'v.alpha' cannot be read \\(truncated or corrupt header")

@@ -376,9 +376,9 @@ def _read_header(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo, key: st
             else:
                 raise ValueError(f"unsupported .npy format version {version}")
             offset = f.tell()
-    except _READ_ERRORS as exc:
-        raise ModelFileError(
-            path, f"{what} cannot be read (truncated or corrupt header: {exc})") from exc
+    except Exception as exc:  # numpy parses the header text: SyntaxError, TokenError, ...
+        raise ModelFileError(path, f"{what} cannot be read (truncated or corrupt header: "
+                                   f"{type(exc).__name__}: {exc})") from exc
     shape, fortran, dtype = header
     if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None:
         raise ModelFileError(path, f"{what} cannot be read: dtype {dtype} is not a plain "
