@@ -170,12 +170,13 @@ def _bag_metadata(bag: Path) -> dict[str, Any]:
         raise BagError(f"{meta_path}: {problem}")
     try:
         meta = yaml.safe_load(meta_path.read_text(encoding="utf-8"))
-        info = meta["rosbag2_bagfile_information"]
-        if not isinstance(info, dict):
-            raise TypeError("rosbag2_bagfile_information is not a mapping")
-    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError, RecursionError) as exc:
+    except (OSError, ValueError, yaml.YAMLError, RecursionError) as exc:
         raise BagError(f"{meta_path}: unreadable metadata.yaml: "
                        f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
+    info = meta.get("rosbag2_bagfile_information") if isinstance(meta, dict) else None
+    if not isinstance(info, dict):
+        raise BagError(f"{meta_path}: not the metadata of a ROS 2 bag (no "
+                       "rosbag2_bagfile_information mapping)")
     return info
 
 

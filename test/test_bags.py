@@ -440,3 +440,12 @@ def test_deeply_nested_simulation_metadata_is_refused(mcap_bag, tmp_path):
     (bad / "metadata.yaml").write_text(yaml.safe_dump(meta))
     with pytest.raises(BagError, match="not a finite number"):
         bags.read_sim_metadata(bad)
+
+
+@pytest.mark.parametrize("text", ["", "- 1\n- 2\n", "rosbag2_bagfile_information: 3\n"])
+def test_metadata_that_is_not_a_bags_is_named(mcap_bag, tmp_path, text):
+    bad = tmp_path / "drive"
+    shutil.copytree(mcap_bag, bad)
+    (bad / "metadata.yaml").write_text(text)
+    with pytest.raises(BagError, match=r"metadata\.yaml: not the metadata of a ROS 2 bag"):
+        read_streams(bad)
