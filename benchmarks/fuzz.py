@@ -118,7 +118,7 @@ def main() -> int:
     ap.add_argument("--examples", type=int, default=400,
                     help="examples per test before weighting (default 400)")
     ap.add_argument("--budget", type=float, default=50.0,
-                    help="seconds per target (default 50; about 16 targets)")
+                    help="seconds per target (default 50; 16 targets, special files 4 x)")
     ap.add_argument("--timeout", type=float, default=10.0, help="seconds per case (10)")
     ap.add_argument("--seed", type=int, default=None,
                     help="vary the examples (default: the quick profile's fixed ones, more)")

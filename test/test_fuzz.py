@@ -9,8 +9,9 @@ line on stderr when it fails, never a traceback, leave no process behind and cha
 nothing outside the output path it names. Library readers may only raise their
 documented errors (ModelFileError, BagError).
 
-This is the quick profile (ASGP_FUZZ_EXAMPLES examples per test, 5 by default, the same
-examples every run); ``benchmarks/fuzz.py`` runs the long one and lists every finding.
+This is the quick profile (ASGP_FUZZ_EXAMPLES examples per test times its weight, 4 by
+default, the same examples every run; a finding fails its test); ``benchmarks/fuzz.py``
+runs the long one and lists every finding.
 
 Not fuzzed, and why: ``replay --loop`` (plays forever by design); values of
 ``--max-iter``, ``simulate --minutes``, ``dataset --scale`` and ``board --duration`` that
@@ -195,7 +196,7 @@ def test_special_files(arena, case):
         return {where: kind}
 
     fc.run_case(arena, f"special file -> {slot}", argv=argv, prepare=prepare,
-                group="special files")
+                group="special files", budget=4.0)
 
 
 # ------------------------------------------------------------------------ command line
@@ -223,16 +224,14 @@ def test_command_line_global(arena, argv):
     fc.run_case(arena, "cli asgp", argv=argv)
 
 
-#: The issue's known bugs and the no-hang rule, in a real ``asgp`` process each.
+#: Hangs, a huge allocation and a ROS process, in a real ``asgp`` process each (the
+#: issue's other known bugs are explicit examples of the forked tests above).
 REAL_PROCESS_CASES = {
     "train --rate 1e20": (["train", "--model", "first_order_lag", "bag_mcap", "--rate", "1e20",
                            "--out", "m.npz"], None),
     "npz header shape 10**10": (["evaluate", "m.npz", "bag_mcap"], ("gp.npz", HEADER_1E10)),
-    "deeply nested metadata JSON": (["evaluate", "m.npz", "bag_mcap"], ("gp.npz", NESTED_META)),
-    "model rate_hz 1e300": (["evaluate", "m.npz", "bag_mcap"], ("fol.npz", RATE_1E300)),
     "replay a corrupt mcap": (["replay", "bag_mcap", *fc._REPLAY],
                               ("bag_mcap/bag_mcap.mcap", CORRUPT_MCAP[1])),
-    "evaluate a FIFO model": (["evaluate", "fifo.npz", "bag_mcap"], None),
     "train on a FIFO mcap": (["train", "--model", "first_order_lag", "bag_mcap", "--out",
                               "m.npz"], ("bag_mcap/bag_mcap.mcap", "fifo")),
 }
