@@ -103,6 +103,24 @@ def test_clique_keeps_the_rigid_matches():
     assert len(inl) >= 0.95 * len(truth)
 
 
+def test_clique_is_what_its_docstring_says():
+    """Min-degree peeling: the survivors are pairwise consistent, and a match is deleted
+    only while it has the fewest partners among the remaining ones."""
+    rng = np.random.default_rng(5)
+    for _ in range(30):
+        n = int(rng.integers(8, 40))
+        P = rng.uniform(-2, 2, (n, 3)) + np.array([0.0, 0.0, 4.0])
+        Q = P + rng.normal(0, 0.05, (n, 3))  # noisy enough that the graph is not complete
+        inl = od._max_clique(P, Q, 0.05, 0.0)
+        C = np.abs(od.cdist(P, P) - od.cdist(Q, Q)) < 0.05
+        assert len(inl) >= 1 and C[np.ix_(inl, inl)].all()
+        alive = np.ones(n, bool)  # replay: each deletion had the minimum degree
+        while not C[np.ix_(alive, alive)].all():
+            deg = np.where(alive, C[:, alive].sum(axis=1), n + 1)
+            alive[int(np.argmin(deg))] = False
+        np.testing.assert_array_equal(inl, np.flatnonzero(alive))
+
+
 def test_bucketing_keeps_the_strongest_per_cell():
     rng = np.random.default_rng(4)
     xy = rng.uniform(0, 160, (500, 2)).astype(np.float32)

@@ -19,9 +19,11 @@ section 3:
    mutual best matches only, an ambiguous best (ratio to the second best above
    ``match_ratio``) dropped; sub-pixel refinement of the match by Lucas-Kanade on the
    level image;
-6. inliers: the largest set of matches whose pairwise 3-D distances agree between the two
-   frames (rigidity), found greedily as a clique of the consistency graph (Howard 2008,
-   "Real-time stereo visual odometry for autonomous ground vehicles", IROS);
+6. inliers: a set of matches whose pairwise 3-D distances all agree between the two frames
+   (rigidity), a clique of the consistency graph of Howard 2008 ("Real-time stereo visual
+   odometry for autonomous ground vehicles", IROS) found by deleting the least consistent
+   match until the rest is a clique (a greedy approximation of the largest such set; Fovis
+   grows one from the best-connected match instead, see :func:`_max_clique`);
 7. motion: closed-form absolute orientation on the clique (Umeyama 1991, IEEE PAMI 13(4),
    eq. 39-42, without scale), then Gauss-Newton on the bidirectional reprojection error,
    rejection of matches above ``outlier_reprojection_threshold`` px and re-refinement;
@@ -47,6 +49,7 @@ import math
 import time
 from dataclasses import dataclass, fields
 from enum import Enum
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -217,6 +220,66 @@ class _Frame:
     stamp: float
     coarse: np.ndarray | None = None  # <= 80 px wide blurred float32 image (rotation guess)
     pose: np.ndarray | None = None  # pose in the first camera frame when it is a reference
+
+
+class _Matches(NamedTuple):
+    """n refined matches between the reference and the current frame (steps 4-5)."""
+
+    P: np.ndarray  # [n, 3] reference camera-frame points
+    Q: np.ndarray  # [n, 3] current camera-frame points
+    uv_ref: np.ndarray  # [n, 2] level-0 pixel positions in the reference image
+    uv_cur: np.ndarray  # [n, 2] level-0 pixel positions in the current image (sub-pixel)
+    level: np.ndarray  # [n] pyramid level of the reference feature
+    w: np.ndarray  # [n] residual weight 1 / 2^level (coarse positions are less precise)
+
+
+class _GaussNewton(NamedTuple):
+    """Result of :meth:`VisualOdometry._gauss_newton`."""
+
+    T: np.ndarray  # [4, 4] T_cur_ref
+    H: np.ndarray  # [6, 6] J^T W J at the last linearisation point
+    cost: float  # weighted squared residual sum there
+    ok: bool
+
+
+class _Refinement(NamedTuple):
+    """The refined motion and its final inlier set (step 7)."""
+
+    T: np.ndarray  # [4, 4] T_cur_ref
+    inliers: np.ndarray  # [k] indices into the matches
+    H: np.ndarray  # [6, 6] J^T W J of the last Gauss-Newton step
+    cost: float  # its weighted squared residual sum (level px^2)
+    error: float  # mean inlier reprojection error (level px)
+
+
+class _Covariance(NamedTuple):
+    """Covariance of the refined motion (step 9)."""
+
+    covariance: np.ndarray  # [6, 6] of (tx, ty, tz, rx, ry, rz) in the current optical frame
+    sigma2: float  # residual variance (level px^2) scaling H^-1
+    dof: int  # degrees of freedom of sigma2: 4 residuals per inlier - 6
+    translation_std: float  # largest translation standard deviation (m)
+
+
+class _Attempt(NamedTuple):
+    """Outcome of one motion estimate around one prediction (steps 4-7 and 9)."""
+
+    status: Status
+    T_cur_ref: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    num_inliers: int = 0
+    num_matches: int = 0
+    error: float = math.nan
+    message: str = ""
+
+
+class _RejectedError(Exception):
+    """A stage of :meth:`VisualOdometry._estimate` rejects the estimate (``attempt``)."""
+
+    def __init__(self, status: Status, message: str, num_inliers: int = 0,
+                 num_matches: int = 0, error: float = math.nan) -> None:
+        super().__init__(message)
+        self.attempt = _Attempt(status, None, None, num_inliers, num_matches, error, message)
 
 
 class VisualOdometry:
@@ -470,23 +533,25 @@ class VisualOdometry:
             if 0.0 < scale < 4.0:
                 predict = still @ _scale_motion(self._step, scale)
         attempt = self._estimate(ref, cur, invert(predict), o.search_radius)
-        if attempt[0] is not Status.OK and predict is not still:
+        if attempt.status is not Status.OK and predict is not still:
             # the prediction may be wrong (the chair stopped or turned): search around "still"
             retry = self._estimate(ref, cur, invert(still), 1.5 * o.search_radius)
-            if retry[0] is Status.OK or retry[3] > attempt[3]:
+            if retry.status is Status.OK or retry.num_inliers > attempt.num_inliers:
                 attempt = retry
-        if attempt[0] is not Status.OK and attempt[0] is not Status.OPTIMIZATION_FAILURE:
+        if attempt.status not in (Status.OK, Status.OPTIMIZATION_FAILURE):
             # fast rotation after a gap: Fovis's initial rotation from image alignment
             retry = self._estimate(ref, cur, self._rotation_guess(ref, cur),
                                    1.5 * o.search_radius)
-            if retry[0] is Status.OK or retry[3] > attempt[3]:
+            if retry.status is Status.OK or retry.num_inliers > attempt.num_inliers:
                 attempt = retry
-        status, T_cur_ref, cov, ninl, nmatch, err, message = attempt
-        if status is not Status.OK:
-            res = self._fail(status, cur.stamp, t0, message, len(cur.level))
+        ninl, nmatch, err = attempt.num_inliers, attempt.num_matches, attempt.error
+        if attempt.status is not Status.OK:
+            res = self._fail(attempt.status, cur.stamp, t0, attempt.message, len(cur.level))
             res.num_matches, res.num_inliers, res.reprojection_error = nmatch, ninl, err
             return res
-        T_ref_cur = invert(T_cur_ref)
+        assert attempt.T_cur_ref is not None and attempt.covariance is not None
+        cov = attempt.covariance
+        T_ref_cur = invert(attempt.T_cur_ref)
         assert ref.pose is not None and self._ok_stamp is not None
         pose = ref.pose @ T_ref_cur
         motion = invert(self._pose) @ pose
@@ -522,10 +587,27 @@ class VisualOdometry:
                         reprojection_error=err, keyframe_changed=keyframe,
                         elapsed=time.perf_counter() - t0)
 
-    def _estimate(self, ref: _Frame, cur: _Frame, T_cur_ref_pred: np.ndarray, radius: float):
-        """Steps 4-7 and 9. Returns (status, T_cur_ref, cov, ninliers, nmatches, err, msg)."""
+    def _estimate(self, ref: _Frame, cur: _Frame, T_cur_ref_pred: np.ndarray,
+                  radius: float) -> _Attempt:
+        """Steps 4-7 and 9: match, clique, refine, covariance; the first rejection ends it."""
+        try:
+            matches = self._match(ref, cur, T_cur_ref_pred, radius)
+            clique = self._clique(matches)
+            fit = self._refine(matches, clique)
+            cov = self._covariance(fit, len(matches.P))
+        except _RejectedError as rejected:
+            return rejected.attempt
+        return _Attempt(Status.OK, fit.T, cov.covariance, len(fit.inliers), len(matches.P),
+                        fit.error)
+
+    def _match(self, ref: _Frame, cur: _Frame, T_cur_ref_pred: np.ndarray,
+               radius: float) -> _Matches:
+        """Steps 4-5: matches of reference features in ``cur`` around their predicted
+        positions, refined to sub-pixel and with depth.
+
+        Raises :class:`_RejectedError` when fewer than ``min_features_for_estimate`` remain.
+        """
         o = self.options
-        nan = float("nan")
         # 4. predicted positions of the reference features (level coordinates)
         Xp = ref.pts @ T_cur_ref_pred[:3, :3].T + T_cur_ref_pred[:3, 3]
         front = Xp[:, 2] > 0.05
@@ -538,85 +620,72 @@ class VisualOdometry:
         b = np.column_stack([cur.xy, cur.level * 1e5])
         sdm = cKDTree(a).sparse_distance_matrix(cKDTree(b), radius, output_type="ndarray")
         if len(sdm) < o.min_features_for_estimate:
-            return (Status.INSUFFICIENT_INLIERS, None, None, 0, 0, nan,
-                    f"{len(sdm)} candidate matches")
+            raise _RejectedError(Status.INSUFFICIENT_INLIERS, f"{len(sdm)} candidate matches")
         ii, jj = sdm["i"].astype(np.int64), sdm["j"].astype(np.int64)
         sad = np.abs(ref.desc[ii] - cur.desc[jj]).mean(axis=1)
         ok = sad < o.max_descriptor_distance
         ii, jj, sad = ii[ok], jj[ok], sad[ok]
-        # mutual best: the best j for each i and the best i for each j; a reference feature
-        # whose second-best candidate is nearly as good is ambiguous (repetitive texture:
-        # Lowe 2004, section 7.1 ratio test) and dropped
-        scale = 1.0 / (o.max_descriptor_distance * 1.01)  # sad * scale < 1: ties break by sad
-        order = np.argsort(ii + sad * scale)
-        if len(order):
-            starts = np.r_[True, ii[order][1:] != ii[order][:-1]]
-            first_i = order[starts]
-            sorted_sad = sad[order]
-            pos = np.flatnonzero(starts)
-            has2 = ~np.r_[starts[1:], True][pos]  # the group has a second candidate
-            ratio_ok = np.ones(len(pos), bool)
-            ratio_ok[has2] = (sorted_sad[pos[has2]]
-                              < o.match_ratio * sorted_sad[pos[has2] + 1])
-            first_i = first_i[ratio_ok]
-        else:
-            first_i = order
-        order = np.argsort(jj + sad * scale)
-        first_j = order[np.r_[True, jj[order][1:] != jj[order][:-1]]] if len(order) else order
-        mutual = np.intersect1d(first_i, first_j)
+        mutual = _mutual_best(ii, jj, sad, o.match_ratio, o.max_descriptor_distance)
         if len(mutual) < o.min_features_for_estimate:
-            return (Status.INSUFFICIENT_INLIERS, None, None, 0, len(mutual), nan,
-                    f"{len(mutual)} mutual matches")
+            raise _RejectedError(Status.INSUFFICIENT_INLIERS, f"{len(mutual)} mutual matches",
+                            num_matches=len(mutual))
         if len(mutual) > o.max_matches:
             mutual = mutual[np.argsort(sad[mutual])[:o.max_matches]]
         mi, mj = ii[mutual], jj[mutual]
-        # 5b. sub-pixel refinement of the match position in the current level image (LK)
-        uv_cur = np.empty((len(mi), 2))
-        good = np.zeros(len(mi), bool)
-        for lv in np.unique(ref.level[mi]):
-            sel = np.flatnonzero(ref.level[mi] == lv)
-            p0 = ref.xy[mi[sel]].reshape(-1, 1, 2).astype(np.float32)
-            p1 = cur.xy[mj[sel]].reshape(-1, 1, 2).astype(np.float32).copy()
-            p1r, st, _ = cv2.calcOpticalFlowPyrLK(
-                ref.levels[lv], cur.levels[lv], p0, p1, winSize=(PATCH, PATCH), maxLevel=0,
-                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
-                flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-            p1r = p1r.reshape(-1, 2)
-            shift = np.abs(p1r - p1.reshape(-1, 2)).max(axis=1)
-            good[sel] = (st.ravel() == 1) & (shift < 1.5)
-            uv_cur[sel] = p1r * (2.0 ** lv)
+        uv_cur, good = _subpixel(ref, cur, mi, mj)
         zc = _depth_at(cur.depth, uv_cur, o.depth_edge_fraction)
         good &= zc > 0
         mi, uv_cur, zc = mi[good], uv_cur[good], zc[good]
         nmatch = len(mi)
         if nmatch < o.min_features_for_estimate:
-            return (Status.INSUFFICIENT_INLIERS, None, None, 0, nmatch, nan,
-                    f"{nmatch} refined matches with depth")
-        P = ref.pts[mi]
-        Q = self._backproject(uv_cur, zc)
-        uv_ref = ref.uv[mi]
+            raise _RejectedError(Status.INSUFFICIENT_INLIERS,
+                            f"{nmatch} refined matches with depth", num_matches=nmatch)
         lvl = ref.level[mi]
+        return _Matches(P=ref.pts[mi], Q=self._backproject(uv_cur, zc), uv_ref=ref.uv[mi],
+                        uv_cur=uv_cur, level=lvl,
+                        w=1.0 / (2.0 ** lvl))  # coarse-level positions are less precise
+
+    def _clique(self, m: _Matches) -> np.ndarray:
+        """Step 6: indices [k] of the rigidly consistent matches (see :func:`_max_clique`).
+
+        Raises :class:`_RejectedError` when fewer than ``min_inliers`` are consistent.
+        """
+        o = self.options
         # 6. rigidity: pairwise distances must agree within the depth-noise band
-        inl = _max_clique(P, Q, o.clique_inlier_threshold, o.clique_depth_coefficient)
+        inl = _max_clique(m.P, m.Q, o.clique_inlier_threshold, o.clique_depth_coefficient)
         if len(inl) < o.min_inliers:
-            return (Status.INSUFFICIENT_INLIERS, None, None, len(inl), nmatch, nan,
-                    f"{len(inl)} mutually consistent matches of {nmatch}")
-        # 7. absolute orientation, then bidirectional reprojection refinement
+            raise _RejectedError(Status.INSUFFICIENT_INLIERS,
+                            f"{len(inl)} mutually consistent matches of {len(m.P)}",
+                            num_inliers=len(inl), num_matches=len(m.P))
+        return inl
+
+    def _refine(self, m: _Matches, inl: np.ndarray) -> _Refinement:
+        """Step 7: absolute orientation on the clique, then Gauss-Newton on the bidirectional
+        reprojection error with rejection of matches above ``outlier_reprojection_threshold``
+        and re-refinement (at most four rounds).
+
+        Raises :class:`_RejectedError` when the optimisation fails, too few inliers remain or
+        their mean error is too high.
+        """
+        o = self.options
+        nmatch = len(m.P)
+        P, Q, uv_ref, uv_cur, w = m.P, m.Q, m.uv_ref, m.uv_cur, m.w
         T = _umeyama(P[inl], Q[inl])
-        w = 1.0 / (2.0 ** lvl)  # coarse-level positions are less precise
         for round_ in range(4):
             T, H, r2, ok_gn = self._gauss_newton(T, P[inl], Q[inl], uv_ref[inl], uv_cur[inl],
                                                  w[inl])
             if not ok_gn:
-                return (Status.OPTIMIZATION_FAILURE, None, None, len(inl), nmatch, nan,
-                        "Gauss-Newton diverged or was singular")
+                raise _RejectedError(Status.OPTIMIZATION_FAILURE,
+                                "Gauss-Newton diverged or was singular",
+                                num_inliers=len(inl), num_matches=nmatch)
             if round_ == 3:
                 break
             err_all = self._reprojection_errors(T, P, Q, uv_ref, uv_cur) * w
             keep = np.flatnonzero(err_all < o.outlier_reprojection_threshold)
             if len(keep) < o.min_inliers:
-                return (Status.INSUFFICIENT_INLIERS, None, None, len(keep), nmatch, nan,
-                        f"{len(keep)} inliers after reprojection outlier rejection")
+                raise _RejectedError(Status.INSUFFICIENT_INLIERS,
+                                f"{len(keep)} inliers after reprojection outlier rejection",
+                                num_inliers=len(keep), num_matches=nmatch)
             if np.array_equal(keep, inl):
                 break
             inl = keep
@@ -624,27 +693,41 @@ class VisualOdometry:
         err = float(np.mean(self._reprojection_errors(T, P[inl], Q[inl], uv_ref[inl],
                                                       uv_cur[inl]) * w[inl]))
         if err > o.max_mean_reprojection_error:
-            return (Status.REPROJECTION_ERROR_TOO_HIGH, None, None, len(inl), nmatch, err,
-                    f"mean reprojection error {err:.2f} px")
+            raise _RejectedError(Status.REPROJECTION_ERROR_TOO_HIGH,
+                            f"mean reprojection error {err:.2f} px",
+                            num_inliers=len(inl), num_matches=nmatch, error=err)
+        return _Refinement(T=T, inliers=inl, H=H, cost=r2, error=err)
+
+    def _covariance(self, fit: _Refinement, nmatch: int) -> _Covariance:
+        """Step 9: covariance [6, 6] sigma^2 H^-1 of the refined motion (H = J^T W J of the
+        last Gauss-Newton step, sigma^2 from the weighted residuals).
+
+        Raises :class:`_RejectedError` when it is singular or not finite, or when its
+        translation part exceeds ``max_translation_std`` (the inliers do not constrain the
+        motion).
+        """
+        o = self.options
+        ninl, err = len(fit.inliers), fit.error
         # 9. covariance sigma^2 H^-1 (H = J^T W J), sigma^2 from the weighted residuals
-        dof = max(1, 4 * len(inl) - 6)
-        sigma2 = max(r2 / dof, 0.05)
+        dof = max(1, 4 * ninl - 6)
+        sigma2 = max(fit.cost / dof, 0.05)
         try:
-            cov = sigma2 * np.linalg.inv(H)  # 6x6 SPD: an explicit inverse is fine here
+            cov = sigma2 * np.linalg.inv(fit.H)  # 6x6 SPD: an explicit inverse is fine here
         except np.linalg.LinAlgError:
-            return (Status.OPTIMIZATION_FAILURE, None, None, len(inl), nmatch, err,
-                    "singular information matrix")
+            raise _RejectedError(Status.OPTIMIZATION_FAILURE, "singular information matrix",
+                            num_inliers=ninl, num_matches=nmatch, error=err) from None
         if not np.all(np.isfinite(cov)):
-            return (Status.OPTIMIZATION_FAILURE, None, None, len(inl), nmatch, err,
-                    "non-finite covariance")
+            raise _RejectedError(Status.OPTIMIZATION_FAILURE, "non-finite covariance",
+                            num_inliers=ninl, num_matches=nmatch, error=err)
         cov = 0.5 * (cov + cov.T)
         t_std = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3])[-1]), 0.0))
         if t_std > o.max_translation_std:
             # inliers bunched on one small object or all far away: the fit is ill-posed
-            return (Status.INSUFFICIENT_INLIERS, None, None, len(inl), nmatch, err,
-                    f"{len(inl)} inliers do not constrain the motion "
-                    f"(translation std {1e3 * t_std:.1f} mm)")
-        return Status.OK, T, cov, len(inl), nmatch, err, ""
+            raise _RejectedError(Status.INSUFFICIENT_INLIERS,
+                            f"{ninl} inliers do not constrain the motion "
+                            f"(translation std {1e3 * t_std:.1f} mm)",
+                            num_inliers=ninl, num_matches=nmatch, error=err)
+        return _Covariance(covariance=cov, sigma2=sigma2, dof=dof, translation_std=t_std)
 
     def _reprojection_errors(self, T, P, Q, uv_ref, uv_cur) -> np.ndarray:
         """Per match max of forward and backward reprojection error (px) [n]."""
@@ -657,14 +740,15 @@ class VisualOdometry:
         e[~np.isfinite(e) | (X[:, 2] <= 0) | (Y[:, 2] <= 0)] = np.inf
         return e
 
-    def _gauss_newton(self, T, P, Q, uv_ref, uv_cur, w):
+    def _gauss_newton(self, T, P, Q, uv_ref, uv_cur, w) -> _GaussNewton:
         """Minimise the bidirectional reprojection error over T_cur_ref (as Fovis).
 
         r_f = pi(R P + t) - uv_cur, r_b = pi(R^T (Q - t)) - uv_ref, weights w^2, update
         T <- exp(delta) T with delta = (rho, omega) in the current frame. Jacobians:
         d(RP+t)/d delta = [I, -[X]x]; d(R^T(Q-t))/d delta = R^T [-I, [Q]x], so with
         A = d pi/dY R^T the backward rows are [-A, a x Q] per row a of A.
-        Returns (T, H [6, 6], weighted squared residual sum, success).
+        Returns the :class:`_GaussNewton` (T, H [6, 6], weighted squared residual sum,
+        success).
         """
         fx, fy = self.K[0, 0], self.K[1, 1]
         w2 = np.repeat(w * w, 2)
@@ -676,7 +760,7 @@ class VisualOdometry:
             X = P @ R.T + t
             Y = (Q - t) @ R
             if np.any(X[:, 2] <= 1e-3) or np.any(Y[:, 2] <= 1e-3):
-                return T, H, cost, False
+                return _GaussNewton(T, H, cost, False)
             rf = self._project(X) - uv_cur
             rb = self._project(Y) - uv_ref
             Jf = _jac_forward(X, fx, fy)  # [n, 2, 6]
@@ -691,16 +775,16 @@ class VisualOdometry:
             try:
                 delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:
-                return T, H, cost, False
+                return _GaussNewton(T, H, cost, False)
             if not np.all(np.isfinite(delta)):
-                return T, H, cost, False
+                return _GaussNewton(T, H, cost, False)
             T = _se3_exp(delta) @ T
             if abs(prev_cost - cost) < 1e-4 * max(cost, 1e-12) or np.linalg.norm(delta) < 1e-7:
                 break
             prev_cost = cost
         if not math.isfinite(cost) or np.linalg.norm(T[:3, 3]) > 10.0:
-            return T, H, cost, False
-        return T, H, cost, True
+            return _GaussNewton(T, H, cost, False)
+        return _GaussNewton(T, H, cost, True)
 
 
 # ----------------------------------------------------------------------------------------
@@ -719,6 +803,60 @@ def _bucket(xy: np.ndarray, resp: np.ndarray, cell: int, per_cell: int, width: i
 
 _DY, _DX = np.mgrid[-_HALF:_HALF + 1, -_HALF:_HALF + 1]
 _DY, _DX = _DY.ravel(), _DX.ravel()
+
+
+def _mutual_best(ii: np.ndarray, jj: np.ndarray, sad: np.ndarray, match_ratio: float,
+                 max_distance: float) -> np.ndarray:
+    """Indices into the candidate pairs (ii, jj) [m] with distances sad [m] of the matches.
+
+    Mutual best: the best j for each i and the best i for each j; a reference feature whose
+    second-best candidate is nearly as good (best >= ``match_ratio`` x second) is ambiguous
+    (repetitive texture: Lowe 2004, section 7.1 ratio test) and dropped. Every sad is below
+    ``max_distance``, so sorting by index + sad / (1.01 max_distance) groups the candidates
+    of one feature, best first (ties break by sad). Returns sorted indices.
+    """
+    scale = 1.0 / (max_distance * 1.01)  # sad * scale < 1: ties break by sad
+    order = np.argsort(ii + sad * scale)
+    if len(order):
+        starts = np.r_[True, ii[order][1:] != ii[order][:-1]]
+        first_i = order[starts]
+        sorted_sad = sad[order]
+        pos = np.flatnonzero(starts)
+        has2 = ~np.r_[starts[1:], True][pos]  # the group has a second candidate
+        ratio_ok = np.ones(len(pos), bool)
+        ratio_ok[has2] = (sorted_sad[pos[has2]]
+                          < match_ratio * sorted_sad[pos[has2] + 1])
+        first_i = first_i[ratio_ok]
+    else:
+        first_i = order
+    order = np.argsort(jj + sad * scale)
+    first_j = order[np.r_[True, jj[order][1:] != jj[order][:-1]]] if len(order) else order
+    return np.intersect1d(first_i, first_j)
+
+
+def _subpixel(ref: _Frame, cur: _Frame, mi: np.ndarray,
+              mj: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel positions of the matches (ref feature mi [n] -> cur feature mj [n]).
+
+    Lucas-Kanade on the reference feature's level image, started at the matched feature;
+    returns the level-0 positions uv_cur [n, 2] and good [n] (converged, moved < 1.5 level
+    px).
+    """
+    uv_cur = np.empty((len(mi), 2))
+    good = np.zeros(len(mi), bool)
+    for lv in np.unique(ref.level[mi]):
+        sel = np.flatnonzero(ref.level[mi] == lv)
+        p0 = ref.xy[mi[sel]].reshape(-1, 1, 2).astype(np.float32)
+        p1 = cur.xy[mj[sel]].reshape(-1, 1, 2).astype(np.float32).copy()
+        p1r, st, _ = cv2.calcOpticalFlowPyrLK(
+            ref.levels[lv], cur.levels[lv], p0, p1, winSize=(PATCH, PATCH), maxLevel=0,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        p1r = p1r.reshape(-1, 2)
+        shift = np.abs(p1r - p1.reshape(-1, 2)).max(axis=1)
+        good[sel] = (st.ravel() == 1) & (shift < 1.5)
+        uv_cur[sel] = p1r * (2.0 ** lv)
+    return uv_cur, good
 
 
 def _patches(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -753,14 +891,26 @@ def _depth_at(depth: np.ndarray, uv: np.ndarray, edge_fraction: float) -> np.nda
 
 
 def _max_clique(P: np.ndarray, Q: np.ndarray, thr: float, coeff: float) -> np.ndarray:
-    """Large clique of the rigidity-consistency graph (Howard 2008, section III-C).
+    """A clique of the rigidity-consistency graph, found by min-degree peeling.
 
-    Matches i, j are consistent when | |P_i - P_j| - |Q_i - Q_j| | < thr + coeff (z_i^2 +
-    z_j^2) (the band grows with the z^2 depth noise). Fovis grows a clique greedily from
-    the node of highest degree; here it is found by the equivalent greedy peeling, which
-    needs as many steps as there are outliers rather than inliers: repeatedly drop the
-    node with the fewest consistent partners among the remaining ones until every
-    remaining pair is consistent. Returns the member indices, sorted.
+    Graph (Howard 2008, "Real-time stereo visual odometry for autonomous ground vehicles",
+    section III-C): matches i, j are consistent when | |P_i - P_j| - |Q_i - Q_j| | < thr +
+    coeff (z_i^2 + z_j^2), z from P (the band grows with the z^2 depth noise).
+
+    What is computed: the match with the fewest consistent partners among the remaining
+    ones (the lowest index on ties) is deleted, again and again, until every remaining pair
+    is consistent; the survivors are returned, sorted. They always form a clique, but not
+    necessarily a maximum clique, nor even a maximal one (a deleted match can be consistent
+    with every survivor). The cost is one O(n) step per deleted match after the O(n^2)
+    graph.
+
+    This is not Fovis's clique step. Fovis (``computeMaximallyConsistentClique``) *grows* a
+    clique: matches sorted by their degree in the whole graph, the first one starts the
+    clique, each next one joins when it is consistent with all members, and the scan stops
+    at the first whose degree is below the clique size (Howard grows one too, choosing each
+    next member by its degree among the candidates left). All are greedy approximations of
+    the maximum clique; they agree when the true matches form one dense clique that the
+    mismatches hardly touch, and can return different sets otherwise.
     """
     dP = cdist(P, P)  # [n, n]
     dQ = cdist(Q, Q)

@@ -1,0 +1,169 @@
+"""The odometry's outputs on the rendered drives of test_vo.py, pinned to golden values.
+
+The golden values were computed with the code before ``VisualOdometry._estimate`` was split
+into its stages (match, clique, refine, covariance); the split must not change a status, an
+inlier count, a twist or a covariance. Each drive is summarised by its per-frame statuses
+and counts (compared exactly) and a fingerprint of sums over its tracked frames (compared
+to 1e-9 relative): any change of one frame's motion, twist or covariance shows in them.
+
+``python test/test_vo_golden.py`` prints the current values in the form of ``GOLDEN``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pytest
+
+from asgp_ros.sim.render import RGBDRenderer
+from asgp_ros.sim.scene import build_scene, segment_drive
+from asgp_ros.vo import DEFAULT_EXTRINSIC, VisualOdometry
+from asgp_ros.vo import odometry as od
+
+FINGERPRINT = ("sum_v", "sum_w", "sum_kv", "sum_kw", "sum_t", "sum_err",
+               "sum_sd_tx", "sum_sd_ty", "sum_sd_tz", "sum_sd_rx", "sum_sd_ry", "sum_sd_rz",
+               "sum_logdet", "sum_corr_tx_ry")
+
+
+def _drive_poses(drive):
+    return [DEFAULT_EXTRINSIC.camera_pose_planar(x, y, th)
+            for x, y, th in zip(drive.x, drive.y, drive.theta, strict=True)]
+
+
+def drives():
+    """(name, scene preset, renderer seed, camera poses, stamps) as in test_vo.py."""
+    base = DEFAULT_EXTRINSIC.camera_pose_planar(0.0, 0.0, 0.0)
+    step = od._se3_exp(np.r_[0, 0, 0, 0, 0.02, 0])
+    rotation = [base]
+    for _ in range(8):
+        rotation.append(rotation[-1] @ step)
+    forward = segment_drive((0.0, 0.0, 0.0), [(0.5, 0.0, 0.4)], 30.0)
+    arc = segment_drive((1.0, -1.0, 2.5), [(0.4, 0.3, 1.0)], 15.0)
+    x0, x1, y = build_scene(preset="poor", seed=0).blank_wall
+    quarter = 0.5 * math.pi / 1.2
+    blank = segment_drive(((x0 + x1) / 2 - 0.3, y - 1.5, 0.0),
+                          [(0.3, 0.0, 0.5), (0.0, -1.2, quarter), (0.0, 0.0, 0.6),
+                           (0.0, 1.2, quarter), (0.3, 0.0, 0.8)], 20.0)
+    return [("rotation", "rich", 1, rotation, np.arange(9) / 30.0),
+            ("forward", "rich", 2, _drive_poses(forward), forward.t),
+            ("arc", "rich", 3, _drive_poses(arc), arc.t),
+            ("blank_wall", "poor", 4, _drive_poses(blank), blank.t)]
+
+
+def _rle(values) -> str:
+    """Run-length text of a sequence: 'a*3 b c*2' for a a a b c c."""
+    runs: list[list] = []
+    for v in values:
+        if runs and runs[-1][0] == v:
+            runs[-1][1] += 1
+        else:
+            runs.append([v, 1])
+    return " ".join(f"{v}*{n}" if n > 1 else f"{v}" for v, n in runs)
+
+
+def summarise(results) -> dict:
+    """Statuses, counts and the fingerprint (sums over tracked frames) of one run."""
+    acc = dict.fromkeys(FINGERPRINT, 0.0)
+    for k, r in enumerate(results):
+        if not r.ok:
+            continue
+        C = r.covariance
+        sd = np.sqrt(np.diag(C))
+        acc["sum_t"] += float(np.linalg.norm(r.motion[:3, 3]))
+        acc["sum_err"] += float(r.reprojection_error)
+        for j, name in enumerate(FINGERPRINT[6:12]):
+            acc[name] += float(sd[j])
+        acc["sum_logdet"] += float(np.linalg.slogdet(C)[1])
+        acc["sum_corr_tx_ry"] += float(C[0, 4] / (sd[0] * sd[4]))
+        if r.twist is not None:
+            v, w = r.twist
+            acc["sum_v"] += v
+            acc["sum_w"] += w
+            acc["sum_kv"] += k * v
+            acc["sum_kw"] += k * w
+    return {"status": _rle(r.status.value for r in results),
+            "inliers": _rle(r.num_inliers for r in results),
+            "matches": _rle(r.num_matches for r in results),
+            "fingerprint": tuple(acc[name] for name in FINGERPRINT)}
+
+
+@functools.cache
+def _scene(preset: str):
+    return build_scene(preset=preset, seed=0)
+
+
+def run(preset: str, seed: int, poses, stamps):
+    renderer = RGBDRenderer(_scene(preset), seed=seed)
+    vo = VisualOdometry(renderer.K)
+    return [vo.process(*renderer.render(T), float(t)) for T, t in zip(poses, stamps,
+                                                                       strict=True)]
+
+
+GOLDEN: dict[str, dict] = {
+    "rotation": {
+        "status": "reference_set ok*8",
+        "inliers": "0 429 439*2 399 370 385 368 361",
+        "matches": "0 467 489 484 436 412 435 425 405",
+        "fingerprint": (-0.007935578584121805, -4.634864730509219, -0.019304582559732553,
+                        -20.85544099682709, 0.0017490852176086516, 1.107447468021764,
+                        0.0011376474949735143, 0.0011333449548136026, 0.0011589333556301042,
+                        0.0003870838499844397, 0.00039169266292869487, 0.0005051516095801821,
+                        -938.4176279415836, -7.493268634993356),
+    },
+    "forward": {
+        "status": "reference_set ok*12",
+        "inliers": "0 399 433 404 437 389 372 367 372 348 302 328 300",
+        "matches": "0 470 495 457 492 450 456 471*2 466 421 427 421",
+        "fingerprint": (5.995438831120781, -0.0012407304259199926, 38.9587061231912,
+                        -0.02259265016494548, 0.19985452059078315, 2.2720796246988764,
+                        0.0017941992830812108, 0.0018563005310892303, 0.0018497702666511922,
+                        0.0005891458541166754, 0.0005696849120812233, 0.0007003485274914977,
+                        -1401.99025771613, -11.206159098688028),
+    },
+    "arc": {
+        "status": "reference_set ok*15",
+        "inliers": "0 327 343 286 263 238 323 302 291 247 302 298 263 234 346 323",
+        "matches": "0 392 418 364 358 348 416 382*2 352 394 389 363 349 428 398",
+        "fingerprint": (6.00467746273813, 4.500321620867086, 47.961901144623674,
+                        35.991203168028825, 0.4176625316504147, 2.3986162140507283,
+                        0.002971740638059103, 0.0029557271018779163, 0.0027523259739894806,
+                        0.0009442329122059595, 0.0009491966305326192, 0.0010971855071502678,
+                        -1716.3200604031006, -14.19804992078038),
+    },
+    "blank_wall": {
+        "status": "reference_set ok*23 insufficient_inliers insufficient_features*35 "
+                  "insufficient_inliers ok insufficient_inliers*3 ok*26",
+        "inliers": "0 99 229 242 226 222 237 225 215 212 224 85 173 159 163 146 121 114 93 80*2 "
+                   "74 77 30 14 0*36 70 23 17 4 22 65 80 113 122 148 158 167 179 192 222 249 220 "
+                   "244 237 232 229 226 210 215 240 231 235 214 205 225",
+        "matches": "0 112 270 291 268 257 288 271 256 248 261 98 212 191 188 172 136 128 114 103 "
+                   "101 94 90 37 22 0*35 4 70 32 28 31 38 94 107 125 139 173 189 190 218 222 276 "
+                   "281 266 284 265 275 260 258 243 251 278 266 274 252 250 267",
+        "fingerprint": (8.290261389606297, -3.6117289042364837, 413.11431944000776,
+                        571.5826091548612, 1.0008148818857956, 6.1354104814824195,
+                        0.07287292051096222, 0.07243455129343276, 0.03878120705549518,
+                        0.01905055766388936, 0.018997666110790953, 0.00782954849223117,
+                        -5114.490114911076, -49.53101531943127),
+    },
+}
+
+
+@pytest.mark.parametrize("index", range(4), ids=["rotation", "forward", "arc", "blank_wall"])
+def test_outputs_match_the_golden_values(index):
+    name, preset, seed, poses, stamps = drives()[index]
+    got = summarise(run(preset, seed, poses, stamps))
+    want = GOLDEN[name]
+    assert got["status"] == want["status"]
+    assert got["inliers"] == want["inliers"]
+    assert got["matches"] == want["matches"]
+    np.testing.assert_allclose(got["fingerprint"], want["fingerprint"], rtol=1e-9, atol=1e-12)
+
+
+if __name__ == "__main__":
+    import pprint
+    out = {}
+    for name, preset, seed, poses, stamps in drives():
+        out[name] = summarise(run(preset, seed, poses, stamps))
+    pprint.pprint(out, width=99, compact=True)
