@@ -436,11 +436,17 @@ class BagReplayer:
             missing = self.wait_for_subscribers()
             if missing:
                 LOG.info("no subscriber yet on: %s", ", ".join(missing))
-        while self.play_once() and self.config.loop:
+        while True:
+            if not self.play_once():
+                return  # stopped: leave at once
+            if not self.config.loop:
+                break
             LOG.info("end of bag: looping (the clock jumps back)")
         from rclpy.duration import Duration
 
         for topic in self.topics.values():  # let reliable readers get the last messages
+            if self.should_stop():
+                return
             topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
 
 

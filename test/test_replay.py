@@ -392,3 +392,76 @@ def test_replay_ranges_are_checked_in_the_config_and_on_the_command_line(repo_ro
     assert err.strip().splitlines() == [
         "asgp replay: error: argument --rate: must be in [0.001, 1000], got 1e300 "
         "(see asgp replay --help)"]
+
+
+def _stop_within_bound(proc, sig, bound_s: float = 2.0) -> str:
+    """Send ``sig``; the command must be gone within the spec's 2 s; returns its stderr."""
+    proc.send_signal(sig)
+    sent = time.monotonic()
+    while proc.poll() is None:
+        assert time.monotonic() - sent < bound_s, f"still running {bound_s} s after {sig!r}"
+        time.sleep(0.005)
+    _out, err = proc.communicate(timeout=10)
+    return err
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM],
+                         ids=lambda s: signal.Signals(s).name)
+@pytest.mark.parametrize("state", ["waiting for subscribers", "playing"])
+def test_replay_exits_on_signals_in_every_state(rclpy_context, repo_root, ros2_bag, state,
+                                                sig):
+    lis = _Listener(rclpy_context)
+    if state == "playing":  # a slow replay: the first message, then a long wait
+        proc = _cli(repo_root, ros2_bag, "--rate", "0.01", "--wait-subscribers", "20",
+                    "--topics", "/joy")
+    else:  # nobody subscribes to the topics it publishes: it waits
+        proc = _cli(repo_root, ros2_bag, "--wait-subscribers", "3000", "--topics", "/joy",
+                    "/odom", "--remap", "/joy:=/nobody_listens", "/odom:=/nobody_either")
+    try:
+        if state == "playing":
+            lis.spin_until(lambda: len(lis.got["/joy"]) >= 1, what="the first message")
+        else:  # its publishers exist: it is in the loop that waits for subscribers
+            lis.spin_until(lambda: lis.node.count_publishers("/nobody_either") >= 1,
+                           what="the replay's publishers")
+        err = _stop_within_bound(proc, sig)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        lis.close()
+    assert proc.returncode in (0, 130, 128 + signal.SIGTERM), err
+    assert "Traceback" not in err, err
+
+
+def test_a_shutdown_between_checks_is_a_clean_stop(rclpy_context, ros2_bag):
+    """What rclpy's SIGINT/SIGTERM handler does -- shut the context down -- may land between
+    the player's stop check and its next call into rclpy (which then raises RCLError); the
+    command must still end cleanly. The replay runs in this process on rclpy's default
+    context, which a helper thread shuts down once the player waits for subscribers."""
+    import threading
+
+    import rclpy
+
+    from asgp_ros.cli import build_parser
+
+    args = build_parser().parse_args(
+        ["replay", str(ros2_bag), "--wait-subscribers", "3000", "--topics", "/joy", "/odom",
+         "--remap", "/joy:=/nobody_listens_here", "/odom:=/nobody_here_either"])
+    lis = _Listener(rclpy_context)
+
+    def shut_down_when_waiting() -> None:
+        deadline = time.monotonic() + 60
+        while lis.node.count_publishers("/nobody_here_either") < 1:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        rclpy.try_shutdown()  # the default context, as the signal handler does
+
+    helper = threading.Thread(target=shut_down_when_waiting)
+    helper.start()
+    try:
+        assert args.func(args) == 0
+    finally:
+        helper.join()
+        lis.close()

@@ -72,9 +72,10 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=None)
-    node = rclpy.create_node("asgp_replay")
+    rclpy.init(args=None)  # its handlers turn SIGINT/SIGTERM into a shutdown the player polls
+    node = None
     try:
+        node = rclpy.create_node("asgp_replay")
         with BagReplayer(args.bag, config, node, should_stop=lambda: not rclpy.ok()) as player:
             for line in summary(player):
                 print(f"replaying {line}")
@@ -84,7 +85,12 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     except ExternalShutdownException:
         pass
+    except Exception:
+        if rclpy.ok():
+            raise
+        # SIGINT/SIGTERM shut the context down between a check and a publish: a stop
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
     return 0
