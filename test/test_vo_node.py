@@ -80,6 +80,20 @@ def test_camera_info_to_matrix():
         conv.camera_info_to_matrix(msg)
 
 
+@pytest.mark.parametrize(("k", "size", "why"), [
+    ([1e30, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "focal lengths 1e\\+30"),
+    ([525.0, 0, 319.5, 0, 1e-9, 239.5, 0, 0, 1], (640, 480), "focal lengths 525, 1e-09"),
+    ([525.0, 0, 1e30, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "principal point beyond"),
+    ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (4_000_000_000, 480), "size 4000000000x480"),
+])
+def test_camera_info_out_of_range_is_refused(k, size, why):
+    msg = conv.camera_info_from_matrix(0.0, np.eye(3), 640, 480, "camera")
+    msg.k = [float(x) for x in k]
+    msg.width, msg.height = size
+    with pytest.raises(ValueError, match=why):
+        conv.camera_info_to_matrix(msg)
+
+
 def test_odometry_with_covariance():
     P = np.array([[0.01, 0.002, 0.0], [0.002, 0.02, 0.001], [0.0, 0.001, 0.003]])
     T = np.diag([1e-4, 2e-4, 3e-4, 4e-4, 5e-4, 6e-4])

@@ -450,11 +450,20 @@ def image_to_array(msg: Any) -> Any:
     return arr
 
 
+#: Ranges of a CameraInfo the VO accepts: image sides (px, 0 = unknown), focal lengths and
+#: the principal point's coordinates (px). Real cameras are far inside them.
+CAMERA_MAX_SIDE_PX = 100_000
+CAMERA_FOCAL_RANGE_PX = (1.0, 1e6)
+CAMERA_MAX_ABS_CENTRE_PX = 1e6
+
+
 def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
     """sensor_msgs/CameraInfo -> (K [3, 3] float64, width, height, has_distortion).
 
     Raises:
-        ValueError: K unset (all zero), not finite, or not a pinhole matrix.
+        ValueError: K unset (all zero), not finite, not a pinhole matrix, or a focal length,
+            principal point or image side outside ``CAMERA_FOCAL_RANGE_PX``,
+            ``CAMERA_MAX_ABS_CENTRE_PX``, ``CAMERA_MAX_SIDE_PX``.
     """
     import numpy as np
 
@@ -463,6 +472,17 @@ def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
         raise ValueError("CameraInfo K is unset or not finite (uncalibrated camera)")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1.0 or np.any(K[2, :2] != 0):
         raise ValueError(f"CameraInfo K is not a pinhole matrix: {K.reshape(-1).tolist()}")
+    low, high = CAMERA_FOCAL_RANGE_PX
+    if not (low <= K[0, 0] <= high and low <= K[1, 1] <= high):
+        raise ValueError(f"CameraInfo focal lengths {K[0, 0]:g}, {K[1, 1]:g} px are outside "
+                         f"[{low:g}, {high:g}]")
+    if np.any(np.abs(K[:2, 1:]) > CAMERA_MAX_ABS_CENTRE_PX):
+        raise ValueError(f"CameraInfo skew or principal point beyond "
+                         f"+-{CAMERA_MAX_ABS_CENTRE_PX:g} px: {K.reshape(-1).tolist()}")
+    if not (0 <= int(msg.width) <= CAMERA_MAX_SIDE_PX
+            and 0 <= int(msg.height) <= CAMERA_MAX_SIDE_PX):
+        raise ValueError(f"CameraInfo size {msg.width}x{msg.height} is beyond "
+                         f"{CAMERA_MAX_SIDE_PX} px")
     d = np.asarray(msg.d, dtype=np.float64)
     return K, int(msg.width), int(msg.height), bool(d.size and np.any(d != 0))
 
