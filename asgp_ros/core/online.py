@@ -426,8 +426,8 @@ class Predictor:
     def _check_commands(self, commands: FloatArray, what: str) -> None:
         """Refuse joystick commands [..., k, 2] that are not finite or out of range."""
         if commands.shape[-2] > MAX_PLAN_STEPS:
-            raise RejectedInputError(REJECT_PLAN, f"{what} has {commands.shape[-2]} steps, more "
-                                             f"than {MAX_PLAN_STEPS}")
+            raise RejectedInputError(
+                REJECT_PLAN, f"{what} has {commands.shape[-2]} steps, more than {MAX_PLAN_STEPS}")
         flat = commands.reshape(-1, 2)
         bad = np.flatnonzero(~joy_in_range(flat))
         if bad.size:
@@ -438,7 +438,7 @@ class Predictor:
                 f"{index[0]} row {index[-1]}"
             finite = bool(np.all(np.isfinite(flat)))
             raise RejectedInputError(REJECT_PLAN if finite else REJECT_NONFINITE,
-                                f"{what} {where}: {problem}")
+                                     f"{what} {where}: {problem}")
 
     def set_plan(self, plan: FloatArray, stamp: float) -> None:
         """A planner's future joystick commands: [m, 2] rows from ``stamp`` on, dt apart.
@@ -455,8 +455,8 @@ class Predictor:
         try:
             problem = time_problem(float(stamp))
             if problem is not None:
-                raise RejectedInputError(REJECT_TIME if math.isfinite(stamp) else REJECT_NONFINITE,
-                                    f"plan: {problem}")
+                reason = REJECT_TIME if math.isfinite(stamp) else REJECT_NONFINITE
+                raise RejectedInputError(reason, f"plan: {problem}")
             self._check_commands(arr, "plan")
         except RejectedInputError as exc:
             self._reject(exc.reason, exc.detail)

@@ -17,7 +17,7 @@ its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a 
 code; the diagnostics count the refusals by code (``rejected``) and give the newest one
 (``last_rejected``).
 
-Signals: SIGINT and SIGTERM end the node within a fraction of a second in every state.
+Signals: SIGINT and SIGTERM end the node well within 2 s in every state (tested).
 The model is read in a worker thread while the main thread watches the ROS context, so
 even a read that blocks (a hung network file system) cannot keep the node alive; a path
 that is not a regular file (a FIFO, a device) is refused before it is opened.
