@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
-from asgp_ros.core.streams import RawStreams
+from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 from asgp_ros.fileio import atomic_path
 
 if TYPE_CHECKING:
@@ -407,6 +407,14 @@ def read_streams(
         truth_t = _choose_times(truth_topic or "", np.asarray([r[0] for r in tr], np.int64),
                                 np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
         truth = ta[:, 1:]
+    for name, topic, bad, n in (
+            ("joystick", joy_topic, int(np.count_nonzero(~joy_in_range(j[:, 1:]))), j.shape[0]),
+            ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:]))),
+             v.shape[0])):
+        if bad:  # the resampler drops them; a large share means a wrong scale or topic
+            log.warning("%s: %d of %d %s samples on %s are not finite or outside their "
+                        "physical range (asgp_ros.core.streams); they are dropped", source,
+                        bad, n, name, topic)
     try:
         return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:],
                           truth_t=truth_t, truth=truth, source=source)

@@ -449,3 +449,16 @@ def test_metadata_that_is_not_a_bags_is_named(mcap_bag, tmp_path, text):
     (bad / "metadata.yaml").write_text(text)
     with pytest.raises(BagError, match=r"metadata\.yaml: not the metadata of a ROS 2 bag"):
         read_streams(bad)
+
+
+def test_out_of_range_samples_in_a_bag_are_reported(rec, tmp_path, caplog):
+    """Values beyond the physical ranges are dropped by the resampler; the reader says so."""
+    import dataclasses
+
+    joy = rec.joy.copy()
+    joy[5] = (3.0, 0.0)  # raw counts, a wrong scale...
+    bad = write_bag(tmp_path / "scaled", dataclasses.replace(rec, joy=joy), truth=False)
+    with caplog.at_level("WARNING", logger="asgp_ros.bags"):
+        s = read_streams(bad)
+    assert s.joy[5, 0] == 3.0  # read as recorded
+    assert "1 of" in caplog.text and "joystick samples on /joy" in caplog.text
