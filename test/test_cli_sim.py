@@ -42,8 +42,9 @@ def test_simulate_storages_and_bad_input(tmp_path, capsys):
     assert main(["simulate", "--minutes", "0", "--out", str(tmp_path / "z")]) == 2
     assert "minutes" in capsys.readouterr().err
     assert not (tmp_path / "z").exists()
-    with pytest.raises(SystemExit):
-        main(["simulate", "--surface", "grass", "--out", str(tmp_path / "g")])
+    assert main(["simulate", "--surface", "grass", "--out", str(tmp_path / "g")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "invalid choice: 'grass'" in err
 
 
 def test_dataset_layout_manifest_and_resume(repo_root, tmp_path):
