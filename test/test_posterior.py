@@ -23,17 +23,19 @@ from asgp_ros.core.sparse_gp import SparseGP, SparseGPError
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _bench() -> ModuleType:
-    """benchmarks/rollout.py: its simulated chair and its reference-revision loader."""
-    spec = importlib.util.spec_from_file_location("_bench_rollout",
-                                                  REPO / "benchmarks" / "rollout.py")
+@pytest.fixture(scope="module")
+def bench() -> ModuleType:
+    """benchmarks/rollout.py: its simulated chair and its reference-revision loader (the
+    comparison with the previous implementation needs a source checkout with its history;
+    an installed or colcon-copied package has neither)."""
+    path = REPO / "benchmarks" / "rollout.py"
+    if not path.is_file():
+        pytest.skip(f"{path} is not here (not a source checkout)")
+    spec = importlib.util.spec_from_file_location("_bench_rollout", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-BENCH = _bench()
 
 
 def _data(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -171,18 +173,18 @@ def test_repository_model_files_load_with_their_factors(name: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def reference() -> dict[str, ModuleType]:
+def reference(bench: ModuleType) -> dict[str, ModuleType]:
     """sparse_gp.py and rollout.py of the revision before the shared posterior and kernel."""
     try:
-        return BENCH.load_reference(BENCH.REFERENCE)
+        return bench.load_reference(bench.REFERENCE)
     except RuntimeError as err:
         pytest.skip(f"reference revision not available: {err}")
 
 
 @pytest.fixture(scope="module")
-def chair() -> tuple[MotionModel, np.ndarray, np.ndarray]:
+def chair(bench: ModuleType) -> tuple[MotionModel, np.ndarray, np.ndarray]:
     """Two channels with 12 and 20 pseudo-inputs (the fused rollout pads one)."""
-    res = BENCH.simulated(900, seed=2)
+    res = bench.simulated(900, seed=2)
     fc = FeatureConfig(lags=4)
     gps = []
     for c, M in enumerate((12, 20)):
