@@ -8,9 +8,10 @@ import pytest
 from asgp_ros.core import metrics
 from asgp_ros.core.baselines import FirstOrderLagChannel, probe_columns
 from asgp_ros.core.features import FeatureConfig
+from asgp_ros.core.metrics import horizon_key
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import ResampleConfig, Resampled
-from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model, horizon_key
+from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
 
 RATE = 5.0
 DT = 1.0 / RATE

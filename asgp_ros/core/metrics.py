@@ -24,8 +24,21 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: chi-square quantile with 2 degrees of freedom at 0.95: -2 ln(0.05) (closed form for 2 dof).
+#: chi-square quantile with 2 degrees of freedom at 0.95: -2 ln(0.05) = 5.991 (closed form
+#: for 2 dof): the squared Mahalanobis radius of a 95% position ellipse.
 CHI2_2DOF_95 = -2.0 * math.log(0.05)
+
+#: The paper's prediction horizons in seconds (k = 5, 7, 10 steps at 5 Hz).
+HORIZONS_S: tuple[float, ...] = (1.0, 1.4, 2.0)
+
+#: The paper's success threshold on the position error at the horizon (m).
+THRESHOLD_M = 0.10
+
+
+def horizon_key(h: float) -> str:
+    """JSON key of a horizon in seconds: 1.0 -> "1.0", 1.4 -> "1.4", 1.25 -> "1.25"."""
+    s = f"{h:.3f}".rstrip("0")
+    return s + "0" if s.endswith(".") else s
 
 
 def horizon_steps(horizons_s: list[float] | tuple[float, ...], rate_hz: float) -> list[int]:
