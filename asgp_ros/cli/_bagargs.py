@@ -6,44 +6,34 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
+from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
+
 
 def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> None:
-    parser.add_argument("--joy-topic", default="/joy", help="sensor_msgs/Joy topic (%(default)s)")
-    parser.add_argument("--twist-topic", default="/vo/twist",
+    parser.add_argument("--joy-topic", default=BAG_JOY, help="sensor_msgs/Joy topic (%(default)s)")
+    parser.add_argument("--twist-topic", default=BAG_VO_TWIST,
                         help="velocity topic: TwistStamped, TwistWithCovarianceStamped, Twist "
                              "or Odometry (%(default)s)")
     parser.add_argument("--joy-axes", default=None, metavar="FWD,TURN",
                         help="Joy.axes indices of the forward and turn deflection, '-' flips a "
                              "sign: '0,1' (default), '1,-0', ...")
     if truth:
-        parser.add_argument("--truth-topic", default="/ground_truth/odom",
+        parser.add_argument("--truth-topic", default=BAG_GROUND_TRUTH,
                             help="ground-truth nav_msgs/Odometry topic for --truth "
                                  "(%(default)s)")
 
 
-def joy_axes(value: str | None) -> str | None:
-    """--joy-axes as given ("FWD,TURN", '-' flips a sign); the bag reader parses it."""
-    return value
-
-
-def bag_errors() -> tuple[type[BaseException], ...]:
-    """Exception types the bag reader raises for a bad bag (missing topic, corrupt file)."""
-    from asgp_ros import bags
-
-    extra = tuple(
-        e for e in (getattr(bags, name, None) for name in ("BagError", "BagReadError"))
-        if isinstance(e, type) and issubclass(e, BaseException)
-    )
-    return (*extra, ValueError, OSError, KeyError)
-
-
 def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
                         resample_config: Any = None, truth: bool = False) -> list[Any]:
-    """Read and resample bags; any reader error becomes a CommandError naming the bag."""
+    """Read and resample bags; any reader error becomes a CommandError naming the bag.
+
+    ``--joy-axes`` is passed on as given ("FWD,TURN", '-' flips a sign): the bag reader
+    parses it.
+    """
+    from asgp_ros.bags import BagError
     from asgp_ros.cli import CommandError
     from asgp_ros.training import read_series
 
-    axes = joy_axes(args.joy_axes)
     out = []
     for path in paths:
         try:
@@ -51,8 +41,8 @@ def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
                 [path], resample_config=resample_config, joy_topic=args.joy_topic,
                 twist_topic=args.twist_topic,
                 truth_topic=getattr(args, "truth_topic", None) if truth else None,
-                joy_axes=axes))
-        except bag_errors() as exc:
+                joy_axes=args.joy_axes))
+        except (BagError, ValueError, OSError, KeyError) as exc:
             msg = str(exc)
             raise CommandError(msg if str(path) in msg else f"{path}: {msg}") from exc
     return out

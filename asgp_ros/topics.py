@@ -1,0 +1,45 @@
+"""The ROS topic names of the system, defined once (no rclpy: importable everywhere).
+
+Nodes use the relative names, so that a namespace applies (``ros2 run ... --ros-args -r
+__ns:=/chair``); bags recorded from the root namespace hold the absolute names
+(``BAG_*``), which the bag commands read by default. The YAML files in ``config/`` and the
+README's ROS interface table name the same topics (checked by test/test_single_source.py).
+"""
+
+from __future__ import annotations
+
+#: sensor_msgs/Joy: axes[0] forward deflection, axes[1] turn deflection (bridge ->).
+JOY = "joy"
+#: sensor_msgs/Joy: the same axes, written to the chair while fresh (-> bridge).
+JOY_OVERRIDE = "joy_override"
+#: std_msgs/Float32MultiArray: k x 2 future joystick commands (planner -> predictor).
+JOY_PLAN = "joy_plan"
+#: geometry_msgs/TwistStamped: v and omega in base_link (vo ->).
+VO_TWIST = "vo/twist"
+#: nav_msgs/Odometry: odom -> base_link with covariance (vo ->).
+VO_ODOM = "vo/odom"
+#: nav_msgs/Path: the k predicted poses (predictor ->).
+PREDICTED_PATH = "predicted_path"
+#: visualization_msgs/MarkerArray: position covariance ellipses (predictor ->).
+PREDICTED_PATH_UNCERTAINTY = PREDICTED_PATH + "/uncertainty"
+#: diagnostic_msgs/DiagnosticArray (all nodes).
+DIAGNOSTICS = "diagnostics"
+#: sensor_msgs/Image, colour (-> vo).
+CAMERA_COLOR = "camera/color/image_raw"
+#: sensor_msgs/Image, depth registered to colour (-> vo).
+CAMERA_DEPTH = "camera/depth/image_raw"
+#: sensor_msgs/CameraInfo of the colour camera (-> vo).
+CAMERA_INFO = "camera/color/camera_info"
+#: nav_msgs/Odometry: the simulator's true pose and velocity (simulated hardware ->).
+GROUND_TRUTH = "ground_truth/odom"
+
+
+def in_bag(name: str) -> str:
+    """The absolute name under which a topic is recorded from the root namespace."""
+    return name if name.startswith("/") else "/" + name
+
+
+#: The bag topics the offline commands read by default (``asgp train``, ``evaluate``, ...).
+BAG_JOY = in_bag(JOY)
+BAG_VO_TWIST = in_bag(VO_TWIST)
+BAG_GROUND_TRUTH = in_bag(GROUND_TRUTH)
