@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from asgp_ros.core import metrics
+from asgp_ros.core.metrics import THRESHOLD_M, horizon_key
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +38,6 @@ CHUNK = 4096
 
 class EvaluationError(ValueError):
     """The evaluation cannot be done as asked (no cases, a horizon longer than the data...)."""
-
-
-def horizon_key(h: float) -> str:
-    """JSON key of a horizon in seconds: 1.0 -> "1.0", 1.4 -> "1.4", 1.25 -> "1.25"."""
-    s = f"{h:.3f}".rstrip("0")
-    return s + "0" if s.endswith(".") else s
 
 
 @dataclass
@@ -111,10 +106,17 @@ def reference_path(vel_ref: np.ndarray, dt: float) -> np.ndarray:
 
 
 def _uncertainty_for(model: Any) -> str:
-    """Linearised propagation for probabilistic kinds; the deterministic baselines need none."""
-    from asgp_ros.core.baselines import BASELINE_CHANNELS
+    """Linearised propagation for probabilistic kinds; deterministic kinds need none.
 
-    return "none" if getattr(model, "kind", "") in BASELINE_CHANNELS else "linear"
+    A kind that is not registered is propagated (whatever variance it predicts is kept).
+    """
+    from asgp_ros.core.models import get_kind
+
+    try:
+        probabilistic = get_kind(str(getattr(model, "kind", ""))).probabilistic
+    except KeyError:
+        probabilistic = True
+    return "linear" if probabilistic else "none"
 
 
 def rollout_cases(
@@ -155,7 +157,7 @@ def evaluate_model(
     series: Sequence[TestSeries],
     horizons_s: Sequence[float],
     *,
-    threshold_m: float = 0.10,
+    threshold_m: float = THRESHOLD_M,
     case_lags: int | None = None,
     truth: bool = False,
     uncertainty: str | None = None,
@@ -170,8 +172,8 @@ def evaluate_model(
         horizons_s: horizons in seconds, k = round(h * rate).
         case_lags: past samples a case needs (>= the model's s; default the model's s).
         truth: also score against ground truth (every series must have it).
-        uncertainty: "linear", "mc" or "none" (default: "none" for the deterministic
-            baselines, "linear" otherwise).
+        uncertainty: "linear", "mc" or "none" (default: "linear" for a probabilistic kind,
+            "none" for the deterministic baselines).
         n_examples: keep this many example cases per horizon for plots (from a mild to the
             sharpest recorded turn).
 

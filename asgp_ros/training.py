@@ -5,10 +5,10 @@ resampled onto the common 5 Hz grid (``core.resample``), the autoregressive desi
 matrices are built per output channel (``core.features.design_matrix``, eq. 3-4; rows
 never cross a segment gap), and one regressor per channel is fitted:
 
-* ``asgp``: SPGP / FITC sparse GP with M = 20 (v) and 40 (omega) pseudo-inputs, s = 4;
-* ``mlp``: three hidden layers of 30 ReLU units, Adam, batch 100, s = 10;
-* ``constant_velocity``: V_t = V_{t-1} (nothing to fit), s = 1;
-* ``first_order_lag``: V_t = a V_{t-1} + b j_t + c by least squares, s = 1.
+the model kind's own trainer (``fit`` of its :class:`~asgp_ros.core.models.ModelKind`;
+the kinds, their default lags and trainers are listed once, in :mod:`asgp_ros.core.models`):
+the ASGP (SPGP / FITC with M = 20 (v) and 40 (omega) pseudo-inputs, s = 4), the paper's
+MLP (s = 10) and the simple baselines (constant velocity, first-order lag, s = 1).
 
 The result is a ``core.models.MotionModel`` whose meta records a training-data summary.
 """
@@ -23,13 +23,11 @@ from typing import Any
 
 import numpy as np
 
+from asgp_ros.core.features import CHANNELS, FeatureConfig
+from asgp_ros.core.models import FitBudget, ModelKind, MotionModel, get_kind, trainable_kinds
+from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
+
 log = logging.getLogger(__name__)
-
-KINDS = ("asgp", "mlp", "constant_velocity", "first_order_lag")
-CHANNELS = ("v", "omega")
-
-#: Default number of lags per kind (the paper's s = 4 for the ASGP, 10 for the MLP).
-DEFAULT_LAGS = {"asgp": 4, "mlp": 10, "constant_velocity": 1, "first_order_lag": 1}
 
 #: progress(channel name, message) for a CLI's progress lines.
 Progress = Callable[[str, str], None]
@@ -42,7 +40,7 @@ class TrainingError(ValueError):
 @dataclass(frozen=True)
 class TrainOptions:
     kind: str = "asgp"
-    lags: int | None = None  # None: DEFAULT_LAGS[kind]
+    lags: int | None = None  # None: the kind's default_lags
     inducing_v: int = 20
     inducing_w: int = 40
     max_iter: int = 200
@@ -50,11 +48,16 @@ class TrainOptions:
     seed: int = 0
 
     def resolved_lags(self) -> int:
-        return int(self.lags if self.lags is not None else DEFAULT_LAGS[self.kind])
+        return int(self.lags if self.lags is not None else get_kind(self.kind).default_lags)
+
+    def budget(self) -> FitBudget:
+        return FitBudget(max_iter=self.max_iter, inducing=(self.inducing_v, self.inducing_w),
+                         seed=self.seed)
 
     def validate(self) -> None:
-        if self.kind not in KINDS:
-            raise TrainingError(f"unknown model kind {self.kind!r}; choose from {KINDS}")
+        if self.kind not in trainable_kinds():
+            raise TrainingError(f"unknown model kind {self.kind!r}; choose from "
+                                f"{trainable_kinds()}")
         if self.resolved_lags() < 1:
             raise TrainingError(f"lags must be >= 1, got {self.lags}")
         if self.inducing_v < 1 or self.inducing_w < 1:
@@ -75,8 +78,8 @@ def read_series(
     paths: Sequence[str],
     *,
     resample_config: Any = None,
-    joy_topic: str = "/joy",
-    twist_topic: str = "/vo/twist",
+    joy_topic: str = BAG_JOY,
+    twist_topic: str = BAG_VO_TWIST,
     truth_topic: str | None = None,
     joy_axes: Any = None,
 ) -> list[Series]:
@@ -135,54 +138,20 @@ def design(series: Sequence[Series], channel: int, feature_config: Any) -> tuple
     return np.concatenate(Xs), np.concatenate(ys)
 
 
-def _fit_channel(kind: str, channel: int, X: np.ndarray, y: np.ndarray, feature_config: Any,
-                 opts: TrainOptions, progress: Progress) -> tuple[Any, dict[str, Any]]:
-    from asgp_ros.core import baselines
-
+def _fit_channel(kind: ModelKind, channel: int, X: np.ndarray, y: np.ndarray,
+                 feature_config: Any, opts: TrainOptions, progress: Progress
+                 ) -> tuple[Any, dict[str, Any]]:
     name = CHANNELS[channel]
+    if kind.fit is None:
+        raise TrainingError(f"model kind {kind.name!r} cannot be trained")
     t0 = time.perf_counter()
     info: dict[str, Any] = {"rows": int(X.shape[0])}
-    if kind == "asgp":
-        from asgp_ros.core.sparse_gp import SparseGP
-
-        M = opts.inducing_v if channel == 0 else opts.inducing_w
-        if X.shape[0] < M:
-            raise TrainingError(f"channel {name}: {X.shape[0]} training rows < {M} "
-                                "pseudo-inputs; record more data or lower --inducing-*")
-        every = max(1, opts.max_iter // 10)
-
-        def cb(it: int, lml: float) -> None:
-            if it % every == 0:
-                progress(name, f"iteration {it:4d}  log likelihood {lml:.2f}")
-
-        gp = SparseGP(num_inducing=M, seed=opts.seed).fit(X, y, max_iter=opts.max_iter,
-                                                          callback=cb)
-        res = gp.optimiser_result
-        info.update(num_inducing=M, log_likelihood=float(gp.log_marginal_likelihood()),
-                    iterations=int(getattr(res, "nit", -1)) if res is not None else -1,
-                    noise_std=float(np.sqrt(gp.noise_variance)),
-                    lengthscales=[float(v) for v in gp.lengthscales])
-        progress(name, f"done: {info['iterations']} iterations, log likelihood "
-                 f"{info['log_likelihood']:.2f}, noise std {info['noise_std']:.4f}")
-        model: Any = gp
-    elif kind == "mlp":
-        model, mlp_info = baselines.MLPChannel.fit(X, y, max_iter=opts.max_iter, seed=opts.seed)
-        info.update(mlp_info)
-        progress(name, f"done: {mlp_info['epochs']} epochs, loss {mlp_info['final_loss']:.4f}"
-                 f", validation R^2 {mlp_info['best_validation_score']:.4f}")
-    else:
-        dim, vel_col, joy_col = baselines.probe_columns(channel, feature_config)
-        if kind == "constant_velocity":
-            model = baselines.ConstantVelocityChannel(dim, vel_col)
-            progress(name, "constant velocity: nothing to fit")
-        else:
-            model = baselines.FirstOrderLagChannel.fit(X, y, dim, vel_col, joy_col)
-            tau = model.time_constant_steps
-            info.update(coef=[model.a, model.b, model.c],
-                        time_constant_steps=tau if np.isfinite(tau) else None)
-            progress(name, f"V_t = {model.a:.4f} V_t-1 + {model.b:.4f} j_t + {model.c:.4f}")
-        mean, _ = model.predict(X)
-        info["train_rmse"] = float(np.sqrt(np.mean((mean - y) ** 2)))
+    try:
+        model, fit_info = kind.fit(channel, X, y, feature_config, opts.budget(),
+                                   lambda msg: progress(name, msg))
+    except ValueError as exc:
+        raise TrainingError(str(exc)) from exc
+    info.update(fit_info)
     info["seconds"] = round(time.perf_counter() - t0, 3)
     return model, info
 
@@ -193,17 +162,15 @@ def train(
     *,
     resample_config: Any = None,
     progress: Progress | None = None,
-) -> Any:
+) -> MotionModel:
     """Fit both channels of a model of kind ``opts.kind`` on the series; return a MotionModel."""
-    from asgp_ros.core import baselines  # noqa: F401  (registers the baseline kinds)
-    from asgp_ros.core.features import FeatureConfig
-    from asgp_ros.core.models import MotionModel
     from asgp_ros.core.resample import ResampleConfig
 
     opts.validate()
     if not series:
         raise TrainingError("no training recordings")
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
+    kind = get_kind(opts.kind)
     fc = FeatureConfig(lags=opts.resolved_lags(), coupled=opts.coupled)
     rc = resample_config if resample_config is not None else ResampleConfig()
     channels = []
@@ -213,7 +180,7 @@ def train(
         X, y = design(series, c, fc)
         rows = max(rows, X.shape[0])
         report(CHANNELS[c], f"{X.shape[0]} rows x {X.shape[1]} features")
-        model, info = _fit_channel(opts.kind, c, X, y, fc, opts, report)
+        model, info = _fit_channel(kind, c, X, y, fc, opts, report)
         channels.append(model)
         infos[CHANNELS[c]] = info
     meta = {

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from asgp_ros.core import baselines
 from asgp_ros.core.baselines import (
     ConstantVelocityChannel,
     FirstOrderLagChannel,
@@ -15,7 +14,14 @@ from asgp_ros.core.baselines import (
 )
 from asgp_ros.core.features import FeatureConfig, build_inputs
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
-from asgp_ros.core.models import MotionModel, registered_kinds
+from asgp_ros.core.models import (
+    BUILTIN_KINDS,
+    FitBudget,
+    MotionModel,
+    get_kind,
+    registered_kinds,
+    trainable_kinds,
+)
 from asgp_ros.core.resample import ResampleConfig
 
 
@@ -28,6 +34,45 @@ def _data(n=400, d=9, seed=0):
 
 def test_registered_kinds():
     assert {"asgp", "mlp", "constant_velocity", "first_order_lag"} <= set(registered_kinds())
+    # each built-in kind declares its name, lags, trainer, storage and label once
+    assert trainable_kinds()[:4] == ("asgp", "mlp", "constant_velocity", "first_order_lag")
+    assert [k.default_lags for k in BUILTIN_KINDS] == [4, 10, 1, 1]  # the paper's s
+    assert [k.label for k in BUILTIN_KINDS] == ["ASGP", "MLP", "Const. velocity",
+                                                "First-order lag"]
+    assert [k.probabilistic for k in BUILTIN_KINDS] == [True, False, False, False]
+    for k in BUILTIN_KINDS:
+        assert get_kind(k.name) is k and k.fit is not None and k.description
+
+
+def test_the_registry_is_one_way(repo_root):
+    """core.models lists the kinds and imports the baselines; the baselines do not import
+    the registry (nothing to import for its side effects)."""
+    import ast
+
+    tree = ast.parse((repo_root / "asgp_ros" / "core" / "baselines.py").read_text())
+    imported = {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    imported |= {a.name for node in ast.walk(tree) if isinstance(node, ast.Import)
+                 for a in node.names}
+    imported |= {f"{node.module}.{a.name}" for node in ast.walk(tree)
+                 if isinstance(node, ast.ImportFrom) for a in node.names}
+    assert not {m for m in imported if m and "models" in m}, imported
+
+
+@pytest.mark.parametrize("kind", ["constant_velocity", "first_order_lag"])
+def test_baseline_trainers_report_their_fit(kind):
+    fc = FeatureConfig(lags=1)
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(50, fc.input_dim))
+    _dim, vel_col, joy_col = probe_columns(0, fc)
+    y = 0.7 * X[:, vel_col] + 0.2 * X[:, joy_col] + 0.01
+    messages: list[str] = []
+    model, info = get_kind(kind).fit(0, X, y, fc, FitBudget(), messages.append)
+    assert len(messages) == 1 and info["train_rmse"] >= 0.0
+    if kind == "first_order_lag":
+        assert info["coef"] == pytest.approx([0.7, 0.2, 0.01])
+        assert info["train_rmse"] == pytest.approx(0.0, abs=1e-12)
+    else:
+        np.testing.assert_array_equal(model.predict(X)[0], X[:, vel_col])
 
 
 @pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
@@ -202,19 +247,18 @@ def test_baseline_kind_refuses_foreign_channels(tmp_path):
     with pytest.raises(TypeError, match="not a MLPChannel"):
         save_model(tmp_path / "x.npz", wrong)
     assert not (tmp_path / "x.npz").exists()
-    assert baselines.BASELINE_CHANNELS["mlp"] is MLPChannel
+    assert get_kind("mlp").name == MLPChannel.kind
 
 
 @pytest.mark.parametrize("kind,lags", [("mlp", 10), ("first_order_lag", 1)])
 def test_baseline_model_files_load_in_a_fresh_process(tmp_path, kind, lags):
-    """A node loads a baseline model without importing the baselines module itself."""
+    """A node loads a baseline model with nothing imported but ``load_model``."""
     import subprocess
     import sys
 
     path = tmp_path / f"{kind}.npz"
     save_model(path, _model(kind, lags))
-    code = ("import sys\nfrom asgp_ros.core.modelfile import load_model\n"
-            "assert 'asgp_ros.core.baselines' not in sys.modules\n"
+    code = ("from asgp_ros.core.modelfile import load_model\n"
             f"print(load_model({str(path)!r}).kind)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

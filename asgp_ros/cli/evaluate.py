@@ -8,6 +8,7 @@ import json
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.core.features import LAGS_RANGE
+from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,9 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("model", metavar="MODEL", help="model file (.npz) from asgp train")
     p.add_argument("bags", nargs="+", metavar="BAG", help="test bags")
     p.add_argument("--horizons", type=cli_number("horizon_s", "s"), nargs="+",
-                   default=[1.0, 1.4, 2.0],
-                   metavar="SECONDS", help="prediction horizons (1.0 1.4 2.0)")
-    p.add_argument("--threshold", type=cli_number("threshold_m", "m"), default=0.10,
+                   default=list(HORIZONS_S), metavar="SECONDS",
+                   help=f"prediction horizons ({' '.join(map(horizon_key, HORIZONS_S))})")
+    p.add_argument("--threshold", type=cli_number("threshold_m", "m"), default=THRESHOLD_M,
                    help="success threshold on the position error in m (%(default)s)")
     p.add_argument("--case-lags", type=integer(*LAGS_RANGE), default=None,
                    help="past samples a test step needs (default the model's s; set it to "
@@ -65,7 +66,6 @@ def format_table(result: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import asgp_ros.core.baselines  # noqa: F401  (registers the baseline model kinds)
     from asgp_ros.cli import CommandError
     from asgp_ros.core.modelfile import ModelFileError, load_model
     from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model

@@ -8,9 +8,15 @@ import sys
 from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.core.features import LAGS_RANGE
+from asgp_ros.core.models import get_kind, trainable_kinds
 from asgp_ros.core.resample import RESAMPLE_RANGES
 
-KINDS = ("asgp", "mlp", "constant_velocity", "first_order_lag")
+
+def _default_lags_help() -> str:
+    """The kinds' default lags for --help: "asgp 4, mlp 10, others 1"."""
+    lags = {name: get_kind(name).default_lags for name in trainable_kinds()}
+    special = [f"{name} {s}" for name, s in lags.items() if s != 1]
+    return ", ".join(special + (["others 1"] if len(special) < len(lags) else []))
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,9 +31,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (.npz)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing model file at --out (nothing else is replaced)")
-    p.add_argument("--model", choices=KINDS, default="asgp", help="model kind (%(default)s)")
+    p.add_argument("--model", choices=trainable_kinds(), default="asgp",
+                   help="model kind (%(default)s)")
     p.add_argument("--lags", type=integer(*LAGS_RANGE), default=None,
-                   help="s, past samples per input (asgp 4, mlp 10, others 1)")
+                   help=f"s, past samples per input ({_default_lags_help()})")
     p.add_argument("--inducing-v", type=cli_integer("inducing"), default=20,
                    help="pseudo-inputs for v (20)")
     p.add_argument("--inducing-w", type=cli_integer("inducing"), default=40,

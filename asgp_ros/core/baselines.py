@@ -16,19 +16,22 @@ serve every kind. All are deterministic: their predictive variance is 0.
 The columns holding V_{t-1} and j_t in a feature row come from ``features.input_layout``
 at training time (so the baselines follow the feature layout, coupled or not) and are
 stored with the model.
+
+``fit_mlp``, ``fit_constant_velocity`` and ``fit_first_order_lag`` train one channel each
+(the ``fit`` of a :class:`~asgp_ros.core.models.ModelKind`). The registry of kinds
+(:mod:`asgp_ros.core.models`) lists these kinds; this module does not import it.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.core.features import CHANNELS, FeatureConfig
-from asgp_ros.core.models import ModelKind, MotionModel, register_kind
+from asgp_ros.core.features import FeatureConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -336,56 +339,49 @@ class MLPChannel:
         )
 
 
-BASELINE_CHANNELS: dict[str, Any] = {
-    "mlp": MLPChannel,
-    "constant_velocity": ConstantVelocityChannel,
-    "first_order_lag": FirstOrderLagChannel,
-}
+# ------------------------------------------------------------------- channel trainers
 
-_DESCRIPTIONS = {
-    "mlp": "the paper's MLP baseline: 3 x 30 ReLU per channel (Adam, batch 100)",
-    "constant_velocity": "constant velocity: V_t = V_{t-1}",
-    "first_order_lag": "first-order lag per channel: V_t = a V_{t-1} + b j_t + c",
-}
+class Budget(Protocol):
+    """The part of :class:`asgp_ros.core.models.FitBudget` the baselines use."""
+
+    max_iter: int
+    seed: int
 
 
-def _make_kind(name: str) -> ModelKind:
-    cls = BASELINE_CHANNELS[name]
-
-    def to_arrays(model: MotionModel) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        arrays: dict[str, np.ndarray] = {}
-        for ch_name, ch in zip(CHANNELS, model.channels, strict=True):
-            if not isinstance(ch, cls):
-                raise TypeError(f"channel {ch_name} of a {name!r} model is a "
-                                f"{type(ch).__name__}, not a {cls.__name__}")
-            for key, value in ch.to_arrays().items():
-                arrays[f"{ch_name}.{key}"] = np.asarray(value)
-        return arrays, {"channel_class": cls.__name__}
-
-    def from_arrays(arrays: Mapping[str, np.ndarray], params: Mapping[str, Any],
-                    features: FeatureConfig) -> tuple[Any, Any]:
-        out = []
-        for ch_name in CHANNELS:
-            prefix = f"{ch_name}."
-            sub = {k[len(prefix):]: np.asarray(v) for k, v in arrays.items()
-                   if k.startswith(prefix)}
-            if not sub:
-                raise ValueError(f"no arrays for channel {ch_name!r}")
-            try:
-                ch = cls.from_arrays(sub)
-            except KeyError as exc:
-                raise ValueError(f"channel {ch_name}: missing array {exc}") from exc
-            if ch.input_dim != features.input_dim:
-                raise ValueError(
-                    f"channel {ch_name}: inputs have {ch.input_dim} columns but "
-                    f"lags={features.lags}, coupled={features.coupled} need "
-                    f"{features.input_dim}")
-            out.append(ch)
-        return out[0], out[1]
-
-    return ModelKind(name=name, to_arrays=to_arrays, from_arrays=from_arrays,
-                     description=_DESCRIPTIONS[name])
+def _train_rmse(model: Any, X: FloatArray, y: FloatArray) -> float:
+    mean, _ = model.predict(X)
+    return float(np.sqrt(np.mean((mean - y) ** 2)))
 
 
-for _name in BASELINE_CHANNELS:
-    register_kind(_make_kind(_name), replace=True)
+def fit_mlp(channel: int, X: FloatArray, y: FloatArray, features: FeatureConfig,
+            budget: Budget, progress: Callable[[str], None]
+            ) -> tuple[MLPChannel, dict[str, Any]]:
+    """The paper's MLP on one channel: at most ``budget.max_iter`` epochs."""
+    model, info = MLPChannel.fit(X, y, max_iter=budget.max_iter, seed=budget.seed)
+    progress(f"done: {info['epochs']} epochs, loss {info['final_loss']:.4f}"
+             f", validation R^2 {info['best_validation_score']:.4f}")
+    return model, info
+
+
+def fit_constant_velocity(channel: int, X: FloatArray, y: FloatArray, features: FeatureConfig,
+                          budget: Budget, progress: Callable[[str], None]
+                          ) -> tuple[ConstantVelocityChannel, dict[str, Any]]:
+    """V_t = V_{t-1} on one channel: nothing to fit, only the column to read."""
+    dim, vel_col, _ = probe_columns(channel, features)
+    model = ConstantVelocityChannel(dim, vel_col)
+    progress("constant velocity: nothing to fit")
+    return model, {"train_rmse": _train_rmse(model, X, y)}
+
+
+def fit_first_order_lag(channel: int, X: FloatArray, y: FloatArray, features: FeatureConfig,
+                        budget: Budget, progress: Callable[[str], None]
+                        ) -> tuple[FirstOrderLagChannel, dict[str, Any]]:
+    """V_t = a V_{t-1} + b j_t + c on one channel, by least squares."""
+    dim, vel_col, joy_col = probe_columns(channel, features)
+    model = FirstOrderLagChannel.fit(X, y, dim, vel_col, joy_col)
+    tau = model.time_constant_steps
+    info: dict[str, Any] = {"coef": [model.a, model.b, model.c],
+                            "time_constant_steps": tau if np.isfinite(tau) else None}
+    progress(f"V_t = {model.a:.4f} V_t-1 + {model.b:.4f} j_t + {model.c:.4f}")
+    info["train_rmse"] = _train_rmse(model, X, y)
+    return model, info

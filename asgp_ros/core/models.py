@@ -1,14 +1,19 @@
-"""Two-channel motion models and the registry of model kinds for the model file.
+"""Two-channel motion models and the registry of model kinds: the one list of the kinds.
 
 A :class:`MotionModel` predicts V_t = (v_t, omega_t) from the autoregressive input rows of
 :mod:`asgp_ros.core.features` with one :class:`ChannelModel` per channel (the paper's f_v
 and f_omega). Any regressor with the two methods of :class:`ChannelModel` can be rolled out
 (:mod:`asgp_ros.core.rollout`); deterministic baselines return zero variance.
 
-The model file (:mod:`asgp_ros.core.modelfile`) stores a model as arrays plus JSON; each
-model *kind* says how its channels become arrays and back (:class:`ModelKind`). ``"asgp"``
-(two :class:`~asgp_ros.core.sparse_gp.SparseGP`) is built in; other kinds register
-themselves with :func:`register_kind`.
+A model *kind* (:class:`ModelKind`) declares, once, everything the package needs to know
+about it: its name, default number of lags, how one channel is trained, how its channels
+become arrays for the model file (:mod:`asgp_ros.core.modelfile`) and back, and its label
+in reports. The kinds that ship with the package are listed in :data:`BUILTIN_KINDS`, at
+the end of this module: the ASGP (two :class:`~asgp_ros.core.sparse_gp.SparseGP`, defined
+here) and the baselines of :mod:`asgp_ros.core.baselines`. The dependency is one-way: this
+module imports the baselines, which know nothing of the registry. Training
+(:mod:`asgp_ros.training`), the ``asgp train`` choices, evaluation and the reproduction
+all read this registry. Other kinds can be added with :func:`register_kind`.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from asgp_ros.core import baselines
 from asgp_ros.core.features import CHANNELS, FeatureConfig, build_inputs
 from asgp_ros.core.resample import ResampleConfig
 
@@ -110,11 +116,35 @@ _KIND_RE = re.compile(r"[a-z][a-z0-9_]{0,31}")
 Channels = tuple[ChannelModel, ChannelModel]
 ToArrays = Callable[[MotionModel], tuple[dict[str, np.ndarray], dict[str, Any]]]
 FromArrays = Callable[[Mapping[str, np.ndarray], Mapping[str, Any], FeatureConfig], Channels]
+#: progress(message) of one channel's training, for a CLI's progress lines.
+ChannelProgress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class FitBudget:
+    """What one training run may spend, whatever the kind.
+
+    Attributes:
+        max_iter: L-BFGS-B iterations (ASGP) or epochs (MLP).
+        inducing: pseudo-inputs M per channel (v, omega) (ASGP).
+        seed: random seed.
+    """
+
+    max_iter: int = 200
+    inducing: tuple[int, int] = (20, 40)
+    seed: int = 0
+
+
+#: fit(channel index, X [N, D], y [N], features, budget, progress) -> (model, info): train
+#: one channel on the design rows of :func:`asgp_ros.core.features.design_matrix`; info is
+#: JSON-able (stored in the model file's meta). Raises ValueError naming the problem.
+FitChannel = Callable[[int, FloatArray, FloatArray, FeatureConfig, FitBudget, ChannelProgress],
+                      tuple[ChannelModel, dict[str, Any]]]
 
 
 @dataclass(frozen=True)
 class ModelKind:
-    """How a model kind is stored.
+    """A model kind: everything the package needs to know about it, declared once.
 
     Attributes:
         name: the kind's identifier (lower case, digits, underscores).
@@ -124,38 +154,41 @@ class ModelKind:
             ValueError (or KeyError for a missing array) naming the problem when the
             arrays do not make a valid model of this kind.
         description: one line for listings.
+        label: the kind's name in reports and plots.
+        default_lags: s, the number of past samples per input row, unless asked otherwise.
+        fit: trains one channel (:data:`FitChannel`); None for a kind that is only loaded.
+        probabilistic: the channels predict a variance worth propagating (else zero:
+            evaluated without uncertainty).
+        colour: the kind's matplotlib colour in report plots.
     """
 
     name: str
     to_arrays: ToArrays
     from_arrays: FromArrays
     description: str = ""
+    label: str = ""
+    default_lags: int = 1
+    fit: FitChannel | None = None
+    probabilistic: bool = False
+    colour: str = "tab:gray"
 
 
 _REGISTRY: dict[str, ModelKind] = {}
 
 
 def register_kind(kind: ModelKind, *, replace: bool = False) -> None:
-    """Make a model kind known to :func:`~asgp_ros.core.modelfile.load_model`."""
+    """Make a model kind known to training and :func:`~asgp_ros.core.modelfile.load_model`."""
     if not _KIND_RE.fullmatch(kind.name):
         raise ValueError(f"model kind must be a short identifier, got {kind.name!r}")
     if kind.name in _REGISTRY and not replace and _REGISTRY[kind.name] is not kind:
         raise ValueError(f"model kind {kind.name!r} is already registered")
+    if kind.default_lags < 1:
+        raise ValueError(f"model kind {kind.name!r}: default_lags must be >= 1")
     _REGISTRY[kind.name] = kind
-
-
-def _import_builtin_kinds() -> None:
-    """Register the kinds that ship with the package (the baselines live in their own module).
-
-    Imported lazily because baselines.py itself registers through this module.
-    """
-    import asgp_ros.core.baselines  # noqa: F401  (registers "mlp", ... on import)
 
 
 def get_kind(name: str) -> ModelKind:
     """The registered kind ``name``; KeyError listing the known kinds otherwise."""
-    if name not in _REGISTRY:
-        _import_builtin_kinds()
     try:
         return _REGISTRY[name]
     except KeyError:
@@ -165,8 +198,13 @@ def get_kind(name: str) -> ModelKind:
 
 
 def registered_kinds() -> list[str]:
-    _import_builtin_kinds()
+    """Names of every registered kind, sorted."""
     return sorted(_REGISTRY)
+
+
+def trainable_kinds() -> tuple[str, ...]:
+    """Names of the kinds that can be trained, in the order they were registered."""
+    return tuple(name for name, kind in _REGISTRY.items() if kind.fit is not None)
 
 
 # ------------------------------------------------------------------- the "asgp" kind
@@ -217,9 +255,101 @@ def _asgp_from_arrays(arrays: Mapping[str, np.ndarray], params: Mapping[str, Any
     return gps[0], gps[1]
 
 
-register_kind(ModelKind(
-    name="asgp",
-    to_arrays=_asgp_to_arrays,
-    from_arrays=_asgp_from_arrays,
-    description="autoregressive sparse GP (FITC), one per channel (Fan et al. 2018)",
-))
+def _asgp_fit(channel: int, X: FloatArray, y: FloatArray, features: FeatureConfig,
+              budget: FitBudget, progress: ChannelProgress
+              ) -> tuple[ChannelModel, dict[str, Any]]:
+    """SPGP / FITC with M pseudo-inputs by L-BFGS-B (Snelson & Ghahramani 2006)."""
+    from asgp_ros.core.sparse_gp import SparseGP
+
+    M = budget.inducing[channel]
+    if X.shape[0] < M:
+        raise ValueError(f"channel {CHANNELS[channel]}: {X.shape[0]} training rows < {M} "
+                         "pseudo-inputs; record more data or lower --inducing-*")
+    every = max(1, budget.max_iter // 10)
+
+    def cb(it: int, lml: float) -> None:
+        if it % every == 0:
+            progress(f"iteration {it:4d}  log likelihood {lml:.2f}")
+
+    gp = SparseGP(num_inducing=M, seed=budget.seed).fit(X, y, max_iter=budget.max_iter,
+                                                        callback=cb)
+    res = gp.optimiser_result
+    info: dict[str, Any] = {
+        "num_inducing": M, "log_likelihood": float(gp.log_marginal_likelihood()),
+        "iterations": int(getattr(res, "nit", -1)) if res is not None else -1,
+        "noise_std": float(np.sqrt(gp.noise_variance)),
+        "lengthscales": [float(v) for v in gp.lengthscales]}
+    progress(f"done: {info['iterations']} iterations, log likelihood "
+             f"{info['log_likelihood']:.2f}, noise std {info['noise_std']:.4f}")
+    return gp, info
+
+
+# ------------------------------------------------------------- the baseline kinds
+
+def _channel_storage(cls: Any) -> tuple[ToArrays, FromArrays]:
+    """Model-file storage of a kind whose channels are instances of ``cls`` (a class with
+    ``to_arrays()``, ``from_arrays(arrays)`` and ``input_dim``), one array prefix each."""
+    name = cls.kind
+
+    def to_arrays(model: MotionModel) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        arrays: dict[str, np.ndarray] = {}
+        for ch_name, ch in zip(CHANNELS, model.channels, strict=True):
+            if not isinstance(ch, cls):
+                raise TypeError(f"channel {ch_name} of a {name!r} model is a "
+                                f"{type(ch).__name__}, not a {cls.__name__}")
+            for key, value in ch.to_arrays().items():
+                arrays[f"{ch_name}.{key}"] = np.asarray(value)
+        return arrays, {"channel_class": cls.__name__}
+
+    def from_arrays(arrays: Mapping[str, np.ndarray], params: Mapping[str, Any],
+                    features: FeatureConfig) -> Channels:
+        out = []
+        for ch_name in CHANNELS:
+            prefix = f"{ch_name}."
+            sub = {k[len(prefix):]: np.asarray(v) for k, v in arrays.items()
+                   if k.startswith(prefix)}
+            if not sub:
+                raise ValueError(f"no arrays for channel {ch_name!r}")
+            try:
+                ch = cls.from_arrays(sub)
+            except KeyError as exc:
+                raise ValueError(f"channel {ch_name}: missing array {exc}") from exc
+            if ch.input_dim != features.input_dim:
+                raise ValueError(
+                    f"channel {ch_name}: inputs have {ch.input_dim} columns but "
+                    f"lags={features.lags}, coupled={features.coupled} need "
+                    f"{features.input_dim}")
+            out.append(ch)
+        return out[0], out[1]
+
+    return to_arrays, from_arrays
+
+
+def _kind(cls: Any, **declared: Any) -> ModelKind:
+    to_arrays, from_arrays = _channel_storage(cls)
+    return ModelKind(name=cls.kind, to_arrays=to_arrays, from_arrays=from_arrays, **declared)
+
+
+# ------------------------------------------------------------------- the kinds, once
+
+#: The kinds that ship with the package, in the order of listings, tables and plots.
+BUILTIN_KINDS: tuple[ModelKind, ...] = (
+    ModelKind(
+        name="asgp", to_arrays=_asgp_to_arrays, from_arrays=_asgp_from_arrays,
+        description="autoregressive sparse GP (FITC), one per channel (Fan et al. 2018)",
+        label="ASGP", default_lags=4, fit=_asgp_fit, probabilistic=True, colour="tab:blue"),
+    _kind(baselines.MLPChannel,
+          description="the paper's MLP baseline: 3 x 30 ReLU per channel (Adam, batch 100)",
+          label="MLP", default_lags=10, fit=baselines.fit_mlp, colour="tab:orange"),
+    _kind(baselines.ConstantVelocityChannel,
+          description="constant velocity: V_t = V_{t-1}",
+          label="Const. velocity", default_lags=1, fit=baselines.fit_constant_velocity,
+          colour="tab:gray"),
+    _kind(baselines.FirstOrderLagChannel,
+          description="first-order lag per channel: V_t = a V_{t-1} + b j_t + c",
+          label="First-order lag", default_lags=1, fit=baselines.fit_first_order_lag,
+          colour="tab:green"),
+)
+
+for _builtin in BUILTIN_KINDS:
+    register_kind(_builtin)
