@@ -40,8 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from asgp_ros.core.models import get_kind
 from asgp_ros.evaluation import ModelEvaluation, TestSeries, evaluate_model, horizon_key
-from asgp_ros.training import DEFAULT_LAGS, Series, TrainOptions
+from asgp_ros.training import Series, TrainOptions
 
 log = logging.getLogger(__name__)
 
@@ -246,7 +247,8 @@ def _run_job(train_name: str, name: str) -> dict[str, Any]:
     t0 = time.perf_counter()
     kind, coupled = MODELS[name]
     opts = TrainOptions(
-        kind=kind, lags=DEFAULT_LAGS[kind], inducing_v=st.inducing_v, inducing_w=st.inducing_w,
+        kind=kind, lags=get_kind(kind).default_lags, inducing_v=st.inducing_v,
+        inducing_w=st.inducing_w,
         max_iter=st.mlp_max_epochs if kind == "mlp" else st.asgp_max_iter, seed=st.seed,
         coupled=coupled)
     lines: list[str] = []
@@ -351,7 +353,7 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
             series=series,
             train_sets={k: [str(p) for p in v] for k, v in train_paths.items()},
             test_sets={k: [str(p) for p in v] for k, v in test_paths.items()},
-            case_lags=max(DEFAULT_LAGS[MODELS[k][0]] for k in KINDS),
+            case_lags=max(get_kind(MODELS[k][0]).default_lags for k in KINDS),
             model_dir=str(tmp / "models"),
         )
         # Longest jobs first so the two workers finish together.
@@ -472,11 +474,11 @@ def _summarise(results: list[dict[str, Any]], st: Settings, train_paths: dict[st
         "quick": st.quick,
         "settings": {
             "horizons_s": list(st.horizons), "threshold_m": st.threshold_m,
-            "asgp": {"lags": DEFAULT_LAGS["asgp"], "inducing_v": st.inducing_v,
+            "asgp": {"lags": get_kind("asgp").default_lags, "inducing_v": st.inducing_v,
                      "inducing_w": st.inducing_w, "max_iter": st.asgp_max_iter},
-            "mlp": {"lags": DEFAULT_LAGS["mlp"], "hidden": [30, 30, 30], "batch": 100,
+            "mlp": {"lags": get_kind("mlp").default_lags, "hidden": [30, 30, 30], "batch": 100,
                     "max_epochs": st.mlp_max_epochs, "early_stopping": "10% validation"},
-            "case_lags": max(DEFAULT_LAGS[MODELS[k][0]] for k in KINDS), "seed": st.seed,
+            "case_lags": max(get_kind(MODELS[k][0]).default_lags for k in KINDS), "seed": st.seed,
             "jobs": st.jobs, "cpus": os.cpu_count(),
         },
         "train_sets": {k: [Path(p).name for p in v] for k, v in train_paths.items()},
