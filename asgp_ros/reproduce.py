@@ -6,9 +6,10 @@ Protocol (Fan et al., ICRA 2018, Sec. V), on a dataset laid out by ``asgp datase
 * train sets: Tile = 6 tile bags, Carpet = 6 carpet bags, Both = 3 tile + 3 carpet;
 * test sets: Tile = the 2 other tile bags, Carpet = the 2 other carpet bags, Hybrid = the
   2 hybrid bags;
-* models: ASGP (s = 4, M = 20 / 40), the paper's MLP (s = 10), two simple baselines
-  (constant velocity, first-order lag), and, beyond the paper, the same ASGP with coupled
-  inputs (both joystick axes and both velocities feed each channel);
+* models: every trainable kind of the registry (:mod:`asgp_ros.core.models`): ASGP
+  (s = 4, M = 20 / 40), the paper's MLP (s = 10), two simple baselines (constant
+  velocity, first-order lag), and, beyond the paper, the same ASGP with coupled inputs
+  (both joystick axes and both velocities feed each channel);
 * horizons 1.0, 1.4, 2.0 s (k = 5, 7, 10 at 5 Hz), success = position error <= 10 cm.
 
 The held-out bags are those the dataset's manifest marks "test" (``asgp dataset``: bags
@@ -31,32 +32,68 @@ import logging
 import math
 import os
 import shlex
-import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, TypeVar
 
 import numpy as np
 
-from asgp_ros.core.models import get_kind
-from asgp_ros.evaluation import ModelEvaluation, TestSeries, evaluate_model, horizon_key
+from asgp_ros.core import metrics
+from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
+from asgp_ros.dataset import LAYOUT, BuiltDataset, manifest_topics
+from asgp_ros.dataset import Progress as DatasetProgress
+from asgp_ros.evaluation import ModelEvaluation, TestSeries, evaluate_model
 from asgp_ros.training import Series, TrainOptions
 
 log = logging.getLogger(__name__)
 
-SURFACES = ("tile", "carpet", "hybrid")
-HORIZONS = (1.0, 1.4, 2.0)
-THRESHOLD_M = 0.10
-#: The models compared: name -> (model kind, coupled features). "asgp_coupled" is not in
-#: the paper: the same ASGP fed both joystick axes and both velocities (features.py).
-MODELS = {"asgp": ("asgp", False), "mlp": ("mlp", False),
-          "constant_velocity": ("constant_velocity", False),
-          "first_order_lag": ("first_order_lag", False), "asgp_coupled": ("asgp", True)}
-KINDS = tuple(MODELS)
-KIND_LABEL = {"asgp": "ASGP", "mlp": "MLP", "constant_velocity": "Const. velocity",
-              "first_order_lag": "First-order lag", "asgp_coupled": "ASGP coupled"}
+SURFACES = tuple(surface for surface, _count in LAYOUT)
+
+
+@dataclass(frozen=True)
+class Compared:
+    """One model of the comparison: a registered kind, with or without coupled features.
+
+    Attributes:
+        name: its key in the tables and results ("asgp", "asgp_coupled", ...).
+        kind: the model kind (:mod:`asgp_ros.core.models`).
+        coupled: both joystick axes and both velocities feed each channel (features.py).
+        colour: plot colour, if not the kind's.
+    """
+
+    name: str
+    kind: str
+    coupled: bool = False
+    colour: str | None = None
+
+    @property
+    def model_kind(self) -> ModelKind:
+        return get_kind(self.kind)
+
+    @property
+    def label(self) -> str:
+        label = self.model_kind.label or self.kind
+        return f"{label} coupled" if self.coupled else label
+
+    @property
+    def plot_colour(self) -> str:
+        return self.colour or self.model_kind.colour
+
+
+def compared_models() -> dict[str, Compared]:
+    """Every trainable kind as the paper runs it, then (not in the paper) the ASGP with
+    coupled inputs; in the order of the tables' rows."""
+    models = [Compared(kind, kind) for kind in trainable_kinds()]
+    models.append(Compared("asgp_coupled", "asgp", coupled=True, colour="tab:purple"))
+    return {m.name: m for m in models}
+
+
+#: The models compared, by name (see :func:`compared_models`).
+MODELS = compared_models()
 TRAIN_SETS = ("Tile", "Carpet", "Both")
 TEST_SETS = ("Tile", "Carpet", "Hybrid")
 TABLE_OF_TEST = {"Tile": "I", "Carpet": "II", "Hybrid": "III"}
@@ -108,7 +145,7 @@ class Settings:
     mlp_max_epochs: int = 200
     seed: int = 0
     jobs: int = 2
-    horizons: tuple[float, ...] = HORIZONS
+    horizons: tuple[float, ...] = HORIZONS_S
     threshold_m: float = THRESHOLD_M
 
     @classmethod
@@ -193,127 +230,203 @@ def read_manifest(data: Path) -> dict[str, Any] | None:
     return manifest
 
 
-def build_quick_dataset(data: Path, scale: float = QUICK_SCALE) -> None:
-    """Simulate a small paper-layout dataset into ``data`` with ``asgp dataset``."""
-    from asgp_ros.cli import main as cli_main
+def build_quick_dataset(data: Path, scale: float = QUICK_SCALE, *,
+                        progress: DatasetProgress | None = None) -> BuiltDataset:
+    """Simulate a small paper-layout dataset into ``data`` (:func:`asgp_ros.dataset.
+    build_dataset`, as ``asgp dataset --out DATA --scale SCALE --jobs 2``)."""
+    from asgp_ros.dataset import DatasetError, build_dataset
+    from asgp_ros.fileio import OutputError
 
     log.info("building a small dataset (scale %s) in %s", scale, data)
-    code = cli_main(["dataset", "--out", str(data), "--scale", str(scale), "--jobs", "2"])
-    if code != 0:
-        raise ReproduceError(f"`asgp dataset --out {data} --scale {scale}` failed ({code})")
+    try:
+        return build_dataset(data, scale=scale, jobs=2, progress=progress)
+    except (DatasetError, OutputError, ValueError) as exc:
+        raise ReproduceError(f"building a dataset in {data} failed: {exc}") from exc
 
 
 # ---------------------------------------------------------------------------- jobs
-_STATE: dict[str, Any] = {}
+@dataclass(frozen=True)
+class JobContext:
+    """The read-only inputs of the training, evaluation and propagation jobs.
+
+    Built once by :func:`run` and passed to every job as its first argument. In a worker
+    pool it reaches each worker once, through the pool's initializer (the pool forks, so
+    the resampled series are shared with the workers, not copied per job).
+
+    Attributes:
+        settings: budgets, horizons, threshold, seed, workers.
+        series: every bag of the dataset, resampled, by path.
+        train_sets, test_sets: bag paths by set name.
+        case_lags: past samples every test case has (the largest s of the models).
+        model_dir: where the model files are written.
+    """
+
+    settings: Settings
+    series: Mapping[str, Series]
+    train_sets: Mapping[str, tuple[str, ...]]
+    test_sets: Mapping[str, tuple[str, ...]]
+    case_lags: int
+    model_dir: Path
 
 
-def _read_one(path: str) -> Series:
+def case_lags() -> int:
+    """Past samples every test case has: the largest default s of the compared models."""
+    return max(m.model_kind.default_lags for m in MODELS.values())
+
+
+def _read_one(topics: Mapping[str, str], path: str) -> Series:
+    """One bag on the grid; ``topics`` by role as in :func:`asgp_ros.dataset.manifest_topics`."""
     from asgp_ros.bags import bag_topics
     from asgp_ros.training import read_series
 
-    kw = dict(_STATE.get("read_kwargs", {}))
-    if kw.get("truth_topic") not in bag_topics(path):
-        kw["truth_topic"] = None  # recorded on a real chair: no ground truth
-    return read_series([path], **kw)[0]
+    truth: str | None = topics["truth"]
+    if truth not in bag_topics(path):
+        truth = None  # recorded on a real chair: no ground truth
+    return read_series([path], joy_topic=topics["joy"], twist_topic=topics["twist"],
+                       truth_topic=truth)[0]
 
 
-def _job(task: tuple[str, str]) -> dict[str, Any]:
-    """Train one (train set, kind) model, save it, evaluate it on every test set."""
-    train_name, kind = task
+def _train_and_evaluate(context: JobContext, task: tuple[str, str]) -> dict[str, Any]:
+    """Train one (train set, model) pair, save it, evaluate it on every test set."""
+    train_name, name = task
     try:
-        from threadpoolctl import threadpool_limits
-
-        limiter: Any = threadpool_limits(1) if _STATE.get("parallel") else None
-    except ImportError:  # pragma: no cover - threadpoolctl comes with scikit-learn
-        limiter = None
-    try:
-        return _run_job(train_name, kind)
+        return _run_job(context, train_name, MODELS[name])
     except ValueError as exc:  # training/evaluation errors; a plain message crosses the pool
-        raise ReproduceError(f"{KIND_LABEL.get(kind, kind)} on the {train_name} train set: "
+        raise ReproduceError(f"{MODELS[name].label} on the {train_name} train set: "
                              f"{exc}") from None
-    finally:
-        if limiter is not None:
-            limiter.unregister()
 
 
-def _run_job(train_name: str, name: str) -> dict[str, Any]:
+def _run_job(context: JobContext, train_name: str, model: Compared) -> dict[str, Any]:
     from asgp_ros.core.modelfile import load_model, save_model
     from asgp_ros.training import train
 
-    st: Settings = _STATE["settings"]
-    series: dict[str, Series] = _STATE["series"]
-    train_sets: dict[str, list[str]] = _STATE["train_sets"]
-    test_sets: dict[str, list[str]] = _STATE["test_sets"]
+    st = context.settings
     t0 = time.perf_counter()
-    kind, coupled = MODELS[name]
+    kind = model.model_kind
     opts = TrainOptions(
-        kind=kind, lags=get_kind(kind).default_lags, inducing_v=st.inducing_v,
+        kind=kind.name, lags=kind.default_lags, inducing_v=st.inducing_v,
         inducing_w=st.inducing_w,
-        max_iter=st.mlp_max_epochs if kind == "mlp" else st.asgp_max_iter, seed=st.seed,
-        coupled=coupled)
+        max_iter=st.mlp_max_epochs if kind.name == "mlp" else st.asgp_max_iter, seed=st.seed,
+        coupled=model.coupled)
     lines: list[str] = []
 
     def progress(channel: str, msg: str) -> None:
         lines.append(f"{channel}: {msg}")
-        log.info("[%s %s %s] %s", train_name, name, channel, msg)
+        log.info("[%s %s %s] %s", train_name, model.name, channel, msg)
 
-    model = train([series[p] for p in train_sets[train_name]], opts,
-                  resample_config=_STATE.get("resample_config"), progress=progress)
-    path = Path(_STATE["model_dir"]) / f"{train_name.lower()}_{name}.npz"
-    save_model(path, model)
-    model = load_model(path)  # evaluate what the file holds
+    trained = train([context.series[p] for p in context.train_sets[train_name]], opts,
+                    progress=progress)
+    path = context.model_dir / f"{train_name.lower()}_{model.name}.npz"
+    save_model(path, trained)
+    loaded = load_model(path)  # evaluate what the file holds
     train_s = time.perf_counter() - t0
     evals = {}
-    for test_name, paths in test_sets.items():
-        tests = [TestSeries(p, series[p].res)
-                 for p in paths]
+    for test_name, paths in context.test_sets.items():
+        tests = [TestSeries(p, context.series[p].res) for p in paths]
         truth = all(t.has_truth for t in tests)
         evals[test_name] = evaluate_model(
-            model, tests, st.horizons, threshold_m=st.threshold_m,
-            case_lags=_STATE["case_lags"], truth=truth, n_examples=3,
-            name=f"{KIND_LABEL[name]} ({train_name})")
-    return {"train": train_name, "kind": name, "model_file": path.name,
+            loaded, tests, st.horizons, threshold_m=st.threshold_m,
+            case_lags=context.case_lags, truth=truth, n_examples=3,
+            name=f"{model.label} ({train_name})")
+    return {"train": train_name, "kind": model.name, "model_file": path.name,
             "train_seconds": round(train_s, 2),
             "eval_seconds": round(time.perf_counter() - t0 - train_s, 2),
-            "meta": model.meta, "log": lines, "evals": evals}
+            "meta": loaded.meta, "log": lines, "evals": evals}
 
 
-def _pool_map(fn: Any, items: Sequence[Any], jobs: int) -> list[Any]:
+C = TypeVar("C")
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+@dataclass(frozen=True)
+class _Worker:
+    """What one pool worker runs: ``fn(context, item)`` for each item it is sent."""
+
+    fn: Callable[[Any, Any], Any]
+    context: Any
+    one_thread: bool
+
+
+#: The worker's job, set once in each pool worker by :func:`_start_worker` (never in the
+#: parent process, never changed afterwards).
+_WORKER: _Worker | None = None
+
+
+def _start_worker(worker: _Worker) -> None:
+    """Pool initializer: quiet exit on signals, BLAS/OpenMP limits, the worker's job."""
+    global _WORKER
+    from asgp_ros.fileio import quiet_worker_exit
+
+    quiet_worker_exit()
+    if worker.one_thread:
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS/OpenMP thread per worker, for the worker's life: the workers share
+        # the cores
+        threadpool_limits(1)
+    _WORKER = worker
+
+
+def _run_in_worker(item: Any) -> Any:
+    if _WORKER is None:  # pragma: no cover - only pool workers call this
+        raise RuntimeError("not a pool worker of reproduce._pool_map")
+    return _WORKER.fn(_WORKER.context, item)
+
+
+def _pool_map(fn: Callable[[C, T], R], context: C, items: Sequence[T], jobs: int, *,
+              one_thread: bool = False) -> list[R]:
+    """``[fn(context, x) for x in items]``, on up to ``jobs`` worker processes.
+
+    The pool forks; ``fn`` and ``context`` reach each worker once, through the pool's
+    initializer; the items and results cross the pool's pipes. A signal or an error stops
+    the workers at once. ``one_thread``: limit each worker to one BLAS/OpenMP thread.
+    """
     if jobs <= 1 or len(items) <= 1:
-        return [fn(x) for x in items]
+        return [fn(context, x) for x in items]
     import multiprocessing
 
-    from asgp_ros.fileio import interruptible_imap, quiet_worker_exit, signals_deferred
+    from asgp_ros.fileio import interruptible_imap, signals_deferred
 
     ctx = multiprocessing.get_context("fork")
-    _STATE["parallel"] = True
-    try:
-        with signals_deferred():  # a signal inside fork's hooks would be lost
-            pool = ctx.Pool(processes=min(jobs, len(items)), initializer=quiet_worker_exit)
-        # Leaving the block on an error or a signal terminates the workers at once.
-        with pool:
-            return list(interruptible_imap(pool, fn, items))
-    finally:
-        _STATE["parallel"] = False
+    with signals_deferred():  # a signal inside fork's hooks would be lost
+        pool = ctx.Pool(processes=min(jobs, len(items)), initializer=_start_worker,
+                        initargs=(_Worker(fn, context, one_thread),))
+    # Leaving the block on an error or a signal terminates the workers at once.
+    with pool:
+        return list(interruptible_imap(pool, _run_in_worker, items))
+
+
+def _schedule(tasks: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """Longest jobs first, so that the workers finish together: the GPs, then by lags."""
+    names = list(MODELS)
+
+    def cost(task: tuple[str, str]) -> tuple[bool, int, int]:
+        m = MODELS[task[1]]
+        return not m.model_kind.probabilistic, -m.model_kind.default_lags, names.index(m.name)
+
+    return sorted(tasks, key=cost)
 
 
 # ---------------------------------------------------------------------------- run
 def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: bool = False,
         jobs: int | None = None, seed: int = 0, command: str | None = None,
-        force: bool = False) -> dict[str, Any]:
+        force: bool = False, dataset_progress: DatasetProgress | None = None,
+        dataset_built: Callable[[BuiltDataset], None] | None = None) -> dict[str, Any]:
     """Run the protocol on the dataset in ``data``; write the report directory ``out``.
 
     ``out`` is checked first (:func:`asgp_ros.fileio.check_output`): it must not be, hold
     or lie inside ``data``, and an existing report directory (one carrying the report's
     marker file) is replaced only with ``force``; anything else there is refused.
     Everything is written into a temporary directory that replaces ``out`` only when
-    complete. With ``quick``, a small dataset is simulated into ``data`` if it has no bags,
-    and training budgets are reduced (stated in the report).
+    complete. With ``quick``, a small dataset is simulated into ``data`` if it has no bags
+    (``dataset_progress`` follows it, ``dataset_built`` is told the result), and training
+    budgets are reduced (stated in the report). ``command`` is the command line quoted in
+    the report.
 
     Returns:
         The results dictionary also written as ``results.json``.
     """
-    import asgp_ros.core.baselines  # noqa: F401  (registers the baseline model kinds)
     from asgp_ros.bags import BagError
     from asgp_ros.fileio import REPORT_DIR, OutputError, atomic_path, check_output, write_marker
 
@@ -325,21 +438,18 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     st = Settings.for_mode(quick, jobs, seed)
     data = Path(data)
     if quick and (not data.is_dir() or not any(discover_safe(data).values())):
-        build_quick_dataset(data)
+        built = build_quick_dataset(data, progress=dataset_progress)
+        if dataset_built is not None:
+            dataset_built(built)
     manifest = read_manifest(data)
     train_paths, test_paths = split(discover(data), manifest)
     t_data = time.perf_counter()
 
     all_paths = sorted({str(p) for lst in (*train_paths.values(), *test_paths.values())
                         for p in lst})
-    _STATE.clear()
-    topics = (manifest or {}).get("topics", {})
-    _STATE.update(settings=st, read_kwargs={
-        "joy_topic": topics.get("joy", "/joy"), "twist_topic": topics.get("twist", "/vo/twist"),
-        "truth_topic": topics.get("truth", "/ground_truth/odom")})
     log.info("reading %d bags", len(all_paths))
     try:
-        read = _pool_map(_read_one, all_paths, st.jobs)
+        read = _pool_map(_read_one, manifest_topics(manifest), all_paths, st.jobs)
     except (BagError, ValueError, OSError, KeyError) as exc:
         raise ReproduceError(f"reading the dataset failed: {exc}") from exc
     series = dict(zip(all_paths, read, strict=True))
@@ -349,21 +459,19 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
         tmp.mkdir(parents=True)
         write_marker(tmp, "reproduce-report")
         (tmp / "models").mkdir()
-        _STATE.update(
-            series=series,
-            train_sets={k: [str(p) for p in v] for k, v in train_paths.items()},
-            test_sets={k: [str(p) for p in v] for k, v in test_paths.items()},
-            case_lags=max(get_kind(MODELS[k][0]).default_lags for k in KINDS),
-            model_dir=str(tmp / "models"),
-        )
-        # Longest jobs first so the two workers finish together.
-        order = {"asgp": 0, "asgp_coupled": 1, "mlp": 2, "first_order_lag": 3,
-                 "constant_velocity": 4}
-        tasks = sorted(((t, k) for t in TRAIN_SETS for k in KINDS), key=lambda x: order[x[1]])
+        context = JobContext(
+            settings=st, series=MappingProxyType(series),
+            train_sets=MappingProxyType({k: tuple(str(p) for p in v)
+                                         for k, v in train_paths.items()}),
+            test_sets=MappingProxyType({k: tuple(str(p) for p in v)
+                                        for k, v in test_paths.items()}),
+            case_lags=case_lags(), model_dir=tmp / "models")
+        tasks = _schedule([(t, m) for t in TRAIN_SETS for m in MODELS])
         log.info("training and evaluating %d models on %d worker(s)", len(tasks), st.jobs)
-        results = _pool_map(_job, tasks, st.jobs)
+        results = _pool_map(_train_and_evaluate, context, tasks, st.jobs, one_thread=True)
         t_models = time.perf_counter()
-        results.sort(key=lambda r: (TRAIN_SETS.index(r["train"]), KINDS.index(r["kind"])))
+        names = list(MODELS)
+        results.sort(key=lambda r: (TRAIN_SETS.index(r["train"]), names.index(r["kind"])))
         timing = {
             "dataset_s": round(t_data - t_start, 1),
             "read_s": round(t_read - t_data, 1),
@@ -374,7 +482,7 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
                                                                    "bag_minutes", "storage")}
         log.info("uncertainty propagation check (linear vs Monte Carlo)")
         summary["calibration"]["propagation_check"] = _pool_map(
-            _propagation_job, list(TEST_SETS), st.jobs)
+            _propagation_job, context, list(TEST_SETS), st.jobs)
         _plots(tmp, results, series)
         timing["report_s"] = round(time.perf_counter() - t_models, 1)
         timing["total_s"] = round(time.perf_counter() - t_start, 1)
@@ -382,7 +490,6 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
         (tmp / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
         (tmp / "tables.json").write_text(json.dumps(summary["tables"], indent=2) + "\n")
         (tmp / "report.md").write_text(_markdown(summary))
-    _STATE.clear()
     return summary
 
 
@@ -393,17 +500,16 @@ def discover_safe(data: Path) -> dict[str, list[Path]]:
         return {}
 
 
-def _propagation_job(test: str) -> dict[str, Any]:
+def _propagation_job(context: JobContext, test: str) -> dict[str, Any]:
     """Coverage of the Both-trained ASGP's 95% ellipses on a random subset of one test set:
     linearised propagation (as in the tables), Monte Carlo (the reference), and
     linearised without the observation noise (latent variance only)."""
-    from asgp_ros.core import metrics
     from asgp_ros.core.modelfile import load_model
     from asgp_ros.core.rollout import rollout
     from asgp_ros.evaluation import reference_path
 
-    st: Settings = _STATE["settings"]
-    model = load_model(Path(_STATE["model_dir"]) / "both_asgp.npz")
+    st = context.settings
+    model = load_model(context.model_dir / "both_asgp.npz")
     n_cases, n_samples = (100, 200) if st.quick else (300, 500)
     rng = np.random.default_rng(st.seed)
     s = model.lags
@@ -411,16 +517,16 @@ def _propagation_job(test: str) -> dict[str, Any]:
                            "mc_samples": n_samples}
     for h in (st.horizons[0], st.horizons[-1]):
         k = metrics.horizon_steps([h], model.rate_hz)[0]
-        pool = [(p, i) for p in _STATE["test_sets"][test]
-                for i in metrics.case_indices(series_of(p).res.segment,
-                                              _STATE["case_lags"], k)]
+        pool = [(p, i) for p in context.test_sets[test]
+                for i in metrics.case_indices(context.series[p].res.segment,
+                                              context.case_lags, k)]
         pick = rng.choice(len(pool), size=min(n_cases, len(pool)), replace=False)
         coverage = {}
         for label, unc, noise in (("linear", "linear", True), ("mc", "mc", True),
                                   ("linear_latent_only", "linear", False)):
             hits = []
             for path in sorted({pool[j][0] for j in pick}):
-                res = series_of(path).res
+                res = context.series[path].res
                 idx = np.array([pool[j][1] for j in pick if pool[j][0] == path])
                 r = rollout(model, metrics.windows(res.joy, idx, -s, s),
                             metrics.windows(res.vel, idx, -s, s),
@@ -429,14 +535,10 @@ def _propagation_job(test: str) -> dict[str, Any]:
                 ref = reference_path(metrics.windows(res.vel, idx, -1, k + 1),
                                      model.dt)[:, -1, :2]
                 d2 = metrics.mahalanobis_sq(r.pose[:, -1, :2] - ref, r.pos_cov[:, -1])
-                hits.append(d2 <= metrics.CHI2_2DOF_95)
+                hits.append(d2 <= CHI2_2DOF_95)
             coverage[label] = float(np.mean(np.concatenate(hits)))
         out[horizon_key(h)] = coverage
     return out
-
-
-def series_of(path: str) -> Series:
-    return _STATE["series"][path]
 
 
 # ---------------------------------------------------------------------------- summary
@@ -478,7 +580,7 @@ def _summarise(results: list[dict[str, Any]], st: Settings, train_paths: dict[st
                      "inducing_w": st.inducing_w, "max_iter": st.asgp_max_iter},
             "mlp": {"lags": get_kind("mlp").default_lags, "hidden": [30, 30, 30], "batch": 100,
                     "max_epochs": st.mlp_max_epochs, "early_stopping": "10% validation"},
-            "case_lags": max(get_kind(MODELS[k][0]).default_lags for k in KINDS), "seed": st.seed,
+            "case_lags": case_lags(), "seed": st.seed,
             "jobs": st.jobs, "cpus": os.cpu_count(),
         },
         "train_sets": {k: [Path(p).name for p in v] for k, v in train_paths.items()},
@@ -570,7 +672,7 @@ MATCHED = {("Tile", "Tile"), ("Carpet", "Carpet"), ("Both", "Tile"), ("Both", "C
 def _calibration(results: list[dict[str, Any]], hk: list[str]) -> dict[str, Any]:
     rows = []
     for r in results:
-        if MODELS[r["kind"]][0] != "asgp":
+        if not MODELS[r["kind"]].model_kind.probabilistic:
             continue
         for te, ev in r["evals"].items():
             rows.append({"model": r["kind"], "train": r["train"], "test": te,
@@ -664,7 +766,7 @@ def _markdown(s: dict[str, Any]) -> str:
                 cells.append(f"{_f(c['success_rate_pct'])} / {c['median_error_cm']:.1f}")
                 cells.append(_f(c["truth_success_rate_pct"]))
                 cells.append(_f(c["paper_success_rate_pct"]))
-            L.append(f"| {row['train']} | {KIND_LABEL[row['model']]} | " + " | ".join(cells)
+            L.append(f"| {row['train']} | {MODELS[row['model']].label} | " + " | ".join(cells)
                      + " |")
         L.append("")
     L.append("## The paper's claims on these data\n")
@@ -675,13 +777,14 @@ def _markdown(s: dict[str, Any]) -> str:
     cal = s["calibration"]
     L.append("## Calibration of the ASGP's 95% position ellipse\n")
     L.append(f"Fraction of test cases whose VO-integrated position lies inside the predicted "
-             f"95% ellipse (Mahalanobis distance^2 <= 5.991); target at {cal['horizon']} s: "
+             f"95% ellipse (Mahalanobis distance^2 <= {CHI2_2DOF_95:.3f}); target at "
+             f"{cal['horizon']} s: "
              f"{100 * cal['target'][0]:.0f}-{100 * cal['target'][1]:.0f}%.\n")
     L.append("| model | train | test | surface covered | " + " | ".join(f"{h} s" for h in hk)
              + " |")
     L.append("|" + "---|" * (4 + len(hk)))
     for row in cal["rows"]:
-        L.append(f"| {KIND_LABEL[row['model']]} | {row['train']} | {row['test']} | "
+        L.append(f"| {MODELS[row['model']].label} | {row['train']} | {row['test']} | "
                  f"{'yes' if row['matched'] else 'no'} | "
                  + " | ".join(
             _f(None if row[h] is None else 100 * row[h], "%") for h in hk) + " |")
@@ -728,15 +831,13 @@ def _markdown(s: dict[str, Any]) -> str:
     L.append("|---|---|---|---|---|---|")
     for mdl in s["models"]:
         rows = mdl["training_data"].get("training_rows", "")
-        L.append(f"| {mdl['train']} | {KIND_LABEL[mdl['kind']]} | models/{mdl['file']} | "
+        L.append(f"| {mdl['train']} | {MODELS[mdl['kind']].label} | models/{mdl['file']} | "
                  f"{rows} | {mdl['train_seconds']:.1f} | {mdl['eval_seconds']:.1f} |")
     L.append("\nAll figures: `results.json`; tables: `tables.json`.\n")
     return "\n".join(L)
 
 
 # ---------------------------------------------------------------------------- plots
-_COLORS = {"asgp": "tab:blue", "mlp": "tab:orange", "constant_velocity": "tab:gray",
-           "first_order_lag": "tab:green", "asgp_coupled": "tab:purple"}
 _STYLES = {"Tile": "-", "Carpet": "--", "Both": ":"}
 
 
@@ -755,8 +856,8 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
         for r in results:
             ev = r["evals"][test]
             ax.plot(hs, [100 * ev.horizons[h].vo.success_rate for h in hk], marker="o",
-                    color=_COLORS[r["kind"]], linestyle=_STYLES[r["train"]],
-                    label=f"{KIND_LABEL[r['kind']]} / {r['train']}")
+                    color=MODELS[r["kind"]].plot_colour, linestyle=_STYLES[r["train"]],
+                    label=f"{MODELS[r['kind']].label} / {r['train']}")
         ax.set_title(f"tested on {test}")
         ax.set_xlabel("horizon (s)")
         ax.grid(alpha=0.3)
@@ -776,8 +877,8 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
                 if r["train"] != "Both":
                     continue
                 err = np.sort(100 * r["evals"][test].horizons[h].errors)
-                ax.plot(err, np.arange(1, err.size + 1) / err.size, color=_COLORS[r["kind"]],
-                        label=KIND_LABEL[r["kind"]])
+                ax.plot(err, np.arange(1, err.size + 1) / err.size,
+                        color=MODELS[r["kind"]].plot_colour, label=MODELS[r["kind"]].label)
             ax.axvline(10.0, color="k", lw=0.8, ls="--")
             ax.set_xscale("log")
             ax.set_xlim(0.01, None)
@@ -809,21 +910,22 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
                 continue
             ref, pred, cov = ex["ref"][j], ex["pred"][j], ex["cov"][j]
             ax.plot(np.r_[0, ref[:, 0]], np.r_[0, ref[:, 1]], "k.-", label="recorded (VO)")
-            ax.plot(np.r_[0, pred[:, 0]], np.r_[0, pred[:, 1]], ".-", color=_COLORS["asgp"],
+            ax.plot(np.r_[0, pred[:, 0]], np.r_[0, pred[:, 1]], ".-",
+                    color=MODELS["asgp"].plot_colour,
                     label="ASGP (95% ellipses)")
             if mlp is not None:
                 res = series[str(ex["series"][j])].res
                 mp, _, _ = rollout_cases(mlp, res, np.array([int(ex["idx"][j])]), len(pred),
                                          uncertainty="none")
                 ax.plot(np.r_[0, mp[0, :, 0]], np.r_[0, mp[0, :, 1]], ".--",
-                        color=_COLORS["mlp"], label="MLP")
+                        color=MODELS["mlp"].plot_colour, label=MODELS["mlp"].label)
             for p, c in zip(pred, cov, strict=True):
                 lam, vec = np.linalg.eigh(0.5 * (c + c.T))
                 lam = np.clip(lam, 0.0, None)
-                w, hgt = 2 * np.sqrt(5.991 * lam[::-1])
+                w, hgt = 2 * np.sqrt(CHI2_2DOF_95 * lam[::-1])
                 ang = math.degrees(math.atan2(vec[1, 1], vec[0, 1]))
                 ax.add_patch(Ellipse(p, w, hgt, angle=ang, fill=False, lw=0.7,
-                                     color=_COLORS["asgp"], alpha=0.7))
+                                     color=MODELS["asgp"].plot_colour, alpha=0.7))
             ax.set_aspect("equal", adjustable="datalim")
             ax.set_title(f"{test}: {ex['t'][j]:.1f} s into the bag, {h} s ahead", fontsize=9)
             ax.set_xlabel("x (m)")
@@ -835,8 +937,3 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
     fig.tight_layout()
     fig.savefig(out / "example_paths.png", dpi=100)
     plt.close(fig)
-
-
-def command_line(argv: Sequence[str] | None = None) -> str:
-    return "asgp " + " ".join(shlex.quote(a) for a in (argv if argv is not None
-                                                         else sys.argv[1:]))

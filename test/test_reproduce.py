@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import ast
 import json
 from pathlib import Path
+from types import MappingProxyType
 
 import pytest
 
+from asgp_ros import reproduce
 from asgp_ros.cli import main
-from asgp_ros.reproduce import ReproduceError, discover, split
+from asgp_ros.core.models import trainable_kinds
+from asgp_ros.reproduce import MODELS, ReproduceError, discover, split
 
 
 def _touch_bags(root: Path, counts: dict[str, int]) -> None:
@@ -101,3 +105,42 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
                  "--jobs", "1", "--force"]) == 0
     assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 1
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+def test_compared_models_come_from_the_registry_of_kinds():
+    assert list(MODELS) == [*trainable_kinds(), "asgp_coupled"]
+    assert [m.label for m in MODELS.values()] == ["ASGP", "MLP", "Const. velocity",
+                                                  "First-order lag", "ASGP coupled"]
+    assert MODELS["asgp_coupled"].kind == "asgp" and MODELS["asgp_coupled"].coupled
+    assert reproduce.case_lags() == 10  # the MLP's s
+
+
+def _scaled(context, x):
+    return context["k"] * x
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_jobs_get_their_inputs_as_arguments(jobs):
+    """The job functions take the run's context as an argument, inline or in a pool (whose
+    workers receive it through the initializer); the module keeps no run state."""
+    context = MappingProxyType({"k": 3})
+    assert reproduce._pool_map(_scaled, context, [1, 2, 3, 4], jobs) == [3, 6, 9, 12]
+    assert reproduce._WORKER is None  # set in pool workers only
+    assert not hasattr(reproduce, "_STATE")
+
+
+def test_the_library_does_not_call_the_command_line(repo_root):
+    """The CLI calls the library, never the other way round."""
+    offenders = []
+    for path in sorted((repo_root / "asgp_ros").rglob("*.py")):
+        if "cli" in path.relative_to(repo_root / "asgp_ros").parts:
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            if any(n == "asgp_ros.cli" or n.startswith("asgp_ros.cli.") for n in names):
+                offenders.append(f"{path.relative_to(repo_root)}:{node.lineno}")
+    assert not offenders, offenders

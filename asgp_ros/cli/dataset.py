@@ -31,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _progress(done: int, total: int, label: str, elapsed: float) -> None:
+def progress_bar(done: int, total: int, label: str, elapsed: float) -> None:
+    """The progress line of a dataset being built, rewritten in place on stderr."""
     width = 30
     filled = int(width * done / total)
     bar = "#" * filled + "." * (width - filled)
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         built = build_dataset(args.out, scale=args.scale, seed=args.seed, jobs=args.jobs,
-                              storage=args.storage, force=args.force, progress=_progress)
+                              storage=args.storage, force=args.force, progress=progress_bar)
     except DatasetOptionError as exc:
         raise CommandError(f"--{exc.option} {exc.problem}") from exc
     except DatasetError as exc:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import shlex
+import sys
+from collections.abc import Sequence
 
 from asgp_ros.cli._argtypes import cli_integer
 
@@ -33,16 +36,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def command_line(argv: Sequence[str] | None = None) -> str:
+    """This command as typed (quoted for a shell), for the report's "Made by" line."""
+    return "asgp " + " ".join(shlex.quote(a) for a in (argv if argv is not None
+                                                         else sys.argv[1:]))
+
+
 def run(args: argparse.Namespace) -> int:
     from asgp_ros.cli import CommandError
-    from asgp_ros.reproduce import ReproduceError, command_line
+    from asgp_ros.cli.dataset import progress_bar
+    from asgp_ros.reproduce import ReproduceError
     from asgp_ros.reproduce import run as reproduce
 
     if args.jobs is not None and args.jobs < 1:
         raise CommandError("--jobs must be >= 1")
     try:
         summary = reproduce(args.data, args.out, quick=args.quick, jobs=args.jobs,
-                            seed=args.seed, command=command_line(), force=args.force)
+                            seed=args.seed, command=command_line(), force=args.force,
+                            dataset_progress=progress_bar,
+                            dataset_built=lambda built: print(built.describe()))
     except ReproduceError as exc:
         raise CommandError(str(exc)) from exc
     for name, tab in summary["tables"].items():
