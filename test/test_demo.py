@@ -274,6 +274,22 @@ def test_silent_components_are_named():
                                             "predicted_path"), 1)) == []
 
 
+def test_report_and_orchestrator_do_not_import_each_other():
+    """What both need (DemoError, evaluate_bag) lies below both, in demo.common."""
+    import ast
+
+    def imports(name: str) -> set[str]:
+        tree = ast.parse((REPO / "asgp_ros" / "demo" / f"{name}.py").read_text())
+        return {node.module for node in ast.walk(tree)
+                if isinstance(node, ast.ImportFrom) and node.module}
+
+    assert "asgp_ros.demo.orchestrator" not in imports("report")
+    assert not {m for m in imports("common") if m.startswith("asgp_ros.demo")}
+    from asgp_ros.demo import common, orchestrator
+
+    assert orchestrator.DemoError is common.DemoError
+
+
 def test_proc_cpu_seconds():
     assert proc_cpu_seconds(os.getpid()) > 0.0
     assert proc_cpu_seconds(2**22 + 12345) is None

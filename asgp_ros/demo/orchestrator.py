@@ -14,21 +14,20 @@ Sequence:
    the run lasts ``minutes`` from then, with a live status line.
 4. **Stop** (also on Ctrl-C or when a node dies): SIGINT to the nodes, deadlines, SIGTERM,
    SIGKILL; the bag is closed and moved into place.
-5. **Report** (:mod:`asgp_ros.demo.report`): ``asgp evaluate --truth`` on the recorded bag,
+5. **Report** (:mod:`asgp_ros.demo.report`): ``asgp evaluate --truth`` on the recorded bag
+   (:func:`asgp_ros.demo.common.evaluate_bag`),
    the figure, the tables, where the time went. The exit code is 0 only when every node
    produced output and the report was written.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
 import resource
 import shutil
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -37,21 +36,20 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from asgp_ros import topics
+from asgp_ros.demo.common import DemoError
+
 log = logging.getLogger(__name__)
 
 Printer = Callable[[str], None]
 
 #: topic -> the component that publishes it (for "silent component" messages)
 PRODUCERS = {
-    "ground_truth/odom": "the simulated hardware (asgp_ros.demo.hardware)",
-    "joy": "serial_bridge_node (or the simulated board behind it)",
-    "vo/twist": "vo_node",
-    "predicted_path": "predictor_node",
+    topics.GROUND_TRUTH: "the simulated hardware (asgp_ros.demo.hardware)",
+    topics.JOY: "serial_bridge_node (or the simulated board behind it)",
+    topics.VO_TWIST: "vo_node",
+    topics.PREDICTED_PATH: "predictor_node",
 }
-
-
-class DemoError(Exception):
-    """The demo cannot run as asked (bad option, missing model...); the message says why."""
 
 
 @dataclass(frozen=True)
@@ -297,8 +295,8 @@ class Status:
 def _status_line(mon: Any, elapsed: float, total: float) -> str:
     from asgp_ros.demo.monitor import format_status
 
-    rates = {"joy": mon.rate("joy"), "img": mon.rate("camera/color/camera_info"),
-             "vo": mon.rate("vo/twist"), "path": mon.rate("predicted_path")}
+    rates = {"joy": mon.rate(topics.JOY), "img": mon.rate(topics.CAMERA_INFO),
+             "vo": mon.rate(topics.VO_TWIST), "path": mon.rate(topics.PREDICTED_PATH)}
     vo_state = "-" if mon.vo_ok is None else ("tracking" if mon.vo_ok else "LOST")
     lat = mon.diag_value("predictor", "last_latency_ms")
     try:
@@ -334,7 +332,6 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
                                               opts.surface, say)
     else:
         model = out / "model.npz"
-    import asgp_ros.core.baselines  # noqa: F401  (registers the baseline model kinds)
     from asgp_ros.core.modelfile import ModelFileError, load_model
 
     try:
@@ -504,20 +501,7 @@ def _drive(opts: DemoOptions, mon: Any, executor: Any, group: Any, stop: _Stop,
 def _waiting_for(mon: Any) -> str:
     """What has not been heard from yet (for start-up messages)."""
     missing = [f"{topic} ({who})" for topic, who in PRODUCERS.items()
-               if mon.counts.get(topic, 0) == 0 and topic != "ground_truth/odom"]
+               if mon.counts.get(topic, 0) == 0 and topic != topics.GROUND_TRUTH]
     text = ("no messages yet on " + ", ".join(missing)) if missing else "all inputs seen"
     hw = next((e.message for name, e in mon.diag.items() if "demo_hardware" in name), None)
     return text + (f"; hardware: {hw}" if hw else "; no diagnostics from the hardware yet")
-
-
-def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
-                 timeout_s: float = 300.0) -> dict[str, Any]:
-    """``asgp evaluate MODEL BAG --truth --json OUT`` in a subprocess; its JSON."""
-    argv = [sys.executable, "-m", "asgp_ros.cli", "evaluate", str(model), str(bag), "--truth",
-            "--json", str(out_json)]
-    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s,
-                          check=False)
-    if proc.returncode != 0:
-        raise DemoError(f"asgp evaluate failed ({proc.returncode}): "
-                        f"{(proc.stderr or proc.stdout).strip()[-2000:]}")
-    return json.loads(out_json.read_text())

@@ -31,7 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from asgp_ros.demo.monitor import HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros import topics
+from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.demo.common import DemoError, evaluate_bag
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +44,7 @@ def offline_cases(bag: Path, model: Any) -> dict[str, set[int]]:
     from asgp_ros.training import read_series
 
     series = read_series([str(bag)], resample_config=model.resample_config,
-                         truth_topic="/ground_truth/odom")
+                         truth_topic=topics.BAG_GROUND_TRUTH)
     rate = float(model.resample_config.rate_hz)
     lags = int(model.feature_config.lags)
     out: dict[str, set[int]] = {}
@@ -68,7 +70,7 @@ def offline_held(bag: Path, model: Any) -> dict[str, dict[str, float]]:
     from asgp_ros.training import read_series
 
     series = read_series([str(bag)], resample_config=model.resample_config,
-                         truth_topic="/ground_truth/odom")
+                         truth_topic=topics.BAG_GROUND_TRUTH)
     rate = float(model.resample_config.rate_hz)
     s = int(model.feature_config.lags)
     out: dict[str, dict[str, float]] = {}
@@ -200,9 +202,10 @@ def markdown(state: Any, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
 
 def latency_rows(monitor: Any) -> list[dict[str, Any]]:
     what = {
-        "joy": "joystick: bridge stamp -> monitor",
-        "vo/twist": "VO: camera frame stamp -> vo/twist at the monitor",
-        "predicted_path": "prediction: t0 (last complete grid step) -> path at the monitor",
+        topics.JOY: "joystick: bridge stamp -> monitor",
+        topics.VO_TWIST: f"VO: camera frame stamp -> {topics.VO_TWIST} at the monitor",
+        topics.PREDICTED_PATH: "prediction: t0 (last complete grid step) -> path at the "
+                               "monitor",
     }
     rows = []
     for topic, text in what.items():
@@ -320,7 +323,6 @@ def figure(path: Path, monitor: Any, room: Any = None) -> None:
 def write_report(out: Path, state: Any, monitor: Any, model: Any, bag: Path,
                  env: dict[str, str], say: Callable[[str], None]) -> dict[str, Path]:
     """Evaluate the run's bag offline and write the report files; returns their paths."""
-    from asgp_ros.demo.orchestrator import DemoError, evaluate_bag
     from asgp_ros.fileio import atomic_write_text
     from asgp_ros.sim.world import room_for_surface
 
@@ -329,8 +331,8 @@ def write_report(out: Path, state: Any, monitor: Any, model: Any, bag: Path,
     evaluation = None
     cases = None
     held = None
-    if bag.exists() and monitor.counts.get("predicted_path", 0) and \
-            monitor.counts.get("vo/twist", 0):
+    if bag.exists() and monitor.counts.get(topics.PREDICTED_PATH, 0) and \
+            monitor.counts.get(topics.VO_TWIST, 0):
         say("evaluating the recorded bag offline: asgp evaluate --truth ...")
         try:
             evaluation = evaluate_bag(Path(state.model_path), bag, out / "evaluate.json", env)

@@ -1,0 +1,27 @@
+"""What the demo's orchestrator and its report both need: the error type and the offline
+evaluation of the recorded bag. Below both (they import it; it imports neither)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+
+class DemoError(Exception):
+    """The demo cannot run as asked (bad option, missing model...); the message says why."""
+
+
+def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
+                 timeout_s: float = 300.0) -> dict[str, Any]:
+    """``asgp evaluate MODEL BAG --truth --json OUT`` in a subprocess; its JSON."""
+    argv = [sys.executable, "-m", "asgp_ros.cli", "evaluate", str(model), str(bag), "--truth",
+            "--json", str(out_json)]
+    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s,
+                          check=False)
+    if proc.returncode != 0:
+        raise DemoError(f"asgp evaluate failed ({proc.returncode}): "
+                        f"{(proc.stderr or proc.stdout).strip()[-2000:]}")
+    return json.loads(out_json.read_text())
