@@ -637,8 +637,9 @@ def signature(target: str, out: Outcome, problems: list[str]) -> str:
         return f"{target}: killed by {signal.Signals(out.signum).name}"
     first = problems[0] if problems else ""
     if "lines on stderr" in first:
+        # the lines' kinds ("INFO asgp_ros.x", "error", ...), not their details
         lines = stderr_lines(out.stderr)
-        shape = " / ".join(_normalise(ln)[:40] for ln in lines[:2])
+        shape = " / ".join(_normalise(ln.split(":", 1)[0])[:30] for ln in lines[:3])
         return f"{target}: several lines on stderr ({shape})"
     return f"{target}: {_normalise(first)[:90]}"
 

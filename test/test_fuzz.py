@@ -16,7 +16,7 @@ runs the long one and lists every finding.
 Not fuzzed, and why: ``replay --loop`` (plays forever by design); values of
 ``--max-iter``, ``simulate --minutes``, ``dataset --scale`` and ``board --duration`` that
 are valid but large (the work the user asked for; invalid and absurd ones are fuzzed);
-``dataset --jobs`` above 3 (a fork per job); ``demo`` and ``replay`` past their argument
+``dataset --jobs`` above 2 (a process per job); ``demo`` and ``replay`` past their argument
 and file checks (``demo`` always gets a model that cannot load, ``replay`` plays at
 1000x); the nodes (their parameters and model_path have their own tests).
 """
