@@ -628,7 +628,7 @@ class VisualOdometry:
         mutual = _mutual_best(ii, jj, sad, o.match_ratio, o.max_descriptor_distance)
         if len(mutual) < o.min_features_for_estimate:
             raise _RejectedError(Status.INSUFFICIENT_INLIERS, f"{len(mutual)} mutual matches",
-                            num_matches=len(mutual))
+                                 num_matches=len(mutual))
         if len(mutual) > o.max_matches:
             mutual = mutual[np.argsort(sad[mutual])[:o.max_matches]]
         mi, mj = ii[mutual], jj[mutual]
@@ -639,7 +639,7 @@ class VisualOdometry:
         nmatch = len(mi)
         if nmatch < o.min_features_for_estimate:
             raise _RejectedError(Status.INSUFFICIENT_INLIERS,
-                            f"{nmatch} refined matches with depth", num_matches=nmatch)
+                                 f"{nmatch} refined matches with depth", num_matches=nmatch)
         lvl = ref.level[mi]
         return _Matches(P=ref.pts[mi], Q=self._backproject(uv_cur, zc), uv_ref=ref.uv[mi],
                         uv_cur=uv_cur, level=lvl,
@@ -655,8 +655,8 @@ class VisualOdometry:
         inl = _max_clique(m.P, m.Q, o.clique_inlier_threshold, o.clique_depth_coefficient)
         if len(inl) < o.min_inliers:
             raise _RejectedError(Status.INSUFFICIENT_INLIERS,
-                            f"{len(inl)} mutually consistent matches of {len(m.P)}",
-                            num_inliers=len(inl), num_matches=len(m.P))
+                                 f"{len(inl)} mutually consistent matches of {len(m.P)}",
+                                 num_inliers=len(inl), num_matches=len(m.P))
         return inl
 
     def _refine(self, m: _Matches, inl: np.ndarray) -> _Refinement:
@@ -676,16 +676,16 @@ class VisualOdometry:
                                                  w[inl])
             if not ok_gn:
                 raise _RejectedError(Status.OPTIMIZATION_FAILURE,
-                                "Gauss-Newton diverged or was singular",
-                                num_inliers=len(inl), num_matches=nmatch)
+                                     "Gauss-Newton diverged or was singular",
+                                     num_inliers=len(inl), num_matches=nmatch)
             if round_ == 3:
                 break
             err_all = self._reprojection_errors(T, P, Q, uv_ref, uv_cur) * w
             keep = np.flatnonzero(err_all < o.outlier_reprojection_threshold)
             if len(keep) < o.min_inliers:
                 raise _RejectedError(Status.INSUFFICIENT_INLIERS,
-                                f"{len(keep)} inliers after reprojection outlier rejection",
-                                num_inliers=len(keep), num_matches=nmatch)
+                                     f"{len(keep)} inliers after reprojection outlier rejection",
+                                     num_inliers=len(keep), num_matches=nmatch)
             if np.array_equal(keep, inl):
                 break
             inl = keep
@@ -694,8 +694,8 @@ class VisualOdometry:
                                                       uv_cur[inl]) * w[inl]))
         if err > o.max_mean_reprojection_error:
             raise _RejectedError(Status.REPROJECTION_ERROR_TOO_HIGH,
-                            f"mean reprojection error {err:.2f} px",
-                            num_inliers=len(inl), num_matches=nmatch, error=err)
+                                 f"mean reprojection error {err:.2f} px",
+                                 num_inliers=len(inl), num_matches=nmatch, error=err)
         return _Refinement(T=T, inliers=inl, H=H, cost=r2, error=err)
 
     def _covariance(self, fit: _Refinement, nmatch: int) -> _Covariance:
@@ -715,18 +715,18 @@ class VisualOdometry:
             cov = sigma2 * np.linalg.inv(fit.H)  # 6x6 SPD: an explicit inverse is fine here
         except np.linalg.LinAlgError:
             raise _RejectedError(Status.OPTIMIZATION_FAILURE, "singular information matrix",
-                            num_inliers=ninl, num_matches=nmatch, error=err) from None
+                                 num_inliers=ninl, num_matches=nmatch, error=err) from None
         if not np.all(np.isfinite(cov)):
             raise _RejectedError(Status.OPTIMIZATION_FAILURE, "non-finite covariance",
-                            num_inliers=ninl, num_matches=nmatch, error=err)
+                                 num_inliers=ninl, num_matches=nmatch, error=err)
         cov = 0.5 * (cov + cov.T)
         t_std = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3])[-1]), 0.0))
         if t_std > o.max_translation_std:
             # inliers bunched on one small object or all far away: the fit is ill-posed
             raise _RejectedError(Status.INSUFFICIENT_INLIERS,
-                            f"{ninl} inliers do not constrain the motion "
-                            f"(translation std {1e3 * t_std:.1f} mm)",
-                            num_inliers=ninl, num_matches=nmatch, error=err)
+                                 f"{ninl} inliers do not constrain the motion "
+                                 f"(translation std {1e3 * t_std:.1f} mm)",
+                                 num_inliers=ninl, num_matches=nmatch, error=err)
         return _Covariance(covariance=cov, sigma2=sigma2, dof=dof, translation_std=t_std)
 
     def _reprojection_errors(self, T, P, Q, uv_ref, uv_cur) -> np.ndarray:
