@@ -266,7 +266,7 @@ def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray
 
 
 def _topics_listing(reader: Any) -> str:
-    items = sorted({(c.topic, c.msgtype) for c in reader.connections})
+    items = sorted({(str(c.topic), str(c.msgtype)) for c in reader.connections})
     if not items:
         return "(no topics)"
     return ", ".join(f"{t} [{m}]" for t, m in items)

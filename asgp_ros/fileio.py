@@ -117,6 +117,11 @@ def quiet_worker_exit() -> None:
 
     for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
         signal.signal(sig, handler)
+    # A worker is forked inside the parent's signals_deferred() block, with the parent's
+    # handler: a stop signal that arrived before this initialiser was only recorded.
+    _deferring[0] = 0
+    if _received:
+        handler(_received[-1], None)
 
 
 def interruptible_imap(pool: Any, fn: Callable[[Any], Any], items: Iterable[Any]

@@ -298,6 +298,9 @@ class BagReplayer:
     def _select_topics(self) -> None:
         by_topic: dict[str, list[Any]] = {}
         for conn in self.reader.connections:
+            if not isinstance(conn.topic, str) or not conn.topic:
+                raise ReplayError(f"{self.path}: a connection has no valid topic name "
+                                  f"({str(conn.topic)[:80]!r})")
             by_topic.setdefault(conn.topic, []).append(conn)
         wanted = set(self.config.topics)
         remap = dict(self.config.remap)

@@ -62,9 +62,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a usage error (printed, exit 2)
         return exc.code if isinstance(exc.code, int) else 2
+    # Progress and log records go to stdout: stderr carries nothing but the one-line error
+    # of a failed command (or "interrupted"), so that scripts can rely on it.
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
+        handlers=[logging.StreamHandler(sys.stdout)],
     )
     if threading.current_thread() is threading.main_thread():
         raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
