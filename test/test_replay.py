@@ -289,6 +289,8 @@ def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
             executor.spin_once(timeout_sec=0.01)
         _, err = proc.communicate(timeout=10)
         assert proc.returncode == 0, err
+        # rcl is not handed asgp's own command line (it took FROM:=TO as a remap of its own)
+        assert err == "", err
         # 0.5 s into the bag: the joystick messages from i = 10 on, on the new name
         assert [round(m.axes[0], 4) for m in got] == [round(0.1 * i, 4)
                                                      for i in range(10, N_MSGS)]

@@ -72,7 +72,9 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
-    rclpy.init(args=None)  # its handlers turn SIGINT/SIGTERM into a shutdown the player polls
+    # args=[]: not sys.argv, whose asgp options (e.g. --remap FROM:=TO) rcl would take as its
+    # own. Its handlers turn SIGINT/SIGTERM into a shutdown the player polls.
+    rclpy.init(args=[])
     node = None
     try:
         node = rclpy.create_node("asgp_replay")

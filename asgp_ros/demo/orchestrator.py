@@ -425,7 +425,7 @@ def _start_monitor(domain: int, bag_tmp: Path):
     if bag_tmp.exists():
         shutil.rmtree(bag_tmp)
     context = rclpy.context.Context()
-    rclpy.init(context=context, domain_id=domain,
+    rclpy.init(args=[], context=context, domain_id=domain,
                signal_handler_options=SignalHandlerOptions.NO)
     recorder = BagRecorder(bag_tmp)
     node = MonitorNode(recorder=recorder, context=context)
