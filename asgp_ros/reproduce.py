@@ -216,18 +216,52 @@ def split(bags: dict[str, list[Path]], manifest: dict[str, Any] | None = None
     return train, test
 
 
+MAX_MANIFEST_BYTES = 16 * 1024 * 1024
+"""A dataset manifest lists a few dozen bags: a larger file is not one."""
+
+
 def read_manifest(data: Path) -> dict[str, Any] | None:
-    """DIR/manifest.json of ``asgp dataset``, or None when absent."""
+    """DIR/manifest.json of ``asgp dataset``, or None when absent.
+
+    The file must be a regular file of at most 16 MiB (a FIFO, a device or a directory is
+    refused without opening it), JSON of bounded nesting, and laid out as ``asgp dataset``
+    writes it: an object whose "bags" is a list of objects with a string "path" (and an
+    optional string "split"), and whose optional "topics" maps roles to topic names.
+    """
+    from asgp_ros.core.modelfile import loads_bounded, open_regular_file
+
     path = Path(data) / "manifest.json"
-    if not path.exists():
+    if not os.path.lexists(path):
         return None
     try:
-        manifest = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ReproduceError(f"{path}: not a readable JSON manifest: {exc}") from exc
-    if not isinstance(manifest, dict) or not isinstance(manifest.get("bags", []), list):
-        raise ReproduceError(f"{path}: unexpected manifest layout")
+        with open_regular_file(path, MAX_MANIFEST_BYTES) as fh:
+            text = fh.read().decode("utf-8")
+        manifest = loads_bounded(text, max_chars=MAX_MANIFEST_BYTES)
+    except (OSError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        reason = getattr(exc, "strerror", None) or exc
+        raise ReproduceError(f"{path}: not a readable JSON manifest: {reason}") from None
+    problem = _manifest_problem(manifest)
+    if problem:
+        raise ReproduceError(f"{path}: unexpected manifest layout: {problem}")
     return manifest
+
+
+def _manifest_problem(manifest: Any) -> str | None:
+    if not isinstance(manifest, dict):
+        return "not a JSON object"
+    bags = manifest.get("bags", [])
+    if not isinstance(bags, list):
+        return '"bags" is not a list'
+    for i, b in enumerate(bags):
+        if not isinstance(b, dict) or not isinstance(b.get("path"), str):
+            return f'bag {i} is not an object with a "path" string'
+        if not isinstance(b.get("split", ""), str):
+            return f'bag {i}: "split" is not a string'
+    topics = manifest.get("topics", {})
+    if not isinstance(topics, dict) or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in topics.items()):
+        return '"topics" does not map roles to topic names'
+    return None
 
 
 def build_quick_dataset(data: Path, scale: float = QUICK_SCALE, *,

@@ -52,7 +52,7 @@ def test_dataset_layout_manifest_and_resume(repo_root, tmp_path):
     r = _asgp(repo_root, "dataset", "--out", str(out), "--scale", "0.006", "--seed", "2",
               "--jobs", "2")
     assert r.returncode == 0, r.stderr
-    assert "18/18" in r.stderr  # progress bar
+    assert "18/18" in r.stdout and r.stderr == ""  # progress bar
     counts = {s: sorted(p.name for p in (out / s).iterdir()) for s in ("tile", "carpet",
                                                                       "hybrid")}
     assert counts["tile"] == [f"tile_{k:02d}" for k in range(1, 9)]

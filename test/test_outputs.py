@@ -329,8 +329,8 @@ def test_signal_during_dataset_removes_temporaries(tmp_path, sig):
 def test_sigterm_during_train_leaves_nothing(work, tmp_path):
     proc = _start(["train", "--model", "asgp", "--max-iter", "100000", str(work["bag"]),
                    "--out", str(tmp_path / "m.npz")], tmp_path)
-    assert proc.stderr is not None
-    line = proc.stderr.readline()  # the first progress line: training has started
+    assert proc.stdout is not None
+    line = proc.stdout.readline()  # the first progress line: training has started
     assert "[asgp" in line, line
     _stop_and_check(proc, signal.SIGTERM, tmp_path)
     assert list(tmp_path.iterdir()) == []

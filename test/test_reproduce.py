@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import ast
 import json
+import os
 from pathlib import Path
 from types import MappingProxyType
 
@@ -144,3 +145,36 @@ def test_the_library_does_not_call_the_command_line(repo_root):
             if any(n == "asgp_ros.cli" or n.startswith("asgp_ros.cli.") for n in names):
                 offenders.append(f"{path.relative_to(repo_root)}:{node.lineno}")
     assert not offenders, offenders
+
+
+def test_bad_manifests_are_refused_without_blocking_or_recursing(tmp_path):
+    from asgp_ros.reproduce import read_manifest
+
+    cases = {
+        "nested": "[" * 5000 + "]" * 5000,
+        "bags_not_objects": '{"bags": [1, 2]}',
+        "topics_a_list": '{"bags": [], "topics": ["/joy"]}',
+        "split_not_text": '{"bags": [{"path": "tile/tile_01", "split": 7}]}',
+        "not_json": "{",
+        "not_utf8": b"\xff\xfe{}",
+    }
+    for name, content in cases.items():
+        d = tmp_path / name
+        d.mkdir()
+        m = d / "manifest.json"
+        if isinstance(content, bytes):
+            m.write_bytes(content)
+        else:
+            m.write_text(content)
+        with pytest.raises(ReproduceError, match="manifest"):
+            read_manifest(d)
+    fifo = tmp_path / "fifo"
+    fifo.mkdir()
+    os.mkfifo(fifo / "manifest.json")
+    with pytest.raises(ReproduceError, match="FIFO"):
+        read_manifest(fifo)  # refused by stat: never opened, never blocks
+    loop = tmp_path / "loop"
+    loop.mkdir()
+    (loop / "manifest.json").symlink_to(loop / "manifest.json")
+    with pytest.raises(ReproduceError):
+        read_manifest(loop)

@@ -92,7 +92,7 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     rc = main(["train", "--model", "asgp", bags["train"], "--out", str(model),
                "--max-iter", "20", "--inducing-v", "8", "--inducing-w", "8"])
     assert rc == 0
-    err = capsys.readouterr().err
+    err = capsys.readouterr().out  # progress goes to stdout
     assert "[asgp v] iteration" in err and "log likelihood" in err and "[asgp omega]" in err
     out_json = tmp_path / "scores.json"
     rc = main(["evaluate", str(model), bags["test"], "--json", str(out_json), "--truth"])

@@ -32,14 +32,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def progress_bar(done: int, total: int, label: str, elapsed: float) -> None:
-    """The progress line of a dataset being built, rewritten in place on stderr."""
+    """The progress line of a dataset being built, rewritten in place on stdout (stderr
+    carries only a failed command's error line)."""
     width = 30
     filled = int(width * done / total)
     bar = "#" * filled + "." * (width - filled)
-    sys.stderr.write(f"\r[{bar}] {done}/{total} {label:<18} {elapsed:6.1f} s")
+    sys.stdout.write(f"\r[{bar}] {done}/{total} {label:<18} {elapsed:6.1f} s")
     if done == total:
-        sys.stderr.write("\n")
-    sys.stderr.flush()
+        sys.stdout.write("\n")
+    sys.stdout.flush()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     except DatasetOptionError as exc:
         raise CommandError(f"--{exc.option} {exc.problem}") from exc
     except DatasetError as exc:
-        sys.stderr.write("\n")  # end the progress line
+        sys.stdout.write("\n")  # end the progress line
         raise CommandError(str(exc)) from exc
     print(built.describe())
     return 0

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
@@ -25,7 +24,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="train a motion predictor on bags and save the model file",
         description="Resample the bags to the model grid (5 Hz), build the autoregressive "
                     "features and fit one regressor per channel (v, omega). Progress goes "
-                    "to stderr.",
+                    "to stdout; stderr carries only an error.",
     )
     p.add_argument("bags", nargs="+", metavar="BAG", help="training bags (ROS 1 or ROS 2)")
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (.npz)")
@@ -70,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     series = read_series_or_fail(args.bags, args, resample_config=rc)
 
     def progress(channel: str, message: str) -> None:
-        print(f"[{args.model} {channel}] {message}", file=sys.stderr, flush=True)
+        print(f"[{args.model} {channel}] {message}", flush=True)
 
     try:
         model = train(series, opts, resample_config=rc, progress=progress)
