@@ -36,21 +36,6 @@ KIND_NAMES = {k.name for k in BUILTIN_KINDS}
 #: constant -> {module (relative to asgp_ros/): the one definition it must use instead}.
 #: These modules belong to other work in progress; remove an entry once it is switched.
 PENDING: dict[str, dict[str, str]] = {
-    "chi-square 2 dof 95%": {
-        "core/online.py": "from asgp_ros.core.metrics import CHI2_2DOF_95",
-    },
-    "horizons": {
-        "demo/monitor.py": "from asgp_ros.core.metrics import HORIZONS_S",
-    },
-    "success threshold": {
-        "demo/monitor.py": "from asgp_ros.core.metrics import THRESHOLD_M",
-    },
-    "horizon_key": {
-        "demo/monitor.py": "from asgp_ros.core.metrics import horizon_key",
-    },
-    "channel names": {
-        "core/rollout.py": "from asgp_ros.core.features import CHANNELS",
-    },
     "quaternion <-> yaw": {
         "bags.py": "asgp_ros.core.quaternion.quaternion_to_yaw / yaw_to_quaternion",
         "nodes/conversions.py": "asgp_ros.core.quaternion (keep the names as re-exports)",

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import resample
 from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
@@ -63,8 +64,6 @@ from asgp_ros.core.streams import (
 )
 
 FloatArray = NDArray[np.float64]
-
-CHI2_2DOF_95 = -2.0 * math.log(1.0 - 0.95)  # 5.991: chi-square quantile, 2 dof, p = 0.95
 
 # Reasons why no prediction is available (stable codes for diagnostics and tests).
 OK = "ok"

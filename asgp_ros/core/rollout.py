@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from asgp_ros.core import posterior
-from asgp_ros.core.features import build_inputs, input_layout
+from asgp_ros.core.features import CHANNELS, build_inputs, input_layout
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.unicycle import integrate_path, sensitivity_time_major
@@ -157,7 +157,7 @@ def _checked(name: str, mean: FloatArray, var: FloatArray) -> None:
     raise ValueError(f"channel {name} predicted a negative variance")
 
 
-_NAMES = ("v", "omega")
+_NAMES = CHANNELS
 
 
 class _Workspace(threading.local):

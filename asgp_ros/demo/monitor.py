@@ -20,16 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.core.metrics import relative_displacement
+from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key, relative_displacement
 
 FloatArray = NDArray[np.float64]
-
-HORIZONS_S = (1.0, 1.4, 2.0)
-"""The paper's horizons (k = 5, 7, 10 at 5 Hz)."""
-
-THRESHOLD_M = 0.10
-"""The paper's success threshold on the position error at the horizon."""
-
 
 class RateMeter:
     """Arrivals per second over a sliding window (monotonic seconds)."""
@@ -145,12 +138,6 @@ class PathRecord:
     arrival: float
     ellipses: FloatArray | None = None
     errors: dict[str, float] = field(default_factory=dict)
-
-
-def horizon_key(h: float) -> str:
-    """1.0 -> "1.0", 1.4 -> "1.4" (as ``asgp evaluate``'s JSON)."""
-    s = f"{h:.3f}".rstrip("0")
-    return s + "0" if s.endswith(".") else s
 
 
 class OnlineScore:
