@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import re
 import stat
@@ -48,8 +47,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
+from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 from asgp_ros.fileio import atomic_path
+from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 if TYPE_CHECKING:
     from asgp_ros.sim.simulate import Recording
@@ -58,9 +59,6 @@ log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
 
-JOY_TOPIC = "/joy"
-TWIST_TOPIC = "/vo/twist"
-TRUTH_TOPIC = "/ground_truth/odom"
 STORAGES = ("mcap", "sqlite3", "ros1")
 CUSTOM_DATA_KEY = "asgp_ros.simulation"
 
@@ -138,18 +136,6 @@ def parse_joy_axes(spec: str) -> JoyAxes:
         return JoyAxes(forward=f, turn=t, forward_sign=fs, turn_sign=ts)
     except ValueError as exc:
         raise ValueError(f"--joy-axes {spec!r}: {exc}") from None
-
-
-def add_bag_arguments(parser: Any) -> None:
-    """Add ``--joy-topic``, ``--twist-topic``, ``--joy-axes`` to an argparse parser."""
-    parser.add_argument("--joy-topic", default=JOY_TOPIC,
-                        help=f"sensor_msgs/Joy topic (default {JOY_TOPIC})")
-    parser.add_argument("--twist-topic", default=TWIST_TOPIC,
-                        help="velocity topic: TwistStamped, TwistWithCovarianceStamped, "
-                             f"Twist or Odometry (default {TWIST_TOPIC})")
-    parser.add_argument("--joy-axes", default="0,1", type=parse_joy_axes, metavar="FWD,TURN",
-                        help="Joy.axes indices of forward and turn deflection, '-' flips a "
-                             "sign: '0,1' (default), '1,-0', ...")
 
 
 # ----------------------------------------------------------------------------- reading
@@ -305,15 +291,10 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple]
     return bag_ns, rows
 
 
-def _yaw(q: Any) -> float:
-    # REP-103 quaternion (x, y, z, w) -> yaw about z.
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-
-
 def read_streams(
     path: str | os.PathLike[str],
-    joy_topic: str = JOY_TOPIC,
-    twist_topic: str = TWIST_TOPIC,
+    joy_topic: str = BAG_JOY,
+    twist_topic: str = BAG_VO_TWIST,
     truth_topic: str | None = None,
     joy_axes: JoyAxes | str | None = None,
     max_stamp_skew: float = 10.0,
@@ -380,8 +361,9 @@ def read_streams(
         def truth_row(msg: Any, _t: str) -> tuple:
             p = msg.pose.pose
             tw = msg.twist.twist
-            return (_stamp_ns(msg), p.position.x, p.position.y, _yaw(p.orientation),
-                    tw.linear.x, tw.angular.z)
+            q = p.orientation
+            return (_stamp_ns(msg), p.position.x, p.position.y,
+                    float(quaternion_to_yaw(q.x, q.y, q.z, q.w)), tw.linear.x, tw.angular.z)
 
         jb, jr = _collect(reader, joy_conns, joy_row, source)
         vb, vr = _collect(reader, tw_conns, twist_row, source)
@@ -557,9 +539,9 @@ def _serialised(rec: Recording, store: Any, ros1: bool, truth: bool
         data = _fill(template, offsets, values, n)
         out.extend(zip(_to_ns(bag_t, rec.epoch_ns).tolist(), [topic] * n, data, strict=True))
 
-    add(JOY_TOPIC, make_joy, {"a0": "f4", "a1": "f4"}, rec.joy_t, rec.joy_bag_t,
+    add(BAG_JOY, make_joy, {"a0": "f4", "a1": "f4"}, rec.joy_t, rec.joy_bag_t,
         {"a0": rec.joy[:, 0], "a1": rec.joy[:, 1]})
-    add(TWIST_TOPIC, make_twist, {"v": "f8", "w": "f8"}, rec.vo_t, rec.vo_bag_t,
+    add(BAG_VO_TWIST, make_twist, {"v": "f8", "w": "f8"}, rec.vo_t, rec.vo_bag_t,
         {"v": rec.vo[:, 0], "w": rec.vo[:, 1]})
     if truth:
         from asgp_ros.sim.simulate import TRUTH_RATE_HZ
@@ -567,17 +549,18 @@ def _serialised(rec: Recording, store: Any, ros1: bool, truth: bool
         period = float(rec.truth_t[1] - rec.truth_t[0]) if rec.truth_t.size > 1 else 1.0
         step = max(1, round(1.0 / (TRUTH_RATE_HZ * period)))
         tt, st = rec.truth_t[::step], rec.truth[::step]
-        add(TRUTH_TOPIC, make_odom,
+        _qx, _qy, qz, qw = yaw_to_quaternion(st[:, 2])
+        add(BAG_GROUND_TRUTH, make_odom,
             {k: "f8" for k in ("x", "y", "qz", "qw", "v", "w")}, tt, tt,
-            {"x": st[:, 0], "y": st[:, 1], "qz": np.sin(0.5 * st[:, 2]),
-             "qw": np.cos(0.5 * st[:, 2]), "v": st[:, 3], "w": st[:, 4]})
+            {"x": st[:, 0], "y": st[:, 1], "qz": qz, "qw": qw, "v": st[:, 3],
+             "w": st[:, 4]})
     return out
 
 
 _TOPIC_TYPES = {
-    JOY_TOPIC: "sensor_msgs/msg/Joy",
-    TWIST_TOPIC: "geometry_msgs/msg/TwistStamped",
-    TRUTH_TOPIC: "nav_msgs/msg/Odometry",
+    BAG_JOY: "sensor_msgs/msg/Joy",
+    BAG_VO_TWIST: "geometry_msgs/msg/TwistStamped",
+    BAG_GROUND_TRUTH: "nav_msgs/msg/Odometry",
 }
 
 
@@ -622,7 +605,7 @@ def write_bag(
 
                 with Writer1(tmp) as w1:
                     conns = {t: w1.add_connection(t, m, typestore=store)
-                             for t, m in _TOPIC_TYPES.items() if truth or t != TRUTH_TOPIC}
+                             for t, m in _TOPIC_TYPES.items() if truth or t != BAG_GROUND_TRUTH}
                     for i in order:
                         ts, topic, data = records[i]
                         w1.write(conns[topic], ts, data)
@@ -634,7 +617,7 @@ def write_bag(
                     w2.set_custom_data(CUSTOM_DATA_KEY,
                                        json.dumps(recording.meta, sort_keys=True))
                     conns = {t: w2.add_connection(t, m, typestore=store)
-                             for t, m in _TOPIC_TYPES.items() if truth or t != TRUTH_TOPIC}
+                             for t, m in _TOPIC_TYPES.items() if truth or t != BAG_GROUND_TRUTH}
                     for i in order:
                         ts, topic, data = records[i]
                         w2.write(conns[topic], ts, data)

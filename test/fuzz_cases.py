@@ -1709,7 +1709,6 @@ def special_case_argv(slot: str) -> tuple[list[str], str]:
 # ----------------------------------------------------------------------------- library calls
 def call_load_model(path: str) -> dict[str, Any]:
     """load_model: a model, or ModelFileError (the documented failure)."""
-    import asgp_ros.core.baselines  # noqa: F401  (registers the baseline kinds)
     from asgp_ros.core.modelfile import ModelFileError, load_model
 
     try:

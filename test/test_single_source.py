@@ -37,11 +37,9 @@ KIND_NAMES = {k.name for k in BUILTIN_KINDS}
 #: These modules belong to other work in progress; remove an entry once it is switched.
 PENDING: dict[str, dict[str, str]] = {
     "quaternion <-> yaw": {
-        "bags.py": "asgp_ros.core.quaternion.quaternion_to_yaw / yaw_to_quaternion",
         "nodes/conversions.py": "asgp_ros.core.quaternion (keep the names as re-exports)",
     },
     "topic names": {
-        "bags.py": "asgp_ros.topics.BAG_JOY, BAG_VO_TWIST, BAG_GROUND_TRUTH",
         "vo/params.py": "asgp_ros.topics.CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO",
         "nodes/predictor_node.py": "asgp_ros.topics (JOY, VO_TWIST, JOY_PLAN, ...)",
         "nodes/serial_bridge_node.py": "asgp_ros.topics (JOY, JOY_OVERRIDE, DIAGNOSTICS)",
