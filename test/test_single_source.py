@@ -41,11 +41,6 @@ PENDING: dict[str, dict[str, str]] = {
     },
     "topic names": {
         "vo/params.py": "asgp_ros.topics.CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO",
-        "nodes/predictor_node.py": "asgp_ros.topics (JOY, VO_TWIST, JOY_PLAN, ...)",
-        "nodes/serial_bridge_node.py": "asgp_ros.topics (JOY, JOY_OVERRIDE, DIAGNOSTICS)",
-        "nodes/vo_node.py": "asgp_ros.topics (VO_TWIST, VO_ODOM, DIAGNOSTICS)",
-        "demo/hardware.py": "asgp_ros.topics (CAMERA_*, GROUND_TRUTH, JOY_PLAN, JOY, ...)",
-        "demo/monitor_node.py": "asgp_ros.topics (every subscribed topic)",
     },
 }
 

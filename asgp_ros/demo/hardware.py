@@ -46,6 +46,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, Joy
 from std_msgs.msg import Float32MultiArray
 
+from asgp_ros import topics
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snapshot, look_ahead
 from asgp_ros.nodes import conversions as conv
 
@@ -169,13 +170,13 @@ class HardwareNode(Node):
 
         sensor = qos_profile_sensor_data
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.color_pub = self.create_publisher(Image, "camera/color/image_raw", sensor)
-        self.depth_pub = self.create_publisher(Image, "camera/depth/image_raw", sensor)
-        self.info_pub = self.create_publisher(CameraInfo, "camera/color/camera_info", sensor)
-        self.truth_pub = self.create_publisher(Odometry, "ground_truth/odom", reliable)
-        self.plan_pub = self.create_publisher(Float32MultiArray, "joy_plan", reliable)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "diagnostics", reliable)
-        self._joy_sub = self.create_subscription(Joy, "joy", self._on_joy, sensor)
+        self.color_pub = self.create_publisher(Image, topics.CAMERA_COLOR, sensor)
+        self.depth_pub = self.create_publisher(Image, topics.CAMERA_DEPTH, sensor)
+        self.info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, sensor)
+        self.truth_pub = self.create_publisher(Odometry, topics.GROUND_TRUTH, reliable)
+        self.plan_pub = self.create_publisher(Float32MultiArray, topics.JOY_PLAN, reliable)
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        self._joy_sub = self.create_subscription(Joy, topics.JOY, self._on_joy, sensor)
 
         self._joy_seen = False
         self._t_start: float | None = None  # node-clock seconds of simulation time 0

@@ -31,6 +31,7 @@ from sensor_msgs.msg import CameraInfo, Joy
 from std_msgs.msg import Float32MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
+from asgp_ros import topics
 from asgp_ros.demo.monitor import (
     LatencyStats,
     OnlineScore,
@@ -44,15 +45,15 @@ log = logging.getLogger(__name__)
 
 #: topic -> (message class, ROS 2 type name, recorded in the bag)
 TOPICS: dict[str, tuple[Any, str, bool]] = {
-    "joy": (Joy, "sensor_msgs/msg/Joy", True),
-    "vo/twist": (TwistStamped, "geometry_msgs/msg/TwistStamped", True),
-    "vo/odom": (Odometry, "nav_msgs/msg/Odometry", True),
-    "ground_truth/odom": (Odometry, "nav_msgs/msg/Odometry", True),
-    "predicted_path": (PathMsg, "nav_msgs/msg/Path", True),
-    "predicted_path/uncertainty": (MarkerArray, "visualization_msgs/msg/MarkerArray", True),
-    "joy_plan": (Float32MultiArray, "std_msgs/msg/Float32MultiArray", True),
-    "diagnostics": (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
-    "camera/color/camera_info": (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
+    topics.JOY: (Joy, "sensor_msgs/msg/Joy", True),
+    topics.VO_TWIST: (TwistStamped, "geometry_msgs/msg/TwistStamped", True),
+    topics.VO_ODOM: (Odometry, "nav_msgs/msg/Odometry", True),
+    topics.GROUND_TRUTH: (Odometry, "nav_msgs/msg/Odometry", True),
+    topics.PREDICTED_PATH: (PathMsg, "nav_msgs/msg/Path", True),
+    topics.PREDICTED_PATH_UNCERTAINTY: (MarkerArray, "visualization_msgs/msg/MarkerArray", True),
+    topics.JOY_PLAN: (Float32MultiArray, "std_msgs/msg/Float32MultiArray", True),
+    topics.DIAGNOSTICS: (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
+    topics.CAMERA_INFO: (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
 }
 
 
@@ -106,7 +107,8 @@ class MonitorNode(Node):
         self.score = score or OnlineScore()
         self.truth = TruthTrack()
         self.rates = {name: RateMeter() for name in TOPICS}
-        self.latency = {name: LatencyStats() for name in ("joy", "vo/twist", "predicted_path")}
+        self.latency = {name: LatencyStats() for name in (topics.JOY, topics.VO_TWIST,
+                                                          topics.PREDICTED_PATH)}
         self.counts = dict.fromkeys(TOPICS, 0)
         self.diag: dict[str, DiagEntry] = {}
         self.vo_ok: bool | None = None
@@ -134,7 +136,7 @@ class MonitorNode(Node):
                              else ReliabilityPolicy.BEST_EFFORT),
                 durability=DurabilityPolicy.VOLATILE)
             if record and self.recorder is not None:
-                self.recorder.add_topic("/" + topic, msgtype)
+                self.recorder.add_topic(topics.in_bag(topic), msgtype)
             self.create_subscription(cls, topic, self._callback(topic, cls, record), qos,
                                      raw=True)
             self._subscribed.add(topic)
@@ -143,7 +145,7 @@ class MonitorNode(Node):
 
     def _callback(self, topic: str, cls: Any, record: bool):
         handler = getattr(self, "_on_" + topic.replace("/", "_"))
-        bag_topic = "/" + topic
+        bag_topic = topics.in_bag(topic)
 
         def on_message(data: bytes) -> None:
             now_ns = self.get_clock().now().nanoseconds
@@ -158,10 +160,10 @@ class MonitorNode(Node):
     # ---- handlers ----------------------------------------------------------------------
 
     def _on_joy(self, msg: Joy, now: float) -> None:
-        self.latency["joy"].add(now - conv.stamp_to_seconds(msg.header.stamp))
+        self.latency[topics.JOY].add(now - conv.stamp_to_seconds(msg.header.stamp))
 
     def _on_vo_twist(self, msg: TwistStamped, now: float) -> None:
-        self.latency["vo/twist"].add(now - conv.stamp_to_seconds(msg.header.stamp))
+        self.latency[topics.VO_TWIST].add(now - conv.stamp_to_seconds(msg.header.stamp))
 
     def _on_vo_odom(self, msg: Odometry, now: float) -> None:
         _, _, ok, _ = conv.odometry_to_sample(msg)
@@ -181,7 +183,7 @@ class MonitorNode(Node):
         if times.size == 0:
             return
         rec = PathRecord(t0=t0, times=times, pose=poses, arrival=now)
-        self.latency["predicted_path"].add(now - t0)
+        self.latency[topics.PREDICTED_PATH].add(now - t0)
         self.score.add(rec)
         self._by_t0[round(t0 * 1e6)] = rec
         if len(self._by_t0) > 50:

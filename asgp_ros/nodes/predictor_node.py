@@ -50,6 +50,7 @@ from std_msgs.msg import Float32MultiArray
 from threadpoolctl import threadpool_limits
 from visualization_msgs.msg import MarkerArray
 
+from asgp_ros import topics
 from asgp_ros.bags import parse_joy_axes
 from asgp_ros.core import online
 from asgp_ros.core.modelfile import ModelFileError, load_model
@@ -83,11 +84,11 @@ class PredictorNodeParams:
     horizon_steps: int = 0
     horizon_s: float = 2.0
     rate_hz: float = 0.0
-    joy_topic: str = "joy"
-    vo_topic: str = "vo/twist"
+    joy_topic: str = topics.JOY
+    vo_topic: str = topics.VO_TWIST
     vo_type: str = "twist"
-    plan_topic: str = "joy_plan"
-    path_topic: str = "predicted_path"
+    plan_topic: str = topics.JOY_PLAN
+    path_topic: str = topics.PREDICTED_PATH
     joy_axes: str = "0,1"
     joy_timeout_s: float = 0.5
     vo_timeout_s: float = 0.5
@@ -264,7 +265,7 @@ class PredictorNode(Node):
         self.path_pub = self.create_publisher(Path, p.path_topic, reliable)
         self.marker_pub = self.create_publisher(
             MarkerArray, f"{p.path_topic}/uncertainty", reliable)
-        self.diag_pub = self.create_publisher(DiagnosticArray, "diagnostics", reliable)
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         if p.vo_type == "twist":
             self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,

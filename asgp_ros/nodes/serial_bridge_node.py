@@ -36,6 +36,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Joy
 
+from asgp_ros import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial import status as board_status
@@ -61,10 +62,10 @@ class SerialBridgeNode(Node):
         self.params: BridgeParams = bridge_params(declare(self, PARAMS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self._joy_pub = self.create_publisher(Joy, "joy", qos_profile_sensor_data)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "diagnostics",
+        self._joy_pub = self.create_publisher(Joy, topics.JOY, qos_profile_sensor_data)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                                QoSProfile(depth=10))
-        self.create_subscription(Joy, "joy_override", self._on_override,
+        self.create_subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
                                  QoSProfile(depth=10))
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)

@@ -36,6 +36,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
+from asgp_ros import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
@@ -67,10 +68,10 @@ class VONode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         p = self.params
         reliable = QoSProfile(depth=10)
-        self._twist_pub = self.create_publisher(TwistStamped, "vo/twist", reliable)
-        self._odom_pub = (self.create_publisher(Odometry, "vo/odom", reliable)
+        self._twist_pub = self.create_publisher(TwistStamped, topics.VO_TWIST, reliable)
+        self._odom_pub = (self.create_publisher(Odometry, topics.VO_ODOM, reliable)
                           if p.publish_odom else None)
-        self._diag_pub = self.create_publisher(DiagnosticArray, "diagnostics", reliable)
+        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self._color: collections.deque = collections.deque(maxlen=_BUFFER)
         self._depth: collections.deque = collections.deque(maxlen=_BUFFER)
         self._wake = self.create_guard_condition(self._process_newest)
