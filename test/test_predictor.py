@@ -8,6 +8,9 @@ for a prediction whenever a new grid step completes, as the node does.
 
 from __future__ import annotations
 
+import ast
+import inspect
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -16,8 +19,15 @@ import pytest
 
 from asgp_ros.core import online
 from asgp_ros.core.features import FeatureConfig, build_inputs, design_matrix
+from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.online import Predictor, PredictorConfig, confidence_ellipses, to_frame
+from asgp_ros.core.online import (
+    Predictor,
+    PredictorConfig,
+    Reason,
+    confidence_ellipses,
+    to_frame,
+)
 from asgp_ros.core.resample import ResampleConfig, resample
 from asgp_ros.core.rollout import rollout
 from asgp_ros.core.streams import RawStreams
@@ -199,8 +209,8 @@ def test_stale_vo_stops_prediction_then_it_resumes():
     for i, t in enumerate(np.arange(now + 0.033, now + 1.0, 0.033)):
         pred.feed_joy(t, (0.3, 0.0 + 0.001 * i))
     r = pred.predict(now + 1.0)
-    assert not r.ok and r.reason == online.STALE_VO and "VO is" in r.detail
-    assert pred.status(now + 1.0).reason == online.STALE_VO
+    assert not r.ok and r.reason == Reason.STALE_VO and "VO is" in r.detail
+    assert pred.status(now + 1.0).reason == Reason.STALE_VO
     # VO resumes: enough fresh samples to make a valid window again
     times = now + 1.0 + 0.033 * np.arange(1, 61)
     for i, t in enumerate(times):
@@ -221,7 +231,7 @@ def test_stale_joystick_stops_prediction():
     pred.feed_vo(now + 0.2, (0.1, 0.0))
     pred.feed_vo(now + 0.4, (0.1, 0.0))
     r = pred.predict(now + 0.45)
-    assert not r.ok and r.reason == online.STALE_JOYSTICK
+    assert not r.ok and r.reason == Reason.STALE_JOYSTICK
 
 
 def test_vo_tracking_loss_stops_prediction():
@@ -229,7 +239,7 @@ def test_vo_tracking_loss_stops_prediction():
     now = max(jt[-1], vt[-1])
     pred.feed_vo(now + 0.01, (float("nan"), float("nan")), ok=False)
     r = pred.predict(now + 0.02)
-    assert not r.ok and r.reason == online.VO_TRACKING_LOST
+    assert not r.ok and r.reason == Reason.VO_TRACKING_LOST
     assert pred.stats.dropped_nonfinite == 0  # a reported failure is not "bad data"
 
 
@@ -250,7 +260,7 @@ def test_backward_clock_jump_resets_and_prediction_resumes():
     assert 1004.0 < r.t0 <= 1006.0
     # the clock itself jumping back (a replay loop seen by the watchdog) also resets
     r = pred.predict(events[-1][0] - 5.0)
-    assert not r.ok and r.reason == online.CLOCK_RESET
+    assert not r.ok and r.reason == Reason.CLOCK_RESET
     assert pred.stats.resets == 2 and pred.ready_step() is None
 
 
@@ -346,7 +356,7 @@ def test_predict_batch_matches_single_predictions():
     with pytest.raises(ValueError, match=r"\[B, k, 2\]"):
         pred.predict_batch(np.zeros((6, 2)), now)
     not_ready = Predictor(linear_model()).predict_batch(cands, now)
-    assert not not_ready.ok and not_ready.reason == online.NO_INPUT
+    assert not not_ready.ok and not_ready.reason == Reason.NO_INPUT
 
 
 def test_not_enough_history():
@@ -356,13 +366,13 @@ def test_not_enough_history():
     pred.feed_joy(100.5, (0.1, 0.0))
     pred.feed_vo(100.45, (0.05, 0.0))
     r = pred.predict(100.5)
-    assert not r.ok and r.reason == online.NOT_ENOUGH_HISTORY and "needs 4" in r.detail
+    assert not r.ok and r.reason == Reason.NOT_ENOUGH_HISTORY and "needs 4" in r.detail
 
 
 def test_confidence_ellipses_and_frame_change():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]]])
     e = confidence_ellipses(cov)
-    chi = math.sqrt(online.CHI2_2DOF_95)
+    chi = math.sqrt(CHI2_2DOF_95)
     np.testing.assert_allclose(e[0, :2], [2 * chi, chi])
     np.testing.assert_allclose(e[1, :2], [3 * chi, chi])
     assert abs(math.sin(e[0, 2])) < 1e-12 and abs(math.cos(e[1, 2])) < 1e-12
@@ -399,7 +409,7 @@ def test_predict_at_an_invalid_time_is_not_ok(now):
     for call in (lambda: pred.predict(now), lambda: pred.predict_batch(np.zeros((1, 3, 2)), now),
                  lambda: pred.status(now)):
         r = call()
-        assert r is not None and not r.ok and r.reason == online.INVALID_TIME
+        assert r is not None and not r.ok and r.reason == Reason.INVALID_TIME
         assert r.detail.startswith("now: time stamp")
     assert pred.stats.resets == 0  # an invalid clock is not a clock jump
     assert pred.predict(good).ok
@@ -423,8 +433,8 @@ def test_out_of_range_samples_are_refused_with_a_reason(data):
             assert not dirty.feed_joy(1e300, (0.1, 0.0))
             assert not dirty.feed_vo(-1e11, (0.1, 0.0))
             bad += 1
-    assert dirty.stats.rejected == {online.REJECT_JOY: 2 * bad, online.REJECT_VO: 2 * bad,
-                                    online.REJECT_TIME: 2 * bad}
+    assert dirty.stats.rejected == {Reason.REJECT_JOY: 2 * bad, Reason.REJECT_VO: 2 * bad,
+                                    Reason.REJECT_TIME: 2 * bad}
     assert dirty.stats.last_rejected == (
         "time_out_of_range: VO: time stamp -1e+11 s is beyond +-1e+10 s")
     assert dirty.stats.dropped_nonfinite == 0 and dirty.stats.resets == 0
@@ -452,21 +462,21 @@ def test_the_reasons_name_the_problem():
     assert not pred.feed_pose(1.0, 2e6, 0.0, 0.0)
     assert pred.stats.last_rejected == "pose_out_of_range: pose |x| = 2e+06 is beyond 1e+06"
     assert pred.feed_pose(1.0, -1e6, 1e6, 3.0)
-    assert pred.stats.rejected == {online.REJECT_JOY: 1, online.REJECT_VO: 1,
-                                   online.REJECT_NONFINITE: 1, online.REJECT_POSE: 1}
+    assert pred.stats.rejected == {Reason.REJECT_JOY: 1, Reason.REJECT_VO: 1,
+                                   Reason.REJECT_NONFINITE: 1, Reason.REJECT_POSE: 1}
 
 
 def test_plans_and_futures_out_of_range_are_refused():
     pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=4)
     now = max(jt[-1], vt[-1])
     for plan, stamp, reason, match in (
-            (np.full((3, 2), 1e30), now, online.REJECT_PLAN, "plan row 0: forward deflection"),
-            (np.array([[0.1, 0.0], [0.2, -1.5]]), now, online.REJECT_PLAN,
+            (np.full((3, 2), 1e30), now, Reason.REJECT_PLAN, "plan row 0: forward deflection"),
+            (np.array([[0.1, 0.0], [0.2, -1.5]]), now, Reason.REJECT_PLAN,
              r"plan row 1: turn deflection -1.5 is outside \[-1.05, 1.05\]"),
-            (np.zeros((online.MAX_PLAN_STEPS + 1, 2)), now, online.REJECT_PLAN,
+            (np.zeros((online.MAX_PLAN_STEPS + 1, 2)), now, Reason.REJECT_PLAN,
              "1001 steps, more than 1000"),
-            (np.zeros((3, 2)), math.nan, online.REJECT_NONFINITE, "plan: time stamp is nan"),
-            (np.zeros((3, 2)), 1e12, online.REJECT_TIME, "plan: time stamp 1e\\+12 s")):
+            (np.zeros((3, 2)), math.nan, Reason.REJECT_NONFINITE, "plan: time stamp is nan"),
+            (np.zeros((3, 2)), 1e12, Reason.REJECT_TIME, "plan: time stamp 1e\\+12 s")):
         with pytest.raises(online.RejectedInputError, match=match) as info:
             pred.set_plan(plan, stamp)
         assert info.value.reason == reason
@@ -486,3 +496,21 @@ def test_stamps_at_the_edge_of_the_time_range_still_predict():
     r = pred.predict(max(jt[-1], vt[-1]))
     assert r.ok, r.detail
     assert pred.stats.rejected == {}
+
+
+def test_reason_codes_are_one_documented_enum():
+    """Every reason is a distinct snake_case string, documented where it is defined; the
+    predictor's refusals use the REJECT_* members."""
+    values = [r.value for r in Reason]
+    assert len(set(values)) == len(values)
+    assert all(v.isidentifier() and v == v.lower() for v in values)
+    assert all(isinstance(r, str) and f"{r}" == r.value for r in Reason)
+    body = ast.parse(inspect.getsource(Reason)).body[0].body
+    documented = {stmt.targets[0].id for stmt, nxt in itertools.pairwise(body)
+                  if isinstance(stmt, ast.Assign) and isinstance(nxt, ast.Expr)
+                  and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)}
+    assert documented == {r.name for r in Reason}
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=5))
+    assert not pred.feed_joy(1.0, (math.nan, 0.0))
+    assert list(pred.stats.rejected) == [Reason.REJECT_NONFINITE]
+    assert pred.predict(1.0).reason is Reason.NO_INPUT

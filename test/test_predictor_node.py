@@ -28,7 +28,7 @@ from sensor_msgs.msg import Joy
 from std_msgs.msg import Float32MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
-from asgp_ros.core import online
+from asgp_ros.core.online import Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
 
@@ -217,7 +217,7 @@ def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model
         assert all(x.scale.x >= x.scale.y > 0 for x in m[1:])
         # the ellipses grow along the horizon
         assert m[K].scale.x > m[1].scale.x
-        assert _reason(h) == online.OK
+        assert _reason(h) == Reason.OK
         h.spin_until(lambda: h.diags, what="diagnostics")
         keys = {kv.key for kv in h.diags[-1].status[0].values}
         assert {"joy_rate_hz", "vo_rate_hz", "joy_age_s", "vo_age_s",
@@ -235,7 +235,7 @@ def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
         h.drive(102.0, 103.5, vo=False)
         h.executor.spin_once(timeout_sec=0.05)
         n_stale = len(h.paths)
-        assert _reason(h) == online.STALE_VO
+        assert _reason(h) == Reason.STALE_VO
         # the watchdog cleared the ellipses
         h.spin_until(lambda: len(h.markers[-1].markers) == 1, what="DELETEALL")
         h.spin_until(lambda: any("stale_vo" in s.message for d in h.diags for s in d.status),
@@ -247,7 +247,7 @@ def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
         h.drive(103.5, 105.5)
         h.spin_until(lambda: len(h.paths) > n_stale + 2, what="resumed paths")
         assert conv.stamp_to_seconds(h.paths[-1].header.stamp) > 104.5
-        assert _reason(h) == online.OK
+        assert _reason(h) == Reason.OK
     finally:
         h.close()
 
@@ -279,9 +279,9 @@ def test_out_of_range_inputs_are_refused_with_reasons_in_diagnostics(rclpy_conte
         h.joy(102.06, 0.2, -1.3)
         h.vo(102.07, 6.0, 0.0)  # faster than any wheelchair
         h.vo(102.08, 0.3, 1e30)
-        n_plans = h.node.predictor.stats.rejected.get(online.REJECT_PLAN, 0)
+        n_plans = h.node.predictor.stats.rejected.get(Reason.REJECT_PLAN, 0)
         h.plan_pub.publish(conv.plan_to_multiarray(np.array([[0.2, 0.0], [1e30, 0.0]])))
-        h.spin_until(lambda: h.node.predictor.stats.rejected.get(online.REJECT_PLAN, 0)
+        h.spin_until(lambda: h.node.predictor.stats.rejected.get(Reason.REJECT_PLAN, 0)
                      > n_plans, what="plan")
         status = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
         assert status["rejected"] == ("joy_out_of_range=2, plan_out_of_range=1, "
@@ -386,7 +386,7 @@ def test_odometry_input_gives_paths_in_odom_and_tracking_loss_stops_them(rclpy_c
         h.clock(102.13)
         h.vo(102.13, 0.4, 0.0, lost=True)
         h.executor.spin_once(timeout_sec=0.05)
-        assert _reason(h) == online.VO_TRACKING_LOST
+        assert _reason(h) == Reason.VO_TRACKING_LOST
         assert len(h.paths) == n
     finally:
         h.close()

@@ -36,9 +36,9 @@ resampler sorts and de-duplicates).
 Bad input never drives a prediction: a sample or a plan that is not finite or lies
 outside the ranges of :mod:`asgp_ros.core.streams` (time stamps, joystick deflections,
 v, omega, poses; plans at most ``MAX_PLAN_STEPS`` rows) is refused, counted in
-``PredictorStats.rejected`` under one of the ``REJECT_*`` codes and described in
+``PredictorStats.rejected`` under one of the ``Reason.REJECT_*`` codes and described in
 ``PredictorStats.last_rejected``; a ``now`` that is not a valid time gives a not-ok
-prediction with reason ``INVALID_TIME``.
+prediction with reason ``Reason.INVALID_TIME``.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,25 +66,51 @@ from asgp_ros.core.streams import (
 
 FloatArray = NDArray[np.float64]
 
-# Reasons why no prediction is available (stable codes for diagnostics and tests).
-OK = "ok"
-NO_INPUT = "no_input"
-STALE_JOYSTICK = "stale_joystick"
-STALE_VO = "stale_vo"
-VO_TRACKING_LOST = "vo_tracking_lost"
-VO_STALE_REPEAT = "vo_stale_repeat"
-NOT_ENOUGH_HISTORY = "not_enough_history"
-CLOCK_RESET = "clock_reset"
-NO_POSE = "no_odometry_pose"
-INVALID_TIME = "invalid_time"
 
-# Reasons why an input is refused (keys of PredictorStats.rejected).
-REJECT_NONFINITE = "nonfinite"
-REJECT_TIME = "time_out_of_range"
-REJECT_JOY = "joy_out_of_range"
-REJECT_VO = "vo_out_of_range"
-REJECT_POSE = "pose_out_of_range"
-REJECT_PLAN = "plan_out_of_range"
+class Reason(StrEnum):
+    """Why a prediction is (not) available, or why an input is refused: the one list of
+    codes. ``Prediction.reason`` is one of the first group, the keys of
+    ``PredictorStats.rejected`` are the ``REJECT_*`` members. Members are strings equal
+    to their value, which is the text the node's diagnostics publish (``reason``,
+    ``rejected``) and log."""
+
+    # ---- a prediction's reason
+    OK = "ok"
+    """A path was predicted."""
+    NO_INPUT = "no_input"
+    """No joystick or no VO sample buffered yet (the node: also no clock yet)."""
+    STALE_JOYSTICK = "stale_joystick"
+    """The newest joystick sample is older than ``joy_timeout_s``."""
+    STALE_VO = "stale_vo"
+    """The newest VO sample is older than ``vo_timeout_s``."""
+    VO_TRACKING_LOST = "vo_tracking_lost"
+    """The VO flags its newest sample, or the newest grid step, as a tracking failure."""
+    VO_STALE_REPEAT = "vo_stale_repeat"
+    """The VO repeats one velocity while the chair is driven (a frozen estimator)."""
+    NOT_ENOUGH_HISTORY = "not_enough_history"
+    """Fewer than the model's ``s`` lags of valid grid steps in one segment are buffered
+    (start-up, or a gap, tracking loss or stale VO inside the window)."""
+    CLOCK_RESET = "clock_reset"
+    """A stamp or ``now`` jumped back by more than ``reset_jump_s``: buffers cleared."""
+    NO_POSE = "no_odometry_pose"
+    """The path is wanted in the odometry frame but no odometry pose covers the prediction
+    time (set by the node)."""
+    INVALID_TIME = "invalid_time"
+    """``now`` is not a valid time (:func:`asgp_ros.core.streams.time_problem`)."""
+
+    # ---- an input's refusal (keys of PredictorStats.rejected)
+    REJECT_NONFINITE = "nonfinite"
+    """A sample, pose, plan or stamp holds NaN or inf."""
+    REJECT_TIME = "time_out_of_range"
+    """A time stamp outside the range of :mod:`asgp_ros.core.streams`."""
+    REJECT_JOY = "joy_out_of_range"
+    """A joystick deflection outside [-1, 1]."""
+    REJECT_VO = "vo_out_of_range"
+    """A velocity beyond the physical limits of :mod:`asgp_ros.core.streams`."""
+    REJECT_POSE = "pose_out_of_range"
+    """An odometry pose beyond the range of :mod:`asgp_ros.core.streams`."""
+    REJECT_PLAN = "plan_out_of_range"
+    """A plan with a command out of range or more than ``MAX_PLAN_STEPS`` rows."""
 
 _EPS_T = 1e-9
 MAX_PLANS = 16  # plans kept: only those issued within about one step before now matter
@@ -95,11 +122,11 @@ class RejectedInputError(ValueError):
     """A plan or a future joystick sequence the Predictor refuses.
 
     Attributes:
-        reason: one of the module's ``REJECT_*`` codes.
+        reason: one of the ``Reason.REJECT_*`` codes.
         detail: why, in words.
     """
 
-    def __init__(self, reason: str, detail: str) -> None:
+    def __init__(self, reason: Reason, detail: str) -> None:
         self.reason = reason
         self.detail = detail
         super().__init__(f"{reason}: {detail}")
@@ -149,8 +176,8 @@ class PredictorConfig:
 class PredictorStats:
     """Counters for diagnostics.
 
-    ``rejected`` counts refused inputs by ``REJECT_*`` code (non-finite ones are also in
-    ``dropped_nonfinite``); ``last_rejected`` is "<code>: <why>" of the newest one.
+    ``rejected`` counts refused inputs by ``Reason.REJECT_*`` code (non-finite ones are also
+    in ``dropped_nonfinite``); ``last_rejected`` is "<code>: <why>" of the newest one.
     """
 
     joy_samples: int = 0
@@ -159,7 +186,7 @@ class PredictorStats:
     out_of_order: int = 0
     resets: int = 0
     predictions: int = 0
-    rejected: dict[str, int] = field(default_factory=dict)
+    rejected: dict[Reason, int] = field(default_factory=dict)
     last_rejected: str = ""
 
 
@@ -167,7 +194,7 @@ class PredictorStats:
 class Prediction:
     """The predicted path of one (or a batch of) future joystick sequence(s).
 
-    ``ok`` False means no prediction: ``reason`` is one of the module's codes and
+    ``ok`` False means no prediction: ``reason`` is a :class:`Reason` code and
     ``detail`` says why in words; the arrays are then empty.
 
     Attributes (single: shapes below; batch: a leading [B]):
@@ -188,7 +215,7 @@ class Prediction:
     """
 
     ok: bool
-    reason: str
+    reason: Reason
     detail: str = ""
     t0: float = float("nan")
     step: int = -1
@@ -322,7 +349,6 @@ class Predictor:
         self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
         self._last_now = -math.inf
         self.last_reset_detail = ""
-        self.last_resampled: object = None  # the newest window's Resampled (diagnostics)
 
     # ---- input ---------------------------------------------------------------------
 
@@ -339,8 +365,8 @@ class Predictor:
     def _newest(self) -> float:
         return max(self._joy.newest, self._vo.newest)
 
-    def _reject(self, reason: str, detail: str) -> None:
-        if reason == REJECT_NONFINITE:
+    def _reject(self, reason: Reason, detail: str) -> None:
+        if reason == Reason.REJECT_NONFINITE:
             self.stats.dropped_nonfinite += 1
         self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
         self.stats.last_rejected = f"{reason}: {detail}"
@@ -348,7 +374,8 @@ class Predictor:
     def _time_ok(self, t: float, what: str) -> bool:
         problem = time_problem(t)
         if problem is not None:
-            self._reject(REJECT_NONFINITE if not math.isfinite(t) else REJECT_TIME,
+            self._reject(Reason.REJECT_NONFINITE if not math.isfinite(t)
+                         else Reason.REJECT_TIME,
                          f"{what}: {problem}")
         return problem is None
 
@@ -371,7 +398,8 @@ class Predictor:
         problem = joy_problem(*values)
         if problem is not None:
             finite = all(math.isfinite(v) for v in values)
-            self._reject(REJECT_JOY if finite else REJECT_NONFINITE, f"joystick: {problem}")
+            self._reject(Reason.REJECT_JOY if finite else Reason.REJECT_NONFINITE,
+                         f"joystick: {problem}")
             return False
         self._admit(t)
         self.stats.joy_samples += 1
@@ -396,7 +424,8 @@ class Predictor:
         problem = vel_problem(v, w)
         if problem is not None:
             finite = math.isfinite(v) and math.isfinite(w)
-            self._reject(REJECT_VO if finite else REJECT_NONFINITE, f"VO: {problem}")
+            self._reject(Reason.REJECT_VO if finite else Reason.REJECT_NONFINITE,
+                         f"VO: {problem}")
             return False
         self._admit(t)
         self.stats.vo_samples += 1
@@ -416,7 +445,8 @@ class Predictor:
         problem = pose_problem(float(x), float(y), float(yaw))
         if problem is not None:
             finite = all(math.isfinite(float(v)) for v in (x, y, yaw))
-            self._reject(REJECT_POSE if finite else REJECT_NONFINITE, problem)
+            self._reject(Reason.REJECT_POSE if finite else Reason.REJECT_NONFINITE,
+                         problem)
             return False
         self._pose.add(t, (float(x), float(y), float(yaw)))
         self._pose.prune(self.config.buffer_s)
@@ -426,7 +456,8 @@ class Predictor:
         """Refuse joystick commands [..., k, 2] that are not finite or out of range."""
         if commands.shape[-2] > MAX_PLAN_STEPS:
             raise RejectedInputError(
-                REJECT_PLAN, f"{what} has {commands.shape[-2]} steps, more than {MAX_PLAN_STEPS}")
+                Reason.REJECT_PLAN,
+                f"{what} has {commands.shape[-2]} steps, more than {MAX_PLAN_STEPS}")
         flat = commands.reshape(-1, 2)
         bad = np.flatnonzero(~joy_in_range(flat))
         if bad.size:
@@ -436,7 +467,7 @@ class Predictor:
             where = f"row {index[-1]}" if len(index) == 1 else \
                 f"{index[0]} row {index[-1]}"
             finite = bool(np.all(np.isfinite(flat)))
-            raise RejectedInputError(REJECT_PLAN if finite else REJECT_NONFINITE,
+            raise RejectedInputError(Reason.REJECT_PLAN if finite else Reason.REJECT_NONFINITE,
                                      f"{what} {where}: {problem}")
 
     def set_plan(self, plan: FloatArray, stamp: float) -> None:
@@ -454,7 +485,7 @@ class Predictor:
         try:
             problem = time_problem(float(stamp))
             if problem is not None:
-                reason = REJECT_TIME if math.isfinite(stamp) else REJECT_NONFINITE
+                reason = Reason.REJECT_TIME if math.isfinite(stamp) else Reason.REJECT_NONFINITE
                 raise RejectedInputError(reason, f"plan: {problem}")
             self._check_commands(arr, "plan")
         except RejectedInputError as exc:
@@ -515,7 +546,7 @@ class Predictor:
                            f"the clock ({now:.3f} s)")
             self.reset(detail)
             self._last_now = now
-            return Prediction(False, CLOCK_RESET, f"{detail}: buffers reset")
+            return Prediction(False, Reason.CLOCK_RESET, f"{detail}: buffers reset")
         self._last_now = max(self._last_now, now)
         return None
 
@@ -527,22 +558,22 @@ class Predictor:
         cfg = self.config
         problem = time_problem(now)
         if problem is not None:
-            return Prediction(False, INVALID_TIME, f"now: {problem}")
+            return Prediction(False, Reason.INVALID_TIME, f"now: {problem}")
         if (reset := self._check_clock(now)) is not None:
             return reset
         if not self._joy or not self._vo:
-            return Prediction(False, NO_INPUT, "waiting for joystick and VO samples")
+            return Prediction(False, Reason.NO_INPUT, "waiting for joystick and VO samples")
         joy_age = now - self._joy.newest
         if joy_age > cfg.joy_timeout_s:
-            return Prediction(False, STALE_JOYSTICK,
+            return Prediction(False, Reason.STALE_JOYSTICK,
                               f"joystick is {joy_age:.2f} s old (limit {cfg.joy_timeout_s} s)")
         vo_age = now - self._vo.newest
         if vo_age > cfg.vo_timeout_s:
-            return Prediction(False, STALE_VO,
+            return Prediction(False, Reason.STALE_VO,
                               f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")
         newest_vo = max(self._vo.items, key=lambda item: item[0])
         if newest_vo[3] < 0.5:
-            return Prediction(False, VO_TRACKING_LOST, "VO reports tracking loss")
+            return Prediction(False, Reason.VO_TRACKING_LOST, "VO reports tracking loss")
         return None
 
     def _window(self, now: float) -> Prediction | tuple[int, float, FloatArray, FloatArray]:
@@ -554,19 +585,18 @@ class Predictor:
         streams = RawStreams(joy_t=joy_t, joy=joy, vel_t=vo_t, vel=vo[:, :2],
                              vel_ok=vo[:, 2] > 0.5, source="live")
         res = resample(streams, self.resample_config)
-        self.last_resampled = res
         s = self.lags
         t_ready = min(self._joy.newest, self._vo.newest)
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
         if n < s:
-            return Prediction(False, NOT_ENOUGH_HISTORY,
+            return Prediction(False, Reason.NOT_ENOUGH_HISTORY,
                               f"{n} grid steps buffered, the model needs {s}")
         last = n - 1
         window = slice(last - s + 1, last + 1)
         if bool(res.tracking_lost[last]):
-            return Prediction(False, VO_TRACKING_LOST, "VO reported tracking loss")
+            return Prediction(False, Reason.VO_TRACKING_LOST, "VO reported tracking loss")
         if bool(res.stale[last]):
-            return Prediction(False, VO_STALE_REPEAT,
+            return Prediction(False, Reason.VO_STALE_REPEAT,
                               "VO repeats the same velocity while the chair is driven")
         valid = np.asarray(res.valid[window], dtype=bool)
         segment = np.asarray(res.segment[window])
@@ -575,7 +605,7 @@ class Predictor:
                    else "stale VO" if np.any(res.stale[window])
                    else "a gap in the input")
             return Prediction(
-                False, NOT_ENOUGH_HISTORY,
+                False, Reason.NOT_ENOUGH_HISTORY,
                 f"only {_trailing_true(valid)} of the last {s} grid steps are valid ({why})",
             )
         t0 = float(res.t[last])
@@ -654,7 +684,7 @@ class Predictor:
                 pose[0], pos_cov[0], vel[0], vel_cov[0], futures[0])
         self.stats.predictions += 1
         return Prediction(
-            ok=True, reason=OK, t0=t0, step=step, dt=self.dt,
+            ok=True, reason=Reason.OK, t0=t0, step=step, dt=self.dt,
             times=t0 + self.dt * np.arange(1, k + 1),
             pose=pose, pos_cov=pos_cov, ellipses=confidence_ellipses(pos_cov),
             vel=vel, vel_cov=vel_cov, joy_future=futures,

@@ -55,7 +55,7 @@ from asgp_ros.bags import parse_joy_axes
 from asgp_ros.core import online
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.paramspec import ParamSpec, check_value, check_values
@@ -251,7 +251,7 @@ class PredictorNode(Node):
             raise StartupError(str(exc)) from exc
 
         self._last_step: int | None = None  # newest grid step a prediction was tried for
-        self._last_result: Prediction = Prediction(False, online.NO_INPUT, "starting")
+        self._last_result: Prediction = Prediction(False, Reason.NO_INPUT, "starting")
         self._published_step: int | None = None
         self._markers_shown = False
         self._latency_ms: deque[float] = deque(maxlen=1000)
@@ -457,7 +457,7 @@ class PredictorNode(Node):
         frame = p.base_frame
         if p.path_frame == "odom":
             if result.origin is None:
-                self._last_result = replace(result, ok=False, reason=online.NO_POSE,
+                self._last_result = replace(result, ok=False, reason=Reason.NO_POSE,
                                             detail="no odometry pose at the prediction time")
                 return
             pose, cov = online.to_frame(pose, cov, result.origin)
@@ -473,7 +473,7 @@ class PredictorNode(Node):
     def _on_watchdog(self) -> None:
         now = self._now()
         if now is None:
-            self._last_result = Prediction(False, online.NO_INPUT, "waiting for /clock")
+            self._last_result = Prediction(False, Reason.NO_INPUT, "waiting for /clock")
             return
         bad = self.predictor.status(now)
         if bad is not None:
@@ -506,7 +506,7 @@ class PredictorNode(Node):
             return "inf" if now is None or not math.isfinite(newest) else f"{now - newest:.3f}"
 
         values = {
-            "reason": result.reason,
+            "reason": result.reason.value,
             "joy_rate_hz": f"{self._joy_rate.rate(wall):.1f}",
             "vo_rate_hz": f"{self._vo_rate.rate(wall):.1f}",
             "joy_age_s": age(joy_newest),
