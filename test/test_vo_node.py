@@ -13,6 +13,7 @@ import yaml
 pytest.importorskip("rclpy")
 pytest.importorskip("sensor_msgs")
 
+from asgp_ros.demo import camera
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.vo.params import PARAMS, params_yaml, vo_node_params
 
@@ -26,7 +27,7 @@ def test_image_round_trips():
               rng.integers(0, 65535, (4, 5), dtype=np.uint16),
               rng.uniform(0, 6, (4, 5)).astype(np.float32)]
     for a in arrays:
-        msg = conv.image_from_array(1.5, a, "camera")
+        msg = camera.image_from_array(1.5, a, "camera")
         b = conv.image_to_array(msg)
         assert b.dtype == a.dtype and b.shape == a.shape
         np.testing.assert_array_equal(a, b)
@@ -69,7 +70,7 @@ def test_bad_images_are_refused_with_a_reason():
 
 def test_camera_info_to_matrix():
     K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
-    msg = conv.camera_info_from_matrix(0.0, K, 640, 480, "camera")
+    msg = camera.camera_info_from_matrix(0.0, K, 640, 480, "camera")
     K2, w, h, distorted = conv.camera_info_to_matrix(msg)
     np.testing.assert_array_equal(K, K2)
     assert (w, h, distorted) == (640, 480, False)
@@ -87,7 +88,7 @@ def test_camera_info_to_matrix():
     ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (4_000_000_000, 480), "size 4000000000x480"),
 ])
 def test_camera_info_out_of_range_is_refused(k, size, why):
-    msg = conv.camera_info_from_matrix(0.0, np.eye(3), 640, 480, "camera")
+    msg = camera.camera_info_from_matrix(0.0, np.eye(3), 640, 480, "camera")
     msg.k = [float(x) for x in k]
     msg.width, msg.height = size
     with pytest.raises(ValueError, match=why):
@@ -215,7 +216,7 @@ class _Harness:
                              and self.node._diag_pub.get_subscription_count() >= 1)
         assert ok, "discovery timed out"
         for _ in range(20):
-            self.info.publish(conv.camera_info_from_matrix(0.0, K, 640, 480, "camera"))
+            self.info.publish(camera.camera_info_from_matrix(0.0, K, 640, 480, "camera"))
             if self.spin_until(lambda: self.node.vo is not None, 0.5):
                 return
         raise AssertionError("camera_info never arrived")
@@ -260,8 +261,8 @@ def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, fram
         t0 = 100.0
         for k, (img, depth) in enumerate(images):
             mm = np.rint(depth * 1000).astype(np.uint16)  # 16UC1 millimetres, as drivers do
-            h.send(t0 + drive.t[k], conv.image_from_array(0.0, img, "camera"),
-                   conv.image_from_array(0.0, mm, "camera"))
+            h.send(t0 + drive.t[k], camera.image_from_array(0.0, img, "camera"),
+                   camera.image_from_array(0.0, mm, "camera"))
         n = len(images)
         assert len(h.twists) == n - 1  # every frame but the first (the reference)
         for msg in h.twists:
@@ -283,18 +284,18 @@ def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, fram
         # failures: bad encoding, no depth, mismatched sizes, a blank image -> no twist
         img, depth = images[-1]
         mm = np.rint(depth * 1000).astype(np.uint16)
-        bad = conv.image_from_array(0.0, img, "camera")
+        bad = camera.image_from_array(0.0, img, "camera")
         bad.encoding = "yuv422"
         t = t0 + drive.t[-1]
         dt = 1.0 / 15.0
         cases = [
-            (bad, conv.image_from_array(0.0, mm, "camera"), "bad_input"),
-            (conv.image_from_array(0.0, img, "camera"),
-             conv.image_from_array(0.0, np.zeros_like(mm), "camera"), "no_depth"),
-            (conv.image_from_array(0.0, img, "camera"),
-             conv.image_from_array(0.0, mm[:240, :320].copy(), "camera"), "bad_input"),
-            (conv.image_from_array(0.0, np.zeros_like(img), "camera"),
-             conv.image_from_array(0.0, depth, "camera"), "insufficient_features"),
+            (bad, camera.image_from_array(0.0, mm, "camera"), "bad_input"),
+            (camera.image_from_array(0.0, img, "camera"),
+             camera.image_from_array(0.0, np.zeros_like(mm), "camera"), "no_depth"),
+            (camera.image_from_array(0.0, img, "camera"),
+             camera.image_from_array(0.0, mm[:240, :320].copy(), "camera"), "bad_input"),
+            (camera.image_from_array(0.0, np.zeros_like(img), "camera"),
+             camera.image_from_array(0.0, depth, "camera"), "insufficient_features"),
         ]
         count = len(h.twists)
         for color_msg, depth_msg, status in cases:
@@ -309,8 +310,8 @@ def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, fram
         assert levels["insufficient_features"][0] == 1
         # texture and depth return: tracking against the last good reference again
         t += dt
-        h.send(t, conv.image_from_array(0.0, img, "camera"),
-               conv.image_from_array(0.0, depth, "camera"))  # 32FC1 metres this time
+        h.send(t, camera.image_from_array(0.0, img, "camera"),
+               camera.image_from_array(0.0, depth, "camera"))  # 32FC1 metres this time
         assert h.node.last_result.ok
         assert len(h.twists) == count + 1
         assert h.twists[-1].twist.linear.x == pytest.approx(0.0, abs=0.05)  # same pose

@@ -47,6 +47,7 @@ from sensor_msgs.msg import CameraInfo, Image, Joy
 from std_msgs.msg import Float32MultiArray
 
 from asgp_ros import topics
+from asgp_ros.demo import camera
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snapshot, look_ahead
 from asgp_ros.nodes import conversions as conv
 
@@ -314,9 +315,9 @@ class HardwareNode(Node):
         t = self._stamp(round(state.t / STEP_S) * STEP_S)
         frame = self.params.camera_frame
         K = self.hw.renderer.K
-        self.color_pub.publish(conv.image_from_array(t, image, frame))
-        self.depth_pub.publish(conv.image_from_array(t, depth, frame))
-        self.info_pub.publish(conv.camera_info_from_matrix(t, K, image.shape[1],
+        self.color_pub.publish(camera.image_from_array(t, image, frame))
+        self.depth_pub.publish(camera.image_from_array(t, depth, frame))
+        self.info_pub.publish(camera.camera_info_from_matrix(t, K, image.shape[1],
                                                            image.shape[0], frame))
         self.frames += 1
 

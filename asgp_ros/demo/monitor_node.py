@@ -32,6 +32,7 @@ from std_msgs.msg import Float32MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
 
 from asgp_ros import topics
+from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.demo.monitor import (
     LatencyStats,
     OnlineScore,
@@ -199,8 +200,8 @@ class MonitorNode(Node):
         cyl.sort(key=lambda m: m.id)
         rec.ellipses = np.array([
             (0.5 * m.scale.x, 0.5 * m.scale.y,
-             conv.quaternion_to_yaw(m.pose.orientation.x, m.pose.orientation.y,
-                                    m.pose.orientation.z, m.pose.orientation.w))
+             quaternion_to_yaw(m.pose.orientation.x, m.pose.orientation.y,
+                               m.pose.orientation.z, m.pose.orientation.w))
             for m in cyl])
 
     def _on_joy_plan(self, msg: Float32MultiArray, now: float) -> None:

@@ -1,49 +1,55 @@
 """ROS message <-> numpy conversions, the only place nodes touch message fields.
 
 Every function here is pure (no node, no publisher) and tested by building messages
-directly. Sections are grouped by message family.
+directly. Sections are grouped by message family. The demo's simulated camera (images and
+camera info out) is in :mod:`asgp_ros.demo.camera`.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import math
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseStamped, TwistStamped
+from nav_msgs.msg import Odometry, Path
+from numpy.typing import ArrayLike, NDArray
+from sensor_msgs.msg import CameraInfo, Image, Joy
+from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+from visualization_msgs.msg import Marker, MarkerArray
+
+from asgp_ros.core.online import MAX_PLAN_STEPS
+from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
+
+FloatArray = NDArray[np.float64]
 
 # --------------------------------------------------------------------------------------
 # Predictor: time, Joy, TwistStamped / Odometry, Float32MultiArray plans, Path, MarkerArray
-# (message classes are imported inside the functions so this section is self-contained)
 
 
-def stamp_to_seconds(stamp: Any) -> float:
+def stamp_to_seconds(stamp: Time) -> float:
     """builtin_interfaces/Time -> seconds (float), computed as the bag reader does
     (integer nanoseconds * 1e-9), so live and recorded stamps are bit-identical."""
     return float(int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) * 1e-9
 
 
-def seconds_to_stamp(t: float) -> Any:
+def seconds_to_stamp(t: float) -> Time:
     """Seconds (>= 0) -> builtin_interfaces/Time (rounded to the nanosecond)."""
-    from builtin_interfaces.msg import Time
-
     ns = round(t * 1e9)
     if ns < 0:
         raise ValueError(f"cannot stamp a negative time ({t} s)")
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
-def yaw_to_quaternion(yaw: float) -> tuple[float, float, float, float]:
-    """Planar yaw -> quaternion (x, y, z, w) about +z (REP-103)."""
-    import math
-
-    return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
-
-
-def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Yaw of a quaternion (rotation about +z after the ZYX decomposition)."""
-    import math
-
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+def _quaternion(yaw: float) -> tuple[float, float, float, float]:
+    """Yaw -> quaternion (x, y, z, w) as the Python floats message fields take."""
+    x, y, z, w = yaw_to_quaternion(yaw)
+    return float(x), float(y), float(z), float(w)
 
 
-def joy_to_sample(msg: Any, forward_axis: int = 0, turn_axis: int = 1
+def joy_to_sample(msg: Joy, forward_axis: int = 0, turn_axis: int = 1
                   ) -> tuple[float, tuple[float, float]]:
     """sensor_msgs/Joy -> (stamp s, (forward, turn)); stamp 0.0 if the header is unset.
 
@@ -60,10 +66,8 @@ def joy_to_sample(msg: Any, forward_axis: int = 0, turn_axis: int = 1
             (float(axes[forward_axis]), float(axes[turn_axis])))
 
 
-def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -> Any:
+def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -> Joy:
     """(stamp s, forward, turn) -> sensor_msgs/Joy with axes [forward, turn]."""
-    from sensor_msgs.msg import Joy
-
     msg = Joy()
     msg.header.stamp = seconds_to_stamp(t)
     msg.header.frame_id = frame_id
@@ -71,7 +75,7 @@ def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -
     return msg
 
 
-def twist_stamped_to_sample(msg: Any) -> tuple[float, tuple[float, float]]:
+def twist_stamped_to_sample(msg: TwistStamped) -> tuple[float, tuple[float, float]]:
     """geometry_msgs/TwistStamped -> (stamp s, (v = linear.x, omega = angular.z))."""
     tw = msg.twist
     return (stamp_to_seconds(msg.header.stamp),
@@ -79,10 +83,8 @@ def twist_stamped_to_sample(msg: Any) -> tuple[float, tuple[float, float]]:
 
 
 def twist_stamped_from_sample(t: float, v: float, omega: float,
-                              frame_id: str = "base_link") -> Any:
+                              frame_id: str = "base_link") -> TwistStamped:
     """(stamp s, v, omega) -> geometry_msgs/TwistStamped."""
-    from geometry_msgs.msg import TwistStamped
-
     msg = TwistStamped()
     msg.header.stamp = seconds_to_stamp(t)
     msg.header.frame_id = frame_id
@@ -95,7 +97,7 @@ def twist_stamped_from_sample(t: float, v: float, omega: float,
 ODOM_LOST_VARIANCE = 1e6
 
 
-def odometry_to_sample(msg: Any) -> tuple[float, tuple[float, float], bool,
+def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
                                               tuple[float, float, float]]:
     """nav_msgs/Odometry -> (stamp s, (v, omega), tracking ok, (x, y, yaw) in the odom frame).
 
@@ -103,8 +105,6 @@ def odometry_to_sample(msg: Any) -> tuple[float, tuple[float, float], bool,
     negative, non-finite or >= ``ODOM_LOST_VARIANCE`` (how odometry sources flag an
     unusable estimate).
     """
-    import math
-
     tw = msg.twist
     v, w = float(tw.twist.linear.x), float(tw.twist.angular.z)
     var = float(tw.covariance[0])
@@ -112,12 +112,12 @@ def odometry_to_sample(msg: Any) -> tuple[float, tuple[float, float], bool,
           and 0.0 <= var < ODOM_LOST_VARIANCE)
     p = msg.pose.pose
     q = p.orientation
-    yaw = quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
+    yaw = float(quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w)))
     return (stamp_to_seconds(msg.header.stamp), (v, w), ok,
             (float(p.position.x), float(p.position.y), yaw))
 
 
-def plan_from_multiarray(msg: Any) -> Any:
+def plan_from_multiarray(msg: Float32MultiArray) -> FloatArray:
     """std_msgs/Float32MultiArray -> [m, 2] float64 joystick plan (rows = steps).
 
     The layout is either empty (data = [f0, t0, f1, t1, ...]) or two dimensions
@@ -128,10 +128,6 @@ def plan_from_multiarray(msg: Any) -> Any:
             ``asgp_ros.core.online.MAX_PLAN_STEPS`` steps (checked before the data is
             converted), or non-finite values. The values' range is the Predictor's check.
     """
-    import numpy as np
-
-    from asgp_ros.core.online import MAX_PLAN_STEPS
-
     layout = msg.layout
     offset = int(layout.data_offset)
     values = len(msg.data) - offset
@@ -157,11 +153,8 @@ def plan_from_multiarray(msg: Any) -> Any:
     return data.reshape(-1, 2)
 
 
-def plan_to_multiarray(plan: Any) -> Any:
+def plan_to_multiarray(plan: ArrayLike) -> Float32MultiArray:
     """[m, 2] joystick plan -> std_msgs/Float32MultiArray with layout [steps, axis]."""
-    import numpy as np
-    from std_msgs.msg import Float32MultiArray, MultiArrayDimension
-
     arr = np.asarray(plan, dtype=np.float32)
     if arr.ndim != 2 or arr.shape[1] != 2:
         raise ValueError(f"a plan must be [m, 2], got {arr.shape}")
@@ -174,12 +167,8 @@ def plan_to_multiarray(plan: Any) -> Any:
     return msg
 
 
-def path_from_poses(poses: Any, times: Any, frame_id: str, stamp: float) -> Any:
+def path_from_poses(poses: ArrayLike, times: ArrayLike, frame_id: str, stamp: float) -> Path:
     """[k, 3] (x, y, theta) poses at [k] times -> nav_msgs/Path (header at ``stamp``)."""
-    import numpy as np
-    from geometry_msgs.msg import PoseStamped
-    from nav_msgs.msg import Path
-
     pose_arr = np.asarray(poses, dtype=np.float64)
     time_arr = np.asarray(times, dtype=np.float64)
     msg = Path()
@@ -192,7 +181,7 @@ def path_from_poses(poses: Any, times: Any, frame_id: str, stamp: float) -> Any:
         ps.header.frame_id = frame_id
         ps.pose.position.x = float(x)
         ps.pose.position.y = float(y)
-        q = yaw_to_quaternion(float(th))
+        q = _quaternion(float(th))
         ps.pose.orientation.x, ps.pose.orientation.y = q[0], q[1]
         ps.pose.orientation.z, ps.pose.orientation.w = q[2], q[3]
         out.append(ps)
@@ -200,10 +189,8 @@ def path_from_poses(poses: Any, times: Any, frame_id: str, stamp: float) -> Any:
     return msg
 
 
-def path_to_poses(msg: Any) -> tuple[Any, Any]:
+def path_to_poses(msg: Path) -> tuple[FloatArray, FloatArray]:
     """nav_msgs/Path -> (times [k], poses [k, 3] (x, y, yaw))."""
-    import numpy as np
-
     poses = msg.poses
     times = np.array([stamp_to_seconds(p.header.stamp) for p in poses])
     arr = np.array([
@@ -215,9 +202,10 @@ def path_to_poses(msg: Any) -> tuple[Any, Any]:
     return times, arr
 
 
-def ellipse_markers(centers: Any, ellipses: Any, frame_id: str, stamp: float,
+def ellipse_markers(centers: ArrayLike, ellipses: ArrayLike, frame_id: str, stamp: float,
                     ns: str = "prediction_95", height: float = 0.02,
-                    rgba: tuple[float, float, float, float] = (0.1, 0.5, 1.0, 0.35)) -> Any:
+                    rgba: tuple[float, float, float, float] = (0.1, 0.5, 1.0, 0.35)
+                    ) -> MarkerArray:
     """Position confidence ellipses -> visualization_msgs/MarkerArray for RViz.
 
     The array starts with a DELETEALL marker, then one flat CYLINDER per step (ids
@@ -229,9 +217,6 @@ def ellipse_markers(centers: Any, ellipses: Any, frame_id: str, stamp: float,
         ellipses: [k, 3] (semi-major, semi-minor, angle of the major axis), see
             ``asgp_ros.core.online.confidence_ellipses``.
     """
-    import numpy as np
-    from visualization_msgs.msg import Marker, MarkerArray
-
     c = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
     e = np.asarray(ellipses, dtype=np.float64).reshape(-1, 3)
     header_stamp = seconds_to_stamp(stamp)
@@ -251,7 +236,7 @@ def ellipse_markers(centers: Any, ellipses: Any, frame_id: str, stamp: float,
         m.action = Marker.ADD
         m.pose.position.x = float(x)
         m.pose.position.y = float(y)
-        q = yaw_to_quaternion(float(angle))
+        q = _quaternion(float(angle))
         m.pose.orientation.z, m.pose.orientation.w = q[2], q[3]
         m.scale.x = max(2.0 * float(major), 1e-3)
         m.scale.y = max(2.0 * float(minor), 1e-3)
@@ -265,15 +250,13 @@ def ellipse_markers(centers: Any, ellipses: Any, frame_id: str, stamp: float,
 # Serial bridge: joystick overrides in, diagnostics out
 
 
-def joy_to_override(msg: Any) -> tuple[float, float]:
+def joy_to_override(msg: Joy) -> tuple[float, float]:
     """sensor_msgs/Joy on ``joy_override`` -> (forward, turn) deflections in [-1, 1].
 
     Raises:
         ValueError: fewer than 2 axes, a non-finite value or one outside [-1, 1] (an
             override is refused, never clipped: a bad command is a bug upstream).
     """
-    import math
-
     axes = msg.axes
     if len(axes) < 2:
         raise ValueError(f"joy_override needs axes [forward, turn], got {len(axes)} axes")
@@ -285,12 +268,10 @@ def joy_to_override(msg: Any) -> tuple[float, float]:
 
 
 def diagnostic_status(name: str, level: str, message: str, hardware_id: str = "",
-                      values: Any = None) -> Any:
+                      values: Mapping[str, object] | None = None) -> DiagnosticStatus:
     """-> diagnostic_msgs/DiagnosticStatus; ``level`` is "OK", "WARN", "ERROR" or "STALE",
     ``values`` a mapping whose items become KeyValue strings (floats with 4 significant
     digits)."""
-    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
     levels = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN,
               "ERROR": DiagnosticStatus.ERROR, "STALE": DiagnosticStatus.STALE}
     if level not in levels:
@@ -305,90 +286,34 @@ def diagnostic_status(name: str, level: str, message: str, hardware_id: str = ""
     return st
 
 
-def diagnostic_array(t: float, statuses: Any) -> Any:
+def diagnostic_array(t: float, statuses: Iterable[DiagnosticStatus]) -> DiagnosticArray:
     """(stamp s, [DiagnosticStatus]) -> diagnostic_msgs/DiagnosticArray."""
-    from diagnostic_msgs.msg import DiagnosticArray
-
     msg = DiagnosticArray()
     msg.header.stamp = seconds_to_stamp(t)
     msg.status = list(statuses)
     return msg
 
 
-def diagnostic_values(status: Any) -> dict[str, str]:
+def diagnostic_values(status: DiagnosticStatus) -> dict[str, str]:
     """diagnostic_msgs/DiagnosticStatus -> {key: value} (for tests and monitors)."""
     return {kv.key: kv.value for kv in status.values}
 
 
 # --------------------------------------------------------------------------------------
-# Simulated hardware (demo): camera images and info out, ground-truth odometry out
-
-#: numpy image layout -> sensor_msgs/Image encoding (REP-118 depth: 16UC1 mm, 32FC1 m).
-_IMAGE_ENCODINGS = {("uint8", 3): "bgr8", ("uint8", 1): "mono8", ("uint16", 1): "16UC1",
-                    ("float32", 1): "32FC1"}
-
-
-def image_from_array(t: float, image: Any, frame_id: str) -> Any:
-    """[h, w, 3] uint8 BGR, [h, w] uint8 grey, [h, w] uint16 depth (mm) or [h, w] float32
-    depth (m) -> sensor_msgs/Image (bgr8, mono8, 16UC1, 32FC1), native byte order.
-
-    Raises:
-        ValueError: any other dtype or shape.
-    """
-    import sys
-
-    import numpy as np
-    from sensor_msgs.msg import Image
-
-    arr = np.ascontiguousarray(image)
-    channels = 1 if arr.ndim == 2 else (arr.shape[2] if arr.ndim == 3 else 0)
-    encoding = _IMAGE_ENCODINGS.get((str(arr.dtype), channels))
-    if encoding is None:
-        raise ValueError(f"no image encoding for a {arr.dtype} array of shape {arr.shape}")
-    msg = Image()
-    msg.header.stamp = seconds_to_stamp(t)
-    msg.header.frame_id = frame_id
-    msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
-    msg.encoding = encoding
-    msg.is_bigendian = int(sys.byteorder == "big")
-    msg.step = int(arr.shape[1] * channels * arr.dtype.itemsize)
-    msg.data = arr.tobytes()
-    return msg
-
-
-def camera_info_from_matrix(t: float, camera_matrix: Any, width: int, height: int,
-                            frame_id: str) -> Any:
-    """Pinhole K [3, 3] of an undistorted image -> sensor_msgs/CameraInfo (plumb_bob with
-    zero distortion, R = I, P = [K | 0])."""
-    import numpy as np
-    from sensor_msgs.msg import CameraInfo
-
-    K = np.asarray(camera_matrix, dtype=np.float64).reshape(3, 3)
-    msg = CameraInfo()
-    msg.header.stamp = seconds_to_stamp(t)
-    msg.header.frame_id = frame_id
-    msg.width, msg.height = int(width), int(height)
-    msg.distortion_model = "plumb_bob"
-    msg.d = [0.0] * 5
-    msg.k = K.reshape(-1).tolist()
-    msg.r = np.eye(3).reshape(-1).tolist()
-    msg.p = np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist()
-    return msg
-
+# Odometry out (the VO's estimate; the demo's ground truth)
 
 def odometry_from_pose(t: float, x: float, y: float, yaw: float, v: float, omega: float,
-                       frame_id: str = "odom", child_frame_id: str = "base_link") -> Any:
+                       frame_id: str = "odom", child_frame_id: str = "base_link"
+                       ) -> Odometry:
     """Planar pose (x, y, yaw) and body twist (v, omega) -> nav_msgs/Odometry (exact:
     zero covariance)."""
-    from nav_msgs.msg import Odometry
-
     msg = Odometry()
     msg.header.stamp = seconds_to_stamp(t)
     msg.header.frame_id = frame_id
     msg.child_frame_id = child_frame_id
     msg.pose.pose.position.x = float(x)
     msg.pose.pose.position.y = float(y)
-    q = yaw_to_quaternion(float(yaw))
+    q = _quaternion(float(yaw))
     o = msg.pose.pose.orientation
     o.x, o.y, o.z, o.w = q
     msg.twist.twist.linear.x = float(v)
@@ -407,7 +332,7 @@ _IMAGE_DECODINGS = {"bgr8": ("uint8", 3), "rgb8": ("uint8", 3), "bgra8": ("uint8
                     "32FC1": ("float32", 1)}
 
 
-def image_to_array(msg: Any) -> Any:
+def image_to_array(msg: Image) -> NDArray[np.generic]:
     """sensor_msgs/Image -> numpy, honouring ``step`` (row padding) and ``is_bigendian``.
 
     Colour comes back as [h, w, 3] uint8 BGR (rgb8/rgba8 are reordered, alpha dropped),
@@ -418,8 +343,6 @@ def image_to_array(msg: Any) -> Any:
         ValueError: unsupported encoding, empty image, or a data size that does not match
             height x step.
     """
-    import numpy as np
-
     enc = str(msg.encoding)
     if enc not in _IMAGE_DECODINGS:
         raise ValueError(f"unsupported image encoding {enc!r}; expected one of "
@@ -457,7 +380,7 @@ CAMERA_FOCAL_RANGE_PX = (1.0, 1e6)
 CAMERA_MAX_ABS_CENTRE_PX = 1e6
 
 
-def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
+def camera_info_to_matrix(msg: CameraInfo) -> tuple[FloatArray, int, int, bool]:
     """sensor_msgs/CameraInfo -> (K [3, 3] float64, width, height, has_distortion).
 
     Raises:
@@ -465,8 +388,6 @@ def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
             principal point or image side outside ``CAMERA_FOCAL_RANGE_PX``,
             ``CAMERA_MAX_ABS_CENTRE_PX``, ``CAMERA_MAX_SIDE_PX``.
     """
-    import numpy as np
-
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(K)) or not np.any(K):
         raise ValueError("CameraInfo K is unset or not finite (uncalibrated camera)")
@@ -487,10 +408,10 @@ def camera_info_to_matrix(msg: Any) -> tuple[Any, int, int, bool]:
     return K, int(msg.width), int(msg.height), bool(d.size and np.any(d != 0))
 
 
-def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov: Any,
-                             v: float, omega: float, twist_cov: Any,
+def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov: ArrayLike,
+                             v: float, omega: float, twist_cov: ArrayLike,
                              frame_id: str = "odom",
-                             child_frame_id: str = "base_link") -> Any:
+                             child_frame_id: str = "base_link") -> Odometry:
     """Planar VO estimate -> nav_msgs/Odometry with covariances.
 
     Args:
@@ -499,8 +420,6 @@ def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov:
         twist_cov: [6, 6] covariance of the body twist (vx, vy, vz, wx, wy, wz) in
             ``child_frame_id``; the message carries v = vx and omega = wz.
     """
-    import numpy as np
-
     P3 = np.asarray(pose_cov, dtype=np.float64).reshape(3, 3)
     T6 = np.asarray(twist_cov, dtype=np.float64).reshape(6, 6)
     P6 = np.diag([0.0, 0.0, 1e-6, 1e-6, 1e-6, 0.0])
