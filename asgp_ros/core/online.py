@@ -97,6 +97,8 @@ class Reason(StrEnum):
     time (set by the node)."""
     INVALID_TIME = "invalid_time"
     """``now`` is not a valid time (:func:`asgp_ros.core.streams.time_problem`)."""
+    PREDICTION_ERROR = "prediction_error"
+    """The numerics of one step failed (set by the node, which logs the error)."""
 
     # ---- an input's refusal (keys of PredictorStats.rejected)
     REJECT_NONFINITE = "nonfinite"

@@ -61,7 +61,6 @@ from asgp_ros.nodes.parameters import declare
 from asgp_ros.paramspec import ParamSpec, check_value, check_values
 
 NODE_NAME = "predictor_node"
-PREDICTION_ERROR = "prediction_error"
 
 
 class StartupError(Exception):
@@ -440,7 +439,7 @@ class PredictorNode(Node):
         try:
             result = self.predictor.predict(now)
         except (ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure of one step
-            result = Prediction(False, PREDICTION_ERROR, f"{type(exc).__name__}: {exc}")
+            result = Prediction(False, Reason.PREDICTION_ERROR, f"{type(exc).__name__}: {exc}")
             self.get_logger().error(f"prediction failed at step {step}: {result.detail}",
                                     throttle_duration_sec=5.0)
         self._last_result = result
