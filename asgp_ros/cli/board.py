@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     board.set_joystick(source)
     try:  # from start() on, stop() runs on every exit: it removes the pty and the link
         board.start()
-        print(board.port, flush=True)
+        print(board.port, flush=True)  # the first line of stdout: scripts read the port here
         print(f"simulated board: {args.rate:g} Hz, joystick {source_name}, pty "
               f"{board.slave_path} (Ctrl-C stops)", flush=True)
         t0 = time.monotonic()

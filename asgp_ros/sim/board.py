@@ -259,7 +259,7 @@ class SimulatedBoard:
                 tmp.unlink()
             os.symlink(self._slave_path, tmp)
             os.replace(tmp, self.link_path)
-        log.info("simulated board on %s", self.port)
+        log.debug("simulated board on %s", self.port)
 
     def _close_pty(self) -> None:
         if self.link_path is not None and self.link_path.is_symlink():
