@@ -138,29 +138,31 @@ def test_depth_to_mm():
 
 @pytest.mark.ros
 def test_image_messages_round_trip():
+    from asgp_ros.demo import camera
     from asgp_ros.nodes import conversions as conv
 
     rng = np.random.default_rng(0)
     bgr = rng.integers(0, 255, (6, 8, 3), dtype=np.uint8)
     depth = rng.integers(0, 6000, (6, 8)).astype(np.uint16)
-    m = conv.image_from_array(12.5, bgr, "cam")
+    m = camera.image_from_array(12.5, bgr, "cam")
     assert (m.encoding, m.width, m.height, m.step) == ("bgr8", 8, 6, 24)
     assert conv.stamp_to_seconds(m.header.stamp) == pytest.approx(12.5)
     np.testing.assert_array_equal(np.frombuffer(bytes(m.data), np.uint8).reshape(6, 8, 3), bgr)
-    d = conv.image_from_array(12.5, depth, "cam")
+    d = camera.image_from_array(12.5, depth, "cam")
     assert (d.encoding, d.step) == ("16UC1", 16)
     np.testing.assert_array_equal(np.frombuffer(bytes(d.data), np.uint16).reshape(6, 8), depth)
-    assert conv.image_from_array(0.0, depth.astype(np.float32), "c").encoding == "32FC1"
+    assert camera.image_from_array(0.0, depth.astype(np.float32), "c").encoding == "32FC1"
     with pytest.raises(ValueError, match="encoding"):
-        conv.image_from_array(0.0, depth.astype(np.int64), "c")
+        camera.image_from_array(0.0, depth.astype(np.int64), "c")
 
 
 @pytest.mark.ros
 def test_camera_info_and_ground_truth_messages():
+    from asgp_ros.demo import camera
     from asgp_ros.nodes import conversions as conv
 
     K = np.array([[262.5, 0.0, 159.5], [0.0, 262.5, 119.5], [0.0, 0.0, 1.0]])
-    info = conv.camera_info_from_matrix(3.0, K, 320, 240, "cam")
+    info = camera.camera_info_from_matrix(3.0, K, 320, 240, "cam")
     assert (info.width, info.height) == (320, 240)
     np.testing.assert_allclose(np.reshape(info.k, (3, 3)), K)
     np.testing.assert_allclose(np.reshape(info.p, (3, 4))[:, :3], K)

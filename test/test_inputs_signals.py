@@ -24,6 +24,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from asgp_ros.demo import camera as demo_camera
 from asgp_ros.nodes import conversions as conv
 
 pytestmark = pytest.mark.ros
@@ -291,9 +292,9 @@ class _Camera:
             color, depth = self.frames[self.i % len(self.frames)]
             self.i += 1
             h, w = color.shape[:2]
-            self.info.publish(conv.camera_info_from_matrix(t, self.K, w, h, "camera"))
-            self.color.publish(conv.image_from_array(t, color, "camera"))
-            self.depth.publish(conv.image_from_array(t, depth, "camera"))
+            self.info.publish(demo_camera.camera_info_from_matrix(t, self.K, w, h, "camera"))
+            self.color.publish(demo_camera.image_from_array(t, color, "camera"))
+            self.depth.publish(demo_camera.image_from_array(t, depth, "camera"))
         self.executor.spin_once(timeout_sec=0.005)
 
     def until(self, cond: Callable[[], bool], timeout: float, what: str) -> None:

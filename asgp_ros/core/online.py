@@ -207,7 +207,9 @@ class Prediction:
         pos_cov: [k, 2, 2] covariance of (x, y).
         ellipses: [k, 3] 95% position ellipse (semi-major, semi-minor, angle of the major
             axis from x), from ``pos_cov``.
-        vel: [k, 2] predicted (v, omega) at t0 .. t0 + (k-1) dt (V_{L+1} .. V_{L+k}).
+        vel: [k, 2] predicted (v, omega) at t0 + dt .. t0 + k dt, the times of ``times``
+            (V_{L+1} .. V_{L+k}; V_L, the last of ``vel_past``, is the velocity at t0), as
+            :attr:`asgp_ros.core.rollout.Rollout.vel`.
         vel_cov: [k, 2, 2].
         joy_future: [k, 2] the joystick commands the prediction assumed.
         joy_past, vel_past: [s, 2] the measured window (grid t_{L-s+1} .. t_L).
