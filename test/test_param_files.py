@@ -1,0 +1,67 @@
+"""Each node's parameters are defined once, in its table (name, default, range): the YAML
+files in config/ and the README are checked against those tables."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from asgp_ros.paramspec import ParamSpec, check_value
+
+REPO = Path(__file__).resolve().parents[1]
+ROS_BUILTINS = {"use_sim_time"}
+
+
+def _tables() -> dict[str, tuple[str, tuple[ParamSpec, ...]]]:
+    pytest.importorskip("rclpy")
+    from asgp_ros.nodes import predictor_node
+    from asgp_ros.serial import params as bridge
+    from asgp_ros.vo import params as vo
+
+    return {"predictor_node": ("predictor.yaml", predictor_node.PARAMS),
+            "serial_bridge_node": ("bridge.yaml", bridge.PARAMS),
+            "vo_node": ("vo.yaml", vo.PARAMS)}
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    """Nested YAML maps are ROS's dotted parameter names (calibration.forward.neutral)."""
+    out: dict = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+@pytest.mark.parametrize("node", ["predictor_node", "serial_bridge_node", "vo_node"])
+def test_yaml_values_are_declared_typed_and_in_range(node):
+    yaml_name, specs = _tables()[node]
+    doc = yaml.safe_load((REPO / "config" / yaml_name).read_text())
+    assert list(doc) == [node], f"{yaml_name}: top level must be the node name {node}"
+    values = _flatten(doc[node]["ros__parameters"])
+    by_name = {s.name: s for s in specs}
+    unknown = sorted(set(values) - set(by_name) - ROS_BUILTINS)
+    assert not unknown, f"{yaml_name} sets parameters {node} does not declare: {unknown}"
+    for name, value in values.items():
+        if name in ROS_BUILTINS:
+            continue
+        spec = by_name[name]
+        # ROS parameters keep their YAML type: 2 is an integer, not a double.
+        assert type(value) is type(spec.default), (yaml_name, name, value, spec.default)
+        check_value(spec, value)  # inside the declared range
+
+
+def test_readme_names_only_declared_parameters():
+    """Every `name_s`-style predictor parameter the README mentions is declared, and the
+    README states no default that disagrees with the table."""
+    specs = {s.name: s for s in _tables()["predictor_node"][1]}
+    readme = (REPO / "README.md").read_text()
+    for name, value in re.findall(r"`([a-z_]+_(?:s|hz|steps))`\s*\(default ([0-9.]+)", readme):
+        assert name in specs, name
+        assert float(value) == float(specs[name].default), (name, value)
+    for name in re.findall(r"`((?:joy|vo|plan)_timeout_s|buffer_s|reset_jump_s)`", readme):
+        assert name in specs, name
