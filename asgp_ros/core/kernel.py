@@ -27,7 +27,7 @@ underflows to 0 where it is negligible anyway.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -123,7 +123,7 @@ def cross(X: FloatArray, f: CrossFactors, out: FloatArray | None = None,
     logk -= 0.5 * np.einsum("...nd,...nd->...n", XL, X)[..., None]
     logk += f.offset
     np.minimum(logk, f.log_sf2, out=logk)  # |x - z|_l^2 >= 0
-    return np.exp(logk, out=logk)
+    return cast(FloatArray, np.exp(logk, out=logk))
 
 
 def augmented_pseudo_inputs(f: CrossFactors) -> FloatArray:

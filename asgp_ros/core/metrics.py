@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -107,7 +108,7 @@ def windows(series: FloatArray, idx: IntArray, start: int, length: int) -> Float
         [N, length, C].
     """
     offsets = np.arange(start, start + length)
-    return np.asarray(series)[np.asarray(idx)[:, None] + offsets[None, :]]
+    return cast(FloatArray, np.asarray(series)[np.asarray(idx)[:, None] + offsets[None, :]])
 
 
 def relative_displacement(pose0: FloatArray, pose1: FloatArray) -> FloatArray:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
@@ -146,14 +146,14 @@ def variance_matrix(L: FloatArray, LA: FloatArray) -> FloatArray:
     Linv = scipy.linalg.solve_triangular(L, np.eye(M), lower=True, check_finite=False)
     B = scipy.linalg.solve_triangular(LA, Linv, lower=True, check_finite=False)  # LA^-1 L^-1
     S = Linv.T @ Linv - B.T @ B
-    return 0.5 * (S + S.T)
+    return cast(FloatArray, 0.5 * (S + S.T))
 
 
 def chol_kuu(Z: FloatArray, lengthscales: FloatArray, signal_variance: float, jitter: float
              ) -> FloatArray:
     """L = chol(k(Z, Z) + jitter sf2 I) [M, M], lower; np.linalg.LinAlgError if singular."""
     Kuu = kernel.se_ard_jittered(Z, lengthscales, signal_variance, jitter)
-    return scipy.linalg.cholesky(Kuu, lower=True, check_finite=False)
+    return cast(FloatArray, scipy.linalg.cholesky(Kuu, lower=True, check_finite=False))
 
 
 def _chol_a_from_c(L: FloatArray, C: FloatArray) -> FloatArray | None:

@@ -66,7 +66,7 @@ import math
 import warnings
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple, TypeVar
+from typing import NamedTuple, TypeVar, cast
 
 import numpy as np
 import scipy.linalg
@@ -153,7 +153,7 @@ class _Params(NamedTuple):
 def _cholesky(K: FloatArray) -> FloatArray:
     """Lower Cholesky factor, or _FactorisationError."""
     try:
-        return scipy.linalg.cholesky(K, lower=True, check_finite=False)
+        return cast(FloatArray, scipy.linalg.cholesky(K, lower=True, check_finite=False))
     except np.linalg.LinAlgError as err:
         raise _FactorisationError(str(err)) from err
 
@@ -391,7 +391,8 @@ def _blas_single_thread(rows: int) -> contextlib.AbstractContextManager[object]:
         return contextlib.nullcontext()
     if _BLAS_CONTROLLER is None:
         _BLAS_CONTROLLER = ThreadpoolController()
-    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
+    return cast("contextlib.AbstractContextManager[object]",
+                _BLAS_CONTROLLER.limit(limits=1, user_api="blas"))
 
 
 def _validate_inputs(X: ArrayLike, name: str, num_features: int | None = None) -> FloatArray:

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -182,7 +183,7 @@ class RawStreams:
 
     @property
     def has_truth(self) -> bool:
-        return self.truth_t.shape[0] > 0
+        return cast(bool, self.truth_t.shape[0] > 0)
 
     @property
     def duration(self) -> float:
