@@ -274,10 +274,10 @@ def _connections(reader: Any, topic: str, allowed: tuple[str, ...], what: str,
     return conns
 
 
-def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple],
-             source: str) -> tuple[list[int], list[tuple]]:
+def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[Any, ...]],
+             source: str) -> tuple[list[int], list[tuple[Any, ...]]]:
     bag_ns: list[int] = []
-    rows: list[tuple] = []
+    rows: list[tuple[Any, ...]] = []
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
@@ -343,7 +343,7 @@ def read_streams(
                     if truth_topic else [])
         need = max(axes.forward, axes.turn) + 1
 
-        def joy_row(msg: Any, _t: str) -> tuple:
+        def joy_row(msg: Any, _t: str) -> tuple[Any, ...]:
             a = msg.axes
             if len(a) < need:
                 raise BagError(
@@ -352,13 +352,13 @@ def read_streams(
             return (_stamp_ns(msg), axes.forward_sign * float(a[axes.forward]),
                     axes.turn_sign * float(a[axes.turn]))
 
-        def twist_row(msg: Any, msgtype: str) -> tuple:
+        def twist_row(msg: Any, msgtype: str) -> tuple[Any, ...]:
             if msgtype == "geometry_msgs/msg/Twist":
                 return (0, msg.linear.x, msg.angular.z)
             tw = msg.twist if msgtype == "geometry_msgs/msg/TwistStamped" else msg.twist.twist
             return (_stamp_ns(msg), tw.linear.x, tw.angular.z)
 
-        def truth_row(msg: Any, _t: str) -> tuple:
+        def truth_row(msg: Any, _t: str) -> tuple[Any, ...]:
             p = msg.pose.pose
             tw = msg.twist.twist
             q = p.orientation

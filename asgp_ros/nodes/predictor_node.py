@@ -45,6 +45,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import Joy
 from std_msgs.msg import Float32MultiArray
 from threadpoolctl import threadpool_limits
@@ -552,21 +553,21 @@ def main(args: list[str] | None = None) -> int:
         node = PredictorNode()
         rclpy.spin(node, executor)
     except StartupError as exc:
-        if not rclpy.ok():  # a failure caused by the shutdown itself
+        if not ok():  # a failure caused by the shutdown itself
             return 0
         rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
         return 1
     except (KeyboardInterrupt, ExternalShutdownException, StartupInterruptedError):
         pass
     except Exception:
-        if rclpy.ok():
+        if ok():
             raise
         # rclpy calls made while the context shuts down fail: the node is stopping anyway
     finally:
         executor.shutdown()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
     return 0
 
 

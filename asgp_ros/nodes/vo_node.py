@@ -24,6 +24,7 @@ from __future__ import annotations
 import collections
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -33,7 +34,9 @@ from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import CameraInfo, Image
 
 from asgp_ros import topics
@@ -61,7 +64,7 @@ _JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the o
 class VONode(Node):
     """See the module docstring."""
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__("vo_node", **kwargs)
         # raises ValueError naming the parameter: the node does not start with bad values
         self.params: VONodeParams = vo_node_params(declare(self, PARAMS))
@@ -72,8 +75,8 @@ class VONode(Node):
         self._odom_pub = (self.create_publisher(Odometry, topics.VO_ODOM, reliable)
                           if p.publish_odom else None)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
-        self._color: collections.deque = collections.deque(maxlen=_BUFFER)
-        self._depth: collections.deque = collections.deque(maxlen=_BUFFER)
+        self._color: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
+        self._depth: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
         self._wake = self.create_guard_condition(self._process_newest)
         self.create_subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data)
         self.create_subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
@@ -86,10 +89,10 @@ class VONode(Node):
         self._K: np.ndarray | None = None
         self._info_size: tuple[int, int] | None = None
         self._last_stamp: float | None = None  # last processed pair (colour stamp)
-        self._last_processed_wall = None  # time.monotonic() of the last processed pair
+        self._last_processed_wall: float | None = None  # time.monotonic() of the last pair
         self.last_result: VOResult | None = None
         self._last_problem = ""  # conversion error of the last pair, if any
-        self._elapsed = collections.deque(maxlen=100)
+        self._elapsed: collections.deque[float] = collections.deque(maxlen=100)
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
                       "twists": 0, "resets": 0, "camera_info_errors": 0}
         self.get_logger().info(
@@ -99,7 +102,7 @@ class VONode(Node):
 
     # -- parameters ----------------------------------------------------------------------
 
-    def _on_set_parameters(self, changes) -> SetParametersResult:
+    def _on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         for change in changes:
             if change.name in SPECS:
                 return SetParametersResult(
@@ -139,7 +142,7 @@ class VONode(Node):
         self._last_stamp = None
         self._wake.trigger()
 
-    def _take_pair(self):
+    def _take_pair(self) -> tuple[float, Image, Image] | None:
         """Newest colour message with a depth partner within tolerance; drops older ones."""
         tol = self.params.sync_tolerance_s
         if not self._color or not self._depth:
@@ -269,7 +272,7 @@ class VONode(Node):
             self.get_clock().now().nanoseconds * 1e-9, [status]))
 
 
-def main(args=None) -> int:
+def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT or SIGTERM (rclpy's handlers shut the context down, which
     ends the spin at once, whatever the node is doing). Exit code 1: bad parameters."""
     rclpy.init(args=args)
@@ -280,7 +283,7 @@ def main(args=None) -> int:
         try:
             node = VONode()
         except ValueError as exc:  # a parameter out of its range
-            if not rclpy.ok():
+            if not ok():
                 return 0
             rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
             return 1
@@ -288,7 +291,7 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
-        if rclpy.ok():
+        if ok():
             raise
         # a callback (a publish) or the executor met the context a signal had just shut
         # down: the node is stopping anyway
@@ -296,7 +299,7 @@ def main(args=None) -> int:
         executor.shutdown()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
     return 0
 
 
