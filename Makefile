@@ -36,7 +36,7 @@ bench: setup
 
 lint: setup
 	$(VPY) -m ruff check asgp_ros test benchmarks
-	$(VPY) -m mypy asgp_ros/core
+	$(VPY) -m mypy --strict asgp_ros/core asgp_ros/nodes
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache
