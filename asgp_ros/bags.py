@@ -221,7 +221,25 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
             f"{p}: not a bag: expected a ROS 1 .bag file or a ROS 2 bag directory "
             "(with metadata.yaml)"
         )
+    _check_ros1_magic(p)
     return p
+
+
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+
+
+def _check_ros1_magic(p: Path) -> None:
+    """A ROS 1 bag starts with its version line. Checked here in 13 bytes because the
+    reader looks for the end of that line with ``readline()``: in a file of zeros (a sparse
+    or overwritten file) it would read the whole file looking for it."""
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(len(ROS1_MAGIC))
+    except OSError as exc:
+        raise BagError(f"{p}: cannot be read: {_one_line(exc.strerror or exc)}") from None
+    if head != ROS1_MAGIC:
+        raise BagError(f"{p}: not a ROS 1 bag (version 2.0): it does not start with "
+                       f"'#ROSBAG V2.0'")
 
 
 _resolve = resolve_bag

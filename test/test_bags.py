@@ -462,3 +462,15 @@ def test_out_of_range_samples_in_a_bag_are_reported(rec, tmp_path, caplog):
         s = read_streams(bad)
     assert s.joy[5, 0] == 3.0  # read as recorded
     assert "1 of" in caplog.text and "joystick samples on /joy" in caplog.text
+
+
+def test_a_ros1_bag_without_its_version_line_is_refused_at_once(tmp_path):
+    """The ROS 1 reader looks for the end of the version line with readline(): a sparse
+    1 TiB file of zeros named .bag made it read for ever."""
+    from asgp_ros.bags import BagError, read_streams
+
+    huge = tmp_path / "huge.bag"
+    with open(huge, "wb") as fh:
+        fh.truncate(1 << 40)  # sparse: takes no disk space
+    with pytest.raises(BagError, match="not a ROS 1 bag"):
+        read_streams(huge)
