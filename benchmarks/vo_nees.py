@@ -1,0 +1,314 @@
+"""Consistency of the VO covariance: NEES of the planar motion increments on rendered drives.
+
+For every tracked frame k the odometry reports ``motion`` (camera pose in the previous
+tracked frame, or in the new reference after a re-initialisation) and ``covariance``; the
+chair's planar increment since that frame is
+
+    Tb = T_bc motion T_bc^-1,    e = (x, y, yaw) of inv(Tb) T_true,
+
+the right-perturbation error of the base_link increment, with the covariance
+S = (Ad(T_bc) covariance Ad(T_bc)^T) restricted to (x, y, yaw) (what
+:class:`asgp_ros.vo.planar.PlanarOdometry` folds into the ``vo/odom`` pose covariance;
+``vo/odom``'s twist and its covariance are the same quantities divided by dt and dt^2).
+NEES = e^T S^-1 e is chi-square with 3 degrees of freedom for a consistent covariance:
+95 % of the frames should lie below 7.815, its mean should be 3.
+
+Printed per drive: tracked frames, the share inside the 95 % bound (all tracked frames and
+those within ``--near`` frames of a tracking loss, i.e. of a frame whose status is not ok),
+the mean and the largest NEES, and the same pooled over the calibration and the held-out
+drives.
+
+Drives (:func:`drives`): a loop in the tiled room (``rich``), the same loop on carpet in the
+feature-poor room (``poor``), the turn to the blank wall and back (``blank``) and a drive
+through the dim zone that turns toward the dim wall and back (``dim``, built from the
+scene's own ``dim_zone``: :func:`dim_zone_drive`). Calibration: seed 0 at 30 Hz and seed 5
+at 15 Hz; held out: seeds 1-4 (other textures, furniture and sensor noise; 30, 15, 30 and
+20 Hz; other loop speeds; the dim drive turning the other way for seeds 1 and 4).
+``--calibrate`` runs the calibration drives with ``covariance_scale`` = 1 and prints the
+scale that puts 95 % of their frames, and of their near-loss frames, inside the bound (the
+NEES scales as 1 / scale).
+
+    python benchmarks/vo_nees.py             # all drives (a few minutes)
+    python benchmarks/vo_nees.py --quick     # shorter drives
+    python benchmarks/vo_nees.py --calibrate  # the scale from the calibration drives
+    python benchmarks/vo_nees.py --reference 5939bd4   # another revision's odometry
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core: before numpy is imported
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import cv2
+import numpy as np
+
+from asgp_ros.sim.render import RGBDRenderer
+from asgp_ros.sim.scene import (
+    Drive,
+    Scene,
+    blank_wall_drive,
+    build_scene,
+    loop_drive,
+    segment_drive,
+)
+from asgp_ros.vo import DEFAULT_EXTRINSIC, Status, VisualOdometry, VOResult
+from asgp_ros.vo.extrinsics import adjoint, invert, planar_pose
+
+REPO = Path(__file__).resolve().parents[1]
+CHI2_3_95 = 7.814727903251178  # 95 % quantile of chi-square with 3 degrees of freedom
+NEAR_LOSS = 5  # frames on either side of a loss that count as "next to a loss"
+
+
+@dataclass(frozen=True)
+class DriveSpec:
+    """One rendered drive: which drive, scene, seeds and rate, and its role."""
+
+    name: str
+    kind: str  # rich | poor | blank | dim
+    scene_seed: int
+    render_seed: int
+    rate: float
+    seconds: float
+    role: str  # calibration | held-out
+    speed: float = 0.55  # loop speed (rich, poor)
+    mirror: bool = False  # dim drive: the turn to the other side first
+
+
+def drives(quick: bool = False) -> list[DriveSpec]:
+    """The calibration drives (seeds 0 and 5) and the held-out drives (seeds 1-4)."""
+    s = 0.5 if quick else 1.0
+    out = []
+    for seed, rate, role, speed, mirror in ((0, 30.0, "calibration", 0.55, False),
+                                            (5, 15.0, "calibration", 0.6, True),
+                                            (1, 30.0, "held-out", 0.7, True),
+                                            (2, 15.0, "held-out", 0.45, False),
+                                            (3, 30.0, "held-out", 0.6, False),
+                                            (4, 20.0, "held-out", 0.5, True)):
+        rseed = 0 if seed == 0 else 100 + seed
+        out += [DriveSpec(f"rich-{seed}", "rich", seed, rseed, rate, 12.0 * s, role, speed),
+                DriveSpec(f"poor-{seed}", "poor", seed, rseed, rate, 12.0 * s, role, speed),
+                DriveSpec(f"blank-{seed}", "blank", seed, rseed, rate, 12.0, role),
+                DriveSpec(f"dim-{seed}", "dim", seed, rseed, rate, 14.0, role, mirror=mirror)]
+    return out
+
+
+def dim_zone_drive(scene: Scene, rate: float, mirror: bool = False) -> Drive:
+    """Through the dim zone along the +y wall, a turn that points the backward camera at
+    the dim wall, and back out.
+
+    Built from the scene's own ``dim_zone`` and room: start 1 m inside the zone's -x edge,
+    1.5 m from the +y wall, heading +x; drive 3 m, turn 70 degrees (right, or left first
+    with ``mirror``: then the camera looks along the wall), stand, turn back, drive on.
+    """
+    assert scene.dim_zone is not None, "the dim-zone drive needs a 'poor' scene"
+    zx0, _, _, _ = scene.dim_zone
+    y = scene.room.y_max - 1.5
+    turn = math.radians(70.0) / 0.6
+    sign = 1.0 if mirror else -1.0
+    segments = [(0.5, 0.0, 6.0), (0.0, 0.6 * sign, turn), (0.0, 0.0, 1.0),
+                (0.0, -0.6 * sign, turn), (0.5, 0.0, 2.0)]
+    return segment_drive((zx0 + 1.0, y, 0.0), segments, rate)
+
+
+def make_drive(spec: DriveSpec, scene: Scene) -> Drive:
+    if spec.kind in ("rich", "poor"):
+        return loop_drive(spec.seconds, spec.rate, speed=spec.speed)
+    if spec.kind == "blank":
+        drive = blank_wall_drive(spec.rate, scene=scene)
+    elif spec.kind == "dim":
+        drive = dim_zone_drive(scene, spec.rate, spec.mirror)
+    else:
+        raise ValueError(f"unknown drive kind {spec.kind!r}")
+    return drive.head(min(len(drive), int(spec.seconds * spec.rate) + 1))
+
+
+def load_reference(rev: str) -> ModuleType:
+    """``asgp_ros/vo/odometry.py`` of revision ``rev``, imported as ``_ref_odometry``.
+
+    Extracted with ``git show`` into a temporary directory; its imports of ``asgp_ros``
+    resolve to the working tree. Raises RuntimeError when git does not know ``rev``.
+    """
+    try:
+        source = subprocess.run(
+            ["git", "-C", str(REPO), "show", f"{rev}:asgp_ros/vo/odometry.py"],
+            check=True, capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError) as err:
+        detail = getattr(err, "stderr", "") or err
+        raise RuntimeError(f"cannot read odometry.py of {rev}: {detail}") from err
+    with tempfile.TemporaryDirectory(prefix="asgp_reference_") as tmp:
+        path = Path(tmp) / "_ref_odometry.py"
+        path.write_text(source)
+        spec = importlib.util.spec_from_file_location("_ref_odometry", path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["_ref_odometry"] = module  # dataclasses look their module up
+        spec.loader.exec_module(module)
+    return module
+
+
+def run_drive(spec: DriveSpec, covariance_scale: float | None = None,
+              odometry: ModuleType | None = None, **options):
+    """Render the drive and run the VO frame by frame: (drive, results).
+
+    ``covariance_scale`` replaces :attr:`VisualOdometry.covariance_scale` (calibration);
+    ``odometry`` is another revision's module (:func:`load_reference`).
+    """
+    preset = "rich" if spec.kind == "rich" else "poor"
+    scene = build_scene(preset=preset, seed=spec.scene_seed)
+    renderer = RGBDRenderer(scene, seed=spec.render_seed)
+    drive = make_drive(spec, scene)
+    vo = (VisualOdometry if odometry is None else odometry.VisualOdometry)(renderer.K,
+                                                                          **options)
+    if covariance_scale is not None:
+        vo.covariance_scale = covariance_scale
+    results = []
+    for k in range(len(drive)):
+        T = DEFAULT_EXTRINSIC.camera_pose_planar(drive.x[k], drive.y[k], drive.theta[k])
+        results.append(vo.process(*renderer.render(T), float(drive.t[k])))
+    return drive, results
+
+
+def near_loss(results: list[VOResult], n: int = NEAR_LOSS) -> np.ndarray:
+    """[len(results)] bool: a frame not ok (other than the first) within n frames."""
+    lost = np.array([k > 0 and not r.ok for k, r in enumerate(results)])
+    near = np.zeros(len(results), bool)
+    for k in np.flatnonzero(lost):
+        near[max(0, k - n):k + n + 1] = True
+    return near
+
+
+def planar_errors(drive: Drive, results: list[VOResult], extrinsic=DEFAULT_EXTRINSIC):
+    """Per tracked frame: (k, e [3], S [3, 3]) of the base_link increment (module doc)."""
+    Tbc = extrinsic.T_base_optical
+    Ad = adjoint(Tbc)
+    sel = [0, 1, 5]
+    out = []
+    prev = 0
+    for k, r in enumerate(results):
+        if r.ok and r.motion is not None and r.covariance is not None:
+            est = Tbc @ r.motion @ invert(Tbc)
+            true = invert(planar_pose(drive.x[prev], drive.y[prev], drive.theta[prev])) \
+                @ planar_pose(drive.x[k], drive.y[k], drive.theta[k])
+            E = invert(est) @ true
+            e = np.array([E[0, 3], E[1, 3], math.atan2(E[1, 0], E[0, 0])])
+            S = (Ad @ r.covariance @ Ad.T)[np.ix_(sel, sel)]
+            out.append((k, e, S))
+        if r.ok or r.reset or r.status.value == Status.REFERENCE_SET.value:
+            prev = k  # the next motion starts here
+    return out
+
+
+def nees(e: np.ndarray, S: np.ndarray) -> float:
+    """e^T S^-1 e by a Cholesky solve (inf when S is not positive definite)."""
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return math.inf
+    z = np.linalg.solve(L, e)
+    return float(z @ z)
+
+
+def evaluate(drive: Drive, results: list[VOResult], near: int = NEAR_LOSS) -> dict:
+    """Per-frame NEES and its summary for one run."""
+    nl = near_loss(results, near)
+    recs = planar_errors(drive, results)
+    ks = np.array([k for k, _, _ in recs], int)
+    values = np.array([nees(e, S) for _, e, S in recs])
+    return {"frames": len(results), "k": ks.tolist(), "nees": values.tolist(),
+            "near": nl[ks].tolist() if len(ks) else [],
+            "inliers": [results[k].num_inliers for k in ks]}
+
+
+def summary(values, near) -> dict:
+    v = np.asarray(values, float)
+    m = np.asarray(near, bool)
+    inside = v <= CHI2_3_95
+
+    def share(mask):
+        return float(np.mean(inside[mask])) if np.any(mask) else math.nan
+
+    every = np.ones(len(v), bool)
+    return {"n": len(v), "inside": share(every), "n_near": int(m.sum()),
+            "inside_near": share(m),
+            "mean": float(np.mean(v)) if len(v) else math.nan,
+            "max": float(np.max(v)) if len(v) else math.nan}
+
+
+def _row(name: str, role: str, tracked: str, s: dict) -> str:
+    near = "-" if s["n_near"] == 0 else f"{100 * s['inside_near']:5.1f} %"
+    return (f"| {name} | {role} | {tracked} | {100 * s['inside']:5.1f} % | {s['n_near']} | "
+            f"{near} | {s['mean']:.2f} | {s['max']:.1f} |")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="shorter loop drives")
+    ap.add_argument("--role", choices=("calibration", "held-out", "all"), default="all")
+    ap.add_argument("--near", type=int, default=NEAR_LOSS,
+                    help="frames either side of a loss counted as near it")
+    ap.add_argument("--only", nargs="*", help="drive names to run (default all)")
+    ap.add_argument("--json", help="also write the per-frame values to this JSON file")
+    ap.add_argument("--reference", metavar="REV",
+                    help="run the odometry of this git revision instead (e.g. the covariance "
+                         "before this model)")
+    ap.add_argument("--calibrate", action="store_true",
+                    help="run the calibration drives with covariance_scale = 1 and print the "
+                         "scale that puts 95 %% of their frames, and of their near-loss "
+                         "frames, inside the bound")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    if args.calibrate:
+        args.role = "calibration"
+    scale = 1.0 if args.calibrate else None
+    odometry = load_reference(args.reference) if args.reference else None
+    specs = [s for s in drives(args.quick) if args.role in ("all", s.role)]
+    if args.only:
+        specs = [s for s in specs if s.name in args.only]
+    print(f"NEES of the (x, y, yaw) base_link increment per tracked frame; 95 % bound "
+          f"{CHI2_3_95:.3f} (chi-square, 3 dof); near = within {args.near} frames of a loss\n")
+    print("| drive | role | tracked | inside 95 % | near-loss frames | inside (near) | "
+          "mean NEES | max NEES |")
+    print("|---|---|---|---|---|---|---|---|")
+    report, pooled = [], {}
+    for spec in specs:
+        drive, results = run_drive(spec, covariance_scale=scale, odometry=odometry)
+        ev = evaluate(drive, results, args.near)
+        s = summary(ev["nees"], ev["near"])
+        tracked = f"{len(ev['k'])}/{len(results) - 1}"
+        print(_row(spec.name, spec.role, tracked, s), flush=True)
+        report.append({"drive": spec.name, "role": spec.role, "summary": s, **ev})
+        acc = pooled.setdefault(spec.role, ([], []))
+        acc[0].extend(ev["nees"])
+        acc[1].extend(ev["near"])
+    for role, (values, near) in pooled.items():
+        print(_row(f"**all {role}**", role, str(len(values)), summary(values, near)))
+    if args.calibrate:
+        values, near = (np.asarray(a) for a in pooled["calibration"])
+        q_all = float(np.quantile(values, 0.95))
+        q_near = float(np.quantile(values[near.astype(bool)], 0.95)) if near.any() else 0.0
+        print(f"\ncalibration: 95 % quantile of the NEES at scale 1: {q_all:.3f} (all), "
+              f"{q_near:.3f} (near a loss); covariance_scale = "
+              f"{max(q_all, q_near) / CHI2_3_95:.3f}")
+    if args.json:
+        from asgp_ros.fileio import atomic_write_text
+        atomic_write_text(args.json, json.dumps(report, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
