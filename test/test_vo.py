@@ -83,7 +83,7 @@ def test_gauss_newton_jacobians_and_convergence():
         Xm = P @ (od._se3_exp(-d) @ T0)[:3, :3].T + (od._se3_exp(-d) @ T0)[:3, 3]
         Jn[:, k] = ((vo._project(Xp) - vo._project(Xm)) / 2e-6).reshape(-1)
     np.testing.assert_allclose(J, Jn, rtol=1e-5, atol=1e-4)
-    T, H, cost, ok = vo._gauss_newton(T0, P, Q, uv_ref, uv_cur, np.ones(60))
+    T, H, cost, ok, _ = vo._gauss_newton(T0, P, Q, uv_ref, uv_cur, np.ones(60))
     assert ok and cost < 1e-12
     np.testing.assert_allclose(T, T_true, atol=1e-9)
     assert np.all(np.linalg.eigvalsh(H) > 0)

@@ -31,8 +31,29 @@ section 3:
    error is too high, or that implies an implausible speed is rejected with a status;
 8. keyframe: the reference frame is kept while at least ``ref_frame_change_threshold``
    inliers remain; otherwise the current frame becomes the reference;
-9. covariance: sigma^2 (J^T W J)^-1 of the final Gauss-Newton step, sigma^2 from the
-   residuals.
+9. covariance of the estimate T_cur_ref, H^-1 (M + B) H^-1 t s with H = J^T W J of the last
+   Gauss-Newton step (a sandwich estimate: Huber 1967, White 1980):
+
+   * M = 2 sigma^2 H, the model part: a match's forward and backward residuals are one
+     measurement seen twice (correlation about -1), so the n inliers give 2 n independent
+     residuals, sigma^2 = cost / (2 (2 n - 6)) on nu = 2 n - 6 degrees of freedom and the
+     information is H / 2; sigma^2 is at least the variance eps^2 / 3 of the uniform error
+     that Lucas-Kanade's stopping step eps = 0.03 px leaves;
+   * B, the cluster-robust part (Liang & Zeger 1986): the outer products of the inliers'
+     gradients J_i^T W r_i summed per ``bucket_size`` image cell (G cells, factor
+     G / (G - 1) (n - 1) / (n - 6)); errors that nearby features share, which the
+     residuals do not show to M, count once per cell;
+   * t = d / (d - 2), the Student-t predictive factor, with d the Welch-Satterthwaite
+     degrees of freedom of M + B (nu for M, G - 1 for B): the covariance grows when the
+     inliers are few or bunched in a few cells (degenerate geometry), on top of the growth
+     of H^-1 itself;
+   * s = :attr:`VisualOdometry.covariance_scale`, calibrated on rendered drives so that
+     95 % of the frames' planar increments fall inside their 95 % ellipsoid
+     (``benchmarks/vo_nees.py``; ``docs/vo_nees.md`` has the held-out figures).
+
+   The reported ``covariance`` is that of ``motion``: when the reference was kept,
+   motion = T_ref_prev^-1 T_ref_cur, and the previous frame's covariance, moved into the
+   current frame by the adjoint, is added (two estimates taken as independent).
 
 Honest failure: a frame that cannot be tracked returns a failure :class:`Status`, no motion
 and no twist; the pose is held and the next frame is matched against the last good
@@ -53,14 +74,16 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic, invert
+from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic, adjoint, invert
 
 _log = logging.getLogger(__name__)
 
 PATCH = 9  # descriptor patch side (px)
+_LK_EPS = 0.03  # Lucas-Kanade stops when its step is below this (level px)
 _HALF = PATCH // 2
 _BORDER = _HALF + 2
 
@@ -165,9 +188,10 @@ class VOResult:
             frame (the previous frame unless frames were lost in between); None unless ok.
         pose: [4, 4] pose of the current camera in the first frame's camera frame (held at
             the last tracked pose when not ok).
-        covariance: [6, 6] covariance of the estimated camera motion relative to the
-            reference frame, as a body-frame perturbation (tx, ty, tz, rx, ry, rz) in the
-            current optical frame (m^2, rad^2); None unless ok.
+        covariance: [6, 6] covariance of ``motion``, as a perturbation (tx, ty, tz, rx, ry,
+            rz) on its right, in the current optical frame (m^2, rad^2): the true motion is
+            motion exp(e) with e of this covariance (step 9 of the module docstring); None
+            unless ok.
         dt: time since the previous tracked frame (s); None unless ok.
         twist: (v m/s, omega rad/s) of base_link from ``motion``, ``dt`` and the extrinsic;
             None unless ok, and None when dt > ``max_twist_interval`` (after a loss the
@@ -240,6 +264,7 @@ class _GaussNewton(NamedTuple):
     H: np.ndarray  # [6, 6] J^T W J at the last linearisation point
     cost: float  # weighted squared residual sum there
     ok: bool
+    scores: np.ndarray  # [n, 6] per match J_i^T W_i r_i there (its four residuals)
 
 
 class _Refinement(NamedTuple):
@@ -250,15 +275,17 @@ class _Refinement(NamedTuple):
     H: np.ndarray  # [6, 6] J^T W J of the last Gauss-Newton step
     cost: float  # its weighted squared residual sum (level px^2)
     error: float  # mean inlier reprojection error (level px)
+    scores: np.ndarray  # [k, 6] per-inlier gradients J_i^T W_i r_i of that step
 
 
 class _Covariance(NamedTuple):
-    """Covariance of the refined motion (step 9)."""
+    """Covariance of the refined motion T_cur_ref (step 9)."""
 
     covariance: np.ndarray  # [6, 6] of (tx, ty, tz, rx, ry, rz) in the current optical frame
-    sigma2: float  # residual variance (level px^2) scaling H^-1
-    dof: int  # degrees of freedom of sigma2: 4 residuals per inlier - 6
-    translation_std: float  # largest translation standard deviation (m)
+    sigma2: float  # residual variance per independent residual (level px^2)
+    dof: float  # effective degrees of freedom of the covariance estimate
+    cells: int  # image cells holding inliers (clusters of the score covariance)
+    translation_std: float  # largest translation std of the acceptance test (m)
 
 
 class _Attempt(NamedTuple):
@@ -292,6 +319,10 @@ class VisualOdometry:
         **options: fields of :class:`VOOptions`.
     """
 
+    #: Calibrated scale of the covariance model (module docstring, step 9):
+    #: ``benchmarks/vo_nees.py --calibrate`` on the calibration drives.
+    covariance_scale: float = 1.2
+
     def __init__(self, camera_matrix, extrinsic: CameraExtrinsic = DEFAULT_EXTRINSIC,
                  image_size: tuple[int, int] | None = None, **options) -> None:
         K = np.asarray(camera_matrix, dtype=float)
@@ -315,6 +346,7 @@ class VisualOdometry:
         """Forget the reference frame and the pose (the next frame starts a new track)."""
         self._ref: _Frame | None = None
         self._T_ref_prev = np.eye(4)  # pose of the last tracked frame in the reference frame
+        self._ref_prev_cov = np.zeros((6, 6))  # its covariance (0: it is the reference)
         self._step = np.eye(4)  # last frame-to-frame camera motion (for the prediction)
         self._step_dt: float | None = None
         self._pose = np.eye(4)  # pose of the last tracked frame in the first frame
@@ -429,6 +461,7 @@ class VisualOdometry:
         frame.pose = self._pose.copy()
         self._ref = frame
         self._T_ref_prev = np.eye(4)
+        self._ref_prev_cov = np.zeros((6, 6))
         self._step = np.eye(4)
         self._step_dt = None
         self._ok_stamp = frame.stamp
@@ -550,7 +583,6 @@ class VisualOdometry:
             res.num_matches, res.num_inliers, res.reprojection_error = nmatch, ninl, err
             return res
         assert attempt.T_cur_ref is not None and attempt.covariance is not None
-        cov = attempt.covariance
         T_ref_cur = invert(attempt.T_cur_ref)
         assert ref.pose is not None and self._ok_stamp is not None
         pose = ref.pose @ T_ref_cur
@@ -566,6 +598,12 @@ class VisualOdometry:
                              len(cur.level))
             res.num_matches, res.num_inliers, res.reprojection_error = nmatch, ninl, err
             return res
+        # covariance of ``motion`` = T_ref_prev^-1 T_ref_cur: that of T_ref_cur plus that of
+        # T_ref_prev moved into the current frame (independent estimates, first order:
+        # exp(-a) M exp(b) = M exp(b - Ad(M^-1) a)); T_ref_prev = I when it is the reference
+        A = adjoint(invert(motion))
+        cov = attempt.covariance + A @ self._ref_prev_cov @ A.T
+        cov = 0.5 * (cov + cov.T)
         self._step, self._step_dt = motion, dt
         self._pose = pose
         self._ok_stamp = cur.stamp
@@ -575,8 +613,10 @@ class VisualOdometry:
             cur.pose = pose.copy()
             self._ref = cur
             self._T_ref_prev = np.eye(4)
+            self._ref_prev_cov = np.zeros((6, 6))
         else:
             self._T_ref_prev = T_ref_cur
+            self._ref_prev_cov = attempt.covariance
         twist, twist_cov = None, None
         if dt <= o.max_twist_interval:  # else an average over a gap, not the current twist
             twist = self.extrinsic.planar_twist(motion, dt)
@@ -594,7 +634,7 @@ class VisualOdometry:
             matches = self._match(ref, cur, T_cur_ref_pred, radius)
             clique = self._clique(matches)
             fit = self._refine(matches, clique)
-            cov = self._covariance(fit, len(matches.P))
+            cov = self._covariance(matches, fit)
         except _RejectedError as rejected:
             return rejected.attempt
         return _Attempt(Status.OK, fit.T, cov.covariance, len(fit.inliers), len(matches.P),
@@ -672,8 +712,8 @@ class VisualOdometry:
         P, Q, uv_ref, uv_cur, w = m.P, m.Q, m.uv_ref, m.uv_cur, m.w
         T = _umeyama(P[inl], Q[inl])
         for round_ in range(4):
-            T, H, r2, ok_gn = self._gauss_newton(T, P[inl], Q[inl], uv_ref[inl], uv_cur[inl],
-                                                 w[inl])
+            T, H, r2, ok_gn, scores = self._gauss_newton(T, P[inl], Q[inl], uv_ref[inl],
+                                                         uv_cur[inl], w[inl])
             if not ok_gn:
                 raise _RejectedError(Status.OPTIMIZATION_FAILURE,
                                      "Gauss-Newton diverged or was singular",
@@ -696,38 +736,72 @@ class VisualOdometry:
             raise _RejectedError(Status.REPROJECTION_ERROR_TOO_HIGH,
                                  f"mean reprojection error {err:.2f} px",
                                  num_inliers=len(inl), num_matches=nmatch, error=err)
-        return _Refinement(T=T, inliers=inl, H=H, cost=r2, error=err)
+        return _Refinement(T=T, inliers=inl, H=H, cost=r2, error=err, scores=scores)
 
-    def _covariance(self, fit: _Refinement, nmatch: int) -> _Covariance:
-        """Step 9: covariance [6, 6] sigma^2 H^-1 of the refined motion (H = J^T W J of the
-        last Gauss-Newton step, sigma^2 from the weighted residuals).
+    def _covariance(self, m: _Matches, fit: _Refinement) -> _Covariance:
+        """Step 9: covariance [6, 6] of the refined T_cur_ref (the module docstring's model).
 
-        Raises :class:`_RejectedError` when it is singular or not finite, or when its
-        translation part exceeds ``max_translation_std`` (the inliers do not constrain the
-        motion).
+        Raises :class:`_RejectedError` when the information matrix is singular or the
+        covariance not finite, or when the translation std of the acceptance test exceeds
+        ``max_translation_std`` (the inliers do not constrain the motion).
         """
         o = self.options
-        ninl, err = len(fit.inliers), fit.error
-        # 9. covariance sigma^2 H^-1 (H = J^T W J), sigma^2 from the weighted residuals
-        dof = max(1, 4 * ninl - 6)
-        sigma2 = max(fit.cost / dof, 0.05)
+        n, nmatch, err = len(fit.inliers), len(m.P), fit.error
+
+        def reject(status: Status, message: str) -> _RejectedError:
+            return _RejectedError(status, message, num_inliers=n, num_matches=nmatch,
+                                  error=err)
+
+        # acceptance test: translation std of sigma^2 H^-1 with sigma^2 >= 0.05 level px^2
+        dof4 = max(1, 4 * n - 6)
         try:
-            cov = sigma2 * np.linalg.inv(fit.H)  # 6x6 SPD: an explicit inverse is fine here
+            gate = max(fit.cost / dof4, 0.05) * np.linalg.inv(fit.H)
         except np.linalg.LinAlgError:
-            raise _RejectedError(Status.OPTIMIZATION_FAILURE, "singular information matrix",
-                                 num_inliers=ninl, num_matches=nmatch, error=err) from None
-        if not np.all(np.isfinite(cov)):
-            raise _RejectedError(Status.OPTIMIZATION_FAILURE, "non-finite covariance",
-                                 num_inliers=ninl, num_matches=nmatch, error=err)
-        cov = 0.5 * (cov + cov.T)
-        t_std = math.sqrt(max(float(np.linalg.eigvalsh(cov[:3, :3])[-1]), 0.0))
+            raise reject(Status.OPTIMIZATION_FAILURE, "singular information matrix") from None
+        if not np.all(np.isfinite(gate)):
+            raise reject(Status.OPTIMIZATION_FAILURE, "non-finite covariance")
+        gate = 0.5 * (gate + gate.T)
+        t_std = math.sqrt(max(float(np.linalg.eigvalsh(gate[:3, :3])[-1]), 0.0))
         if t_std > o.max_translation_std:
             # inliers bunched on one small object or all far away: the fit is ill-posed
-            raise _RejectedError(Status.INSUFFICIENT_INLIERS,
-                                 f"{ninl} inliers do not constrain the motion "
-                                 f"(translation std {1e3 * t_std:.1f} mm)",
-                                 num_inliers=ninl, num_matches=nmatch, error=err)
-        return _Covariance(covariance=cov, sigma2=sigma2, dof=dof, translation_std=t_std)
+            raise reject(Status.INSUFFICIENT_INLIERS,
+                         f"{n} inliers do not constrain the motion "
+                         f"(translation std {1e3 * t_std:.1f} mm)")
+        try:
+            factor = cho_factor(fit.H)
+        except np.linalg.LinAlgError:
+            raise reject(Status.OPTIMIZATION_FAILURE, "singular information matrix") from None
+        Hi = cho_solve(factor, np.eye(6))
+        # (a) model part: a match's forward and backward residuals are one measurement seen
+        # twice (their correlation is about -1), so 2 n independent residuals: sigma^2 =
+        # cost / (2 (2 n - 6)) per residual, on nu = 2 n - 6 degrees of freedom, and the
+        # information is H / 2; sigma^2 is at least the Lucas-Kanade stopping step's
+        # uniform variance
+        nu = 2 * n - 6
+        sigma2 = max(fit.cost / (2.0 * nu), _LK_EPS**2 / 3.0)
+        model = 2.0 * sigma2 * Hi
+        # (b) cluster-robust part (Liang & Zeger 1986, with the CR1 small-sample factor): the
+        # inliers' scores J_i^T W r_i summed per bucket_size image cell, so that errors that
+        # nearby features share (and the residuals hide from (a)) count once per cell;
+        # G cells give it G - 1 degrees of freedom (Cameron & Miller 2015, "A practitioner's
+        # guide to cluster-robust inference", J. Human Resources 50(2), section VI)
+        cell = np.floor(m.uv_cur[fit.inliers] / o.bucket_size).astype(np.int64)
+        _, index = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
+        G = int(index.max()) + 1
+        S = np.zeros((G, 6))
+        np.add.at(S, index.ravel(), fit.scores)
+        clustered = (Hi @ (S.T @ S) @ Hi) * (G / max(G - 1, 1) * (n - 1) / (n - 6))
+        # degrees of freedom of the sum (Welch-Satterthwaite on tr(H C), unit-free), and the
+        # Student-t predictive factor dof / (dof - 2): the covariance grows as the inliers
+        # become few or bunched in few cells
+        a, b = 2.0 * sigma2 * 6.0, float(np.trace(fit.H @ clustered))
+        dof = max((a + b) ** 2 / (a * a / nu + b * b / max(G - 1, 1)), 3.0)
+        cov = (self.covariance_scale * dof / (dof - 2.0)) * (model + clustered)
+        cov = 0.5 * (cov + cov.T)
+        if not np.all(np.isfinite(cov)):
+            raise reject(Status.OPTIMIZATION_FAILURE, "non-finite covariance")
+        return _Covariance(covariance=cov, sigma2=sigma2, dof=dof, cells=G,
+                           translation_std=t_std)
 
     def _reprojection_errors(self, T, P, Q, uv_ref, uv_cur) -> np.ndarray:
         """Per match max of forward and backward reprojection error (px) [n]."""
@@ -755,12 +829,13 @@ class VisualOdometry:
         prev_cost = math.inf
         H = np.eye(6)
         cost = math.inf
+        scores = np.zeros((len(P), 6))
         for _ in range(self.options.gauss_newton_iterations):
             R, t = T[:3, :3], T[:3, 3]
             X = P @ R.T + t
             Y = (Q - t) @ R
             if np.any(X[:, 2] <= 1e-3) or np.any(Y[:, 2] <= 1e-3):
-                return _GaussNewton(T, H, cost, False)
+                return _GaussNewton(T, H, cost, False, scores)
             rf = self._project(X) - uv_cur
             rb = self._project(Y) - uv_ref
             Jf = _jac_forward(X, fx, fy)  # [n, 2, 6]
@@ -772,19 +847,22 @@ class VisualOdometry:
             cost = float(np.sum(wr * r * r))
             H = J.T @ (J * wr[:, None])
             g = J.T @ (wr * r)
+            # per match: its two forward rows (first 2n) and its two backward rows
+            Jr = (J * (wr * r)[:, None]).reshape(2, len(P), 2, 6)
+            scores = Jr.sum(axis=(0, 2))
             try:
                 delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
             except np.linalg.LinAlgError:
-                return _GaussNewton(T, H, cost, False)
+                return _GaussNewton(T, H, cost, False, scores)
             if not np.all(np.isfinite(delta)):
-                return _GaussNewton(T, H, cost, False)
+                return _GaussNewton(T, H, cost, False, scores)
             T = _se3_exp(delta) @ T
             if abs(prev_cost - cost) < 1e-4 * max(cost, 1e-12) or np.linalg.norm(delta) < 1e-7:
                 break
             prev_cost = cost
         if not math.isfinite(cost) or np.linalg.norm(T[:3, 3]) > 10.0:
-            return _GaussNewton(T, H, cost, False)
-        return _GaussNewton(T, H, cost, True)
+            return _GaussNewton(T, H, cost, False, scores)
+        return _GaussNewton(T, H, cost, True, scores)
 
 
 # ----------------------------------------------------------------------------------------
@@ -850,7 +928,7 @@ def _subpixel(ref: _Frame, cur: _Frame, mi: np.ndarray,
         p1 = cur.xy[mj[sel]].reshape(-1, 1, 2).astype(np.float32).copy()
         p1r, st, _ = cv2.calcOpticalFlowPyrLK(
             ref.levels[lv], cur.levels[lv], p0, p1, winSize=(PATCH, PATCH), maxLevel=0,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03),
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, _LK_EPS),
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
         p1r = p1r.reshape(-1, 2)
         shift = np.abs(p1r - p1.reshape(-1, 2)).max(axis=1)
