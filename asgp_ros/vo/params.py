@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from asgp_ros.paramspec import ParamSpec, check_values
+from asgp_ros.topics import CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO
 from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic
 from asgp_ros.vo.odometry import VOOptions
 
@@ -16,12 +17,12 @@ _E = DEFAULT_EXTRINSIC
 _O = VOOptions()
 
 NODE_PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("color_topic", "camera/color/image_raw",
+    ParamSpec("color_topic", CAMERA_COLOR,
               "sensor_msgs/Image colour (rgb8, bgr8, mono8; also rgba8, bgra8)"),
-    ParamSpec("depth_topic", "camera/depth/image_raw",
+    ParamSpec("depth_topic", CAMERA_DEPTH,
               "sensor_msgs/Image depth registered to colour (16UC1 in depth_scale units, "
               "32FC1 metres)"),
-    ParamSpec("camera_info_topic", "camera/color/camera_info",
+    ParamSpec("camera_info_topic", CAMERA_INFO,
               "sensor_msgs/CameraInfo of the colour camera (K used; images must be rectified)"),
     ParamSpec("base_frame", "base_link", "child frame of vo/odom, frame of vo/twist"),
     ParamSpec("odom_frame", "odom", "frame of vo/odom (base_link at the first tracked frame)"),
