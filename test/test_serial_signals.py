@@ -102,7 +102,7 @@ def test_node_exits_within_2s_of_a_signal_in_every_state(repo_root, tmp_path, st
         proc = subprocess.Popen(
             [sys.executable, "-m", "asgp_ros.nodes.serial_bridge_node", "--ros-args",
              "-p", f"port:={port}", "-p", "diagnostics_period:=0.2"],
-            cwd=repo_root, env=dict(os.environ, PYTHONPATH=str(repo_root)),
+            cwd=repo_root, env=dict(os.environ, PYTHONPATH=str(repo_root), PYTHONFAULTHANDLER="1"),
             stdout=log, stderr=subprocess.STDOUT)
     try:
         STATES[state](board, probe, proc)

@@ -36,6 +36,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.signals import uninstall_signal_handlers
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import CameraInfo, Image
 
@@ -300,6 +301,9 @@ def main(args: list[str] | None = None) -> int:
         if node is not None:
             node.destroy_node()
         try_shutdown()
+        # stop rclpy's signal-handling thread before the interpreter finalises (a signal
+        # arriving while it tears down crashed a node, about once in 60 exits)
+        uninstall_signal_handlers()
     return 0
 
 
