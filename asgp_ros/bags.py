@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
-from asgp_ros.fileio import atomic_path
+from asgp_ros.fileio import ROS1_MAGIC, atomic_path
 from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 if TYPE_CHECKING:
@@ -223,9 +223,6 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
         )
     _check_ros1_magic(p)
     return p
-
-
-ROS1_MAGIC = b"#ROSBAG V2.0\n"
 
 
 def _check_ros1_magic(p: Path) -> None:

@@ -233,14 +233,7 @@ def write_marker(directory: str | os.PathLike[str], kind: str, **extra: Any) -> 
 
 def read_marker(directory: str | os.PathLike[str]) -> str | None:
     """The kind named by ``directory``'s marker file, or None (absent, not ours, unreadable)."""
-    path = Path(directory) / MARKER_NAME
-    try:
-        st = os.lstat(path)
-        if not stat.S_ISREG(st.st_mode) or st.st_size > _MARKER_MAX_BYTES:
-            return None
-        data = json.loads(path.read_bytes())
-    except (OSError, ValueError, RecursionError):
-        return None
+    data = _small_json(Path(directory) / MARKER_NAME, _MARKER_MAX_BYTES)
     if isinstance(data, dict) and data.get("format") == MARKER_FORMAT:
         kind = data.get("kind")
         return kind if isinstance(kind, str) else None
@@ -274,12 +267,16 @@ def is_model_file(path: Path) -> bool:
         return False
 
 
+ROS1_MAGIC = b"#ROSBAG V2.0\n"
+"""The first line of a ROS 1 bag (format version 2.0)."""
+
+
 def is_ros1_bag(path: Path) -> bool:
     try:
         if not stat.S_ISREG(os.stat(path).st_mode):
             return False
         with open(path, "rb") as fh:
-            return fh.read(13) == b"#ROSBAG V2.0\n"
+            return fh.read(len(ROS1_MAGIC)) == ROS1_MAGIC
     except OSError:
         return False
 
@@ -288,19 +285,21 @@ def is_ros2_bag(path: Path) -> bool:
     return path.is_dir() and (path / "metadata.yaml").is_file()
 
 
-def is_bag(path: Path) -> bool:
-    return is_ros2_bag(path) or is_ros1_bag(path)
+def _small_json(path: Path, max_bytes: int) -> Any:
+    """The JSON in ``path`` if it is a regular file (symlinks not followed) of at most
+    ``max_bytes``; None if it is anything else or not JSON."""
+    try:
+        st = os.lstat(path)
+        if not stat.S_ISREG(st.st_mode) or st.st_size > max_bytes:
+            return None
+        return json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return None
 
 
 def is_json_object_with(path: Path, key: str) -> bool:
     """A regular JSON file (at most 64 MB) holding an object with ``key``."""
-    try:
-        st = os.stat(path)
-        if not stat.S_ISREG(st.st_mode) or st.st_size > _JSON_MAX_BYTES:
-            return False
-        data = json.loads(path.read_bytes())
-    except (OSError, ValueError, RecursionError):
-        return False
+    data = _small_json(path, _JSON_MAX_BYTES)
     return isinstance(data, dict) and key in data
 
 
@@ -349,14 +348,7 @@ def _is_dataset(p: Path) -> bool:
         return False
     if read_marker(p) == "dataset":
         return True
-    manifest = p / "manifest.json"
-    try:
-        st = os.stat(manifest)
-        if not stat.S_ISREG(st.st_mode) or st.st_size > _JSON_MAX_BYTES:
-            return False
-        data = json.loads(manifest.read_bytes())
-    except (OSError, ValueError, RecursionError):
-        return False
+    data = _small_json(p / "manifest.json", _JSON_MAX_BYTES)
     return isinstance(data, dict) and data.get("format") == "asgp_ros.dataset"
 
 
