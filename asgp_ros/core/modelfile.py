@@ -8,7 +8,11 @@ Layout (format version 1):
        "channels": ["v", "omega"], "features": {"lags": 4, "coupled": false},
        "resample": {"rate_hz": 5.0, ...}, "rate_hz": 5.0,
        "kind_params": {...}, "normalisation": ..., "meta": {training data summary, ...},
+       "calibration": {"scale": [a_v, a_w], "floor": [b_v, b_w]},
        "arrays": {"v.alpha": [20], ...}}
+
+  ``calibration`` (:mod:`asgp_ros.core.calibration`) is optional: a file without it has
+  the identity map.
 
 * one numeric array per entry of ``arrays`` (names ``<channel>.<field>`` by convention),
   as the kind's ``to_arrays`` produced them (:mod:`asgp_ros.core.models`).
@@ -32,7 +36,9 @@ file and the problem) at the first thing that does not validate:
    :data:`asgp_ros.core.resample.RESAMPLE_RANGES`; ``lags``:
    :data:`asgp_ros.core.features.LAGS_RANGE`; array shapes as in 3.);
 5. the manifest against the headers, then the data: finite, ``|x| <= MAX_ABS_VALUE``,
-   normalisation entries within ``NORMALISATION_RANGES``; then the kind's own checks.
+   normalisation entries within ``NORMALISATION_RANGES``, the calibration within
+   :data:`~asgp_ros.core.calibration.SCALE_RANGE` and ``FLOOR_RANGE``; then the kind's own
+   checks.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from asgp_ros.core.calibration import CalibrationError, VarianceCalibration
 from asgp_ros.core.features import CHANNELS, FeatureConfig
 from asgp_ros.core.models import MotionModel, get_kind, registered_kinds
 from asgp_ros.core.resample import ResampleConfig
@@ -308,6 +315,7 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
         "kind_params": params,
         "normalisation": params.get("normalisation", "stored in the kind's arrays"),
         "meta": model.meta,
+        "calibration": model.calibration.to_dict(),
         "arrays": {name: list(arr.shape) for name, arr in arrays.items()},
     }
     try:
@@ -565,5 +573,10 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionM
     user_meta = meta.get("meta", {})
     if not isinstance(user_meta, dict):
         raise ModelFileError(p, "metadata 'meta' is not an object")
+    try:
+        calibration = VarianceCalibration.from_dict(
+            meta.get("calibration", VarianceCalibration().to_dict()))
+    except CalibrationError as exc:
+        raise ModelFileError(p, str(exc)) from None
     return MotionModel(kind=kind_name, feature_config=features, resample_config=resample_cfg,
-                       channels=(v_model, w_model), meta=user_meta)
+                       channels=(v_model, w_model), meta=user_meta, calibration=calibration)

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from asgp_ros.core import baselines
+from asgp_ros.core.calibration import VarianceCalibration
 from asgp_ros.core.features import CHANNELS, FeatureConfig, build_inputs
 from asgp_ros.core.resample import ResampleConfig
 
@@ -58,6 +59,9 @@ class MotionModel:
         resample_config: the grid (rate) and validity rules the model was trained with.
         channels: (f_v, f_omega).
         meta: JSON-able information (training data summary, fit diagnostics, ...).
+        calibration: the map applied to each channel's predictive variance before it is
+            used or propagated (:mod:`asgp_ros.core.calibration`); the identity unless the
+            model was calibrated on held-out data.
     """
 
     kind: str
@@ -65,8 +69,12 @@ class MotionModel:
     resample_config: ResampleConfig
     channels: tuple[ChannelModel, ChannelModel]
     meta: dict[str, Any] = field(default_factory=dict)
+    calibration: VarianceCalibration = field(default_factory=VarianceCalibration)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.calibration, VarianceCalibration):
+            raise TypeError("calibration must be a VarianceCalibration, got "
+                            f"{type(self.calibration).__name__}")
         if not isinstance(self.kind, str) or not _KIND_RE.fullmatch(self.kind):
             raise ValueError(f"model kind must be a short identifier, got {self.kind!r}")
         if len(self.channels) != 2:
@@ -97,7 +105,8 @@ class MotionModel:
             joy_past: [..., s, 2]; vel_past: [..., s, 2]; joy_now: [..., 2].
 
         Returns:
-            mean [..., 2] and variance [..., 2] of (v_t, omega_t).
+            mean [..., 2] and variance [..., 2] of (v_t, omega_t), the variance calibrated
+            (:attr:`calibration`, in the regime of the last measured speed).
         """
         means, variances = [], []
         for c, ch in enumerate(self.channels):
@@ -106,7 +115,9 @@ class MotionModel:
             m, v = ch.predict(X.reshape(-1, X.shape[-1]), include_noise)
             means.append(np.asarray(m).reshape(lead))
             variances.append(np.asarray(v).reshape(lead))
-        return np.stack(means, axis=-1), np.stack(variances, axis=-1)
+        speed = np.asarray(vel_past, dtype=np.float64)[..., -1, 0]
+        return np.stack(means, axis=-1), self.calibration.apply(np.stack(variances, axis=-1),
+                                                                speed)
 
 
 # --------------------------------------------------------------------------- registry

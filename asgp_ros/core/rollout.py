@@ -32,6 +32,10 @@ Uncertainty (the paper's future work), ``uncertainty=``:
   sampling V from the GP predictive N(mean, var) at the sampled window (seeded
   ``numpy.random.Generator``); means and covariances are sample statistics.
 * ``"none"``: the mean recursion only (Algorithm 1 as in the paper); covariances are 0.
+
+Each step's predictive variance passes through the model's variance calibration
+(:attr:`MotionModel.calibration`, :mod:`asgp_ros.core.calibration`; its regime is the
+measured speed V_{t-1} at t0) before it is propagated or sampled.
 """
 
 from __future__ import annotations
@@ -189,11 +193,14 @@ _WS = _Workspace()
 class _Step:
     """One step of both channels: windows -> mean [B, 2], var [B, 2], grads [2][B, D]."""
 
-    def __init__(self, model: MotionModel, include_noise: bool) -> None:
+    def __init__(self, model: MotionModel, include_noise: bool, speed: FloatArray) -> None:
+        """speed: [B] measured v at the start of each rollout (the calibration's regime)."""
         self.model = model
         self.fc = model.feature_config
         self.include_noise = include_noise
         self.fused = _fused_posterior(model)
+        cal = model.calibration
+        self.calibrate = None if cal.is_identity else cal.coefficients(speed)
 
     def __call__(self, jp: FloatArray, vp: FloatArray, jn: FloatArray, with_grad: bool
                  ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
@@ -226,6 +233,8 @@ class _Step:
                 and float(var.min()) >= 0.0):
             for c in range(2):
                 _checked(_NAMES[c], mean[:, c], var[:, c])
+        if self.calibrate is not None:
+            var = var * self.calibrate[0] + self.calibrate[1]
         return mean, var, grad
 
 
@@ -263,7 +272,7 @@ def _rollout_linear(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k:
     B = J.shape[0]
     fc = model.feature_config
     dt = model.dt
-    step = _Step(model, include_noise)
+    step = _Step(model, include_noise, V[:, s - 1, 0])
     if with_cov:
         # S[b, i, c, r]: sensitivity of V_{t-s+i}[c] to innovation r (2 per step);
         # the measured past rows stay 0 (Algorithm 1 treats them as given).
@@ -337,7 +346,7 @@ def _rollout_mc(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k: int
     dt = model.dt
     Js = np.repeat(J, n, axis=0)  # [B*n, s+k, 2], sample-major within each sequence
     Vs = np.repeat(V, n, axis=0)
-    step = _Step(model, include_noise)
+    step = _Step(model, include_noise, Vs[:, s - 1, 0])
     for j in range(k):
         z = gen.standard_normal((B * n, 2))
         mean, var, _ = step(Js[:, j:j + s], Vs[:, j:j + s], Js[:, s + j], False)
