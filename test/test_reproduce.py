@@ -85,16 +85,37 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
                     row["model"], t["test_set"], row["train"], h)
                 assert (row[h]["paper_success_rate_pct"] is None) == (
                     MODELS[row["model"]].paper is None)
-                has_var = row["model"] in ("asgp", "asgp_coupled")
+                has_var = row["model"] in ("asgp_paper", "asgp")
                 assert (row[h]["coverage_95_pct"] is None) == (not has_var)
     # identical case sets across models: one count per horizon and test set
     for ev in res["evaluations"]:
         for test, e in ev["tests"].items():
             table = next(t for t in tables.values() if t["test_set"] == test)
             assert {h: v["cases"] for h, v in e["horizons"].items()} == table["cases"]
-    assert len(res["claims"]) == 6
-    checks = res["calibration"]["propagation_check"]
-    assert [c["test"] for c in checks] == ["Tile", "Carpet", "Hybrid"]
+    # the paper's four claims for both ASGP rows, the issue's two targets for "ASGP"
+    claims = res["claims"]
+    assert [(c["model"], c["source"]) for c in claims] == (
+        [("asgp_paper", "paper")] * 4 + [("asgp", "paper")] * 4 + [("asgp", "issue 11")] * 2)
+    assert all(isinstance(c["holds"], bool) and c["evidence"] for c in claims)
+    # the automatic configuration: its choice and calibration recorded per train set
+    auto = [m for m in res["models"] if m["kind"] == "asgp"]
+    assert [m["train"] for m in auto] == ["Tile", "Carpet", "Both"]
+    for m in auto:
+        assert m["selection"]["chosen"]["lags"] == m["lags"] <= res["settings"]["case_lags"]
+        assert m["selection"]["budget_s"] == 20.0 and "calibration" in m
+    paper_asgp = [m for m in res["models"] if m["kind"] == "asgp_paper"]
+    for m in paper_asgp:  # exactly the paper's configuration
+        t = m["training"]
+        assert (t["kind"], t["lags"], t["coupled"]) == ("asgp", 4, False)
+        assert [t["channels"][c]["num_inducing"] for c in ("v", "omega")] == [20, 40]
+    cal = res["calibration"]
+    assert set(cal["models"]) == {"asgp_paper", "asgp"}
+    assert {(r["model"], r["train"], r["test"]) for r in cal["rows"]} == {
+        (m, tr, te) for m in ("asgp_paper", "asgp") for tr in ("Tile", "Carpet", "Both")
+        for te in ("Tile", "Carpet", "Hybrid")}
+    checks = cal["propagation_check"]
+    assert [(c["model"], c["test"]) for c in checks] == [
+        (m, te) for m in ("asgp_paper", "asgp") for te in ("Tile", "Carpet", "Hybrid")]
     for c in checks:
         for h in ("1.0", "2.0"):
             assert set(c[h]) == {"linear", "mc", "linear_latent_only"}
@@ -109,17 +130,30 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 2
     assert "--force" in capsys.readouterr().err
     assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick",
-                 "--jobs", "1", "--force"]) == 0
-    assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 1
+                 "--jobs", "2", "--force"]) == 0
+    assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 2
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
 def test_compared_models_come_from_the_registry_of_kinds():
-    assert list(MODELS) == [*trainable_kinds(), "asgp_coupled"]
-    assert [m.label for m in MODELS.values()] == ["ASGP", "MLP", "Const. velocity",
-                                                  "First-order lag", "ASGP coupled"]
-    assert MODELS["asgp_coupled"].kind == "asgp" and MODELS["asgp_coupled"].coupled
+    from asgp_ros.training import PAPER_OPTIONS, TrainOptions
+
+    assert list(MODELS) == ["asgp_paper", *trainable_kinds()]
+    assert [m.label for m in MODELS.values()] == ["ASGP (paper)", "ASGP", "MLP",
+                                                  "Const. velocity", "First-order lag"]
+    paper_row, auto = MODELS["asgp_paper"], MODELS["asgp"]
+    assert paper_row.kind == auto.kind == "asgp"
+    assert paper_row.options == PAPER_OPTIONS == TrainOptions(
+        kind="asgp", lags=4, inducing_v=20, inducing_w=40, coupled=False)
+    assert auto.automatic and auto.paper is None  # the paper did not run it
+    assert (paper_row.paper, MODELS["mlp"].paper) == ("ASGP", "MLP")
+    # the run's budgets change the iterations and the seed, never the configuration
+    st = reproduce.Settings.for_mode(quick=True, seed=3)
+    opts = st.options(paper_row)
+    assert (opts.lags, opts.inducing_v, opts.inducing_w, opts.coupled, opts.seed) == (
+        4, 20, 40, False, 3)
     assert reproduce.case_lags() == 10  # the MLP's s
+    assert reproduce.case_lags([4, 12, 2]) == 12  # the automatic ASGP chose s = 12
 
 
 def test_paper_figures_sit_beside_the_matching_cells():
@@ -128,9 +162,9 @@ def test_paper_figures_sit_beside_the_matching_cells():
     rate = reproduce.paper_rate
     assert rate("mlp", "Tile", "Both", "2.0") == 52.06  # Table III, Tile test, MLP, Both
     assert rate("mlp", "Carpet", "Carpet", "1.4") == 50.56  # Table II
-    assert rate("asgp", "Hybrid", "Carpet", "2.0") == 50.89  # Table III
-    assert rate("asgp", "Carpet", "Tile", "1.0") == 83.79  # Table I
-    assert rate("asgp", "Tile", "Both", "1.4") == 85.03
+    assert rate("asgp_paper", "Hybrid", "Carpet", "2.0") == 50.89  # Table III
+    assert rate("asgp_paper", "Carpet", "Tile", "1.0") == 83.79  # Table I
+    assert rate("asgp_paper", "Tile", "Both", "1.4") == 85.03
     assert rate("mlp", "Hybrid", "Tile", "1.0") == 79.96
     for name, m in MODELS.items():
         if m.paper is None:

@@ -14,18 +14,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "reproduce",
         help="train and evaluate every model of the paper's protocol; write Tables I-III",
-        description="Train ASGP, MLP, constant-velocity and first-order-lag models on the "
-                    "Tile, Carpet and Both train sets of a dataset made by `asgp dataset`, "
-                    "test them on Tile, Carpet and Hybrid at 1.0, 1.4 and 2.0 s, and write "
-                    "report.md, results.json, tables.json, plots and the model files into "
-                    "REPORT (atomically: all or nothing).",
+        description="Train the ASGP in the paper's configuration and in the one `asgp "
+                    "train` chooses itself, the paper's MLP, and constant-velocity and "
+                    "first-order-lag models on the Tile, Carpet and Both train sets of a "
+                    "dataset made by `asgp dataset`, test them on Tile, Carpet and Hybrid at "
+                    "1.0, 1.4 and 2.0 s, and write report.md (with the paper's published "
+                    "figures beside ours), results.json, tables.json, plots and the model "
+                    "files into REPORT (atomically: all or nothing).",
     )
     p.add_argument("--data", required=True, metavar="DIR",
                    help="dataset directory with tile/, carpet/, hybrid/ bags")
     p.add_argument("--out", required=True, metavar="REPORT", help="report directory to write")
     p.add_argument("--quick", action="store_true",
                    help="CI smoke run: builds a small dataset in DIR if it has none, reduced "
-                        "training budgets (under 2 minutes)")
+                        "training budgets (under a minute on 2 cores)")
     p.add_argument("--jobs", type=cli_integer("jobs"), default=None,
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--seed", type=cli_integer("seed"), default=0,
