@@ -231,6 +231,8 @@ AUTO_STRUCTURE_INDUCING = 40
 HOLDOUT_FRACTION = 0.2
 #: L-BFGS-B iterations of a candidate's fit during the selection.
 SELECTION_MAX_ITER = 100
+#: Range of the time budget (s) of the automatic configuration.
+BUDGET_RANGE_S = (1.0, 86400.0)
 #: Rows per channel a candidate is fitted on, per second of budget. The plan (rows of the
 #: candidates' fits, rows of the final fit) is fixed by the budget before anything is
 #: fitted, never by the clock, so that the choice is deterministic for a seed. Measured
@@ -269,8 +271,9 @@ class AutoOptions:
     calibrate: bool = True
 
     def validate(self) -> None:
-        if not (math.isfinite(self.budget_s) and 1.0 <= self.budget_s <= 86400.0):
-            raise TrainingError(f"budget must be 1 s .. 1 day, got {self.budget_s}")
+        lo, hi = BUDGET_RANGE_S
+        if not (math.isfinite(self.budget_s) and lo <= self.budget_s <= hi):
+            raise TrainingError(f"budget must be {lo:g} .. {hi:g} s, got {self.budget_s}")
         if self.lags is not None and not LAGS_RANGE[0] <= self.lags <= LAGS_RANGE[1]:
             raise TrainingError(f"lags must be in {list(LAGS_RANGE)}, got {self.lags}")
         for m in (self.inducing_v, self.inducing_w):
@@ -482,6 +485,20 @@ def train_auto(
         if _better(result, best):
             best, best_cand = result, cand
 
+    # horizons the held-out part can score (every candidate on the same cases)
+    usable = tuple(h for h, k in zip(opts.horizons_s, metrics.horizon_steps(
+        list(opts.horizons_s), rc.rate_hz), strict=True)
+        if any(metrics.case_indices(s.res.segment, case_lags, k).size for s in held))
+    if not usable:
+        table.append({"candidate": None, "stage": "check", "skipped":
+                      f"no held-out segment holds {case_lags} past samples and "
+                      f"{opts.horizons_s[0]} s ahead"})
+        return _fallback(series, opts, rc, table, report)
+    if usable != opts.horizons_s:
+        report("select", f"the held-out data are too short for the horizons "
+                         f"{[h for h in opts.horizons_s if h not in usable]} s; scoring "
+                         f"{list(usable)} s")
+        opts = dataclasses.replace(opts, horizons_s=usable)
     # the paper's configuration is always a candidate, when nothing pinned excludes it
     paper = Candidate(PAPER_OPTIONS.resolved_lags(), False,
                       (PAPER_OPTIONS.inducing_v, PAPER_OPTIONS.inducing_w))
@@ -492,9 +509,7 @@ def train_auto(
     for s, coupled in structures:
         consider(Candidate(s, coupled, _inducing(opts, AUTO_STRUCTURE_INDUCING)), "structure")
     if best_cand is None:
-        raise TrainingError("no candidate configuration could be fitted and scored on the "
-                            "held-out data: record more (or longer) drives, or train the "
-                            "paper's configuration (--paper)")
+        return _fallback(series, opts, rc, table, report)
     if opts.inducing_v is None or opts.inducing_w is None:
         s, coupled = best_cand.lags, best_cand.coupled
         for m in AUTO_INDUCING:
@@ -565,6 +580,30 @@ def train_auto(
     }
     return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
                        channels=(chans[0], chans[1]), meta=meta, calibration=calibration)
+
+
+def _fallback(series: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
+              table: list[dict[str, Any]], report: Progress) -> MotionModel:
+    """Too little held-out data to choose: the paper's configuration (with what is pinned),
+    fitted on all the data, uncalibrated; the model's meta says so."""
+    fallback = TrainOptions(
+        kind="asgp", lags=opts.lags if opts.lags is not None else PAPER_OPTIONS.lags,
+        coupled=bool(opts.coupled),
+        inducing_v=opts.inducing_v if opts.inducing_v is not None else PAPER_OPTIONS.inducing_v,
+        inducing_w=opts.inducing_w if opts.inducing_w is not None else PAPER_OPTIONS.inducing_w,
+        max_iter=opts.max_iter, seed=opts.seed)
+    why = next((row["skipped"] for row in table if "skipped" in row), "no candidate")
+    report("select", "no candidate could be scored on the held-out data (" + why + "); "
+                     f"training s={fallback.resolved_lags()} M={fallback.inducing_v}/"
+                     f"{fallback.inducing_w}{' coupled' if fallback.coupled else ''} on all the "
+                     "data, without calibration")
+    model = train(series, fallback, resample_config=rc, progress=report)
+    meta = dict(model.meta)
+    meta["training"] = {**meta["training"], "configuration": "fallback"}
+    meta["selection"] = {"fallback": why, "candidates": table,
+                         "holdout_fraction": opts.holdout, "budget_s": opts.budget_s}
+    meta["calibration"] = {"fitted": False, "reason": "too little held-out data"}
+    return dataclasses.replace(model, meta=meta)
 
 
 def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, case_lags: int

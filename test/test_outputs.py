@@ -327,7 +327,7 @@ def test_signal_during_dataset_removes_temporaries(tmp_path, sig):
 
 
 def test_sigterm_during_train_leaves_nothing(work, tmp_path):
-    proc = _start(["train", "--model", "asgp", "--max-iter", "100000", str(work["bag"]),
+    proc = _start(["train", "--paper", "--max-iter", "100000", str(work["bag"]),
                    "--out", str(tmp_path / "m.npz")], tmp_path)
     assert proc.stdout is not None
     line = proc.stdout.readline()  # the first progress line: training has started

@@ -90,10 +90,13 @@ def test_train_options_are_validated():
 def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     model = tmp_path / "asgp.npz"
     rc = main(["train", "--model", "asgp", bags["train"], "--out", str(model),
-               "--max-iter", "20", "--inducing-v", "8", "--inducing-w", "8"])
+               "--max-iter", "20", "--inducing-v", "8", "--inducing-w", "8", "--lags", "4",
+               "--budget-s", "5"])
     assert rc == 0
     err = capsys.readouterr().out  # progress goes to stdout
-    assert "[asgp v] iteration" in err and "log likelihood" in err and "[asgp omega]" in err
+    # pinned M and s: only the coupling is chosen; the table and the calibration are shown
+    assert "[asgp auto select] s=4 per-axis M=8/8" in err and "s=4 coupled M=8/8" in err
+    assert "<- chosen" in err and "95% ellipse coverage" in err
     out_json = tmp_path / "scores.json"
     rc = main(["evaluate", str(model), bags["test"], "--json", str(out_json), "--truth"])
     assert rc == 0

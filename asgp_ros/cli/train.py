@@ -3,12 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
+from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.core.features import LAGS_RANGE
-from asgp_ros.core.models import get_kind, trainable_kinds
-from asgp_ros.core.resample import RESAMPLE_RANGES
+from asgp_ros.core.metrics import horizon_key
+from asgp_ros.core.modelfile import save_model
+from asgp_ros.core.models import MotionModel, get_kind, trainable_kinds
+from asgp_ros.core.resample import RESAMPLE_RANGES, ResampleConfig
+from asgp_ros.fileio import MODEL_FILE, check_output
+from asgp_ros.training import (
+    BUDGET_RANGE_S,
+    PAPER_OPTIONS,
+    AutoOptions,
+    TrainingError,
+    TrainOptions,
+    train,
+    train_auto,
+)
 
 
 def _default_lags_help() -> str:
@@ -23,8 +37,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "train",
         help="train a motion predictor on bags and save the model file",
         description="Resample the bags to the model grid (5 Hz), build the autoregressive "
-                    "features and fit one regressor per channel (v, omega). Progress goes "
-                    "to stdout; stderr carries only an error.",
+                    "features and fit one regressor per channel (v, omega). With no model "
+                    "flags the ASGP chooses its own configuration (lags, coupling, "
+                    "pseudo-inputs) by the k-step success on the last 20%% of each bag, "
+                    "and calibrates its variance there; --paper trains the paper's "
+                    "configuration instead, and --lags/--coupled/--inducing-* pin values. "
+                    "Progress goes to stdout; stderr carries only an error.",
     )
     p.add_argument("bags", nargs="+", metavar="BAG", help="training bags (ROS 1 or ROS 2)")
     p.add_argument("--out", required=True, metavar="MODEL", help="model file to write (.npz)")
@@ -32,16 +50,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="replace an existing model file at --out (nothing else is replaced)")
     p.add_argument("--model", choices=trainable_kinds(), default="asgp",
                    help="model kind (%(default)s)")
+    p.add_argument("--paper", action="store_true",
+                   help="the paper's ASGP exactly: s = 4, M = 20 (v) / 40 (omega), one axis "
+                        "per channel, all data, no selection and no calibration")
     p.add_argument("--lags", type=integer(*LAGS_RANGE), default=None,
-                   help=f"s, past samples per input ({_default_lags_help()})")
-    p.add_argument("--inducing-v", type=cli_integer("inducing"), default=20,
-                   help="pseudo-inputs for v (20)")
-    p.add_argument("--inducing-w", type=cli_integer("inducing"), default=40,
-                   help="pseudo-inputs for omega (40)")
+                   help=f"s, past samples per input (asgp: chosen; {_default_lags_help()})")
+    p.add_argument("--inducing-v", type=cli_integer("inducing"), default=None,
+                   help="pseudo-inputs for v (asgp: chosen)")
+    p.add_argument("--inducing-w", type=cli_integer("inducing"), default=None,
+                   help="pseudo-inputs for omega (asgp: chosen)")
+    p.add_argument("--coupled", action=argparse.BooleanOptionalAction, default=None,
+                   help="feed both joystick axes and both velocities to each channel "
+                        "(asgp: chosen)")
+    p.add_argument("--budget-s", type=number(*BUDGET_RANGE_S, unit="s"), default=180.0,
+                   help="time the automatic configuration is planned for (%(default)s s "
+                        "fits 120 minutes of data on 2 cores); the plan is fixed before "
+                        "fitting, so the choice is deterministic for a seed")
+    p.add_argument("--no-calibration", action="store_true",
+                   help="asgp: do not calibrate the variance on the held-out data")
     p.add_argument("--max-iter", type=cli_integer("max_iter"), default=200,
                    help="L-BFGS-B iterations (asgp) or epochs (mlp) (%(default)s)")
-    p.add_argument("--coupled", action="store_true",
-                   help="feed both joystick axes and both velocities to each channel")
     p.add_argument("--seed", type=cli_integer("seed"), default=0,
                    help="random seed (%(default)s)")
     p.add_argument("--rate", type=number(*RESAMPLE_RANGES["rate_hz"], unit="Hz"),
@@ -50,34 +78,90 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from asgp_ros.cli import CommandError
-    from asgp_ros.core.modelfile import save_model
-    from asgp_ros.core.resample import ResampleConfig
-    from asgp_ros.fileio import MODEL_FILE, check_output
-    from asgp_ros.training import TrainingError, TrainOptions, train
+def _options(args: argparse.Namespace) -> TrainOptions | AutoOptions:
+    """What to train: the paper's ASGP, an automatic ASGP, or a kind with its options."""
+    pins = [flag for flag, value in (("--lags", args.lags), ("--coupled", args.coupled),
+                                     ("--inducing-v", args.inducing_v),
+                                     ("--inducing-w", args.inducing_w)) if value is not None]
+    if args.paper:
+        if args.model != "asgp" or pins or args.no_calibration:
+            raise CommandError("--paper is the paper's ASGP: it takes no --model, "
+                               f"{', '.join(pins) or '--no-calibration'}")
+        return dataclasses.replace(PAPER_OPTIONS, max_iter=args.max_iter, seed=args.seed)
+    if args.model == "asgp":
+        return AutoOptions(seed=args.seed, budget_s=args.budget_s, lags=args.lags,
+                           coupled=args.coupled, inducing_v=args.inducing_v,
+                           inducing_w=args.inducing_w, max_iter=args.max_iter,
+                           calibrate=not args.no_calibration)
+    ignored = [p for p in pins if p != "--lags"] + (["--no-calibration"]
+                                                   if args.no_calibration else [])
+    if ignored:
+        raise CommandError(f"{', '.join(ignored)} only apply to --model asgp")
+    return TrainOptions(kind=args.model, lags=args.lags, max_iter=args.max_iter,
+                        seed=args.seed)
 
+
+def selection_table(model: MotionModel) -> list[str]:
+    """The candidates of an automatic configuration and their held-out scores, one line
+    each (empty for a model that was not configured automatically)."""
+    sel = model.meta.get("selection")
+    if not isinstance(sel, dict):
+        return []
+    hs = [horizon_key(h) for h in sel.get("horizons_s", [])]
+    lines = [f"{'stage':<9} {'s':>3} {'inputs':<8} {'M v/w':>7}  "
+             + "  ".join(f"{h + ' s':>7}" for h in hs) + f"  {'mean':>6}  {'fit s':>6}"]
+    chosen = sel.get("chosen")
+    for row in sel.get("candidates", []):
+        c = row["candidate"]
+        if c is None:
+            lines.append(f"{row['stage']:<9} {row['skipped']}")
+            continue
+        head = (f"{row['stage']:<9} {c['lags']:>3} {'coupled' if c['coupled'] else 'per-axis':<8} "
+                f"{c['inducing'][0]:>3}/{c['inducing'][1]:<3}")
+        if "skipped" in row:
+            lines.append(f"{head}  skipped: {row['skipped']}")
+            continue
+        mark = "  <- chosen" if c == chosen else ""
+        lines.append(head + "  " + "  ".join(
+            f"{100 * row['horizons'][h]['success']:6.1f}%" for h in hs)
+            + f"  {100 * row['score']:5.1f}%  {row['seconds']:6.1f}{mark}")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
     check_output(args.out, MODEL_FILE, inputs=args.bags, force=args.force)
     try:
         rc = ResampleConfig() if args.rate is None else ResampleConfig(rate_hz=args.rate)
-        opts = TrainOptions(kind=args.model, lags=args.lags, inducing_v=args.inducing_v,
-                            inducing_w=args.inducing_w, max_iter=args.max_iter,
-                            coupled=args.coupled, seed=args.seed)
+        opts = _options(args)
         opts.validate()
     except (TrainingError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
     series = read_series_or_fail(args.bags, args, resample_config=rc)
+    label = "asgp auto" if isinstance(opts, AutoOptions) else ("asgp paper" if args.paper
+                                                               else args.model)
 
     def progress(channel: str, message: str) -> None:
-        print(f"[{args.model} {channel}] {message}", flush=True)
+        print(f"[{label} {channel}] {message}", flush=True)
 
     try:
-        model = train(series, opts, resample_config=rc, progress=progress)
+        if isinstance(opts, AutoOptions):
+            model = train_auto(series, opts, resample_config=rc, progress=progress)
+        else:
+            model = train(series, opts, resample_config=rc, progress=progress)
     except (TrainingError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
     save_model(args.out, model)
+    for line in selection_table(model):
+        print(line)
     summary = model.meta["training_data"]
-    print(f"wrote {args.out}: {args.model}, s={opts.resolved_lags()}, "
-          f"{summary['training_rows']} rows from {len(summary['bags'])} bag(s), "
-          f"{summary['segments']} segments, stale {100 * summary['stale_fraction']:.1f}%")
+    fc = model.feature_config
+    print(f"wrote {args.out}: {model.kind}, s={fc.lags}"
+          f"{', coupled' if fc.coupled else ''}, {summary['training_rows']} rows from "
+          f"{len(summary['bags'])} bag(s), {summary['segments']} segments, stale "
+          f"{100 * summary['stale_fraction']:.1f}%")
+    cal = model.meta.get("calibration", {})
+    if cal.get("fitted"):
+        print(f"calibrated on {cal['cases']} held-out cases: 95% ellipse coverage "
+              f"{100 * cal['raw_coverage']:.1f}% raw -> {100 * cal['coverage']:.1f}% "
+              "(asgp info MODEL shows it per horizon, regime and bag)")
     return 0

@@ -778,7 +778,7 @@ class SparseGP:
         self.optimiser_result = best[2]
         self._num_data = N
         self._set_posterior(Xs, ys, sc, unpack(best[1].copy()), lml_offset, ws)
-        _LOG.info(
+        _LOG.debug(
             "SPGP fit: N=%d D=%d M=%d, %d iterations, log marginal likelihood %.6g",
             N, D, M, int(getattr(best[2], "nit", 0)), self._lml,
         )
