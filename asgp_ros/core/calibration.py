@@ -295,7 +295,8 @@ def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
     regime = np.searchsorted(np.asarray(edges), speed, side="right")
     factors = []
     for r in range(len(edges) + 1):
-        f = float(np.quantile(d2[regime == r], target) / CHI2_2DOF_95)
+        with np.errstate(invalid="ignore"):  # inf - inf when more than 5 % are singular
+            f = float(np.quantile(d2[regime == r], target) / CHI2_2DOF_95)
         if not math.isfinite(f) or f <= 0.0:
             raise CalibrationError("the held-out errors do not determine a coverage factor "
                                    "(the predicted covariance is singular where the error is "

@@ -1,0 +1,324 @@
+"""The automatic ASGP configuration and the variance calibration (core/calibration.py).
+
+Synthetic chairs with known dynamics and noise, not the package's simulator: the
+calibration must reach its coverage on data whose noise level is known, whatever made
+them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+import zipfile
+
+import numpy as np
+import pytest
+
+from asgp_ros.cli import main
+from asgp_ros.core.calibration import (
+    BASIS,
+    CalibrationError,
+    VarianceCalibration,
+    combine,
+    coverage,
+    fit_calibration,
+)
+from asgp_ros.core.features import FeatureConfig, input_layout
+from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.core.resample import Resampled
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.sparse_gp import SparseGP
+from asgp_ros.evaluation import TestSeries, evaluate_model
+from asgp_ros.training import (
+    PAPER_OPTIONS,
+    AutoOptions,
+    Series,
+    read_series,
+    split_holdout,
+    train,
+    train_auto,
+)
+
+
+def _resampled(joy: np.ndarray, vel: np.ndarray) -> Resampled:
+    T = joy.shape[0]
+    false = np.zeros(T, dtype=bool)
+    return Resampled(
+        t=np.arange(T) / 5.0, k=np.arange(T, dtype=np.int64), joy=joy, vel=vel,
+        valid=~false, stale=false, tracking_lost=false, gap=false,
+        segment=np.zeros(T, dtype=np.int64), truth=np.full((T, 5), np.nan),
+        truth_valid=false, rate_hz=5.0)
+
+
+def synthetic_chair(seconds: float, seed: int, *, slow_noise: float = 0.03,
+                    fast_noise: float = 0.008, joy_range: tuple[float, float] = (-1.0, 1.0)
+                    ) -> Resampled:
+    """A first-order chair at 5 Hz with known, speed-dependent noise.
+
+    v_t = 0.7 v_{t-1} + 0.3 * 0.8 j_fwd + e_v, omega_t = 0.6 omega_{t-1} + 0.4 j_turn + e_w,
+    with noise std ``slow_noise`` below 0.2 m/s and ``fast_noise`` above (a floor that a
+    homoscedastic GP cannot represent, so the raw ellipses are wrong by regime).
+    The joystick holds piecewise-constant commands for 1-4 s.
+    """
+    rng = np.random.default_rng(seed)
+    T = int(seconds * 5)
+    joy = np.zeros((T, 2))
+    t = 0
+    while t < T:
+        n = int(rng.integers(5, 20))
+        cmd = rng.uniform(*joy_range, size=2)
+        cmd[0] = abs(cmd[0]) if rng.random() < 0.7 else cmd[0] * 0.2
+        joy[t:t + n] = cmd
+        t += n
+    vel = np.zeros((T, 2))
+    for i in range(1, T):
+        sd = slow_noise if abs(vel[i - 1, 0]) < 0.2 else fast_noise
+        vel[i, 0] = 0.7 * vel[i - 1, 0] + 0.24 * joy[i, 0] + sd * rng.standard_normal()
+        vel[i, 1] = 0.6 * vel[i - 1, 1] + 0.4 * joy[i, 1] + sd * rng.standard_normal()
+    return _resampled(joy, vel)
+
+
+# ------------------------------------------------------------------ calibration fit
+
+def _synthetic_parts(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Random basis covariances shaped like a rollout's: [4, n, 2, 2], PSD."""
+    parts = []
+    for scale in (1e-3, 5e-4, 1.0, 0.5):
+        A = rng.normal(size=(n, 2, 2)) * np.sqrt(scale * rng.uniform(0.2, 2.0, size=(n, 1, 1)))
+        parts.append(A @ np.swapaxes(A, 1, 2))
+    return np.stack(parts)
+
+
+def test_calibration_recovers_a_known_noise_level_by_regime() -> None:
+    rng = np.random.default_rng(1)
+    theta = np.array([2.5, 0.7, 3e-4, 1e-4])
+    n = 30000
+
+    def sample(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        parts = _synthetic_parts(n, rng)
+        speed = rng.uniform(0.0, 1.0, n)
+        regime_true = np.where(speed < 0.3, 2.0, 1.0)  # slow: twice the variance
+        cov = combine(parts, theta) * regime_true[:, None, None]
+        L = np.linalg.cholesky(cov)
+        err = np.einsum("nij,nj->ni", L, rng.standard_normal((n, 2)))
+        return parts, err, speed
+
+    parts, err, speed = sample(n)
+    fit = fit_calibration(parts, err, speed, raw=parts[0] + parts[1])
+    cal = fit.calibration
+    assert fit.raw_coverage < 0.8  # the raw variance is far too small
+    # fresh data: 95 % within +-2 points, overall and in every speed regime
+    parts2, err2, speed2 = sample(n)
+    cov2 = combine(parts2, np.array([*cal.scale, *cal.floor])) \
+        * cal.factor(speed2)[:, None, None]
+    assert abs(coverage(err2, cov2) - 0.95) < 0.02
+    for lo, hi in ((0.0, 0.3), (0.3, 0.6), (0.6, 1.0)):
+        m = (speed2 >= lo) & (speed2 < hi)
+        assert abs(coverage(err2[m], cov2[m]) - 0.95) < 0.02, (lo, hi)
+    # the shape is right, not only the count: scale and floor ratios recovered
+    assert cal.scale[0] / cal.scale[1] == pytest.approx(theta[0] / theta[1], rel=0.3)
+    # one global factor would not do: the slow regime needs a larger factor
+    assert cal.speed_factors[0] > 1.5 * cal.speed_factors[-1]
+
+
+def test_calibration_refuses_what_it_cannot_fit() -> None:
+    rng = np.random.default_rng(0)
+    parts = _synthetic_parts(100, rng)
+    err = rng.normal(size=(100, 2)) * 0.01
+    speed = np.ones(100)
+    with pytest.raises(CalibrationError, match="at least 20"):
+        fit_calibration(parts[:, :5], err[:5], speed[:5])
+    bad = err.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(CalibrationError, match="non-finite"):
+        fit_calibration(parts, bad, speed)
+    with pytest.raises(CalibrationError, match="must be"):
+        fit_calibration(parts, err[:50], speed)
+    zero = np.zeros_like(parts)  # a covariance of 0 cannot cover a non-zero error
+    with pytest.raises(CalibrationError, match="singular"):
+        fit_calibration(zero, err, speed)
+
+
+@pytest.mark.parametrize("bad", [
+    {"scale": [1.0], "floor": [0.0, 0.0]},
+    {"scale": [1.0, math.nan], "floor": [0.0, 0.0]},
+    {"scale": [1.0, 1.0], "floor": [-1.0, 0.0]},
+    {"scale": [1.0, 1.0], "floor": [0.0, 1e30]},
+    {"scale": [1.0, 1.0], "floor": [0.0, 0.0], "speed_edges": [0.5, 0.2],
+     "speed_factors": [1.0, 1.0, 1.0]},
+    {"scale": [1.0, 1.0], "floor": [0.0, 0.0], "speed_edges": [0.5], "speed_factors": [1.0]},
+    {"scale": [1.0, 1.0], "floor": [0.0, 0.0], "speed_factors": [0.0]},
+    {"scale": [True, 1.0], "floor": [0.0, 0.0]},
+    {"scale": "1 1", "floor": [0.0, 0.0]},
+    {"scale": [1.0, 1.0]},
+    {"scale": [1.0, 1.0], "floor": [0.0, 0.0], "extra": 1},
+])
+def test_calibration_values_are_checked(bad: dict[str, object]) -> None:
+    with pytest.raises(CalibrationError):
+        VarianceCalibration.from_dict(bad)
+
+
+def test_calibration_applies_per_regime_in_rollout_and_step() -> None:
+    res = synthetic_chair(60, 0)
+    base = train([Series("a", res)], dataclasses.replace(PAPER_OPTIONS, inducing_v=8,
+                                                         inducing_w=8, max_iter=5))
+    cal = VarianceCalibration(scale=(2.0, 3.0), floor=(1e-4, 2e-4), speed_edges=(0.2,),
+                              speed_factors=(4.0, 1.0))
+    model = dataclasses.replace(base, calibration=cal)
+    jp, vp = res.joy[10:14], res.vel[10:14].copy()
+    jf = res.joy[14:19]
+    for speed, f in ((0.1, 4.0), (0.5, 1.0)):
+        vp[-1, 0] = speed
+        _, var0 = base.predict_step(jp, vp, jf[0])
+        _, var1 = model.predict_step(jp, vp, jf[0])
+        np.testing.assert_allclose(var1, (var0 * [2.0, 3.0] + [1e-4, 2e-4]) * f)
+        r0 = rollout(base, jp, vp, jf[None])
+        r1 = rollout(model, jp, vp, jf[None])
+        np.testing.assert_allclose(r1.pose, r0.pose)  # the mean is untouched
+        np.testing.assert_allclose(r1.vel_cov[0, 0], np.diag(var1), rtol=1e-12)
+    # the basis calibrations decompose the propagated covariance exactly
+    parts = [rollout(dataclasses.replace(base, calibration=b), jp, vp, jf[None]).pos_cov
+             for b in BASIS]
+    theta = np.array([*cal.scale, *cal.floor])
+    np.testing.assert_allclose(combine(np.stack(parts), theta) * cal.factor(0.5),
+                               rollout(model, jp, vp, jf[None]).pos_cov, rtol=1e-10)
+
+
+# ------------------------------------------------------------------ the whole procedure
+
+SMALL = {"inducing_v": 10, "inducing_w": 10, "max_iter": 30, "budget_s": 2.0}
+
+
+@pytest.fixture(scope="module")
+def chair() -> list[Series]:
+    return [Series(f"drive_{i}", synthetic_chair(600, i)) for i in range(3)]
+
+
+@pytest.fixture(scope="module")
+def auto_model(chair: list[Series]):  # type: ignore[no-untyped-def]
+    return train_auto(chair, AutoOptions(seed=3, **SMALL))  # type: ignore[arg-type]
+
+
+def test_selection_is_deterministic_for_a_seed(chair: list[Series], auto_model) -> None:  # type: ignore[no-untyped-def]
+    again = train_auto(chair, AutoOptions(seed=3, **SMALL))  # type: ignore[arg-type]
+    strip = [{k: v for k, v in row.items() if k != "seconds"}
+             for row in auto_model.meta["selection"]["candidates"]]
+    assert strip == [{k: v for k, v in row.items() if k != "seconds"}
+                     for row in again.meta["selection"]["candidates"]]
+    assert again.meta["selection"]["chosen"] == auto_model.meta["selection"]["chosen"]
+    assert again.calibration == auto_model.calibration
+    for a, b in zip(auto_model.channels, again.channels, strict=True):
+        np.testing.assert_array_equal(a.get_state()["alpha"], b.get_state()["alpha"])
+    # every structure was tried, and the best held-out score won
+    rows = [r for r in auto_model.meta["selection"]["candidates"] if "score" in r]
+    assert {(r["candidate"]["lags"], r["candidate"]["coupled"]) for r in rows} >= {
+        (s, c) for s in (2, 4, 6, 8, 10, 12) for c in (False, True)}
+    best = max(rows, key=lambda r: (r["score"], -r["mean_median_error_m"]))
+    assert best["candidate"] == auto_model.meta["selection"]["chosen"]
+
+
+def test_calibrated_coverage_on_fresh_data_of_known_noise(auto_model) -> None:  # type: ignore[no-untyped-def]
+    test = [TestSeries(f"fresh_{i}", synthetic_chair(600, 100 + i)) for i in range(2)]
+    calibrated = evaluate_model(auto_model, test, (1.0, 1.4, 2.0), case_lags=12)
+    raw = evaluate_model(dataclasses.replace(auto_model, calibration=VarianceCalibration()),
+                         test, (1.0, 1.4, 2.0), case_lags=12)
+    for h, ev in calibrated.horizons.items():
+        assert abs(ev.vo.coverage_95 - 0.95) <= 0.02, (h, ev.vo.coverage_95)
+        assert ev.vo.success_rate == raw.horizons[h].vo.success_rate  # mean untouched
+    assert auto_model.meta["calibration"]["cross_validated"]
+
+
+def test_held_out_rows_never_reach_a_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the held-out ends drive with |joystick| >= 2; the training parts within 1
+    series = []
+    for i in range(2):
+        a = synthetic_chair(480, 10 + i)
+        b = synthetic_chair(120, 20 + i, joy_range=(2.0, 2.5))
+        series.append(Series(f"d{i}", _resampled(np.concatenate([a.joy, b.joy]),
+                                                 np.concatenate([a.vel, b.vel]))))
+    lay = input_layout(0, FeatureConfig(lags=2, coupled=True))
+    joy_cols = np.concatenate([lay.joy_past.ravel(), lay.joy_now])
+
+    def joy_max(X: np.ndarray) -> float:
+        return float(np.max(np.abs(np.asarray(X)[:, joy_cols])))
+
+    calls: list[tuple[str, float]] = []
+    fit, from_params = SparseGP.fit, SparseGP.from_params.__func__  # type: ignore[attr-defined]
+
+    def spy_fit(self, X, y, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(("fit", joy_max(X)))
+        return fit(self, X, y, *args, **kwargs)
+
+    def spy_post(cls, X, *args, **kwargs):  # type: ignore[no-untyped-def]
+        calls.append(("posterior", joy_max(X)))
+        return from_params(cls, X, *args, **kwargs)
+
+    monkeypatch.setattr(SparseGP, "fit", spy_fit)
+    monkeypatch.setattr(SparseGP, "from_params", classmethod(spy_post))
+    train_auto(series, AutoOptions(lags=2, coupled=True, **SMALL))  # type: ignore[arg-type]
+    train_part, held = split_holdout(series, 0.2)
+    assert all(np.max(np.abs(p.res.joy)) <= 1.0 for p in train_part)
+    assert all(np.min(np.abs(h.res.joy).max(axis=1)) >= 2.0 for h in held)
+    # the last two posteriors are the shipped model's, on all the data; before them,
+    # nothing with a joystick beyond 1 was ever fitted or conditioned on
+    *selection, ship_v, ship_w = calls
+    assert all(value <= 1.0 + 1e-9 for _, value in selection), selection
+    assert ship_v[0] == ship_w[0] == "posterior" and ship_v[1] >= 2.0
+
+
+def test_model_file_round_trips_configuration_and_calibration(auto_model, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "m.npz"
+    save_model(path, auto_model)
+    back = load_model(path)
+    assert back.calibration == auto_model.calibration
+    assert back.feature_config == auto_model.feature_config
+    assert back.meta["selection"] == auto_model.meta["selection"]
+    assert back.meta["calibration"] == auto_model.meta["calibration"]
+    jp, vp = np.zeros((12, 2)), np.full((12, 2), 0.05)
+    np.testing.assert_allclose(back.predict_step(jp, vp, np.zeros(2))[1],
+                               auto_model.predict_step(jp, vp, np.zeros(2))[1])
+
+
+def test_a_hostile_calibration_in_a_model_file_is_refused(auto_model, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "m.npz"
+    save_model(path, auto_model)
+    with zipfile.ZipFile(path) as zf:
+        members = {n: zf.read(n) for n in zf.namelist()}
+    meta_npy = members["__meta__.npy"]
+    # rewrite the JSON inside the 0-d unicode array, keeping its length
+    arr = np.lib.format.read_array(io.BytesIO(meta_npy))
+    meta = json.loads(str(arr))
+    meta["calibration"]["floor"] = [0.0, -1.0]
+    buf = io.BytesIO()
+    np.lib.format.write_array(buf, np.array(json.dumps(meta)))
+    members["__meta__.npy"] = buf.getvalue()
+    with zipfile.ZipFile(path, "w") as zf:
+        for n, data in members.items():
+            zf.writestr(n, data)
+    with pytest.raises(ModelFileError, match="calibration floor"):
+        load_model(path)
+
+
+def test_paper_flag_is_exactly_the_paper(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    bag = tmp_path / "bag"
+    assert main(["simulate", "--surface", "tile", "--minutes", "1.5", "--seed", "0",
+                 "--out", str(bag)]) == 0
+    model = tmp_path / "paper.npz"
+    assert main(["train", "--paper", str(bag), "--out", str(model), "--max-iter", "5"]) == 0
+    m = load_model(model)
+    assert (m.feature_config.lags, m.feature_config.coupled) == (4, False)
+    assert [ch.num_inducing for ch in m.channels] == [20, 40]
+    assert m.calibration.is_identity and "selection" not in m.meta
+    # the same as the library's paper configuration
+    series = read_series([str(bag)])
+    ref = train(series, dataclasses.replace(PAPER_OPTIONS, max_iter=5))
+    for a, b in zip(m.channels, ref.channels, strict=True):
+        np.testing.assert_array_equal(a.get_state()["alpha"], b.get_state()["alpha"])
+    capsys.readouterr()
+    for extra in (["--lags", "6"], ["--coupled"], ["--model", "mlp"], ["--inducing-v", "8"]):
+        assert main(["train", "--paper", *extra, str(bag), "--out",
+                     str(tmp_path / "x.npz")]) == 2
+        assert "--paper" in capsys.readouterr().err
+    assert not (tmp_path / "x.npz").exists()
