@@ -322,3 +322,23 @@ def test_paper_flag_is_exactly_the_paper(tmp_path, capsys) -> None:  # type: ign
                      str(tmp_path / "x.npz")]) == 2
         assert "--paper" in capsys.readouterr().err
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_the_online_predictor_publishes_calibrated_covariances(auto_model) -> None:  # type: ignore[no-untyped-def]
+    from asgp_ros.core.online import Predictor, PredictorConfig
+
+    res = synthetic_chair(30, 7)
+    raw_model = dataclasses.replace(auto_model, calibration=VarianceCalibration())
+    out = []
+    for model in (auto_model, raw_model):
+        pred = Predictor(model, PredictorConfig(horizon_steps=5))
+        for t, joy, vel in zip(res.t, res.joy, res.vel, strict=True):
+            pred.feed_joy(float(t), joy)
+            pred.feed_vo(float(t), vel)
+        p = pred.predict(float(res.t[-1]))
+        assert p.ok, p.detail
+        out.append(p)
+    cal, raw = out
+    np.testing.assert_allclose(cal.pose, raw.pose)
+    expected = auto_model.calibration.apply(np.diagonal(raw.vel_cov[0]), raw.vel_past[-1, 0])
+    np.testing.assert_allclose(np.diagonal(cal.vel_cov[0]), expected, rtol=1e-10)
