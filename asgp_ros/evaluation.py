@@ -29,6 +29,9 @@ import numpy as np
 
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import THRESHOLD_M, horizon_key
+from asgp_ros.core.models import get_kind
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.unicycle import integrate_path
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +103,6 @@ def reference_path(vel_ref: np.ndarray, dt: float) -> np.ndarray:
     Same trapezoidal unicycle as the rollout (paper eq. 5), from the origin at t_{t-1};
     row i is the pose at t_{t-1} + (i+1) dt, like ``Rollout.pose``.
     """
-    from asgp_ros.core.unicycle import integrate_path
-
     return np.asarray(integrate_path(vel_ref, dt))[:, 1:]
 
 
@@ -110,8 +111,6 @@ def _uncertainty_for(model: Any) -> str:
 
     A kind that is not registered is propagated (whatever variance it predicts is kept).
     """
-    from asgp_ros.core.models import get_kind
-
     try:
         probabilistic = get_kind(str(getattr(model, "kind", ""))).probabilistic
     except KeyError:
@@ -127,8 +126,6 @@ def rollout_cases(
     Returns:
         (pose [N, k, 3], pos_cov [N, k, 2, 2] or None, vel [N, k, 2]).
     """
-    from asgp_ros.core.rollout import rollout
-
     s = int(model.feature_config.lags)
     poses, covs, vels = [], [], []
     for a in range(0, idx.shape[0], CHUNK):

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from asgp_ros.core.metrics import CHI2_2DOF_95, mahalanobis_sq
@@ -277,9 +278,6 @@ def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
         raise CalibrationError("non-finite held-out errors, covariances or speeds")
     if not 0.5 <= target < 1.0:
         raise CalibrationError(f"target coverage must be in [0.5, 1), got {target}")
-    # scipy.optimize takes 0.4 s to import; only fitting needs it, not loading a model
-    import scipy.optimize
-
     eps2 = FIT_POSITION_STD_M**2
     x0 = np.log(np.array([1.0, 1.0, 1e-4, 1e-4]))
     bounds = [(math.log(1e-6), math.log(1e4))] * 2 + [(math.log(1e-10), math.log(1e2))] * 2

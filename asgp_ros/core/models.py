@@ -30,6 +30,7 @@ from asgp_ros.core import baselines
 from asgp_ros.core.calibration import VarianceCalibration
 from asgp_ros.core.features import CHANNELS, FeatureConfig, build_inputs
 from asgp_ros.core.resample import ResampleConfig
+from asgp_ros.core.sparse_gp import SparseGP
 
 FloatArray = NDArray[np.float64]
 
@@ -238,8 +239,6 @@ def _asgp_to_arrays(model: MotionModel) -> tuple[dict[str, np.ndarray], dict[str
 
 def _asgp_from_arrays(arrays: Mapping[str, np.ndarray], params: Mapping[str, Any],
                       features: FeatureConfig) -> Channels:
-    from asgp_ros.core.sparse_gp import SparseGP
-
     gps = []
     for name in CHANNELS:
         prefix = f"{name}."
@@ -270,8 +269,6 @@ def _asgp_fit(channel: int, X: FloatArray, y: FloatArray, features: FeatureConfi
               budget: FitBudget, progress: ChannelProgress
               ) -> tuple[ChannelModel, dict[str, Any]]:
     """SPGP / FITC with M pseudo-inputs by L-BFGS-B (Snelson & Ghahramani 2006)."""
-    from asgp_ros.core.sparse_gp import SparseGP
-
     M = budget.inducing[channel]
     if X.shape[0] < M:
         raise ValueError(f"channel {CHANNELS[channel]}: {X.shape[0]} training rows < {M} "
