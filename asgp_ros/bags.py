@@ -15,10 +15,11 @@ Time stamps: a message's header stamp when it is valid (non-zero and within
 ``max_stamp_skew`` seconds of the time the bag recorded it), the bag time otherwise
 (corrected by the topic's median stamp-to-bag latency, so the clocks stay consistent).
 
-Writing (``write_bag``): a ``Recording`` of the simulator as a ROS 2 bag (mcap by default,
-or sqlite3) or a ROS 1 bag, with ``/joy``, ``/vo/twist`` and ``/ground_truth/odom``;
-atomically (nothing partial on failure) and byte-for-byte reproducibly (message times come
-from the recording, never from the wall clock).
+Writing (``write_bag``): generic connections and serialised messages (``BagContent``, or a
+``BagSource`` that serialises itself for the format) as a ROS 2 bag (mcap by default, or
+sqlite3) or a ROS 1 bag; atomically (nothing partial on failure) and reproducibly (the
+same content gives the same bytes). Bag I/O does not know where the data come from: the
+simulator writes its recordings through it (:func:`asgp_ros.sim.simulate.write_recording`).
 
 Failures raise ``BagError`` naming the file and the problem, in one line: no such bag,
 not a bag, a corrupt or truncated file, a missing topic (with the list of topics the bag
@@ -33,27 +34,23 @@ so a reader never blocks on it.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import re
 import stat
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
-from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
+from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 from asgp_ros.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
-
-if TYPE_CHECKING:
-    from asgp_ros.sim.simulate import Recording
+from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
 
 log = logging.getLogger(__name__)
 
@@ -461,19 +458,52 @@ def read_sim_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
 
 
 # ----------------------------------------------------------------------------- writing
-def _to_ns(t: FloatArray, epoch_ns: int) -> NDArray[np.int64]:
-    return np.rint(np.asarray(t) * 1e9).astype(np.int64) + np.int64(epoch_ns)
+@dataclass(frozen=True)
+class BagContent:
+    """What :func:`write_bag` writes, whatever the data come from.
+
+    Attributes:
+        connections: (topic, message type) of each connection, in the order they are added;
+            a type is named as rosbags names it (``"sensor_msgs/msg/Joy"``).
+        messages: (bag time ns, connection index, serialised message), serialised for the
+            bag's format (CDR for ROS 2, ROS 1 serialisation for a ``.bag``). Written in bag
+            time order; messages with equal times keep their order here.
+        custom_data: ``custom_data`` of a ROS 2 bag's metadata (not stored in a ROS 1 bag).
+        typestore: a rosbags typestore that knows every message type (None: the standard
+            store of the format).
+    """
+
+    connections: Sequence[tuple[str, str]]
+    messages: Sequence[tuple[int, int, bytes]]
+    custom_data: Mapping[str, str] = field(default_factory=dict)
+    typestore: Any = None
+
+
+class BagSource(Protocol):
+    """Something that serialises itself as bag content for a format (e.g. a simulated
+    recording)."""
+
+    def bag_content(self, typestore: Any, ros1: bool) -> BagContent: ...
+
+
+def serialise_batch(typestore: Any, ros1: bool, msgtype: str, make: Callable[..., Any],
+                    fields: dict[str, str], values: dict[str, Any], n: int) -> list[bytes]:
+    """``n`` serialised messages of one type whose variable fields are numpy columns.
+
+    ``make(**row)`` builds one message from scalar field values; ``fields`` maps each
+    variable field to its numpy type code (``"f8"``, ``"i4"``, ...) and ``values`` to its
+    column (or a scalar). All messages share one layout (fixed strings and array lengths),
+    so one message is serialised with a sentinel in every field and the columns are written
+    into copies of it: byte-identical to serialising each message, and much faster.
+    """
+    serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
+    template, offsets = _layout(serialize, msgtype, make, fields)
+    return _fill(template, offsets, values, n)
 
 
 def _layout(serialize: Callable[[Any, str], Any], msgtype: str, make: Callable[..., Any],
             fields: dict[str, str]) -> tuple[bytes, dict[str, tuple[int, np.dtype]]]:
-    """A serialised template message and the byte offset of each variable field.
-
-    All messages we write of one type have the same layout (fixed frame ids, fixed array
-    lengths), so the typestore serialises one message with a distinct sentinel in every
-    variable field and the sentinels' positions give the offsets. Batches are then filled
-    in with numpy (``_fill``), byte-identical to serialising each message.
-    """
+    """A serialised template message and the byte offset of each variable field."""
     sentinels: dict[str, float | int] = {}
     for k, (name, code) in enumerate(fields.items()):
         sentinels[name] = (1000.0 + 37.0 * k + 0.125) if code[0] == "f" else 0x3A5C0000 + 257 * k
@@ -499,101 +529,21 @@ def _fill(template: bytes, offsets: dict[str, tuple[int, np.dtype]],
     return [row.tobytes() for row in buf]
 
 
-def _serialised(rec: Recording, store: Any, ros1: bool, truth: bool
-                ) -> list[tuple[int, str, bytes]]:
-    """(bag time ns, topic, serialised message) for every message of the recording."""
-    T = store.types
-    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
-
-    def header(frame: str, sec: int, nanosec: int, seq: int) -> Any:
-        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-        if ros1:
-            return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
-        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
-
-    def vec(x: float = 0.0, z: float = 0.0) -> Any:
-        return T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=z)
-
-    def twist(v: float, w: float) -> Any:
-        return T["geometry_msgs/msg/Twist"](linear=vec(x=v), angular=vec(z=w))
-
-    def make_joy(sec: int, nanosec: int, a0: float, a1: float, seq: int = 0) -> Any:
-        return T["sensor_msgs/msg/Joy"](
-            header=header("", sec, nanosec, seq), axes=np.array([a0, a1], dtype=np.float32),
-            buttons=np.zeros(0, dtype=np.int32))
-
-    def make_twist(sec: int, nanosec: int, v: float, w: float, seq: int = 0) -> Any:
-        return T["geometry_msgs/msg/TwistStamped"](
-            header=header("base_link", sec, nanosec, seq), twist=twist(v, w))
-
-    def make_odom(sec: int, nanosec: int, x: float, y: float, qz: float, qw: float,
-                  v: float, w: float, seq: int = 0) -> Any:
-        pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw))
-        return T["nav_msgs/msg/Odometry"](
-            header=header("odom", sec, nanosec, seq), child_frame_id="base_link",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
-                                                           covariance=np.zeros(36)),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist(v, w),
-                                                             covariance=np.zeros(36)))
-
-    stamp_fields = {"sec": "i4", "nanosec": "u4"} | ({"seq": "u4"} if ros1 else {})
-    out: list[tuple[int, str, bytes]] = []
-
-    def add(topic: str, make: Callable[..., Any], fields: dict[str, str],
-            t: FloatArray, bag_t: FloatArray, values: dict[str, Any]) -> None:
-        n = t.shape[0]
-        if n == 0:
-            return
-        t_ns = _to_ns(t, rec.epoch_ns)
-        values = dict(values, sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000,
-                      seq=np.arange(1, n + 1))
-        template, offsets = _layout(serialize, _TOPIC_TYPES[topic], make,
-                                    stamp_fields | fields)
-        data = _fill(template, offsets, values, n)
-        out.extend(zip(_to_ns(bag_t, rec.epoch_ns).tolist(), [topic] * n, data, strict=True))
-
-    add(BAG_JOY, make_joy, {"a0": "f4", "a1": "f4"}, rec.joy_t, rec.joy_bag_t,
-        {"a0": rec.joy[:, 0], "a1": rec.joy[:, 1]})
-    add(BAG_VO_TWIST, make_twist, {"v": "f8", "w": "f8"}, rec.vo_t, rec.vo_bag_t,
-        {"v": rec.vo[:, 0], "w": rec.vo[:, 1]})
-    if truth:
-        from asgp_ros.sim.simulate import TRUTH_RATE_HZ
-
-        period = float(rec.truth_t[1] - rec.truth_t[0]) if rec.truth_t.size > 1 else 1.0
-        step = max(1, round(1.0 / (TRUTH_RATE_HZ * period)))
-        tt, st = rec.truth_t[::step], rec.truth[::step]
-        _qx, _qy, qz, qw = yaw_to_quaternion(st[:, 2])
-        add(BAG_GROUND_TRUTH, make_odom,
-            {k: "f8" for k in ("x", "y", "qz", "qw", "v", "w")}, tt, tt,
-            {"x": st[:, 0], "y": st[:, 1], "qz": qz, "qw": qw, "v": st[:, 3],
-             "w": st[:, 4]})
-    return out
-
-
-_TOPIC_TYPES = {
-    BAG_JOY: "sensor_msgs/msg/Joy",
-    BAG_VO_TWIST: "geometry_msgs/msg/TwistStamped",
-    BAG_GROUND_TRUTH: "nav_msgs/msg/Odometry",
-}
-
-
 def write_bag(
     path: str | os.PathLike[str],
-    recording: Recording,
+    content: BagContent | BagSource,
     storage: str = "mcap",
-    truth: bool = True,
 ) -> Path:
-    """Write a simulated recording as a bag, atomically.
+    """Write messages as a bag, atomically and reproducibly.
 
     Args:
         path: the bag to create: a ROS 2 bag directory, or a ``.bag`` file for ROS 1.
             An existing bag at ``path`` is replaced only once the new one is complete.
-        recording: the simulator's output.
+        content: the messages (:class:`BagContent`, serialised for this format), or a
+            :class:`BagSource` that serialises itself for the format (a simulated
+            recording: :meth:`asgp_ros.sim.simulate.Recording.bag_content`).
         storage: "mcap" (default) or "sqlite3" for ROS 2, "ros1" for a ROS 1 bag (chosen
             automatically for a ``.bag`` path).
-        truth: include ``/ground_truth/odom`` (at ``TRUTH_RATE_HZ``, 20 Hz).
 
     Returns:
         The path written.
@@ -610,8 +560,11 @@ def write_bag(
     ros1 = storage == "ros1"
     if ros1 and path.suffix != ".bag":
         raise BagError(f"{path}: a ROS 1 bag must be a file ending in .bag")
-    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
-    records = _serialised(recording, store, ros1, truth)
+    default_store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    if not isinstance(content, BagContent):
+        content = content.bag_content(default_store, ros1)
+    store = content.typestore if content.typestore is not None else default_store
+    records = content.messages
     order = sorted(range(len(records)), key=lambda i: (records[i][0], i))
     try:
         with atomic_path(path, directory=not ros1) as tmp:
@@ -619,23 +572,23 @@ def write_bag(
                 from rosbags.rosbag1 import Writer as Writer1
 
                 with Writer1(tmp) as w1:
-                    conns = {t: w1.add_connection(t, m, typestore=store)
-                             for t, m in _TOPIC_TYPES.items() if truth or t != BAG_GROUND_TRUTH}
+                    conns1 = [w1.add_connection(t, m, typestore=store)
+                              for t, m in content.connections]
                     for i in order:
-                        ts, topic, data = records[i]
-                        w1.write(conns[topic], ts, data)
+                        ts, c, data = records[i]
+                        w1.write(conns1[c], ts, data)
             else:
                 from rosbags.rosbag2 import StoragePlugin, Writer
 
                 plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
                 with Writer(tmp, version=9, storage_plugin=plugin) as w2:
-                    w2.set_custom_data(CUSTOM_DATA_KEY,
-                                       json.dumps(recording.meta, sort_keys=True))
-                    conns = {t: w2.add_connection(t, m, typestore=store)
-                             for t, m in _TOPIC_TYPES.items() if truth or t != BAG_GROUND_TRUTH}
+                    for key, value in content.custom_data.items():
+                        w2.set_custom_data(key, value)
+                    conns2 = [w2.add_connection(t, m, typestore=store)
+                              for t, m in content.connections]
                     for i in order:
-                        ts, topic, data = records[i]
-                        w2.write(conns[topic], ts, data)
+                        ts, c, data = records[i]
+                        w2.write(conns2[c], ts, data)
     except (OSError, WriterError1, WriterError2) as exc:
-        raise BagError(f"{path}: cannot write bag: {exc}") from exc
+        raise BagError(f"{path}: cannot write bag: {_one_line(exc)}") from exc
     return path

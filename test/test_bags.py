@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_typestore
 from asgp_ros import bags
 from asgp_ros.bags import BagError, JoyAxes, parse_joy_axes, read_streams, write_bag
 from asgp_ros.sim.sensors import SensorParams
-from asgp_ros.sim.simulate import simulate
+from asgp_ros.sim.simulate import simulate, write_recording
 
 TRUTH = "/ground_truth/odom"
 STORE2 = get_typestore(Stores.ROS2_JAZZY)
@@ -457,7 +457,7 @@ def test_out_of_range_samples_in_a_bag_are_reported(rec, tmp_path, caplog):
 
     joy = rec.joy.copy()
     joy[5] = (3.0, 0.0)  # raw counts, a wrong scale...
-    bad = write_bag(tmp_path / "scaled", dataclasses.replace(rec, joy=joy), truth=False)
+    bad = write_recording(tmp_path / "scaled", dataclasses.replace(rec, joy=joy), truth=False)
     with caplog.at_level("WARNING", logger="asgp_ros.bags"):
         s = read_streams(bad)
     assert s.joy[5, 0] == 3.0  # read as recorded

@@ -34,9 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from asgp_ros.bags import BagError, write_bag
+    from asgp_ros.bags import BagError
     from asgp_ros.fileio import bag_kind, check_output
-    from asgp_ros.sim.simulate import simulate
+    from asgp_ros.sim.simulate import simulate, write_recording
 
     out = check_output(args.out, bag_kind(args.out), force=args.force)
     if args.seed < 0:
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     try:
         rec = simulate(args.surface, args.minutes, args.seed)
-        write_bag(out, rec, storage=args.storage, truth=not args.no_truth)
+        write_recording(out, rec, storage=args.storage, truth=not args.no_truth)
     except (ValueError, BagError) as exc:
         raise CommandError(str(exc)) from exc
     print(f"{out}: {args.surface}, {args.minutes:g} min, seed {args.seed}: "

@@ -3,22 +3,35 @@
 The closed loop (driver and chair) runs step by step at the chair's internal rate
 (100 Hz, the driver updates at 50 Hz); the sensors are then sampled from the logged truth
 with vectorised numpy. 20 minutes simulate in a couple of seconds.
+
+A recording is written as a bag through the generic writer, :func:`asgp_ros.bags.write_bag`
+(:func:`write_recording`): the recording serialises itself as ``/joy``, ``/vo/twist`` and
+``/ground_truth/odom`` messages (:meth:`Recording.bag_content`).
 """
 
 from __future__ import annotations
 
+import json
 import math
+import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.core.quaternion import yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.sensors import SensorParams, joystick_samples, vo_samples
 from asgp_ros.sim.world import RECORDING_SURFACES, Room, room_for_surface
+from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
+
+if TYPE_CHECKING:
+    from asgp_ros.bags import BagContent
 
 FloatArray = NDArray[np.float64]
 
@@ -27,6 +40,13 @@ DEFAULT_EPOCH_NS = 1_700_000_000 * 10**9
 
 TRUTH_RATE_HZ = 20.0
 """Rate of the ground truth written to bags (/ground_truth/odom); the Recording keeps 100 Hz."""
+
+BAG_TOPIC_TYPES = {
+    BAG_JOY: "sensor_msgs/msg/Joy",
+    BAG_VO_TWIST: "geometry_msgs/msg/TwistStamped",
+    BAG_GROUND_TRUTH: "nav_msgs/msg/Odometry",
+}
+"""The topics a recording is written on, and their message types."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +108,117 @@ class Recording:
             vel_ok=~self.vo_stale if flag_failures else np.ones(self.vo_t.size, dtype=bool),
             truth_t=ti + off, truth=tr, source=f"simulated {self.surface} seed {self.seed}",
         )
+
+    def bag_content(self, typestore: Any, ros1: bool, truth: bool = True) -> BagContent:
+        """The recording as bag messages for :func:`asgp_ros.bags.write_bag`.
+
+        ``/joy`` (sensor_msgs/Joy, axes = the two deflections) and ``/vo/twist``
+        (TwistStamped in base_link) at their recorded stamps and bag times, and with
+        ``truth`` ``/ground_truth/odom`` (Odometry, odom -> base_link) decimated to
+        ``TRUTH_RATE_HZ``; the description ``meta`` goes into the custom data.
+
+        Args:
+            typestore: the rosbags typestore of the bag's format.
+            ros1: serialise for a ROS 1 bag (headers carry a sequence number) instead of CDR.
+            truth: include the ground truth.
+        """
+        from asgp_ros.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch
+
+        T = typestore.types
+
+        def header(frame: str, sec: int, nanosec: int, seq: int) -> Any:
+            stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+            if ros1:
+                return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
+            return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+        def vec(x: float = 0.0, z: float = 0.0) -> Any:
+            return T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=z)
+
+        def twist(v: float, w: float) -> Any:
+            return T["geometry_msgs/msg/Twist"](linear=vec(x=v), angular=vec(z=w))
+
+        def make_joy(sec: int, nanosec: int, a0: float, a1: float, seq: int = 0) -> Any:
+            return T["sensor_msgs/msg/Joy"](
+                header=header("", sec, nanosec, seq),
+                axes=np.array([a0, a1], dtype=np.float32), buttons=np.zeros(0, dtype=np.int32))
+
+        def make_twist(sec: int, nanosec: int, v: float, w: float, seq: int = 0) -> Any:
+            return T["geometry_msgs/msg/TwistStamped"](
+                header=header("base_link", sec, nanosec, seq), twist=twist(v, w))
+
+        def make_odom(sec: int, nanosec: int, x: float, y: float, qz: float, qw: float,
+                      v: float, w: float, seq: int = 0) -> Any:
+            pose = T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw))
+            return T["nav_msgs/msg/Odometry"](
+                header=header("odom", sec, nanosec, seq), child_frame_id="base_link",
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
+                                                               covariance=np.zeros(36)),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist(v, w),
+                                                                 covariance=np.zeros(36)))
+
+        stamp_fields = {"sec": "i4", "nanosec": "u4"} | ({"seq": "u4"} if ros1 else {})
+        topics = [t for t in BAG_TOPIC_TYPES if truth or t != BAG_GROUND_TRUTH]
+        out: list[tuple[int, int, bytes]] = []
+
+        def to_ns(t: FloatArray) -> NDArray[np.int64]:
+            return np.rint(np.asarray(t) * 1e9).astype(np.int64) + np.int64(self.epoch_ns)
+
+        def add(topic: str, make: Callable[..., Any], fields: dict[str, str],
+                t: FloatArray, bag_t: FloatArray, values: dict[str, Any]) -> None:
+            n = t.shape[0]
+            if n == 0:
+                return
+            t_ns = to_ns(t)
+            values = dict(values, sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000,
+                          seq=np.arange(1, n + 1))
+            data = serialise_batch(typestore, ros1, BAG_TOPIC_TYPES[topic], make,
+                                   stamp_fields | fields, values, n)
+            out.extend(zip(to_ns(bag_t).tolist(), [topics.index(topic)] * n, data,
+                           strict=True))
+
+        add(BAG_JOY, make_joy, {"a0": "f4", "a1": "f4"}, self.joy_t, self.joy_bag_t,
+            {"a0": self.joy[:, 0], "a1": self.joy[:, 1]})
+        add(BAG_VO_TWIST, make_twist, {"v": "f8", "w": "f8"}, self.vo_t, self.vo_bag_t,
+            {"v": self.vo[:, 0], "w": self.vo[:, 1]})
+        if truth:
+            period = float(self.truth_t[1] - self.truth_t[0]) if self.truth_t.size > 1 else 1.0
+            step = max(1, round(1.0 / (TRUTH_RATE_HZ * period)))
+            tt, st = self.truth_t[::step], self.truth[::step]
+            _qx, _qy, qz, qw = yaw_to_quaternion(st[:, 2])
+            add(BAG_GROUND_TRUTH, make_odom,
+                {k: "f8" for k in ("x", "y", "qz", "qw", "v", "w")}, tt, tt,
+                {"x": st[:, 0], "y": st[:, 1], "qz": qz, "qw": qw, "v": st[:, 3],
+                 "w": st[:, 4]})
+        return BagContent(connections=[(t, BAG_TOPIC_TYPES[t]) for t in topics],
+                          messages=out,
+                          custom_data={CUSTOM_DATA_KEY: json.dumps(self.meta, sort_keys=True)})
+
+
+def write_recording(path: str | os.PathLike[str], recording: Recording,
+                    storage: str = "mcap", truth: bool = True) -> Path:
+    """Write a recording as a bag (atomically, byte-for-byte reproducibly: message times
+    come from the recording, never from the wall clock).
+
+    Args:
+        path: a ROS 2 bag directory, or a ``.bag`` file for ROS 1.
+        recording: the simulator's output.
+        storage: "mcap" (default), "sqlite3" or "ros1" (automatic for a ``.bag`` path).
+        truth: include ``/ground_truth/odom`` (at ``TRUTH_RATE_HZ``).
+
+    Raises:
+        asgp_ros.bags.BagError: the bag cannot be written.
+    """
+    from asgp_ros.bags import write_bag
+
+    class _Source:
+        def bag_content(self, typestore: Any, ros1: bool) -> BagContent:
+            return recording.bag_content(typestore, ros1, truth=truth)
+
+    return write_bag(path, _Source(), storage=storage)
+
 
 
 def simulate(
