@@ -34,6 +34,7 @@ so a reader never blocks on it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import re
@@ -41,7 +42,7 @@ import stat
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -73,6 +74,10 @@ MAX_BAG_METADATA_BYTES = 16 * 2**20
 
 class BagError(Exception):
     """A bag cannot be read or written as asked; the message names the file."""
+
+
+class _DamagedDataError(BagError):
+    """The bag's messages cannot be read as indexed (a read from a scan may recover them)."""
 
 
 # ----------------------------------------------------------------------------- joystick axes
@@ -298,56 +303,50 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     except BagError:
         raise
     except Exception as exc:  # rosbags raises several types for damaged data
-        raise BagError(f"{source}: corrupt or truncated bag: "
+        raise _DamagedDataError(f"{source}: corrupt or truncated bag: "
                        f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
     return bag_ns, rows
 
 
-def read_streams(
-    path: str | os.PathLike[str],
-    joy_topic: str = BAG_JOY,
-    twist_topic: str = BAG_VO_TWIST,
-    truth_topic: str | None = None,
-    joy_axes: JoyAxes | str | None = None,
-    max_stamp_skew: float = 10.0,
-) -> RawStreams:
-    """Read the joystick, velocity (and optional ground-truth) streams of a bag.
-
-    Args:
-        path: ROS 1 ``.bag`` file, or ROS 2 bag directory (sqlite3 or mcap), or the
-            storage file inside one.
-        joy_topic: ``sensor_msgs/Joy`` topic.
-        twist_topic: TwistStamped / TwistWithCovarianceStamped / Twist / Odometry topic.
-        truth_topic: ``nav_msgs/Odometry`` ground truth, or None to skip it.
-        joy_axes: axis mapping (or its ``--joy-axes`` string).
-        max_stamp_skew: a header stamp further than this (s) from the bag time is invalid.
-
-    Returns:
-        RawStreams with times in seconds on the bag's clock (header stamps where valid).
-
-    Raises:
-        BagError: missing file or topic, unsupported type, corrupt or truncated bag.
-    """
+def _open_reader(path: str | os.PathLike[str]) -> Any:
+    """An open rosbags reader of the bag, or a reader over a scan of it when the recording
+    was killed (no metadata.yaml) or its storage does not open (cut, no index)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    if joy_axes is None:
-        joy_axes = JoyAxes()
-    axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
-    bag = resolve_bag(path)
-    source = str(bag)
-    is_ros1 = bag.is_file()
-    store = get_typestore(Stores.ROS1_NOETIC if is_ros1 else Stores.ROS2_JAZZY)
+    try:
+        bag = resolve_bag(path)
+    except BagError as exc:
+        if not _unfinished_ros2_bag(path):
+            raise
+        return _open_recovered(path, exc)
+    store = get_typestore(Stores.ROS1_NOETIC if bag.is_file() else Stores.ROS2_JAZZY)
     try:
         reader = AnyReader([bag], default_typestore=store)
         reader.open()
-    except BagError:
-        raise
     except Exception as exc:
-        hint = ("; a bag whose recording was killed may need `rosbag reindex` (ROS 1) "
-                "or `ros2 bag reindex` (ROS 2)")
-        raise BagError(f"{source}: cannot open bag (corrupt or truncated): "
-                       f"{_one_line(f'{type(exc).__name__}: {exc}')}{hint}") from exc
+        return _open_recovered(bag, BagError(
+            f"{bag}: cannot open bag (corrupt or truncated): "
+            f"{_one_line(f'{type(exc).__name__}: {exc}')}"))
+    return reader
+
+
+def _unfinished_ros2_bag(path: str | os.PathLike[str]) -> bool:
+    """A ROS 2 bag directory (or its storage file) without metadata.yaml, which the recorder
+    writes last: what a killed recording leaves."""
+    p = Path(path)
+    if p.suffix in (".mcap", ".db3"):
+        p = p.parent if str(p.parent) else Path(".")
+    try:
+        return (p.is_dir() and not os.path.lexists(p / "metadata.yaml")
+                and any(Path(e.name).suffix in (".mcap", ".db3") for e in os.scandir(p)))
+    except OSError:
+        return False
+
+
+def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
+                 truth_topic: str | None, axes: JoyAxes) -> tuple[Any, ...]:
+    """The raw rows of the joystick, velocity and ground-truth topics (closes ``reader``)."""
     try:
         joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
         tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
@@ -380,8 +379,50 @@ def read_streams(
         jb, jr = _collect(reader, joy_conns, joy_row, source)
         vb, vr = _collect(reader, tw_conns, twist_row, source)
         tb, tr = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [])
+        return jb, jr, vb, vr, tb, tr, tw_conns
     finally:
         reader.close()
+
+
+def read_streams(
+    path: str | os.PathLike[str],
+    joy_topic: str = BAG_JOY,
+    twist_topic: str = BAG_VO_TWIST,
+    truth_topic: str | None = None,
+    joy_axes: JoyAxes | str | None = None,
+    max_stamp_skew: float = 10.0,
+) -> RawStreams:
+    """Read the joystick, velocity (and optional ground-truth) streams of a bag.
+
+    Args:
+        path: ROS 1 ``.bag`` file, or ROS 2 bag directory (sqlite3 or mcap), or the
+            storage file inside one.
+        joy_topic: ``sensor_msgs/Joy`` topic.
+        twist_topic: TwistStamped / TwistWithCovarianceStamped / Twist / Odometry topic.
+        truth_topic: ``nav_msgs/Odometry`` ground truth, or None to skip it.
+        joy_axes: axis mapping (or its ``--joy-axes`` string).
+        max_stamp_skew: a header stamp further than this (s) from the bag time is invalid.
+
+    Returns:
+        RawStreams with times in seconds on the bag's clock (header stamps where valid).
+
+    Raises:
+        BagError: missing file or topic, unsupported type, corrupt or truncated bag.
+    """
+    if joy_axes is None:
+        joy_axes = JoyAxes()
+    axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
+    reader = _open_reader(path)
+    recovered = getattr(reader, "recovered", None)
+    source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
+    try:
+        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes)
+    except _DamagedDataError as exc:  # the index opened, the data behind it are damaged
+        if recovered is not None:
+            raise
+        reader = _open_recovered(path, exc)
+        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes)
+    jb, jr, vb, vr, tb, tr, tw_conns = collected
 
     for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
         if not rows:
@@ -417,16 +458,12 @@ def read_streams(
 
 
 def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
-    """Topic name -> message type of a bag."""
-    from rosbags.highlevel import AnyReader
-
-    bag = resolve_bag(path)
+    """Topic name -> message type of a bag (of what a scan recovers, for a damaged one)."""
+    reader = _open_reader(path)
     try:
-        with AnyReader([bag]) as reader:
-            return {c.topic: c.msgtype for c in reader.connections}
-    except Exception as exc:
-        raise BagError(f"{bag}: cannot open bag: "
-                       f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
+        return {c.topic: c.msgtype for c in reader.connections}
+    finally:
+        reader.close()
 
 
 def read_sim_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
@@ -455,6 +492,1008 @@ def read_sim_metadata(path: str | os.PathLike[str]) -> dict[str, Any] | None:
         raise BagError(f"{meta_path}: unreadable simulation description: "
                        f"{_one_line(exc)}") from exc
     return desc
+
+
+# ----------------------------------------------------------------------------- recovery
+# A recording that was killed (battery, SIGKILL, a full disk) leaves a bag without its
+# index: an mcap file without its summary and footer, a ROS 1 bag whose index position is
+# still 0, an SQLite file cut at a page, a directory without metadata.yaml. The scanners
+# below read such files record by record from the start, keep every record that is
+# complete, and stop at the first one that is not: a partial record is dropped, never
+# decoded. What was lost is reported in a BagDamage.
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+_STORAGE_SUFFIXES = {".mcap": "mcap", ".db3": "sqlite3", ".bag": "ros1"}
+
+
+class _StopError(Exception):
+    """A record that cannot be parsed: the scan of this stream stops before it."""
+
+
+@dataclass(frozen=True)
+class RecoveredConnection:
+    """A connection (topic and type) found by scanning a bag.
+
+    Attributes:
+        id: index in :attr:`RecoveredBag.connections`.
+        topic, msgtype: as rosbags names them (``"sensor_msgs/msg/Joy"``).
+        msgdef: the message definition stored in the bag ('' if none).
+        encoding: its format: "ros2msg", "ros2idl" (ROS 2) or "msg" (ROS 1).
+    """
+
+    id: int
+    topic: str
+    msgtype: str
+    msgdef: str = ""
+    encoding: str = ""
+
+
+@dataclass(frozen=True)
+class BagDamage:
+    """What a scan of a bag found, and what it could not recover.
+
+    Attributes:
+        bag: the bag. storage: "mcap", "sqlite3" or "ros1".
+        file_bytes: size of the storage file(s).
+        complete_bytes: bytes up to the end of the last complete record (SQLite: page).
+        expected_bytes: the size the file says it had (SQLite header, ROS 1 index
+            position), or None when unknown.
+        messages: complete messages recovered; start_ns, end_ns: their bag-time range.
+        dropped_messages: messages known to exist that were dropped (a partial record, a
+            message of an unknown connection, a chunk whose checksum fails, an SQLite row
+            whose page is missing).
+        expected_messages, expected_end_ns: the count and end time a surviving index or
+            metadata.yaml gives (None when unknown).
+        intact: the storage ended as a complete bag ends (index, summary, footer) and no
+            problem was found.
+        problems: what was wrong, one phrase each.
+    """
+
+    bag: str
+    storage: str
+    file_bytes: int
+    complete_bytes: int
+    expected_bytes: int | None
+    messages: int
+    start_ns: int | None
+    end_ns: int | None
+    dropped_messages: int
+    expected_messages: int | None
+    expected_end_ns: int | None
+    intact: bool
+    problems: tuple[str, ...]
+
+    @property
+    def lost_bytes(self) -> int:
+        """Bytes after the last complete record, plus those known to be missing."""
+        tail = self.file_bytes - self.complete_bytes
+        return tail + max(0, (self.expected_bytes or 0) - self.file_bytes)
+
+    @property
+    def lost_messages(self) -> int | None:
+        """Messages lost, when a surviving index or metadata.yaml gives the count."""
+        if self.expected_messages is None:
+            return None
+        return max(0, self.expected_messages - self.messages)
+
+    def summary(self) -> str:
+        """One line: what was recovered and what was lost."""
+        if self.intact:
+            return f"{self.bag}: intact ({self.storage}, {self.messages} messages)"
+        span = (f" ({(self.end_ns - self.start_ns) * 1e-9:.3f} s of bag time, "
+                f"{self.start_ns * 1e-9:.3f} .. {self.end_ns * 1e-9:.3f})"
+                if self.start_ns is not None and self.end_ns is not None else "")
+        parts = [f"{self.bag}: damaged {self.storage} bag ({'; '.join(self.problems)})",
+                 f"recovered {self.messages} complete messages{span}"]
+        lost = self.lost_messages
+        if lost is not None:
+            parts.append(f"lost {lost} of {self.expected_messages} messages")
+        elif self.dropped_messages:
+            parts.append(f"dropped {self.dropped_messages} incomplete or unreadable messages "
+                         "(more may have been lost after the cut)")
+        else:
+            parts.append("how many messages followed the cut is unknown")
+        if self.expected_end_ns is not None and self.end_ns is not None \
+                and self.expected_end_ns > self.end_ns:
+            parts.append(f"{(self.expected_end_ns - self.end_ns) * 1e-9:.3f} s lost at the end")
+        tail = self.file_bytes - self.complete_bytes
+        missing = max(0, (self.expected_bytes or 0) - self.file_bytes)
+        parts.append(f"{tail} of {self.file_bytes} bytes after the last complete record"
+                     + (f", {missing} bytes missing at the end" if missing else ""))
+        return "; ".join(parts)
+
+
+@dataclass
+class RecoveredBag:
+    """Everything a scan recovered from a bag (see :func:`recover_bag`).
+
+    Attributes:
+        connections: the connections, ``connections[i].id == i``.
+        messages: (connection id, bag time ns, serialised message) in bag-time order.
+        ros1: the messages are ROS 1 serialised (else CDR).
+        custom_data: a ROS 2 bag's custom metadata, when metadata.yaml survived.
+        damage: what was found and lost.
+    """
+
+    connections: list[RecoveredConnection]
+    messages: list[tuple[int, int, bytes]]
+    ros1: bool
+    custom_data: dict[str, str]
+    damage: BagDamage
+
+
+@dataclass
+class _Scan:
+    """What the scan of one storage file found (connection keys are per file)."""
+
+    conns: dict[Any, tuple[str, str, str, str]] = field(default_factory=dict)
+    messages: list[tuple[Any, int, bytes]] = field(default_factory=list)
+    complete: int = 0
+    expected_bytes: int | None = None
+    expected_messages: int | None = None
+    dropped: int = 0
+    ended: bool = False
+    problems: list[str] = field(default_factory=list)
+
+
+def _u(buf: Any, pos: int, size: int, order: Literal["little", "big"] = "little") -> int:
+    if pos < 0 or pos + size > len(buf):
+        raise _StopError("past the end")
+    return int.from_bytes(buf[pos:pos + size], order)
+
+
+def _mcap_str(buf: Any, pos: int) -> tuple[str, int]:
+    n = _u(buf, pos, 4)
+    if pos + 4 + n > len(buf):
+        raise _StopError("string past the end")
+    try:
+        return bytes(buf[pos + 4:pos + 4 + n]).decode("utf-8"), pos + 4 + n
+    except UnicodeDecodeError as exc:
+        raise _StopError("not UTF-8") from exc
+
+
+def _decompress(data: bytes, compression: str, partial: bool) -> bytes:
+    """A chunk's records; for a partial chunk, what its complete compressed blocks hold."""
+    if compression in ("", "none"):
+        return data
+    try:
+        if compression == "zstd":
+            from backports import zstd
+
+            return bytes(zstd.ZstdDecompressor().decompress(data)) if partial \
+                else bytes(zstd.decompress(data))
+        if compression == "lz4":
+            import lz4.frame
+
+            if partial:
+                return bytes(lz4.frame.LZ4FrameDecompressor().decompress(data))
+            return bytes(lz4.frame.decompress(data))
+        if compression == "bz2":
+            import bz2
+
+            return bz2.BZ2Decompressor().decompress(data) if partial else bz2.decompress(data)
+    except Exception as exc:  # each library raises its own error types
+        raise _StopError(f"{compression} data do not decompress") from exc
+    raise _StopError(f"unsupported compression {compression!r}")
+
+
+def _scan_mcap(buf: Any, name: str) -> _Scan:
+    """Scan an mcap file's data section record by record (no summary or index needed)."""
+    import zlib
+
+    scan = _Scan()
+    if bytes(buf[:8]) != MCAP_MAGIC:
+        raise BagError(f"{name}: not an mcap file (it does not start with the mcap magic)")
+    schemas: dict[int, tuple[str, str, str]] = {}
+    progress = [8]  # the end of the last complete top-level record
+    data_end = [False]
+
+    def records(view: Any, pos: int, nested: bool) -> tuple[int, int | None]:
+        """Handle the complete records from ``pos``; return the end of the last one and
+        the opcode of a partial record after it (None: the view ended at a record)."""
+        n = len(view)
+        while pos < n:
+            if n - pos < 9:
+                return pos, -1
+            op = view[pos]
+            if op == 0x00:  # reserved: zeros where records should be (a sparse tail)
+                raise _StopError(f"invalid opcode 0 at byte {pos}")
+            end = pos + 9 + int.from_bytes(view[pos + 1:pos + 9], "little")
+            if end > n:
+                return pos, op
+            body = view[pos + 9:end]
+            if op == 0x03:  # Schema
+                sid = _u(body, 0, 2)
+                sname, p = _mcap_str(body, 2)
+                enc, p = _mcap_str(body, p)
+                ln = _u(body, p, 4)
+                schemas[sid] = (sname, enc, bytes(body[p + 4:p + 4 + ln]).decode(
+                    "utf-8", "replace"))
+            elif op == 0x04:  # Channel
+                cid, sid = _u(body, 0, 2), _u(body, 2, 2)
+                topic, p = _mcap_str(body, 4)
+                if sid in schemas:
+                    sname, enc, text = schemas[sid]
+                    scan.conns[cid] = (topic, sname, text, enc)
+            elif op == 0x05:  # Message
+                if len(body) < 22:
+                    raise _StopError("message record shorter than its header")
+                cid = _u(body, 0, 2)
+                if cid in scan.conns:
+                    scan.messages.append((cid, _u(body, 6, 8), bytes(body[22:])))
+                else:
+                    scan.dropped += 1
+            elif op == 0x06 and not nested:  # Chunk
+                chunk(body, pos, partial=False)
+            elif op == 0x0F and not nested:  # DataEnd: the summary follows
+                data_end[0] = True
+                summary(view, end)
+                return end, None
+            elif nested and op not in (0x03, 0x04, 0x05):
+                raise _StopError(f"record 0x{op:02x} inside a chunk")
+            pos = end
+            if not nested:
+                progress[0] = end
+        return pos, None
+
+    def chunk(body: Any, at: int, partial: bool) -> int:
+        """Handle a chunk record's body; return the end of its last complete record in
+        the file (uncompressed chunks) or ``at`` (compressed ones)."""
+        size, crc = _u(body, 16, 8), _u(body, 24, 4)
+        compression, p = _mcap_str(body, 28)
+        stored = _u(body, p, 8)
+        data = bytes(body[p + 8:p + 8 + stored])
+        if not partial and len(data) != stored:
+            raise _StopError("chunk shorter than its records")
+        raw = _decompress(data, compression, partial)
+        if not partial and (len(raw) != size or (crc and zlib.crc32(raw) != crc)):
+            found = len(scan.messages)
+            with contextlib.suppress(_StopError):
+                records(raw, 0, nested=True)  # count what is lost, keep nothing
+            lost = len(scan.messages) - found
+            del scan.messages[found:]
+            scan.dropped += lost
+            scan.problems.append(f"chunk at byte {at} fails its checksum "
+                                 f"({lost} messages dropped)")
+            return at
+        try:
+            inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+        except _StopError as exc:
+            scan.problems.append(f"chunk at byte {at}: {exc}")
+            return at
+        if tail is not None:
+            scan.dropped += 1 if tail in (-1, 0x05) else 0
+            if not partial:
+                scan.problems.append(f"chunk at byte {at} ends inside a record")
+        return at + 9 + p + 8 + inner if compression in ("", "none") else at
+
+    def summary(view: Any, pos: int) -> None:
+        n = len(view)
+        while pos + 9 <= n:
+            op = view[pos]
+            end = pos + 9 + int.from_bytes(view[pos + 1:pos + 9], "little")
+            if end > n or op == 0x00:
+                return
+            if op == 0x0B:  # Statistics
+                scan.expected_messages = _u(view, pos + 9, 8)
+            if op == 0x02 and end + 8 == n and bytes(view[end:]) == MCAP_MAGIC:
+                scan.ended = True
+                scan.complete = n
+                return
+            pos = end
+
+    try:
+        end, tail = records(buf, 8, nested=False)
+    except _StopError as exc:
+        scan.complete = progress[0]
+        scan.problems.append(f"unreadable record at byte {progress[0]}: {exc}")
+        return scan
+    if not scan.ended:
+        scan.complete = end
+        scan.problems.append("the summary or footer is damaged (every message is before it)"
+                             if data_end[0] else
+                             "no summary or footer (the recording did not finish)")
+        if tail == 0x06:  # a chunk cut short: its complete records are good
+            with contextlib.suppress(_StopError):
+                scan.complete = chunk(buf[end + 9:], end, partial=True)
+            scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
+        elif tail == 0x05:
+            scan.dropped += 1
+    return scan
+
+
+# --- SQLite: the database file is read page by page, never opened by sqlite itself (which
+# would roll back a hot journal, i.e. drop the last transaction, and write to the bag).
+def _varint(buf: Any, pos: int) -> tuple[int, int]:
+    value = 0
+    for k in range(9):
+        if pos + k >= len(buf):
+            raise _StopError("varint past the end")
+        b = buf[pos + k]
+        if k == 8:
+            value = (value << 8) | b
+            break
+        value = (value << 7) | (b & 0x7F)
+        if b < 0x80:
+            break
+    if value >= 1 << 63:
+        value -= 1 << 64
+    return value, pos + k + 1
+
+
+def _sqlite_record(payload: bytes) -> list[Any]:
+    """The values of an SQLite record (https://sqlite.org/fileformat.html#record_format)."""
+    hlen, p = _varint(payload, 0)
+    if not 0 < hlen <= len(payload):
+        raise _StopError("record header size")
+    types = []
+    while p < hlen:
+        t, p = _varint(payload, p)
+        types.append(t)
+    if p != hlen:
+        raise _StopError("record header")
+    pos = hlen
+    values: list[Any] = []
+    sizes = {1: 1, 2: 2, 3: 3, 4: 4, 5: 6, 6: 8}
+    for t in types:
+        if t == 0:
+            values.append(None)
+        elif t in sizes:
+            n = sizes[t]
+            values.append(int.from_bytes(payload[pos:pos + n], "big", signed=True))
+            pos += n
+        elif t == 7:
+            import struct
+
+            if pos + 8 > len(payload):
+                raise _StopError("record past its payload")
+            values.append(struct.unpack(">d", payload[pos:pos + 8])[0])
+            pos += 8
+        elif t in (8, 9):
+            values.append(t - 8)
+        elif t >= 12:
+            n = (t - 12) // 2
+            chunk = payload[pos:pos + n]
+            if t % 2:
+                try:
+                    values.append(chunk.decode("utf-8"))
+                except UnicodeDecodeError as exc:
+                    raise _StopError("text not UTF-8") from exc
+            else:
+                values.append(chunk)
+            pos += n
+        else:
+            raise _StopError(f"serial type {t}")
+        if pos > len(payload):
+            raise _StopError("record past its payload")
+    if pos != len(payload):
+        raise _StopError("record size")
+    return values
+
+
+def _wal_pages(wal: bytes, page_size: int) -> tuple[dict[int, bytes], str | None]:
+    """Pages of a write-ahead log whose frames pass their checksums, latest frame last.
+
+    Frames are read while their salt and cumulative checksum hold
+    (https://sqlite.org/fileformat.html#wal_file_format); a torn frame ends the log.
+    """
+    import struct
+
+    if len(wal) < 32:
+        return {}, "empty write-ahead log" if wal else None
+    magic, _ver, psize, _seq, salt1, salt2, c1, c2 = struct.unpack(">8I", wal[:32])
+    if magic not in (0x377F0682, 0x377F0683) or psize != page_size:
+        return {}, "write-ahead log with a bad header (ignored)"
+    fmt = "<" if magic == 0x377F0682 else ">"
+
+    def checksum(data: bytes, s0: int, s1: int) -> tuple[int, int]:
+        words = struct.unpack(f"{fmt}{len(data) // 4}I", data)
+        for i in range(0, len(words), 2):
+            s0 = (s0 + words[i] + s1) & 0xFFFFFFFF
+            s1 = (s1 + words[i + 1] + s0) & 0xFFFFFFFF
+        return s0, s1
+
+    s = checksum(wal[:24], 0, 0)
+    if s != (c1, c2):
+        return {}, "write-ahead log with a bad header checksum (ignored)"
+    pages: dict[int, bytes] = {}
+    pending: dict[int, bytes] = {}
+    pos = 32
+    while pos + 24 + page_size <= len(wal):
+        pgno, commit, fs1, fs2, f1, f2 = struct.unpack(">6I", wal[pos:pos + 24])
+        page = wal[pos + 24:pos + 24 + page_size]
+        s = checksum(wal[pos:pos + 8] + page, *s)
+        if (fs1, fs2) != (salt1, salt2) or s != (f1, f2):
+            break
+        pending[pgno] = page
+        if commit:
+            pages.update(pending)
+            pending.clear()
+        pos += 24 + page_size
+    problem = None
+    if pending:  # an append-only recorder's uncommitted pages hold complete rows too
+        pages.update(pending)
+        problem = "the write-ahead log ends inside a transaction"
+    return pages, problem
+
+
+def _scan_sqlite(path: Path, buf: Any, name: str) -> _Scan:
+    """Scan a rosbag2 SQLite database page by page (a cut file has no tail pages)."""
+    scan = _Scan()
+    if len(buf) < 100 or bytes(buf[:16]) != SQLITE_MAGIC:
+        raise BagError(f"{name}: not an SQLite database (no SQLite header)")
+    ps = _u(buf, 16, 2, "big")
+    ps = 65536 if ps == 1 else ps
+    if ps < 512 or ps & (ps - 1):
+        raise BagError(f"{name}: SQLite header with a bad page size {ps}")
+    usable = ps - buf[20]
+    npages = len(buf) // ps
+    if _u(buf, 24, 4, "big") == _u(buf, 92, 4, "big") and _u(buf, 28, 4, "big"):
+        scan.expected_bytes = _u(buf, 28, 4, "big") * ps
+        if npages > scan.expected_bytes // ps:  # bytes after the database are not its own
+            scan.problems.append(f"{len(buf) - scan.expected_bytes} bytes after the end of "
+                                 "the database")
+            npages = scan.expected_bytes // ps
+    overlay: dict[int, bytes] = {}
+    wal_path = path.with_name(path.name + "-wal")
+    if regular_file_problem(wal_path) is None:
+        overlay, problem = _wal_pages(wal_path.read_bytes(), ps)
+        if problem:
+            scan.problems.append(problem)
+        if overlay:
+            npages = max(npages, max(overlay))
+            scan.expected_bytes = None  # the log holds the newest size
+    if regular_file_problem(path.with_name(path.name + "-journal")) is None:
+        scan.problems.append("a rollback journal was left (the last transaction did not "
+                             "finish); the database is read as it was written")
+
+    def page(p: int) -> bytes | None:
+        if p in overlay:
+            return overlay[p]
+        if 1 <= p <= npages and p * ps <= len(buf):
+            return bytes(buf[(p - 1) * ps:p * ps])
+        return None
+
+    def kind(p: int) -> int:
+        pg = page(p)
+        return -1 if pg is None else pg[100 if p == 1 else 0]
+
+    def cells(p: int) -> list[tuple[int, bytes | None]]:
+        """(rowid, payload or None if an overflow page is missing) of a table leaf."""
+        pg = page(p)
+        assert pg is not None
+        h = 100 if p == 1 else 0
+        out: list[tuple[int, bytes | None]] = []
+        x = usable - 35
+        for i in range(_u(pg, h + 3, 2, "big")):
+            c = _u(pg, h + 8 + 2 * i, 2, "big")
+            size, c = _varint(pg, c)
+            rowid, c = _varint(pg, c)
+            if size <= x:
+                if c + size > usable:
+                    raise _StopError("cell past its page")
+                out.append((rowid, pg[c:c + size]))
+                continue
+            m = ((usable - 12) * 32 // 255) - 23
+            local = m + (size - m) % (usable - 4)
+            local = local if local <= x else m
+            data = [pg[c:c + local]]
+            have, nxt, hops = local, _u(pg, c + local, 4, "big"), 0
+            while have < size and nxt and hops <= npages:
+                ov = page(nxt)
+                if ov is None:
+                    break
+                take = min(size - have, usable - 4)
+                data.append(ov[4:4 + take])
+                have, nxt, hops = have + take, _u(ov, 0, 4, "big"), hops + 1
+            out.append((rowid, b"".join(data) if have == size else None))
+        return out
+
+    def leaves(root: int, seen: set[int]) -> list[int]:
+        """Table leaf pages reached from ``root`` (missing pages are skipped)."""
+        found, stack = [], [root]
+        while stack:
+            p = stack.pop()
+            if p in seen:
+                continue
+            seen.add(p)
+            k = kind(p)
+            if k == 0x0D:
+                found.append(p)
+            elif k == 0x05:
+                pg = page(p)
+                assert pg is not None
+                h = 100 if p == 1 else 0
+                stack.append(_u(pg, h + 8, 4, "big"))
+                for i in range(_u(pg, h + 3, 2, "big")):
+                    stack.append(_u(pg, _u(pg, h + 12 + 2 * i, 2, "big"), 4, "big"))
+        return found
+
+    def rows(root: int, seen: set[int]) -> list[tuple[int, list[Any]]]:
+        out: list[tuple[int, list[Any]]] = []
+        for p in leaves(root, seen):
+            try:
+                out.extend((r, _sqlite_record(d)) for r, d in cells(p) if d is not None)
+            except _StopError:
+                scan.problems.append(f"unreadable page {p}")
+        return out
+
+    claimed: set[int] = set()
+    free = set()  # pages on the free list may hold stale rows
+    trunk, hops = _u(buf, 32, 4, "big"), 0
+    while trunk and hops <= npages and (pg := page(trunk)) is not None:
+        free.add(trunk)
+        free.update(_u(pg, 8 + 4 * i, 4, "big") for i in range(min(_u(pg, 4, 4, "big"),
+                                                                   usable // 4 - 2)))
+        trunk, hops = _u(pg, 0, 4, "big"), hops + 1
+    claimed |= free
+    try:
+        schema = rows(1, claimed)
+    except _StopError as exc:
+        raise BagError(f"{name}: unreadable SQLite schema: {exc}") from exc
+    roots = {v[1]: v[3] for _r, v in schema if len(v) == 5 and v[0] == "table"
+             and isinstance(v[3], int)}
+    if "messages" not in roots or "topics" not in roots:
+        raise BagError(f"{name}: not a rosbag2 database (no messages and topics tables)")
+    tables = {t: rows(root, claimed) for t, root in roots.items() if t != "messages"}
+    defs = {v[1]: (v[3], v[2]) for _r, v in tables.get("message_definitions", [])
+            if len(v) >= 4 and isinstance(v[1], str) and isinstance(v[3], str)}
+    for rowid, v in tables["topics"]:
+        if len(v) >= 4 and all(isinstance(x, str) for x in v[1:4]):
+            text, enc = defs.get(v[2], ("", ""))
+            scan.conns[rowid] = (v[1], v[2], text, enc)
+    # The messages table: every table leaf not claimed by another table (a cut file may
+    # have lost the interior pages that lead to them), whose rows all have its shape.
+    found: dict[int, tuple[int, int, bytes] | None] = {}
+    for p in range(1, npages + 1):
+        if p in claimed or kind(p) != 0x0D:
+            continue
+        try:
+            page_rows = [(r, _sqlite_record(d) if d is not None else None)
+                         for r, d in cells(p)]
+        except _StopError:
+            scan.problems.append(f"unreadable page {p}")
+            continue
+        if not all(w is None or (len(w) == 4 and w[0] is None and isinstance(w[1], int)
+                                 and isinstance(w[2], int) and isinstance(w[3], bytes))
+                   for _r, w in page_rows):
+            continue  # another table's page
+        for r, w in page_rows:
+            row = None if w is None else (w[1], w[2], w[3])
+            if r in found and found[r] != row:
+                found[r] = None  # two different versions of one row: trust neither
+            else:
+                found[r] = row
+    for rowid in sorted(found):
+        kept = found[rowid]
+        if kept is None or kept[0] not in scan.conns:
+            scan.dropped += 1
+            continue
+        scan.messages.append(kept)
+    if found:  # ids are 1, 2, 3, ...: a gap below the largest found is a lost row
+        scan.dropped += max(found) - len(found)
+    scan.complete = min(len(buf) // ps, npages) * ps
+    if len(buf) % ps and len(buf) // ps < npages:
+        scan.problems.append(f"the file ends inside page {len(buf) // ps + 1}")
+    if scan.expected_bytes is not None and scan.expected_bytes > len(buf):
+        scan.problems.append(f"the file is cut: {(scan.expected_bytes - len(buf)) // ps} "
+                             f"of {scan.expected_bytes // ps} pages missing at the end")
+    scan.ended = not scan.problems and not scan.dropped
+    return scan
+
+
+# --- ROS 1: records (header, data) from the version line on; chunks hold the messages.
+def _ros1_header(buf: Any) -> dict[str, bytes]:
+    fields, pos = {}, 0
+    while pos < len(buf):
+        n = _u(buf, pos, 4)
+        if pos + 4 + n > len(buf):
+            raise _StopError("header field past the end")
+        name, sep, value = bytes(buf[pos + 4:pos + 4 + n]).partition(b"=")
+        if not sep:
+            raise _StopError("header field without '='")
+        fields[name.decode("ascii", "replace")] = value
+        pos += 4 + n
+    return fields
+
+
+def _ros1_type(name: str) -> str:
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
+
+
+def _scan_ros1(buf: Any, name: str) -> _Scan:
+    scan = _Scan()
+    if bytes(buf[:len(ROS1_MAGIC)]) != ROS1_MAGIC:
+        raise BagError(f"{name}: not a ROS 1 bag (version 2.0): it does not start with "
+                       "'#ROSBAG V2.0'")
+    index_pos = 0
+    chunks = expected_chunks = 0
+
+    def records(view: Any, pos: int, nested: bool) -> tuple[int, tuple[dict[str, bytes], int]
+                                                            | None]:
+        """Handle the complete records from ``pos``; return the end of the last one and,
+        for a partial record after it, its header and data position."""
+        nonlocal index_pos, chunks, expected_chunks
+        n = len(view)
+        while pos < n:
+            if n - pos < 4:
+                return pos, None
+            hlen = _u(view, pos, 4)
+            if hlen < 8:  # not even an op field: zeros where records should be
+                raise _StopError(f"record header of {hlen} bytes at byte {pos}")
+            if pos + 4 + hlen + 4 > n:
+                return pos, None
+            head = _ros1_header(view[pos + 4:pos + 4 + hlen])
+            dpos = pos + 8 + hlen
+            end = dpos + _u(view, pos + 4 + hlen, 4)
+            if end > n:
+                return pos, (head, dpos)
+            op = head.get("op", b"\xff")[:1]
+            data = view[dpos:end]
+            if op == b"\x03" and not nested:  # bag header
+                index_pos = _u(head.get("index_pos", b""), 0, 8)
+                expected_chunks = _u(head.get("chunk_count", b""), 0, 4)
+            elif op == b"\x05" and not nested:  # chunk
+                chunk(head, data, pos, partial=False)
+                chunks += 1
+            elif op == b"\x07":  # connection
+                cid = _u(head.get("conn", b""), 0, 4)
+                info = _ros1_header(data)
+                topic = head.get("topic", b"").decode("utf-8", "replace")
+                typ = info.get("type", b"").decode("utf-8", "replace")
+                text = info.get("message_definition", b"").decode("utf-8", "replace")
+                scan.conns[cid] = (topic, _ros1_type(typ), text, "msg")
+            elif op == b"\x02":  # message data
+                cid = _u(head.get("conn", b""), 0, 4)
+                t = head.get("time", b"")
+                ns = _u(t, 0, 4) * 1_000_000_000 + _u(t, 4, 4)
+                if cid in scan.conns:
+                    scan.messages.append((cid, ns, bytes(data)))
+                else:
+                    scan.dropped += 1
+            elif nested:
+                raise _StopError(f"record op {op!r} inside a chunk")
+            pos = end
+        return pos, None
+
+    def chunk(head: dict[str, bytes], data: Any, at: int, partial: bool) -> int:
+        """Handle a chunk; return the end of its last complete record in the data
+        (uncompressed chunks) or 0 (compressed ones)."""
+        compression = head.get("compression", b"none").decode("ascii", "replace")
+        raw = _decompress(bytes(data), compression, partial)
+        size = _u(head.get("size", b""), 0, 4)
+        if not partial and len(raw) != size:
+            raise _StopError(f"chunk at byte {at} has {len(raw)} bytes, not {size}")
+        try:
+            inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+        except _StopError as exc:
+            scan.problems.append(f"chunk at byte {at}: {exc}")
+            return 0
+        if tail is not None or inner < min(size, len(raw)):
+            scan.dropped += 1 if tail is not None and tail[0].get("op") == b"\x02" else 0
+            if not partial:
+                scan.problems.append(f"chunk at byte {at} ends inside a record")
+        return inner if compression == "none" else 0
+
+    try:
+        end, tail = records(buf, len(ROS1_MAGIC), nested=False)
+    except _StopError as exc:
+        scan.problems.append(f"unreadable record: {exc}")
+        return scan
+    scan.complete = end
+    if index_pos and expected_chunks:
+        scan.expected_bytes = index_pos
+    if tail is not None and tail[0].get("op", b"")[:1] == b"\x05":
+        with contextlib.suppress(_StopError):
+            scan.complete = tail[1] + chunk(tail[0], buf[tail[1]:], end, partial=True) or end
+        scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
+    elif end < len(buf):
+        scan.problems.append("the index is cut (every message is before it)"
+                             if index_pos and end >= index_pos else
+                             f"the file ends inside a record at byte {end}")
+    if not index_pos:
+        scan.problems.append("no index (the recording did not finish)")
+    elif len(buf) < index_pos:
+        scan.problems.append(f"cut at byte {len(buf)} before the index at byte {index_pos}; "
+                             f"{chunks} of {expected_chunks} chunks complete")
+    scan.ended = not scan.problems and index_pos > 0
+    return scan
+
+
+def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]:
+    """The bag, its storage kind and its storage files, for a scan.
+
+    Accepts what :func:`resolve_bag` accepts, and also a ROS 2 bag directory whose
+    metadata.yaml is missing or unreadable (the recorder writes it last), or a lone
+    ``.mcap`` / ``.db3`` file. Every file is checked to be a regular file before it is
+    opened.
+    """
+    p = Path(path)
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        raise BagError(f"{p}: no such bag") from None
+    except (OSError, ValueError) as exc:
+        raise BagError(f"{p}: cannot be read: "
+                       f"{_one_line(getattr(exc, 'strerror', None) or exc)}") from None
+    if not stat.S_ISDIR(mode):
+        problem = file_type_problem(mode)
+        if problem is not None:
+            raise BagError(f"{p}: {problem}: a bag is a ROS 1 .bag file or a ROS 2 bag "
+                           "directory")
+        if p.suffix not in _STORAGE_SUFFIXES:
+            raise BagError(f"{p}: not a bag: expected a ROS 1 .bag file, a ROS 2 bag "
+                           "directory or its .mcap / .db3 file")
+        if p.suffix == ".bag":
+            return p, "ros1", [p]
+        if regular_file_problem(p.parent / "metadata.yaml") is None:
+            p = p.parent if str(p.parent) else Path(".")
+        else:
+            return p, _STORAGE_SUFFIXES[p.suffix], [p]
+    names: list[str] = []
+    try:
+        files = _bag_metadata(p).get("relative_file_paths")
+        if isinstance(files, list) and all(isinstance(f, str) for f in files):
+            names = [f for f in files if "/" not in f and f not in ("", ".", "..")]
+    except BagError:
+        pass
+    try:
+        present = sorted(e.name for e in os.scandir(p)
+                         if Path(e.name).suffix in (".mcap", ".db3"))
+    except OSError as exc:
+        raise BagError(f"{p}: cannot list the bag directory: {exc.strerror}") from exc
+    # the files metadata.yaml names, then any other (a split the metadata never listed)
+    ordered = [n for n in names if n in present] + [n for n in present if n not in names]
+    kinds = {_STORAGE_SUFFIXES[Path(n).suffix] for n in ordered}
+    if not ordered:
+        raise BagError(f"{p}: not a ROS 2 bag (no metadata.yaml and no .mcap or .db3 "
+                       "file)" if not names else f"{p}: no storage file of the bag is left")
+    if len(kinds) > 1:
+        raise BagError(f"{p}: both .mcap and .db3 files; cannot tell which is the bag")
+    for n in ordered:
+        problem = regular_file_problem(p / n)
+        if problem is not None:
+            raise BagError(f"{p / n}: {problem} (a storage file of the bag {p})")
+    return p, kinds.pop(), [p / n for n in ordered]
+
+
+def recover_bag(path: str | os.PathLike[str]) -> RecoveredBag:
+    """Every complete message of a bag, read without its index (for a damaged bag).
+
+    mcap: the records of the data section in order (a cut chunk gives its complete
+    records); SQLite (.db3): the database pages (rows whose pages are missing are lost;
+    a write-ahead log's valid frames are applied); ROS 1: the records in order (a cut chunk
+    gives its complete records). A partial record is dropped, never decoded. Nothing is
+    written: the bag is opened read-only.
+
+    Raises:
+        BagError: not a bag, or nothing recoverable (no connection found).
+    """
+    import mmap
+
+    bag, storage, files = _storage_files(path)
+    custom: dict[str, str] = {}
+    expected_messages = expected_end = None
+    problems: list[str] = []
+    if bag.is_dir():
+        try:
+            info = _bag_metadata(bag)
+            c = info.get("custom_data")
+            custom = {k: v for k, v in c.items() if isinstance(k, str)
+                      and isinstance(v, str)} if isinstance(c, dict) else {}
+            mc, st, du = (info.get("message_count"), info.get("starting_time"),
+                          info.get("duration"))
+            expected_messages = mc if isinstance(mc, int) else None
+            if isinstance(st, dict) and isinstance(du, dict):
+                start = st.get("nanoseconds_since_epoch")
+                dur = du.get("nanoseconds")
+                if isinstance(start, int) and isinstance(dur, int):
+                    expected_end = start + dur
+        except BagError as exc:
+            what = "missing" if "without" in str(exc) else "unreadable"
+            problems.append(f"metadata.yaml {what}")
+    scans: list[_Scan] = []
+    size = 0
+    for f in files:
+        with open(f, "rb") as fh:
+            n = os.fstat(fh.fileno()).st_size
+            size += n
+            if n == 0:
+                raise BagError(f"{f}: empty file: nothing to recover") if len(files) == 1 \
+                    else BagError(f"{f}: empty storage file")
+            try:
+                mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)  # not read in memory
+            except (OSError, ValueError, OverflowError) as exc:
+                raise BagError(f"{f}: cannot be mapped for a scan: {_one_line(exc)}") from exc
+            try:
+                if storage == "mcap":
+                    scans.append(_scan_mcap(memoryview(mm), str(f)))
+                elif storage == "sqlite3":
+                    scans.append(_scan_sqlite(f, mm, str(f)))
+                else:
+                    scans.append(_scan_ros1(memoryview(mm), str(f)))
+            finally:
+                with contextlib.suppress(BufferError):  # a view still held: closed when freed
+                    mm.close()
+    connections: list[RecoveredConnection] = []
+    ids: dict[tuple[str, str], int] = {}
+    messages: list[tuple[int, int, bytes]] = []
+    for scan in scans:
+        local: dict[Any, int] = {}
+        for key, (topic, msgtype, text, enc) in scan.conns.items():
+            if (topic, msgtype) not in ids:
+                ids[(topic, msgtype)] = len(connections)
+                connections.append(RecoveredConnection(len(connections), topic, msgtype,
+                                                       text, enc))
+            local[key] = ids[(topic, msgtype)]
+        messages.extend((local[c], ns, data) for c, ns, data in scan.messages)
+    if not connections:
+        found = "; ".join(problems + [p for s in scans for p in s.problems]) or "no data"
+        raise BagError(f"{bag}: nothing recoverable: no complete connection record ({found})")
+    messages.sort(key=lambda m: m[1])  # stable: file order within one time
+    times = [m[1] for m in messages]
+    n_expected = (expected_messages if expected_messages is not None
+                  else sum(s.expected_messages or 0 for s in scans) or None)
+    all_problems = tuple(problems + [p for s in scans for p in s.problems])
+    exp_bytes = (sum(s.expected_bytes or 0 for s in scans)
+                 if all(s.expected_bytes is not None for s in scans) else None)
+    damage = BagDamage(
+        bag=str(bag), storage=storage, file_bytes=size,
+        complete_bytes=sum(s.complete for s in scans), expected_bytes=exp_bytes,
+        messages=len(messages), start_ns=min(times) if times else None,
+        end_ns=max(times) if times else None,
+        dropped_messages=sum(s.dropped for s in scans), expected_messages=n_expected,
+        expected_end_ns=expected_end,
+        intact=all(s.ended for s in scans) and not all_problems,
+        problems=all_problems)
+    return RecoveredBag(connections, messages, storage == "ros1", custom, damage)
+
+
+class _RecoveredReader:
+    """The part of rosbags' AnyReader that :func:`read_streams` uses, over a scan."""
+
+    def __init__(self, recovered: RecoveredBag, typestore: Any) -> None:
+        self.recovered = recovered
+        self.connections = recovered.connections
+        self.typestore = _typestore_for(recovered, typestore)
+
+    def messages(self, connections: Sequence[RecoveredConnection]
+                 ) -> Any:
+        wanted = {c.id for c in connections}
+        for cid, ns, data in self.recovered.messages:
+            if cid in wanted:
+                yield self.connections[cid], ns, data
+
+    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+        if self.recovered.ros1:
+            return self.typestore.deserialize_ros1(raw, msgtype)
+        return self.typestore.deserialize_cdr(raw, msgtype)
+
+    def close(self) -> None:
+        pass
+
+
+def _typestore_for(recovered: RecoveredBag, typestore: Any) -> Any:
+    """``typestore`` with the bag's own definitions of the types it does not know."""
+    from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+    for c in recovered.connections:
+        if c.msgtype in typestore.types or not c.msgdef:
+            continue
+        try:
+            types = (get_types_from_idl(c.msgdef) if c.encoding == "ros2idl"
+                     else get_types_from_msg(c.msgdef, c.msgtype))
+            typestore.register(types)
+        except Exception as exc:  # a definition rosbags cannot parse: that type is unread
+            log.warning("%s: cannot use the bag's definition of %s: %s",
+                        recovered.damage.bag, c.msgtype, _one_line(exc))
+    return typestore
+
+
+def _open_recovered(path: str | os.PathLike[str], why: BagError) -> _RecoveredReader:
+    """A reader over what a scan of a damaged bag recovered, with a warning; ``why``
+    (the error of the normal reader) if nothing is recoverable."""
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        recovered = recover_bag(path)
+    except BagError as exc:
+        raise BagError(f"{why}; {exc}" if str(exc) not in str(why) else str(why)) from exc
+    log.warning("%s", recovered.damage.summary())
+    log.warning("%s: read from a scan of the damaged bag; `asgp bag repair` writes a clean "
+                "copy", recovered.damage.bag)
+    store = get_typestore(Stores.ROS1_NOETIC if recovered.ros1 else Stores.ROS2_JAZZY)
+    return _RecoveredReader(recovered, store)
+
+
+@dataclass(frozen=True)
+class TopicStats:
+    """One connection of a bag: its messages' count, rate and gaps (bag times).
+
+    Attributes:
+        topic, msgtype: the connection. count: its messages.
+        first_ns, last_ns: bag times of its first and last message.
+        rate_hz: (count - 1) / (last - first), None with fewer than two messages or
+            times. median_period_s: the median time between messages.
+        gaps: (start ns, end ns) of every interval longer than ``gap_factor`` times the
+            median period.
+    """
+
+    topic: str
+    msgtype: str
+    count: int
+    first_ns: int
+    last_ns: int
+    rate_hz: float | None
+    median_period_s: float | None
+    gaps: tuple[tuple[int, int], ...]
+
+
+def topic_stats(recovered: RecoveredBag, gap_factor: float = 3.0) -> list[TopicStats]:
+    """Count, rate and gaps of each connection of a scanned bag, sorted by topic."""
+    times: dict[int, list[int]] = {c.id: [] for c in recovered.connections}
+    for cid, ns, _data in recovered.messages:
+        times[cid].append(ns)
+    out = []
+    for c in recovered.connections:
+        t = np.asarray(times[c.id], dtype=np.int64)
+        if t.size == 0:
+            out.append(TopicStats(c.topic, c.msgtype, 0, 0, 0, None, None, ()))
+            continue
+        dt = np.diff(t)
+        span = int(t[-1] - t[0])
+        rate = (t.size - 1) / (span * 1e-9) if span > 0 else None
+        median = float(np.median(dt)) if dt.size else 0.0
+        gaps: tuple[tuple[int, int], ...] = ()
+        if median > 0:
+            idx = np.flatnonzero(dt > gap_factor * median)
+            gaps = tuple((int(t[i]), int(t[i + 1])) for i in idx)
+        out.append(TopicStats(c.topic, c.msgtype, int(t.size), int(t[0]), int(t[-1]), rate,
+                              median * 1e-9 if dt.size else None, gaps))
+    return sorted(out, key=lambda st: (st.topic, st.msgtype))
+
+
+def repair_bag(path: str | os.PathLike[str], out: str | os.PathLike[str],
+               storage: str | None = None) -> RecoveredBag:
+    """Write a clean, indexed copy of a (damaged) bag: every message a scan recovers.
+
+    Args:
+        path: the bag to read (see :func:`recover_bag`); never written to.
+        out: the bag to write, atomically (a ``.bag`` file for ROS 1, else a directory).
+        storage: "mcap", "sqlite3" or "ros1"; None keeps the input's format (mcap for a
+            ROS 2 ``out`` of a ROS 1 input is refused: the serialisations differ).
+
+    Returns:
+        What was recovered (and written), with its damage report.
+
+    Raises:
+        BagError: nothing recoverable, a ROS 1 <-> ROS 2 conversion, or a write failure.
+    """
+    from rosbags.typesys import Stores, get_typestore
+
+    recovered = recover_bag(path)
+    out = Path(out)
+    src = recovered.damage.storage
+    if storage is None:
+        storage = "ros1" if out.suffix == ".bag" else src
+    if (storage == "ros1") != recovered.ros1:
+        raise BagError(f"{out}: cannot write the {src} bag {recovered.damage.bag} as "
+                       f"{storage}: repair keeps ROS 1 as ROS 1 and ROS 2 (mcap, sqlite3) "
+                       "as ROS 2")
+    if storage == "ros1" and out.suffix != ".bag":
+        raise BagError(f"{out}: a ROS 1 bag must be a file ending in .bag")
+    if storage != "ros1" and out.suffix == ".bag":
+        raise BagError(f"{out}: a ROS 2 bag is a directory; give a name without .bag")
+    store = _typestore_for(recovered, get_typestore(
+        Stores.ROS1_NOETIC if recovered.ros1 else Stores.ROS2_JAZZY))
+    content = BagContent(
+        connections=[(c.topic, c.msgtype) for c in recovered.connections],
+        messages=[(ns, cid, data) for cid, ns, data in recovered.messages],
+        custom_data=recovered.custom_data, typestore=store)
+    write_bag(out, content, storage=storage)
+    return recovered
 
 
 # ----------------------------------------------------------------------------- writing
