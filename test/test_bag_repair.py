@@ -19,6 +19,7 @@ from asgp_ros.cli import main
 from asgp_ros.sim.simulate import simulate, write_recording
 
 STORAGES = ("mcap", "sqlite3", "ros1")
+COMPRESSED = ("mcap-zstd", "ros1-lz4", "ros1-bz2")  # chunks compressed by the recorder
 CUTS = 48  # offsets per format, spread over the whole file
 
 
@@ -39,7 +40,37 @@ def written(rec, tmp_path_factory):
         data_file = bag if storage == "ros1" else next(
             p for p in bag.iterdir() if p.suffix in (".mcap", ".db3"))
         out[storage] = (bag, data_file, _indexed_messages(bag))
+    for kind in COMPRESSED:
+        bag = _write_compressed(root / (kind + (".bag" if kind.startswith("ros1") else "")),
+                                rec, kind)
+        data_file = bag if bag.is_file() else bag / f"{bag.name}.mcap"
+        out[kind] = (bag, data_file, _indexed_messages(bag))
     return out
+
+
+def _write_compressed(path: Path, rec, kind: str) -> Path:
+    """The recording in a bag whose chunks are compressed (zstd mcap, lz4 or bz2 ROS 1)."""
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+    from rosbags.typesys import Stores, get_typestore
+
+    ros1 = kind.startswith("ros1")
+    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
+    content = rec.bag_content(store, ros1)
+    w: Writer1 | Writer
+    if ros1:
+        w = Writer1(path)
+        w.set_compression(Writer1.CompressionFormat.LZ4 if kind == "ros1-lz4"
+                          else Writer1.CompressionFormat.BZ2)
+    else:
+        w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with w:
+        conns = [w.add_connection(t, m, typestore=store) for t, m in content.connections]
+        for t, i, data in sorted(content.messages, key=lambda m: m[0]):
+            w.write(conns[i], t, data)
+    return path
 
 
 def _indexed_messages(bag: Path) -> dict[str, list[tuple[int, bytes]]]:
@@ -72,10 +103,10 @@ def _cut_copy(storage: str, bag: Path, data_file: Path, dest: Path, n: int,
     return dest
 
 
-@pytest.mark.parametrize("storage", STORAGES)
-def test_cut_bags_give_only_true_messages_and_more_for_a_later_cut(written, tmp_path,
-                                                                  storage):
-    bag, data_file, original = written[storage]
+@pytest.mark.parametrize("kind", STORAGES + COMPRESSED)
+def test_cut_bags_give_only_true_messages_and_more_for_a_later_cut(written, tmp_path, kind):
+    bag, data_file, original = written[kind]
+    storage = kind.split("-")[0]
     size = data_file.stat().st_size
     total = sum(len(v) for v in original.values())
     offsets = sorted({0, 1, 7, 8, 9, 13, 17, 100, 4096, 4097, size - 1, size}
@@ -93,18 +124,19 @@ def test_cut_bags_give_only_true_messages_and_more_for_a_later_cut(written, tmp_
             got = _recovered(r)
             for topic, msgs in got.items():
                 # every recovered message is the original's message at that index
-                assert msgs == original[topic][:len(msgs)], (storage, n, topic)
+                assert msgs == original[topic][:len(msgs)], (kind, n, topic)
             count = r.damage.messages
             assert count == sum(len(v) for v in got.values())
             with_metadata = storage == "ros1" or bool(k % 2)
-            assert r.damage.intact == (n == size and with_metadata), (storage, n, r.damage)
+            assert r.damage.intact == (n == size and with_metadata), (kind, n, r.damage)
             if n < size:
                 assert r.damage.problems and str(target) in r.damage.summary()
-        assert count >= previous, (storage, n, count, previous)
+        assert count >= previous, (kind, n, count, previous)
         previous = count
         counts.append(count)
     assert counts[-1] == total  # the whole file: everything
-    assert 0 < counts[len(counts) // 2] < total  # half a file: part of it
+    three_quarters = counts[offsets.index(size * (3 * CUTS // 4) // CUTS)]
+    assert 0 < three_quarters < total  # part of a file: part of it
 
 
 @pytest.mark.parametrize("storage", STORAGES)
