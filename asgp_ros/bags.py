@@ -21,9 +21,19 @@ sqlite3) or a ROS 1 bag; atomically (nothing partial on failure) and reproducibl
 same content gives the same bytes). Bag I/O does not know where the data come from: the
 simulator writes its recordings through it (:func:`asgp_ros.sim.simulate.write_recording`).
 
+Damaged bags (``recover_bag``): a recording that was killed leaves an mcap file without its
+summary and footer, an SQLite file cut at a page (perhaps with a ``-wal`` or ``-journal``),
+a ROS 1 bag without its index, and no ``metadata.yaml``. The storage is then scanned record
+by record from the start and every complete message is kept; a partial record is dropped,
+never decoded; ``BagDamage`` says what was lost (bytes, messages, time). ``read_streams``
+and ``bag_topics`` do this automatically, with a warning, when the bag does not open as
+indexed (a user whose chair's battery died wants the data); ``repair_bag`` writes a clean,
+indexed copy (``asgp bag repair``), ``topic_stats`` the counts, rates and gaps
+(``asgp bag info``).
+
 Failures raise ``BagError`` naming the file and the problem, in one line: no such bag,
-not a bag, a corrupt or truncated file, a missing topic (with the list of topics the bag
-has), an unsupported message type.
+not a bag, a corrupt file with nothing recoverable, a missing topic (with the list of
+topics the bag has), an unsupported message type.
 
 Paths are checked with ``os.stat`` before anything is opened (:func:`resolve_bag`): a bag
 is a regular ROS 1 ``.bag`` file or a ROS 2 bag directory whose ``metadata.yaml`` (at
