@@ -698,6 +698,7 @@ def _scan_mcap(buf: Any, name: str) -> _Scan:
     schemas: dict[int, tuple[str, str, str]] = {}
     progress = [8]  # the end of the last complete top-level record
     data_end = [False]
+    bounds = [0, 2**64]  # message times the current chunk's header allows
 
     def records(view: Any, pos: int, nested: bool) -> tuple[int, int | None]:
         """Handle the complete records from ``pos``; return the end of the last one and
@@ -729,9 +730,11 @@ def _scan_mcap(buf: Any, name: str) -> _Scan:
             elif op == 0x05:  # Message
                 if len(body) < 22:
                     raise _StopError("message record shorter than its header")
-                cid = _u(body, 0, 2)
+                cid, log_time = _u(body, 0, 2), _u(body, 6, 8)
+                if nested and not bounds[0] <= log_time <= bounds[1]:
+                    raise _StopError("a message time outside its chunk's range")
                 if cid in scan.conns:
-                    scan.messages.append((cid, _u(body, 6, 8), bytes(body[22:])))
+                    scan.messages.append((cid, log_time, bytes(body[22:])))
                 else:
                     scan.dropped += 1
             elif op == 0x06 and not nested:  # Chunk
@@ -749,7 +752,13 @@ def _scan_mcap(buf: Any, name: str) -> _Scan:
 
     def chunk(body: Any, at: int, partial: bool) -> int:
         """Handle a chunk record's body; return the end of its last complete record in
-        the file (uncompressed chunks) or ``at`` (compressed ones)."""
+        the file (uncompressed chunks) or ``at`` (compressed ones).
+
+        Its records must lie in the chunk's time range and, for a complete chunk, fill it
+        exactly; otherwise the chunk is damaged inside (a flipped length or time) and none
+        of its messages is kept, since a record after the damage may be read from the
+        wrong bytes."""
+        bounds[:] = [_u(body, 0, 8), _u(body, 8, 8)]
         size, crc = _u(body, 16, 8), _u(body, 24, 4)
         compression, p = _mcap_str(body, 28)
         stored = _u(body, p, 8)
@@ -767,15 +776,20 @@ def _scan_mcap(buf: Any, name: str) -> _Scan:
             scan.problems.append(f"chunk at byte {at} fails its checksum "
                                  f"({lost} messages dropped)")
             return at
+        found = len(scan.messages)
         try:
             inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+            if tail is not None and not partial:
+                raise _StopError("it ends inside a record")
         except _StopError as exc:
-            scan.problems.append(f"chunk at byte {at}: {exc}")
+            lost = len(scan.messages) - found
+            del scan.messages[found:]
+            scan.dropped += lost
+            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
+                                 f"({lost} messages dropped)")
             return at
         if tail is not None:
             scan.dropped += 1 if tail in (-1, 0x05) else 0
-            if not partial:
-                scan.problems.append(f"chunk at byte {at} ends inside a record")
         return at + 9 + p + 8 + inner if compression in ("", "none") else at
 
     def summary(view: Any, pos: int) -> None:
@@ -1176,15 +1190,20 @@ def _scan_ros1(buf: Any, name: str) -> _Scan:
         size = _u(head.get("size", b""), 0, 4)
         if not partial and len(raw) != size:
             raise _StopError(f"chunk at byte {at} has {len(raw)} bytes, not {size}")
-        try:
+        found = len(scan.messages)
+        try:  # a complete chunk must be filled exactly by its records (as in _scan_mcap)
             inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+            if not partial and (tail is not None or inner != size):
+                raise _StopError("it ends inside a record")
         except _StopError as exc:
-            scan.problems.append(f"chunk at byte {at}: {exc}")
+            lost = len(scan.messages) - found
+            del scan.messages[found:]
+            scan.dropped += lost
+            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
+                                 f"({lost} messages dropped)")
             return 0
-        if tail is not None or inner < min(size, len(raw)):
-            scan.dropped += 1 if tail is not None and tail[0].get("op") == b"\x02" else 0
-            if not partial:
-                scan.problems.append(f"chunk at byte {at} ends inside a record")
+        if tail is not None:
+            scan.dropped += 1 if tail[0].get("op") == b"\x02" else 0
         return inner if compression == "none" else 0
 
     try:
