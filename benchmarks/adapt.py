@@ -1,0 +1,111 @@
+"""Online posterior updates (asgp_ros.core.adapt): the cost per absorbed row.
+
+Usage::
+
+    python benchmarks/adapt.py                  # M = 80, D = 18, 3,000 rows
+    python benchmarks/adapt.py --rows 5000 --m 40 --d 9
+
+A channel trained (``SparseGP.from_params``, fixed hyperparameters) on ``--train`` rows of
+a smooth function absorbs ``--rows`` further rows one at a time
+(:meth:`OnlinePosterior.absorb`, half-life 60 s at 5 Hz, each row's update publishing a
+new posterior); each call is timed.  Side by side, as the named reference, the batch
+refit of the posterior at the same hyperparameters (``SparseGP.from_params``) on the
+trained rows plus the same new rows, which is what an update would cost without the
+online statistics.  BLAS runs on one thread (threadpoolctl), as the predictor node's
+update would.  Target from issue 12: under 0.3 ms per row at M = 80, D = 18.
+
+The predictor node's latency with adaptation on (the issue's second figure) needs
+``Predictor(..., adapt=...)``, which is not built yet; it will be added here then.
+
+Prints figures only (no assertions).  Timings depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from asgp_ros.core.adapt import AdaptConfig, OnlinePosterior
+from asgp_ros.core.sparse_gp import SparseGP
+
+DT = 0.2  # s, the 5 Hz grid
+
+
+def make_data(n: int, D: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Inputs like standardised autoregressive windows and a smooth nonlinear target."""
+    X = rng.standard_normal((n, D))
+    w = rng.standard_normal(D) / np.sqrt(D)
+    y = np.tanh(X @ w) + 0.2 * np.sin(X[:, 0]) + 0.01 * rng.standard_normal(n)
+    return X, y
+
+
+def percentiles(times: np.ndarray) -> str:
+    ms = 1e3 * times
+    return (f"median {np.median(ms):.3f} ms, p99 {np.percentile(ms, 99):.3f} ms, "
+            f"max {ms.max():.3f} ms")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--m", type=int, default=80, help="pseudo-inputs M")
+    parser.add_argument("--d", type=int, default=18, help="input dimension D")
+    parser.add_argument("--train", type=int, default=20000, help="trained rows N_T")
+    parser.add_argument("--rows", type=int, default=3000, help="rows absorbed")
+    parser.add_argument("--refits", type=int, default=5, help="batch refits timed")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    rng = np.random.default_rng(args.seed)
+    M, D = args.m, args.d
+    X_train, y_train = make_data(args.train, D, rng)
+    X_new, y_new = make_data(args.rows, D, rng)
+    Z = X_train[rng.choice(args.train, M, replace=False)]
+    ls, sf2, sn2 = np.full(D, np.sqrt(D)), 0.5, 1e-4
+    print(f"M = {M}, D = {D}, N_T = {args.train}, rows absorbed = {args.rows}; "
+          f"{platform.processor() or platform.machine()}, numpy {np.__version__}, "
+          "BLAS threads = 1")
+    with threadpool_limits(limits=1, user_api="blas"):
+        gp = SparseGP.from_params(X_train, y_train, Z, ls, sf2, sn2)
+        online = OnlinePosterior.from_sparse_gp(gp, AdaptConfig(half_life_s=60.0))
+        for i in range(50):  # warm-up, then back to the trained posterior
+            online.absorb(X_new[i], float(y_new[i]), DT * i)
+        online.reset()
+        times = np.empty(args.rows)
+        internal = np.empty(args.rows)
+        for i in range(args.rows):
+            start = time.perf_counter()
+            ok = online.absorb(X_new[i], float(y_new[i]), DT * i)
+            times[i] = time.perf_counter() - start
+            internal[i] = online.stats.last_update_s if ok else np.nan
+        s = online.stats
+        print(f"absorb one row (call):       {percentiles(times)}")
+        print(f"  of which the update:       {percentiles(internal[np.isfinite(internal)])}")
+        print(f"  absorbed {s.rows_absorbed}, rejected {dict(s.rejected)}, effective size "
+              f"{s.effective_size:.0f} (data {s.data_weight:.0f}, trained weight "
+              f"{s.trained_weight:.3f})")
+        block = 10
+        online.reset()
+        btimes = []
+        for i in range(0, args.rows - block + 1, block):
+            start = time.perf_counter()
+            online.absorb_rows(X_new[i:i + block], y_new[i:i + block],
+                               DT * np.arange(i, i + block))
+            btimes.append((time.perf_counter() - start) / block)
+        print(f"absorb_rows, blocks of {block}:   {percentiles(np.asarray(btimes))} per row")
+
+        X_all = np.vstack([X_train, X_new])
+        y_all = np.concatenate([y_train, y_new])
+        rtimes = []
+        for _ in range(args.refits):
+            start = time.perf_counter()
+            SparseGP.from_params(X_all, y_all, Z, ls, sf2, sn2)
+            rtimes.append(time.perf_counter() - start)
+        print(f"reference: batch refit (from_params, N = {X_all.shape[0]}): "
+              f"{percentiles(np.asarray(rtimes))} per refit")
+
+
+if __name__ == "__main__":
+    main()
