@@ -30,6 +30,7 @@ from asgp_ros import bags
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
+    TARGET_COVERAGE,
     CalibrationError,
     VarianceCalibration,
     combine,
@@ -540,7 +541,8 @@ def train_auto(
             report("calibrate", f"not calibrated: {exc}")
             cal_meta = {"fitted": False, "reason": str(exc)}
         else:
-            report("calibrate", f"scale v {calibration.scale[0]:.3g}, omega "
+            report("calibrate", cal_meta["reason"] if not cal_meta["applied"] else
+                                f"scale v {calibration.scale[0]:.3g}, omega "
                                 f"{calibration.scale[1]:.3g}; floor v "
                                 f"{calibration.floor[0]:.3g}, omega {calibration.floor[1]:.3g}; "
                                 f"held-out coverage {100 * cal_meta['raw_coverage']:.1f}% -> "
@@ -655,7 +657,8 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
         n = int(mask.sum())
         return fit_calibration(parts[:, mask].reshape(4, n * K, 2, 2),
                                err[mask].reshape(n * K, 2), np.repeat(speed[mask], K),
-                               raw=(parts[0, mask] + parts[1, mask]).reshape(n * K, 2, 2))
+                               raw=(parts[0, mask] + parts[1, mask]).reshape(n * K, 2, 2),
+                               steps_per_case=K)
 
     fit = fit_on(np.ones(N, dtype=bool))
     cal = fit.calibration
@@ -690,8 +693,18 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     edges = (0.0, *cal.speed_edges, math.inf)
     by_speed = {f"|v| {lo:.2f}-{hi:.2f} m/s" if math.isfinite(hi) else f"|v| >= {lo:.2f} m/s":
                 table((speed >= lo) & (speed < hi)) for lo, hi in itertools.pairwise(edges)}
+    # keep the map only if, cross-validated, it brings the coverage closer to the target
+    # where it matters: in every speed regime at every horizon (mean absolute deviation)
+    def deviation(which: str) -> float:
+        vals = [t[horizon_key(h)][which] for t in by_speed.values() for h in opts.horizons_s]
+        vals = [v for v in vals if v is not None]
+        return float(np.mean(np.abs(np.array(vals) - TARGET_COVERAGE))) if vals else math.nan
+    dev_raw, dev_cal = deviation("raw"), deviation("calibrated")
+    applied = not (cross_validated and dev_cal > dev_raw)
     report = {
         "fitted": True,
+        "applied": applied,
+        "deviation_raw": dev_raw, "deviation_calibrated": dev_cal,
         "method": "per-channel var' = (scale * var + floor) * factor(speed regime); scale "
                   "and floor by the Gaussian likelihood of the held-out k-step position "
                   "errors, one factor per speed regime for 95% coverage in each",
@@ -704,4 +717,9 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
         "by_steadiness": {"steady joystick": table(steady), "changing joystick": table(~steady)},
         "by_recording": {name: table(bag == name) for name in dict.fromkeys(names)},
     }
+    if not applied:
+        report["reason"] = (f"not applied: cross-validated, the map moved the coverage away "
+                            f"from 95% (mean deviation over speed regimes and horizons "
+                            f"{100 * dev_raw:.1f} points raw, {100 * dev_cal:.1f} calibrated)")
+        return VarianceCalibration(), report
     return cal, report

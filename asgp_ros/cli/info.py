@@ -39,8 +39,10 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
     if not cal.get("fitted"):
         return [f"not calibrated{': ' + cal['reason'] if cal.get('reason') else ''}"]
     hs = [h for h in cal["by_horizon"] if h != "cases"]
+    applied = cal.get("applied", True)
     cv = "cross-validated" if cal.get("cross_validated") else "in-sample"
-    lines = [f"held-out coverage of the 95% ellipse, raw -> calibrated ({cv}), %:",
+    lines = ([] if applied else [f"calibration {cal['reason']}"]) + [
+             f"held-out coverage of the 95% ellipse, raw -> calibrated ({cv}), %:",
              f"  {'':<28} {'cases':>6}  " + "  ".join(f"{h + ' s':>13}" for h in hs)]
 
     def row(name: str, t: dict[str, Any]) -> str:

@@ -160,7 +160,9 @@ def run(args: argparse.Namespace) -> int:
           f"{len(summary['bags'])} bag(s), {summary['segments']} segments, stale "
           f"{100 * summary['stale_fraction']:.1f}%")
     cal = model.meta.get("calibration", {})
-    if cal.get("fitted"):
+    if cal.get("fitted") and not cal.get("applied", True):
+        print(f"calibration {cal['reason']}")
+    elif cal.get("fitted"):
         print(f"calibrated on {cal['cases']} held-out cases: 95% ellipse coverage "
               f"{100 * cal['raw_coverage']:.1f}% raw -> {100 * cal['coverage']:.1f}% "
               "(asgp info MODEL shows it per horizon, regime and bag)")

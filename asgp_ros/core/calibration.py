@@ -63,9 +63,10 @@ EDGE_RANGE = (0.0, 1e3)
 FACTOR_RANGE = (1e-6, 1e6)
 MAX_REGIMES = 8
 #: Speed regimes fitted (equal thirds of the held-out cases' speeds) and the fewest
-#: (case, step) pairs a regime needs to get its own factor.
+#: held-out cases (rollouts, whatever their number of steps) a regime needs to get its own
+#: factor: below that a factor is noise.
 REGIMES = 3
-MIN_REGIME_PAIRS = 600
+MIN_REGIME_CASES = 300
 #: Position standard deviation (m) added in the likelihood fit only, so that a covariance
 #: that is singular at the first steps (a chair at rest cannot move sideways) does not
 #: make one exact hit dominate: 1 mm, below any odometry's resolution.
@@ -233,9 +234,9 @@ class CalibrationFit:
 
 
 def regime_edges(speed: FloatArray, regimes: int = REGIMES,
-                 min_pairs: int = MIN_REGIME_PAIRS) -> tuple[float, ...]:
+                 min_pairs: int = MIN_REGIME_CASES) -> tuple[float, ...]:
     """Edges splitting the speeds into ``regimes`` equal parts; fewer (down to none) when
-    a part would hold fewer than ``min_pairs`` or the speeds do not separate."""
+    a part would hold fewer than ``min_pairs`` values or the speeds do not separate."""
     sp = np.abs(np.asarray(speed, dtype=np.float64))
     for n in range(min(regimes, MAX_REGIMES), 1, -1):
         edges = np.quantile(sp, np.arange(1, n) / n)
@@ -248,7 +249,7 @@ def regime_edges(speed: FloatArray, regimes: int = REGIMES,
 
 def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
                     raw: FloatArray | None = None, target: float = TARGET_COVERAGE,
-                    regimes: int = REGIMES) -> CalibrationFit:
+                    regimes: int = REGIMES, steps_per_case: int = 1) -> CalibrationFit:
     """Fit the variance map on held-out k-step errors (see the module docstring).
 
     Args:
@@ -258,7 +259,9 @@ def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
         speed: [N] measured |v| at the start of each pair's rollout (the regime).
         raw: [N, 2, 2] the uncalibrated covariances (= P_v + P_w) for the report, optional.
         target: the coverage of the 95 % ellipse to reach in every regime.
-        regimes: speed regimes (equal parts of the pairs' speeds; fewer if too few pairs).
+        regimes: speed regimes (equal parts of the pairs' speeds; fewer when a part would
+            hold fewer than :data:`MIN_REGIME_CASES` cases).
+        steps_per_case: pairs per case (the k steps of one rollout share its speed).
 
     Raises:
         CalibrationError: too few pairs, non-finite input, or an optimisation that fails.
@@ -289,7 +292,7 @@ def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
     theta = np.exp(res.x)
     # one factor per speed regime so that each regime's coverage meets the target
     d2 = mahalanobis_sq(err, combine(parts, theta))
-    edges = regime_edges(speed, regimes)
+    edges = regime_edges(speed, regimes, MIN_REGIME_CASES * max(1, steps_per_case))
     regime = np.searchsorted(np.asarray(edges), speed, side="right")
     factors = []
     for r in range(len(edges) + 1):
