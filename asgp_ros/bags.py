@@ -49,7 +49,7 @@ import logging
 import os
 import re
 import stat
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -318,9 +318,10 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     return bag_ns, rows
 
 
-def _open_reader(path: str | os.PathLike[str]) -> Any:
-    """An open rosbags reader of the bag, or a reader over a scan of it when the recording
-    was killed (no metadata.yaml) or its storage does not open (cut, no index)."""
+def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = None) -> Any:
+    """An open rosbags reader of the bag, or a reader over a scan of it (keeping the data
+    of ``topics``) when the recording was killed (no metadata.yaml) or its storage does
+    not open (cut, no index)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -329,7 +330,7 @@ def _open_reader(path: str | os.PathLike[str]) -> Any:
     except BagError as exc:
         if not _unfinished_ros2_bag(path):
             raise
-        return _open_recovered(path, exc)
+        return _open_recovered(path, exc, topics)
     store = get_typestore(Stores.ROS1_NOETIC if bag.is_file() else Stores.ROS2_JAZZY)
     try:
         reader = AnyReader([bag], default_typestore=store)
@@ -337,7 +338,7 @@ def _open_reader(path: str | os.PathLike[str]) -> Any:
     except Exception as exc:
         return _open_recovered(bag, BagError(
             f"{bag}: cannot open bag (corrupt or truncated): "
-            f"{_one_line(f'{type(exc).__name__}: {exc}')}"))
+            f"{_one_line(f'{type(exc).__name__}: {exc}')}"), topics)
     return reader
 
 
@@ -422,7 +423,8 @@ def read_streams(
     if joy_axes is None:
         joy_axes = JoyAxes()
     axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
-    reader = _open_reader(path)
+    wanted = [t for t in (joy_topic, twist_topic, truth_topic) if t]
+    reader = _open_reader(path, wanted)
     recovered = getattr(reader, "recovered", None)
     source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
     try:
@@ -430,7 +432,7 @@ def read_streams(
     except _DamagedDataError as exc:  # the index opened, the data behind it are damaged
         if recovered is not None:
             raise
-        reader = _open_recovered(path, exc)
+        reader = _open_recovered(path, exc, wanted)
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes)
     jb, jr, vb, vr, tb, tr, tw_conns = collected
 
@@ -469,7 +471,7 @@ def read_streams(
 
 def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
     """Topic name -> message type of a bag (of what a scan recovers, for a damaged one)."""
-    reader = _open_reader(path)
+    reader = _open_reader(path, topics=())
     try:
         return {c.topic: c.msgtype for c in reader.connections}
     finally:
@@ -645,6 +647,11 @@ class _Scan:
     dropped: int = 0
     ended: bool = False
     problems: list[str] = field(default_factory=list)
+    keep: Callable[[str], bool] = field(default=lambda _topic: True)
+
+    def add(self, cid: Any, ns: int, data: Any) -> None:
+        """A complete message; its bytes are copied only if its topic is wanted."""
+        self.messages.append((cid, ns, bytes(data) if self.keep(self.conns[cid][0]) else b""))
 
 
 def _u(buf: Any, pos: int, size: int, order: Literal["little", "big"] = "little") -> int:
@@ -688,11 +695,11 @@ def _decompress(data: bytes, compression: str, partial: bool) -> bytes:
     raise _StopError(f"unsupported compression {compression!r}")
 
 
-def _scan_mcap(buf: Any, name: str) -> _Scan:
+def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     """Scan an mcap file's data section record by record (no summary or index needed)."""
     import zlib
 
-    scan = _Scan()
+    scan = _Scan(keep=keep)
     if bytes(buf[:8]) != MCAP_MAGIC:
         raise BagError(f"{name}: not an mcap file (it does not start with the mcap magic)")
     schemas: dict[int, tuple[str, str, str]] = {}
@@ -734,7 +741,7 @@ def _scan_mcap(buf: Any, name: str) -> _Scan:
                 if nested and not bounds[0] <= log_time <= bounds[1]:
                     raise _StopError("a message time outside its chunk's range")
                 if cid in scan.conns:
-                    scan.messages.append((cid, log_time, bytes(body[22:])))
+                    scan.add(cid, log_time, body[22:])
                 else:
                     scan.dropped += 1
             elif op == 0x06 and not nested:  # Chunk
@@ -942,9 +949,9 @@ def _wal_pages(wal: bytes, page_size: int) -> tuple[dict[int, bytes], str | None
     return pages, problem
 
 
-def _scan_sqlite(path: Path, buf: Any, name: str) -> _Scan:
+def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     """Scan a rosbag2 SQLite database page by page (a cut file has no tail pages)."""
-    scan = _Scan()
+    scan = _Scan(keep=keep)
     if len(buf) < 100 or bytes(buf[:16]) != SQLITE_MAGIC:
         raise BagError(f"{name}: not an SQLite database (no SQLite header)")
     ps = _u(buf, 16, 2, "big")
@@ -1094,7 +1101,7 @@ def _scan_sqlite(path: Path, buf: Any, name: str) -> _Scan:
         if kept is None or kept[0] not in scan.conns:
             scan.dropped += 1
             continue
-        scan.messages.append(kept)
+        scan.add(*kept)
     if found:  # ids are 1, 2, 3, ...: a gap below the largest found is a lost row
         scan.dropped += max(found) - len(found)
     scan.complete = min(len(buf) // ps, npages) * ps
@@ -1127,8 +1134,8 @@ def _ros1_type(name: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
 
 
-def _scan_ros1(buf: Any, name: str) -> _Scan:
-    scan = _Scan()
+def _scan_ros1(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
+    scan = _Scan(keep=keep)
     if bytes(buf[:len(ROS1_MAGIC)]) != ROS1_MAGIC:
         raise BagError(f"{name}: not a ROS 1 bag (version 2.0): it does not start with "
                        "'#ROSBAG V2.0'")
@@ -1174,7 +1181,7 @@ def _scan_ros1(buf: Any, name: str) -> _Scan:
                 t = head.get("time", b"")
                 ns = _u(t, 0, 4) * 1_000_000_000 + _u(t, 4, 4)
                 if cid in scan.conns:
-                    scan.messages.append((cid, ns, bytes(data)))
+                    scan.add(cid, ns, data)
                 else:
                     scan.dropped += 1
             elif nested:
@@ -1288,7 +1295,8 @@ def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]
     return p, kinds.pop(), [p / n for n in ordered]
 
 
-def recover_bag(path: str | os.PathLike[str]) -> RecoveredBag:
+def recover_bag(path: str | os.PathLike[str],
+                topics: Collection[str] | None = None) -> RecoveredBag:
     """Every complete message of a bag, read without its index (for a damaged bag).
 
     mcap: the records of the data section in order (a cut chunk gives its complete
@@ -1297,12 +1305,24 @@ def recover_bag(path: str | os.PathLike[str]) -> RecoveredBag:
     gives its complete records). A partial record is dropped, never decoded. Nothing is
     written: the bag is opened read-only.
 
+    Args:
+        path: the bag (as for :func:`resolve_bag`, or a directory or storage file without
+            metadata.yaml).
+        topics: keep the bytes of these topics' messages only (the others are listed with
+            their times and empty data, so that a camera bag is not held in memory); None
+            keeps everything.
+
     Raises:
         BagError: not a bag, or nothing recoverable (no connection found).
     """
     import mmap
 
     bag, storage, files = _storage_files(path)
+    wanted = None if topics is None else frozenset(topics)
+
+    def keep(topic: str) -> bool:
+        return wanted is None or topic in wanted
+
     custom: dict[str, str] = {}
     expected_messages = expected_end = None
     problems: list[str] = []
@@ -1338,11 +1358,11 @@ def recover_bag(path: str | os.PathLike[str]) -> RecoveredBag:
                 raise BagError(f"{f}: cannot be mapped for a scan: {_one_line(exc)}") from exc
             try:
                 if storage == "mcap":
-                    scans.append(_scan_mcap(memoryview(mm), str(f)))
+                    scans.append(_scan_mcap(memoryview(mm), str(f), keep))
                 elif storage == "sqlite3":
-                    scans.append(_scan_sqlite(f, mm, str(f)))
+                    scans.append(_scan_sqlite(f, mm, str(f), keep))
                 else:
-                    scans.append(_scan_ros1(memoryview(mm), str(f)))
+                    scans.append(_scan_ros1(memoryview(mm), str(f), keep))
             finally:
                 with contextlib.suppress(BufferError):  # a view still held: closed when freed
                     mm.close()
@@ -1421,13 +1441,14 @@ def _typestore_for(recovered: RecoveredBag, typestore: Any) -> Any:
     return typestore
 
 
-def _open_recovered(path: str | os.PathLike[str], why: BagError) -> _RecoveredReader:
-    """A reader over what a scan of a damaged bag recovered, with a warning; ``why``
-    (the error of the normal reader) if nothing is recoverable."""
+def _open_recovered(path: str | os.PathLike[str], why: BagError,
+                    topics: Collection[str] | None = None) -> _RecoveredReader:
+    """A reader over what a scan of a damaged bag recovered (the messages of ``topics``),
+    with a warning; ``why`` (the error of the normal reader) if nothing is recoverable."""
     from rosbags.typesys import Stores, get_typestore
 
     try:
-        recovered = recover_bag(path)
+        recovered = recover_bag(path, topics)
     except BagError as exc:
         raise BagError(f"{why}; {exc}" if str(exc) not in str(why) else str(why)) from exc
     log.warning("%s", recovered.damage.summary())

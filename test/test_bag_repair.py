@@ -276,3 +276,15 @@ def test_sqlite_write_ahead_log_of_a_killed_recorder_is_read(written, tmp_path):
         assert got["/joy"] == joy[:len(got["/joy"])]
         assert len(got["/joy"]) >= previous
         previous = len(got["/joy"])
+
+
+def test_a_scan_keeps_only_the_data_it_is_asked_for(written):
+    """read_streams keeps the bytes of its topics only (a camera bag is not held in
+    memory); every message is still counted with its time."""
+    bag, _data_file, original = written["mcap"]
+    r = recover_bag(bag, topics=["/joy"])
+    got = _recovered(r)
+    assert got["/joy"] == original["/joy"]
+    for topic in set(original) - {"/joy"}:
+        assert [t for t, _ in got[topic]] == [t for t, _ in original[topic]]
+        assert all(data == b"" for _t, data in got[topic])

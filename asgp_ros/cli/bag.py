@@ -107,7 +107,7 @@ def run_info(args: argparse.Namespace) -> int:
     from asgp_ros.bags import BagError, recover_bag, topic_stats
 
     try:
-        recovered = recover_bag(args.bag)
+        recovered = recover_bag(args.bag, topics=())  # times only: no message data
     except BagError as exc:
         raise CommandError(str(exc)) from exc
     for line in info_lines(topic_stats(recovered, args.gap_factor), recovered.damage):
