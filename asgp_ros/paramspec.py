@@ -14,19 +14,26 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+#: the value types a parameter can have (its default's type is the parameter's type)
+ParamValue = bool | int | float | str
+
 
 @dataclass(frozen=True)
 class ParamSpec:
     name: str
-    default: Any
+    default: ParamValue
     description: str
     low: float | None = None   # inclusive range for numbers
     high: float | None = None
     runtime: bool = False      # may change while the node runs (else read-only)
 
 
-def check_value(spec: ParamSpec, value: Any) -> Any:
-    """``value`` converted to the type of ``spec.default``; ValueError naming the parameter."""
+def check_value(spec: ParamSpec, value: object) -> Any:
+    """``value`` converted to the type of ``spec.default``; ValueError naming the parameter.
+
+    Typed ``Any``: the type follows ``spec.default``, and the checked values are passed on
+    as keyword arguments of the nodes' parameter dataclasses.
+    """
     if isinstance(spec.default, bool):
         if not isinstance(value, bool):
             raise ValueError(f"parameter {spec.name} must be a boolean, got {value!r}")
@@ -50,7 +57,7 @@ def check_value(spec: ParamSpec, value: Any) -> Any:
     return value
 
 
-def check_values(specs: Iterable[ParamSpec], values: Mapping[str, Any]) -> dict[str, Any]:
+def check_values(specs: Iterable[ParamSpec], values: Mapping[str, object]) -> dict[str, Any]:
     """Every parameter of ``specs`` (missing ones take their defaults), checked."""
     return {spec.name: check_value(spec, values.get(spec.name, spec.default))
             for spec in specs}

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
@@ -29,9 +28,9 @@ def descriptor(spec: ParamSpec) -> ParameterDescriptor:
     return d
 
 
-def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, Any]:
+def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, object]:
     """Declare every parameter of ``specs`` on ``node``; return the values it received."""
-    values = {}
+    values: dict[str, object] = {}
     for spec in specs:
         node.declare_parameter(spec.name, spec.default, descriptor(spec))
         values[spec.name] = node.get_parameter(spec.name).value

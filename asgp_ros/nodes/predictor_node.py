@@ -164,6 +164,7 @@ class PredictorNodeParams:
 def _spec(name: str, description: str, low: float | None = None, high: float | None = None,
           runtime: bool = False) -> ParamSpec:
     default = PredictorNodeParams.__dataclass_fields__[name].default
+    assert isinstance(default, bool | int | float | str), name
     return ParamSpec(name, default, description, low, high, runtime)
 
 
@@ -295,14 +296,15 @@ class PredictorNode(Node):
             StartupError: the file does not load. StartupInterruptedError: shutdown requested.
         """
         self.get_logger().info(f"loading model {path}")
-        box: dict[str, Any] = {}
+        loaded: list[MotionModel] = []
+        failed: list[BaseException] = []  # handed to the main thread
         done = threading.Event()
 
         def work() -> None:
             try:
-                box["model"] = load_model(path)
-            except BaseException as exc:  # handed to the main thread
-                box["error"] = exc
+                loaded.append(load_model(path))
+            except BaseException as exc:
+                failed.append(exc)
             finally:
                 done.set()
 
@@ -310,13 +312,12 @@ class PredictorNode(Node):
         while not done.wait(_LOAD_POLL_S):
             if not self.context.ok():
                 raise StartupInterruptedError(f"shutdown requested while loading {path}")
-        error = box.get("error")
-        if isinstance(error, ModelFileError | OSError | ValueError):
-            raise StartupError(f"cannot load the model: {error}") from error
-        if error is not None:
+        if failed:
+            error = failed[0]
+            if isinstance(error, ModelFileError | OSError | ValueError):
+                raise StartupError(f"cannot load the model: {error}") from error
             raise error
-        model: MotionModel = box["model"]
-        return model
+        return loaded[0]
 
     # ---- parameters ------------------------------------------------------------------
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 from asgp_ros.paramspec import ParamSpec, check_values
 from asgp_ros.serial.calibration import AxisCalibration, JoystickCalibration
@@ -77,7 +76,7 @@ class BridgeParams:
             calibration=self.calibration)
 
 
-def bridge_params(values: Mapping[str, Any]) -> BridgeParams:
+def bridge_params(values: Mapping[str, object]) -> BridgeParams:
     """Validates parameter values (missing ones take their defaults).
 
     Raises:

@@ -17,7 +17,7 @@ import enum
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Union
+from typing import ClassVar, TypeVar, Union
 
 SYNC0 = 0xA5
 SYNC1 = 0x5A
@@ -113,6 +113,9 @@ def encode_frame(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
 # --- messages ---------------------------------------------------------------------------
 
 
+_P = TypeVar("_P", bound="_Packed")
+
+
 class _Packed:
     """A message whose payload is its fields in order, packed with ``FORMAT``.
 
@@ -138,7 +141,7 @@ class _Packed:
         return struct.pack(self.FORMAT, *self._fields())
 
     @classmethod
-    def unpack(cls, p: bytes) -> Any:
+    def unpack(cls: type[_P], p: bytes) -> _P:
         return cls(*struct.unpack(cls.FORMAT, p))
 
 
@@ -265,7 +268,7 @@ class ErrorReport(_Packed):
 
 Message = Union[Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorReport]  # noqa: UP007
 
-MESSAGE_CLASSES: dict[int, type[_Packed]] = {
+MESSAGE_CLASSES: dict[int, type[Message]] = {
     cls.TYPE: cls for cls in (Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorReport)
 }
 PAYLOAD_LEN: dict[int, int] = {

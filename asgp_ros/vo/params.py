@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from asgp_ros.paramspec import ParamSpec, check_values
+from asgp_ros.paramspec import ParamSpec, ParamValue, check_values
 from asgp_ros.topics import CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO
 from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic
 from asgp_ros.vo.odometry import VOOptions
@@ -115,7 +115,7 @@ class VONodeParams:
     vo_options: dict[str, Any]
 
 
-def vo_node_params(values: Mapping[str, Any]) -> VONodeParams:
+def vo_node_params(values: Mapping[str, object]) -> VONodeParams:
     """Validates parameter values (missing ones take their defaults).
 
     Raises:
@@ -144,7 +144,7 @@ def params_yaml(node_name: str = "vo_node") -> str:
     """The parameter table as a ROS 2 parameter file (``config/vo.yaml``); the ``vo.*``
     options are nested under ``vo:``."""
 
-    def text(d: Any) -> str:
+    def text(d: ParamValue) -> str:
         if isinstance(d, bool):
             return "true" if d else "false"
         if isinstance(d, float):
