@@ -20,6 +20,7 @@ runs to make its small dataset.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import time
 from collections.abc import Callable
@@ -27,6 +28,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from asgp_ros.bags import BagError, read_sim_metadata, write_bag
+from asgp_ros.fileio import (
+    DATASET_DIR,
+    atomic_write_text,
+    check_output,
+    describe_kind,
+    interruptible_imap,
+    is_ros2_bag,
+    quiet_worker_exit,
+    signals_deferred,
+    write_marker,
+)
+from asgp_ros.sim.simulate import simulate
 from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 LAYOUT = (("tile", 8), ("carpet", 8), ("hybrid", 2))
@@ -106,10 +120,6 @@ def plan(seed: int, scale: float) -> list[dict[str, Any]]:
 
 def _make(job: tuple[str, dict[str, Any], str, bool]) -> dict[str, Any]:
     """Simulate and write one bag (or keep the one there); runs in a pool worker."""
-    from asgp_ros.bags import read_sim_metadata, write_bag
-    from asgp_ros.fileio import describe_kind, is_ros2_bag
-    from asgp_ros.sim.simulate import simulate
-
     root, bag, storage, force = job
     path = Path(root) / bag["path"]
     start = time.perf_counter()
@@ -149,19 +159,6 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
         asgp_ros.fileio.OutputError: ``out`` is refused.
         DatasetError: a bag could not be made; the bags made so far are kept.
     """
-    import multiprocessing
-
-    from asgp_ros.bags import BagError
-    from asgp_ros.fileio import (
-        DATASET_DIR,
-        atomic_write_text,
-        check_output,
-        interruptible_imap,
-        quiet_worker_exit,
-        signals_deferred,
-        write_marker,
-    )
-
     check_options(scale=scale, seed=seed, jobs=jobs)
     if storage not in STORAGES:
         raise DatasetOptionError("storage", f"must be one of {', '.join(STORAGES)}, got "

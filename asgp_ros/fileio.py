@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import json
+import multiprocessing
+import multiprocessing.pool
 import os
 import shutil
 import signal
@@ -23,7 +25,10 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import Any, TypeVar
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 MARKER_NAME = ".asgp-output"
 """The marker file a directory output carries: JSON ``{"format": MARKER_FORMAT, "kind": K}``."""
@@ -124,8 +129,8 @@ def quiet_worker_exit() -> None:
         handler(_received[-1], None)
 
 
-def interruptible_imap(pool: Any, fn: Callable[[Any], Any], items: Iterable[Any]
-                       ) -> Iterator[Any]:
+def interruptible_imap(pool: multiprocessing.pool.Pool, fn: Callable[[_T], _R],
+                       items: Iterable[_T]) -> Iterator[_R]:
     """``pool.imap(fn, items)`` that a signal interrupts at once.
 
     A wait with no timeout in the main thread is not woken by a signal that the kernel
@@ -133,8 +138,6 @@ def interruptible_imap(pool: Any, fn: Callable[[Any], Any], items: Iterable[Any]
     next result (minutes, for a training job). Waiting in short slices lets the signal's
     handler run within 0.1 s.
     """
-    import multiprocessing
-
     it = pool.imap(fn, items)
     while True:
         check_signals()

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from typing import Any
 
+from asgp_ros.bags import BagError
+from asgp_ros.cli import CommandError
+from asgp_ros.core.resample import ResampleConfig
 from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
+from asgp_ros.training import Series, read_series
 
 
 def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> None:
@@ -24,17 +27,14 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
 
 
 def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
-                        resample_config: Any = None, truth: bool = False) -> list[Any]:
+                        resample_config: ResampleConfig | None = None, truth: bool = False
+                        ) -> list[Series]:
     """Read and resample bags; any reader error becomes a CommandError naming the bag.
 
     ``--joy-axes`` is passed on as given ("FWD,TURN", '-' flips a sign): the bag reader
     parses it.
     """
-    from asgp_ros.bags import BagError
-    from asgp_ros.cli import CommandError
-    from asgp_ros.training import read_series
-
-    out = []
+    out: list[Series] = []
     for path in paths:
         try:
             out.extend(read_series(

@@ -7,10 +7,14 @@ import argparse
 import os
 import time
 from pathlib import Path
-from typing import Any
+
+import numpy as np
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
+from asgp_ros.serial.link import JoystickSample, LinkConfig, LinkManager, LinkState
+from asgp_ros.serial.protocol import Status
+from asgp_ros.sim.board import ScriptedJoystick, SimulatedBoard, driver_joystick
 
 
 def register(subparsers) -> None:
@@ -46,9 +50,6 @@ def register(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.monitor:
         return _monitor(args)
-    from asgp_ros.serial.protocol import Status
-    from asgp_ros.sim.board import ScriptedJoystick, SimulatedBoard, driver_joystick
-
     if not 1.0 <= args.rate <= 1000.0:
         raise CommandError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
     if args.link is not None and os.path.lexists(args.link):
@@ -101,15 +102,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _monitor(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from asgp_ros.serial.link import LinkConfig, LinkManager, LinkState
-
     duration = 10.0 if args.duration is None else args.duration
     raws: list[tuple[int, int]] = []
     faulty = [0]
 
-    def on_sample(s: Any) -> None:
+    def on_sample(s: JoystickSample) -> None:
         # A faulty reading (open or shorted stick, ADC_FAULT) is no end stop of the stick.
         if s.valid:
             raws.append((s.raw_forward, s.raw_turn))

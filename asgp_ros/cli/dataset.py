@@ -7,7 +7,7 @@ import sys
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
-from asgp_ros.dataset import STORAGES
+from asgp_ros.dataset import STORAGES, DatasetError, DatasetOptionError, build_dataset
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -44,8 +44,6 @@ def progress_bar(done: int, total: int, label: str, elapsed: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from asgp_ros.dataset import DatasetError, DatasetOptionError, build_dataset
-
     try:
         built = build_dataset(args.out, scale=args.scale, seed=args.seed, jobs=args.jobs,
                               storage=args.storage, force=args.force, progress=progress_bar)

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+
+from asgp_ros.cli import CommandError
+from asgp_ros.demo.orchestrator import DemoError, DemoOptions, run_demo
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,11 +53,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from asgp_ros.cli import CommandError
-    from asgp_ros.demo.orchestrator import DemoError, DemoOptions, run_demo
-
     try:
         w, h = (int(v) for v in args.resolution.lower().split("x"))
     except ValueError:

@@ -5,10 +5,14 @@ from __future__ import annotations
 import argparse
 import json
 
+from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.modelfile import ModelFileError, load_model
+from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
+from asgp_ros.fileio import SCORES_JSON, atomic_write_text, check_output
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -66,11 +70,6 @@ def format_table(result: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from asgp_ros.cli import CommandError
-    from asgp_ros.core.modelfile import ModelFileError, load_model
-    from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
-    from asgp_ros.fileio import SCORES_JSON, atomic_write_text, check_output
-
     if args.json:
         check_output(args.json, SCORES_JSON, inputs=[args.model, *args.bags],
                      force=args.force, option="--json")

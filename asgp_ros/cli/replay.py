@@ -4,16 +4,15 @@ from __future__ import annotations
 
 import argparse
 import logging
-from typing import Any
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
-from asgp_ros.replay import REPLAY_RANGES
+from asgp_ros.replay import REPLAY_RANGES, BagReplayer, ReplayConfig, ReplayError, summary
 
 LOG = logging.getLogger(__name__)
 
 
-def register(subparsers: Any) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "replay",
         help="publish a bag into ROS 2 with /clock (ros2 bag play for ROS 1 and ROS 2 bags)",
@@ -47,8 +46,6 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from asgp_ros.replay import BagReplayer, ReplayConfig, ReplayError, summary
-
     remap = []
     for item in args.remap:
         src, sep, dst = item.partition(":=")
@@ -69,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise CommandError(str(exc)) from exc
 
+    # rclpy (optional, slow to import) only when a bag is played: `asgp --help` stays fast.
     import rclpy
     from rclpy.executors import ExternalShutdownException
 

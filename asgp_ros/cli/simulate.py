@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import time
 
+from asgp_ros.bags import BagError
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
+from asgp_ros.fileio import bag_kind, check_output
+from asgp_ros.sim.simulate import simulate, write_recording
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,12 +36,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import time
-
-    from asgp_ros.bags import BagError
-    from asgp_ros.fileio import bag_kind, check_output
-    from asgp_ros.sim.simulate import simulate, write_recording
-
     out = check_output(args.out, bag_kind(args.out), force=args.force)
     if args.seed < 0:
         raise CommandError(f"--seed must be >= 0, got {args.seed}")
