@@ -1,17 +1,37 @@
-"""What the demo's orchestrator and its report both need: the error type and the offline
-evaluation of the recorded bag. Below both (they import it; it imports neither)."""
+"""What the demo's orchestrator and its report both need: the error type, the record of
+the run and the offline evaluation of the recorded bag. Below both (they import it; it
+imports neither)."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 
 class DemoError(Exception):
     """The demo cannot run as asked (bad option, missing model...); the message says why."""
+
+
+@dataclass
+class RunState:
+    """What happened, for the report."""
+
+    options: dict[str, Any]
+    domain_id: int
+    model_path: str = ""
+    train_info: dict[str, Any] = field(default_factory=dict)
+    drive_start_wall: float | None = None
+    drive_seconds: float = 0.0
+    stopped_by: str = ""
+    errors: list[str] = field(default_factory=list)
+    cpu: dict[str, float] = field(default_factory=dict)
+    lifetimes: dict[str, float] = field(default_factory=dict)
+    returncodes: dict[str, int | None] = field(default_factory=dict)
+    stop_signals: dict[str, str] = field(default_factory=dict)
 
 
 def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],

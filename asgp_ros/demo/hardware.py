@@ -50,6 +50,8 @@ from asgp_ros import topics
 from asgp_ros.demo import camera
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snapshot, look_ahead
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.paramspec import ParamValue
+from asgp_ros.sim.chair import ChairState
 
 NODE_NAME = "demo_hardware"
 
@@ -118,7 +120,7 @@ _DESCRIPTIONS = {
 }
 
 
-def _descriptor(name: str, default: Any) -> ParameterDescriptor:
+def _descriptor(name: str, default: ParamValue) -> ParameterDescriptor:
     text, rng = _DESCRIPTIONS[name]
     d = ParameterDescriptor(description=text, read_only=True)
     if rng is not None:
@@ -184,7 +186,7 @@ class HardwareNode(Node):
         self._created = time.monotonic()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._truth: deque[tuple[float, Any]] = deque(maxlen=1000)
+        self._truth: deque[tuple[float, ChairState]] = deque(maxlen=1000)
         self._snaps: deque[Snapshot] = deque(maxlen=4)
         self._truth_gc = self.create_guard_condition(self._publish_truth)
         self._plan_gc = self.create_guard_condition(self._publish_plan)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,9 @@ from nav_msgs.msg import Path as PathMsg
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
+from rosbags.interfaces import Connection
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CameraInfo, Joy
 from std_msgs.msg import Float32MultiArray
 from visualization_msgs.msg import Marker, MarkerArray
@@ -45,7 +49,7 @@ from asgp_ros.nodes import conversions as conv
 log = logging.getLogger(__name__)
 
 #: topic -> (message class, ROS 2 type name, recorded in the bag)
-TOPICS: dict[str, tuple[Any, str, bool]] = {
+TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.JOY: (Joy, "sensor_msgs/msg/Joy", True),
     topics.VO_TWIST: (TwistStamped, "geometry_msgs/msg/TwistStamped", True),
     topics.VO_ODOM: (Odometry, "nav_msgs/msg/Odometry", True),
@@ -62,14 +66,11 @@ class BagRecorder:
     """Serialized messages into a ROS 2 bag (mcap) at ``path``; see ``close``."""
 
     def __init__(self, path: str | Path) -> None:
-        from rosbags.rosbag2 import StoragePlugin, Writer
-        from rosbags.typesys import Stores, get_typestore
-
         self.path = Path(path)
         self._store = get_typestore(Stores.ROS2_JAZZY)
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
-        self._conns: dict[str, Any] = {}
+        self._conns: dict[str, Connection] = {}
         self.messages = 0
 
     def add_topic(self, topic: str, msgtype: str) -> None:
@@ -144,7 +145,7 @@ class MonitorNode(Node):
             log.debug("monitor subscribed %s (%s)", topic,
                       "reliable" if reliable else "best effort")
 
-    def _callback(self, topic: str, cls: Any, record: bool):
+    def _callback(self, topic: str, cls: type, record: bool) -> Callable[[bytes], None]:
         handler = getattr(self, "_on_" + topic.replace("/", "_"))
         bag_topic = topics.in_bag(topic)
 

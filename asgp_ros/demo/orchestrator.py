@@ -32,16 +32,37 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import TYPE_CHECKING, Any, TextIO
 
+import asgp_ros
 from asgp_ros import topics
-from asgp_ros.demo.common import DemoError
+from asgp_ros.bags import write_bag
+from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.demo.common import DemoError, RunState
+from asgp_ros.demo.monitor import format_status
+from asgp_ros.demo.processes import ProcessGroup
+from asgp_ros.demo.report import write_report
+from asgp_ros.fileio import DEMO_DIR, OutputError, check_output, write_marker
+from asgp_ros.sim.simulate import simulate
+from asgp_ros.training import TrainOptions, read_series, train
+
+# rclpy (an optional dependency) and the monitor node built on it are imported when the
+# monitor starts, so that this module imports without ROS.
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from asgp_ros.demo.monitor_node import MonitorNode
 
 log = logging.getLogger(__name__)
 
 Printer = Callable[[str], None]
+
+#: what signal.signal returns and accepts
+_SignalHandler = Callable[[int, FrameType | None], Any] | int | None
 
 #: topic -> the component that publishes it (for "silent component" messages)
 PRODUCERS = {
@@ -110,28 +131,8 @@ class DemoOptions:
             raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
 
 
-@dataclass
-class RunState:
-    """What happened, for the report."""
-
-    options: dict[str, Any]
-    domain_id: int
-    model_path: str = ""
-    train_info: dict[str, Any] = field(default_factory=dict)
-    drive_start_wall: float | None = None
-    drive_seconds: float = 0.0
-    stopped_by: str = ""
-    errors: list[str] = field(default_factory=list)
-    cpu: dict[str, float] = field(default_factory=dict)
-    lifetimes: dict[str, float] = field(default_factory=dict)
-    returncodes: dict[str, int | None] = field(default_factory=dict)
-    stop_signals: dict[str, str] = field(default_factory=dict)
-
-
 def package_root() -> Path:
     """Directory that contains the ``asgp_ros`` package."""
-    import asgp_ros
-
     return Path(asgp_ros.__file__).resolve().parent.parent
 
 
@@ -181,11 +182,6 @@ def default_domain_id() -> int:
 def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
                 ) -> tuple[Path, dict[str, Any]]:
     """Simulate a training drive, write its bag, train the ASGP; returns (model, info)."""
-    from asgp_ros.bags import write_bag
-    from asgp_ros.core.modelfile import save_model
-    from asgp_ros.sim.simulate import simulate
-    from asgp_ros.training import TrainOptions, read_series, train
-
     start = time.perf_counter()
     cpu0 = _self_cpu()
     bag = out / "train" / f"{surface}_seed{seed + 1000}"
@@ -220,7 +216,7 @@ class _Stop:
 
     def __init__(self) -> None:
         self.reason = ""
-        self._old: dict[int, Any] = {}
+        self._old: dict[int, _SignalHandler] = {}
 
     def install(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -230,7 +226,7 @@ class _Stop:
         for sig, old in self._old.items():
             signal.signal(sig, old)
 
-    def _handler(self, signum: int, _frame: Any) -> None:
+    def _handler(self, signum: int, _frame: FrameType | None) -> None:
         if not self.reason:
             self.reason = signal.Signals(signum).name
 
@@ -265,7 +261,7 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
 class Status:
     """The live status line: rewritten in place on a terminal, a line every 10 s otherwise."""
 
-    def __init__(self, stream: Any = None) -> None:
+    def __init__(self, stream: TextIO | None = None) -> None:
         self.stream = stream or sys.stdout
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self._last = 0.0
@@ -292,9 +288,7 @@ class Status:
             self._width = 0
 
 
-def _status_line(mon: Any, elapsed: float, total: float) -> str:
-    from asgp_ros.demo.monitor import format_status
-
+def _status_line(mon: MonitorNode, elapsed: float, total: float) -> str:
     rates = {"joy": mon.rate(topics.JOY), "img": mon.rate(topics.CAMERA_INFO),
              "vo": mon.rate(topics.VO_TWIST), "path": mon.rate(topics.PREDICTED_PATH)}
     vo_state = "-" if mon.vo_ok is None else ("tracking" if mon.vo_ok else "LOST")
@@ -310,8 +304,6 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     """Run the demo (module docstring); returns the exit code (0 = every node produced
     output and the report was written)."""
     opts.validate()
-    from asgp_ros.fileio import DEMO_DIR, OutputError, check_output, write_marker
-
     reuse = opts.model is None and not opts.train  # OUT/model.npz of an earlier run
     try:
         out = check_output(opts.out, DEMO_DIR, force=opts.force or reuse,
@@ -332,8 +324,6 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
                                               opts.surface, say)
     else:
         model = out / "model.npz"
-    from asgp_ros.core.modelfile import ModelFileError, load_model
-
     try:
         motion_model = load_model(model)
     except (ModelFileError, OSError, ValueError) as exc:
@@ -348,8 +338,6 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     say(f"ROS_DOMAIN_ID={domain} (watch with: ROS_DOMAIN_ID={domain} "
         "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ros2 topic list)")
 
-    from asgp_ros.demo.processes import ProcessGroup
-
     runtime = Path(tempfile.mkdtemp(prefix="asgp-demo-"))
     port = str(runtime / "joystick")
     group = ProcessGroup(env, out / "logs")
@@ -357,14 +345,12 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     stop.install()
     bag_final = out / "run_bag"
     bag_tmp = out / ".run_bag.partial"
-    monitor = None
-    executor = None
-    context = None
+    started: tuple[MonitorNode, SingleThreadedExecutor, Context] | None = None
     status = Status()
     cpu_before = _self_cpu()
     t_mon = time.monotonic()
     try:
-        monitor, executor, context = _start_monitor(domain, bag_tmp)
+        started = monitor, executor, _ = _start_monitor(domain, bag_tmp)
         for name, entry, args in node_commands(opts, model.resolve(), port):
             group.start(name, entry, args)
         say(f"started {', '.join(c.name for c in group.children)} (logs in {out / 'logs'}); "
@@ -379,8 +365,8 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
             state.lifetimes[c.name] = round(c.lifetime_s, 3)
             state.returncodes[c.name] = c.returncode
             state.stop_signals[c.name] = c.signal_used
-        if monitor is not None:
-            _stop_monitor(monitor, executor, context, bag_tmp, bag_final)
+        if started is not None:
+            _stop_monitor(*started, bag_tmp, bag_final)
         state.cpu["asgp demo (monitor, recorder)"] = round(_self_cpu() - cpu_before, 3)
         state.lifetimes["asgp demo (monitor, recorder)"] = round(time.monotonic() - t_mon, 3)
         shutil.rmtree(runtime, ignore_errors=True)
@@ -395,8 +381,6 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     state.errors[:0] = silent
 
     # 4. the report
-    from asgp_ros.demo.report import write_report
-
     try:
         paths = write_report(out, state, monitor, motion_model, bag_final, env, say)
     except (DemoError, OSError, ValueError, RuntimeError) as exc:
@@ -415,7 +399,8 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     return 0
 
 
-def _start_monitor(domain: int, bag_tmp: Path):
+def _start_monitor(domain: int, bag_tmp: Path
+                   ) -> tuple[MonitorNode, SingleThreadedExecutor, Context]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -434,8 +419,8 @@ def _start_monitor(domain: int, bag_tmp: Path):
     return node, executor, context
 
 
-def _stop_monitor(node: Any, executor: Any, context: Any, bag_tmp: Path, bag_final: Path
-                  ) -> None:
+def _stop_monitor(node: MonitorNode, executor: SingleThreadedExecutor, context: Context,
+                  bag_tmp: Path, bag_final: Path) -> None:
     import rclpy
 
     recorder = node.recorder
@@ -450,7 +435,8 @@ def _stop_monitor(node: Any, executor: Any, context: Any, bag_tmp: Path, bag_fin
         os.replace(bag_tmp, bag_final)
 
 
-def _drive(opts: DemoOptions, mon: Any, executor: Any, group: Any, stop: _Stop,
+def _drive(opts: DemoOptions, mon: MonitorNode, executor: SingleThreadedExecutor,
+           group: ProcessGroup, stop: _Stop,
            status: Status, state: RunState, say: Printer) -> None:
     """Spin the monitor until the drive has lasted ``minutes`` (or a stop / failure)."""
     total = 60.0 * opts.minutes
@@ -498,7 +484,7 @@ def _drive(opts: DemoOptions, mon: Any, executor: Any, group: Any, stop: _Stop,
         status.show(_status_line(mon, time.monotonic() - t_start, total), force=True)
 
 
-def _waiting_for(mon: Any) -> str:
+def _waiting_for(mon: MonitorNode) -> str:
     """What has not been heard from yet (for start-up messages)."""
     missing = [f"{topic} ({who})" for topic, who in PRODUCERS.items()
                if mon.counts.get(topic, 0) == 0 and topic != topics.GROUND_TRUTH]

@@ -27,22 +27,32 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from asgp_ros import topics
+from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
-from asgp_ros.demo.common import DemoError, evaluate_bag
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.rollout import rollout
+from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
+from asgp_ros.demo.monitor import OnlineScore, PathRecord
+from asgp_ros.fileio import atomic_path, atomic_write_text
+from asgp_ros.sim.world import Room, room_for_surface
+from asgp_ros.training import read_series
+
+# matplotlib (slow to import) is imported by figure() alone.
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+    from asgp_ros.demo.monitor_node import MonitorNode  # rclpy: the demo's process only
 
 log = logging.getLogger(__name__)
 
 
-def offline_cases(bag: Path, model: Any) -> dict[str, set[int]]:
+def offline_cases(bag: Path, model: MotionModel) -> dict[str, set[int]]:
     """Grid index of t0 (= t_{t-1}) of every offline evaluation case, per horizon key."""
-    from asgp_ros.core import metrics
-    from asgp_ros.training import read_series
-
     series = read_series([str(bag)], resample_config=model.resample_config,
                          truth_topic=topics.BAG_GROUND_TRUTH)
     rate = float(model.resample_config.rate_hz)
@@ -58,17 +68,13 @@ def offline_cases(bag: Path, model: Any) -> dict[str, set[int]]:
     return out
 
 
-def offline_held(bag: Path, model: Any) -> dict[str, dict[str, float]]:
+def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
     """Offline success against ground truth with the joystick held at J_{t-1} over the
     horizon (the assumption of a predictor without a plan), on the evaluation's cases.
 
     Same cases, rollout and ground-truth displacement as ``asgp evaluate --truth``
     (:mod:`asgp_ros.evaluation`); only the future joystick differs.
     """
-    from asgp_ros.core import metrics
-    from asgp_ros.core.rollout import rollout
-    from asgp_ros.training import read_series
-
     series = read_series([str(bag)], resample_config=model.resample_config,
                          truth_topic=topics.BAG_GROUND_TRUTH)
     rate = float(model.resample_config.rate_hz)
@@ -97,7 +103,7 @@ def offline_held(bag: Path, model: Any) -> dict[str, dict[str, float]]:
     return out
 
 
-def success_table(score: Any, evaluation: dict[str, Any] | None,
+def success_table(score: OnlineScore, evaluation: dict[str, Any] | None,
                   cases: dict[str, set[int]] | None, dt: float,
                   held: dict[str, dict[str, float]] | None = None) -> list[dict[str, Any]]:
     """One row per horizon: online (all, on offline cases) and offline (truth, VO, and
@@ -130,15 +136,15 @@ def success_table(score: Any, evaluation: dict[str, Any] | None,
     return rows
 
 
-def _pct(x: Any) -> str:
+def _pct(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(float(x)) else f"{100 * float(x):.1f}%"
 
 
-def _cm(x: Any) -> str:
+def _cm(x: float | None) -> str:
     return "-" if x is None or not math.isfinite(float(x)) else f"{100 * float(x):.1f} cm"
 
 
-def markdown(state: Any, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
+def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
              latencies: list[dict[str, Any]], extras: dict[str, Any]) -> str:
     lines = ["# asgp demo report", ""]
     o = state.options
@@ -200,7 +206,7 @@ def markdown(state: Any, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
     return "\n".join(lines)
 
 
-def latency_rows(monitor: Any) -> list[dict[str, Any]]:
+def latency_rows(monitor: MonitorNode) -> list[dict[str, Any]]:
     what = {
         topics.JOY: "joystick: bridge stamp -> monitor",
         topics.VO_TWIST: f"VO: camera frame stamp -> {topics.VO_TWIST} at the monitor",
@@ -214,7 +220,7 @@ def latency_rows(monitor: Any) -> list[dict[str, Any]]:
     return rows
 
 
-def diagnostic_timings(monitor: Any) -> dict[str, str]:
+def diagnostic_timings(monitor: MonitorNode) -> dict[str, str]:
     """Timing values the components report in their diagnostics."""
     out = {}
     for name, entry in sorted(monitor.diag.items()):
@@ -224,7 +230,7 @@ def diagnostic_timings(monitor: Any) -> dict[str, str]:
     return out
 
 
-def cpu_rows(state: Any) -> list[dict[str, Any]]:
+def cpu_rows(state: RunState) -> list[dict[str, Any]]:
     rows = []
     for name, cpu in state.cpu.items():
         alive = state.lifetimes.get(name, float("nan"))
@@ -233,15 +239,13 @@ def cpu_rows(state: Any) -> list[dict[str, Any]]:
     return rows
 
 
-def figure(path: Path, monitor: Any, room: Any = None) -> None:
+def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     """The demo picture (module docstring), written atomically as PNG."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse, Rectangle
-
-    from asgp_ros.fileio import atomic_path
 
     t, truth = monitor.truth.arrays()
     paths = [p for p in monitor.score.paths if monitor.truth.at(p.t0) is not None]
@@ -251,9 +255,10 @@ def figure(path: Path, monitor: Any, room: Any = None) -> None:
     az = fig.add_subplot(gs[0, 1])
     ae = fig.add_subplot(gs[1, 1])
 
-    def draw(axis: Any, recs: list[Any], ellipses: bool, lw: float) -> None:
+    def draw(axis: Axes, recs: list[PathRecord], ellipses: bool, lw: float) -> None:
         for rec in recs:
             p0 = monitor.truth.at(rec.t0)
+            assert p0 is not None  # the paths drawn are those with a true pose at t0
             c, s = math.cos(p0[2]), math.sin(p0[2])
             xy = rec.pose[:, :2] @ np.array([[c, s], [-s, c]]) + p0[:2]
             ok = rec.errors.get("1.0")
@@ -320,12 +325,9 @@ def figure(path: Path, monitor: Any, room: Any = None) -> None:
     plt.close(fig)
 
 
-def write_report(out: Path, state: Any, monitor: Any, model: Any, bag: Path,
+def write_report(out: Path, state: RunState, monitor: MonitorNode, model: MotionModel, bag: Path,
                  env: dict[str, str], say: Callable[[str], None]) -> dict[str, Path]:
     """Evaluate the run's bag offline and write the report files; returns their paths."""
-    from asgp_ros.fileio import atomic_write_text
-    from asgp_ros.sim.world import room_for_surface
-
     written: dict[str, Path] = {}
     dt = 1.0 / float(model.resample_config.rate_hz)
     evaluation = None
@@ -370,7 +372,7 @@ def write_report(out: Path, state: Any, monitor: Any, model: Any, bag: Path,
     return written
 
 
-def _clean(x: Any) -> Any:
+def _clean(x: object) -> object:
     """JSON-safe copy: numpy scalars to Python, non-finite floats to null."""
     if isinstance(x, dict):
         return {str(k): _clean(v) for k, v in x.items()}

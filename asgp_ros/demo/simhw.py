@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.calibration import JoystickCalibration
+from asgp_ros.sim.board import SimulatedBoard
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams, ChairState
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.world import SURFACES, room_for_surface
@@ -174,8 +175,6 @@ class SimulatedHardware:
         self._driving = False
         self.board = None
         if board:
-            from asgp_ros.sim.board import SimulatedBoard
-
             self.board = SimulatedBoard(self._stick, rate_hz=c.board_rate_hz,
                                         link_path=link_path, seed=s_board)
         self._cam_seed = s_cam
@@ -244,6 +243,7 @@ class SimulatedHardware:
     def renderer(self):
         """The RGB-D renderer (built on first use: about a second for the textures)."""
         if self._renderer is None:
+            # OpenCV (slow to import) only once the camera is used.
             from asgp_ros.sim.render import RGBDRenderer
             from asgp_ros.sim.scene import build_scene
 

@@ -32,6 +32,9 @@ import numpy as np
 
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode, MsgType, Status
+from asgp_ros.sim.chair import Chair, ChairParams
+from asgp_ros.sim.driver import Driver
+from asgp_ros.sim.world import Room
 
 log = logging.getLogger(__name__)
 
@@ -392,10 +395,6 @@ class DriverJoystick:
     """
 
     def __init__(self, seed: int, chair_input: Callable[[], tuple[float, float]]) -> None:
-        from asgp_ros.sim.chair import Chair, ChairParams
-        from asgp_ros.sim.driver import Driver
-        from asgp_ros.sim.world import Room
-
         self._driver = Driver(seed, Room())
         self._chair = Chair(ChairParams.preset("tile"), seed=seed)
         self._input = chair_input

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from asgp_ros.fileio import atomic_path
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.sensors import SensorParams
 from asgp_ros.sim.simulate import simulate
@@ -43,12 +44,10 @@ def step_response(surface: str, seed: int, program: str, seconds: float = 12.0
 
 def make_realism_figure(path: str | os.PathLike[str], seeds: int = 4) -> Path:
     """Draw the figure into ``path`` (PNG), atomically; returns the path."""
-    import matplotlib
+    import matplotlib  # slow to import: only for the figure
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from asgp_ros.fileio import atomic_path
 
     colours = {"tile": "tab:blue", "carpet": "tab:red"}
     fig = plt.figure(figsize=(11, 8.5), constrained_layout=True)
