@@ -27,9 +27,19 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from asgp_ros.bags import BagError, resolve_bag
+
+# rosbags and rclpy are imported where they are used: `asgp --help` imports this module
+# (for REPLAY_RANGES) and must stay fast, and rclpy is an optional dependency.
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.publisher import Publisher
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import Connection
 
 LOG = logging.getLogger(__name__)
 
@@ -169,7 +179,7 @@ def _scalar(elem: str, value: Any) -> Any:
     return value
 
 
-def to_ros2(obj: Any, cls: type) -> Any:
+def to_ros2(obj: object, cls: type) -> object:
     """Build an instance of the installed ROS 2 class ``cls`` from a rosbags message.
 
     Fields are matched by name, recursively; numeric arrays are converted in bulk.
@@ -214,13 +224,13 @@ class _Topic:
     name: str
     msgtype: str
     cls: type
-    connections: list[Any]
+    connections: list[Connection]
     transient_local: bool
     out_name: str = ""
-    publisher: Any = None
+    publisher: Publisher | None = None  # made by BagReplayer.create_publishers
 
 
-def _is_transient_local(connection: Any) -> bool:
+def _is_transient_local(connection: Connection) -> bool:
     """ROS 2: the recorded offered QoS was transient local; ROS 1: the topic was latched."""
     ext = getattr(connection, "ext", None)
     if getattr(ext, "latching", 0):
@@ -249,18 +259,15 @@ class BagReplayer:
         self,
         path: str | Path,
         config: ReplayConfig,
-        node: Any,
+        node: Node,
         should_stop: Callable[[], bool] = lambda: False,
     ) -> None:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
-        from asgp_ros.bags import BagError, resolve_bag
-
         self.config = config
         self.node = node
         self.should_stop = should_stop
-        self.reader: Any = None
         try:
             self.path = resolve_bag(path)  # os.stat first: never opens a FIFO or a device
         except BagError as exc:
@@ -271,7 +278,7 @@ class BagReplayer:
         except Exception as exc:  # rosbags raises many types for damaged files
             raise ReplayError(f"{self.path}: cannot open the bag (corrupt or truncated): "
                               f"{_one_line(exc)}") from exc
-        self.reader = reader
+        self.reader: AnyReader = reader
         self.published = 0
         self.skipped_types: dict[str, str] = {}
         self.topics: dict[str, _Topic] = {}
@@ -280,7 +287,7 @@ class BagReplayer:
         except BaseException:
             self.close()
             raise
-        self._clock_pub: Any = None
+        self._clock_pub: Publisher | None = None
 
     def __enter__(self) -> BagReplayer:
         return self
@@ -289,14 +296,14 @@ class BagReplayer:
         self.close()
 
     def close(self) -> None:
-        if self.reader is not None and self.reader.stack is not None:
+        if self.reader.stack is not None:
             try:
                 self.reader.close()
             except Exception as exc:  # closing a damaged bag: nothing left to do with it
                 LOG.debug("%s: closing the reader: %s", self.path, _one_line(exc))
 
     def _select_topics(self) -> None:
-        by_topic: dict[str, list[Any]] = {}
+        by_topic: dict[str, list[Connection]] = {}
         for conn in self.reader.connections:
             if not isinstance(conn.topic, str) or not conn.topic:
                 raise ReplayError(f"{self.path}: a connection has no valid topic name "
@@ -357,7 +364,7 @@ class BagReplayer:
         while True:
             missing = [
                 t.out_name or t.name for t in self.topics.values()
-                if t.publisher.get_subscription_count() == 0
+                if t.publisher is None or t.publisher.get_subscription_count() == 0
             ]
             if not missing or time.monotonic() >= deadline or self.should_stop():
                 return missing
@@ -426,6 +433,7 @@ class BagReplayer:
                             topic.name, t_ns / 1e9, _one_line(exc))
                 continue
             self._publish_clock(t_ns)
+            assert topic.publisher is not None, "create_publishers() first"
             topic.publisher.publish(msg)
             self.published += 1
         if t_first is None:
@@ -450,7 +458,8 @@ class BagReplayer:
         for topic in self.topics.values():  # let reliable readers get the last messages
             if self.should_stop():
                 return
-            topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
+            if topic.publisher is not None:
+                topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
 
 
 def summary(replayer: BagReplayer) -> Sequence[str]:
