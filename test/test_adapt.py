@@ -11,6 +11,10 @@ import pytest
 
 from asgp_ros.core import adapt, kernel
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior, RejectReason
+from asgp_ros.core.features import FeatureConfig
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.resample import ResampleConfig
+from asgp_ros.core.rollout import rollout
 from asgp_ros.core.sparse_gp import SparseGP
 
 D = 3
@@ -134,6 +138,51 @@ def test_published_posterior_is_what_the_model_and_rollout_read() -> None:
     unbound = OnlinePosterior.from_sparse_gp(trained(), bind=False)
     unbound.absorb_rows(X2, y2)
     assert unbound.model is None
+
+
+class _Hidden:
+    """A SparseGP behind another type: rollout's generic per-channel path (no cache)."""
+
+    def __init__(self, gp: SparseGP) -> None:
+        self.gp = gp
+
+    def predict(self, X: np.ndarray, include_noise: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
+        return self.gp.predict(X, include_noise)
+
+    def predict_with_grad(self, X: np.ndarray, include_noise: bool = True
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.gp.predict_with_grad(X, include_noise)
+
+
+def test_the_fused_rollout_reads_each_published_posterior() -> None:
+    """The fused rollout caches the stacked posteriors by identity: after each update it
+    predicts from the new ones (the same as the uncached per-channel path)."""
+    fc = FeatureConfig(lags=2)
+    rng = np.random.default_rng(16)
+    gps, onlines = [], []
+    for _ in range(2):
+        X = rng.uniform(-1.0, 1.0, size=(200, fc.input_dim))
+        y = np.tanh(X @ rng.standard_normal(fc.input_dim)) + 0.01 * rng.standard_normal(200)
+        gp = SparseGP.from_params(X, y, X[:10], np.full(fc.input_dim, 1.5), 0.5, 1e-4)
+        gps.append(gp)
+        onlines.append(OnlinePosterior.from_sparse_gp(gp, AdaptConfig(half_life_rows=20.0)))
+    fused = MotionModel("asgp", fc, ResampleConfig(), (gps[0], gps[1]))
+    generic = MotionModel("asgp", fc, ResampleConfig(), (_Hidden(gps[0]), _Hidden(gps[1])))
+    jp = rng.uniform(-0.5, 0.5, (2, 2))
+    vp = rng.uniform(0.0, 0.5, (2, 2))
+    jf = rng.uniform(-0.5, 0.5, (3, 4, 2))
+    before = rollout(fused, jp, vp, jf)
+    for step in range(2):
+        for c, online in enumerate(onlines):
+            X = rng.uniform(-1.0, 1.0, size=(5, fc.input_dim))
+            online.absorb_rows(X, np.full(5, 0.8 + 0.1 * step + 0.1 * c))
+        a = rollout(fused, jp, vp, jf)
+        b = rollout(generic, jp, vp, jf)
+        for name in ("vel", "vel_cov", "pose_cov"):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-9,
+                                       atol=1e-12)
+        assert np.max(np.abs(a.vel - before.vel)) > 1e-3
 
 
 # --------------------------------------------------------------- streams

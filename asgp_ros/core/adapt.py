@@ -23,8 +23,11 @@ are exactly the batch FITC terms of :func:`asgp_ros.core.sparse_gp._fitc_terms`
 
 A fresh Cholesky factorisation of A per update costs M^3/3 flops and C two M^3 products:
 O(M^3) per published posterior, a few tenths of a millisecond at M = 80 (see
-``benchmarks/adapt.py``); the statistics themselves are updated in O(M^2) per row, and
-:meth:`OnlinePosterior.absorb_rows` absorbs a block of rows for one factorisation.
+``benchmarks/adapt.py``; BLAS is limited to one thread during an update, as threading
+these small products cost milliseconds on a loaded machine); the statistics themselves
+are updated in O(M^2) per row, and :meth:`OnlinePosterior.absorb_rows` absorbs a block of
+rows for one factorisation.  (A rank-one Cholesky update would not help: forgetting
+scales the data part of A but not its prior part I, a full-rank change.)
 
 The trained posterior is data too.  Its statistics are recovered from its factors,
 P_T = LA LA^T - I and b_T = LA LA^T L^T alpha (A2, A3, A4 solved backwards), and kept
@@ -76,17 +79,19 @@ statistics exactly as they were; :attr:`AdaptStats.rejected` counts each reason.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from types import MappingProxyType
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
+from threadpoolctl import ThreadpoolController
 
 from asgp_ros.core import kernel
 from asgp_ros.core.posterior import FitcPosterior
@@ -96,6 +101,23 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = ["AdaptConfig", "AdaptError", "AdaptStats", "OnlinePosterior", "RejectReason"]
+
+
+_BLAS_CONTROLLER: ThreadpoolController | None = None
+
+
+def _blas_single_thread() -> contextlib.AbstractContextManager[object]:
+    """Single-threaded BLAS for the M x M algebra of an update.
+
+    OpenBLAS threads the triangular solves and products of M ~ 30 - 80 matrices; on a
+    loaded 2-core machine one update then took up to 10 - 30 ms instead of a fraction
+    of one (the switch costs about 10 us).
+    """
+    global _BLAS_CONTROLLER
+    if _BLAS_CONTROLLER is None:
+        _BLAS_CONTROLLER = ThreadpoolController()
+    return cast("contextlib.AbstractContextManager[object]",
+                _BLAS_CONTROLLER.limit(limits=1, user_api="blas"))
 
 
 _potrf = scipy.linalg.lapack.dpotrf
@@ -333,7 +355,12 @@ class OnlinePosterior:
             raise AdaptError("half_life_s forgetting needs the rows' time stamps t")
         if n == 0:
             return 0
+        with _blas_single_thread():
+            return self._absorb(Xa, ya, ta, start)
 
+    def _absorb(self, Xa: FloatArray, ya: FloatArray, ta: FloatArray | None, start: float
+                ) -> int:
+        post = self.trained
         with np.errstate(over="ignore", invalid="ignore"):  # checked just below
             Xs = (Xa - post.x_mean) / post.x_scale  # [n, D] standardised
             ys = (ya - post.y_mean) / post.y_scale  # [n]
@@ -411,14 +438,13 @@ class OnlinePosterior:
         """The cached posterior of the statistics ``s`` (A4 - A6), or why there is none."""
         post = self.trained
         M = post.num_inducing
-        if not (np.all(np.isfinite(s.P_D)) and np.all(np.isfinite(s.b_data))):
-            return RejectReason.NONFINITE_TERMS
-        A = s.w_trained * self._P_T + s.P_D  # A6
-        A = 0.5 * (A + A.T)
-        A[np.diag_indices(M)] += 1.0
         b = s.w_trained * self._b_T + s.b_data
+        if not np.all(np.isfinite(b)):
+            return RejectReason.NONFINITE_TERMS
+        A = s.w_trained * self._P_T + s.P_D  # A6 (dpotrf reads the lower triangle only)
+        A[np.diag_indices(M)] += 1.0
         LA, info = _potrf(A, lower=1, clean=1, overwrite_a=1)
-        if info != 0 or not np.all(np.isfinite(LA)):
+        if info != 0:  # a non-finite A gives info != 0 or a non-finite LA, and C below
             return RejectReason.FACTORISATION
         c = _trsolve(LA, b)
         alpha = _trsolve(post.L, _trsolve(LA, c, trans=1), trans=1)  # A4
