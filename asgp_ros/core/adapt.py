@@ -263,7 +263,7 @@ class OnlinePosterior:
         # rows farther than max_distance lengthscales have k(x, z) < sf2 exp(-r^2 / 2) (K1)
         r = self.config.max_distance
         self._k_min = -1.0 if r is None else trained.signal_variance * math.exp(-0.5 * r * r)
-        self._rejected = dict.fromkeys((str(r) for r in RejectReason), 0)
+        self._rejected = dict.fromkeys((str(reason) for reason in RejectReason), 0)
         self._last_cost = 0.0
         self._last_rows = 0
         self._reset_state()
