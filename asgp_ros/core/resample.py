@@ -196,10 +196,6 @@ class Resampled:
     dropped_vel: int = 0
     source: str = field(default="")
 
-    @property
-    def dt(self) -> float:
-        return 1.0 / self.rate_hz
-
     def __len__(self) -> int:
         return int(self.t.shape[0])
 

@@ -90,16 +90,9 @@ class TruthTrack:
         self._t.append(float(t))
         self._p.append((float(x), float(y), float(yaw)))
 
-    def __len__(self) -> int:
-        return len(self._t)
-
     @property
     def newest(self) -> float:
         return self._t[-1] if self._t else -math.inf
-
-    @property
-    def oldest(self) -> float:
-        return self._t[0] if self._t else math.inf
 
     def arrays(self) -> tuple[FloatArray, FloatArray]:
         """(t [N], pose [N, 3])."""

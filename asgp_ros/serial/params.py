@@ -98,9 +98,6 @@ def bridge_params(values: Mapping[str, object]) -> BridgeParams:
         raise ValueError("parameter reconnect_max must be >= reconnect_min")
     if v["heartbeat_timeout"] <= v["heartbeat_period"]:
         raise ValueError("parameter heartbeat_timeout must exceed heartbeat_period")
-    if 1.0 / v["override_rate"] >= 0.2:
-        raise ValueError("parameter override_rate must exceed 5 Hz: the board drops an "
-                         "override after 200 ms")
     if not v["port"]:
         raise ValueError("parameter port is empty")
     return BridgeParams(

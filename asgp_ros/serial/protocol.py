@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import enum
 import struct
-from collections.abc import Iterable
 from dataclasses import dataclass, fields
 from typing import ClassVar, TypeVar, Union
 
@@ -372,11 +371,3 @@ class StreamParser:
         del buf[:start]
         return frames
 
-
-def iter_frames(chunks: Iterable[bytes]) -> list[Frame]:
-    """All frames in a sequence of chunks (convenience for tests and tools)."""
-    parser = StreamParser()
-    out: list[Frame] = []
-    for c in chunks:
-        out.extend(parser.feed(c))
-    return out

@@ -35,13 +35,6 @@ def flag_names(status: Status) -> str:
     return "|".join(names) or "NONE"
 
 
-def publishes_joy(status: Status) -> bool:
-    """Whether a sample with this status is published on ``joy``: every one that carries a
-    joystick reading, i.e. all but ADC_FAULT (an open wire or a short reads as the end stop;
-    the user's deflection is unknown and the board holds the chair neutral)."""
-    return Status.ADC_FAULT not in status
-
-
 def joystick_verdict(status: Status, raw: tuple[int, int]) -> Verdict:
     """The ``joystick`` diagnostic status for the latest sample: the reading and the output."""
     if Status.ADC_FAULT in status:

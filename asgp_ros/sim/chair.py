@@ -199,9 +199,6 @@ class ChairParams:
             )
         return replace(base, **overrides) if overrides else base
 
-    def to_dict(self) -> dict[str, float | str]:
-        return dict(asdict(self))
-
 
 @dataclass(frozen=True)
 class ChairState:

@@ -151,10 +151,6 @@ class VoStream:
     failures: FloatArray
 
 
-def _wrap(a: FloatArray) -> FloatArray:
-    return np.arctan2(np.sin(a), np.cos(a))
-
-
 def vo_samples(
     t_end: float, truth_t: FloatArray, pose: FloatArray, moving: NDArray[np.bool_],
     surface: str, rng: np.random.Generator, params: SensorParams | None = None,
