@@ -240,6 +240,14 @@ def test_asgp_board_command_prints_a_working_port(repo_root, tmp_path):
     assert not link_path.exists()  # the board removed its symlink
 
 
+def test_board_as_a_context_manager_removes_its_pty_and_link(tmp_path):
+    link_path = tmp_path / "joystick"
+    with SimulatedBoard(lambda t: (0.0, 0.0), link_path=link_path) as board:
+        assert os.path.realpath(link_path) == board.slave_path
+    assert not link_path.exists()
+    assert board.error is None
+
+
 def test_board_rejects_bad_configuration():
     with pytest.raises(ValueError, match="rate_hz"):
         SimulatedBoard(rate_hz=0.5)

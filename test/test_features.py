@@ -137,6 +137,8 @@ def test_bad_input_raises() -> None:
         FeatureConfig(lags=0)
     with pytest.raises(ValueError, match="lags"):
         FeatureConfig(lags=2.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="coupled must be a bool"):
+        FeatureConfig(lags=2, coupled="yes")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="unknown"):
         FeatureConfig.from_dict({"lags": 4, "foo": 1})
     assert FeatureConfig.from_dict(FeatureConfig(3, True).to_dict()) == FeatureConfig(3, True)

@@ -97,6 +97,25 @@ def test_encode_rejects_oversized_payload():
     with pytest.raises(ValueError, match="exceeds 32"):
         proto.encode_frame(1, 0, bytes(33))
     assert proto.encode_frame(1, 256 + 5, b"")[4] == 5  # seq modulo 256
+    with pytest.raises(ValueError, match="not a byte"):
+        proto.encode_frame(256, 0, b"")
+
+
+def test_error_report_names_unknown_codes():
+    assert proto.ErrorReport(int(proto.ErrorCode(1)), 7).describe() == \
+        f"{proto.ErrorCode(1).name} (detail 7)"
+    assert proto.ErrorReport(200, 3).describe() == "code 200 (detail 3)"
+
+
+def test_parser_reset_drops_a_partial_frame():
+    msg = proto.Heartbeat(uptime_ms=1234, rx_frames=5, rx_crc_errors=0, mode=1)
+    frame = proto.encode_frame(msg.TYPE, 9, msg.payload())
+    parser = proto.StreamParser()
+    assert parser.feed(frame[:-2]) == []
+    parser.reset()
+    assert parser.bytes_dropped == len(frame) - 2
+    assert parser.feed(frame[-2:]) == []  # the tail alone is no frame
+    assert [f.decode() for f in parser.feed(frame)] == [msg]
 
 
 def test_parser_byte_by_byte_and_split_chunks():
@@ -189,6 +208,8 @@ def test_calibration_validation(kwargs, match):
 def test_calibration_rejects_nonfinite_raw():
     with pytest.raises(ValueError, match="finite"):
         AxisCalibration().deflection(math.nan)
+    with pytest.raises(ValueError, match="finite"):
+        AxisCalibration().deflection_array([512.0, math.inf])
 
 
 # -- parameters -----------------------------------------------------------------------------

@@ -150,6 +150,7 @@ def test_node_refuses_huge_and_non_finite_parameters_at_runtime(rclpy_context, t
     ({"adc_neutral": 5000}, "adc_neutral"), ({"adc_span": 0}, "span"),
     ({"dac_max": 70000}, "dac_max"), ({"adc_fault_high": 100}, "window"),
     ({"adc_neutral": 512.5}, "integer"), ({"limit_pos": 2000}, "limits"),
+    ({"dac_min": 2100, "dac_neutral": 2048}, "DAC window"),
 ])
 def test_firmware_mirror_calibration_ranges(kwargs, match):
     from asgp_ros.serial import safety as fw

@@ -12,6 +12,7 @@ import pytest
 
 from asgp_ros.serial import protocol as proto
 from asgp_ros.serial import safety as fw
+from asgp_ros.serial import status as status_mod
 from asgp_ros.serial.calibration import AxisCalibration
 from asgp_ros.serial.link import LinkConfig, LinkManager, LinkState
 from asgp_ros.sim.board import SimulatedBoard
@@ -49,6 +50,20 @@ def test_link_never_calibrates_a_faulty_reading(tmp_path):
     assert all(s.forward is None and s.turn is None and not s.valid for s in faulty)
     assert all(s.valid and s.forward == pytest.approx(0.479, abs=0.01)
                for s in samples if s not in faulty)
+
+
+@pytest.mark.parametrize("status, sending, level, text", [
+    (proto.Status.CLAMPED | proto.Status.OVERRIDE_ACTIVE, None, "WARN", "override was limited"),
+    (proto.Status.CLAMPED, None, "OK", "output is limited"),
+    (proto.Status.ADC_FAULT, True, "WARN", "not applied: ADC_FAULT"),
+    (proto.Status.NONE, True, "OK", "sending"),
+])
+def test_verdicts_of_status_combinations(status, sending, level, text):
+    if sending is None:
+        v = status_mod.joystick_verdict(status, (600, 512))
+    else:
+        v = status_mod.override_verdict(status, sending)
+    assert v.level == level and text in v.message
 
 
 # -- the node ---------------------------------------------------------------------------------
