@@ -195,7 +195,7 @@ class Settings:
     def for_mode(cls, quick: bool, jobs: int | None = None, seed: int = 0) -> Settings:
         base = cls(quick=quick, seed=seed, jobs=jobs or min(2, os.cpu_count() or 1))
         if quick:
-            return replace(base, asgp_max_iter=40, auto_budget_s=20.0)
+            return replace(base, asgp_max_iter=40, auto_budget_s=10.0)
         return base
 
     def options(self, model: Compared) -> TrainOptions:

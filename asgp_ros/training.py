@@ -224,14 +224,18 @@ PAPER_OPTIONS = TrainOptions(kind="asgp", lags=4, inducing_v=20, inducing_w=40, 
 
 #: Lags s tried by the automatic configuration.
 AUTO_LAGS: tuple[int, ...] = (2, 4, 6, 8, 10, 12)
-#: Pseudo-inputs M per channel tried (the same M for v and omega).
-AUTO_INDUCING: tuple[int, ...] = (20, 40, 80, 120)
+#: Pseudo-inputs M per channel tried (the same M for v and omega), as far as the budget
+#: allows (:meth:`AutoOptions.affordable_inducing`).
+AUTO_INDUCING: tuple[int, ...] = (20, 40, 80, 120, 160, 200, 300)
 #: M while the structure (s, coupling) is chosen.
 AUTO_STRUCTURE_INDUCING = 40
 #: Fraction of each training recording held out (its end) for selection and calibration.
 HOLDOUT_FRACTION = 0.2
-#: L-BFGS-B iterations of a candidate's fit during the selection.
+#: L-BFGS-B iterations of a candidate's fit during the selection: at most
+#: SELECTION_MAX_ITER, fewer for a small budget (SELECTION_ITER_PER_BUDGET_S per second).
 SELECTION_MAX_ITER = 100
+SELECTION_MIN_ITER = 20
+SELECTION_ITER_PER_BUDGET_S = 2.0
 #: Range of the time budget (s) of the automatic configuration.
 BUDGET_RANGE_S = (1.0, 86400.0)
 #: Rows per channel a candidate is fitted on, per second of budget. The plan (rows of the
@@ -243,6 +247,12 @@ MIN_SELECTION_ROWS = 1000
 MAX_SELECTION_ROWS = 20000
 #: The final fit uses this many times the selection's rows (at most all training rows).
 FINAL_ROWS_FACTOR = 2
+#: Cost model of a fit, seconds per (row x M^2 x iteration) per channel pair, measured by
+#: benchmarks/train.py on a 2-core machine; it decides which M the budget affords, before
+#: anything is fitted (so the plan, and the choice, do not depend on the clock).
+FIT_COST_S = 6e-10
+#: Share of the budget the final fit may take.
+FINAL_FIT_SHARE = 0.4
 
 
 @dataclass(frozen=True)
@@ -293,8 +303,21 @@ class AutoOptions:
                        max(MIN_SELECTION_ROWS, round(self.budget_s * ROWS_PER_BUDGET_S))))
 
     @property
+    def selection_max_iter(self) -> int:
+        per_budget = round(self.budget_s * SELECTION_ITER_PER_BUDGET_S)
+        return int(min(SELECTION_MAX_ITER, max(SELECTION_MIN_ITER, per_budget)))
+
+    @property
     def final_rows(self) -> int:
         return FINAL_ROWS_FACTOR * self.selection_rows
+
+    def affordable_inducing(self) -> tuple[int, ...]:
+        """The M of :data:`AUTO_INDUCING` whose final fit the budget affords (by the cost
+        model :data:`FIT_COST_S`; at least the smallest two)."""
+        cap = FINAL_FIT_SHARE * self.budget_s
+        ok = tuple(m for m in AUTO_INDUCING
+                   if FIT_COST_S * self.final_rows * m * m * self.max_iter <= cap)
+        return ok if len(ok) >= 2 else AUTO_INDUCING[:2]
 
 
 @dataclass(frozen=True)
@@ -433,12 +456,14 @@ def train_auto(
     2. Structure: every (s, coupled) of :data:`AUTO_LAGS` x {per-axis, coupled} at
        M = :data:`AUTO_STRUCTURE_INDUCING`, plus the paper's configuration, is fitted on
        a seeded subset of the training part (:attr:`AutoOptions.selection_rows` rows,
-       :data:`SELECTION_MAX_ITER` iterations), its posterior formed on the whole training
-       part, and scored by the k-step criterion on the held-out part: the success rate of
-       the rolled-out path at ``opts.horizons_s``, averaged (the paper's measure of what
-       a planner needs), with the median error as tie-break. All candidates are scored on
-       the same cases (those with the largest s of the past samples).
-    3. Capacity: M of :data:`AUTO_INDUCING` for the best structure.
+       :attr:`AutoOptions.selection_max_iter` iterations), its posterior formed on the
+       whole training part, and scored by the k-step criterion on the held-out part: the
+       success rate of the rolled-out path at ``opts.horizons_s``, averaged (the paper's
+       measure of what a planner needs), with the median error as tie-break. All
+       candidates are scored on the same cases (those with the largest s of the past
+       samples).
+    3. Capacity: M of :data:`AUTO_INDUCING` for the best structure, as far as the budget
+       affords (:meth:`AutoOptions.affordable_inducing`).
     4. The chosen configuration is fitted again on more rows of the training part
        (:attr:`AutoOptions.final_rows`, ``opts.max_iter`` iterations), the variance
        calibration fitted on the held-out part (:mod:`asgp_ros.core.calibration`), and
@@ -469,7 +494,7 @@ def train_auto(
             return
         t0 = time.perf_counter()
         try:
-            model, _ = _fit_candidate(cand, fit_on, fit_on, rows, SELECTION_MAX_ITER,
+            model, _ = _fit_candidate(cand, fit_on, fit_on, rows, opts.selection_max_iter,
                                       opts.seed, rc)
             result = _score(model, held, opts, case_lags)
         except (TrainingError, EvaluationError, ValueError) as exc:
@@ -513,7 +538,7 @@ def train_auto(
         return _fallback(series, opts, rc, table, report)
     if opts.inducing_v is None or opts.inducing_w is None:
         s, coupled = best_cand.lags, best_cand.coupled
-        for m in AUTO_INDUCING:
+        for m in opts.affordable_inducing():
             consider(Candidate(s, coupled, _inducing(opts, m)), "capacity")
     assert best_cand is not None and best is not None
     chosen = best_cand
@@ -569,7 +594,7 @@ def train_auto(
                          "k-step rollout (error <= threshold), tie-break median error",
             "horizons_s": list(opts.horizons_s), "threshold_m": opts.threshold_m,
             "holdout_fraction": opts.holdout, "case_lags": case_lags,
-            "selection_rows": rows, "selection_max_iter": SELECTION_MAX_ITER,
+            "selection_rows": rows, "selection_max_iter": opts.selection_max_iter,
             "final_rows": opts.final_rows, "budget_s": opts.budget_s,
             "pinned": {k: v for k, v in (("lags", opts.lags), ("coupled", opts.coupled),
                                          ("inducing_v", opts.inducing_v),

@@ -276,7 +276,8 @@ def test_model_file_round_trips_configuration_and_calibration(auto_model, tmp_pa
     assert back.feature_config == auto_model.feature_config
     assert back.meta["selection"] == auto_model.meta["selection"]
     assert back.meta["calibration"] == auto_model.meta["calibration"]
-    jp, vp = np.zeros((12, 2)), np.full((12, 2), 0.05)
+    s = back.lags
+    jp, vp = np.zeros((s, 2)), np.full((s, 2), 0.05)
     np.testing.assert_allclose(back.predict_step(jp, vp, np.zeros(2))[1],
                                auto_model.predict_step(jp, vp, np.zeros(2))[1])
 
