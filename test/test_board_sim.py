@@ -267,3 +267,33 @@ def test_driver_joystick_closes_the_loop_through_the_board_output():
     assert values[0] == (0.0, 0.0)  # every drive starts with the stick released
     assert any(abs(f) > 0.2 or abs(t) > 0.2 for f, t in values)  # and then drives
     assert source.state.v == 0.0  # the chair follows the board's (neutral) output
+
+
+def test_asgp_board_monitor_prints_a_calibration_block(tmp_path, capsys):
+    """``asgp board --monitor PORT`` on the simulated board: rest first, then the extremes."""
+    from asgp_ros.cli import main
+
+    def stick(t: float) -> tuple[float, float]:
+        # at rest well past the first fifth of the samples (the monitor's neutral), then
+        # the four extremes in turn
+        return (0.0, 0.0) if t < 2.5 else (math.copysign(1.0, math.sin(8.0 * t)),
+                                           math.copysign(1.0, math.cos(8.0 * t)))
+
+    with SimulatedBoard(stick, link_path=tmp_path / "joy") as board:
+        assert main(["board", "--monitor", board.port, "--duration", "4"]) == 0
+    out = capsys.readouterr().out
+    block = out[out.index("calibration:"):]
+    values = {}
+    for axis in ("forward", "turn"):
+        part = block[block.index(f"  {axis}:"):].splitlines()[1:4]
+        values[axis] = {line.split(":")[0].strip(): float(line.split(":")[1]) for line in part}
+    for axis, v in values.items():
+        assert v["minimum"] < v["neutral"] < v["maximum"], (axis, v)
+        assert abs(v["neutral"] - fw.ADC_NEUTRAL) <= 20, (axis, v)
+
+
+def test_asgp_board_monitor_without_a_board_fails_with_a_message(tmp_path, capsys):
+    from asgp_ros.cli import main
+
+    assert main(["board", "--monitor", str(tmp_path / "nothing"), "--duration", "0.1"]) == 2
+    assert "no board answered" in capsys.readouterr().err

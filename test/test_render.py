@@ -206,3 +206,10 @@ def test_extrinsic_twist_round_trip():
         Tb = ext.camera_pose_planar(d.x[1], d.y[1], d.theta[1])
         got = ext.planar_twist(invert(Ta) @ Tb, dt)
         assert got == pytest.approx((v, w), abs=1e-9)
+
+
+def test_extrinsic_and_twist_inputs_are_checked():
+    with pytest.raises(ValueError, match="must be finite"):
+        CameraExtrinsic(z=math.nan)
+    with pytest.raises(ValueError, match="dt must be positive"):
+        DEFAULT_EXTRINSIC.planar_twist(np.eye(4), 0.0)

@@ -18,7 +18,7 @@ from asgp_ros.sim.sensors import (
     vo_samples,
 )
 from asgp_ros.sim.simulate import simulate
-from asgp_ros.sim.world import Room, room_for_surface
+from asgp_ros.sim.world import Patch, Room, room_for_surface
 
 
 # ----------------------------------------------------------------------------- fixtures
@@ -334,3 +334,21 @@ def test_realism_figure(tmp_path):
     out = make_realism_figure(tmp_path / "fig.png", seeds=1)
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert [p.name for p in tmp_path.iterdir()] == ["fig.png"]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"base_surface": "ice"}, "unknown surface"),
+    ({"furniture_band": -0.1}, "furniture_band"),
+    ({"x_min": -1.0, "x_max": 1.0}, "too small"),
+    ({"x_min": 0.5, "x_max": 10.0}, "start pose"),
+])
+def test_room_validation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Room(**kwargs)
+
+
+def test_patch_validation():
+    with pytest.raises(ValueError, match="no area"):
+        Patch(0.0, 0.0, 0.0, 1.0, "carpet")
+    with pytest.raises(ValueError, match="unknown surface"):
+        Patch(0.0, 0.0, 1.0, 1.0, "ice")

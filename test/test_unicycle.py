@@ -10,6 +10,7 @@ from asgp_ros.core.unicycle import (
     integrate_path,
     integrate_path_cov,
     path_sensitivity,
+    sqrt_2x2,
     wrap_angle,
 )
 
@@ -149,3 +150,15 @@ def test_integrate_path_cov_batched_matches_one_by_one() -> None:
         p1, c1 = integrate_path_cov(vel[b], vel_cov[b], 0.2, pose0=[0.0, 0.0, 0.5])
         np.testing.assert_allclose(pose[b], p1, rtol=1e-13)
         np.testing.assert_allclose(cov[b], c1, rtol=1e-11, atol=1e-16)
+
+
+def test_bad_start_pose_and_sensitivities_are_refused() -> None:
+    vel = np.zeros((4, 2))
+    with pytest.raises(ValueError, match=r"pose0 must have shape"):
+        integrate_path(vel, 0.1, np.zeros(2))
+    with pytest.raises(ValueError, match="pose0 contains NaN"):
+        integrate_path(vel, 0.1, np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(ValueError, match="dvel must have shape"):
+        path_sensitivity(vel, np.zeros((4, 3, 1)), 0.1)
+    with pytest.raises(ValueError, match="covariance contains NaN"):
+        sqrt_2x2(np.full((2, 2), np.nan))
