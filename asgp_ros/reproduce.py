@@ -35,6 +35,7 @@ import itertools
 import json
 import logging
 import math
+import multiprocessing
 import os
 import shlex
 import time
@@ -45,17 +46,45 @@ from types import MappingProxyType
 from typing import Any, TypeVar
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
+from asgp_ros.bags import BagError, bag_topics
 from asgp_ros.core import metrics
 from asgp_ros.core.baselines import MLP_LEARNING_RATES, MLP_PATIENCE
 from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.modelfile import load_model, loads_bounded, open_regular_file, save_model
 from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
-from asgp_ros.dataset import LAYOUT, BuiltDataset, manifest_topics
+from asgp_ros.core.rollout import rollout
+from asgp_ros.dataset import LAYOUT, BuiltDataset, DatasetError, build_dataset, manifest_topics
 from asgp_ros.dataset import Progress as DatasetProgress
-from asgp_ros.evaluation import ModelEvaluation, TestSeries, evaluate_model
+from asgp_ros.evaluation import (
+    ModelEvaluation,
+    TestSeries,
+    evaluate_model,
+    reference_path,
+    rollout_cases,
+)
+from asgp_ros.fileio import (
+    REPORT_DIR,
+    OutputError,
+    atomic_path,
+    check_output,
+    interruptible_imap,
+    quiet_worker_exit,
+    signals_deferred,
+    write_marker,
+)
 from asgp_ros.paper import MEAN_LEAD_POINTS
 from asgp_ros.paper import success_rate as published_rate
-from asgp_ros.training import PAPER_OPTIONS, AutoOptions, Series, TrainOptions
+from asgp_ros.training import (
+    PAPER_OPTIONS,
+    AutoOptions,
+    Series,
+    TrainOptions,
+    read_series,
+    train,
+    train_auto,
+)
 
 log = logging.getLogger(__name__)
 
@@ -277,8 +306,6 @@ def read_manifest(data: Path) -> dict[str, Any] | None:
     writes it: an object whose "bags" is a list of objects with a string "path" (and an
     optional string "split"), and whose optional "topics" maps roles to topic names.
     """
-    from asgp_ros.core.modelfile import loads_bounded, open_regular_file
-
     path = Path(data) / "manifest.json"
     if not os.path.lexists(path):
         return None
@@ -317,9 +344,6 @@ def build_quick_dataset(data: Path, scale: float = QUICK_SCALE, *,
                         progress: DatasetProgress | None = None) -> BuiltDataset:
     """Simulate a small paper-layout dataset into ``data`` (:func:`asgp_ros.dataset.
     build_dataset`, as ``asgp dataset --out DATA --scale SCALE --jobs 2``)."""
-    from asgp_ros.dataset import DatasetError, build_dataset
-    from asgp_ros.fileio import OutputError
-
     log.info("building a small dataset (scale %s) in %s", scale, data)
     try:
         return build_dataset(data, scale=scale, jobs=2, progress=progress)
@@ -362,9 +386,6 @@ def case_lags(trained_lags: Sequence[int] = ()) -> int:
 
 def _read_one(topics: Mapping[str, str], path: str) -> Series:
     """One bag on the grid; ``topics`` by role as in :func:`asgp_ros.dataset.manifest_topics`."""
-    from asgp_ros.bags import bag_topics
-    from asgp_ros.training import read_series
-
     truth: str | None = topics["truth"]
     if truth not in bag_topics(path):
         truth = None  # recorded on a real chair: no ground truth
@@ -387,9 +408,6 @@ def _model_path(context: JobContext, train_name: str, name: str) -> Path:
 
 
 def _train_one(context: JobContext, train_name: str, model: Compared) -> dict[str, Any]:
-    from asgp_ros.core.modelfile import save_model
-    from asgp_ros.training import train, train_auto
-
     st = context.settings
     t0 = time.perf_counter()
     lines: list[str] = []
@@ -429,8 +447,6 @@ def _evaluate_job(context: JobContext, task: tuple[str, str]) -> dict[str, Any]:
 
 
 def _evaluate_one(context: JobContext, train_name: str, model: Compared) -> dict[str, Any]:
-    from asgp_ros.core.modelfile import load_model
-
     st = context.settings
     t0 = time.perf_counter()
     loaded = load_model(_model_path(context, train_name, model.name))
@@ -468,12 +484,8 @@ _WORKER: _Worker | None = None
 def _start_worker(worker: _Worker) -> None:
     """Pool initializer: quiet exit on signals, BLAS/OpenMP limits, the worker's job."""
     global _WORKER
-    from asgp_ros.fileio import quiet_worker_exit
-
     quiet_worker_exit()
     if worker.one_thread:
-        from threadpoolctl import threadpool_limits
-
         # one BLAS/OpenMP thread per worker, for the worker's life: the workers share
         # the cores
         threadpool_limits(1)
@@ -496,9 +508,6 @@ def _pool_map(fn: Callable[[C, T], R], context: C, items: Sequence[T], jobs: int
     """
     if jobs <= 1 or len(items) <= 1:
         return [fn(context, x) for x in items]
-    import multiprocessing
-
-    from asgp_ros.fileio import interruptible_imap, signals_deferred
 
     ctx = multiprocessing.get_context("fork")
     with signals_deferred():  # a signal inside fork's hooks would be lost
@@ -542,9 +551,6 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     Returns:
         The results dictionary also written as ``results.json``.
     """
-    from asgp_ros.bags import BagError
-    from asgp_ros.fileio import REPORT_DIR, OutputError, atomic_path, check_output, write_marker
-
     try:
         check_output(out, REPORT_DIR, inputs=[data], force=force)
     except OutputError as exc:
@@ -627,10 +633,6 @@ def _propagation_job(context: JobContext, task: tuple[str, str]) -> dict[str, An
     test set: linearised propagation (as in the tables), Monte Carlo (the reference), and
     linearised without the observation noise (latent variance only); the model's variance
     calibration, if it has one, applies to all three."""
-    from asgp_ros.core.modelfile import load_model
-    from asgp_ros.core.rollout import rollout
-    from asgp_ros.evaluation import reference_path
-
     name, test = task
     st = context.settings
     model = load_model(_model_path(context, "Both", name))
@@ -1071,6 +1073,7 @@ _STYLES = {"Tile": "-", "Carpet": "--", "Both": ":"}
 
 
 def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) -> None:
+    # matplotlib (about 0.5 s to import) only for the plots, with its file-only backend
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1119,9 +1122,6 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
     fig.tight_layout()
     fig.savefig(out / "error_distributions.png", dpi=100)
     plt.close(fig)
-
-    from asgp_ros.core.modelfile import load_model
-    from asgp_ros.evaluation import rollout_cases
 
     h = hk[-1]
     asgp = next(r for r in results if r["kind"] == "asgp" and r["train"] == "Both")

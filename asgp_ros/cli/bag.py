@@ -13,8 +13,10 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from asgp_ros.bags import BagError, recover_bag, repair_bag, topic_stats
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
+from asgp_ros.fileio import ROS1_BAG, ROS2_BAG, check_output
 
 GAPS_LISTED = 10
 """Gaps listed per topic by ``asgp bag info`` (the rest are counted)."""
@@ -104,8 +106,6 @@ def info_lines(stats: list[Any], damage: Any) -> list[str]:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from asgp_ros.bags import BagError, recover_bag, topic_stats
-
     try:
         recovered = recover_bag(args.bag, topics=())  # times only: no message data
     except BagError as exc:
@@ -116,9 +116,6 @@ def run_info(args: argparse.Namespace) -> int:
 
 
 def run_repair(args: argparse.Namespace) -> int:
-    from asgp_ros.bags import BagError, repair_bag
-    from asgp_ros.fileio import ROS1_BAG, ROS2_BAG, check_output
-
     ros1_out = args.storage == "ros1" or Path(args.out).suffix == ".bag"
     out = check_output(args.out, ROS1_BAG if ros1_out else ROS2_BAG,
                        inputs=_inputs(args.bag), force=args.force, option="OUT")

@@ -7,7 +7,11 @@ import shlex
 import sys
 from collections.abc import Sequence
 
+from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer
+from asgp_ros.cli.dataset import progress_bar
+from asgp_ros.reproduce import ReproduceError
+from asgp_ros.reproduce import run as reproduce
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -45,11 +49,6 @@ def command_line(argv: Sequence[str] | None = None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from asgp_ros.cli import CommandError
-    from asgp_ros.cli.dataset import progress_bar
-    from asgp_ros.reproduce import ReproduceError
-    from asgp_ros.reproduce import run as reproduce
-
     if args.jobs is not None and args.jobs < 1:
         raise CommandError("--jobs must be >= 1")
     try:

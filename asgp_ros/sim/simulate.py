@@ -17,11 +17,12 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch, write_bag
 from asgp_ros.core.quaternion import yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
@@ -29,9 +30,6 @@ from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.sensors import SensorParams, joystick_samples, vo_samples
 from asgp_ros.sim.world import RECORDING_SURFACES, Room, room_for_surface
 from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
-
-if TYPE_CHECKING:
-    from asgp_ros.bags import BagContent
 
 FloatArray = NDArray[np.float64]
 
@@ -122,8 +120,6 @@ class Recording:
             ros1: serialise for a ROS 1 bag (headers carry a sequence number) instead of CDR.
             truth: include the ground truth.
         """
-        from asgp_ros.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch
-
         T = typestore.types
 
         def header(frame: str, sec: int, nanosec: int, seq: int) -> Any:
@@ -211,8 +207,6 @@ def write_recording(path: str | os.PathLike[str], recording: Recording,
     Raises:
         asgp_ros.bags.BagError: the bag cannot be written.
     """
-    from asgp_ros.bags import write_bag
-
     class _Source:
         def bag_content(self, typestore: Any, ros1: bool) -> BagContent:
             return recording.bag_content(typestore, ros1, truth=truth)
