@@ -44,17 +44,22 @@ so a reader never blocks on it.
 
 from __future__ import annotations
 
+import bz2
 import contextlib
 import logging
+import mmap
 import os
 import re
 import stat
+import struct
+import zlib
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
@@ -62,6 +67,11 @@ from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 from asgp_ros.fileio import ROS1_MAGIC, atomic_path
 from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
+
+# rosbags is imported where a bag is read or written, not here: ``asgp --help`` and the
+# predictor node import this module, and rosbags takes about 0.1 s to load.
+# zstd and lz4 are imported where a chunk needs them: they are optional (a bag without
+# such chunks reads without them).
 
 log = logging.getLogger(__name__)
 
@@ -158,8 +168,6 @@ def _one_line(text: object) -> str:
 
 def _bag_metadata(bag: Path) -> dict[str, Any]:
     """The parsed ``metadata.yaml`` of a ROS 2 bag directory (size checked first)."""
-    import yaml
-
     meta_path = bag / "metadata.yaml"
     problem = regular_file_problem(meta_path, MAX_BAG_METADATA_BYTES)
     if problem == "no such file":
@@ -687,8 +695,6 @@ def _decompress(data: bytes, compression: str, partial: bool) -> bytes:
                 return bytes(lz4.frame.LZ4FrameDecompressor().decompress(data))
             return bytes(lz4.frame.decompress(data))
         if compression == "bz2":
-            import bz2
-
             return bz2.BZ2Decompressor().decompress(data) if partial else bz2.decompress(data)
     except Exception as exc:  # each library raises its own error types
         raise _StopError(f"{compression} data do not decompress") from exc
@@ -697,8 +703,6 @@ def _decompress(data: bytes, compression: str, partial: bool) -> bytes:
 
 def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     """Scan an mcap file's data section record by record (no summary or index needed)."""
-    import zlib
-
     scan = _Scan(keep=keep)
     if bytes(buf[:8]) != MCAP_MAGIC:
         raise BagError(f"{name}: not an mcap file (it does not start with the mcap magic)")
@@ -875,8 +879,6 @@ def _sqlite_record(payload: bytes) -> list[Any]:
             values.append(int.from_bytes(payload[pos:pos + n], "big", signed=True))
             pos += n
         elif t == 7:
-            import struct
-
             if pos + 8 > len(payload):
                 raise _StopError("record past its payload")
             values.append(struct.unpack(">d", payload[pos:pos + 8])[0])
@@ -909,8 +911,6 @@ def _wal_pages(wal: bytes, page_size: int) -> tuple[dict[int, bytes], str | None
     Frames are read while their salt and cumulative checksum hold
     (https://sqlite.org/fileformat.html#wal_file_format); a torn frame ends the log.
     """
-    import struct
-
     if len(wal) < 32:
         return {}, "empty write-ahead log" if wal else None
     magic, _ver, psize, _seq, salt1, salt2, c1, c2 = struct.unpack(">8I", wal[:32])
@@ -1315,8 +1315,6 @@ def recover_bag(path: str | os.PathLike[str],
     Raises:
         BagError: not a bag, or nothing recoverable (no connection found).
     """
-    import mmap
-
     bag, storage, files = _storage_files(path)
     wanted = None if topics is None else frozenset(topics)
 
