@@ -11,6 +11,7 @@ import dataclasses
 import io
 import json
 import math
+import os
 import zipfile
 
 import numpy as np
@@ -343,3 +344,23 @@ def test_the_online_predictor_publishes_calibrated_covariances(auto_model) -> No
     np.testing.assert_allclose(cal.pose, raw.pose)
     expected = auto_model.calibration.apply(np.diagonal(raw.vel_cov[0]), raw.vel_past[-1, 0])
     np.testing.assert_allclose(np.diagonal(cal.vel_cov[0]), expected, rtol=1e-10)
+
+
+def test_asgp_info_shows_the_configuration_and_refuses_what_is_no_model(
+        auto_model, tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "m.npz"
+    save_model(path, auto_model)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    chosen = auto_model.meta["selection"]["chosen"]
+    assert f"s = {chosen['lags']}" in out and "<- chosen" in out
+    assert "held-out coverage of the 95% ellipse" in out and "drive_0" in out
+    assert main(["info", "--json", str(path)]) == 0
+    meta = json.loads(capsys.readouterr().out)
+    assert meta["calibration"] == auto_model.calibration.to_dict()
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for bad in (tmp_path, fifo, tmp_path / "missing.npz"):
+        assert main(["info", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and str(bad) in err
