@@ -225,7 +225,10 @@ def test_asgp_board_command_prints_a_working_port(repo_root, tmp_path):
     proc = subprocess.Popen(
         [sys.executable, "-m", "asgp_ros.cli", "board", "--link", str(link_path),
          "--source", "scripted", "--duration", "20"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo_root, env=env)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=repo_root, env=env,
+        # a shell without job control starts background jobs with SIGINT ignored, and the
+        # child would keep it: give the command the SIGINT a terminal would deliver
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         port = proc.stdout.readline().strip()
         assert port == str(link_path)
