@@ -220,11 +220,16 @@ class Arena:
         for d in (arena.seed, arena.tmp, arena.ros_log):
             d.mkdir(parents=True, exist_ok=True)
         for argv in SEED_COMMANDS:
-            out = run_forked(cli_entry, (list(argv),), cwd=arena.seed, arena=arena,
-                             timeout=120.0)
+            # the same rule as the cases: a command that forks workers or starts DDS runs
+            # as a real process once the test process has other threads
+            if _fork_unsafe(argv):
+                out = run_subprocess(list(argv), cwd=arena.seed, arena=arena, timeout=120.0)
+            else:
+                out = run_forked(cli_entry, (list(argv),), cwd=arena.seed, arena=arena,
+                                 timeout=120.0)
             if out.code != 0:
                 raise RuntimeError(f"making the fuzz inputs failed: asgp {' '.join(argv)}: "
-                                   f"exit {out.code}\n{out.stderr[-2000:]}")
+                                   f"exit {out.code}\n{out.stderr[-2000:]}{out.stacks[-4000:]}")
         broken = arena.seed / "dataset" / BROKEN_DATASET_BAG
         shutil.rmtree(broken)
         broken.mkdir()
