@@ -34,6 +34,7 @@ from asgp_ros.fileio import (
     atomic_write_text,
     check_output,
     describe_kind,
+    ended_pool,
     interruptible_imap,
     is_ros2_bag,
     quiet_worker_exit,
@@ -179,12 +180,12 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
                 results[r["name"]] = r
                 report(len(results), len(jobs_args), r["name"], time.perf_counter() - start)
         else:
-            # On an error or a signal, terminate() stops the workers at once (each removes
-            # its own temporaries on the way out) instead of finishing the queue.
+            # On an error or a signal the workers stop at once (each removes its own
+            # temporaries on the way out) instead of finishing the queue.
             ctx = multiprocessing.get_context("fork")
             with signals_deferred():  # a signal inside fork's hooks would be lost
                 pool = ctx.Pool(jobs, initializer=quiet_worker_exit)
-            with pool:
+            with ended_pool(pool):
                 for r in interruptible_imap(pool, _make, jobs_args):
                     results[r["name"]] = r
                     report(len(results), len(jobs_args), r["name"],

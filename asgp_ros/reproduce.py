@@ -69,6 +69,7 @@ from asgp_ros.fileio import (
     OutputError,
     atomic_path,
     check_output,
+    ended_pool,
     interruptible_imap,
     quiet_worker_exit,
     signals_deferred,
@@ -513,8 +514,8 @@ def _pool_map(fn: Callable[[C, T], R], context: C, items: Sequence[T], jobs: int
     with signals_deferred():  # a signal inside fork's hooks would be lost
         pool = ctx.Pool(processes=min(jobs, len(items)), initializer=_start_worker,
                         initargs=(_Worker(fn, context, one_thread),))
-    # Leaving the block on an error or a signal terminates the workers at once.
-    with pool:
+    # Leaving the block on an error or a signal stops the workers at once.
+    with ended_pool(pool):
         return list(interruptible_imap(pool, _run_in_worker, items))
 
 

@@ -384,3 +384,4 @@ def test_a_termination_lost_in_a_hook_is_raised_again():
         for s, h in saved.items():
             signal.signal(s, h)
         fileio._received.clear()
+
