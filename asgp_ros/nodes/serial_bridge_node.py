@@ -21,6 +21,7 @@ guard condition and publish diagnostics at once.
 from __future__ import annotations
 
 import contextlib
+import signal
 import sys
 import threading
 import time
@@ -32,12 +33,12 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rclpy.signals import uninstall_signal_handlers
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import Joy
 
@@ -48,6 +49,9 @@ from asgp_ros.serial import status as board_status
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode, Status
+
+#: Longest wait of one executor slice (s): how soon a SIGINT or SIGTERM is acted on.
+SPIN_SLICE_S = 0.05
 
 _LEVEL = {
     LinkState.CONNECTED: "OK",
@@ -283,40 +287,43 @@ class SerialBridgeNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Runs the node until SIGINT or SIGTERM (rclpy's handlers shut the context down), then
-    stops the link (the board is asked for passthrough) and returns 0. Exit code 1: a
+    """Runs the node until SIGINT or SIGTERM, then stops the link (the board is asked for
+    passthrough), destroys the node, shuts rclpy down and returns 0. Exit code 1: a
     parameter refused at start-up (out of its range, NaN, inconsistent), said in one line.
 
-    The signal may come at any moment, also while the node is being built or before the
-    executor spins (the link thread already publishes then): whatever fails because the
-    context was shut down under it is the shutdown, not an error."""
-    rclpy.init(args=args)
-    # the executor exists before the node: a signal during start-up finds it ready to stop
-    executor = SingleThreadedExecutor()
+    The node handles the two signals itself instead of rclpy's handlers, which shut the
+    context down at the signal: the link's reader thread publishes ``joy``, and letting it
+    publish into, and end after, a context already shut down crashed the process natively
+    now and then at exit. Here the signal only sets a flag; the executor spins in short
+    slices and, once the flag is set, the link stops while the context is still up. A
+    signal while the node is being built is honoured as soon as it is built."""
+    stop = threading.Event()
+
+    def on_signal(_signum: int, _frame: object) -> None:
+        stop.set()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     node = None
     try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        executor = SingleThreadedExecutor()
         try:
-            node = SerialBridgeNode()
-        except (ValueError, ParameterException) as exc:
-            if not ok():
-                return 0
-            rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
-            return 1
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if ok():
-            raise  # a real failure
+            try:
+                node = SerialBridgeNode()
+            except (ValueError, ParameterException) as exc:
+                rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
+                return 1
+            executor.add_node(node)
+            while not stop.is_set() and ok():
+                executor.spin_once(timeout_sec=SPIN_SLICE_S)
+        finally:
+            executor.shutdown()
+            if node is not None:
+                node.destroy_node()  # stops the link first, the context still up
+            try_shutdown()
     finally:
-        executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
-        # stop rclpy's signal-handling thread before the interpreter finalises (a signal
-        # arriving while it tears down crashed a node, about once in 60 exits)
-        uninstall_signal_handlers()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return 0
 
 
