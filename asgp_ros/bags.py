@@ -208,6 +208,17 @@ def _check_bag_directory(bag: Path) -> None:
             raise BagError(f"{entry.path}: {problem} (in the bag {bag})")
 
 
+def _bag_mode(p: Path) -> int:
+    """``os.stat(p).st_mode``, or a BagError naming ``p`` (missing, unreadable)."""
+    try:
+        return os.stat(p).st_mode
+    except FileNotFoundError:
+        raise BagError(f"{p}: no such bag") from None
+    except (OSError, ValueError) as exc:
+        raise BagError(f"{p}: cannot be read: "
+                       f"{_one_line(getattr(exc, 'strerror', None) or exc)}") from None
+
+
 def resolve_bag(path: str | os.PathLike[str]) -> Path:
     """The bag ``path`` names, checked with ``os.stat`` before anything is opened.
 
@@ -219,13 +230,7 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
             where a bag or one of its files should be (naming that path).
     """
     p = Path(path)
-    try:
-        mode = os.stat(p).st_mode
-    except FileNotFoundError:
-        raise BagError(f"{p}: no such bag") from None
-    except (OSError, ValueError) as exc:
-        raise BagError(f"{p}: cannot be read: "
-                       f"{_one_line(getattr(exc, 'strerror', None) or exc)}") from None
+    mode = _bag_mode(p)
     if stat.S_ISDIR(mode):
         _check_bag_directory(p)
         return p
@@ -1247,13 +1252,7 @@ def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]
     opened.
     """
     p = Path(path)
-    try:
-        mode = os.stat(p).st_mode
-    except FileNotFoundError:
-        raise BagError(f"{p}: no such bag") from None
-    except (OSError, ValueError) as exc:
-        raise BagError(f"{p}: cannot be read: "
-                       f"{_one_line(getattr(exc, 'strerror', None) or exc)}") from None
+    mode = _bag_mode(p)
     if not stat.S_ISDIR(mode):
         problem = file_type_problem(mode)
         if problem is not None:

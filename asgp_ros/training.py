@@ -529,7 +529,7 @@ def train_auto(
     paper = Candidate(PAPER_OPTIONS.resolved_lags(), False,
                       (PAPER_OPTIONS.inducing_v, PAPER_OPTIONS.inducing_w))
     if (opts.lags in (None, paper.lags) and opts.coupled in (None, False)
-            and _inducing(opts, paper.inducing[0])[0] in (paper.inducing[0],)
+            and opts.inducing_v in (None, paper.inducing[0])
             and opts.inducing_w in (None, paper.inducing[1])):
         consider(paper, "paper")
     for s, coupled in structures:
