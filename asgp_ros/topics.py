@@ -12,7 +12,8 @@ from __future__ import annotations
 JOY = "joy"
 #: sensor_msgs/Joy: the same axes, written to the chair while fresh (-> bridge).
 JOY_OVERRIDE = "joy_override"
-#: std_msgs/Float32MultiArray: k x 2 future joystick commands (planner -> predictor).
+#: trajectory_msgs/JointTrajectory: future joystick commands, joints forward and turn,
+#: header.stamp = when the plan starts (planner -> predictor).
 JOY_PLAN = "joy_plan"
 #: geometry_msgs/TwistStamped: v and omega in base_link (vo ->).
 VO_TWIST = "vo/twist"

@@ -64,22 +64,29 @@ def _add_plans(src: Path, dst: Path, res, k: int) -> int:
             records.append((t, conn.topic, bytes(raw)))
     dt = 1.0 / res.rate_hz
     n_rows = k + EXTRA_ROWS
+    dt_ns = round(dt * 1e9)
     n_plans = 0
     for i in range(res.t.shape[0] - 1):
         rows = res.joy[i + 1:i + 1 + n_rows]
         if rows.shape[0] < n_rows:
             break
-        Dim = T["std_msgs/msg/MultiArrayDimension"]
-        msg = T["std_msgs/msg/Float32MultiArray"](
-            layout=T["std_msgs/msg/MultiArrayLayout"](
-                dim=[Dim(label="step", size=n_rows, stride=2 * n_rows),
-                     Dim(label="axis", size=2, stride=2)], data_offset=0),
-            data=rows.astype(np.float32).reshape(-1))
+        start_ns = round(res.t[i + 1] * 1e9)  # the plan starts at the next grid time
+        points = [T["trajectory_msgs/msg/JointTrajectoryPoint"](
+            positions=row.astype(np.float64), velocities=np.zeros(0), accelerations=np.zeros(0),
+            effort=np.zeros(0), time_from_start=T["builtin_interfaces/msg/Duration"](
+                sec=(r * dt_ns) // 10**9, nanosec=(r * dt_ns) % 10**9))
+            for r, row in enumerate(rows)]
+        msg = T["trajectory_msgs/msg/JointTrajectory"](
+            header=T["std_msgs/msg/Header"](
+                stamp=T["builtin_interfaces/msg/Time"](sec=start_ns // 10**9,
+                                                       nanosec=start_ns % 10**9),
+                frame_id=""),
+            joint_names=["forward", "turn"], points=points)
         t_ns = round((res.t[i] + PLAN_DELAY_S) * 1e9)
         records.append((t_ns, "/joy_plan",
-                        bytes(store.serialize_cdr(msg, "std_msgs/msg/Float32MultiArray"))))
+                        bytes(store.serialize_cdr(msg, "trajectory_msgs/msg/JointTrajectory"))))
         n_plans += 1
-    types["/joy_plan"] = "std_msgs/msg/Float32MultiArray"
+    types["/joy_plan"] = "trajectory_msgs/msg/JointTrajectory"
     records.sort(key=lambda r: r[0])
     with Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         out = {topic: writer.add_connection(topic, msgtype, typestore=store)
@@ -202,14 +209,13 @@ def test_replayed_bag_predictions_equal_offline_evaluation_rollouts(
     s = model.feature_config.lags
     for n, j in enumerate(usable):
         _, online_pose = path_to_poses(paths[j])
-        # the plan travels as float32 (Float32MultiArray): 1e-7 relative on the commands
+        # the same path as the batch rollout (to its summation order)
         np.testing.assert_allclose(online_pose[:, :2], ref_pose[n, :, :2], rtol=0, atol=1e-6)
         yaw_err = np.angle(np.exp(1j * (online_pose[:, 2] - ref_pose[n, :, 2])))
         np.testing.assert_allclose(yaw_err, 0.0, atol=1e-6)
-        # ... and with the same float32 commands the online path is the core rollout
+        # ... and the core rollout of the same window
         i = idx[n]
-        exact = rollout(model, res.joy[i - s:i], res.vel[i - s:i],
-                        res.joy[i:i + K].astype(np.float32).astype(np.float64)[None])
+        exact = rollout(model, res.joy[i - s:i], res.vel[i - s:i], res.joy[i:i + K][None])
         np.testing.assert_allclose(online_pose[:, :2], exact.pose[0, :, :2], rtol=0,
                                    atol=1e-12)
         ell = confidence_ellipses(ref_cov[n])

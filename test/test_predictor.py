@@ -342,6 +342,20 @@ def test_plan_drives_the_future_joystick_and_changes_the_path():
         pred.set_plan(np.full((3, 2), np.nan), stamp=now)
 
 
+def test_plans_starting_on_grid_times_map_row_by_row_at_epoch_stamps():
+    """A planner stamps a plan with the grid time it starts at; at epoch stamps (1.7e9 s)
+    that time and t0 + i dt differ by float64 ulps, which once shifted rows by one."""
+    pred = Predictor(linear_model(), PredictorConfig(plan_timeout_s=1.0))
+    dt = pred.dt
+    plan = np.column_stack([np.linspace(0.1, 0.8, 8), np.zeros(8)])
+    for step in range(8_500_000_000, 8_500_000_100):
+        t0 = step * dt
+        pred.clear_plan()
+        stamp = round((step + 1) * dt * 1e9) * 1e-9  # as a message's header stamp
+        pred.set_plan(plan, stamp)
+        np.testing.assert_array_equal(pred.plan_future(t0, t0, 5), plan[:5], err_msg=str(step))
+
+
 def test_predict_batch_matches_single_predictions():
     pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=4)
     now = max(jt[-1], vt[-1])

@@ -17,6 +17,7 @@ import pytest
 
 pytest.importorskip("rclpy")
 
+from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
@@ -25,7 +26,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy
-from std_msgs.msg import Float32MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from asgp_ros.core.online import Reason
@@ -85,7 +86,7 @@ class Harness:
         self.joy_pub = t.create_publisher(Joy, "joy", qos_profile_sensor_data)
         self.vo_pub = t.create_publisher(Odometry if odometry else TwistStamped, "vo/twist",
                                          qos_profile_sensor_data)
-        self.plan_pub = t.create_publisher(Float32MultiArray, "joy_plan", QoSProfile(depth=10))
+        self.plan_pub = t.create_publisher(JointTrajectory, "joy_plan", QoSProfile(depth=10))
         self.paths: list[Path] = []
         self.markers: list[MarkerArray] = []
         self.diags: list[DiagnosticArray] = []
@@ -280,7 +281,8 @@ def test_out_of_range_inputs_are_refused_with_reasons_in_diagnostics(rclpy_conte
         h.vo(102.07, 6.0, 0.0)  # faster than any wheelchair
         h.vo(102.08, 0.3, 1e30)
         n_plans = h.node.predictor.stats.rejected.get(Reason.REJECT_PLAN, 0)
-        h.plan_pub.publish(conv.plan_to_multiarray(np.array([[0.2, 0.0], [1e30, 0.0]])))
+        h.plan_pub.publish(conv.plan_to_trajectory(np.array([[0.2, 0.0], [1e30, 0.0]]), 102.1,
+                                                   DT))
         h.spin_until(lambda: h.node.predictor.stats.rejected.get(Reason.REJECT_PLAN, 0)
                      > n_plans, what="plan")
         status = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
@@ -312,7 +314,7 @@ def test_joy_plan_changes_the_path(rclpy_context, model_file):
         held = conv.path_to_poses(h.paths[-1])[1]
         assert np.max(np.abs(held[:, :2])) < 0.05  # standing still, stick centred
         plan = np.tile([[1.0, 0.8]], (K + 2, 1))
-        h.plan_pub.publish(conv.plan_to_multiarray(plan))
+        h.plan_pub.publish(conv.plan_to_trajectory(plan, 0.0, DT))  # zero stamp: starts now
         h.spin_until(lambda: h.node.predictor.plan_future(h.now, h.now, 1) is not None,
                      what="plan")
         h.drive(102.0, 102.6, joy=still, vel=still)
@@ -322,7 +324,8 @@ def test_joy_plan_changes_the_path(rclpy_context, model_file):
         assert planned[-1, 2] > held[-1, 2] + 0.02  # turn left: heading increases
         assert h.node.diagnostic_status().values[-1].value == "True"
         # a malformed plan is refused with a warning and does not replace the good one
-        bad = Float32MultiArray(data=[1.0, 2.0, 3.0])
+        bad = conv.plan_to_trajectory(plan, 0.0, DT)
+        bad.joint_names = ["forward", "steer"]
         h.plan_pub.publish(bad)
         h.spin_until(lambda: h.node._bad_messages == 1, what="bad plan")
     finally:
@@ -409,20 +412,51 @@ def test_stamp_conversion_matches_the_bag_reader():
 
 def test_plan_conversion_and_validation():
     plan = np.array([[0.1, -0.2], [0.3, 0.4], [1.0, 0.0]])
-    back = conv.plan_from_multiarray(conv.plan_to_multiarray(plan))
-    np.testing.assert_allclose(back, plan, rtol=1e-6)
-    flat = Float32MultiArray(data=[0.5, 0.25, 0.75, -0.5])
-    np.testing.assert_array_equal(conv.plan_from_multiarray(flat), [[0.5, 0.25], [0.75, -0.5]])
-    for bad, why in ((Float32MultiArray(data=[1.0, 2.0, 3.0]), "2 values per step"),
-                     (Float32MultiArray(data=[]), "2 values per step"),
-                     (Float32MultiArray(data=[1.0, float("nan")]), "NaN"),
-                     (Float32MultiArray(data=[0.0] * 2002), "2002 values, more than 1000"),
-                     (conv.plan_to_multiarray(np.zeros((4, 2))), None)):
-        if why is None:  # layout promising more steps than the data holds
-            bad.layout.dim[0].size = 5
-            why = "holds"
+    msg = conv.plan_to_trajectory(plan, 12.2, 0.2)
+    assert list(msg.joint_names) == ["forward", "turn"]
+    assert [p.time_from_start.nanosec for p in msg.points] == [0, 200_000_000, 400_000_000]
+    start, back = conv.plan_from_trajectory(msg, 0.2)
+    assert start == pytest.approx(12.2, abs=1e-9)
+    np.testing.assert_array_equal(back, plan)  # float64 end to end
+    # joints in the other order; points 0.3 s apart from 0.1 s on, sampled every 0.2 s
+    # (zero-order hold); a zero stamp starts on arrival
+    msg = JointTrajectory(joint_names=["turn", "forward"])
+    msg.points = [JointTrajectoryPoint(positions=[0.5, 0.1],
+                                       time_from_start=Duration(sec=0, nanosec=ns))
+                  for ns in (100_000_000, 400_000_000, 700_000_000)]
+    msg.points[1].positions = [0.6, 0.2]
+    msg.points[2].positions = [0.7, 0.3]
+    start, rows = conv.plan_from_trajectory(msg, 0.2, arrival=50.0)
+    assert start == pytest.approx(50.1)
+    # samples at 0.1, 0.3, 0.5, 0.7 s after the stamp
+    np.testing.assert_array_equal(rows, [[0.1, 0.5], [0.1, 0.5], [0.2, 0.6], [0.3, 0.7]])
+    assert conv.plan_from_trajectory(msg, 0.2)[0] == pytest.approx(0.1)  # no arrival given
+
+    def broken(**change):
+        m = conv.plan_to_trajectory(np.zeros((3, 2)), 5.0, 0.2)
+        for key, value in change.items():
+            if key == "times":
+                for p, ns in zip(m.points, value, strict=True):
+                    p.time_from_start = Duration(sec=0, nanosec=ns)
+            elif key == "positions":
+                m.points[1].positions = value
+            else:
+                setattr(m, key, value)
+        return m
+
+    for bad, why in ((broken(joint_names=["forward"]), "joint_names"),
+                     (broken(joint_names=["forward", "angular"]), "joint_names"),
+                     (broken(points=[]), "no points"),
+                     (broken(positions=[0.0]), "1 positions"),
+                     (broken(positions=[0.0, float("nan")]), "NaN"),
+                     (broken(times=[0, 300_000_000, 300_000_000]), "strictly increasing"),
+                     (broken(times=[0, 400_000_000, 100_000_000]), "strictly increasing"),
+                     (conv.plan_to_trajectory(np.zeros((1001, 2)), 5.0, 0.2), "1001 points"),
+                     (conv.plan_to_trajectory(np.zeros((2, 2)), 5.0, 300.0), "spans")):
         with pytest.raises(ValueError, match=why):
-            conv.plan_from_multiarray(bad)
+            conv.plan_from_trajectory(bad, 0.2)
+    with pytest.raises(ValueError, match="dt"):
+        conv.plan_from_trajectory(msg, float("nan"))
 
 
 def test_path_and_markers_conversion():

@@ -115,6 +115,8 @@ class Reason(StrEnum):
     """A plan with a command out of range or more than ``MAX_PLAN_STEPS`` rows."""
 
 _EPS_T = 1e-9
+PLAN_TOLERANCE_STEPS = 1e-3
+"""Plan times within this many grid steps are the same time (see ``plan_future``)."""
 MAX_PLANS = 16  # plans kept: only those issued within about one step before now matter
 #: Most rows of a plan or of a future joystick sequence (200 s at 5 Hz).
 MAX_PLAN_STEPS = 1000
@@ -519,10 +521,14 @@ class Predictor:
                     held: FloatArray | None = None) -> FloatArray | None:
         """[k, 2] commands at t0 + i*dt (i = 1..k) from the fresh plans, or None if none.
 
-        Each grid time uses the newest plan issued at or before it (a plan cannot revise
-        a command already executed before it was issued); row r of a plan issued at
+        Each grid time uses the newest plan started at or before it (a plan cannot revise
+        a command already executed before it started); row r of a plan starting at
         ``stamp`` covers [stamp + r dt, stamp + (r+1) dt), the last row is held. Grid times
         before every fresh plan use ``held`` (default: that plan's first row).
+
+        Times are compared with a tolerance of ``PLAN_TOLERANCE_STEPS`` grid steps: plans
+        start on grid times, and at epoch stamps (1.7e9 s) a float64 second has only about
+        0.2 us of resolution, so two computations of the same grid time differ by an ulp.
         """
         plans = [p for p in self._plans if now - p[0] <= self.config.plan_timeout_s]
         self._plans = plans
@@ -530,14 +536,15 @@ class Predictor:
             return None
         stamps = np.array([p[0] for p in plans])
         times = t0 + self.dt * np.arange(1, k + 1)
-        which = np.searchsorted(stamps, times + _EPS_T, side="right") - 1  # [k]
+        tol = PLAN_TOLERANCE_STEPS
+        which = np.searchsorted(stamps, times + tol * self.dt, side="right") - 1  # [k]
         out = np.empty((k, 2))
         for j in range(k):
             if which[j] < 0:
                 out[j] = plans[0][1][0] if held is None else held
                 continue
             stamp, rows = plans[which[j]]
-            r = math.floor((times[j] - stamp) / self.dt + 1e-6)
+            r = math.floor((times[j] - stamp) / self.dt + tol)
             out[j] = rows[min(max(r, 0), rows.shape[0] - 1)]
         return out
 

@@ -11,10 +11,12 @@ simulator knows:
   and stamped with the time of that pose (sensor-data QoS);
 * ``ground_truth/odom`` (nav_msgs/Odometry, ``odom`` -> ``base_link``, exact) at
   ``truth_rate_hz`` (reliable);
-* ``joy_plan`` (std_msgs/Float32MultiArray, [rows, 2]) once per grid step of the predictor
-  (``plan_rate_hz``), published just after the grid time ``g``: row r is the joystick the
-  bridge will report at ``g + (r + 1) / plan_rate_hz`` (a look-ahead of the driver on a copy
-  of the simulation, see :mod:`asgp_ros.demo.simhw`); ``plan_rows: 0`` publishes no plan;
+* ``joy_plan`` (trajectory_msgs/JointTrajectory, joints ``forward`` and ``turn``) once per
+  grid step of the predictor (``plan_rate_hz``), published just after the grid time ``g``
+  and stamped ``g + 1 / plan_rate_hz``: point r, at ``r / plan_rate_hz`` from the stamp, is
+  the joystick the bridge will report at ``g + (r + 1) / plan_rate_hz`` (a look-ahead of
+  the driver on a copy of the simulation, see :mod:`asgp_ros.demo.simhw`); ``plan_rows: 0``
+  publishes no plan;
 * ``diagnostics``: simulation lag, camera and plan timing.
 
 Time: the drive starts, aligned to the plan grid, once the bridge publishes ``joy`` and the
@@ -44,7 +46,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, Joy
-from std_msgs.msg import Float32MultiArray
+from trajectory_msgs.msg import JointTrajectory
 
 from asgp_ros import topics
 from asgp_ros.demo import camera
@@ -177,7 +179,7 @@ class HardwareNode(Node):
         self.depth_pub = self.create_publisher(Image, topics.CAMERA_DEPTH, sensor)
         self.info_pub = self.create_publisher(CameraInfo, topics.CAMERA_INFO, sensor)
         self.truth_pub = self.create_publisher(Odometry, topics.GROUND_TRUTH, reliable)
-        self.plan_pub = self.create_publisher(Float32MultiArray, topics.JOY_PLAN, reliable)
+        self.plan_pub = self.create_publisher(JointTrajectory, topics.JOY_PLAN, reliable)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self._joy_sub = self.create_subscription(Joy, topics.JOY, self._on_joy, sensor)
 
@@ -299,7 +301,9 @@ class HardwareNode(Node):
         self.plan_time.add(time.perf_counter() - start)
         if not self.context.ok():
             return
-        self.plan_pub.publish(conv.plan_to_multiarray(plan))
+        grid = 1.0 / self.params.plan_rate_hz
+        start = self._stamp(snap.step * STEP_S + grid)  # row 0 is the stick at g + grid
+        self.plan_pub.publish(conv.plan_to_trajectory(plan, start, grid))
         self.plans += 1
 
     def _on_camera(self) -> None:

@@ -32,7 +32,7 @@ from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 from sensor_msgs.msg import CameraInfo, Joy
-from std_msgs.msg import Float32MultiArray
+from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from asgp_ros import topics
@@ -56,7 +56,7 @@ TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.GROUND_TRUTH: (Odometry, "nav_msgs/msg/Odometry", True),
     topics.PREDICTED_PATH: (PathMsg, "nav_msgs/msg/Path", True),
     topics.PREDICTED_PATH_UNCERTAINTY: (MarkerArray, "visualization_msgs/msg/MarkerArray", True),
-    topics.JOY_PLAN: (Float32MultiArray, "std_msgs/msg/Float32MultiArray", True),
+    topics.JOY_PLAN: (JointTrajectory, "trajectory_msgs/msg/JointTrajectory", True),
     topics.DIAGNOSTICS: (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
     topics.CAMERA_INFO: (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
 }
@@ -205,7 +205,7 @@ class MonitorNode(Node):
                                m.pose.orientation.z, m.pose.orientation.w))
             for m in cyl])
 
-    def _on_joy_plan(self, msg: Float32MultiArray, now: float) -> None:
+    def _on_joy_plan(self, msg: JointTrajectory, now: float) -> None:
         pass
 
     def _on_diagnostics(self, msg: DiagnosticArray, now: float) -> None:

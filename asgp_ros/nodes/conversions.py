@@ -11,13 +11,13 @@ import math
 from collections.abc import Iterable, Mapping
 
 import numpy as np
-from builtin_interfaces.msg import Time
+from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped
 from nav_msgs.msg import Odometry, Path
 from numpy.typing import ArrayLike, NDArray
 from sensor_msgs.msg import CameraInfo, Image, Joy
-from std_msgs.msg import Float32MultiArray, MultiArrayDimension
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
 from asgp_ros.core.online import MAX_PLAN_STEPS
@@ -26,7 +26,7 @@ from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 FloatArray = NDArray[np.float64]
 
 # --------------------------------------------------------------------------------------
-# Predictor: time, Joy, TwistStamped / Odometry, Float32MultiArray plans, Path, MarkerArray
+# Predictor: time, Joy, TwistStamped / Odometry, JointTrajectory plans, Path, MarkerArray
 
 
 def stamp_to_seconds(stamp: Time) -> float:
@@ -117,53 +117,84 @@ def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
             (float(p.position.x), float(p.position.y), yaw))
 
 
-def plan_from_multiarray(msg: Float32MultiArray) -> FloatArray:
-    """std_msgs/Float32MultiArray -> [m, 2] float64 joystick plan (rows = steps).
+PLAN_JOINTS = ("forward", "turn")
+"""Joint names of a ``joy_plan`` trajectory: the two joystick deflections."""
 
-    The layout is either empty (data = [f0, t0, f1, t1, ...]) or two dimensions
-    ``[m, 2]``; ``layout.data_offset`` is honoured.
+
+def _duration_s(d: Duration) -> float:
+    return float(d.sec) + 1e-9 * float(d.nanosec)
+
+
+def plan_from_trajectory(msg: JointTrajectory, dt: float, arrival: float | None = None
+                         ) -> tuple[float, FloatArray]:
+    """trajectory_msgs/JointTrajectory -> (start stamp s, [m, 2] rows dt apart).
+
+    The plan's contract (README, "ROS interface"): ``joint_names`` are ``forward`` and
+    ``turn`` (either order), ``positions`` hold the deflections in [-1, 1], and
+    ``header.stamp + time_from_start`` is when a point's command starts; it holds until the
+    next point's (the last point's is held). The rows are that command sampled at
+    ``start + r * dt``, start = the first point's time (zero-order hold, so points dt
+    apart map one to one). A zero ``header.stamp`` means "starts on receipt" (the
+    trajectory_msgs convention): ``arrival`` (the receiving clock's time) is used instead.
 
     Raises:
-        ValueError: malformed layout, odd length, empty, more than
-            ``asgp_ros.core.online.MAX_PLAN_STEPS`` steps (checked before the data is
-            converted), or non-finite values. The values' range is the Predictor's check.
+        ValueError: other joint names, no points, positions of the wrong length, times
+            not strictly increasing or negative, more than
+            ``asgp_ros.core.online.MAX_PLAN_STEPS`` rows (checked before sampling), or
+            non-finite values. The values' range is the Predictor's check.
     """
-    layout = msg.layout
-    offset = int(layout.data_offset)
-    values = len(msg.data) - offset
-    if values > 2 * MAX_PLAN_STEPS:
-        raise ValueError(f"joy_plan holds {values} values, more than {MAX_PLAN_STEPS} steps "
-                         "of 2")
-    data = np.asarray(msg.data[offset:], dtype=np.float64)
-    dims = list(layout.dim)
-    if dims:
-        if len(dims) != 2 or int(dims[1].size) != 2:
-            raise ValueError(
-                "joy_plan layout must be [steps, 2], got "
-                + "x".join(str(d.size) for d in dims)
-            )
-        m = int(dims[0].size)
-        if data.shape[0] < 2 * m:
-            raise ValueError(f"joy_plan layout says {m} steps but holds {data.shape[0]} values")
-        data = data[: 2 * m]
-    if data.shape[0] == 0 or data.shape[0] % 2:
-        raise ValueError(f"joy_plan needs 2 values per step, got {data.shape[0]} values")
-    if not np.all(np.isfinite(data)):
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+    names = list(msg.joint_names)
+    if sorted(names) != sorted(PLAN_JOINTS):
+        raise ValueError(f"joy_plan joint_names must be {list(PLAN_JOINTS)}, got {names}")
+    order = [names.index(j) for j in PLAN_JOINTS]
+    points = list(msg.points)
+    if not points:
+        raise ValueError("joy_plan has no points")
+    if len(points) > MAX_PLAN_STEPS:
+        raise ValueError(f"joy_plan has {len(points)} points, more than {MAX_PLAN_STEPS}")
+    times = np.array([_duration_s(p.time_from_start) for p in points])
+    if times[0] < 0.0 or np.any(np.diff(times) <= 0.0):
+        raise ValueError("joy_plan time_from_start must be >= 0 and strictly increasing")
+    span = (times[-1] - times[0]) / dt
+    if not span < MAX_PLAN_STEPS:
+        raise ValueError(f"joy_plan spans {times[-1] - times[0]:.3f} s, more than "
+                         f"{MAX_PLAN_STEPS} steps of {dt} s")
+    values = np.empty((len(points), 2))
+    for i, p in enumerate(points):
+        if len(p.positions) != 2:
+            raise ValueError(f"joy_plan point {i} has {len(p.positions)} positions, "
+                             "expected 2")
+        values[i] = [p.positions[j] for j in order]
+    if not np.all(np.isfinite(values)):
         raise ValueError("joy_plan contains NaN or inf")
-    return data.reshape(-1, 2)
+    m = math.floor(span + 1e-6) + 1
+    sample = times[0] + dt * np.arange(m)
+    which = np.searchsorted(times, sample + 1e-9, side="right") - 1  # [m], >= 0
+    start = stamp_to_seconds(msg.header.stamp)
+    if start == 0.0 and arrival is not None:
+        start = arrival
+    return start + float(times[0]), values[which]
 
 
-def plan_to_multiarray(plan: ArrayLike) -> Float32MultiArray:
-    """[m, 2] joystick plan -> std_msgs/Float32MultiArray with layout [steps, axis]."""
-    arr = np.asarray(plan, dtype=np.float32)
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise ValueError(f"a plan must be [m, 2], got {arr.shape}")
-    msg = Float32MultiArray()
-    msg.layout.dim = [
-        MultiArrayDimension(label="step", size=arr.shape[0], stride=2 * arr.shape[0]),
-        MultiArrayDimension(label="axis", size=2, stride=2),
-    ]
-    msg.data = arr.reshape(-1).tolist()
+def plan_to_trajectory(plan: ArrayLike, stamp: float, dt: float) -> JointTrajectory:
+    """[m, 2] joystick rows dt apart from ``stamp`` -> trajectory_msgs/JointTrajectory."""
+    arr = np.asarray(plan, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
+        raise ValueError(f"a plan must be [m, 2] with m >= 1, got {arr.shape}")
+    if not (math.isfinite(dt) and dt > 0.0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt}")
+    msg = JointTrajectory()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.joint_names = list(PLAN_JOINTS)
+    points = []
+    for r, row in enumerate(arr):
+        ns = round(r * dt * 1e9)
+        points.append(JointTrajectoryPoint(
+            positions=[float(row[0]), float(row[1])],
+            time_from_start=Duration(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)))
+    msg.points = points
     return msg
 
 

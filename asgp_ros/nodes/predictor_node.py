@@ -1,8 +1,9 @@
 """ROS 2 node: online k-step motion prediction of the wheelchair.
 
 Subscribes ``joy`` (sensor_msgs/Joy), ``vo/twist`` (geometry_msgs/TwistStamped, or
-nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (std_msgs/Float32MultiArray,
-[k, 2] future joystick commands from a planner); publishes ``predicted_path``
+nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (trajectory_msgs/JointTrajectory,
+joints ``forward`` and ``turn``: a planner's future joystick commands, stamped with when
+they start); publishes ``predicted_path``
 (nav_msgs/Path), ``predicted_path/uncertainty`` (visualization_msgs/MarkerArray, a 95%
 position ellipse per step) and ``diagnostics``.
 
@@ -48,8 +49,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import uninstall_signal_handlers
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import Joy
-from std_msgs.msg import Float32MultiArray
 from threadpoolctl import threadpool_limits
+from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
 from asgp_ros import topics
@@ -178,7 +179,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("joy_topic", "joystick input (sensor_msgs/Joy)"),
     _spec("vo_topic", "VO velocity input (TwistStamped, or Odometry with vo_type odometry)"),
     _spec("vo_type", "'twist' (geometry_msgs/TwistStamped) or 'odometry' (nav_msgs/Odometry)"),
-    _spec("plan_topic", "planned future joystick (std_msgs/Float32MultiArray, [k, 2])"),
+    _spec("plan_topic", "planned future joystick (trajectory_msgs/JointTrajectory, joints "
+          "forward and turn)"),
     _spec("path_topic", "predicted path output; ellipses on <path_topic>/uncertainty"),
     _spec("joy_axes", "Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
           "flips a sign (as `asgp train --joy-axes`)"),
@@ -275,7 +277,7 @@ class PredictorNode(Node):
         else:
             self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
                                      qos_profile_sensor_data)
-        self.create_subscription(Float32MultiArray, p.plan_topic, self._on_plan, reliable)
+        self.create_subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -403,19 +405,19 @@ class PredictorNode(Node):
             return
         self._maybe_predict(now, arrival)
 
-    def _on_plan(self, msg: Float32MultiArray) -> None:
+    def _on_plan(self, msg: JointTrajectory) -> None:
         now = self._now()
         if now is None:
             return
         try:
-            plan = conv.plan_from_multiarray(msg)
+            start, plan = conv.plan_from_trajectory(msg, self.predictor.dt, arrival=now)
         except ValueError as exc:  # malformed message
             self._bad_messages += 1
             self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
         try:
-            self.predictor.set_plan(plan, now)
+            self.predictor.set_plan(plan, start)
         except online.RejectedInputError:  # counted with its reason by the predictor
             self._warn_rejected()
         except ValueError as exc:
