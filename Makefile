@@ -20,8 +20,9 @@ $(STAMP): setup.py package.xml
 	$(VPY) -m pip install --quiet -e '.[ros,test]'
 	touch $@
 
+# Two workers (pytest-xdist): the suite is mostly waiting on subprocesses and DDS.
 test: setup
-	$(VPY) -m pytest test
+	$(VPY) -m pytest test -n 2 --dist worksteal
 
 # The demo needs the Python environment only (no AVR toolchain). --force: a second
 # `make demo` replaces the first one's demo-output/ (and nothing that is not a demo's).

@@ -33,8 +33,8 @@ setup(
         # rclpy and the message packages come from the ros-jazzy-* wheels on PyPI, or from a
         # full ROS 2 Jazzy install (colcon), where pip must not try to replace them.
         "ros": ["ros-jazzy-rclpy[fastrtps]", "ros-jazzy-common-interfaces"],
-        "test": ["pytest", "pytest-timeout", "hypothesis", "GPy", "ruff", "mypy",
-                 "colcon-common-extensions"],
+        "test": ["pytest", "pytest-timeout", "pytest-xdist", "hypothesis", "GPy", "ruff",
+                 "mypy", "colcon-common-extensions"],
     },
     zip_safe=True,
     maintainer="asgp_ros maintainers",

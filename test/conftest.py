@@ -1,7 +1,8 @@
 """Test-suite wide set-up.
 
 ROS 2 isolation: every test run talks DDS on its own domain, restricted to this machine,
-over UDPv4 only, so concurrent runs (or a demo) never see each other. Subprocesses
+over UDPv4 only, so concurrent runs (or a demo) never see each other; under ``pytest -n N``
+(pytest-xdist, as ``make test`` runs it) each worker has a domain of its own. Subprocesses
 started by tests inherit these variables.
 """
 
@@ -21,6 +22,10 @@ def _run_domain_id() -> int:
     if forced:
         return int(forced)
     # 1..232: domain 0 is the default everybody uses, 233+ do not work with Fast DDS ports.
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ... under pytest -n
+    if worker.startswith("gw") and worker[2:].isdigit():
+        # the workers of one run: consecutive domains from the controller's process id
+        return 1 + (os.getppid() * 8 + int(worker[2:])) % 232
     return 1 + os.getpid() % 232
 
 
