@@ -1,0 +1,237 @@
+"""Shared control: the smallest change to the user's command that avoids a likely collision.
+
+ROS-free; :mod:`asgp_ros.nodes.shared_control_node` wraps it. Once per model grid step the
+layer asks the :class:`~asgp_ros.core.online.Predictor` where the chair goes if the user
+holds the current stick for the horizon, and how likely that path is to touch an obstacle
+(a :data:`CollisionCheck`, built from a laser scan or an occupancy grid by
+:mod:`asgp_ros.core.collision`). At or below ``threshold`` nothing happens: the user's
+command passes untouched. Above it, the layer searches for the least intrusive
+replacement:
+
+* candidates are the user's command with its forward deflection scaled down
+  (``speed_scales``) and its turn deflection shifted (``turn_offsets``), each held over the
+  horizon (the decision is remade every step, a receding horizon); all are predicted in
+  one batched rollout (``Predictor.predict_batch``) and checked in one batched call;
+* the change of a candidate is the Euclidean distance between its command and the user's
+  (deflection units); the cost is ``change^2 + progress_weight * lost^2``, where ``lost`` is
+  the forward distance at the horizon the candidate gives up against the user's path, so
+  that among equally small changes the one that keeps the chair moving wins;
+* the chosen command is the cheapest candidate whose probability is at or below the
+  threshold; when none is, the candidate with the lowest probability (stopping is always a
+  candidate) is used and the decision says ``no_safe_command``.
+
+Safety rules, whatever the numbers say:
+
+* never on stale inputs: no prediction (stale joystick or VO, tracking lost, too little
+  history) or no fresh obstacle source means no intervention, with the reason;
+* never motion from a neutral stick: with the user's stick in the neutral deadband the
+  layer never commands anything (the firmware also ignores overrides then);
+* never faster than the user: a candidate's forward deflection has the user's sign and at
+  most the user's magnitude, and its turn deflection stays within [-1, 1].
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from asgp_ros.core.online import Prediction, Predictor
+
+FloatArray = NDArray[np.float64]
+
+CollisionCheck = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
+"""``check(pose [B, k, 3], pos_cov [B, k, 2, 2]) -> (per_step [B, k], within [B])``:
+probability of contact at each step and within the horizon, for paths in the base frame
+at the prediction time t0 (x forward)."""
+
+
+class Why(StrEnum):
+    """What the layer did at a step and why (published in status and diagnostics)."""
+
+    CLEAR = "clear"
+    """The user's path is below the threshold: the command passes untouched."""
+    INTERVENING = "intervening"
+    """A changed command brings the probability to or below the threshold."""
+    NO_SAFE_COMMAND = "no_safe_command"
+    """No candidate is below the threshold: the least likely to collide is sent."""
+    NEUTRAL = "neutral_stick"
+    """The user's stick is neutral: nothing is ever commanded."""
+    STALE_INPUT = "stale_input"
+    """No prediction (joystick or VO stale, tracking lost, not enough history)."""
+    NO_OBSTACLES = "no_obstacle_source"
+    """No fresh scan or map: the layer cannot judge and does not intervene."""
+    CHECK_FAILED = "check_failed"
+    """The prediction or the collision check raised: no intervention."""
+
+
+@dataclass(frozen=True)
+class SharedControlConfig:
+    """Settings of the shared-control layer (validated on construction).
+
+    Attributes:
+        threshold: probability of contact within the horizon above which the layer acts.
+        neutral_deadband: the stick is neutral when both deflections are within this.
+        speed_scales: factors applied to the user's forward deflection (must include 0,
+            so that stopping is always a candidate, and 1).
+        turn_offsets: shifts added to the user's turn deflection (must include 0).
+        progress_weight: weight of the forward progress given up, per metre squared,
+            against the command change squared.
+    """
+
+    threshold: float = 0.05
+    neutral_deadband: float = 0.05
+    speed_scales: tuple[float, ...] = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25, 0.1, 0.0)
+    turn_offsets: tuple[float, ...] = (0.0, -0.15, 0.15, -0.3, 0.3, -0.5, 0.5, -0.8, 0.8)
+    progress_weight: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.threshold) and 0.0 < self.threshold < 1.0):
+            raise ValueError(f"threshold must be in (0, 1), got {self.threshold}")
+        if not (math.isfinite(self.neutral_deadband) and 0.0 <= self.neutral_deadband < 0.5):
+            raise ValueError(f"neutral_deadband must be in [0, 0.5), got "
+                             f"{self.neutral_deadband}")
+        scales = np.asarray(self.speed_scales, dtype=np.float64)
+        if (scales.ndim != 1 or not np.all(np.isfinite(scales)) or np.any(scales < 0.0)
+                or np.any(scales > 1.0) or 0.0 not in scales or 1.0 not in scales):
+            raise ValueError("speed_scales must lie in [0, 1] and include 0 and 1, got "
+                             f"{self.speed_scales}")
+        offsets = np.asarray(self.turn_offsets, dtype=np.float64)
+        if (offsets.ndim != 1 or not np.all(np.isfinite(offsets))
+                or np.any(np.abs(offsets) > 2.0) or 0.0 not in offsets):
+            raise ValueError(f"turn_offsets must lie in [-2, 2] and include 0, got "
+                             f"{self.turn_offsets}")
+        if not (math.isfinite(self.progress_weight) and self.progress_weight >= 0.0):
+            raise ValueError(f"progress_weight must be >= 0, got {self.progress_weight}")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One step of the layer.
+
+    Attributes:
+        why: what was done (:class:`Why`).
+        detail: words for the status line.
+        user: [2] the user's command (forward, turn).
+        command: [2] the command to send, or None (the user's command passes).
+        p_user: probability of contact within the horizon with the user's command held
+            (NaN when not computed).
+        p_command: the same for ``command`` (NaN when there is none).
+        change: Euclidean change of the command (0 without intervention).
+        solve_s: time spent predicting and checking (s).
+        candidates: candidates evaluated.
+        prediction: the prediction of the user's command (None when there was none).
+    """
+
+    why: Why
+    detail: str
+    user: FloatArray
+    command: FloatArray | None = None
+    p_user: float = float("nan")
+    p_command: float = float("nan")
+    change: float = 0.0
+    solve_s: float = 0.0
+    candidates: int = 0
+    prediction: Prediction | None = None
+
+    @property
+    def intervening(self) -> bool:
+        return self.command is not None
+
+
+def is_neutral(command: FloatArray, deadband: float) -> bool:
+    """Both deflections within the deadband."""
+    return bool(np.all(np.abs(command) <= deadband))
+
+
+def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatArray:
+    """[C, 2] commands: the user's forward scaled, turn shifted (row 0 is the user's)."""
+    scales = np.asarray(config.speed_scales, dtype=np.float64)
+    offsets = np.asarray(config.turn_offsets, dtype=np.float64)
+    order_s = np.argsort(-scales, kind="stable")  # 1.0 first
+    order_o = np.argsort(np.abs(offsets), kind="stable")  # 0.0 first
+    fwd = user[0] * scales[order_s]
+    turn = np.clip(user[1] + offsets[order_o], -1.0, 1.0)
+    grid = np.stack(np.meshgrid(fwd, turn, indexing="ij"), axis=-1).reshape(-1, 2)
+    # the same command from two offsets clipped to the same turn: keep the first
+    _, first = np.unique(np.round(grid, 9), axis=0, return_index=True)
+    return grid[np.sort(first)]
+
+
+def decide(predictor: Predictor, now: float, user: FloatArray,
+           check: CollisionCheck | None, config: SharedControlConfig) -> Decision:
+    """One step of the layer (module docstring).
+
+    Args:
+        predictor: fed with the commands the chair actually received and the VO.
+        now: current time on the predictor's clock.
+        user: [2] the user's newest command (forward, turn).
+        check: the collision check of the fresh obstacle source, or None when there is none.
+        config: the settings.
+    """
+    user = np.asarray(user, dtype=np.float64).reshape(2)
+    if not np.all(np.isfinite(user)):
+        return Decision(Why.STALE_INPUT, "the user's command is not finite", user)
+    if is_neutral(user, config.neutral_deadband):
+        return Decision(Why.NEUTRAL, "the stick is neutral: nothing is commanded", user)
+    start = time.perf_counter()
+    k = predictor.config.horizon_steps
+    held = np.repeat(user[None, :], k, axis=0)
+    try:
+        pred = predictor.predict(now, joy_future=held)
+    except ValueError as exc:
+        return Decision(Why.CHECK_FAILED, f"prediction failed: {exc}", user,
+                        solve_s=time.perf_counter() - start)
+    if not pred.ok:
+        return Decision(Why.STALE_INPUT, f"no prediction: {pred.reason}: {pred.detail}", user)
+    if check is None:
+        return Decision(Why.NO_OBSTACLES, "no fresh scan or map", user, prediction=pred)
+    try:
+        _, within = check(pred.pose[None], pred.pos_cov[None])
+        p_user = float(within[0])
+    except ValueError as exc:
+        return Decision(Why.CHECK_FAILED, f"collision check failed: {exc}", user,
+                        solve_s=time.perf_counter() - start, prediction=pred)
+    if not math.isfinite(p_user):
+        return Decision(Why.CHECK_FAILED, "collision check gave a non-finite probability",
+                        user, solve_s=time.perf_counter() - start, prediction=pred)
+    if p_user <= config.threshold:
+        return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,
+                        solve_s=time.perf_counter() - start, prediction=pred)
+
+    commands = candidate_commands(user, config)  # [C, 2]
+    futures = np.repeat(commands[:, None, :], k, axis=1)  # [C, k, 2]
+    try:
+        batch = predictor.predict_batch(futures, now)
+        if not batch.ok:
+            raise ValueError(f"{batch.reason}: {batch.detail}")
+        _, p_all = check(batch.pose, batch.pos_cov)
+    except ValueError as exc:
+        return Decision(Why.CHECK_FAILED, f"candidates failed: {exc}", user, p_user=p_user,
+                        solve_s=time.perf_counter() - start, prediction=pred)
+    p_all = np.where(np.isfinite(p_all), p_all, 1.0)
+    change = np.linalg.norm(commands - user, axis=1)
+    ahead = 1.0 if user[0] >= 0.0 else -1.0  # reversing: progress is backwards
+    lost = np.maximum(0.0, ahead * (pred.pose[-1, 0] - batch.pose[:, -1, 0]))
+    cost = change**2 + config.progress_weight * lost**2
+    safe = p_all <= config.threshold
+    if np.any(safe):
+        best = int(np.flatnonzero(safe)[np.argmin(cost[safe])])
+        why, words = Why.INTERVENING, "changed the command"
+    else:
+        low = np.flatnonzero(p_all <= p_all.min() + 1e-12)
+        best = int(low[np.argmin(cost[low])])
+        why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
+    elapsed = time.perf_counter() - start
+    if best == 0 and why is Why.INTERVENING:  # cannot happen: row 0 is the user's (unsafe)
+        return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,
+                        solve_s=elapsed, prediction=pred)
+    return Decision(why, f"{words}: p {p_user:.3f} -> {float(p_all[best]):.3f}", user,
+                    command=commands[best].copy(), p_user=p_user,
+                    p_command=float(p_all[best]), change=float(change[best]),
+                    solve_s=elapsed, candidates=int(commands.shape[0]), prediction=pred)

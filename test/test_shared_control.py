@@ -1,0 +1,141 @@
+"""The shared-control decision (asgp_ros.core.shared_control), on a linear motion model and a
+wall given as an analytic collision check."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+from test_predictor import linear_model
+
+from asgp_ros.core.online import Predictor, PredictorConfig
+from asgp_ros.core.shared_control import (
+    SharedControlConfig,
+    Why,
+    candidate_commands,
+    decide,
+)
+
+HALF_LENGTH = 0.6  # front of the footprint ahead of the base frame's origin (m)
+
+
+def wall_ahead(distance: float):
+    """Probability that the footprint's front passes a wall at x = distance (base frame)."""
+    def check(pose, cov):
+        sd = np.sqrt(np.maximum(cov[..., 0, 0], 1e-12))
+        per_step = norm.cdf((pose[..., 0] + HALF_LENGTH - distance) / sd)
+        return per_step, per_step.max(axis=-1)
+    return check
+
+
+def driving(forward: float = 0.8, turn: float = 0.0, seconds: float = 4.0,
+            t_start: float = 1000.0) -> tuple[Predictor, float]:
+    """A predictor fed a steady drive: joystick at 30 Hz, VO at 6 Hz at the steady speed
+    (with a little noise: an unchanging reading is a frozen VO)."""
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=10))
+    rng = np.random.default_rng(0)
+    gain = np.array([0.4 / 0.4, 0.35 * 0.8 / (1 - 0.6 * 0.8)])  # steady state of the model
+    v = gain * np.array([forward, turn])
+    events = [(t, "joy") for t in np.arange(t_start, t_start + seconds, 1 / 30)]
+    events += [(t, "vo") for t in np.arange(t_start + 0.01, t_start + seconds, 1 / 6)]
+    for t, kind in sorted(events):
+        if kind == "joy":
+            pred.feed_joy(t, (forward, turn))
+        else:
+            pred.feed_vo(t, v + rng.normal(0.0, 1e-3, 2))
+    return pred, t_start + seconds - 0.02
+
+
+CONFIG = SharedControlConfig()
+
+
+def test_no_intervention_when_the_way_is_clear():
+    pred, now = driving()
+    d = decide(pred, now, np.array([0.8, 0.0]), wall_ahead(50.0), CONFIG)
+    assert d.why is Why.CLEAR and d.command is None and d.p_user < 1e-6
+    assert d.prediction is not None and d.prediction.pose[-1, 0] > 1.0  # it does drive
+
+
+def test_a_wall_ahead_gets_the_smallest_change_that_avoids_it():
+    pred, now = driving()
+    user = np.array([0.8, 0.0])
+    path_x = decide(pred, now, user, wall_ahead(50.0), CONFIG).prediction.pose[:, 0]
+    wall = path_x[-1] + HALF_LENGTH - 0.3  # the user's path reaches 30 cm into it
+    d = decide(pred, now, user, wall_ahead(wall), CONFIG)
+    assert d.why is Why.INTERVENING and d.p_user > 0.9
+    assert d.p_command <= CONFIG.threshold
+    assert 0.0 <= d.command[0] < user[0]  # slower, never faster nor backwards
+    # no other safe candidate is cheaper: brute force over the same candidates
+    cands = candidate_commands(user, CONFIG)
+    fut = np.repeat(cands[:, None, :], 10, axis=1)
+    batch = pred.predict_batch(fut, now)
+    _, p = wall_ahead(wall)(batch.pose, batch.pos_cov)
+    change = np.linalg.norm(cands - user, axis=1)
+    lost = np.maximum(0.0, path_x[-1] - batch.pose[:, -1, 0])
+    cost = change**2 + CONFIG.progress_weight * lost**2
+    safe = p <= CONFIG.threshold
+    assert safe.any() and d.change == pytest.approx(change[safe][np.argmin(cost[safe])])
+    assert d.candidates == len(cands) and d.solve_s > 0.0
+
+
+def test_an_unavoidable_contact_sends_the_least_likely_command():
+    pred, now = driving()
+    d = decide(pred, now, np.array([0.8, 0.0]), wall_ahead(HALF_LENGTH - 0.05), CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is not None
+    assert d.p_command <= d.p_user
+
+
+def test_a_neutral_stick_never_commands_anything():
+    pred, now = driving(forward=0.0)
+    for user in ([0.0, 0.0], [0.04, -0.03]):
+        d = decide(pred, now, np.array(user), wall_ahead(0.7), CONFIG)
+        assert d.why is Why.NEUTRAL and d.command is None
+
+
+def test_stale_inputs_or_no_obstacle_source_never_intervene():
+    pred, now = driving()
+    user = np.array([0.8, 0.0])
+    d = decide(pred, now, user, None, CONFIG)
+    assert d.why is Why.NO_OBSTACLES and d.command is None
+    d = decide(pred, now, np.array([math.nan, 0.0]), wall_ahead(1.0), CONFIG)
+    assert d.why is Why.STALE_INPUT and d.command is None
+    d = decide(pred, now + 2.0, user, wall_ahead(1.0), CONFIG)  # joystick and VO 2 s old
+    assert d.why is Why.STALE_INPUT and d.command is None and "stale" in d.detail
+
+
+def test_a_failing_or_non_finite_check_never_intervenes():
+    pred, now = driving()
+    user = np.array([0.8, 0.0])
+
+    def nan_check(pose, cov):
+        return np.full(pose.shape[:2], np.nan), np.full(pose.shape[0], np.nan)
+
+    def raising(pose, cov):
+        raise ValueError("scan has no valid return")
+
+    for check in (nan_check, raising):
+        d = decide(pred, now, user, check, CONFIG)
+        assert d.why is Why.CHECK_FAILED and d.command is None
+
+
+def test_candidates_never_drive_faster_than_the_user_or_leave_the_stick_range():
+    for user in ([0.8, 0.0], [-0.5, 0.9], [0.3, -1.0], [1.0, 1.0]):
+        u = np.array(user)
+        c = candidate_commands(u, CONFIG)
+        np.testing.assert_array_equal(c[0], u)  # the user's own command first
+        assert np.all(np.abs(c[:, 0]) <= abs(u[0]) + 1e-12)
+        assert np.all(c[:, 0] * u[0] >= 0.0)  # never reversing the user's direction
+        assert np.all(np.abs(c[:, 1]) <= 1.0)
+        assert len(np.unique(c, axis=0)) == len(c)
+        assert any(np.allclose(row, [0.0, u[1]]) for row in c)  # stopping is a candidate
+
+
+@pytest.mark.parametrize("bad", [dict(threshold=0.0), dict(threshold=1.0),
+                                 dict(threshold=math.nan), dict(speed_scales=(0.5, 1.0)),
+                                 dict(speed_scales=(0.0, 0.5)), dict(turn_offsets=(0.2,)),
+                                 dict(neutral_deadband=-0.1), dict(progress_weight=-1.0)])
+def test_invalid_settings_are_refused(bad):
+    with pytest.raises(ValueError):
+        SharedControlConfig(**bad)
