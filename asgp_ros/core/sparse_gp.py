@@ -149,6 +149,30 @@ class _Params(NamedTuple):
     noise_variance: float
     Z: FloatArray  # [M, D]
 
+    def pack(self) -> FloatArray:
+        """The optimiser's vector theta = [log l (D), log sf2, log sn2, Z (M * D)]."""
+        return np.concatenate([np.log(self.lengthscales), [math.log(self.signal_variance)],
+                               [math.log(self.noise_variance)], self.Z.ravel()])
+
+    @staticmethod
+    def unpack(theta: FloatArray, M: int, D: int) -> _Params:
+        """Inverse of :meth:`pack`."""
+        return _Params(np.exp(theta[:D]), float(np.exp(theta[D])), float(np.exp(theta[D + 1])),
+                       theta[D + 2:].reshape(M, D))
+
+
+def _theta_bounds(M: int, D: int) -> list[tuple[float | None, float | None]]:
+    """L-BFGS-B bounds of theta (:meth:`_Params.pack`): the hyperparameters are boxed, the
+    pseudo-inputs free."""
+    return ([_LOG_LENGTHSCALE_BOUNDS] * D + [_LOG_SIGNAL_VAR_BOUNDS, _LOG_NOISE_VAR_BOUNDS]
+            + [(None, None)] * (M * D))
+
+
+def _clip_to(theta: FloatArray, bounds: list[tuple[float | None, float | None]]) -> FloatArray:
+    lo = np.array([b[0] if b[0] is not None else -np.inf for b in bounds])
+    hi = np.array([b[1] if b[1] is not None else np.inf for b in bounds])
+    return np.clip(theta, lo, hi)
+
 
 def _cholesky(K: FloatArray) -> FloatArray:
     """Lower Cholesky factor, or _FactorisationError."""
@@ -710,51 +734,13 @@ class SparseGP:
         self.optimisation_log = []
         if max_fun is None:
             max_fun = 2 * int(max_iter) + 20
-
-        def unpack(theta: FloatArray) -> _Params:
-            return _Params(
-                np.exp(theta[:D]),
-                float(np.exp(theta[D])),
-                float(np.exp(theta[D + 1])),
-                theta[D + 2 :].reshape(M, D),
-            )
-
-        # Best finite evaluation of the current start, to resume from after a failure.
-        track = _BestPoint()
-
-        def objective(theta: FloatArray) -> tuple[float, FloatArray]:
-            p = unpack(theta)
-            try:
-                terms = _fitc_terms(Xs, ys, p, self.jitter, ws)
-            except _FactorisationError:
-                return track.failed_at(theta)
-            d_l, d_sf2, d_sn2, dZ = _fitc_grad(p, terms)
-            grad = np.concatenate([d_l, [d_sf2, d_sn2], dZ.ravel()])
-            # Minimise -L / N: an O(1) scale keeps L-BFGS-B's tolerances meaningful.
-            f = -terms.lml / N
-            if f < track.f:
-                track.f, track.x = f, theta.copy()
-            return f, -grad / N
-
-        bounds: list[tuple[float | None, float | None]] = (
-            [_LOG_LENGTHSCALE_BOUNDS] * D
-            + [_LOG_SIGNAL_VAR_BOUNDS, _LOG_NOISE_VAR_BOUNDS]
-            + [(None, None)] * (M * D)
-        )
+        track = _BestPoint()  # best finite evaluation of a start, to resume from
+        objective = self._objective(Xs, ys, ws, track)
+        bounds = _theta_bounds(M, D)
         best: tuple[float, FloatArray, scipy.optimize.OptimizeResult] | None = None
         for restart in range(self.n_restarts + 1):
             track.reset()
-            p0 = self._initial_params(Xs, self.seed + 7919 * restart)
-            if restart:
-                rng = np.random.default_rng([self.seed, restart])
-                p0 = p0._replace(lengthscales=p0.lengthscales * np.exp(rng.normal(0, 0.5, D)))
-            theta0 = np.concatenate(
-                [np.log(p0.lengthscales), [math.log(p0.signal_variance)],
-                 [math.log(p0.noise_variance)], p0.Z.ravel()]
-            )
-            lo = np.array([b[0] if b[0] is not None else -np.inf for b in bounds])
-            hi = np.array([b[1] if b[1] is not None else np.inf for b in bounds])
-            theta0 = np.clip(theta0, lo, hi)
+            theta0 = _clip_to(self._start_point(Xs, restart).pack(), bounds)
             f0, _ = objective(theta0)
             if not math.isfinite(f0):
                 raise SparseGPError(
@@ -762,7 +748,6 @@ class SparseGP:
                     f"(now {self.jitter:g}) or check X for duplicated rows"
                 )
             on_iteration = _IterationLogger(self.optimisation_log, N, lml_offset, callback)
-
             if max_iter == 0:
                 res = scipy.optimize.OptimizeResult(
                     x=theta0, fun=f0, success=True, message="max_iter = 0", nit=0, nfev=1
@@ -777,12 +762,45 @@ class SparseGP:
         assert best is not None
         self.optimiser_result = best[2]
         self._num_data = N
-        self._set_posterior(Xs, ys, sc, unpack(best[1].copy()), lml_offset, ws)
+        self._set_posterior(Xs, ys, sc, _Params.unpack(best[1].copy(), M, D), lml_offset, ws)
         _LOG.debug(
             "SPGP fit: N=%d D=%d M=%d, %d iterations, log marginal likelihood %.6g",
             N, D, M, int(getattr(best[2], "nit", 0)), self._lml,
         )
         return self
+
+    def _start_point(self, Xs: FloatArray, restart: int) -> _Params:
+        """Start of optimiser run ``restart``: the data-driven initial point, with the
+        lengthscales perturbed (log-normal, sigma 0.5) for every restart after the first."""
+        p0 = self._initial_params(Xs, self.seed + 7919 * restart)
+        if restart:
+            rng = np.random.default_rng([self.seed, restart])
+            D = Xs.shape[1]
+            p0 = p0._replace(lengthscales=p0.lengthscales * np.exp(rng.normal(0, 0.5, D)))
+        return p0
+
+    def _objective(self, Xs: FloatArray, ys: FloatArray, ws: _Workspace, track: _BestPoint
+                   ) -> Callable[[FloatArray], tuple[float, FloatArray]]:
+        """theta -> (-L / N, -dL/dtheta / N): the FITC terms, then the gradient; a failed
+        factorisation is a finite wall (:class:`_BestPoint`). Dividing by N keeps the value
+        O(1), so that L-BFGS-B's tolerances stay meaningful."""
+        N, D = Xs.shape
+        M = self.num_inducing
+
+        def objective(theta: FloatArray) -> tuple[float, FloatArray]:
+            p = _Params.unpack(theta, M, D)
+            try:
+                terms = _fitc_terms(Xs, ys, p, self.jitter, ws)
+            except _FactorisationError:
+                return track.failed_at(theta)
+            d_l, d_sf2, d_sn2, dZ = _fitc_grad(p, terms)
+            grad = np.concatenate([d_l, [d_sf2, d_sn2], dZ.ravel()])
+            f = -terms.lml / N
+            if f < track.f:
+                track.f, track.x = f, theta.copy()
+            return f, -grad / N
+
+        return objective
 
     @staticmethod
     def _minimise(
