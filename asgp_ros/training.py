@@ -483,67 +483,26 @@ def train_auto(
     fit_on, held = split_holdout(series, opts.holdout)
     structures = _structures(opts)
     case_lags = max(max(s for s, _ in structures), PAPER_OPTIONS.resolved_lags())
-    rows = opts.selection_rows
-    table: list[dict[str, Any]] = []
-    best: dict[str, Any] | None = None
-    best_cand: Candidate | None = None
-
-    def consider(cand: Candidate, stage: str) -> None:
-        nonlocal best, best_cand
-        if any(row["candidate"] == cand.to_json() for row in table):
-            return
-        t0 = time.perf_counter()
-        try:
-            model, _ = _fit_candidate(cand, fit_on, fit_on, rows, opts.selection_max_iter,
-                                      opts.seed, rc)
-            result = _score(model, held, opts, case_lags)
-        except (TrainingError, EvaluationError, ValueError) as exc:
-            report("select", f"{cand.name}: skipped ({exc})")
-            table.append({"candidate": cand.to_json(), "stage": stage, "skipped": str(exc)})
-            return
-        row = {"candidate": cand.to_json(), "stage": stage, **result,
-               "seconds": round(time.perf_counter() - t0, 2)}
-        table.append(row)
-        report("select", f"{cand.name}: held-out success "
-                         + " ".join(f"{k} s {100 * v['success']:.1f}%"
-                                    for k, v in result["horizons"].items())
-                         + f" ({row['seconds']:.1f} s)")
-        if _better(result, best):
-            best, best_cand = result, cand
+    search = _Search(fit_on, held, opts, rc, report, case_lags)
 
     # horizons the held-out part can score (every candidate on the same cases)
-    usable = tuple(h for h, k in zip(opts.horizons_s, metrics.horizon_steps(
-        list(opts.horizons_s), rc.rate_hz), strict=True)
-        if any(metrics.case_indices(s.res.segment, case_lags, k).size for s in held))
+    usable = _scorable_horizons(held, opts, rc, case_lags)
     if not usable:
-        table.append({"candidate": None, "stage": "check", "skipped":
-                      f"no held-out segment holds {case_lags} past samples and "
-                      f"{opts.horizons_s[0]} s ahead"})
-        return _fallback(series, opts, rc, table, report)
+        search.table.append({"candidate": None, "stage": "check", "skipped":
+                             f"no held-out segment holds {case_lags} past samples and "
+                             f"{opts.horizons_s[0]} s ahead"})
+        return _fallback(series, opts, rc, search.table, report)
     if usable != opts.horizons_s:
         report("select", f"the held-out data are too short for the horizons "
                          f"{[h for h in opts.horizons_s if h not in usable]} s; scoring "
                          f"{list(usable)} s")
-        opts = dataclasses.replace(opts, horizons_s=usable)
-    # the paper's configuration is always a candidate, when nothing pinned excludes it
-    paper = Candidate(PAPER_OPTIONS.resolved_lags(), False,
-                      (PAPER_OPTIONS.inducing_v, PAPER_OPTIONS.inducing_w))
-    if (opts.lags in (None, paper.lags) and opts.coupled in (None, False)
-            and opts.inducing_v in (None, paper.inducing[0])
-            and opts.inducing_w in (None, paper.inducing[1])):
-        consider(paper, "paper")
-    for s, coupled in structures:
-        consider(Candidate(s, coupled, _inducing(opts, AUTO_STRUCTURE_INDUCING)), "structure")
-    if best_cand is None:
-        return _fallback(series, opts, rc, table, report)
-    if opts.inducing_v is None or opts.inducing_w is None:
-        s, coupled = best_cand.lags, best_cand.coupled
-        for m in opts.affordable_inducing():
-            consider(Candidate(s, coupled, _inducing(opts, m)), "capacity")
-    assert best_cand is not None and best is not None
-    chosen = best_cand
+        opts = search.opts = dataclasses.replace(opts, horizons_s=usable)
+    chosen = search.run(structures)
+    if chosen is None:
+        return _fallback(series, opts, rc, search.table, report)
+    assert search.best is not None
     report("select", f"chosen: {chosen.name} (held-out mean success "
-                     f"{100 * best['score']:.1f}%)")
+                     f"{100 * search.best['score']:.1f}%)")
     t_select = time.perf_counter() - t_start
 
     # final fit on the training part; calibration on the held-out part
@@ -556,33 +515,9 @@ def train_auto(
     except ValueError as exc:
         raise TrainingError(str(exc)) from exc
     t_fit = time.perf_counter() - t0
-    calibration = VarianceCalibration()
-    cal_meta: dict[str, Any] = {"fitted": False}
-    if opts.calibrate:
-        t0 = time.perf_counter()
-        try:
-            calibration, cal_meta = calibrate(model_tr, held, opts, case_lags)
-        except (CalibrationError, EvaluationError) as exc:
-            report("calibrate", f"not calibrated: {exc}")
-            cal_meta = {"fitted": False, "reason": str(exc)}
-        else:
-            report("calibrate", cal_meta["reason"] if not cal_meta["applied"] else
-                                f"scale v {calibration.scale[0]:.3g}, omega "
-                                f"{calibration.scale[1]:.3g}; floor v "
-                                f"{calibration.floor[0]:.3g}, omega {calibration.floor[1]:.3g}; "
-                                f"held-out coverage {100 * cal_meta['raw_coverage']:.1f}% -> "
-                                f"{100 * cal_meta['coverage']:.1f}%")
-        cal_meta["seconds"] = round(time.perf_counter() - t0, 2)
-    # the shipped posterior: the fitted parameters conditioned on all the data
+    calibration, cal_meta = _calibrate_step(model_tr, held, opts, case_lags, report)
+    chans = _conditioned_on_all(series, chosen, model_tr, infos)
     fc = chosen.features()
-    chans = []
-    for c, gp_tr in enumerate(model_tr.channels):
-        X, y = design(series, c, fc)
-        gp = cast(SparseGP, gp_tr)
-        chans.append(SparseGP.from_params(X, y, gp.inducing_inputs, gp.lengthscales,
-                                          gp.signal_variance, gp.noise_variance,
-                                          jitter=gp.jitter))
-        infos[CHANNELS[c]]["posterior_rows"] = int(X.shape[0])
     total_rows = max(info["posterior_rows"] for info in infos.values())
     meta = {
         "training_data": data_summary(series, total_rows),
@@ -594,12 +529,13 @@ def train_auto(
                          "k-step rollout (error <= threshold), tie-break median error",
             "horizons_s": list(opts.horizons_s), "threshold_m": opts.threshold_m,
             "holdout_fraction": opts.holdout, "case_lags": case_lags,
-            "selection_rows": rows, "selection_max_iter": opts.selection_max_iter,
+            "selection_rows": opts.selection_rows,
+            "selection_max_iter": opts.selection_max_iter,
             "final_rows": opts.final_rows, "budget_s": opts.budget_s,
             "pinned": {k: v for k, v in (("lags", opts.lags), ("coupled", opts.coupled),
                                          ("inducing_v", opts.inducing_v),
                                          ("inducing_w", opts.inducing_w)) if v is not None},
-            "chosen": chosen.to_json(), "candidates": table,
+            "chosen": chosen.to_json(), "candidates": search.table,
             "seconds": {"selection": round(t_select, 2), "final_fit": round(t_fit, 2),
                         "total": round(time.perf_counter() - t_start, 2)},
         },
@@ -607,6 +543,115 @@ def train_auto(
     }
     return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
                        channels=(chans[0], chans[1]), meta=meta, calibration=calibration)
+
+
+class _Search:
+    """The candidates of :func:`train_auto` (its steps 2 and 3), each fitted on the
+    training part and scored on the held-out part; ``table`` holds one row per candidate
+    (or why it was skipped), ``best`` the best score."""
+
+    def __init__(self, fit_on: Sequence[Series], held: Sequence[Series], opts: AutoOptions,
+                 rc: ResampleConfig, report: Progress, case_lags: int) -> None:
+        self.fit_on, self.held, self.opts, self.rc = fit_on, held, opts, rc
+        self.report, self.case_lags = report, case_lags
+        self.table: list[dict[str, Any]] = []
+        self.best: dict[str, Any] | None = None
+        self.best_cand: Candidate | None = None
+
+    def run(self, structures: Sequence[tuple[int, bool]]) -> Candidate | None:
+        """The paper's configuration (unless a pin excludes it), every structure at
+        M = AUTO_STRUCTURE_INDUCING, then the affordable M for the best structure; the
+        chosen candidate, or None when none could be scored."""
+        opts = self.opts
+        paper = Candidate(PAPER_OPTIONS.resolved_lags(), False,
+                          (PAPER_OPTIONS.inducing_v, PAPER_OPTIONS.inducing_w))
+        if (opts.lags in (None, paper.lags) and opts.coupled in (None, False)
+                and opts.inducing_v in (None, paper.inducing[0])
+                and opts.inducing_w in (None, paper.inducing[1])):
+            self.consider(paper, "paper")
+        for s, coupled in structures:
+            self.consider(Candidate(s, coupled, _inducing(opts, AUTO_STRUCTURE_INDUCING)),
+                          "structure")
+        if self.best_cand is None:
+            return None
+        if opts.inducing_v is None or opts.inducing_w is None:
+            s, coupled = self.best_cand.lags, self.best_cand.coupled
+            for m in opts.affordable_inducing():
+                self.consider(Candidate(s, coupled, _inducing(opts, m)), "capacity")
+        return self.best_cand
+
+    def consider(self, cand: Candidate, stage: str) -> None:
+        """Fit, score and record one candidate (once)."""
+        if any(row["candidate"] == cand.to_json() for row in self.table):
+            return
+        opts = self.opts
+        t0 = time.perf_counter()
+        try:
+            model, _ = _fit_candidate(cand, self.fit_on, self.fit_on, opts.selection_rows,
+                                      opts.selection_max_iter, opts.seed, self.rc)
+            result = _score(model, self.held, opts, self.case_lags)
+        except (TrainingError, EvaluationError, ValueError) as exc:
+            self.report("select", f"{cand.name}: skipped ({exc})")
+            self.table.append({"candidate": cand.to_json(), "stage": stage,
+                               "skipped": str(exc)})
+            return
+        row = {"candidate": cand.to_json(), "stage": stage, **result,
+               "seconds": round(time.perf_counter() - t0, 2)}
+        self.table.append(row)
+        self.report("select", f"{cand.name}: held-out success "
+                    + " ".join(f"{k} s {100 * v['success']:.1f}%"
+                               for k, v in result["horizons"].items())
+                    + f" ({row['seconds']:.1f} s)")
+        if _better(result, self.best):
+            self.best, self.best_cand = result, cand
+
+
+def _scorable_horizons(held: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
+                       case_lags: int) -> tuple[float, ...]:
+    """The horizons of ``opts`` for which some held-out segment has a case."""
+    steps = metrics.horizon_steps(list(opts.horizons_s), rc.rate_hz)
+    return tuple(h for h, k in zip(opts.horizons_s, steps, strict=True)
+                 if any(metrics.case_indices(s.res.segment, case_lags, k).size for s in held))
+
+
+def _calibrate_step(model: MotionModel, held: Sequence[Series], opts: AutoOptions,
+                    case_lags: int, report: Progress
+                    ) -> tuple[VarianceCalibration, dict[str, Any]]:
+    """:func:`calibrate` when ``opts.calibrate``, reported; identity when it cannot be."""
+    if not opts.calibrate:
+        return VarianceCalibration(), {"fitted": False}
+    t0 = time.perf_counter()
+    calibration = VarianceCalibration()
+    try:
+        calibration, cal_meta = calibrate(model, held, opts, case_lags)
+    except (CalibrationError, EvaluationError) as exc:
+        report("calibrate", f"not calibrated: {exc}")
+        cal_meta = {"fitted": False, "reason": str(exc)}
+    else:
+        report("calibrate", cal_meta["reason"] if not cal_meta["applied"] else
+                            f"scale v {calibration.scale[0]:.3g}, omega "
+                            f"{calibration.scale[1]:.3g}; floor v "
+                            f"{calibration.floor[0]:.3g}, omega {calibration.floor[1]:.3g}; "
+                            f"held-out coverage {100 * cal_meta['raw_coverage']:.1f}% -> "
+                            f"{100 * cal_meta['coverage']:.1f}%")
+    cal_meta["seconds"] = round(time.perf_counter() - t0, 2)
+    return calibration, cal_meta
+
+
+def _conditioned_on_all(series: Sequence[Series], chosen: Candidate, model: MotionModel,
+                        infos: dict[str, dict[str, Any]]) -> list[SparseGP]:
+    """The shipped posterior: each channel's fitted parameters conditioned on all the data
+    (``infos[channel]["posterior_rows"]`` is set)."""
+    fc = chosen.features()
+    chans = []
+    for c, fitted in enumerate(model.channels):
+        X, y = design(series, c, fc)
+        gp = cast(SparseGP, fitted)
+        chans.append(SparseGP.from_params(X, y, gp.inducing_inputs, gp.lengthscales,
+                                          gp.signal_variance, gp.noise_variance,
+                                          jitter=gp.jitter))
+        infos[CHANNELS[c]]["posterior_rows"] = int(X.shape[0])
+    return chans
 
 
 def _fallback(series: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
