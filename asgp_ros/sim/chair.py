@@ -232,6 +232,10 @@ class ChairState:
         return (self.x, self.y, self.theta)
 
 
+CONTACT_GAP_S = 1.0
+"""Blocked steps less than this apart are one contact (s)."""
+
+
 def _profile(u: float, dead_zone: float, expo: float) -> float:
     """Dead zone + expo curve: [-1, 1] deflection -> [-1, 1] demand."""
     a = abs(u)
@@ -276,6 +280,13 @@ class Chair:
         seed: seed of the chair's own random numbers (floor noise, caster start angle).
         surface_at: ``(x, y) -> surface name`` (e.g. ``Room.surface_at``); required when
             ``params`` is a mapping, ignored otherwise.
+        blocked: ``(x, y, theta) -> bool``, True where the chair would overlap an obstacle
+            (e.g. ``Room.contact``); None: nothing stops the chair. An internal step that
+            would move the chair into a blocked pose from a free one instead leaves it
+            where it was, with no forward speed, as a bump into furniture does (it may
+            still turn, scraping along); :attr:`contacts` counts the contacts
+            (a blocked step after at least ``CONTACT_GAP_S`` without one; pushing on
+            against the furniture is the same contact).
 
     ``step(joy, dt)`` integrates at the fixed internal rate (100 Hz); a ``dt`` that is not
     a multiple of 10 ms carries the remainder into the next call, so the chair's clock
@@ -287,7 +298,11 @@ class Chair:
         params: ChairParams | Mapping[str, ChairParams],
         seed: int = 0,
         surface_at: Callable[[float, float], str] | None = None,
+        blocked: Callable[[float, float, float], bool] | None = None,
     ) -> None:
+        self._blocked = blocked
+        self.contacts = 0
+        self._free_s = math.inf  # time since the last blocked step
         if isinstance(params, ChairParams):
             self._by_surface = {params.surface: params}
             self._surface_at: Callable[[float, float], str] | None = None
@@ -394,10 +409,30 @@ class Chair:
         n = int(total / self._dt + 1e-9)
         self._carry = total - n * self._dt
         for _ in range(n):
-            self._substep(u_f, u_t)
+            if self._blocked is None:
+                self._substep(u_f, u_t)
+            else:
+                self._guarded_substep(u_f, u_t)
         if n:
             self._state = self._make_state()
         return self._state
+
+    def _guarded_substep(self, u_f: float, u_t: float) -> None:
+        """One internal step that cannot enter a blocked pose (see ``blocked``)."""
+        assert self._blocked is not None
+        before = (self._x, self._y, self._theta)
+        self._substep(u_f, u_t)
+        if not self._blocked(self._x, self._y, self._theta):
+            self._free_s += self._dt
+            return
+        if not self._blocked(*before):  # moving into the obstacle: stop against it
+            self._x, self._y = before[0], before[1]  # turning on, scraping along it
+            self._v = 0.0
+            s = self._in
+            s.v_set = s.a_left = s.a_right = 0.0
+        if self._free_s >= CONTACT_GAP_S:
+            self.contacts += 1
+        self._free_s = 0.0
 
     def _substep(self, u_f: float, u_t: float) -> None:
         dt = self._dt

@@ -13,6 +13,15 @@ towards open space (towards a point it picks in the free area), stopping and tur
 the spot if already close; a reversal is abandoned when the space behind runs out. The
 chair's footprint stays out of the furniture band (``Room.furniture_band``) with a margin.
 
+Inattention (``DriverParams.inattention`` > 0, off by default): now and then a bout is an
+inattentive one. The driver heads for a point on the furniture front, at a cruising
+speed, without looking ahead; only once the chair is within ``notice`` of the furniture
+(or touching it) and a reaction time ``lateness`` has passed does the usual avoidance take
+over, the driver backing off first. This is the user a shared-control layer exists for:
+with it, drives end in contacts with the furniture (``Chair(blocked=Room.contact)``
+counts them). An attentive driver
+draws exactly the random numbers it always did, so existing drives are unchanged.
+
 Every drive starts and (with a ``duration``) ends with the stick released for several
 seconds and the chair still.
 """
@@ -44,6 +53,10 @@ class DriverParams:
         caution: distance (m) beyond that limit where the driver starts steering away.
         reaction: look-ahead time (s) of the driver.
         tremor: standard deviation of the hand's slow tremor (deflection units).
+        inattention: probability that a bout is an inattentive one (0 = never).
+        notice: how close (m, footprint to furniture) an inattentive driver lets the chair
+            come before noticing.
+        lateness: range of the reaction time (s) after noticing.
     """
 
     start_rest: tuple[float, float] = (3.0, 6.0)
@@ -52,6 +65,16 @@ class DriverParams:
     caution: float = 0.6
     reaction: float = 0.5
     tremor: float = 0.025
+    inattention: float = 0.0
+    notice: float = 0.05
+    lateness: tuple[float, float] = (0.3, 0.9)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.inattention) and 0.0 <= self.inattention <= 1.0):
+            raise ValueError(f"inattention must be in [0, 1], got {self.inattention}")
+        lo, hi = self.lateness
+        if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 <= lo <= hi <= 10.0):
+            raise ValueError(f"lateness must be 0 <= lo <= hi <= 10 s, got {self.lateness}")
 
 
 class Driver:
@@ -98,6 +121,11 @@ class Driver:
         self._zeta = 0.9
         self._avoiding = False
         self._goal = np.zeros(2)
+        self._noticed: float | None = None  # when an inattentive driver noticed (drive s)
+        self._react = 0.0
+        self._back_from = 0.0
+        self._wall_goal = np.zeros(2)
+        self.inattentive_bouts = 0
 
     # ---------------------------------------------------------------- behaviour
     @property
@@ -106,6 +134,10 @@ class Driver:
 
     def _new_bout(self, t: float) -> None:
         rng = self._rng
+        p = self.params
+        if p.inattention > 0.0 and rng.random() < p.inattention:
+            self._inattentive_bout(t)
+            return
         mode = str(rng.choice(_MODES, p=_MODE_P))
         f = t_ = 0.0
         if mode == "cruise":
@@ -128,6 +160,52 @@ class Driver:
         # A new reach: its own speed and damping (0.7 = slight overshoot).
         self._wn = float(rng.uniform(6.0, 14.0))
         self._zeta = float(rng.uniform(0.7, 1.1))
+
+    def _inattentive_bout(self, t: float) -> None:
+        """Head for a point on the furniture front, at a cruising speed, not looking."""
+        rng = self._rng
+        x_lo, x_hi, y_lo, y_hi = self.room.free_box
+        side = int(rng.integers(4))
+        u = float(rng.uniform(0.15, 0.85))
+        self._wall_goal = np.array([
+            (x_lo, x_hi, x_lo + u * (x_hi - x_lo), x_lo + u * (x_hi - x_lo))[side],
+            (y_lo + u * (y_hi - y_lo), y_lo + u * (y_hi - y_lo), y_lo, y_hi)[side],
+        ])
+        self._avoiding = False
+        self._mode = "inattentive"
+        self._mode_end = t + float(rng.uniform(6.0, 12.0))
+        self._target = np.array([float(rng.uniform(0.5, 0.9)), 0.0])
+        self._wn = float(rng.uniform(6.0, 14.0))
+        self._zeta = float(rng.uniform(0.7, 1.1))
+        self._noticed = None
+        self._react = float(rng.uniform(*self.params.lateness))
+        self.inattentive_bouts += 1
+
+    def _inattentive(self, t: float, state: ChairState) -> np.ndarray | None:
+        """The stick of an inattentive bout, or None once the driver has reacted."""
+        clear = self.room.footprint_clearance(state.x, state.y, state.theta) \
+            - self.room.furniture_band
+        if self._noticed is None and clear < self.params.notice:
+            self._noticed = t
+        if self._noticed is not None and t - self._noticed >= self._react:
+            return None
+        if t >= self._mode_end:  # the bout is over before anything happened
+            return None
+        gx, gy = self._wall_goal[0] - state.x, self._wall_goal[1] - state.y
+        err = math.atan2(math.sin(math.atan2(gy, gx) - state.theta),
+                         math.cos(math.atan2(gy, gx) - state.theta))
+        turn = max(-1.0, min(1.0, 1.2 * err))
+        fwd = float(self._target[0]) * (1.0 if abs(err) < 0.6 else 0.3)
+        return np.array([fwd, turn])
+
+    def _back_off(self, state: ChairState) -> np.ndarray:
+        """Reverse away from the nearest furniture, turning the back towards the room."""
+        r = self.room
+        gaps = (state.x - r.x_min, r.x_max - state.x, state.y - r.y_min, r.y_max - state.y)
+        inward = (0.0, math.pi, 0.5 * math.pi, -0.5 * math.pi)[int(np.argmin(gaps))]
+        err = inward - (state.theta + math.pi)  # the back should point inward
+        err = math.atan2(math.sin(err), math.cos(err))
+        return np.array([-0.5, max(-0.6, min(0.6, 1.5 * err))])
 
     def _clearance_ahead(self, state: ChairState, direction: float, dist: float) -> float:
         """Wall distance of the chair centre ``dist`` m ahead (direction +1) or behind."""
@@ -177,10 +255,12 @@ class Driver:
                 self._avoiding = False
                 self._mode_end = t  # new bout
                 return np.array([0.4, 0.0])
-            if ahead < hard + 0.15 or here < hard + 0.1:
+            leaving = aligned and ahead > here + 0.05  # facing away from the furniture
+            if not leaving and (ahead < hard + 0.15 or here < hard + 0.1):
                 fwd = 0.0  # stop and turn on the spot
             else:
-                fwd = min(0.6, max(0.0, room_ahead)) * (1.0 if aligned else 0.5)
+                fwd = min(0.6, max(0.1 if leaving else 0.0, room_ahead)) \
+                    * (1.0 if aligned else 0.5)
             return np.array([fwd, turn])
         return target
 
@@ -204,7 +284,20 @@ class Driver:
         else:
             if self._mode == "rest" or (t >= self._mode_end and not self._avoiding):
                 self._new_bout(t)
-            target = self._safety(t, state, self._target.copy())
+            stick = None
+            if self._mode == "inattentive":
+                stick = self._inattentive(t, state)
+                if stick is None:  # reacted: back off the way it came, then drive on
+                    self._mode, self._mode_end = "back_off", t + 8.0
+                    self._back_from = t
+            if self._mode == "back_off":
+                stick = self._back_off(state)
+                clear = self.room.wall_distance(state.x, state.y) >= self._hard + 0.3
+                if t >= self._mode_end or (clear and t - self._back_from >= 1.0):
+                    self._new_bout(t)
+                    stick = None
+            target = stick if stick is not None else \
+                self._safety(t, state, self._target.copy())
         released = not target.any()
         # Speed changes within a cruise: now and then the user picks another speed.
         if self._mode == "cruise" and not self._avoiding and self._rng.random() < 0.15 * dt:

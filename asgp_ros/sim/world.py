@@ -110,6 +110,17 @@ class Room:
         """Distance (m) from (x, y) to the nearest wall (negative outside the room)."""
         return min(x - self.x_min, self.x_max - x, y - self.y_min, self.y_max - y)
 
+    @property
+    def free_box(self) -> tuple[float, float, float, float]:
+        """(x_lo, x_hi, y_lo, y_hi) of the free floor: the walls less the furniture band.
+        Its edges are the fronts of the furniture, the obstacles a scanner sees."""
+        b = self.furniture_band
+        return (self.x_min + b, self.x_max - b, self.y_min + b, self.y_max - b)
+
+    def contact(self, x: float, y: float, theta: float) -> bool:
+        """The footprint at (x, y, theta) overlaps the furniture (or a wall)."""
+        return self.footprint_clearance(x, y, theta) < self.furniture_band
+
     def footprint_clearance(self, x: float, y: float, theta: float) -> float:
         """Distance (m) from the chair footprint at pose (x, y, theta) to the nearest wall.
 

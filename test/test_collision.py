@@ -1,0 +1,242 @@
+"""Collision probability (asgp_ros.core.collision) and the simulated scanner and map
+(asgp_ros.sim.lidar), against closed forms and a Monte Carlo reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from asgp_ros.core import collision as C  # noqa: N812 (the module is used a lot)
+from asgp_ros.sim.chair import Chair
+from asgp_ros.sim.driver import Driver, DriverParams
+from asgp_ros.sim.lidar import Lidar, LidarConfig, cast_to_box, room_grid
+from asgp_ros.sim.world import Room
+
+HALF = 0.6  # half the default footprint length
+
+
+def wall_scan(distance: float = 2.0, beams: int = 1081) -> C.Scan:
+    """A straight wall x = distance in the scan frame, 270 degrees, 8 m range."""
+    a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
+    ang = a0 + inc * np.arange(beams)
+    with np.errstate(divide="ignore"):
+        r = np.where(np.cos(ang) > 1e-9, distance / np.cos(ang), np.inf)
+    return C.Scan(np.where(r > 8.0, np.inf, r), a0, inc, 0.05, 8.0)
+
+
+def one(x: float, y: float = 0.0, yaw: float = 0.0, sd: float = 0.05):
+    return np.array([[x, y, yaw]]), np.eye(2)[None] * sd**2
+
+
+def test_far_from_obstacles_the_probability_is_zero():
+    check = C.scan_check(wall_scan())
+    per, within = check(*one(0.0))
+    assert per[0, 0] == 0.0 and within[0] == 0.0
+
+
+def test_the_probability_follows_the_gaussian_tail_at_the_footprint_front():
+    check = C.scan_check(wall_scan(2.0))
+    for gap in (0.15, 0.1, 0.05, 0.0, -0.05, -0.1):  # front of the footprint to the wall
+        _, within = check(*one(2.0 - HALF - gap, sd=0.05))
+        # exact for a straight wall: P(x_front > 2) = Phi(-gap / sd), to the sample grid
+        assert within[0] == pytest.approx(norm.cdf(-gap / 0.05), abs=0.02), gap
+
+
+def test_probability_is_monotone_in_distance_and_in_uncertainty():
+    check = C.scan_check(wall_scan(2.0))
+    xs = np.linspace(0.9, 1.5, 13)
+    p = [check(*one(x))[1][0] for x in xs]
+    assert np.all(np.diff(p) >= 0.0) and p[0] < 0.01 and p[-1] > 0.97  # Phi(2) at 1.5 m
+    near = 2.0 - HALF - 0.1
+    p_sd = [check(*one(near, sd=sd))[1][0] for sd in (0.01, 0.03, 0.05, 0.1, 0.2)]
+    assert np.all(np.diff(p_sd) >= 0.0) and p_sd[0] == 0.0 and p_sd[-1] > 0.2
+
+
+def test_the_footprint_orientation_matters():
+    """1.2 m long, 0.7 m wide: 0.5 m from a wall, nose on it touches, side on it does not."""
+    check = C.scan_check(wall_scan(2.0))
+    assert check(*one(2.0 - 0.5, sd=0.01))[1][0] == 1.0
+    assert check(*one(2.0 - 0.5, yaw=math.pi / 2, sd=0.01))[1][0] == 0.0
+
+
+def test_against_monte_carlo_on_a_corner():
+    """Two walls (a corner) and a correlated covariance: the quasi-random estimate agrees
+    with 20,000 plain Monte Carlo draws of the exact rectangle test."""
+    pts = np.concatenate([np.stack([np.full(200, 2.0), np.linspace(-3, 3, 200)], 1),
+                          np.stack([np.linspace(-3, 3, 200), np.full(200, 1.0)], 1)])
+    scan_r = np.hypot(pts[:, 0], pts[:, 1])
+    order = np.argsort(np.arctan2(pts[:, 1], pts[:, 0]))
+    ang = np.arctan2(pts[:, 1], pts[:, 0])[order]
+    # an irregular scan is not representable; test through the field built from points
+    fld = C.DistanceField(np.zeros((1, 1)), 0.05, (0.0, 0.0, 0.0), pts[order])
+    grid_fld = _field_from_points(pts)
+    pose, cov = np.array([[1.3, 0.45, 0.3]]), np.array([[[0.01, 0.006], [0.006, 0.02]]])
+    est = C.contact_probability(grid_fld, pose, cov).within[0]
+    rng = np.random.default_rng(1)
+    draws = rng.multivariate_normal(pose[0, :2], cov[0], 20_000)
+    c, s = math.cos(0.3), math.sin(0.3)
+    q = (pts[None, :, :] - draws[:, None, :]) @ np.array([[c, -s], [s, c]])  # R^T (o - p)
+    hit = ((np.abs(q[..., 0]) <= HALF) & (np.abs(q[..., 1]) <= 0.35)).any(axis=1)
+    assert 0.05 < hit.mean() < 0.95
+    assert est == pytest.approx(hit.mean(), abs=0.03)
+    del fld, scan_r, ang
+
+
+def _field_from_points(pts: np.ndarray, res: float = 0.02) -> C.DistanceField:
+    lo = pts.min(axis=0) - 1.0
+    n = np.ceil((pts.max(axis=0) + 1.0 - lo) / res).astype(int)
+    mask = np.zeros((n[1], n[0]), bool)
+    ij = np.floor((pts - lo) / res).astype(int)
+    mask[ij[:, 1], ij[:, 0]] = True
+    from asgp_ros.core.collision import _distances
+
+    return C.DistanceField(_distances(mask, res), res, (lo[0], lo[1], 0.0), pts,
+                           outside=math.inf)
+
+
+def test_batches_and_horizon_limits():
+    check_fld = C.DistanceField.from_scan(wall_scan(2.0))
+    B, k = 5, 8
+    pose = np.zeros((B, k, 3))
+    pose[..., 0] = np.linspace(0.0, 1.0, k)[None] + np.linspace(0.0, 0.5, B)[:, None]
+    cov = np.tile(np.eye(2) * 0.04**2, (B, k, 1, 1)) * np.linspace(1, 3, k)[None, :, None, None]
+    c = C.contact_probability(check_fld, pose, cov)
+    assert c.per_step.shape == (B, k) and c.within.shape == (B,)
+    assert np.all(c.lower <= c.within + 1e-12) and np.all(c.within <= c.upper + 1e-12)
+    assert np.all(np.diff(c.within) >= 0.0)  # paths further ahead are more likely to touch
+    for b in range(B):  # a batch gives what each path alone gives
+        single = C.contact_probability(check_fld, pose[b], cov[b])
+        np.testing.assert_array_equal(single.per_step[0], c.per_step[b])
+
+
+def test_scan_and_grid_agree_on_the_same_wall():
+    res, n = 0.05, 200
+    data = np.zeros((n, n), np.int8)
+    data[:, round((2.0 + 5.0) / res)] = 100  # cells [2.0, 2.05]
+    grid = C.Grid(data, res, (-5.0, -5.0, 0.0))
+    scan_check, grid_check = C.scan_check(wall_scan(2.0)), C.grid_check(grid)
+    for x in (1.0, 1.3, 1.35, 1.4, 1.45):
+        assert scan_check(*one(x))[1][0] == pytest.approx(grid_check(*one(x))[1][0], abs=0.03)
+    # the map in odom, the chair at (0, 0) facing +y: the same wall is now at y = 2
+    data2 = np.zeros((n, n), np.int8)
+    data2[round((2.0 + 5.0) / res), :] = 100
+    rotated = C.grid_check(C.Grid(data2, res, (-5.0, -5.0, 0.0)), origin=(0.0, 0.0, math.pi / 2))
+    assert rotated(*one(1.4))[1][0] == pytest.approx(0.5, abs=0.03)
+    # unknown cells are obstacles unless told otherwise
+    unknown = C.Grid(np.full((n, n), -1, np.int8), res, (-5.0, -5.0, 0.0))
+    assert C.grid_check(unknown)(*one(0.0))[1][0] == 1.0
+    assert C.grid_check(unknown, unknown_is_obstacle=False)(*one(0.0))[1][0] == 0.0
+
+
+def test_scan_mount_and_motion_since_the_scan_are_applied():
+    # scanner 0.3 m ahead of the base: the wall 2 m from the scanner is 2.3 m from the base
+    check = C.scan_check(wall_scan(2.0), mount=(0.3, 0.0, 0.0))
+    assert check(*one(2.3 - HALF))[1][0] == pytest.approx(0.5, abs=0.03)
+    # the chair moved 0.2 m forward since the scan: the wall is 0.2 m closer
+    moved = C.scan_check(wall_scan(2.0), base_motion=(0.2, 0.0, 0.0))
+    assert moved(*one(1.8 - HALF))[1][0] == pytest.approx(0.5, abs=0.03)
+
+
+def test_bad_scans_are_refused_and_never_read_as_clear():
+    a0, inc = -1.0, 0.01
+    with pytest.raises(C.CollisionError, match="NaN"):
+        C.scan_check(C.Scan(np.full(200, np.nan), a0, inc, 0.05, 8.0))
+    half_bad = np.where(np.arange(200) % 3 == 0, 2.0, np.nan)
+    with pytest.raises(C.CollisionError, match="NaN"):
+        C.scan_check(C.Scan(half_bad, a0, inc, 0.05, 8.0))
+    for bad in (dict(ranges=np.zeros(0)), dict(range_min=-1.0), dict(range_max=np.inf),
+                dict(angle_min=np.nan), dict(ranges=np.zeros((2, 2)))):
+        kw = dict(ranges=np.ones(10), angle_min=a0, angle_increment=inc, range_min=0.05,
+                  range_max=8.0) | bad
+        with pytest.raises(C.CollisionError):
+            C.Scan(**kw)
+    # -inf (too close to measure) is an obstacle at range_min, not free space
+    close = np.full(200, np.inf)
+    close[100] = -np.inf
+    check = C.scan_check(C.Scan(close, -1.0, 0.01, 0.05, 8.0))
+    assert check(*one(0.0, sd=0.01))[1][0] == 1.0
+    # all +inf: nothing within range, clear; a path leaving the window counts as touching
+    clear = C.scan_check(C.Scan(np.full(200, np.inf), -1.0, 0.01, 0.05, 8.0))
+    assert clear(*one(0.0))[1][0] == 0.0
+    assert clear(*one(20.0))[1][0] == 1.0
+    with pytest.raises(C.CollisionError, match="NaN"):
+        clear(np.array([[np.nan, 0.0, 0.0]]), np.eye(2)[None])
+
+
+def test_simulated_scanner_ranges_match_the_room():
+    room = Room()
+    cfg = LidarConfig(noise_sd=0.0, dropout=0.0, mount=(0.0, 0.0, 0.0))
+    lidar = Lidar(room, cfg, seed=0)
+    _x_lo, x_hi, _y_lo, y_hi = room.free_box
+    s = lidar.scan(1.0, 0.5, 0.0)
+    mid = cfg.beams // 2  # straight ahead
+    assert s.ranges[mid] == pytest.approx(x_hi - 1.0)
+    left = np.argmin(np.abs(cfg.angle_min + cfg.angle_increment * np.arange(cfg.beams)
+                            - math.pi / 2))
+    assert s.ranges[left] == pytest.approx(y_hi - 0.5, abs=1e-9)
+    assert cast_to_box(np.array([100.0, 0.0]), np.zeros(1), room.free_box)[0] == 0.0
+    noisy = Lidar(room, LidarConfig(dropout=0.2), seed=1).scan(1.0, 0.5, 0.3)
+    assert 0.1 < np.isnan(noisy.ranges).mean() < 0.3
+    assert np.all(np.isnan(noisy.ranges) | np.isinf(noisy.ranges) | (noisy.ranges > 0.0))
+
+
+def test_room_map_matches_the_geometry_and_the_scan():
+    room = Room()
+    g = room_grid(room, 0.05)
+    res = g.resolution
+
+    def cell(x: float, y: float) -> int:
+        return int(g.data[int((y - g.origin[1]) / res), int((x - g.origin[0]) / res)])
+
+    assert cell(0.0, 0.0) == 0 and cell(room.x_max - 0.2, 0.0) == 100
+    assert cell(room.x_max + 0.3, 0.0) == -1
+    # the chair near the east furniture: scan and map give the same probability
+    x_hi = room.free_box[1]
+    lidar = Lidar(room, LidarConfig(noise_sd=0.0, dropout=0.0), seed=0)
+    for x in (x_hi - HALF - 0.2, x_hi - HALF, x_hi - HALF + 0.1):
+        scan = C.Scan(*(lidar.scan(x, 0.0, 0.0).__dict__.values()))
+        p_scan = C.scan_check(scan, mount=lidar.config.mount)(*one(0.0))[1][0]
+        p_map = C.grid_check(C.Grid(g.data, g.resolution, g.origin),
+                             origin=(x, 0.0, 0.0))(*one(0.0))[1][0]
+        assert p_scan == pytest.approx(p_map, abs=0.05), x
+
+
+def test_the_chair_stops_at_the_furniture_and_counts_contacts():
+    room = Room()
+    chair = Chair.for_room(room, seed=0)
+    chair = Chair(chair._default, seed=0, blocked=room.contact)
+    chair.reset((room.free_box[1] - 2.0, 0.0, 0.0))
+    for _ in range(1000):  # 10 s full forward at the east furniture
+        state = chair.step((1.0, 0.0), 0.01)
+    assert not room.contact(state.x, state.y, state.theta)
+    assert room.footprint_clearance(state.x, state.y, state.theta) - room.furniture_band \
+        < 0.05
+    assert chair.contacts == 1 and abs(state.v) < 0.05
+    for _ in range(300):  # backing away is allowed
+        state = chair.step((-1.0, 0.0), 0.01)
+    assert state.x < room.free_box[1] - 1.0
+
+
+def _drive(params: DriverParams, seconds: float, seed: int = 3) -> tuple[int, int]:
+    room = Room()
+    chair = Chair(Chair.for_room(room)._default, seed=seed, blocked=room.contact)
+    state = chair.reset((0.0, 0.0, 0.0))
+    driver = Driver(seed, room, params=params)
+    for n in range(int(seconds * 100)):
+        cmd = driver.command(n * 0.01, state)
+        state = chair.step(cmd, 0.01)
+    return chair.contacts, driver.inattentive_bouts
+
+
+def test_an_inattentive_driver_bumps_into_furniture_an_attentive_one_does_not():
+    contacts, bouts = _drive(DriverParams(), 180.0)
+    assert contacts == 0 and bouts == 0
+    contacts, bouts = _drive(DriverParams(inattention=0.3), 180.0)
+    assert bouts >= 3 and contacts >= 2
+    assert _drive(DriverParams(inattention=0.3), 60.0, seed=5) == \
+        _drive(DriverParams(inattention=0.3), 60.0, seed=5)  # deterministic for a seed
+    with pytest.raises(ValueError):
+        DriverParams(inattention=1.5)
