@@ -47,6 +47,7 @@ setup(
             "predictor_node = asgp_ros.nodes.predictor_node:main",
             "vo_node = asgp_ros.nodes.vo_node:main",
             "serial_bridge_node = asgp_ros.nodes.serial_bridge_node:main",
+            "shared_control_node = asgp_ros.nodes.shared_control_node:main",
         ],
     },
 )

@@ -25,6 +25,12 @@ PREDICTED_PATH = "predicted_path"
 PREDICTED_PATH_UNCERTAINTY = PREDICTED_PATH + "/uncertainty"
 #: diagnostic_msgs/DiagnosticArray (all nodes).
 DIAGNOSTICS = "diagnostics"
+#: sensor_msgs/LaserScan: the chair's 2-D laser scanner (-> shared control).
+SCAN = "scan"
+#: nav_msgs/OccupancyGrid: the map, in the odometry frame (-> shared control).
+MAP = "map"
+#: diagnostic_msgs/DiagnosticStatus: one per shared-control decision (shared control ->).
+SHARED_CONTROL_STATUS = "shared_control/status"
 #: sensor_msgs/Image, colour (-> vo).
 CAMERA_COLOR = "camera/color/image_raw"
 #: sensor_msgs/Image, depth registered to colour (-> vo).

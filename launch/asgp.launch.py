@@ -1,11 +1,13 @@
-"""The smart-wheelchair stack on a full ROS 2 install: serial bridge, VO and predictor.
+"""The smart-wheelchair stack on a full ROS 2 install: serial bridge, VO, predictor and,
+optionally, the shared-control layer.
 
     ros2 launch asgp_ros asgp.launch.py model_path:=/path/to/chair.npz
     ros2 launch asgp_ros asgp.launch.py model_path:=chair.npz use_bridge:=false \
         use_vo:=false use_sim_time:=true        # predictor only, following `asgp replay`
 
 Each node reads its YAML from the package's share/asgp_ros/config (``serial_bridge_node``
--> bridge.yaml, ``vo_node`` -> vo.yaml, ``predictor_node`` -> predictor.yaml); the
+-> bridge.yaml, ``vo_node`` -> vo.yaml, ``predictor_node`` -> predictor.yaml,
+``shared_control_node`` -> shared_control.yaml, with ``use_shared_control:=true``); the
 arguments below override single parameters. Topics are relative, so ``namespace:=chair1``
 runs a second chair side by side.
 """
@@ -40,6 +42,8 @@ def generate_launch_description() -> LaunchDescription:
                               description="start the serial bridge to the joystick board"),
         DeclareLaunchArgument("use_vo", default_value="true",
                               description="start the RGB-D visual odometry"),
+        DeclareLaunchArgument("use_shared_control", default_value="false",
+                              description="start the shared-control layer (needs `scan`)"),
         Node(
             package=PACKAGE,
             executable="serial_bridge_node",
@@ -66,6 +70,16 @@ def generate_launch_description() -> LaunchDescription:
             namespace=namespace,
             parameters=[_config("predictor.yaml"), common,
                         {"model_path": LaunchConfiguration("model_path")}],
+            output="screen",
+        ),
+        Node(
+            package=PACKAGE,
+            executable="shared_control_node",
+            name="shared_control_node",
+            namespace=namespace,
+            parameters=[_config("shared_control.yaml"), common,
+                        {"model_path": LaunchConfiguration("model_path")}],
+            condition=IfCondition(LaunchConfiguration("use_shared_control")),
             output="screen",
         ),
     ])

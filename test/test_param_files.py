@@ -17,13 +17,14 @@ ROS_BUILTINS = {"use_sim_time"}
 
 def _tables() -> dict[str, tuple[str, tuple[ParamSpec, ...]]]:
     pytest.importorskip("rclpy")
-    from asgp_ros.nodes import predictor_node
+    from asgp_ros.nodes import predictor_node, shared_control_node
     from asgp_ros.serial import params as bridge
     from asgp_ros.vo import params as vo
 
     return {"predictor_node": ("predictor.yaml", predictor_node.PARAMS),
             "serial_bridge_node": ("bridge.yaml", bridge.PARAMS),
-            "vo_node": ("vo.yaml", vo.PARAMS)}
+            "vo_node": ("vo.yaml", vo.PARAMS),
+            "shared_control_node": ("shared_control.yaml", shared_control_node.PARAMS)}
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
@@ -37,7 +38,8 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
     return out
 
 
-@pytest.mark.parametrize("node", ["predictor_node", "serial_bridge_node", "vo_node"])
+@pytest.mark.parametrize("node", ["predictor_node", "serial_bridge_node", "vo_node",
+                                  "shared_control_node"])
 def test_yaml_values_are_declared_typed_and_in_range(node):
     yaml_name, specs = _tables()[node]
     doc = yaml.safe_load((REPO / "config" / yaml_name).read_text())

@@ -139,3 +139,32 @@ def test_candidates_never_drive_faster_than_the_user_or_leave_the_stick_range():
 def test_invalid_settings_are_refused(bad):
     with pytest.raises(ValueError):
         SharedControlConfig(**bad)
+
+
+@pytest.fixture(scope="module")
+def chair_model(tmp_path_factory):
+    """A small ASGP of the simulated chair (2 minutes of tile, as `asgp train --paper`)."""
+    from asgp_ros.sim.simulate import simulate, write_recording
+    from asgp_ros.training import TrainOptions, read_series, train
+
+    bag = tmp_path_factory.mktemp("sc") / "tile"
+    write_recording(bag, simulate("tile", 2.0, 5))
+    return train(read_series([str(bag)]), TrainOptions(kind="asgp", max_iter=40, seed=0))
+
+
+def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
+    """The offline closed loop (asgp_ros.sim.shared_drive): the same inattentive user with
+    and without the layer; the layer takes contacts away and leaves most driving alone."""
+    from asgp_ros.sim.shared_drive import drive
+
+    without = drive(chair_model, 90.0, 4, layer=False, inattention=0.5)
+    with_layer = drive(chair_model, 90.0, 4, layer=True, inattention=0.5)
+    assert without.contacts >= 2 and without.interventions == 0
+    assert without.untouched_share == 1.0
+    assert with_layer.contacts < without.contacts
+    assert with_layer.interventions >= 1 and with_layer.untouched_share > 0.6
+    assert with_layer.decisions.get("intervening", 0) >= 1 and with_layer.solve_ms
+    again = drive(chair_model, 20.0, 4, layer=True, inattention=0.5)
+    assert again.summary() | {"solve_p50_ms": 0, "solve_p99_ms": 0} == \
+        drive(chair_model, 20.0, 4, layer=True, inattention=0.5).summary() | {
+            "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed

@@ -94,6 +94,13 @@ class Footprint:
         if not 1 <= int(self.discs) <= 32:
             raise ValueError(f"discs must be in [1, 32], got {self.discs}")
 
+    def grown(self, margin: float) -> Footprint:
+        """The footprint grown by ``margin`` (m) on every side (a safety margin)."""
+        if not (math.isfinite(margin) and 0.0 <= margin <= 1.0):
+            raise ValueError(f"margin must be in [0, 1] m, got {margin}")
+        return Footprint(self.length + 2 * margin, self.width + 2 * margin, self.offset,
+                         self.discs)
+
     @property
     def radius(self) -> float:
         """Radius of the discs (m): each covers a length / discs slice of the rectangle."""
@@ -255,13 +262,15 @@ class DistanceField:
         local = points @ Rt.T + tt
         h, w = self.dist.shape
         size = np.array([w, h]) * self.resolution
-        return np.all((local >= 0.0) & (local <= size), axis=-1)
+        inside: NDArray[np.bool_] = np.all((local >= 0.0) & (local <= size), axis=-1)
+        return inside
 
     def near(self, centre: FloatArray, radius: float) -> FloatArray:
         """[m, 2] obstacle points within ``radius`` of ``centre`` [2]."""
         if self._tree is None:
             return np.zeros((0, 2))
-        return self.points[self._tree.query_ball_point(centre, radius)]
+        found: FloatArray = self.points[self._tree.query_ball_point(centre, radius)]
+        return found
 
     def distance(self, points: FloatArray) -> FloatArray:
         """[..., 2] points in the field's frame -> [...] clearance (bilinear)."""

@@ -17,8 +17,9 @@ replacement:
   the forward distance at the horizon the candidate gives up against the user's path, so
   that among equally small changes the one that keeps the chair moving wins;
 * the chosen command is the cheapest candidate whose probability is at or below the
-  threshold; when none is, the candidate with the lowest probability (stopping is always a
-  candidate) is used and the decision says ``no_safe_command``.
+  threshold; when none is, the candidate with the lowest probability is used, the one
+  with the least motion among equals (stopping is always a candidate), and the decision
+  says ``no_safe_command``.
 
 Safety rules, whatever the numbers say:
 
@@ -164,7 +165,9 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
 
 
 def decide(predictor: Predictor, now: float, user: FloatArray,
-           check: CollisionCheck | None, config: SharedControlConfig) -> Decision:
+           check: CollisionCheck | None, config: SharedControlConfig, *,
+           check_for: Callable[[Prediction], CollisionCheck | None] | None = None
+           ) -> Decision:
     """One step of the layer (module docstring).
 
     Args:
@@ -173,6 +176,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         user: [2] the user's newest command (forward, turn).
         check: the collision check of the fresh obstacle source, or None when there is none.
         config: the settings.
+        check_for: instead of ``check``, builds it from the user's prediction (its t0,
+            origin and velocities place the paths relative to the obstacles' data).
     """
     user = np.asarray(user, dtype=np.float64).reshape(2)
     if not np.all(np.isfinite(user)):
@@ -189,6 +194,12 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
                         solve_s=time.perf_counter() - start)
     if not pred.ok:
         return Decision(Why.STALE_INPUT, f"no prediction: {pred.reason}: {pred.detail}", user)
+    if check_for is not None:
+        try:
+            check = check_for(pred)
+        except ValueError as exc:
+            return Decision(Why.CHECK_FAILED, f"obstacle data refused: {exc}", user,
+                            solve_s=time.perf_counter() - start, prediction=pred)
     if check is None:
         return Decision(Why.NO_OBSTACLES, "no fresh scan or map", user, prediction=pred)
     try:
@@ -225,7 +236,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         why, words = Why.INTERVENING, "changed the command"
     else:
         low = np.flatnonzero(p_all <= p_all.min() + 1e-12)
-        best = int(low[np.argmin(cost[low])])
+        motion = np.linalg.norm(commands[low], axis=1)  # ties: the least motion
+        best = int(low[np.lexsort((cost[low], motion))[0]])
         why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
     elapsed = time.perf_counter() - start
     if best == 0 and why is Why.INTERVENING:  # cannot happen: row 0 is the user's (unsafe)

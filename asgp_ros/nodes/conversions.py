@@ -14,12 +14,13 @@ import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, TwistStamped
-from nav_msgs.msg import Odometry, Path
+from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from numpy.typing import ArrayLike, NDArray
-from sensor_msgs.msg import CameraInfo, Image, Joy
+from sensor_msgs.msg import CameraInfo, Image, Joy, LaserScan
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
+from asgp_ros.core import collision
 from asgp_ros.core.online import MAX_PLAN_STEPS
 from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 
@@ -459,4 +460,75 @@ def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov:
     msg = odometry_from_pose(t, x, y, yaw, v, omega, frame_id, child_frame_id)
     msg.pose.covariance = P6.reshape(-1).tolist()
     msg.twist.covariance = T6.reshape(-1).tolist()
+    return msg
+
+
+# --------------------------------------------------------------------------------------
+# Shared control: LaserScan, OccupancyGrid
+
+
+def scan_from_msg(msg: LaserScan) -> collision.Scan:
+    """sensor_msgs/LaserScan -> :class:`asgp_ros.core.collision.Scan` (stamp in seconds).
+
+    Raises:
+        ValueError (:class:`~asgp_ros.core.collision.CollisionError`): no beams, more than
+            100,000, non-finite limits or angles.
+    """
+    return collision.Scan(np.asarray(msg.ranges, dtype=np.float64), float(msg.angle_min),
+                          float(msg.angle_increment), float(msg.range_min),
+                          float(msg.range_max), stamp_to_seconds(msg.header.stamp))
+
+
+def grid_from_msg(msg: OccupancyGrid) -> collision.Grid:
+    """nav_msgs/OccupancyGrid -> :class:`asgp_ros.core.collision.Grid` (origin x, y, yaw).
+
+    Raises:
+        ValueError: ``data`` does not hold ``width`` x ``height`` cells, or the grid is
+            refused by :class:`~asgp_ros.core.collision.Grid`.
+    """
+    w, h = int(msg.info.width), int(msg.info.height)
+    if w * h == 0 or len(msg.data) != w * h:
+        raise ValueError(f"map data holds {len(msg.data)} cells, info says {w} x {h}")
+    o = msg.info.origin
+    q = o.orientation
+    yaw = float(quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w)))
+    data = np.asarray(msg.data, dtype=np.int8).reshape(h, w)
+    return collision.Grid(data, float(msg.info.resolution),
+                          (float(o.position.x), float(o.position.y), yaw))
+
+
+def scan_to_msg(ranges: ArrayLike, angle_min: float, angle_increment: float,
+                range_min: float, range_max: float, stamp: float, frame_id: str,
+                scan_time: float = 0.0) -> LaserScan:
+    """A scan's arrays -> sensor_msgs/LaserScan (float32 ranges, REP-117 inf/NaN kept)."""
+    msg = LaserScan()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    r = np.asarray(ranges, dtype=np.float32)
+    msg.angle_min = float(angle_min)
+    msg.angle_increment = float(angle_increment)
+    msg.angle_max = float(angle_min + angle_increment * (r.size - 1))
+    msg.range_min, msg.range_max = float(range_min), float(range_max)
+    msg.scan_time = float(scan_time)
+    msg.ranges = r.tolist()
+    return msg
+
+
+def grid_to_msg(data: ArrayLike, resolution: float, origin: tuple[float, float, float],
+                stamp: float, frame_id: str) -> OccupancyGrid:
+    """[height, width] int8 cells -> nav_msgs/OccupancyGrid."""
+    d = np.asarray(data, dtype=np.int8)
+    if d.ndim != 2:
+        raise ValueError(f"a grid must be [height, width], got {d.shape}")
+    msg = OccupancyGrid()
+    msg.header.stamp = seconds_to_stamp(stamp)
+    msg.header.frame_id = frame_id
+    msg.info.map_load_time = msg.header.stamp
+    msg.info.resolution = float(resolution)
+    msg.info.height, msg.info.width = int(d.shape[0]), int(d.shape[1])
+    msg.info.origin.position.x, msg.info.origin.position.y = float(origin[0]), float(origin[1])
+    x, y, z, w = _quaternion(origin[2])
+    o = msg.info.origin.orientation
+    o.x, o.y, o.z, o.w = x, y, z, w
+    msg.data = d.reshape(-1).tolist()
     return msg

@@ -322,7 +322,8 @@ class Chair:
 
     @classmethod
     def for_room(cls, room: Room, seed: int = 0,
-                 params: Mapping[str, ChairParams] | None = None) -> Chair:
+                 params: Mapping[str, ChairParams] | None = None,
+                 blocked: Callable[[float, float, float], bool] | None = None) -> Chair:
         """The preset chair on the room's floor (per-surface ``params`` override presets).
 
         A room with patches (the hybrid atrium) gets a chair that looks up the floor under
@@ -332,8 +333,8 @@ class Chair:
         if params:
             presets.update(params)
         if room.patches:
-            return cls(presets, seed=seed, surface_at=room.surface_at)
-        return cls(presets[room.base_surface], seed=seed)
+            return cls(presets, seed=seed, surface_at=room.surface_at, blocked=blocked)
+        return cls(presets[room.base_surface], seed=seed, blocked=blocked)
 
     # ------------------------------------------------------------------ state
     def reset(self, pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> ChairState:

@@ -1,0 +1,530 @@
+"""ROS 2 node: the shared-control safety layer.
+
+Subscribes ``joy`` (the user's stick, from the bridge), the VO (``vo/twist``, or
+nav_msgs/Odometry with ``vo_type: odometry``), ``scan`` (sensor_msgs/LaserScan) and/or
+``map`` (nav_msgs/OccupancyGrid, in the odometry frame); keeps its own
+:class:`~asgp_ros.core.online.Predictor`. At every model grid step it predicts the user's
+path with the stick held and the probability of contact within the horizon
+(:mod:`asgp_ros.core.collision`); above ``threshold`` it finds the smallest change of the
+command that brings it back under (:func:`asgp_ros.core.shared_control.decide`) and
+publishes it on ``joy_override`` at ``override_rate_hz`` while it is needed, and nothing
+once the danger has passed (while it intervenes, every new scan is judged at once): the
+bridge stops writing, and the board's 200 ms watchdog
+hands the chair back to the user. The firmware also ignores an override while the user's
+stick is neutral, and this node never sends one then.
+
+Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per decision:
+what was done and why, probability before and after, change, solve time) and
+``diagnostics``.
+
+The predictor is fed the command the chair actually received: the override while one is
+being sent and the user's stick is out of neutral (what the firmware applies), else the
+user's stick.
+
+Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
+map, or an override older than ``hold_s`` (the node stalled) means no override.
+
+Run: ``shared_control_node --ros-args --params-file config/shared_control.yaml
+-p model_path:=M.npz``
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import TwistStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import try_shutdown
+from sensor_msgs.msg import Joy, LaserScan
+from threadpoolctl import threadpool_limits
+
+from asgp_ros import topics
+from asgp_ros.bags import parse_joy_axes
+from asgp_ros.core import collision
+from asgp_ros.core.modelfile import ModelFileError, load_model
+from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.shared_control import (
+    CollisionCheck,
+    Decision,
+    SharedControlConfig,
+    Why,
+    decide,
+    is_neutral,
+)
+from asgp_ros.core.unicycle import integrate_path
+from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.parameters import declare
+from asgp_ros.paramspec import ParamSpec, check_values
+
+NODE_NAME = "shared_control_node"
+
+#: Longest wait of one executor slice (s): how soon a SIGINT or SIGTERM is acted on.
+SPIN_SLICE_S = 0.05
+
+#: The board's override watchdog (s): an override older than this no longer drives.
+BOARD_WATCHDOG_S = 0.2
+
+
+class StartupError(Exception):
+    """The node cannot start (bad model file, inconsistent parameters)."""
+
+
+def _spec(name: str, default: Any, text: str, low: float | None = None,
+          high: float | None = None) -> ParamSpec:
+    return ParamSpec(name, default, text, low, high)
+
+
+PARAMS: tuple[ParamSpec, ...] = (
+    _spec("model_path", "", "model file from `asgp train` (required)"),
+    _spec("horizon_s", 2.0, "prediction horizon (s)", 0.2, 10.0),
+    _spec("threshold", 0.05, "probability of contact within the horizon above which the "
+          "layer intervenes", 0.001, 0.5),
+    _spec("neutral_deadband", 0.05, "the stick is neutral within this deflection", 0.0, 0.45),
+    _spec("progress_weight", 0.5, "weight of forward progress given up (per m^2) against the "
+          "command change squared", 0.0, 100.0),
+    _spec("obstacles", "laser", "obstacle source: 'laser' (scan_topic), 'grid' (map_topic) "
+          "or 'both'"),
+    _spec("joy_topic", topics.JOY, "the user's joystick (sensor_msgs/Joy)"),
+    _spec("joy_axes", "0,1", "Joy axes of the forward and turn deflections, 'FWD,TURN'"),
+    _spec("vo_topic", topics.VO_TWIST, "VO input (TwistStamped, or Odometry with vo_type "
+          "odometry)"),
+    _spec("vo_type", "twist", "'twist' or 'odometry' (needed with a map)"),
+    _spec("scan_topic", topics.SCAN, "laser scan (sensor_msgs/LaserScan)"),
+    _spec("map_topic", topics.MAP, "occupancy grid in the odometry frame "
+          "(nav_msgs/OccupancyGrid)"),
+    _spec("odom_frame", "odom", "frame of the odometry poses; a map must be in it"),
+    _spec("override_topic", topics.JOY_OVERRIDE, "override output (sensor_msgs/Joy)"),
+    _spec("override_rate_hz", 20.0, "rate at which an override is re-sent while needed",
+          5.0, 100.0),
+    _spec("hold_s", 0.35, "an override is re-sent at most this long after its decision",
+          0.05, 1.0),
+    _spec("joy_timeout_s", 0.3, "no intervention when the joystick is older than this",
+          0.01, 5.0),
+    _spec("vo_timeout_s", 0.5, "no intervention when the VO is older than this", 0.01, 5.0),
+    _spec("scan_timeout_s", 0.3, "a scan older than this is no obstacle source", 0.01, 5.0),
+    _spec("laser_x", 0.3, "laser position in the base frame, x (m)", -5.0, 5.0),
+    _spec("laser_y", 0.0, "laser position in the base frame, y (m)", -5.0, 5.0),
+    _spec("laser_yaw", 0.0, "laser yaw in the base frame (rad)", -math.pi, math.pi),
+    _spec("footprint_length", collision.DEFAULT_FOOTPRINT.length,
+          "chair footprint length along x (m)", 0.1, 5.0),
+    _spec("footprint_width", collision.DEFAULT_FOOTPRINT.width,
+          "chair footprint width (m)", 0.1, 5.0),
+    _spec("footprint_offset", collision.DEFAULT_FOOTPRINT.offset,
+          "footprint centre ahead of the base frame's origin (m)", -2.5, 2.5),
+    _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
+          "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
+    _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
+)
+
+
+@dataclass(frozen=True)
+class SharedControlParams:
+    """The node's parameters, validated on construction (config/shared_control.yaml)."""
+
+    model_path: str
+    horizon_s: float
+    threshold: float
+    neutral_deadband: float
+    progress_weight: float
+    obstacles: str
+    joy_topic: str
+    joy_axes: str
+    vo_topic: str
+    vo_type: str
+    scan_topic: str
+    map_topic: str
+    odom_frame: str
+    override_topic: str
+    override_rate_hz: float
+    hold_s: float
+    joy_timeout_s: float
+    vo_timeout_s: float
+    scan_timeout_s: float
+    laser_x: float
+    laser_y: float
+    laser_yaw: float
+    footprint_length: float
+    footprint_width: float
+    footprint_offset: float
+    margin: float
+    diagnostics_period_s: float
+
+    def __post_init__(self) -> None:
+        if not self.model_path:
+            raise ValueError("model_path is required (a model file from `asgp train`)")
+        if self.obstacles not in ("laser", "grid", "both"):
+            raise ValueError(f"obstacles must be 'laser', 'grid' or 'both', got "
+                             f"{self.obstacles!r}")
+        if self.vo_type not in ("twist", "odometry"):
+            raise ValueError(f"vo_type must be 'twist' or 'odometry', got {self.vo_type!r}")
+        if self.obstacles != "laser" and self.vo_type != "odometry":
+            raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
+        parse_joy_axes(self.joy_axes)
+        self.config()
+
+    def config(self) -> SharedControlConfig:
+        return SharedControlConfig(threshold=self.threshold,
+                                   neutral_deadband=self.neutral_deadband,
+                                   progress_weight=self.progress_weight)
+
+    def footprint(self) -> collision.Footprint:
+        return collision.Footprint(self.footprint_length, self.footprint_width,
+                                   self.footprint_offset).grown(self.margin)
+
+
+def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
+    """Pose after ``dt`` seconds (negative: before) at the constant twist (v, w)."""
+    if abs(dt) < 1e-9:
+        return (0.0, 0.0, 0.0)
+    end = integrate_path(np.array([[v, w], [v, w]]), abs(dt))[-1]
+    pose = (float(end[0]), float(end[1]), float(end[2]))
+    return pose if dt > 0.0 else collision.inverse_pose(pose)
+
+
+class SharedControlNode(Node):
+    """The shared-control layer (module docstring).
+
+    Raises:
+        StartupError: missing or invalid model file, invalid parameters.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        try:
+            self.params = SharedControlParams(**check_values(PARAMS, declare(self, PARAMS)))
+        except (ValueError, TypeError) as exc:
+            self.destroy_node()
+            raise StartupError(f"invalid parameters: {exc}") from exc
+        p = self.params
+        try:
+            self.model = load_model(p.model_path)
+        except (ModelFileError, OSError, ValueError) as exc:
+            self.destroy_node()
+            raise StartupError(f"cannot load the model: {exc}") from exc
+        rate = float(self.model.resample_config.rate_hz)
+        self.joy_axes = parse_joy_axes(p.joy_axes)
+        self.predictor = Predictor(self.model, PredictorConfig(
+            horizon_steps=max(1, round(p.horizon_s * rate)), joy_timeout_s=p.joy_timeout_s,
+            vo_timeout_s=p.vo_timeout_s))
+        self.config = p.config()
+        self.footprint = p.footprint()
+
+        self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
+        self._scan: tuple[float, collision.Scan] | None = None  # (arrival, scan)
+        self._grid: collision.DistanceField | None = None
+        self._grid_problem = ""
+        self._decision: Decision | None = None
+        self._decision_t = -math.inf  # node clock of the decision
+        self._last_step: int | None = None
+        self._sent_t = -math.inf  # node clock of the newest override sent
+        self._sent: np.ndarray | None = None
+        self._overrides_sent = 0
+        self._interventions = 0  # decisions that changed the command
+        self._decisions = 0
+        self._solve_ms: deque[float] = deque(maxlen=1000)
+        self._bad_messages = 0
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.override_pub = self.create_publisher(Joy, p.override_topic, reliable)
+        self.status_pub = self.create_publisher(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
+                                                reliable)
+        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        if p.vo_type == "twist":
+            self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
+                                     qos_profile_sensor_data)
+        else:
+            self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
+                                     qos_profile_sensor_data)
+        if p.obstacles in ("laser", "both"):
+            self.create_subscription(LaserScan, p.scan_topic, self._on_scan,
+                                     qos_profile_sensor_data)
+        if p.obstacles in ("grid", "both"):
+            self.create_subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
+        self.create_timer(1.0 / p.override_rate_hz, self._send_override)
+        self.create_timer(1.0 / rate, self._on_watchdog)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(
+            f"model {p.model_path}; horizon {self.predictor.config.horizon_steps} steps; "
+            f"threshold {p.threshold}; obstacles from {p.obstacles}; overrides on "
+            f"{p.override_topic}")
+
+    # ---- time and input ---------------------------------------------------------------
+
+    def _now(self) -> float | None:
+        ns = self.get_clock().now().nanoseconds
+        return None if ns == 0 else ns * 1e-9
+
+    @staticmethod
+    def _stamp(t: float, now: float) -> float:
+        return t if t > 0.0 else now
+
+    def _applied(self, user: np.ndarray, now: float) -> np.ndarray:
+        """What the firmware drives with: the override while fresh and the stick is out of
+        neutral, else the stick."""
+        if (self._sent is not None and now - self._sent_t <= BOARD_WATCHDOG_S
+                and not is_neutral(user, self.config.neutral_deadband)):
+            return self._sent
+        return user
+
+    def _on_joy(self, msg: Joy) -> None:
+        now = self._now()
+        if now is None:
+            return
+        try:
+            t, (fwd, turn) = conv.joy_to_sample(msg, self.joy_axes.forward, self.joy_axes.turn)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
+            return
+        t = self._stamp(t, now)
+        user = np.array([fwd, turn])
+        if not np.all(np.isfinite(user)):
+            self._bad_messages += 1
+            return
+        self._user = (t, user)
+        if is_neutral(user, self.config.neutral_deadband):
+            self._stop_overriding()  # at once, not at the next decision
+        self.predictor.feed_joy(t, self._applied(user, now))
+
+    def _on_twist(self, msg: TwistStamped) -> None:
+        now = self._now()
+        if now is None:
+            return
+        t, vel = conv.twist_stamped_to_sample(msg)
+        if self.predictor.feed_vo(self._stamp(t, now), vel):
+            self._maybe_decide(now)
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        now = self._now()
+        if now is None:
+            return
+        t, vel, ok, pose = conv.odometry_to_sample(msg)
+        t = self._stamp(t, now)
+        if ok:
+            self.predictor.feed_pose(t, *pose)
+        if self.predictor.feed_vo(t, vel, ok=ok):
+            self._maybe_decide(now)
+
+    def _on_scan(self, msg: LaserScan) -> None:
+        now = self._now()
+        if now is None:
+            return
+        try:
+            scan = conv.scan_from_msg(msg)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        self._scan = (now, scan)
+        if self._decision is not None and self._decision.intervening:
+            self._decide(now)  # while intervening, every scan is judged at once
+
+    def _on_map(self, msg: OccupancyGrid) -> None:
+        if msg.header.frame_id and msg.header.frame_id != self.params.odom_frame:
+            self._grid, self._grid_problem = None, (
+                f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
+                f"{self.params.odom_frame!r}")
+            self.get_logger().error(self._grid_problem)
+            return
+        try:
+            grid = conv.grid_from_msg(msg)
+            self._grid = collision.DistanceField.from_grid(grid)
+            self._grid_problem = ""
+        except ValueError as exc:
+            self._bad_messages += 1
+            self._grid, self._grid_problem = None, f"bad map: {exc}"
+            self.get_logger().error(self._grid_problem)
+
+    # ---- deciding -----------------------------------------------------------------------
+
+    def _check_for(self, now: float) -> Callable[[Prediction], CollisionCheck | None]:
+        """The collision check of the fresh obstacle sources for a prediction, or None.
+
+        A scan is placed relative to the path's origin with the chair's motion between
+        the scan's stamp and t0 (the velocity at t0, held: a few centimetres); a map needs
+        the odometry pose at t0 (``Prediction.origin``)."""
+        p = self.params
+
+        def build(pred: Prediction) -> CollisionCheck | None:
+            checks: list[CollisionCheck] = []
+            if self._scan is not None:
+                arrival, scan = self._scan
+                stamp = scan.stamp if scan.stamp > 0.0 else arrival
+                if now - stamp <= p.scan_timeout_s:
+                    v, w = (float(x) for x in pred.vel_past[-1])
+                    motion = _motion(v, w, pred.t0 - stamp)
+                    checks.append(collision.scan_check(
+                        scan, self.footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
+                        base_motion=motion))
+            if self._grid is not None and pred.origin is not None:
+                origin = (float(pred.origin[0]), float(pred.origin[1]), float(pred.origin[2]))
+                checks.append(collision.grid_check(self._grid, self.footprint, origin=origin))
+            if not checks:
+                return None
+            if len(checks) == 1:
+                return checks[0]
+
+            def both(pose: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                (s0, w0), (s1, w1) = checks[0](pose, cov), checks[1](pose, cov)
+                return np.maximum(s0, s1), np.maximum(w0, w1)
+            return both
+
+        return build
+
+    def _maybe_decide(self, now: float) -> None:
+        step = self.predictor.ready_step()
+        if step is None or (self._last_step is not None and step <= self._last_step):
+            return
+        self._last_step = step
+        self._decide(now)
+
+    def _decide(self, now: float) -> None:
+        user = self._user[1] if self._user is not None else np.full(2, np.nan)
+        decision = decide(self.predictor, now, user, None, self.config,
+                          check_for=self._check_for(now))
+        self._decision, self._decision_t = decision, now
+        self._decisions += 1
+        if decision.solve_s > 0.0:
+            self._solve_ms.append(1e3 * decision.solve_s)
+        if decision.intervening:
+            self._interventions += 1
+            self._send_override()
+        else:
+            self._stop_overriding()
+        self.status_pub.publish(self._status(decision))
+
+    def _on_watchdog(self) -> None:
+        """At the model rate: stale inputs end an intervention even when no new step
+        arrives, and without new steps the layer still decides (and says why not)."""
+        now = self._now()
+        if now is None:
+            return
+        period = self.predictor.dt
+        late = now - self._decision_t > 1.5 * period
+        intervening = self._decision is not None and self._decision.intervening
+        if late or (intervening and (self.predictor.status(now) is not None
+                                     or now - self._decision_t > self.params.hold_s)):
+            self._decide(now)
+
+    # ---- output -------------------------------------------------------------------------
+
+    def _stop_overriding(self) -> None:
+        if self._decision is not None and self._decision.intervening:
+            self._decision = None
+        self._sent = None
+
+    def _send_override(self) -> None:
+        now = self._now()
+        d = self._decision
+        if now is None or d is None or d.command is None:
+            return
+        user = self._user
+        if (user is None or now - user[0] > self.params.joy_timeout_s
+                or is_neutral(user[1], self.config.neutral_deadband)
+                or now - self._decision_t > self.params.hold_s):
+            self._stop_overriding()
+            return
+        self.override_pub.publish(conv.joy_from_sample(now, float(d.command[0]),
+                                                       float(d.command[1])))
+        self._sent, self._sent_t = d.command, now
+        self._overrides_sent += 1
+
+    def _status(self, d: Decision) -> DiagnosticStatus:
+        values = {
+            "why": d.why.value,
+            "user_forward": f"{d.user[0]:.3f}",
+            "user_turn": f"{d.user[1]:.3f}",
+            "command_forward": f"{d.command[0]:.3f}" if d.command is not None else "",
+            "command_turn": f"{d.command[1]:.3f}" if d.command is not None else "",
+            "p_before": f"{d.p_user:.4f}",
+            "p_after": f"{d.p_command:.4f}",
+            "change": f"{d.change:.3f}",
+            "solve_ms": f"{1e3 * d.solve_s:.2f}",
+            "candidates": str(d.candidates),
+        }
+        level = "OK" if d.why in (Why.CLEAR, Why.NEUTRAL, Why.INTERVENING) else "WARN"
+        return conv.diagnostic_status(f"{self.get_name()}: decision", level,
+                                      f"{d.why.value}: {d.detail}", values=values)
+
+    def diagnostic_status(self) -> DiagnosticStatus:
+        d = self._decision
+        why = d.why.value if d is not None else "starting"
+        solve = np.asarray(self._solve_ms)
+        values = {
+            "why": why,
+            "decisions": str(self._decisions),
+            "interventions": str(self._interventions),
+            "overrides_sent": str(self._overrides_sent),
+            "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
+            "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
+            "scan": "none" if self._scan is None else "received",
+            "map": self._grid_problem or ("received" if self._grid is not None else "none"),
+            "bad_messages": str(self._bad_messages),
+        }
+        stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
+                                            Why.CHECK_FAILED)
+        message = "no decision yet" if d is None else f"{d.why.value}: {d.detail}"
+        return conv.diagnostic_status(f"{self.get_name()}: shared control",
+                                      "WARN" if stale or d is None else "OK", message,
+                                      hardware_id=self.params.model_path, values=values)
+
+    def _publish_diagnostics(self) -> None:
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [self.diagnostic_status()]
+        self.diag_pub.publish(msg)
+
+
+def main(args: list[str] | None = None) -> int:
+    threadpool_limits(limits=1)  # small matrices: BLAS threads only add contention
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop: list[int] = []
+
+    def on_signal(signum: int, _frame: object) -> None:
+        stop.append(signum)
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    executor = SingleThreadedExecutor()
+    node: SharedControlNode | None = None
+    try:
+        node = SharedControlNode()
+        executor.add_node(node)
+        while not stop:
+            executor.spin_once(timeout_sec=SPIN_SLICE_S)
+    except StartupError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
+        return 1
+    finally:
+        executor.shutdown()
+        if node is not None:
+            node.destroy_node()
+        try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,197 @@
+"""A simulated drive with and without the shared-control layer, offline and fast.
+
+The closed loop of the live system, in one process and faster than real time, for the
+same seed with the layer on and off:
+
+* the user (:class:`~asgp_ros.sim.driver.Driver`, inattentive if asked) moves the stick;
+* the board runs the firmware's rules (:class:`asgp_ros.serial.safety.Safety`: passthrough,
+  overrides only while fresh and only while the stick is out of neutral, 200 ms
+  watchdog); the chair (:class:`~asgp_ros.sim.chair.Chair`) follows its output and stops
+  against the furniture, counting contacts;
+* the layer sees what the nodes see: the stick as the bridge reports it (50 Hz), the
+  velocity with VO-like noise (5 Hz), the scanner (:class:`~asgp_ros.sim.lidar.Lidar`,
+  10 Hz); it decides at every model grid step
+  (:func:`asgp_ros.core.shared_control.decide`), and while it intervenes its override is
+  written to the board every 50 ms, as the bridge does.
+
+The result counts what the demo report shows: contacts, minimum clearance, interventions
+(count, duration, mean change of the command), the share of time the user's command
+passed untouched, and the decision's solve time.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from asgp_ros.core import collision
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
+from asgp_ros.core.unicycle import integrate_path
+from asgp_ros.serial import safety as fw
+from asgp_ros.serial.protocol import Mode
+from asgp_ros.sim.chair import Chair
+from asgp_ros.sim.driver import Driver, DriverParams
+from asgp_ros.sim.lidar import Lidar, LidarConfig
+from asgp_ros.sim.world import room_for_surface
+
+STEP_S = 0.01
+JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
+VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
+
+
+@dataclass
+class DriveResult:
+    """What a drive did (see the module docstring)."""
+
+    seconds: float
+    layer: bool
+    contacts: int = 0
+    min_clearance_m: float = math.inf
+    interventions: int = 0
+    intervention_s: float = 0.0
+    changes: list[float] = field(default_factory=list)
+    untouched_share: float = 1.0
+    solve_ms: list[float] = field(default_factory=list)
+    decisions: dict[str, int] = field(default_factory=dict)
+    contact_points: list[tuple[float, float]] = field(default_factory=list)
+    intervention_points: list[tuple[float, float]] = field(default_factory=list)
+    path: list[tuple[float, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float | int | bool]:
+        solve = np.asarray(self.solve_ms) if self.solve_ms else np.full(1, np.nan)
+        return {
+            "layer": self.layer, "minutes": round(self.seconds / 60.0, 2),
+            "contacts": self.contacts, "min_clearance_m": round(self.min_clearance_m, 3),
+            "interventions": self.interventions,
+            "intervention_s": round(self.intervention_s, 1),
+            "mean_change": round(float(np.mean(self.changes)), 3) if self.changes else 0.0,
+            "untouched_share": round(self.untouched_share, 4),
+            "solve_p50_ms": round(float(np.nanpercentile(solve, 50)), 2),
+            "solve_p99_ms": round(float(np.nanpercentile(solve, 99)), 2),
+        }
+
+
+def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
+    if abs(dt) < 1e-9:
+        return (0.0, 0.0, 0.0)
+    end = integrate_path(np.array([[v, w], [v, w]]), abs(dt))[-1]
+    pose = (float(end[0]), float(end[1]), float(end[2]))
+    return pose if dt > 0.0 else collision.inverse_pose(pose)
+
+
+def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
+          inattention: float = 0.1, surface: str = "tile",
+          config: SharedControlConfig | None = None, horizon_s: float = 2.0,
+          lidar: LidarConfig | None = None, margin: float = 0.05) -> DriveResult:
+    """One drive (module docstring); the same ``seed`` gives the same user and floor."""
+    config = config or SharedControlConfig()
+    room = room_for_surface(surface)
+    ss = np.random.SeedSequence([seed, 21])
+    s_chair, s_driver, s_scan, s_vo = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
+    chair = Chair.for_room(room, seed=s_chair, blocked=room.contact)
+    state = chair.reset((0.0, 0.0, 0.0))
+    driver = Driver(s_driver, room, params=DriverParams(inattention=inattention))
+    scanner = Lidar(room, lidar, seed=s_scan)
+    vo_rng = np.random.default_rng(s_vo)
+    cal = fw.default_calibration()
+    board = fw.Safety()
+    board.set_mode(Mode.OVERRIDE if layer else Mode.PASSTHROUGH, 0)
+    rate = float(model.resample_config.rate_hz)
+    predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
+    mount = scanner.config.mount
+    footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
+
+    out = DriveResult(seconds=seconds, layer=layer)
+    stick = np.zeros(2)
+    scan: collision.Scan | None = None
+    decision: Decision | None = None
+    decision_t = -math.inf
+    sent: np.ndarray | None = None
+    last_step: int | None = None
+    overriding_steps = 0
+    active_before = False
+    n_steps = round(seconds / STEP_S)
+    for n in range(n_steps):
+        t = n * STEP_S
+        now_ms = round(t * 1000)
+        if n % JOY_EVERY == 0:
+            stick = driver.command(t, state)
+        raw = tuple(int(min(1023, max(0, round(c.adc_neutral + min(1.0, max(-1.0, float(d)))
+                                                  * c.adc_span))))
+                    for c, d in zip(cal, stick, strict=True))
+        user = np.array([cal[0].adc_to_permille(raw[0]), cal[1].adc_to_permille(raw[1])]) \
+            / 1000.0
+
+        if layer:
+            board.host_alive(now_ms)
+            if n % SCAN_EVERY == 0:
+                r = scanner.scan(state.x, state.y, state.theta)
+                scan = collision.Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min,
+                                      r.range_max, stamp=t)
+            if decision is not None and decision.command is not None and \
+                    t - decision_t <= 0.35 and not is_neutral(user, config.neutral_deadband):
+                if n % OVERRIDE_EVERY == 0:
+                    c = decision.command
+                    board.set_override(round(1000 * c[0]), round(1000 * c[1]),
+                                       now_ms)
+                    sent = c
+            else:
+                sent = None
+        output = board.step(cal, raw, now_ms)
+        active = bool(output.status & fw.Status.OVERRIDE_ACTIVE)
+        applied = (cal[0].dac_to_deflection(output.out_code[0]),
+                   cal[1].dac_to_deflection(output.out_code[1]))
+        if active:
+            overriding_steps += 1
+            out.intervention_s += STEP_S
+            if not active_before:
+                out.interventions += 1
+                out.intervention_points.append((state.x, state.y))
+        active_before = active
+        contacts_before = chair.contacts
+        state = chair.step(applied, STEP_S)
+        if chair.contacts > contacts_before:
+            out.contact_points.append((state.x, state.y))
+        out.min_clearance_m = min(out.min_clearance_m, room.footprint_clearance(
+            state.x, state.y, state.theta) - room.furniture_band)
+        if n % 50 == 0:
+            out.path.append((state.x, state.y))
+
+        if not layer:
+            continue
+        # the layer's inputs, as the nodes receive them
+        if n % JOY_EVERY == 0:
+            fed = sent if (sent is not None and active) else user
+            predictor.feed_joy(t, fed)
+        if n % VO_EVERY == 3:
+            v = state.v + vo_rng.normal(0.0, VO_NOISE[0])
+            w = state.omega + vo_rng.normal(0.0, VO_NOISE[1])
+            predictor.feed_vo(t, (v, w))
+            step = predictor.ready_step()
+            if step is not None and (last_step is None or step > last_step):
+                last_step = step
+
+                def check_for(pred: Prediction, scan: collision.Scan | None = scan,
+                              t: float = t
+                              ) -> collision.CollisionCheck | None:
+                    if scan is None or t - scan.stamp > 0.3:
+                        return None
+                    v0, w0 = (float(x) for x in pred.vel_past[-1])
+                    return collision.scan_check(scan, footprint, mount=mount,
+                                                base_motion=_motion(v0, w0, pred.t0 - scan.stamp))
+
+                start = time.perf_counter()
+                decision = decide(predictor, t, user, None, config, check_for=check_for)
+                out.solve_ms.append(1e3 * (time.perf_counter() - start))
+                decision_t = t
+                out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
+                if decision.command is not None:
+                    out.changes.append(decision.change)
+    out.contacts = chair.contacts
+    out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
+    return out

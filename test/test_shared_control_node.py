@@ -1,0 +1,283 @@
+"""shared_control_node: in-process on a simulated clock, and across processes with the
+serial bridge and the simulated board (the board's watchdog hands the chair back when
+the node dies)."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticStatus
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Joy, LaserScan
+from test_predictor_node import model_file  # noqa: F401 (a fixture)
+
+from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.shared_control_node import SharedControlNode, StartupError
+
+pytestmark = pytest.mark.ros
+
+LASER_X = 0.3
+
+
+def wall_scan_msg(t: float, distance: float, beams: int = 541) -> LaserScan:
+    """A wall across the way, ``distance`` ahead of the scanner (inf beyond 8 m)."""
+    a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
+    ang = a0 + inc * np.arange(beams)
+    with np.errstate(divide="ignore"):
+        r = np.where(np.cos(ang) > 1e-9, distance / np.cos(ang), np.inf)
+    r = np.where(r > 8.0, np.inf, r)
+    return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, "laser")
+
+
+class Harness:
+    """The node on a simulated clock; a test node publishes joy, VO, scans and the clock."""
+
+    def __init__(self, context, model: str, **params) -> None:
+        overrides = [Parameter("model_path", value=model),
+                     Parameter("use_sim_time", value=True),
+                     Parameter("laser_x", value=LASER_X)]
+        overrides += [Parameter(k, value=v) for k, v in params.items()]
+        self.node = SharedControlNode(context=context, parameter_overrides=overrides)
+        import rclpy
+
+        self.test = rclpy.create_node("sc_test", context=context)
+        self.executor = SingleThreadedExecutor(context=context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.test)
+        t = self.test
+        self.clock_pub = t.create_publisher(Clock, "/clock", QoSProfile(depth=10))
+        self.joy_pub = t.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        from geometry_msgs.msg import TwistStamped
+
+        self.vo_pub = t.create_publisher(TwistStamped, "vo/twist", qos_profile_sensor_data)
+        self.scan_pub = t.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+        self.overrides: list[Joy] = []
+        self.status: list[DiagnosticStatus] = []
+        t.create_subscription(Joy, "joy_override", self.overrides.append, QoSProfile(depth=100))
+        t.create_subscription(DiagnosticStatus, "shared_control/status", self.status.append,
+                              QoSProfile(depth=100))
+        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in (
+            self.clock_pub, self.joy_pub, self.vo_pub, self.scan_pub))
+            and t.count_publishers("joy_override") > 0, what="discovery")
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.test.destroy_node()
+
+    def spin_until(self, cond, timeout: float = 5.0, what: str = "") -> None:
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.01)
+
+    def clock(self, t: float) -> None:
+        self.clock_pub.publish(Clock(clock=conv.seconds_to_stamp(t)))
+        ns = round(t * 1e9)
+        self.spin_until(lambda: self.node.get_clock().now().nanoseconds == ns, what="clock")
+
+    def drive(self, t_from: float, t_to: float, fwd: float = 0.8, wall: float | None = None,
+              vo: bool = True, scan: bool = True) -> None:
+        """Joystick at 20 Hz, VO at 5 Hz at the model's steady speed, scans at 10 Hz."""
+        stats = self.node.predictor.stats
+        rng = np.random.default_rng(int(t_from * 10))
+        for i in range(round((t_to - t_from) / 0.05)):
+            t = t_from + 0.05 * (i + 1)
+            self.clock(t)
+            n = stats.joy_samples
+            self.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
+            self.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+            if vo and i % 4 == 3:
+                n = stats.vo_samples
+                v = 0.9 * fwd + rng.normal(0.0, 0.003)
+                self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
+                self.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+            if scan and wall is not None and i % 2 == 1:
+                arrived = self.node._scan
+                self.scan_pub.publish(wall_scan_msg(t, wall))
+                self.spin_until(lambda a=arrived: self.node._scan is not a, what="scan")
+
+    def last(self) -> dict[str, str]:
+        return conv.diagnostic_values(self.status[-1]) if self.status else {}
+
+
+@pytest.fixture
+def harness(rclpy_context, model_file):  # noqa: F811
+    made: list[Harness] = []
+
+    def make(**params) -> Harness:
+        made.append(Harness(rclpy_context, model_file, **params))
+        return made[-1]
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def test_no_intervention_when_the_way_is_clear(harness):
+    h = harness()
+    h.drive(100.0, 104.0, wall=20.0)  # nothing within the scanner's 8 m
+    assert h.status and {conv.diagnostic_values(s)["why"] for s in h.status[-5:]} == {"clear"}
+    assert h.overrides == []
+    assert float(h.last()["p_before"]) == 0.0
+
+
+def test_an_intervention_slows_the_chair_before_a_wall(harness):
+    h = harness()
+    h.drive(100.0, 103.0, wall=20.0)
+    assert h.overrides == []
+    h.drive(103.0, 104.0, wall=1.6)  # the user's path runs into it within 2 s
+    last = h.last()
+    assert last["why"] == "intervening", last
+    assert float(last["p_before"]) > 0.05 >= float(last["p_after"])
+    assert float(last["command_forward"]) < 0.8 and float(last["change"]) > 0.0
+    assert h.overrides, "no override was sent"
+    fwd, turn = conv.joy_to_override(h.overrides[-1])
+    assert 0.0 <= fwd < 0.8 and (fwd, turn) == pytest.approx(
+        (float(last["command_forward"]), float(last["command_turn"])), abs=1e-3)
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert int(diag["interventions"]) >= 1 and diag["solve_p99_ms"] != "nan"
+    # the wall is gone (it was a person who stepped aside): the overrides stop with the
+    # first scan that shows it (at 104.1 s), not at the next grid step
+    h.drive(104.0, 105.0, wall=20.0)
+    assert h.last()["why"] == "clear"
+    assert max(conv.stamp_to_seconds(m.header.stamp) for m in h.overrides) < 104.1 + 1e-6
+
+
+def test_neutral_stick_never_commands_motion(harness):
+    h = harness()
+    h.drive(100.0, 103.0, fwd=0.0, wall=0.9)  # a wall right ahead, stick released
+    assert h.overrides == []
+    assert h.last()["why"] == "neutral_stick"
+
+
+def test_stale_scan_or_vo_means_no_intervention_with_a_diagnostic(harness):
+    h = harness(scan_timeout_s=0.3)
+    h.drive(100.0, 103.0, wall=1.6)
+    assert h.overrides and h.last()["why"] == "intervening"
+    # the scanner stops: within scan_timeout_s the layer stops judging and intervening
+    h.drive(103.0, 104.0, wall=1.6, scan=False)
+    assert h.last()["why"] == "no_obstacle_source"
+    n = len(h.overrides)
+    h.drive(104.0, 104.5, wall=1.6, scan=False)
+    assert len(h.overrides) == n
+    assert "no_obstacle_source" in h.node.diagnostic_status().message
+    # the VO stops (scans continue): no prediction, no intervention
+    h.drive(104.5, 106.0, wall=1.6, vo=False)
+    assert h.last()["why"] == "stale_input"
+    assert len(h.overrides) == n
+
+
+def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noqa: F811
+    with pytest.raises(StartupError, match="obstacles"):
+        SharedControlNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("obstacles", value="lidar")])
+    with pytest.raises(StartupError, match="vo_type"):
+        SharedControlNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("obstacles", value="grid")])
+    with pytest.raises(StartupError, match="model"):
+        SharedControlNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value="/nonexistent.npz")])
+    h = harness()
+    h.clock(100.0)
+    bad = wall_scan_msg(100.0, 2.0)
+    bad.ranges = []
+    h.scan_pub.publish(bad)
+    h.spin_until(lambda: h.node._bad_messages == 1, what="bad scan counted")
+    assert h.node._scan is None
+
+
+def test_the_board_hands_the_chair_back_when_the_node_dies(repo_root, model_file, tmp_path):  # noqa: F811
+    """Bridge and simulated board in their own processes (as on the chair), the layer in
+    its own: it overrides before a wall; SIGKILL it, and within the bridge's override
+    timeout plus the board's 200 ms watchdog the chair follows the user's stick again."""
+    import rclpy
+    from geometry_msgs.msg import TwistStamped
+
+    from asgp_ros.sim.board import SimulatedBoard
+
+    board = SimulatedBoard(lambda t: (0.8, 0.0), link_path=str(tmp_path / "joystick"))
+    board.start()
+    env = dict(os.environ, PYTHONPATH=str(repo_root))
+    logs = {name: open(tmp_path / f"{name}.log", "w")  # noqa: SIM115 (closed below)
+            for name in ("bridge", "layer")}
+    procs = {
+        "bridge": subprocess.Popen(
+            [sys.executable, "-m", "asgp_ros.nodes.serial_bridge_node", "--ros-args",
+             "-p", f"port:={board.port}"], env=env, stdout=logs["bridge"],
+            stderr=subprocess.STDOUT),
+        "layer": subprocess.Popen(
+            [sys.executable, "-m", "asgp_ros.nodes.shared_control_node", "--ros-args",
+             "-p", f"model_path:={model_file}", "-p", f"laser_x:={LASER_X}"], env=env,
+            stdout=logs["layer"], stderr=subprocess.STDOUT),
+    }
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("sc_e2e", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    vo_pub = node.create_publisher(TwistStamped, "vo/twist", qos_profile_sensor_data)
+    scan_pub = node.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+    joy: list[Joy] = []
+    node.create_subscription(Joy, "joy", joy.append, qos_profile_sensor_data)
+
+    def spin_until(cond, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        next_pub = 0.0
+        rng = np.random.default_rng(0)
+        while not cond():
+            for name, p in procs.items():
+                if p.poll() is not None and not (name == "layer" and killed):
+                    raise AssertionError(f"{name} exited: "
+                                         f"{(tmp_path / f'{name}.log').read_text()}")
+            assert time.monotonic() < deadline, f"timed out waiting for {what}"
+            now = time.monotonic()
+            if now >= next_pub:  # VO at 10 Hz, scans at 10 Hz: a wall 1.4 m ahead
+                next_pub = now + 0.1
+                t = node.get_clock().now().nanoseconds * 1e-9
+                vo_pub.publish(conv.twist_stamped_from_sample(t, 0.72 + rng.normal(0, 3e-3),
+                                                              0.0))
+                scan_pub.publish(wall_scan_msg(t, 1.4))
+            executor.spin_once(timeout_sec=0.01)
+
+    killed = False
+    try:
+        spin_until(lambda: len(joy) > 20 and board.output.override_active, 30.0,
+                   "the layer to override the board")
+        out = board.output
+        assert out.forward < out.user_forward - 0.05  # slower than the stick asks
+        procs["layer"].send_signal(signal.SIGKILL)
+        killed = True
+        t_kill = time.monotonic()
+        spin_until(lambda: not board.output.override_active, 3.0, "the board to revert")
+        assert time.monotonic() - t_kill < 0.15 + 0.2 + 0.6  # stale + watchdog + slack
+        assert board.output.forward == pytest.approx(board.output.user_forward, abs=2e-3)
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for f in logs.values():
+            f.close()
+        board.stop()
