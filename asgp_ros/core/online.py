@@ -47,10 +47,13 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.core import inverse
+from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import resample
@@ -658,6 +661,31 @@ class Predictor:
         out = self._rollout(joy_past, vel_past, future[None])
         return self._result(step, t0, joy_past, vel_past, future[None], out, from_plan,
                             batch=False)
+
+    def solve_inverse(self, target_xy: FloatArray, now: float, **options: Any
+                      ) -> tuple[Prediction, InverseResult | None]:
+        """The joystick sequence whose predicted path follows ``target_xy`` [k, 2] (positions
+        at t0 + i dt in the frame of the pose at t0), from the live buffers.
+
+        Returns:
+            (the window: ``ok`` with ``t0`` and ``step``, or why there is none; the
+            :class:`~asgp_ros.core.inverse.InverseResult`, None without a window).
+            ``options`` are those of :func:`asgp_ros.core.inverse.solve`.
+
+        Raises:
+            ValueError: a bad target or bad options (see ``solve``).
+        """
+        got = self._window(now)
+        if isinstance(got, Prediction):
+            return got, None
+        step, t0, joy_past, vel_past = got
+        result = inverse.solve(self.model, joy_past, vel_past, target_xy, **options)
+        k = result.joystick.shape[0]
+        window = Prediction(True, Reason.OK, "inverse", t0=t0, step=step, dt=self.dt,
+                            times=t0 + self.dt * np.arange(1, k + 1), pose=result.pose,
+                            pos_cov=result.pos_cov, joy_future=result.joystick,
+                            joy_past=joy_past, vel_past=vel_past)
+        return window, result
 
     def predict_batch(self, candidates: FloatArray, now: float) -> Prediction:
         """Paths for a batch of candidate future joystick sequences (for planners).
