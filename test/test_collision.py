@@ -206,7 +206,7 @@ def test_room_map_matches_the_geometry_and_the_scan():
 
 def test_the_chair_stops_at_the_furniture_and_counts_contacts():
     room = Room()
-    chair = Chair.for_room(room, seed=0, blocked=room.contact)
+    chair = Chair.for_room(room, seed=0, blocked=room.overlap)
     chair.reset((room.free_box[1] - 2.0, 0.0, 0.0))
     for _ in range(1000):  # 10 s full forward at the east furniture
         state = chair.step((1.0, 0.0), 0.01)
@@ -221,7 +221,7 @@ def test_the_chair_stops_at_the_furniture_and_counts_contacts():
 
 def _drive(params: DriverParams, seconds: float, seed: int = 3) -> tuple[int, int]:
     room = Room()
-    chair = Chair.for_room(room, seed=seed, blocked=room.contact)
+    chair = Chair.for_room(room, seed=seed, blocked=room.overlap)
     state = chair.reset((0.0, 0.0, 0.0))
     driver = Driver(seed, room, params=params)
     for n in range(int(seconds * 100)):

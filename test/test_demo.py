@@ -342,7 +342,7 @@ def _demo_children(demo_pid: int | None = None) -> list[str]:
 def demo_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     proc = subprocess.run(_demo_argv(out, "--minutes", "0.4", "--train-minutes", "2",
-                                     "--seed", "3"),
+                                     "--seed", "3", "--shared-control"),
                           env=_env(), capture_output=True, text=True, timeout=170)
     return proc, out
 
@@ -360,6 +360,13 @@ def test_demo_runs_end_to_end(demo_run):
     msgs = report["messages"]
     for topic in ("joy", "vo/twist", "predicted_path", "ground_truth/odom", "joy_plan"):
         assert msgs[topic] > 0, f"no {topic}"
+    # the shared-control layer ran on the simulated scanner; the report compares the drive
+    # with the same drive without it
+    shared = report["shared_control"]
+    assert int(shared["contacts_without_layer"]) >= 0 and int(shared["contacts_with_layer"]) >= 0
+    assert shared["solve_p50_ms"] not in ("n/a", "nan")
+    assert "## Shared control" in (out / "report.md").read_text()
+    assert (out / "logs" / "shared_control.log").exists()
     assert msgs["joy"] > 50 * 20  # ~100 Hz for 24 s
     assert msgs["predicted_path"] > 40  # ~5 Hz
     run = report["run"]

@@ -44,6 +44,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "UDP between processes)")
     p.add_argument("--no-plan", action="store_true",
                    help="publish no joy_plan: the predictor holds the last command")
+    p.add_argument("--shared-control", action="store_true",
+                   help="also run shared_control_node on the simulated laser scanner; the "
+                        "report compares the drive with the same drive without the layer")
+    p.add_argument("--inattention", type=float, default=None,
+                   help="probability that a bout of the simulated driver is inattentive "
+                        "(heads for the furniture, reacts late); default 0.1 with "
+                        "--shared-control, else 0")
     p.add_argument("--force", action="store_true",
                    help="replace the output of an earlier demo in --out (a directory the "
                         "demo wrote; anything else there is refused)")
@@ -64,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
         model=Path(args.model) if args.model else None, domain_id=args.domain_id,
         train_minutes=args.train_minutes, camera_rate_hz=args.camera_rate, width=w, height=h,
         plan=not args.no_plan, startup_timeout_s=args.startup_timeout, surface=args.surface,
-        force=args.force)
+        force=args.force, shared_control=args.shared_control,
+        inattention=args.inattention if args.inattention is not None
+        else (0.1 if args.shared_control else 0.0))
     try:
         return run_demo(opts, say=lambda line: print(line, flush=True))
     except DemoError as exc:

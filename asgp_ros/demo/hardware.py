@@ -17,7 +17,11 @@ simulator knows:
   the joystick the bridge will report at ``g + (r + 1) / plan_rate_hz`` (a look-ahead of
   the driver on a copy of the simulation, see :mod:`asgp_ros.demo.simhw`); ``plan_rows: 0``
   publishes no plan;
-* ``diagnostics``: simulation lag, camera and plan timing.
+* ``scan`` (sensor_msgs/LaserScan, ``laser_frame``) at ``scan_rate_hz`` from the simulated
+  2-D scanner (:mod:`asgp_ros.sim.lidar`), and ``map`` (nav_msgs/OccupancyGrid in
+  ``odom_frame``, transient local) once: what a shared-control layer looks at;
+* ``diagnostics``: simulation lag, camera and plan timing, the chair's contacts with the
+  furniture (the driver is inattentive with ``inattention`` > 0).
 
 Time: the drive starts, aligned to the plan grid, once the bridge publishes ``joy`` and the
 camera and plan topics have subscribers (or after ``start_timeout_s``); simulation time t
@@ -40,12 +44,12 @@ from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from nav_msgs.msg import Odometry
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image, Joy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image, Joy, LaserScan
 from trajectory_msgs.msg import JointTrajectory
 
 from asgp_ros import topics
@@ -54,6 +58,7 @@ from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snaps
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.paramspec import ParamValue
 from asgp_ros.sim.chair import ChairState
+from asgp_ros.sim.lidar import room_grid
 
 NODE_NAME = "demo_hardware"
 
@@ -80,10 +85,15 @@ class HardwareNodeParams:
     odom_frame: str = "odom"
     base_frame: str = "base_link"
     diagnostics_period_s: float = 1.0
+    inattention: float = 0.0
+    scan_rate_hz: float = 10.0
+    laser_frame: str = "laser"
 
     def __post_init__(self) -> None:
         HardwareConfig(seed=self.seed, surface=self.surface, width=self.width,
-                       height=self.height)
+                       height=self.height, inattention=self.inattention)
+        if not (math.isfinite(self.scan_rate_hz) and 0.0 <= self.scan_rate_hz <= 50.0):
+            raise ValueError(f"scan_rate_hz must be in [0, 50], got {self.scan_rate_hz}")
         for name, lo, hi in (("camera_rate_hz", 0.5, 60.0), ("truth_rate_hz", 1.0, 100.0),
                              ("plan_rate_hz", 0.5, 50.0), ("start_timeout_s", 0.0, 600.0),
                              ("diagnostics_period_s", 0.1, 60.0)):
@@ -119,6 +129,10 @@ _DESCRIPTIONS = {
     "odom_frame": ("frame of the ground-truth pose", None),
     "base_frame": ("child frame of the ground-truth odometry", None),
     "diagnostics_period_s": ("diagnostics period", (0.1, 60.0)),
+    "inattention": ("probability that a bout of the driver is inattentive (heads for the "
+                    "furniture, reacts late); 0 = an attentive driver", (0.0, 1.0)),
+    "scan_rate_hz": ("2-D laser scan rate; 0 = no scanner", (0.0, 50.0)),
+    "laser_frame": ("frame_id of the scans (the scanner's mount on the chair)", None),
 }
 
 
@@ -167,7 +181,8 @@ class HardwareNode(Node):
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params
         self.hw = SimulatedHardware(
-            HardwareConfig(seed=p.seed, surface=p.surface, width=p.width, height=p.height),
+            HardwareConfig(seed=p.seed, surface=p.surface, width=p.width, height=p.height,
+                           inattention=p.inattention),
             link_path=p.port or None)
         port = self.hw.start_board()
         self.get_logger().info(f"simulated joystick board on {port}")
@@ -181,6 +196,15 @@ class HardwareNode(Node):
         self.truth_pub = self.create_publisher(Odometry, topics.GROUND_TRUTH, reliable)
         self.plan_pub = self.create_publisher(JointTrajectory, topics.JOY_PLAN, reliable)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        self.scan_pub = self.create_publisher(LaserScan, topics.SCAN, sensor)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.map_pub = self.create_publisher(OccupancyGrid, topics.MAP, latched)
+        grid = room_grid(self.hw.room)
+        self.map_pub.publish(conv.grid_to_msg(grid.data, grid.resolution, grid.origin,
+                                              self.get_clock().now().nanoseconds * 1e-9,
+                                              p.odom_frame))
+        self.scans = 0
         self._joy_sub = self.create_subscription(Joy, topics.JOY, self._on_joy, sensor)
 
         self._joy_seen = False
@@ -203,6 +227,8 @@ class HardwareNode(Node):
         self.sim_error: BaseException | None = None
         self._start_timer = self.create_timer(0.1, self._check_start)
         self.create_timer(1.0 / p.camera_rate_hz, self._on_camera)
+        if p.scan_rate_hz > 0.0:
+            self.create_timer(1.0 / p.scan_rate_hz, self._on_scan)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
 
     # ---- start-up --------------------------------------------------------------------
@@ -327,6 +353,17 @@ class HardwareNode(Node):
                                                            image.shape[0], frame))
         self.frames += 1
 
+    def _on_scan(self) -> None:
+        if self._t_start is None:
+            return
+        state = self.hw.state
+        scan = self.hw.lidar.scan(state.x, state.y, state.theta)
+        t = self._stamp(round(state.t / STEP_S) * STEP_S)
+        self.scan_pub.publish(conv.scan_to_msg(
+            scan.ranges, scan.angle_min, scan.angle_increment, scan.range_min,
+            scan.range_max, t, self.params.laser_frame, 1.0 / self.params.scan_rate_hz))
+        self.scans += 1
+
     def _publish_diagnostics(self) -> None:
         running = self._t_start is not None and self.sim_error is None
         if self.sim_error is not None:
@@ -345,6 +382,8 @@ class HardwareNode(Node):
             "plans_skipped": self.plans_skipped, "plan_mean_ms": self.plan_time.mean(),
             "plan_max_ms": self.plan_time.max,
             "board_frames_dropped": 0 if self.hw.board is None else self.hw.board.frames_dropped,
+            "contacts": self.hw.contacts, "scans": self.scans,
+            "min_clearance_m": round(self.hw.min_clearance, 3),
         }
         status = conv.diagnostic_status(f"{self.get_name()}: simulation", level, msg,
                                         self.hw.port, values)

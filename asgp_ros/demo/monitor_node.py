@@ -57,6 +57,7 @@ TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.PREDICTED_PATH: (PathMsg, "nav_msgs/msg/Path", True),
     topics.PREDICTED_PATH_UNCERTAINTY: (MarkerArray, "visualization_msgs/msg/MarkerArray", True),
     topics.JOY_PLAN: (JointTrajectory, "trajectory_msgs/msg/JointTrajectory", True),
+    topics.JOY_OVERRIDE: (Joy, "sensor_msgs/msg/Joy", True),
     topics.DIAGNOSTICS: (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
     topics.CAMERA_INFO: (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
 }
@@ -113,6 +114,7 @@ class MonitorNode(Node):
                                                           topics.PREDICTED_PATH)}
         self.counts = dict.fromkeys(TOPICS, 0)
         self.diag: dict[str, DiagEntry] = {}
+        self.overrides: list[float] = []  # stamps of the shared-control layer's overrides
         self.vo_ok: bool | None = None
         self.vo_lost = 0
         self.first_truth_wall: float | None = None
@@ -204,6 +206,9 @@ class MonitorNode(Node):
              quaternion_to_yaw(m.pose.orientation.x, m.pose.orientation.y,
                                m.pose.orientation.z, m.pose.orientation.w))
             for m in cyl])
+
+    def _on_joy_override(self, msg: Joy, now: float) -> None:
+        self.overrides.append(conv.stamp_to_seconds(msg.header.stamp))
 
     def _on_joy_plan(self, msg: JointTrajectory, now: float) -> None:
         pass

@@ -92,6 +92,8 @@ class DemoOptions:
         surface: floor of the demo room.
         force: replace the output of an earlier demo at ``out`` (a directory carrying the
             demo's marker file); anything else at ``out`` is refused.
+        shared_control: also run ``shared_control_node`` on the simulated scanner.
+        inattention: the simulated driver's inattention (0 = attentive).
     """
 
     minutes: float = 2.0
@@ -108,6 +110,8 @@ class DemoOptions:
     startup_timeout_s: float = 120.0
     surface: str = "tile"
     force: bool = False
+    shared_control: bool = False
+    inattention: float = 0.0
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -129,6 +133,8 @@ class DemoOptions:
                             f"{self.startup_timeout_s}")
         if self.surface not in ("tile", "carpet", "hybrid"):
             raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
+        if not (math.isfinite(self.inattention) and 0.0 <= self.inattention <= 1.0):
+            raise DemoError(f"--inattention must be in [0, 1], got {self.inattention}")
 
 
 def package_root() -> Path:
@@ -245,6 +251,7 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
           "-p", f"camera_rate_hz:={float(opts.camera_rate_hz)}",
           "-p", f"width:={opts.width}", "-p", f"height:={opts.height}",
           "-p", f"plan_rows:={13 if opts.plan else 0}",
+          "-p", f"inattention:={float(opts.inattention)}",
           # drive anyway a while before the demo gives up, so that a silent node is
           # named from the data (what never arrived), not guessed
           "-p", f"start_timeout_s:={0.75 * float(opts.startup_timeout_s)}"]
@@ -255,7 +262,9 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
         ("vo", "asgp_ros.nodes.vo_node:main", ["--ros-args", *params("vo.yaml")]),
         ("predictor", "asgp_ros.nodes.predictor_node:main",
          ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}"]),
-    ]
+    ] + ([("shared_control", "asgp_ros.nodes.shared_control_node:main",
+           ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}"])]
+         if opts.shared_control else [])
 
 
 class Status:

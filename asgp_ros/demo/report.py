@@ -38,6 +38,7 @@ from asgp_ros.core.models import MotionModel
 from asgp_ros.core.rollout import rollout
 from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
+from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware
 from asgp_ros.fileio import atomic_path, atomic_write_text
 from asgp_ros.sim.world import Room, room_for_surface
 from asgp_ros.training import read_series
@@ -145,7 +146,8 @@ def _cm(x: float | None) -> str:
 
 
 def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
-             latencies: list[dict[str, Any]], extras: dict[str, Any]) -> str:
+             latencies: list[dict[str, Any]], extras: dict[str, Any],
+             shared: list[str] | None = None) -> str:
     lines = ["# asgp demo report", ""]
     o = state.options
     lines.append(
@@ -202,8 +204,61 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
         lines += ["", "Component timings from their diagnostics:", ""]
         for k, v in extras.items():
             lines.append(f"- {k}: {v}")
+    if shared:
+        lines += ["", "## Shared control", "", *shared]
     lines += ["", "![demo](demo.png)", ""]
     return "\n".join(lines)
+
+
+def contacts_without_layer(state: RunState) -> int:
+    """Contacts of the same drive (seed, floor, driver) without the layer: the simulated
+    hardware alone, offline, for the live drive's duration (the chair follows the stick
+    through the firmware's passthrough, as the live board does without overrides)."""
+    o = state.options
+    hw = SimulatedHardware(HardwareConfig(seed=int(o["seed"]), surface=str(o["surface"]),
+                                          inattention=float(o["inattention"])), board=False)
+    for _ in range(round(state.drive_seconds / STEP_S)):
+        hw.step()
+    return hw.contacts
+
+
+def shared_control_summary(state: RunState, monitor: MonitorNode
+                           ) -> tuple[list[str], dict[str, Any]]:
+    """The report's shared-control section (empty without the layer) and its figures."""
+    if not state.options.get("shared_control"):
+        return [], {}
+
+    def value(who: str, key: str) -> str:
+        got = monitor.diag_value(who, key)
+        return "n/a" if got is None else got
+
+    with_layer = value("demo_hardware", "contacts")
+    without = contacts_without_layer(state)
+    overriding = float(value("shared_control_node", "overriding_s").replace("n/a", "nan"))
+    drive = max(state.drive_seconds, 1e-9)
+    data = {
+        "contacts_with_layer": with_layer, "contacts_without_layer": without,
+        "interventions": value("shared_control_node", "interventions"),
+        "overriding_s": overriding, "untouched_share": 1.0 - overriding / drive,
+        "mean_change": value("shared_control_node", "mean_change"),
+        "solve_p50_ms": value("shared_control_node", "solve_p50_ms"),
+        "solve_p99_ms": value("shared_control_node", "solve_p99_ms"),
+        "min_clearance_m": value("demo_hardware", "min_clearance_m"),
+        "inattention": state.options.get("inattention"),
+    }
+    lines = [
+        f"The driver was inattentive (`--inattention {data['inattention']}`). The same drive "
+        "(seed, floor, driver) without the layer was simulated offline for comparison.", "",
+        "| | without the layer | with the layer |", "|---|---|---|",
+        f"| contacts with the furniture | {without} | {with_layer} |",
+        f"| interventions | 0 | {data['interventions']} |",
+        f"| time overriding | 0 s | {overriding:.1f} s |",
+        f"| user's command untouched | 100 % | {100 * data['untouched_share']:.1f} % |",
+        f"| mean change of the command | - | {data['mean_change']} |",
+        f"| decision time p50 / p99 | - | {data['solve_p50_ms']} / {data['solve_p99_ms']} ms |",
+        f"| minimum clearance (with the layer) | - | {data['min_clearance_m']} m |",
+    ]
+    return lines, data
 
 
 def latency_rows(monitor: MonitorNode) -> list[dict[str, Any]]:
@@ -281,6 +336,12 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
                                fill=False, lw=0.8, ls="--", color="0.5"))
     if t.size:
         ax.plot(truth[:, 0], truth[:, 1], "k-", lw=1.0, label="driven path (ground truth)")
+        where = [p for p in (monitor.truth.at(t) for t in monitor.overrides[::4])
+                 if p is not None]
+        if where:
+            w = np.asarray(where)
+            ax.plot(w[:, 0], w[:, 1], "x", color="tab:purple", ms=5, mew=1.2,
+                    label="shared control overriding")
     draw(ax, paths[::5], ellipses=True, lw=0.9)
     ax.plot([], [], color="tab:green", label="predicted 2 s path, 1.0 s error <= 10 cm")
     ax.plot([], [], color="tab:red", label="predicted 2 s path, 1.0 s error > 10 cm")
@@ -361,7 +422,12 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
             "threshold_m": THRESHOLD_M}
     atomic_write_text(out / "report.json",
                       json.dumps(_clean(data), indent=2, default=str) + "\n")
-    text = markdown(state, rows, cpu, lat, extras)
+    shared, shared_data = shared_control_summary(state, monitor)
+    if shared_data:
+        data["shared_control"] = shared_data
+        atomic_write_text(out / "report.json",
+                          json.dumps(_clean(data), indent=2, default=str) + "\n")
+    text = markdown(state, rows, cpu, lat, extras, shared)
     atomic_write_text(out / "report.md", text)
     written["report"] = out / "report.md"
     say("")

@@ -45,7 +45,8 @@ from asgp_ros.serial import safety as fw
 from asgp_ros.serial.calibration import JoystickCalibration
 from asgp_ros.sim.board import SimulatedBoard
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams, ChairState
-from asgp_ros.sim.driver import Driver
+from asgp_ros.sim.driver import Driver, DriverParams
+from asgp_ros.sim.lidar import Lidar
 from asgp_ros.sim.world import SURFACES, room_for_surface
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ class HardwareConfig:
         width, height: camera image size (px).
         scene_seed: texture and furniture seed of the rendered room.
         board_rate_hz: the board's joystick sampling rate (the firmware's is 100 Hz).
+        inattention: the driver's inattention (``DriverParams.inattention``; 0 = never).
     """
 
     seed: int = 0
@@ -77,6 +79,7 @@ class HardwareConfig:
     height: int = 480
     scene_seed: int = 0
     board_rate_hz: float = float(fw.SAMPLE_RATE_HZ)
+    inattention: float = 0.0
 
     def __post_init__(self) -> None:
         if self.seed < 0:
@@ -87,6 +90,7 @@ class HardwareConfig:
             raise ValueError(f"image size {self.width}x{self.height} out of range")
         if not 10.0 <= self.board_rate_hz <= 1000.0:
             raise ValueError(f"board_rate_hz must be in [10, 1000], got {self.board_rate_hz}")
+        DriverParams(inattention=self.inattention)  # validates it
 
 
 def _firmware_output(cal: fw.AxisCal, raw: int) -> float:
@@ -162,14 +166,21 @@ class SimulatedHardware:
         ss = np.random.SeedSequence([c.seed, 8])
         s_chair, s_driver, s_cam, s_board = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
         presets = {s: ChairParams.preset(s) for s in SURFACES}
+        blocked = self.room.overlap  # the furniture stops the chair; contacts are counted
         if self.room.patches:
-            self.chair = Chair(presets, seed=s_chair, surface_at=self.room.surface_at)
+            self.chair = Chair(presets, seed=s_chair, surface_at=self.room.surface_at,
+                               blocked=blocked)
         else:
-            self.chair = Chair(presets[self.room.base_surface], seed=s_chair)
-        self.driver = Driver(s_driver, self.room, duration=None)
+            self.chair = Chair(presets[self.room.base_surface], seed=s_chair, blocked=blocked)
+        self.driver = Driver(s_driver, self.room, duration=None,
+                             params=DriverParams(inattention=c.inattention))
+        # the scanner has a seed of its own, so the other streams are those of earlier demos
+        s_scan = int(np.random.SeedSequence([c.seed, 9]).generate_state(1)[0])
+        self.lidar = Lidar(self.room, seed=s_scan)
         self.path = JoystickPath()
         self.state = self.chair.reset((0.0, 0.0, 0.0))
         self.step_index = 0
+        self.min_clearance = float("inf")  # footprint to furniture, lowest so far (m)
         self._cmd = np.zeros(2)
         self._board_cmd: tuple[float, float] = (0.0, 0.0)
         self._driving = False
@@ -224,8 +235,16 @@ class SimulatedHardware:
         else:
             chair_in = self.path.chair_input(prev)
         self.state = self.chair.step(chair_in, STEP_S)
+        st = self.state
+        self.min_clearance = min(self.min_clearance, self.room.footprint_clearance(
+            st.x, st.y, st.theta) - self.room.furniture_band)
         self.step_index += 1
         return self.state
+
+    @property
+    def contacts(self) -> int:
+        """Contacts of the chair with the furniture so far."""
+        return self.chair.contacts
 
     @property
     def command(self) -> FloatArray:

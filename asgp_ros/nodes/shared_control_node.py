@@ -237,9 +237,11 @@ class SharedControlNode(Node):
         self._sent_t = -math.inf  # node clock of the newest override sent
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
-        self._interventions = 0  # decisions that changed the command
+        self._interventions = 0  # interventions (runs of decisions that changed the command)
+        self._was_intervening = False
         self._decisions = 0
         self._solve_ms: deque[float] = deque(maxlen=1000)
+        self._changes: list[float] = []  # of the decisions that changed the command
         self._bad_messages = 0
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -409,10 +411,13 @@ class SharedControlNode(Node):
         if decision.solve_s > 0.0:
             self._solve_ms.append(1e3 * decision.solve_s)
         if decision.intervening:
-            self._interventions += 1
+            if not self._was_intervening:  # a new intervention begins
+                self._interventions += 1
+            self._changes.append(decision.change)
             self._send_override()
         else:
             self._stop_overriding()
+        self._was_intervening = decision.intervening
         self.status_pub.publish(self._status(decision))
 
     def _on_watchdog(self) -> None:
@@ -477,6 +482,8 @@ class SharedControlNode(Node):
             "decisions": str(self._decisions),
             "interventions": str(self._interventions),
             "overrides_sent": str(self._overrides_sent),
+            "overriding_s": f"{self._overrides_sent / self.params.override_rate_hz:.2f}",
+            "mean_change": f"{np.mean(self._changes):.3f}" if self._changes else "0",
             "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
             "scan": "none" if self._scan is None else "received",

@@ -280,17 +280,15 @@ class Chair:
         seed: seed of the chair's own random numbers (floor noise, caster start angle).
         surface_at: ``(x, y) -> surface name`` (e.g. ``Room.surface_at``); required when
             ``params`` is a mapping, ignored otherwise.
-        blocked: ``(x, y, theta) -> bool``, True where the chair would overlap an obstacle
-            (e.g. ``Room.contact``); None: nothing stops the chair. An internal step that
-            would move the chair into a blocked pose from a free one instead leaves it
-            where it was, with no forward speed, as a bump into furniture does (it may
-            still turn, scraping along); :attr:`contacts` counts the contacts
-            (a blocked step after at least ``CONTACT_GAP_S`` without one; pushing on
-            against the furniture is the same contact).
-
-    ``step(joy, dt)`` integrates at the fixed internal rate (100 Hz); a ``dt`` that is not
-    a multiple of 10 ms carries the remainder into the next call, so the chair's clock
-    never drifts from the caller's.
+        blocked: ``(x, y, theta) -> overlap``, how far (m) the chair at that pose would
+            reach into an obstacle, 0 where it is free (e.g. ``Room.overlap``); None:
+            nothing stops the chair. No internal step moves the chair deeper into an
+            obstacle: a step that would is undone in translation (the chair stops against
+            the obstacle, with no forward speed, as a bump into furniture does; it may still
+            turn, scraping along, so a corner can swing a little into it); :attr:`contacts`
+            counts the contacts (a step in overlap after at
+            least ``CONTACT_GAP_S`` without one; pushing on against the furniture is the
+            same contact).
     """
 
     def __init__(
@@ -298,7 +296,7 @@ class Chair:
         params: ChairParams | Mapping[str, ChairParams],
         seed: int = 0,
         surface_at: Callable[[float, float], str] | None = None,
-        blocked: Callable[[float, float, float], bool] | None = None,
+        blocked: Callable[[float, float, float], float] | None = None,
     ) -> None:
         self._blocked = blocked
         self.contacts = 0
@@ -323,7 +321,7 @@ class Chair:
     @classmethod
     def for_room(cls, room: Room, seed: int = 0,
                  params: Mapping[str, ChairParams] | None = None,
-                 blocked: Callable[[float, float, float], bool] | None = None) -> Chair:
+                 blocked: Callable[[float, float, float], float] | None = None) -> Chair:
         """The preset chair on the room's floor (per-surface ``params`` override presets).
 
         A room with patches (the hybrid atrium) gets a chair that looks up the floor under
@@ -419,18 +417,22 @@ class Chair:
         return self._state
 
     def _guarded_substep(self, u_f: float, u_t: float) -> None:
-        """One internal step that cannot enter a blocked pose (see ``blocked``)."""
+        """One internal step that never deepens an overlap (see ``blocked``)."""
         assert self._blocked is not None
-        before = (self._x, self._y, self._theta)
+        x0, y0, th0 = self._x, self._y, self._theta
+        depth0 = self._blocked(x0, y0, th0)
         self._substep(u_f, u_t)
-        if not self._blocked(self._x, self._y, self._theta):
-            self._free_s += self._dt
-            return
-        if not self._blocked(*before):  # moving into the obstacle: stop against it
-            self._x, self._y = before[0], before[1]  # turning on, scraping along it
+        depth = self._blocked(self._x, self._y, self._theta)
+        bumped = depth > depth0 + 1e-9
+        if bumped:  # into the obstacle: stop against it
+            self._x, self._y = x0, y0
             self._v = 0.0
             s = self._in
             s.v_set = s.a_left = s.a_right = 0.0
+            depth = self._blocked(x0, y0, self._theta)  # it may still turn, scraping
+        if not bumped and depth <= 0.0:
+            self._free_s += self._dt
+            return
         if self._free_s >= CONTACT_GAP_S:
             self.contacts += 1
         self._free_s = 0.0

@@ -124,6 +124,7 @@ class Driver:
         self._noticed: float | None = None  # when an inattentive driver noticed (drive s)
         self._react = 0.0
         self._back_from = 0.0
+        self._stuck_s = 0.0
         self._wall_goal = np.zeros(2)
         self.inattentive_bouts = 0
 
@@ -285,6 +286,16 @@ class Driver:
             if self._mode == "rest" or (t >= self._mode_end and not self._avoiding):
                 self._new_bout(t)
             stick = None
+            if self.params.inattention > 0.0 and self._mode != "back_off":
+                # pinned against the furniture (a bump the attentive rules never meet):
+                # asking to move, not moving for a second -> back off
+                asking = float(np.max(np.abs(self._pos))) > 0.3
+                moving = abs(state.v) > 0.02 or abs(state.omega) > 0.02
+                self._stuck_s = self._stuck_s + dt if asking and not moving else 0.0
+                if self._stuck_s > 1.0:
+                    self._stuck_s = 0.0
+                    self._avoiding = False
+                    self._mode, self._mode_end, self._back_from = "back_off", t + 3.0, t
             if self._mode == "inattentive":
                 stick = self._inattentive(t, state)
                 if stick is None:  # reacted: back off the way it came, then drive on

@@ -93,7 +93,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
     s_chair, s_driver, s_scan, s_vo = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
-    chair = Chair.for_room(room, seed=s_chair, blocked=room.contact)
+    chair = Chair.for_room(room, seed=s_chair, blocked=room.overlap)
     state = chair.reset((0.0, 0.0, 0.0))
     driver = Driver(s_driver, room, params=DriverParams(inattention=inattention))
     scanner = Lidar(room, lidar, seed=s_scan)

@@ -121,6 +121,10 @@ class Room:
         """The footprint at (x, y, theta) overlaps the furniture (or a wall)."""
         return self.footprint_clearance(x, y, theta) < self.furniture_band
 
+    def overlap(self, x: float, y: float, theta: float) -> float:
+        """How far (m) the footprint at (x, y, theta) reaches into the furniture; 0 if free."""
+        return max(0.0, self.furniture_band - self.footprint_clearance(x, y, theta))
+
     def footprint_clearance(self, x: float, y: float, theta: float) -> float:
         """Distance (m) from the chair footprint at pose (x, y, theta) to the nearest wall.
 
