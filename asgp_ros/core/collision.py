@@ -265,6 +265,13 @@ class DistanceField:
         inside: NDArray[np.bool_] = np.all((local >= 0.0) & (local <= size), axis=-1)
         return inside
 
+    def neighbours(self, centres: FloatArray, radii: FloatArray) -> list[list[int]]:
+        """Indices of the obstacle points within ``radii`` [n] of ``centres`` [n, 2]."""
+        if self._tree is None:
+            return [[] for _ in range(centres.shape[0])]
+        found: list[list[int]] = list(self._tree.query_ball_point(centres, radii))
+        return found
+
     def near(self, centre: FloatArray, radius: float) -> FloatArray:
         """[m, 2] obstacle points within ``radius`` of ``centre`` [2]."""
         if self._tree is None:
@@ -382,22 +389,26 @@ def contact_probability(fld: DistanceField, pose: FloatArray, pos_cov: FloatArra
         x_lo = footprint.offset - 0.5 * footprint.length - fld.grow
         x_hi = footprint.offset + 0.5 * footprint.length + fld.grow
         reach = math.hypot(max(abs(x_lo), abs(x_hi)), half_w)
-        for b, i in zip(*np.nonzero(near), strict=True):
-            d = z @ _chol2(cov[b, i]).T  # [S, 2] position offsets
-            centre = xy[b, i]
-            pts = fld.near(centre, reach + float(np.abs(d).max()) + 1e-9)
-            touch = ~fld.contains(centre + d) if fld.outside == 0.0 else np.zeros(samples,
-                                                                                    bool)
-            if pts.shape[0]:
-                # in the footprint's frame at the step's heading: q = R^T (o - centre - d)
-                Rt = rot[b, i].T
-                q = (pts - centre) @ Rt.T  # [m, 2]
-                e = d @ Rt.T  # [S, 2]
-                qx = q[None, :, 0] - e[:, None, 0]
-                qy = q[None, :, 1] - e[:, None, 1]
-                touch |= ((qx >= x_lo) & (qx <= x_hi) & (np.abs(qy) <= half_w)).any(axis=1)
-            per_step[b, i] = touch.mean()
-            touch_any[b] |= touch
+        bi, ki = np.nonzero(near)
+        d_all = np.einsum("sj,nij->nsi", z, _chol2(cov[bi, ki]))  # [n, S, 2] offsets
+        centres = xy[bi, ki]  # [n, 2]
+        rots = rot[bi, ki]  # [n, 2, 2]
+        if fld.outside == 0.0:  # off the raster: no information, counted as touching
+            touch_all = ~fld.contains(centres[:, None, :] + d_all)  # [n, S]
+        else:
+            touch_all = np.zeros((bi.size, samples), dtype=bool)
+        # in the footprint's frame at the step's heading: q = R^T (o - centre - d)
+        e_all = np.einsum("nsi,nij->nsj", d_all, rots)  # [n, S, 2] = R^T d
+        radii = reach + np.abs(d_all).max(axis=(1, 2)) + 1e-9
+        for n, idx in enumerate(fld.neighbours(centres, radii)):
+            if not idx:
+                continue
+            q = (fld.points[idx] - centres[n]) @ rots[n]  # [m, 2]
+            qx = q[None, :, 0] - e_all[n, :, None, 0]
+            qy = q[None, :, 1] - e_all[n, :, None, 1]
+            touch_all[n] |= ((qx >= x_lo) & (qx <= x_hi) & (np.abs(qy) <= half_w)).any(axis=1)
+        per_step[bi, ki] = touch_all.mean(axis=1)
+        np.logical_or.at(touch_any, bi, touch_all)
     within = touch_any.mean(axis=1)
     lower = per_step.max(axis=1) if k else np.zeros(B)
     upper = 1.0 - np.prod(1.0 - per_step, axis=1)
