@@ -157,14 +157,14 @@ def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
     and without the layer; the layer takes contacts away and leaves most driving alone."""
     from asgp_ros.sim.shared_drive import drive
 
-    without = drive(chair_model, 90.0, 4, layer=False, inattention=0.5)
-    with_layer = drive(chair_model, 90.0, 4, layer=True, inattention=0.5)
+    without = drive(chair_model, 60.0, 4, layer=False, inattention=0.5)
+    with_layer = drive(chair_model, 60.0, 4, layer=True, inattention=0.5)
     assert without.contacts >= 2 and without.interventions == 0
     assert without.untouched_share == 1.0
     assert with_layer.contacts < without.contacts
     assert with_layer.interventions >= 1 and with_layer.untouched_share > 0.6
     assert with_layer.decisions.get("intervening", 0) >= 1 and with_layer.solve_ms
-    again = drive(chair_model, 20.0, 4, layer=True, inattention=0.5)
+    again = drive(chair_model, 12.0, 4, layer=True, inattention=0.5)
     assert again.summary() | {"solve_p50_ms": 0, "solve_p99_ms": 0} == \
-        drive(chair_model, 20.0, 4, layer=True, inattention=0.5).summary() | {
+        drive(chair_model, 12.0, 4, layer=True, inattention=0.5).summary() | {
             "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed
