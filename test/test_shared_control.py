@@ -80,11 +80,20 @@ def test_a_wall_ahead_gets_the_smallest_change_that_avoids_it():
     assert d.candidates == len(cands) and d.solve_s > 0.0
 
 
-def test_an_unavoidable_contact_sends_the_least_likely_command():
+def test_no_safe_command_sends_the_least_likely_or_lets_the_user_back_away():
     pred, now = driving()
-    d = decide(pred, now, np.array([0.8, 0.0]), wall_ahead(HALF_LENGTH - 0.05), CONFIG)
+    user = np.array([0.8, 0.0])
+    path_x = decide(pred, now, user, wall_ahead(50.0), CONFIG).prediction.pose[:, 0]
+    # a wall so close that even stopping at once is above the threshold, but less likely
+    stop_x = decide(pred, now, np.array([0.0, 0.0]) + 1e-3, wall_ahead(50.0),
+                    SharedControlConfig(neutral_deadband=0.0)).prediction.pose[-1, 0]
+    d = decide(pred, now, user, wall_ahead(stop_x + HALF_LENGTH - 0.01), CONFIG)
     assert d.why is Why.NO_SAFE_COMMAND and d.command is not None
-    assert d.p_command <= d.p_user
+    assert d.p_command < d.p_user and d.command[0] < 0.2
+    # already touching: every candidate touches; overriding would pin the chair there
+    d = decide(pred, now, user, wall_ahead(HALF_LENGTH - 0.05), CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is None and "user" in d.detail
+    assert path_x[-1] > stop_x
 
 
 def test_a_neutral_stick_never_commands_anything():

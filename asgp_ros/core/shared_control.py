@@ -19,7 +19,9 @@ replacement:
 * the chosen command is the cheapest candidate whose probability is at or below the
   threshold; when none is, the candidate with the lowest probability is used, the one
   with the least motion among equals (stopping is always a candidate), and the decision
-  says ``no_safe_command``.
+  says ``no_safe_command``; if even that is no less likely than the user's command (the
+  chair already touches, say), the user's command passes: overriding would only pin the
+  chair against the obstacle.
 
 Safety rules, whatever the numbers say:
 
@@ -239,6 +241,13 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         motion = np.linalg.norm(commands[low], axis=1)  # ties: the least motion
         best = int(low[np.lexsort((cost[low], motion))[0]])
         why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
+        if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9:
+            # nothing does better than the user (already touching, say): the layer would
+            # only pin the chair there; the user's command passes (to back away)
+            return Decision(why, f"{words}, and none does better than the user's command "
+                            f"(p {p_user:.3f})", user, p_user=p_user,
+                            solve_s=time.perf_counter() - start,
+                            candidates=int(commands.shape[0]), prediction=pred)
     elapsed = time.perf_counter() - start
     if best == 0 and why is Why.INTERVENING:  # cannot happen: row 0 is the user's (unsafe)
         return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,
