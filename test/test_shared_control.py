@@ -177,19 +177,3 @@ def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
     assert again.summary() | {"solve_p50_ms": 0, "solve_p99_ms": 0} == \
         drive(chair_model, 12.0, 4, layer=True, inattention=0.5).summary() | {
             "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed
-
-
-def test_within_the_margin_the_check_without_it_still_stops_short_of_contact():
-    """check_for may give (check with the safety margin, check without): when every
-    candidate is inside the margin, the layer still stops a command that would touch."""
-    pred, now = driving()
-    user = np.array([0.8, 0.0])
-    stop_x = decide(pred, now, np.array([1e-3, 0.0]), wall_ahead(50.0),
-                    SharedControlConfig(neutral_deadband=0.0)).prediction.pose[-1, 0]
-    margin, strict = wall_ahead(HALF_LENGTH - 0.05), wall_ahead(stop_x + HALF_LENGTH + 0.03)
-    d = decide(pred, now, user, None, CONFIG, check_for=lambda p: (margin, strict))
-    assert d.why is Why.NO_SAFE_COMMAND and d.command is not None
-    assert d.command[0] < 0.2 and d.p_command < 0.5
-    # without the strict check, the user's command passes (nothing beats it in the margin)
-    d = decide(pred, now, user, None, CONFIG, check_for=lambda p: margin)
-    assert d.command is None

@@ -168,9 +168,8 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
 
 def decide(predictor: Predictor, now: float, user: FloatArray,
            check: CollisionCheck | None, config: SharedControlConfig, *,
-           check_for: Callable[[Prediction], CollisionCheck | tuple[CollisionCheck,
-                                                                     CollisionCheck] | None]
-           | None = None) -> Decision:
+           check_for: Callable[[Prediction], CollisionCheck | None] | None = None
+           ) -> Decision:
     """One step of the layer (module docstring).
 
     Args:
@@ -180,11 +179,7 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         check: the collision check of the fresh obstacle source, or None when there is none.
         config: the settings.
         check_for: instead of ``check``, builds it from the user's prediction (its t0,
-            origin and velocities place the paths relative to the obstacles' data); it may
-            return a pair (check with the safety margin, check without it): when no
-            candidate is safe and none beats the user's command with the margin, the one
-            without it decides whether stopping short of an actual contact is still
-            possible.
+            origin and velocities place the paths relative to the obstacles' data).
     """
     user = np.asarray(user, dtype=np.float64).reshape(2)
     if not np.all(np.isfinite(user)):
@@ -201,11 +196,9 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
                         solve_s=time.perf_counter() - start)
     if not pred.ok:
         return Decision(Why.STALE_INPUT, f"no prediction: {pred.reason}: {pred.detail}", user)
-    strict: CollisionCheck | None = None
     if check_for is not None:
         try:
-            built = check_for(pred)
-            check, strict = built if isinstance(built, tuple) else (built, None)
+            check = check_for(pred)
         except ValueError as exc:
             return Decision(Why.CHECK_FAILED, f"obstacle data refused: {exc}", user,
                             solve_s=time.perf_counter() - start, prediction=pred)
@@ -248,19 +241,6 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         motion = np.linalg.norm(commands[low], axis=1)  # ties: the least motion
         best = int(low[np.lexsort((cost[low], motion))[0]])
         why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
-        if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9 and strict is not None:
-            # within the margin already: judge actual contact, without the margin
-            try:
-                _, p_strict = strict(batch.pose, batch.pos_cov)
-            except ValueError:
-                p_strict = np.ones_like(p_all)
-            p_strict = np.where(np.isfinite(p_strict), p_strict, 1.0)
-            low = np.flatnonzero(p_strict <= p_strict.min() + 1e-12)
-            motion = np.linalg.norm(commands[low], axis=1)
-            cand = int(low[np.lexsort((cost[low], motion))[0]])
-            if p_strict[cand] < p_strict[0] - 1e-9:
-                best, p_all = cand, p_strict
-                words = "no candidate clears the margin; the least likely to touch"
         if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9:
             # nothing does better than the user (already touching, say): the layer would
             # only pin the chair there; the user's command passes (to back away)

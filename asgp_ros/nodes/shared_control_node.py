@@ -190,14 +190,6 @@ class SharedControlParams:
                                    self.footprint_offset).grown(self.margin)
 
 
-def _either(a: CollisionCheck, b: CollisionCheck) -> CollisionCheck:
-    """The larger of two sources' probabilities (scan and map)."""
-    def both(pose: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        (s0, w0), (s1, w1) = a(pose, cov), b(pose, cov)
-        return np.maximum(s0, s1), np.maximum(w0, w1)
-    return both
-
-
 def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
     """Pose after ``dt`` seconds (negative: before) at the constant twist (v, w)."""
     if abs(dt) < 1e-9:
@@ -234,8 +226,6 @@ class SharedControlNode(Node):
             vo_timeout_s=p.vo_timeout_s))
         self.config = p.config()
         self.footprint = p.footprint()
-        self.footprint_strict = collision.Footprint(p.footprint_length, p.footprint_width,
-                                                    p.footprint_offset)
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
         self._scan: tuple[float, collision.Scan] | None = None  # (arrival, scan)
@@ -371,8 +361,7 @@ class SharedControlNode(Node):
 
     # ---- deciding -----------------------------------------------------------------------
 
-    def _check_for(self, now: float) -> Callable[
-            [Prediction], tuple[CollisionCheck, CollisionCheck] | None]:
+    def _check_for(self, now: float) -> Callable[[Prediction], CollisionCheck | None]:
         """The collision check of the fresh obstacle sources for a prediction, or None.
 
         A scan is placed relative to the path's origin with the chair's motion between
@@ -380,28 +369,29 @@ class SharedControlNode(Node):
         the odometry pose at t0 (``Prediction.origin``)."""
         p = self.params
 
-        def build(pred: Prediction) -> tuple[CollisionCheck, CollisionCheck] | None:
-            pairs: list[tuple[CollisionCheck, CollisionCheck]] = []
+        def build(pred: Prediction) -> CollisionCheck | None:
+            checks: list[CollisionCheck] = []
             if self._scan is not None:
                 arrival, scan = self._scan
                 stamp = scan.stamp if scan.stamp > 0.0 else arrival
                 if now - stamp <= p.scan_timeout_s:
                     v, w = (float(x) for x in pred.vel_past[-1])
                     motion = _motion(v, w, pred.t0 - stamp)
-                    mount = (p.laser_x, p.laser_y, p.laser_yaw)
-                    pairs.append(tuple(  # type: ignore[arg-type]
-                        collision.scan_check(scan, fp, mount=mount, base_motion=motion)
-                        for fp in (self.footprint, self.footprint_strict)))
+                    checks.append(collision.scan_check(
+                        scan, self.footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
+                        base_motion=motion))
             if self._grid is not None and pred.origin is not None:
                 origin = (float(pred.origin[0]), float(pred.origin[1]), float(pred.origin[2]))
-                pairs.append(tuple(  # type: ignore[arg-type]
-                    collision.grid_check(self._grid, fp, origin=origin)
-                    for fp in (self.footprint, self.footprint_strict)))
-            if not pairs:
+                checks.append(collision.grid_check(self._grid, self.footprint, origin=origin))
+            if not checks:
                 return None
-            if len(pairs) == 1:
-                return pairs[0]
-            return (_either(pairs[0][0], pairs[1][0]), _either(pairs[0][1], pairs[1][1]))
+            if len(checks) == 1:
+                return checks[0]
+
+            def both(pose: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                (s0, w0), (s1, w1) = checks[0](pose, cov), checks[1](pose, cov)
+                return np.maximum(s0, s1), np.maximum(w0, w1)
+            return both
 
         return build
 

@@ -105,7 +105,6 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
     mount = scanner.config.mount
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
-    strict = collision.DEFAULT_FOOTPRINT
 
     out = DriveResult(seconds=seconds, layer=layer)
     stick = np.zeros(2)
@@ -178,15 +177,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 last_step = step
 
                 def check_for(pred: Prediction, scan: collision.Scan | None = scan,
-                              t: float = t) -> tuple[collision.CollisionCheck,
-                                                     collision.CollisionCheck] | None:
+                              t: float = t
+                              ) -> collision.CollisionCheck | None:
                     if scan is None or t - scan.stamp > 0.3:
                         return None
                     v0, w0 = (float(x) for x in pred.vel_past[-1])
-                    motion = _motion(v0, w0, pred.t0 - scan.stamp)
-                    return (collision.scan_check(scan, footprint, mount=mount,
-                                                 base_motion=motion),
-                            collision.scan_check(scan, strict, mount=mount, base_motion=motion))
+                    return collision.scan_check(scan, footprint, mount=mount,
+                                                base_motion=_motion(v0, w0, pred.t0 - scan.stamp))
 
                 start = time.perf_counter()
                 decision = decide(predictor, t, user, None, config, check_for=check_for)
