@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from asgp_ros.core import metrics
-from asgp_ros.core.metrics import THRESHOLD_M, horizon_key
+from asgp_ros.core.metrics import CHI2_2DOF_95, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import get_kind
 from asgp_ros.core.rollout import rollout
 from asgp_ros.core.unicycle import integrate_path
@@ -51,6 +51,7 @@ class TestSeries:
 
     name: str
     res: Any
+    raw: Any = None  # core.streams.RawStreams the grid came from (needed by --adapt)
 
     @property
     def has_truth(self) -> bool:
@@ -276,3 +277,213 @@ def evaluate_model(
         test=[ts.name for ts in series],
         horizons=out,
     )
+
+
+# --------------------------------------------------------------------------- adaptive
+
+
+@dataclass
+class AdaptiveEvaluation:
+    """An adapting model scored causally, beside the same model without adaptation.
+
+    ``adapted`` and ``plain`` are scored on the same cases: those where the replayed
+    online predictor gave a prediction, from ``skip_s`` into each recording on.
+    ``timeline`` holds, per case in time order: ``series`` (index into ``test``),
+    ``t`` (seconds since the start of its recording), and per horizon key ``hit``
+    (success of the adapted prediction), ``hit_plain``, ``covered`` (inside the adapted
+    95 % ellipse), ``covered_plain``, with ``scale`` (the adapted model's online variance
+    scale in the case's speed regime when it predicted).  ``adaptation`` is the
+    adapter's final state per recording (:func:`asgp_ros.core.adaptive.describe`).
+    """
+
+    adapted: ModelEvaluation
+    plain: ModelEvaluation
+    timeline: dict[str, Any]
+    adaptation: list[dict[str, Any]]
+    missing: int  # cases of the offline evaluation the online predictor refused
+
+    def to_json(self) -> dict[str, object]:
+        return {"adapted": self.adapted.to_json(), "plain": self.plain.to_json(),
+                "adaptation": self.adaptation, "missing_cases": self.missing}
+
+
+def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: Any,
+                   config: Any) -> dict[str, Any]:
+    """Replay one recording's raw samples through an adapting online Predictor.
+
+    Samples are fed in stamp order; whenever a new grid step L completes and L + 1 starts
+    an evaluation case, the predictor is asked, at the stamp of the sample that completed
+    L, for the path under the recorded future joystick.  It therefore sees only samples
+    stamped at or before that moment: the replay cannot peek.
+    """
+    from asgp_ros.core.online import Predictor  # online imports this module's users
+
+    raw, res = ts.raw, ts.res
+    if raw is None:
+        raise EvaluationError(f"{ts.name}: adaptive evaluation needs the raw streams")
+    pred = Predictor(model, config, adapt=settings)
+    k0 = int(res.k[0])
+    starts = set(metrics.case_indices(res.segment, need, 1).tolist())
+    joy_future_all = np.asarray(res.joy, dtype=np.float64)
+    events = np.concatenate([
+        np.stack([raw.joy_t, np.zeros_like(raw.joy_t), np.arange(raw.joy_t.size)], axis=1),
+        np.stack([raw.vel_t, np.ones_like(raw.vel_t), np.arange(raw.vel_t.size)], axis=1)])
+    events = events[np.lexsort((events[:, 2], events[:, 1], events[:, 0]))]
+    vel_ok = np.asarray(raw.vel_ok, dtype=bool) if raw.vel_ok.size else \
+        np.ones(raw.vel_t.size, dtype=bool)
+    out: dict[str, list[Any]] = {"idx": [], "pose": [], "cov": [], "scale": []}
+    last_step = None
+    for t, kind, j in events:
+        j = int(j)
+        if kind == 0.0:
+            pred.feed_joy(t, raw.joy[j])
+        else:
+            pred.feed_vo(t, raw.vel[j], bool(vel_ok[j]))
+        step = pred.ready_step()
+        if step is None or step == last_step:
+            continue
+        last_step = step
+        i = step - k0  # grid index of L in res
+        if i + 1 not in starts:
+            continue
+        future = joy_future_all[i + 1:i + 1 + k_max]
+        if future.shape[0] < k_max:
+            future = np.concatenate([future, np.repeat(future[-1:], k_max - future.shape[0], 0)])
+        bad = ~np.all(np.isfinite(future), axis=1)
+        for r in np.flatnonzero(bad):
+            future[r] = future[r - 1] if r > 0 else joy_future_all[i]
+        p = pred.predict(float(t), future)
+        if not p.ok or p.step != step:
+            continue
+        regime = int(np.searchsorted(np.asarray(model.calibration.speed_edges),
+                                     abs(float(p.vel_past[-1, 0])), side="right"))
+        out["idx"].append(i + 1)
+        out["pose"].append(p.pose)
+        out["cov"].append(p.pos_cov)
+        stats = pred.adaptation
+        out["scale"].append(stats.scales[regime] if stats is not None else 1.0)
+    from asgp_ros.core.adaptive import describe
+
+    stats = pred.adaptation
+    return {"idx": np.asarray(out["idx"], dtype=np.int64),
+            "pose": np.asarray(out["pose"]).reshape(-1, k_max, 3),
+            "cov": np.asarray(out["cov"]).reshape(-1, k_max, 2, 2),
+            "scale": np.asarray(out["scale"]), "missing": len(starts) - len(out["idx"]),
+            "adaptation": describe(stats) if stats is not None else {}}
+
+
+def evaluate_adaptive(
+    model: Any,
+    series: Sequence[TestSeries],
+    horizons_s: Sequence[float],
+    settings: Any = None,
+    *,
+    threshold_m: float = THRESHOLD_M,
+    case_lags: int | None = None,
+    skip_s: float = 0.0,
+    name: str = "",
+) -> AdaptiveEvaluation:
+    """Score an ASGP that adapts online, causally, beside the same model not adapting.
+
+    Each recording is replayed from the trained model through the online predictor with
+    ``settings`` (:class:`asgp_ros.core.adaptive.AdaptSettings`, default settings when
+    None); see :func:`_replay_series`.  Only cases at least ``skip_s`` seconds into their
+    recording are scored (adaptation runs from the start).
+
+    Raises:
+        EvaluationError: as :func:`evaluate_model`, or series without raw streams, or a
+            model that cannot adapt.
+    """
+    from asgp_ros.core.adapt import AdaptError
+    from asgp_ros.core.adaptive import AdaptSettings
+    from asgp_ros.core.online import PredictorConfig
+
+    if not series:
+        raise EvaluationError("no test recordings")
+    if not (math.isfinite(skip_s) and skip_s >= 0.0):
+        raise EvaluationError(f"skip must be a non-negative number of seconds, got {skip_s}")
+    rate = float(model.resample_config.rate_hz)
+    dt = 1.0 / rate
+    s = int(model.feature_config.lags)
+    need = s if case_lags is None else int(case_lags)
+    if need < s:
+        raise EvaluationError(f"case_lags={need} is less than the model's {s} lags")
+    try:
+        steps_list = metrics.horizon_steps(list(horizons_s), rate)
+    except ValueError as exc:
+        raise EvaluationError(str(exc)) from exc
+    k_max = max(steps_list)
+    settings = settings if settings is not None else AdaptSettings()
+    config = PredictorConfig(horizon_steps=k_max)
+    replays = []
+    for ts in series:
+        try:
+            replays.append(_replay_series(model, ts, k_max, need, settings, config))
+        except AdaptError as exc:
+            raise EvaluationError(str(exc)) from exc
+    horizons_a: dict[str, HorizonEvaluation] = {}
+    horizons_p: dict[str, HorizonEvaluation] = {}
+    timeline: dict[str, Any] = {"series": [], "t": [], "scale": []}
+    keep_all = []
+    for si, (ts, rep) in enumerate(zip(series, replays, strict=True)):
+        t_rel = ts.res.t[rep["idx"] - 1] - ts.res.t[0] if rep["idx"].size else np.zeros(0)
+        keep = t_rel >= skip_s
+        keep_all.append(keep)
+        timeline["series"].append(np.full(int(keep.sum()), si))
+        timeline["t"].append(t_rel[keep])
+        timeline["scale"].append(rep["scale"][keep])
+    for h, k in zip(horizons_s, steps_list, strict=True):
+        cols: dict[str, list[np.ndarray]] = {"pa": [], "pp": [], "ref": [], "ca": [], "cp": []}
+        masks = []
+        for ts, rep, keep in zip(series, replays, keep_all, strict=True):
+            res = ts.res
+            valid_k = np.isin(rep["idx"], metrics.case_indices(res.segment, need, k))
+            use = keep & valid_k
+            masks.append(valid_k[keep])
+            idx = rep["idx"][use]
+            if idx.size == 0:
+                continue
+            plain_pose, plain_cov, _ = rollout_cases(model, res, idx, k, uncertainty="linear")
+            ref = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)
+            cols["pa"].append(rep["pose"][use][:, k - 1, :2])
+            cols["ca"].append(rep["cov"][use][:, k - 1])
+            cols["pp"].append(plain_pose[:, -1, :2])
+            assert plain_cov is not None
+            cols["cp"].append(plain_cov[:, -1])
+            cols["ref"].append(ref[:, -1, :2])
+        if not cols["pa"]:
+            raise EvaluationError(f"no case at the {h} s horizon was predicted online "
+                                  f"{skip_s:g} s or more into a recording")
+        pa, pp, ref, ca, cp = (np.concatenate(cols[c]) for c in ("pa", "pp", "ref", "ca", "cp"))
+        try:
+            res_a, err_a = metrics.score(pa, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
+                                         pos_cov=ca)
+            res_p, err_p = metrics.score(pp, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
+                                         pos_cov=cp)
+        except ValueError as exc:
+            raise EvaluationError(f"{name or model.kind} (adapting) at {h} s: {exc}") from exc
+        horizons_a[horizon_key(h)] = HorizonEvaluation(res_a, None, err_a)
+        horizons_p[horizon_key(h)] = HorizonEvaluation(res_p, None, err_p)
+        # per case of the timeline (NaN where the case is too short for this horizon)
+        mask = np.concatenate(masks)
+        for key, value in (("hit", err_a <= threshold_m), ("hit_plain", err_p <= threshold_m),
+                           ("covered", metrics.mahalanobis_sq(pa - ref, ca) <= CHI2_2DOF_95),
+                           ("covered_plain",
+                            metrics.mahalanobis_sq(pp - ref, cp) <= CHI2_2DOF_95)):
+            col = np.full(mask.shape[0], np.nan)
+            col[mask] = value
+            timeline.setdefault(key, {})[horizon_key(h)] = col
+    timeline["series"] = np.concatenate(timeline["series"])
+    timeline["t"] = np.concatenate(timeline["t"])
+    timeline["scale"] = np.concatenate(timeline["scale"])
+
+    def evaluation(label: str, horizons: dict[str, HorizonEvaluation]) -> ModelEvaluation:
+        return ModelEvaluation(model=label, kind=str(model.kind), lags=s, case_lags=need,
+                               threshold_m=float(threshold_m), test=[ts.name for ts in series],
+                               horizons=horizons)
+
+    label = name or str(model.kind)
+    return AdaptiveEvaluation(
+        adapted=evaluation(f"{label} + adapt", horizons_a), plain=evaluation(label, horizons_p),
+        timeline=timeline, adaptation=[rep["adaptation"] for rep in replays],
+        missing=sum(int(rep["missing"]) for rep in replays))

@@ -96,6 +96,7 @@ class Series:
 
     name: str
     res: Any  # core.resample.Resampled
+    raw: Any = None  # core.streams.RawStreams it was resampled from
 
 
 def read_series(
@@ -118,7 +119,7 @@ def read_series(
             kwargs["joy_axes"] = joy_axes
         streams = bags.read_streams(str(path), **kwargs)
         res = resample(streams, config)
-        out.append(Series(str(path), res))
+        out.append(Series(str(path), res, streams))
     return out
 
 

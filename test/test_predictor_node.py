@@ -29,6 +29,7 @@ from sensor_msgs.msg import Joy
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
+from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.online import Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
@@ -322,7 +323,8 @@ def test_joy_plan_changes_the_path(rclpy_context, model_file):
         planned = conv.path_to_poses(h.paths[-1])[1]
         assert planned[-1, 0] > held[-1, 0] + 0.05  # full forward: the chair moves ahead
         assert planned[-1, 2] > held[-1, 2] + 0.02  # turn left: heading increases
-        assert h.node.diagnostic_status().values[-1].value == "True"
+        values = {kv.key: kv.value for kv in h.node.diagnostic_status().values}
+        assert values["plan_used"] == "True"
         # a malformed plan is refused with a warning and does not replace the good one
         bad = conv.plan_to_trajectory(plan, 0.0, DT)
         bad.joint_names = ["forward", "steer"]
@@ -493,3 +495,58 @@ def test_odometry_and_joy_conversion():
     assert conv.joy_to_sample(joy, 1, 0) == (3.0, (-0.25, 0.5))
     with pytest.raises(ValueError, match="2 axes"):
         conv.joy_to_sample(joy, 0, 3)
+
+
+def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context, model_file):
+    """adapt.enabled: the chair is slower than the model was trained for; the node absorbs
+    the completed steps, the diagnostics show it, the service returns to the trained model
+    and a runtime buffer too short for adaptation is refused."""
+    from std_srvs.srv import Trigger
+
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": True,
+                                              "adapt.half_life_s": 10.0})
+    try:
+        def slow(t: float) -> tuple[float, float]:
+            return 0.3 + 0.2 * math.sin(t - 0.3), 0.2 * math.cos(0.5 * t)
+
+        h.drive(100.0, 112.0, vel=slow)
+        stats = h.node.predictor.adaptation
+        assert stats is not None and stats.rows_absorbed >= 40
+        assert h.node.predictor.model.channels[0].posterior is not \
+            load_model(model_file).channels[0].posterior
+        h.spin_until(lambda: h.diags and any(
+            kv.key == "adapt_rows_absorbed" and int(kv.value) > 0
+            for kv in h.diags[-1].status[0].values), what="adaptation diagnostics")
+        values = {kv.key: kv.value for kv in h.diags[-1].status[0].values}
+        assert values["adapt"] == "on"
+        for key in ("adapt_effective_size", "adapt_variance_scale", "adapt_last_update_ms",
+                    "adapt_coverage_95", "adapt_steps_refused"):
+            assert values[key]
+        short = h.node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
+        assert not short.successful and "adapting" in short.reason
+        client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")
+        h.spin_until(client.service_is_ready, what="reset service")
+        future = client.call_async(Trigger.Request())
+        h.spin_until(future.done, what="reset reply")
+        assert future.result().success
+        assert h.node.predictor.adaptation.rows_absorbed == 0
+    finally:
+        h.close()
+
+
+def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context, tmp_path):
+    from asgp_ros.core.baselines import ConstantVelocityChannel, probe_columns
+    from asgp_ros.core.features import FeatureConfig
+    from asgp_ros.core.modelfile import save_model
+    from asgp_ros.core.models import MotionModel
+    from asgp_ros.core.resample import ResampleConfig
+
+    fc = FeatureConfig(lags=4)
+    D = fc.input_dim
+    channels = tuple(ConstantVelocityChannel(D, probe_columns(c, fc)[1]) for c in (0, 1))
+    path = tmp_path / "cv.npz"
+    save_model(path, MotionModel(kind="constant_velocity", feature_config=fc,
+                                 resample_config=ResampleConfig(), channels=channels))
+    with pytest.raises(StartupError, match="only an ASGP adapts"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=str(path)), Parameter("adapt.enabled", value=True)])

@@ -291,6 +291,11 @@ class OnlinePosterior:
         """
         self._reset_state()
 
+    def restart_clock(self) -> None:
+        """Accept stamps from a restarted clock: forget the last absorbed row's stamp
+        (what was absorbed stays; the next row decays nothing)."""
+        self._stats = self._stats._replace(t_last=None)
+
     def _publish_to_model(self) -> None:
         if self.model is not None:
             self.model.posterior = self._posterior

@@ -53,6 +53,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core import inverse
+from asgp_ros.core.adaptive import AdapterStats, AdaptSettings, ModelAdapter
 from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
@@ -336,6 +337,10 @@ class Predictor:
     Args:
         model: a trained ``MotionModel`` (from ``asgp_ros.core.modelfile.load_model``).
         config: online settings.
+        adapt: adapt an ASGP online (:mod:`asgp_ros.core.adaptive`): every completed grid
+            step that training would accept updates the posterior, and the outcome of each
+            prediction the variance scale; None (default) predicts with ``model`` as
+            trained.  ``model`` itself is never modified.
 
     Typical use (a planner at 5 Hz)::
 
@@ -345,9 +350,16 @@ class Predictor:
         batch = pred.predict_batch(candidates, now)                # [B, k, 2] commands
     """
 
-    def __init__(self, model: MotionModel, config: PredictorConfig | None = None) -> None:
-        self.model = model
+    def __init__(self, model: MotionModel, config: PredictorConfig | None = None,
+                 adapt: AdaptSettings | None = None) -> None:
+        self._model = model
         self.config = config or PredictorConfig()
+        self._adapter: ModelAdapter | None = None
+        if adapt is not None:
+            self._adapter = ModelAdapter(model, adapt, horizon_steps=self.config.horizon_steps)
+            if self.config.buffer_s < self.min_buffer_s:
+                raise ValueError(f"buffer_s {self.config.buffer_s} s is shorter than the "
+                                 f"{self.min_buffer_s:.1f} s of history adaptation needs")
         self.resample_config = model.resample_config
         self.dt = 1.0 / float(model.resample_config.rate_hz)
         self.lags = int(model.feature_config.lags)
@@ -359,10 +371,35 @@ class Predictor:
         self._last_now = -math.inf
         self.last_reset_detail = ""
 
+    @property
+    def model(self) -> MotionModel:
+        """The model predictions use: the adapted one when adapting (see ``adapt``)."""
+        return self._model if self._adapter is None else self._adapter.model
+
+    @property
+    def min_buffer_s(self) -> float:
+        """The shortest ``config.buffer_s`` this predictor works with (longer to adapt)."""
+        if self._adapter is None:
+            return 1.0
+        return (self._adapter.history_steps() + 2) / float(self._model.resample_config.rate_hz)
+
+    @property
+    def adaptation(self) -> AdapterStats | None:
+        """The online adaptation's counters, scales and coverage; None when not adapting."""
+        return None if self._adapter is None else self._adapter.stats
+
+    def reset_adaptation(self) -> None:
+        """Back to the trained posterior and calibration (no-op when not adapting)."""
+        if self._adapter is not None:
+            self._adapter.reset()
+
     # ---- input ---------------------------------------------------------------------
 
     def reset(self, detail: str = "") -> None:
-        """Forget all samples and the plan (a clock jump; a restart of the inputs)."""
+        """Forget all samples and the plan (a clock jump; a restart of the inputs).
+
+        What an adapting predictor learnt is kept (see :meth:`reset_adaptation`).
+        """
         self._joy.clear()
         self._vo.clear()
         self._pose.clear()
@@ -370,6 +407,8 @@ class Predictor:
         self._last_now = -math.inf
         self.stats.resets += 1
         self.last_reset_detail = detail
+        if self._adapter is not None:
+            self._adapter.restart_stream()
 
     def _newest(self) -> float:
         return max(self._joy.newest, self._vo.newest)
@@ -602,6 +641,8 @@ class Predictor:
         s = self.lags
         t_ready = min(self._joy.newest, self._vo.newest)
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
+        if self._adapter is not None:
+            self._adapter.observe(res, n)
         if n < s:
             return Prediction(False, Reason.NOT_ENOUGH_HISTORY,
                               f"{n} grid steps buffered, the model needs {s}")

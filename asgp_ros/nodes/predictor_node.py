@@ -18,6 +18,14 @@ its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a 
 code; the diagnostics count the refusals by code (``rejected``) and give the newest one
 (``last_rejected``).
 
+Adaptation (``adapt.enabled``, an ASGP model only): every completed grid step that
+training would accept updates the posterior, with forgetting (``adapt.half_life_s``,
+``adapt.trained_floor``), and the outcomes of the predictions keep the 95 % ellipses
+covering (``adapt.calibrate``, ``adapt.max_rate``); see :mod:`asgp_ros.core.adaptive`.
+The diagnostics show the rows absorbed, the effective data size, the variance scale per
+speed regime, the recent coverage and the last update's cost. The service
+``~/reset_adaptation`` (std_srvs/Trigger) returns to the trained model.
+
 Signals: SIGINT and SIGTERM end the node well within 2 s in every state (tested).
 The model is read in a worker thread while the main thread watches the ROS context, so
 even a read that blocks (a hung network file system) cannot keep the node alive; a path
@@ -49,6 +57,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.signals import uninstall_signal_handlers
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import Joy
+from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
@@ -56,6 +65,8 @@ from visualization_msgs.msg import MarkerArray
 from asgp_ros import topics
 from asgp_ros.bags import parse_joy_axes
 from asgp_ros.core import online
+from asgp_ros.core.adapt import AdaptConfig, AdaptError
+from asgp_ros.core.adaptive import DEFAULT_HALF_LIFE_S, AdaptSettings, CoverageConfig
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
@@ -103,6 +114,11 @@ class PredictorNodeParams:
     uncertainty: str = "linear"
     publish_uncertainty: bool = True
     diagnostics_period_s: float = 1.0
+    adapt_enabled: bool = False
+    adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
+    adapt_trained_floor: float = 0.01
+    adapt_calibrate: bool = True
+    adapt_max_rate: float = 0.25
 
     def __post_init__(self) -> None:
         if not self.model_path:
@@ -129,8 +145,20 @@ class PredictorNodeParams:
             raise ValueError(
                 f"diagnostics_period_s must be in [0.1, 60] s, got {self.diagnostics_period_s}"
             )
-        # the predictor's own settings are validated by PredictorConfig
+        # the predictor's own settings are validated by PredictorConfig, adaptation's here
         self.predictor_config(5.0)
+        self.adapt_settings()
+
+    def adapt_settings(self) -> AdaptSettings | None:
+        """The online adaptation's settings, or None when ``adapt.enabled`` is false."""
+        try:
+            settings = AdaptSettings(
+                AdaptConfig(half_life_s=self.adapt_half_life_s,
+                            trained_floor=self.adapt_trained_floor),
+                CoverageConfig(max_rate=self.adapt_max_rate) if self.adapt_calibrate else None)
+        except AdaptError as exc:
+            raise ValueError(f"adapt: {exc}") from exc
+        return settings if self.adapt_enabled else None
 
     def steps(self, model_rate_hz: float) -> int:
         """k: horizon_steps, or horizon_s at the model's rate."""
@@ -162,9 +190,14 @@ class PredictorNodeParams:
         return round(n)
 
 
+def _field(name: str) -> str:
+    """The PredictorNodeParams field of a ROS parameter ('adapt.enabled' -> adapt_enabled)."""
+    return name.replace(".", "_")
+
+
 def _spec(name: str, description: str, low: float | None = None, high: float | None = None,
           runtime: bool = False) -> ParamSpec:
-    default = PredictorNodeParams.__dataclass_fields__[name].default
+    default = PredictorNodeParams.__dataclass_fields__[_field(name)].default
     assert isinstance(default, bool | int | float | str), name
     return ParamSpec(name, default, description, low, high, runtime)
 
@@ -198,6 +231,14 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("uncertainty", "'linear', 'mc' or 'none' uncertainty propagation", runtime=True),
     _spec("publish_uncertainty", "publish the 95% ellipses", runtime=True),
     _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
+    _spec("adapt.enabled", "adapt an ASGP online: absorb each valid completed step into its "
+          "posterior and keep its 95% ellipses covering (asgp_ros.core.adaptive)"),
+    _spec("adapt.half_life_s", "forgetting half-life of the adapted posterior, seconds of "
+          "driving", 1.0, 86400.0),
+    _spec("adapt.trained_floor", "weight the trained data decay to (0 = forget them, 1 = keep "
+          "them whole)", 0.0, 1.0),
+    _spec("adapt.calibrate", "adjust the variance scale from the outcomes of the predictions"),
+    _spec("adapt.max_rate", "largest change of the log variance scale per second", 0.001, 100.0),
 )
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}
 
@@ -240,7 +281,8 @@ class PredictorNode(Node):
     def _setup(self) -> None:
         values = declare(self, PARAMS)
         try:
-            self.params = PredictorNodeParams(**check_values(PARAMS, values))
+            self.params = PredictorNodeParams(
+                **{_field(k): v for k, v in check_values(PARAMS, values).items()})
         except (ValueError, TypeError) as exc:
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params
@@ -250,8 +292,9 @@ class PredictorNode(Node):
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
             self.every_n = p.decimation(rate)
-            self.predictor = Predictor(self.model, p.predictor_config(rate))
-        except ValueError as exc:
+            self.predictor = Predictor(self.model, p.predictor_config(rate),
+                                       adapt=p.adapt_settings())
+        except ValueError as exc:  # AdaptError included: a model that cannot adapt
             raise StartupError(str(exc)) from exc
 
         self._last_step: int | None = None  # newest grid step a prediction was tried for
@@ -280,8 +323,15 @@ class PredictorNode(Node):
         self.create_subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.create_service(Trigger, "~/reset_adaptation", self._on_reset_adaptation)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
+        adapt = p.adapt_settings()
+        if adapt is not None:
+            self.get_logger().info(
+                f"adapting online: half-life {p.adapt_half_life_s:g} s, trained floor "
+                f"{p.adapt_trained_floor:g}, calibration "
+                f"{'on' if adapt.coverage is not None else 'off'}")
         self.get_logger().info(
             f"model {p.model_path} ({self.model.kind}, lags {self.model.feature_config.lags}, "
             f"{rate:g} Hz); horizon {self.predictor.config.horizon_steps} steps; "
@@ -321,6 +371,17 @@ class PredictorNode(Node):
             raise error
         return loaded[0]
 
+    def _on_reset_adaptation(self, request: Trigger.Request, response: Trigger.Response
+                             ) -> Trigger.Response:
+        del request
+        if self.predictor.adaptation is None:
+            response.success, response.message = False, "adaptation is off (adapt.enabled)"
+        else:
+            self.predictor.reset_adaptation()
+            response.success, response.message = True, "back to the trained model"
+            self.get_logger().info("adaptation reset to the trained model")
+        return response
+
     # ---- parameters ------------------------------------------------------------------
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -332,8 +393,11 @@ class PredictorNode(Node):
                 if not SPECS[name].runtime:
                     raise ValueError(f"{name} is read at start-up: restart the node to change it")
                 changes[name] = check_value(SPECS[name], value)
-            candidate = replace(self.params, **changes)
-            candidate.predictor_config(self.model.resample_config.rate_hz)
+            candidate = replace(self.params, **{_field(k): v for k, v in changes.items()})
+            config = candidate.predictor_config(self.model.resample_config.rate_hz)
+            if config.buffer_s < self.predictor.min_buffer_s:
+                raise ValueError(f"buffer_s must be at least {self.predictor.min_buffer_s:.1f}"
+                                 " s while adapting")
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
@@ -343,7 +407,7 @@ class PredictorNode(Node):
                    for prm in params if prm.name in SPECS}
         if not changes:
             return
-        self.params = replace(self.params, **changes)
+        self.params = replace(self.params, **{_field(k): v for k, v in changes.items()})
         self.predictor.config = self.params.predictor_config(self.model.resample_config.rate_hz)
         self.get_logger().info(f"parameters changed: {changes}")
 
@@ -529,6 +593,23 @@ class PredictorNode(Node):
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
         }
+        adaptation = self.predictor.adaptation
+        values["adapt"] = "on" if adaptation is not None else "off"
+        if adaptation is not None:
+            values.update({
+                "adapt_rows_absorbed": str(adaptation.rows_absorbed),
+                "adapt_steps_refused": str(adaptation.steps_refused),
+                "adapt_rows_rejected": ", ".join(
+                    f"{k}={n}" for k, n in sorted(adaptation.rows_rejected.items()) if n)
+                or "none",
+                "adapt_effective_size": "/".join(f"{x:.0f}" for x in adaptation.effective_size),
+                "adapt_variance_scale": "/".join(f"{x:.3g}" for x in adaptation.scales),
+                "adapt_checked": str(adaptation.checked),
+                "adapt_coverage_95": f"{adaptation.coverage:.3f}",
+                "adapt_coverage_one_step": f"{adaptation.coverage_one_step:.3f}",
+                "adapt_last_update_ms": f"{1e3 * adaptation.last_update_s:.3f}",
+                "adapt_last_check_ms": f"{1e3 * adaptation.last_check_s:.3f}",
+            })
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
         return conv.diagnostic_status(f"{self.get_name()}: prediction",

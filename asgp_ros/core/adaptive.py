@@ -1,0 +1,408 @@
+"""An ASGP that adapts while it drives: online posterior updates and online calibration.
+
+A trained :class:`~asgp_ros.core.models.MotionModel` of two SparseGP channels is wrapped by
+:class:`ModelAdapter`, which the online :class:`~asgp_ros.core.online.Predictor` (and so
+the predictor node, the shared-control layer and ``asgp evaluate --adapt``) feeds with the
+resampled grid of its buffers.  The user's model object is never modified: the adapter
+predicts with its own copy, whose channels read the adapted posteriors.
+
+Two things move, nothing else (hyperparameters, pseudo-inputs, lags and the trained
+calibration's shape stay as trained):
+
+1. **The posterior** (:mod:`asgp_ros.core.adapt`).  Every completed grid step whose input
+   window and target training would accept (the same resampler, the same
+   :func:`~asgp_ros.core.features.design_matrix`, so the same validity, gap,
+   tracking-loss and stale-VO rules) is absorbed by both channels, with exponential
+   forgetting.  A step is absorbed only once it is ``settle_steps`` behind the newest
+   complete step: the stale-VO rule judges a run of repeated readings by its length, so
+   a step at the live edge may still turn out stale; after the settle time its flag is
+   what the whole recording would give.
+
+2. **The variance scale** (online calibration).  Each prediction is checked once its
+   outcome has arrived: k steps after a step P, the model *as it was at P* (the snapshot
+   of both posteriors) is rolled out from P's measured window with the joystick that was
+   actually applied, and its 95 % position ellipses are compared with the path integrated
+   from the measured velocities, at every horizon 1..k.  The normalised innovations
+   (squared Mahalanobis distances d2) drive one multiplicative scale per speed regime of
+   the trained calibration (the regime is the measured speed at P, as in
+   :mod:`asgp_ros.core.calibration`), by adaptive conformal inference (Gibbs & Candes,
+   "Adaptive conformal inference under distribution shift", NeurIPS 2021) on the log
+   scale::
+
+       (C1)  log s_r <- log s_r + clip(gain * (miss - (1 - target)), -max_rate dt, max_rate dt)
+
+   where miss is the fraction of the k horizons whose ellipse, at the scale in force at
+   P, missed.  With linearised propagation every position covariance is linear in the
+   calibrated velocity variances, so scaling all of them by s scales the ellipses'
+   d2 by 1/s exactly: a miss is ``d2 > chi2_95 * s``.  Over a long run ACI's miss rate
+   tends to 1 - target whatever the errors do; the step is bounded by ``max_rate`` (log
+   units per second) so that one bad step cannot swing the ellipses, and the scale stays
+   in [``min_scale``, ``max_scale``].  ``min_scale`` defaults to 1: the online scale
+   only ever widens the trained calibration's ellipses, so adaptation cannot make the
+   published variance smaller than the calibrated posterior gives (the safety rule of
+   the adapted posterior, :mod:`asgp_ros.core.adapt` A8, is kept).  One-step velocity
+   innovations (z2 = e^2 / var per channel, chi2 with 1 dof) are tracked for the
+   diagnostics.
+
+What it does not promise: the scale reacts to errors it has seen; the first seconds on a
+new floor are covered only as well as the trained calibration covers them, and the scale
+needs about ``1 / gain`` checked predictions (and at most ``log(s) / max_rate`` seconds) to
+follow a change.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import Any, NamedTuple, cast
+
+import numpy as np
+from numpy.typing import NDArray
+
+from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
+from asgp_ros.core.calibration import VarianceCalibration
+from asgp_ros.core.features import design_matrix
+from asgp_ros.core.metrics import CHI2_2DOF_95, mahalanobis_sq
+from asgp_ros.core.models import MotionModel
+from asgp_ros.core.posterior import FitcPosterior
+from asgp_ros.core.resample import Resampled
+from asgp_ros.core.rollout import rollout
+from asgp_ros.core.sparse_gp import SparseGP
+from asgp_ros.core.unicycle import integrate_path
+
+FloatArray = NDArray[np.float64]
+
+__all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter"]
+
+#: chi2 with one degree of freedom at 95 % (the one-step velocity innovations).
+CHI2_1DOF_95 = 3.841458820694124
+#: Weight of the newest check in the coverage averages shown by the diagnostics
+#: (about the last 100 checked predictions).
+COVERAGE_EWMA = 0.01
+#: Default forgetting of the online posterior: a half-life of 30 s of driving.
+DEFAULT_HALF_LIFE_S = 30.0
+
+
+@dataclass(frozen=True)
+class CoverageConfig:
+    """Online calibration settings (C1; validated on construction).
+
+    Attributes:
+        gain: ACI step on the log scale per checked prediction.
+        max_rate: bound on |d log s| per second of stream time.
+        min_scale, max_scale: range of each regime's scale.
+        target: the coverage the 95 % ellipses are held to.
+    """
+
+    gain: float = 0.05
+    max_rate: float = 0.25
+    min_scale: float = 1.0
+    max_scale: float = 100.0
+    target: float = 0.95
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("gain", 0.0, 10.0), ("max_rate", 0.0, 100.0),
+                             ("min_scale", 1e-3, 1e3), ("max_scale", 1e-3, 1e6),
+                             ("target", 0.5, 0.999)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) \
+                    or not (math.isfinite(value) and lo < value <= hi):
+                raise AdaptError(f"{name} must be a number in ({lo:g}, {hi:g}], got {value!r}")
+        if self.min_scale > self.max_scale:
+            raise AdaptError(f"min_scale {self.min_scale} exceeds max_scale {self.max_scale}")
+
+
+@dataclass(frozen=True)
+class AdaptSettings:
+    """Everything the online adaptation needs.
+
+    Attributes:
+        posterior: forgetting and safety of the posterior updates (:class:`AdaptConfig`).
+        coverage: online calibration, or None to keep the trained calibration.
+    """
+
+    posterior: AdaptConfig = field(
+        default_factory=lambda: AdaptConfig(half_life_s=DEFAULT_HALF_LIFE_S))
+    coverage: CoverageConfig | None = field(default_factory=CoverageConfig)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.posterior, AdaptConfig):
+            raise AdaptError("posterior must be an AdaptConfig")
+        if self.coverage is not None and not isinstance(self.coverage, CoverageConfig):
+            raise AdaptError("coverage must be a CoverageConfig or None")
+
+
+@dataclass(frozen=True)
+class AdapterStats:
+    """What the diagnostics show (a snapshot).
+
+    Attributes:
+        rows_absorbed: grid steps absorbed (each by both channels).
+        steps_refused: completed grid steps that training would not accept (invalid
+            window or target: gap, tracking loss, stale VO, another segment).
+        rows_rejected: rows a channel refused (non-finite, outside the training range,
+            a failed update), summed over the channels, by reason.
+        effective_size: per channel, trained rows times their weight plus the adapted
+            rows' effective number.
+        scales: the online variance scale per speed regime (1 = the trained calibration).
+        checked: predictions whose outcome has been checked.
+        coverage: recent share of checked k-step ellipses that covered (EWMA), or NaN.
+        coverage_one_step: recent share of one-step velocity innovations inside their
+            95 % interval (both channels), or NaN.
+        last_update_s: wall-clock cost of the last absorption (both channels).
+        last_check_s: wall-clock cost of the last coverage check.
+    """
+
+    rows_absorbed: int
+    steps_refused: int
+    rows_rejected: dict[str, int]
+    effective_size: tuple[float, float]
+    scales: tuple[float, ...]
+    checked: int
+    coverage: float
+    coverage_one_step: float
+    last_update_s: float
+    last_check_s: float
+
+
+class _Snapshot(NamedTuple):
+    """The model as a prediction at grid step ``step`` used it."""
+
+    step: int
+    posteriors: tuple[FitcPosterior, FitcPosterior]
+    log_scales: FloatArray
+
+
+def _speed_regime(calibration: VarianceCalibration, speed: float) -> int:
+    return int(np.searchsorted(np.asarray(calibration.speed_edges), abs(speed), side="right"))
+
+
+class ModelAdapter:
+    """Online posterior and calibration of one ASGP model (see the module docstring).
+
+    Args:
+        model: a trained model whose two channels are SparseGP (kind ``asgp``); it is not
+            modified.
+        settings: forgetting, safety and online calibration.
+        horizon_steps: k of the checked predictions (the predictor's horizon).
+        settle_steps: how far behind the newest complete step a step is absorbed and a
+            prediction checked; default from the model's stale-VO rule.
+
+    Raises:
+        AdaptError: a model that cannot adapt (not two SparseGP channels, no LA factor).
+    """
+
+    def __init__(self, model: MotionModel, settings: AdaptSettings | None = None,
+                 horizon_steps: int = 10, settle_steps: int | None = None) -> None:
+        if not all(type(ch) is SparseGP for ch in model.channels):
+            raise AdaptError(f"only an ASGP adapts online; this model is of kind "
+                             f"{model.kind!r}")
+        self.settings = settings if settings is not None else AdaptSettings()
+        self.base = model
+        self.horizon_steps = int(horizon_steps)
+        if not 1 <= self.horizon_steps <= 200:
+            raise AdaptError(f"horizon_steps must be in [1, 200], got {horizon_steps}")
+        self.settle_steps = (self.default_settle_steps(model) if settle_steps is None
+                             else int(settle_steps))
+        if self.settle_steps < 0:
+            raise AdaptError(f"settle_steps must be >= 0, got {settle_steps}")
+        channels = tuple(copy.copy(cast(SparseGP, ch)) for ch in model.channels)
+        self._channels: tuple[SparseGP, SparseGP] = (channels[0], channels[1])
+        self._online = tuple(OnlinePosterior.from_sparse_gp(ch, self.settings.posterior)
+                             for ch in self._channels)
+        regimes = len(model.calibration.speed_edges) + 1
+        self._log_scales = np.zeros(regimes)
+        self.model = self._model_with(self._log_scales)
+        self._check_channels: tuple[SparseGP, SparseGP] = (
+            copy.copy(self._channels[0]), copy.copy(self._channels[1]))
+        self._check_model = replace(model, channels=self._check_channels)
+        self._restart_state()
+        self._steps_refused = 0
+        self._checked = 0
+        self._coverage = math.nan
+        self._coverage_one = math.nan
+        self._last_check_s = 0.0
+
+    @staticmethod
+    def default_settle_steps(model: MotionModel) -> int:
+        """Steps after which a grid step's stale-VO flag no longer changes (plus one)."""
+        rc = model.resample_config
+        windows = [w for w in (rc.stale_after_s, rc.stale_still_after_s) if math.isfinite(w)]
+        if not windows:
+            return 1
+        return min(math.ceil(max(windows) * rc.rate_hz - 1e-9) + 1, 50)
+
+    def history_steps(self) -> int:
+        """Grid steps of history the adapter needs in each resampled window."""
+        return self.base.lags + self.horizon_steps + self.settle_steps + 1
+
+    # ------------------------------------------------------------------ state
+
+    def _model_with(self, log_scales: FloatArray) -> MotionModel:
+        cal = self.base.calibration
+        factors = tuple(float(f * math.exp(ls))
+                        for f, ls in zip(cal.speed_factors, log_scales, strict=True))
+        return replace(self.base, channels=self._channels,
+                       calibration=replace(cal, speed_factors=factors))
+
+    def _restart_state(self) -> None:
+        self._absorbed_to: int | None = None  # newest grid index absorbed or judged
+        self._checked_to: int | None = None
+        self._snapshots: deque[_Snapshot] = deque()
+
+    def restart_stream(self) -> None:
+        """The stream restarted (the predictor's buffers were reset after a clock jump):
+        keep what was learnt, forget the grid positions and the pending checks."""
+        self._restart_state()
+        for online in self._online:
+            online.restart_clock()
+
+    def reset(self) -> None:
+        """Back to the trained posterior and calibration (the counters are kept).
+
+        Steps already absorbed are not absorbed again; predictions made before the reset
+        are not checked.
+        """
+        for online in self._online:
+            online.reset()
+        self._log_scales = np.zeros_like(self._log_scales)
+        self.model = self._model_with(self._log_scales)
+        self._snapshots.clear()
+
+    @property
+    def stats(self) -> AdapterStats:
+        rejected: dict[str, int] = {}
+        for online in self._online:
+            for key, n in online.stats.rejected.items():
+                rejected[key] = rejected.get(key, 0) + n
+        s_v, s_w = (online.stats for online in self._online)
+        return AdapterStats(
+            rows_absorbed=min(s_v.rows_absorbed, s_w.rows_absorbed),
+            steps_refused=self._steps_refused, rows_rejected=rejected,
+            effective_size=(s_v.effective_size, s_w.effective_size),
+            scales=tuple(float(math.exp(x)) for x in self._log_scales),
+            checked=self._checked, coverage=self._coverage,
+            coverage_one_step=self._coverage_one,
+            last_update_s=s_v.last_update_s + s_w.last_update_s,
+            last_check_s=self._last_check_s)
+
+    # ------------------------------------------------------------------ updates
+
+    def observe(self, res: Resampled, complete: int) -> None:
+        """Learn from the first ``complete`` grid points of a resampled window.
+
+        ``res`` is the predictor's buffer on the grid and ``complete`` the number of its
+        points covered by both streams; the newest of them is the step a prediction is
+        about to be made at.  Steps are absorbed and predictions checked once they are
+        ``settle_steps`` behind it; then the current posterior is recorded for the check
+        of the prediction made at the newest step.
+        """
+        if complete <= 0:
+            return
+        ks = np.asarray(res.k[:complete], dtype=np.int64)
+        newest = int(ks[-1])
+        settled = newest - self.settle_steps
+        self._absorb(res, ks, settled)
+        if self.settings.coverage is not None:
+            self._check(res, ks, settled)
+            posteriors = (self._channels[0].posterior, self._channels[1].posterior)
+            if not self._snapshots or self._snapshots[-1].step < newest:
+                self._snapshots.append(_Snapshot(newest, posteriors, self._log_scales.copy()))
+            while self._snapshots and self._snapshots[0].step < settled - self.horizon_steps:
+                self._snapshots.popleft()
+
+    def _absorb(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
+        start = ks[0] - 1 if self._absorbed_to is None else self._absorbed_to
+        if settled <= start:
+            return
+        lo = int(np.searchsorted(ks, start, side="right"))
+        hi = int(np.searchsorted(ks, settled, side="right"))
+        fc = self.base.feature_config
+        rows = [design_matrix(res, c, fc) for c in (0, 1)]
+        index = rows[0][2]
+        take = (index >= lo) & (index < hi)
+        # a step is refused unless it could be a training target: for the first steps of
+        # a window, whose lags lie before it, say nothing (they were judged before)
+        first_judgeable = max(lo, self.base.lags)
+        self._steps_refused += max(0, hi - first_judgeable) - int(
+            np.count_nonzero(take & (index >= first_judgeable)))
+        self._absorbed_to = settled
+        if not np.any(take):
+            return
+        t = np.asarray(res.t)[index[take]]
+        for online, (X, y, _) in zip(self._online, rows, strict=True):
+            online.absorb_rows(X[take], y[take], t)
+        self.model = self._model_with(self._log_scales)
+
+    def _check(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
+        """Check the predictions made at steps P with P + k <= settled (C1)."""
+        cfg = self.settings.coverage
+        assert cfg is not None
+        k, s = self.horizon_steps, self.base.lags
+        seg = np.asarray(res.segment)
+        while self._snapshots and self._snapshots[0].step + k <= settled:
+            snap = self._snapshots.popleft()
+            if self._checked_to is not None and snap.step <= self._checked_to:
+                continue
+            self._checked_to = snap.step
+            i = int(np.searchsorted(ks, snap.step))
+            if i >= ks.shape[0] or ks[i] != snap.step or i - s + 1 < 0 \
+                    or i + k >= ks.shape[0]:
+                continue
+            window = seg[i - s + 1:i + k + 1]
+            if window[0] < 0 or not np.all(window == window[0]):
+                continue  # the outcome is not a valid training case: nothing to learn
+            start = time.perf_counter()
+            self._check_case(res, i, snap, cfg)
+            self._last_check_s = time.perf_counter() - start
+
+    def _check_case(self, res: Resampled, i: int, snap: _Snapshot, cfg: CoverageConfig
+                    ) -> None:
+        k, s = self.horizon_steps, self.base.lags
+        joy, vel = np.asarray(res.joy), np.asarray(res.vel)
+        for ch, post in zip(self._check_channels, snap.posteriors, strict=True):
+            ch.posterior = post
+        try:
+            out = rollout(self._check_model, joy[i - s + 1:i + 1], vel[i - s + 1:i + 1],
+                          joy[i + 1:i + k + 1][None], uncertainty="linear")
+        except ValueError:
+            return
+        ref = np.asarray(integrate_path(vel[None, i:i + k + 1], self.base.dt))[0, 1:]
+        err = ref[:, :2] - np.asarray(out.pose)[0, :, :2]  # [k, 2]
+        d2 = mahalanobis_sq(err, np.asarray(out.pos_cov)[0])  # [k] at scale 1
+        regime = _speed_regime(self.base.calibration, float(vel[i, 0]))
+        scale = math.exp(float(snap.log_scales[regime]))
+        miss = float(np.mean(d2 > CHI2_2DOF_95 * scale))
+        step = cfg.gain * (miss - (1.0 - cfg.target))
+        bound = cfg.max_rate * self.base.dt
+        ls = self._log_scales
+        ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound),
+                             math.log(cfg.min_scale)), math.log(cfg.max_scale))
+        self.model = self._model_with(ls)
+        # one-step velocity innovations (at the scale in force)
+        e1 = vel[i + 1] - np.asarray(out.vel)[0, 0]
+        var1 = np.diagonal(np.asarray(out.vel_cov)[0, 0]) * scale
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inside1 = float(np.mean(e1 * e1 <= CHI2_1DOF_95 * var1))
+        inside = 1.0 - miss
+        a = COVERAGE_EWMA
+        self._coverage = inside if math.isnan(self._coverage) else \
+            (1 - a) * self._coverage + a * inside
+        self._coverage_one = inside1 if math.isnan(self._coverage_one) else \
+            (1 - a) * self._coverage_one + a * inside1
+        self._checked += 1
+
+
+def describe(stats: AdapterStats) -> dict[str, Any]:
+    """JSON-able view of :class:`AdapterStats` (for diagnostics and reports)."""
+    return {
+        "rows_absorbed": stats.rows_absorbed, "steps_refused": stats.steps_refused,
+        "rows_rejected": dict(stats.rows_rejected),
+        "effective_size": list(stats.effective_size), "scales": list(stats.scales),
+        "checked": stats.checked, "coverage": stats.coverage,
+        "coverage_one_step": stats.coverage_one_step,
+        "last_update_s": stats.last_update_s, "last_check_s": stats.last_check_s,
+    }
