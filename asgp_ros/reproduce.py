@@ -60,6 +60,7 @@ from asgp_ros.dataset import Progress as DatasetProgress
 from asgp_ros.evaluation import (
     ModelEvaluation,
     TestSeries,
+    evaluate_adaptive,
     evaluate_model,
     reference_path,
     rollout_cases,
@@ -92,6 +93,13 @@ log = logging.getLogger(__name__)
 SURFACES = tuple(surface for surface, _count in LAYOUT)
 
 
+#: The automatic ASGP adapting online while it is scored, and the seconds into each test
+#: bag from which issue 12's targets count (quick mode: its short bags' first sixth).
+ADAPT_ROW = "asgp_adapt"
+ADAPT_FROM_S = 60.0
+QUICK_ADAPT_FROM_S = 10.0
+
+
 @dataclass(frozen=True)
 class Compared:
     """One model of the comparison: a registered kind in a fixed or automatic configuration.
@@ -107,6 +115,8 @@ class Compared:
             whose published figures stand beside its cells; None for a model the paper did
             not run.
         colour: plot colour, if not the kind's.
+        adapts: not trained itself: the automatic ASGP's model file, adapting online while
+            it is scored (:func:`asgp_ros.evaluation.evaluate_adaptive`).
     """
 
     name: str
@@ -115,6 +125,7 @@ class Compared:
     options: TrainOptions | None
     paper: str | None = None
     colour: str | None = None
+    adapts: bool = False
 
     @property
     def model_kind(self) -> ModelKind:
@@ -138,7 +149,9 @@ def compared_models() -> dict[str, Compared]:
         if name == PAPER_OPTIONS.kind:
             models += [Compared("asgp_paper", name, f"{kind.label} (paper)", PAPER_OPTIONS,
                                 paper="ASGP", colour="tab:cyan"),
-                       Compared(name, name, kind.label or name, None)]
+                       Compared(name, name, kind.label or name, None),
+                       Compared(ADAPT_ROW, name, f"{kind.label or name} + adapt", None,
+                                colour="tab:purple", adapts=True)]
         else:
             models.append(Compared(name, name, kind.label or name,
                                    TrainOptions(kind=name, lags=kind.default_lags),
@@ -405,7 +418,9 @@ def _train_job(context: JobContext, task: tuple[str, str]) -> dict[str, Any]:
 
 
 def _model_path(context: JobContext, train_name: str, name: str) -> Path:
-    return context.model_dir / f"{train_name.lower()}_{name}.npz"
+    model = MODELS[name]
+    file_of = model.kind if model.adapts else name  # the adapting row reads the ASGP's file
+    return context.model_dir / f"{train_name.lower()}_{file_of}.npz"
 
 
 def _train_one(context: JobContext, train_name: str, model: Compared) -> dict[str, Any]:
@@ -451,6 +466,8 @@ def _evaluate_one(context: JobContext, train_name: str, model: Compared) -> dict
     st = context.settings
     t0 = time.perf_counter()
     loaded = load_model(_model_path(context, train_name, model.name))
+    if model.adapts:
+        return _evaluate_adapting(context, train_name, model, loaded, t0)
     evals = {}
     for test_name, paths in context.test_sets.items():
         tests = [TestSeries(p, context.series[p].res) for p in paths]
@@ -461,6 +478,37 @@ def _evaluate_one(context: JobContext, train_name: str, model: Compared) -> dict
             name=f"{model.label} ({train_name})")
     return {"eval_seconds": round(time.perf_counter() - t0, 2), "meta": loaded.meta,
             "evals": evals}
+
+
+def _evaluate_adapting(context: JobContext, train_name: str, model: Compared, loaded: Any,
+                       t0: float) -> dict[str, Any]:
+    """The adapting row: each test bag replayed from the trained model through the online
+    predictor (default :class:`asgp_ros.core.adaptive.AdaptSettings`), causally, on the
+    common cases; and the scores from ``ADAPT_FROM_S`` into each bag beside the model not
+    adapting, on the same cases (issue 12's targets)."""
+    st = context.settings
+    skip = QUICK_ADAPT_FROM_S if st.quick else ADAPT_FROM_S
+    evals, late = {}, {}
+    for test_name, paths in context.test_sets.items():
+        tests = [TestSeries(p, context.series[p].res, context.series[p].raw) for p in paths]
+        ev = evaluate_adaptive(loaded, tests, st.horizons, threshold_m=st.threshold_m,
+                               case_lags=context.case_lags,
+                               name=f"{model.label} ({train_name})")
+        evals[test_name] = ev.adapted
+        tl = ev.timeline
+        after = np.asarray(tl["t"]) >= skip
+        horizons = {}
+        for h in ev.adapted.horizons:
+            cols = {key: np.asarray(tl[key][h])[after] for key in
+                    ("hit", "hit_plain", "covered", "covered_plain")}
+            ok = np.isfinite(cols["hit"])
+            horizons[h] = {"cases": int(ok.sum()),
+                           **{key: float(np.mean(v[ok])) if ok.any() else None
+                              for key, v in cols.items()}}
+        late[test_name] = {"from_s": skip, "horizons": horizons, "missing": ev.missing,
+                           "state": ev.adaptation}
+    return {"eval_seconds": round(time.perf_counter() - t0, 2), "meta": loaded.meta,
+            "evals": evals, "adaptation": late}
 
 
 C = TypeVar("C")
@@ -588,11 +636,19 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
             test_sets=MappingProxyType({k: tuple(str(p) for p in v)
                                         for k, v in test_paths.items()}),
             case_lags=0, model_dir=tmp / "models")
-        tasks = _schedule([(t, m) for t in TRAIN_SETS for m in MODELS])
+        tasks = _schedule([(t, m) for t in TRAIN_SETS for m in MODELS
+                           if not MODELS[m].adapts])
         log.info("training %d models on %d worker(s)", len(tasks), st.jobs)
         trained = _pool_map(_train_job, context, tasks, st.jobs, one_thread=True)
         # every model scored on the same cases: those with the largest s of all the models
         context = replace(context, case_lags=case_lags([r["lags"] for r in trained]))
+        # the adapting rows score the automatic ASGP's files
+        for t in TRAIN_SETS:
+            for m in MODELS.values():
+                if m.adapts:
+                    base = next(r for r in trained if r["train"] == t and r["kind"] == m.kind)
+                    tasks.append((t, m.name))
+                    trained.append({**base, "kind": m.name, "train_seconds": 0.0, "log": []})
         log.info("evaluating them on %d case lags", context.case_lags)
         results = [{**r, **ev} for r, ev in zip(
             trained, _pool_map(_evaluate_job, context, tasks, st.jobs, one_thread=True),
@@ -738,6 +794,7 @@ def _summarise(results: list[dict[str, Any]], st: Settings, train_paths: dict[st
                                                                       0]))
                                for p in test_paths[te]])) for te in TEST_SETS}),
         "calibration": _calibration(results, hk),
+        "adaptation": _adaptation(results, hk),
         "paper_note": PAPER_NOTE,
         "timing": timing,
     }
@@ -862,7 +919,7 @@ def _calibration(results: list[dict[str, Any]], hk: list[str]) -> dict[str, Any]
         return float(np.mean(vals)) if vals else None
 
     models = {}
-    for k in ASGP_ROWS:
+    for k in (*ASGP_ROWS, ADAPT_ROW):
         mine = [row for row in rows if row["model"] == k]
         if not mine:
             continue
@@ -874,6 +931,97 @@ def _calibration(results: list[dict[str, Any]], hk: list[str]) -> dict[str, Any]
                      "mean_mismatched": {h: mean([r for r in mine if not r["matched"]], h)
                                          for h in hk}}
     return {"target": list(COVERAGE_TARGET), "horizons": hk, "rows": rows, "models": models}
+
+
+#: The cells issue 12 names (train on one surface, test on another) and the train set whose
+#: automatic ASGP stands for "the model trained on the test surface" (Hybrid: Both).
+ADAPT_ACROSS = (("Tile", "Carpet"), ("Tile", "Hybrid"), ("Carpet", "Tile"), ("Carpet", "Hybrid"))
+OWN_TRAIN = {"Tile": "Tile", "Carpet": "Carpet", "Hybrid": "Both"}
+
+
+def _adaptation(results: list[dict[str, Any]], hk: list[str]) -> dict[str, Any]:
+    """Issue 12's targets for the adapting row, from ADAPT_FROM_S into each test bag."""
+    rows = []
+    for r in results:
+        if r["kind"] != ADAPT_ROW:
+            continue
+        for test, info in r["adaptation"].items():
+            own = {h: _rate(results, "asgp", OWN_TRAIN[test], test, h) for h in hk}
+            rows.append({"train": r["train"], "test": test, "from_s": info["from_s"],
+                         "matched": (r["train"], test) in MATCHED,
+                         "across": (r["train"], test) in ADAPT_ACROSS,
+                         "missing": info["missing"], "state": info["state"],
+                         "own": own, "horizons": info["horizons"]})
+    claims = []
+    across = [row for row in rows if row["across"]]
+    matched = [row for row in rows if row["matched"]]
+
+    def pts(x: float | None) -> str:
+        return "-" if x is None else f"{100 * x:.1f}%"
+
+    if across:
+        gaps = [(row, h, row["own"][h] - (row["horizons"][h]["hit"] or 0.0))
+                for row in across for h in hk]
+        worst = [f"{row['train']}/{row['test']} {h} s: {pts(row['horizons'][h]['hit'])} vs "
+                 f"{pts(row['own'][h])}" for row, h, gap in gaps if gap > 0.02]
+        claims.append({"claim": "across surfaces, adapting comes within 2 points of the ASGP "
+                                "trained on the test surface (Both for Hybrid)",
+                       "holds": not worst, "evidence": ", ".join(worst) or "every cell"})
+        off = [f"{row['train']}/{row['test']} {h} s: {pts(row['horizons'][h]['covered'])}"
+               for row in across for h in hk
+               if not (row["horizons"][h]["covered"] is not None and COVERAGE_TARGET[0]
+                       <= row["horizons"][h]["covered"] <= COVERAGE_TARGET[1])]
+        claims.append({"claim": "across surfaces, adapting keeps the 95% ellipse coverage "
+                                "within 90-98% at every horizon",
+                       "holds": not off, "evidence": ", ".join(off) or "every cell"})
+    if matched:
+        worse = [f"{row['train']}/{row['test']} {h} s: {pts(row['horizons'][h]['hit'])} vs "
+                 f"{pts(row['horizons'][h]['hit_plain'])}"
+                 for row in matched for h in hk
+                 if (row["horizons"][h]["hit_plain"] or 0.0) - (row["horizons"][h]["hit"]
+                                                                 or 0.0) > 0.005]
+        claims.append({"claim": "where the training set covers the test surface, adapting "
+                                "is not worse than not adapting by more than 0.5 points",
+                       "holds": not worse, "evidence": ", ".join(worse) or "every cell"})
+    return {"rows": rows, "claims": claims}
+
+
+def _adaptation_section(s: dict[str, Any], hk: list[str]) -> list[str]:
+    ad = s.get("adaptation") or {}
+    if not ad.get("rows"):
+        return []
+    from_s = ad["rows"][0]["from_s"]
+    L = ["## The adaptive ASGP (ASGP + adapt)\n",
+         "Each test bag replayed from the automatic ASGP's model file through the online "
+         "predictor, adapting (`asgp_ros.core.adaptive`, default settings: forgetting "
+         "half-life 30 s, online variance scale by adaptive conformal inference, the "
+         "published posterior chosen by recent k-step error), causally: a prediction uses "
+         "only the samples stamped before it is made. The 'ASGP + adapt' rows of the tables "
+         "above count from the start of each bag, on the common cases (less those the online "
+         "predictor refused at the live edge). Below, from "
+         f"{from_s:g} s into each bag: success (%) / 95% ellipse coverage (%), adapting and "
+         "not adapting on the same cases, and the success of the automatic ASGP trained on "
+         "the test surface (Both for Hybrid; whole bags).\n",
+         "| train | test | " + " | ".join(f"{h} s adapting | {h} s as trained | {h} s own"
+                                          for h in hk) + " |",
+         "|" + "---|" * (2 + 3 * len(hk))]
+
+    def pc(x: float | None) -> str:
+        return "-" if x is None else f"{100 * x:.1f}"
+
+    for row in ad["rows"]:
+        cells = []
+        for h in hk:
+            x = row["horizons"][h]
+            cells += [f"{pc(x['hit'])} / {pc(x['covered'])}",
+                      f"{pc(x['hit_plain'])} / {pc(x['covered_plain'])}", pc(row["own"][h])]
+        L.append(f"| {row['train']} | {row['test']} | " + " | ".join(cells) + " |")
+    L.append("")
+    for c in ad["claims"]:
+        L.append(f"- {'**holds**' if c['holds'] else '**does not hold**'} (issue 12): "
+                 f"{c['claim']} ({c['evidence']}).")
+    L.append("")
+    return L
 
 
 # ---------------------------------------------------------------------------- markdown
@@ -1001,6 +1149,7 @@ def _markdown(s: dict[str, Any]) -> str:
                  f"({c['source']}): {c['claim']} ({c['evidence']}).")
     L.append("")
     L.extend(_automatic_section(s))
+    L.extend(_adaptation_section(s, hk))
     cal = s["calibration"]
 
     def pc(x: float | None) -> str:

@@ -16,7 +16,10 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
 2. CPU: the same inputs at their real rates (5 Hz steps) for ``--cpu-seconds``; the node
    process's user + system time from /proc/<pid>/stat divided by the wall time.
 
-Targets: p99 latency under 5 ms; CPU under 5% of one core.
+``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
+side by side on the same model.
+
+Targets: p99 latency under 5 ms (with adaptation too); CPU under 5% of one core.
 """
 
 from __future__ import annotations
@@ -121,9 +124,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="duration of the real-rate CPU measurement (20)")
     parser.add_argument("--horizon", type=int, default=10, help="k steps (10 = 2.0 s)")
     parser.add_argument("--model", help="model file (default: train one on a simulated bag)")
+    parser.add_argument("--adapt", choices=("off", "on", "both"), default="off",
+                        help="online adaptation (adapt.enabled) of the node: off, on, or both "
+                             "one after the other (side by side)")
     args = parser.parse_args(argv)
-
-    import rclpy
 
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
@@ -133,75 +137,92 @@ def main(argv: list[str] | None = None) -> int:
             print("training an ASGP model on a 3-minute simulated bag ...", flush=True)
             _cli("simulate", "--minutes", "3", "--seed", "5", "--out", str(bag), "--no-truth")
             _cli("train", "--out", model, str(bag))
-        env = dict(os.environ, PYTHONPATH=str(REPO))
-        node = subprocess.Popen(
-            [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
-             "-p", f"model_path:={model}", "-p", "use_sim_time:=true",
-             "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
-             "--log-level", "warn"],
-            cwd=REPO, env=env)
-        rclpy.init()
-        drv = Driver()
-        try:
-            if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
-                                  and drv.node.count_publishers("predicted_path") > 0, 30.0):
-                print("the predictor node did not come up", file=sys.stderr)
+        modes = {"off": [False], "on": [True], "both": [False, True]}[args.adapt]
+        for adapt in modes:
+            rc = measure(args, model, adapt)
+            if rc:
+                return rc
+    return 0
+
+
+def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
+    """Start the node on ``model`` (adapting or not), measure, print, stop it."""
+    import rclpy
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    node = subprocess.Popen(
+        [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
+         "-p", f"model_path:={model}", "-p", "use_sim_time:=true",
+         "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
+         "-p", f"adapt.enabled:={'true' if adapt else 'false'}",
+         "--log-level", "warn"],
+        cwd=REPO, env=env)
+    rclpy.init()
+    drv = Driver()
+    try:
+        if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
+                              and drv.node.count_publishers("predicted_path") > 0, 30.0):
+            print("the predictor node did not come up", file=sys.stderr)
+            return 1
+        # discovery of every endpoint, then warm-up steps (buffers, first allocations)
+        n = 1000
+        while not drv.received:
+            drv.send_step_inputs(n)
+            drv.send_vo(n)
+            drv.spin_until(lambda n=n: n in drv.received, 0.5)
+            n += 1
+            if n > 1100:
+                print("no path from the node", file=sys.stderr)
                 return 1
-            # discovery of every endpoint, then warm-up steps (buffers, first allocations)
-            n = 1000
-            while not drv.received:
-                drv.send_step_inputs(n)
-                drv.send_vo(n)
-                drv.spin_until(lambda n=n: n in drv.received, 0.5)
-                n += 1
-                if n > 1100:
-                    print("no path from the node", file=sys.stderr)
-                    return 1
-            for _ in range(20):
-                drv.send_step_inputs(n)
-                drv.send_vo(n)
-                drv.spin_until(lambda n=n: n in drv.received, 1.0)
-                n += 1
+        for _ in range(20):
+            drv.send_step_inputs(n)
+            drv.send_vo(n)
+            drv.spin_until(lambda n=n: n in drv.received, 1.0)
+            n += 1
 
-            # ---- 1. latency -------------------------------------------------------------
-            latencies, missed = [], 0
-            for _ in range(args.steps):
-                drv.send_step_inputs(n)
-                drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
-                sent = drv.send_vo(n)
-                if drv.spin_until(lambda n=n: n in drv.received, 1.0):
-                    latencies.append(drv.received[n] - sent)
-                else:
-                    missed += 1
-                n += 1
-            lat_ms = 1e3 * np.asarray(latencies)
-            drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
-            node_p99 = drv.diag.get("latency_p99_ms", "nan")
+        # ---- 1. latency -------------------------------------------------------------
+        latencies, missed = [], 0
+        for _ in range(args.steps):
+            drv.send_step_inputs(n)
+            drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
+            sent = drv.send_vo(n)
+            if drv.spin_until(lambda n=n: n in drv.received, 1.0):
+                latencies.append(drv.received[n] - sent)
+            else:
+                missed += 1
+            n += 1
+        lat_ms = 1e3 * np.asarray(latencies)
+        drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
+        node_p99 = drv.diag.get("latency_p99_ms", "nan")
 
-            # ---- 2. CPU at the real rate ------------------------------------------------
-            cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
-            steps_cpu = round(args.cpu_seconds / DT)
-            start = time.monotonic()
-            for i in range(steps_cpu):
-                drv.send_step_inputs(n)
-                drv.send_vo(n)
-                n += 1
-                drv.spin_until(lambda i=i: time.monotonic() >= start + (i + 1) * DT, DT + 0.1)
-            cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
-        finally:
-            drv.executor.shutdown()
-            drv.node.destroy_node()
-            rclpy.try_shutdown()
-            node.send_signal(signal.SIGINT)
-            try:
-                node.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                print("the node did not stop within 10 s of SIGINT: killed", file=sys.stderr)
-                node.kill()
-                node.wait()
+        # ---- 2. CPU at the real rate ------------------------------------------------
+        cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
+        steps_cpu = round(args.cpu_seconds / DT)
+        start = time.monotonic()
+        for i in range(steps_cpu):
+            drv.send_step_inputs(n)
+            drv.send_vo(n)
+            n += 1
+            drv.spin_until(lambda i=i: time.monotonic() >= start + (i + 1) * DT, DT + 0.1)
+        cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
+    finally:
+        drv.executor.shutdown()
+        drv.node.destroy_node()
+        rclpy.try_shutdown()
+        node.send_signal(signal.SIGINT)
+        try:
+            node.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            print("the node did not stop within 10 s of SIGINT: killed", file=sys.stderr)
+            node.kill()
+            node.wait()
 
-    print(f"predictor node, horizon {args.horizon} steps, {len(lat_ms)} steps "
-          f"({missed} without a path)")
+    print(f"predictor node, adaptation {'on' if adapt else 'off'}, horizon {args.horizon} "
+          f"steps, {len(lat_ms)} steps ({missed} without a path)")
+    if adapt:
+        print(f"  adaptation: {drv.diag.get('adapt_rows_absorbed', '?')} steps absorbed, "
+              f"last update {drv.diag.get('adapt_last_update_ms', '?')} ms, last check "
+              f"{drv.diag.get('adapt_last_check_ms', '?')} ms")
     print(f"  VO publish -> path received (across processes): p50 "
           f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
           f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")

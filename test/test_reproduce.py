@@ -76,7 +76,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     assert list(tables) == ["Table I", "Table II", "Table III"]
     assert [t["test_set"] for t in tables.values()] == ["Tile", "Carpet", "Hybrid"]
     for t in tables.values():
-        assert len(t["rows"]) == 15  # 3 train sets x 5 models
+        assert len(t["rows"]) == 18  # 3 train sets x 6 rows (5 models, 1 adapting)
         assert all(n > 0 for n in t["cases"].values())
         for row in t["rows"]:
             for h in ("1.0", "1.4", "2.0"):
@@ -85,13 +85,19 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
                     row["model"], t["test_set"], row["train"], h)
                 assert (row[h]["paper_success_rate_pct"] is None) == (
                     MODELS[row["model"]].paper is None)
-                has_var = row["model"] in ("asgp_paper", "asgp")
+                has_var = row["model"] in ("asgp_paper", "asgp", "asgp_adapt")
                 assert (row[h]["coverage_95_pct"] is None) == (not has_var)
     # identical case sets across models: one count per horizon and test set
+    # (the adapting row: those the online predictor did not refuse at the live edge)
     for ev in res["evaluations"]:
         for test, e in ev["tests"].items():
             table = next(t for t in tables.values() if t["test_set"] == test)
-            assert {h: v["cases"] for h, v in e["horizons"].items()} == table["cases"]
+            cases = {h: v["cases"] for h, v in e["horizons"].items()}
+            if ev["kind"] == "asgp_adapt":
+                assert all(0.9 * table["cases"][h] <= n <= table["cases"][h]
+                           for h, n in cases.items())
+            else:
+                assert cases == table["cases"]
     # the paper's four claims for both ASGP rows, the two targets for "ASGP"
     claims = res["claims"]
     assert [(c["model"], c["source"]) for c in claims] == (
@@ -110,10 +116,19 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
         assert (t["kind"], t["lags"], t["coupled"]) == ("asgp", 4, False)
         assert [t["channels"][c]["num_inducing"] for c in ("v", "omega")] == [20, 40]
     cal = res["calibration"]
-    assert set(cal["models"]) == {"asgp_paper", "asgp"}
+    assert set(cal["models"]) == {"asgp_paper", "asgp", "asgp_adapt"}
     assert {(r["model"], r["train"], r["test"]) for r in cal["rows"]} == {
-        (m, tr, te) for m in ("asgp_paper", "asgp") for tr in ("Tile", "Carpet", "Both")
-        for te in ("Tile", "Carpet", "Hybrid")}
+        (m, tr, te) for m in ("asgp_paper", "asgp", "asgp_adapt")
+        for tr in ("Tile", "Carpet", "Both") for te in ("Tile", "Carpet", "Hybrid")}
+    # the adapting row: from 10 s into each (short) bag, beside the trained model
+    adapt = res["adaptation"]
+    assert len(adapt["rows"]) == 9 and len(adapt["claims"]) == 3
+    for row in adapt["rows"]:
+        assert row["from_s"] == reproduce.QUICK_ADAPT_FROM_S
+        assert row["state"][0]["rows_absorbed"] > 0
+        for h in ("1.0", "1.4", "2.0"):
+            x = row["horizons"][h]
+            assert x["cases"] > 0 and 0.0 <= x["hit"] <= 1.0 and 0.0 <= x["covered"] <= 1.0
     checks = cal["propagation_check"]
     assert [(c["model"], c["test"]) for c in checks] == [
         (m, te) for m in ("asgp_paper", "asgp") for te in ("Tile", "Carpet", "Hybrid")]
@@ -123,6 +138,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
             assert all(0.0 <= v <= 1.0 for v in c[h].values())
     report = (out / "report.md").read_text()
     assert "Quick mode" in report and "## Table II: tested on Carpet" in report
+    assert "## The adaptive ASGP (ASGP + adapt)" in report and "| Tile | ASGP + adapt |" in report
     assert "not included" not in report and "simulated" in report
     # Table I, the Both-trained MLP's row: the paper's 52.06 % beside our 2.0 s cell
     line = next(ln for ln in report.splitlines() if ln.startswith("| Both | MLP |"))
@@ -139,9 +155,11 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
 def test_compared_models_come_from_the_registry_of_kinds():
     from asgp_ros.training import PAPER_OPTIONS, TrainOptions
 
-    assert list(MODELS) == ["asgp_paper", *trainable_kinds()]
-    assert [m.label for m in MODELS.values()] == ["ASGP (paper)", "ASGP", "MLP",
+    kinds = trainable_kinds()
+    assert list(MODELS) == ["asgp_paper", kinds[0], "asgp_adapt", *kinds[1:]]
+    assert [m.label for m in MODELS.values()] == ["ASGP (paper)", "ASGP", "ASGP + adapt", "MLP",
                                                   "Const. velocity", "First-order lag"]
+    assert MODELS["asgp_adapt"].adapts and MODELS["asgp_adapt"].kind == "asgp"
     paper_row, auto = MODELS["asgp_paper"], MODELS["asgp"]
     assert paper_row.kind == auto.kind == "asgp"
     assert paper_row.options == PAPER_OPTIONS == TrainOptions(

@@ -116,6 +116,23 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     assert meta["training_data"]["bags"][0].endswith("train")
     assert meta["training"]["channels"]["omega"]["num_inducing"] == 8
 
+    # --adapt: the adapted and the trained model on the same cases, causally
+    adapt_json = tmp_path / "adapt.json"
+    rc = main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-half-life", "20",
+               "--skip", "10", "--json", str(adapt_json)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "adapting online (half-life 20 s" in text and "as trained (same cases)" in text
+    assert "steps absorbed" in text
+    adapted = json.loads(adapt_json.read_text())
+    for key, h in adapted["adapted"]["horizons"].items():
+        assert h["cases"] == adapted["plain"]["horizons"][key]["cases"] > 0
+        assert h["coverage_95"] is not None
+    assert adapted["adaptation"][0]["rows_absorbed"] > 100
+    assert main(["evaluate", str(model), bags["test"], "--skip", "10"]) == 2
+    assert "--skip needs --adapt" in capsys.readouterr().err
+    assert main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-floor", "2"]) == 2
+
 
 def test_cli_bad_inputs_write_nothing(bags, tmp_path, capsys):
     model = tmp_path / "m.npz"

@@ -40,6 +40,11 @@ CLI_RANGES: dict[str, tuple[float, float]] = {
     "noise_counts": (0.0, 100.0),
     "duration_s": (0.0, 30 * 86400.0),
     "status_every_s": (0.0, 3600.0),
+    # online adaptation (asgp evaluate --adapt): forgetting half-life (s), the trained
+    # data's floor weight, and the seconds of each bag left unscored
+    "half_life_s": (1.0, 86400.0),
+    "trained_floor": (0.0, 1.0),
+    "skip_s": (0.0, 86400.0),
 }
 
 

@@ -8,10 +8,12 @@ import json
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.core.adapt import AdaptConfig, AdaptError
+from asgp_ros.core.adaptive import DEFAULT_HALF_LIFE_S, DEFAULT_TRAINED_FLOOR, AdaptSettings
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.modelfile import ModelFileError, load_model
-from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
+from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_adaptive, evaluate_model
 from asgp_ros.fileio import SCORES_JSON, atomic_write_text, check_output
 
 
@@ -38,6 +40,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also score against ground truth (simulated bags)")
     p.add_argument("--uncertainty", choices=("linear", "mc", "none"), default=None,
                    help="uncertainty propagation (default linear for asgp, none otherwise)")
+    p.add_argument("--adapt", action="store_true",
+                   help="adapt an ASGP online while scoring (asgp_ros.core.adaptive): each bag "
+                        "is replayed from the trained model through the online predictor, "
+                        "causally (a prediction uses only samples stamped before it is made), "
+                        "and scored beside the same model not adapting, on the same cases")
+    p.add_argument("--adapt-half-life", type=cli_number("half_life_s", "s"),
+                   default=DEFAULT_HALF_LIFE_S,
+                   help="forgetting half-life of the adapted posterior (%(default)s s)")
+    p.add_argument("--adapt-floor", type=cli_number("trained_floor", ""),
+                   default=DEFAULT_TRAINED_FLOOR,
+                   help="weight the trained data decay to, in [0, 1] (%(default)s)")
+    p.add_argument("--skip", type=cli_number("skip_s", "s"), default=0.0,
+                   help="with --adapt: score cases from this many seconds into each bag")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the scores as JSON")
     p.add_argument("--force", action="store_true",
                    help="replace an existing evaluation JSON file at --json")
@@ -79,7 +94,11 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError(str(exc)) from exc
     series = read_series_or_fail(args.bags, args, resample_config=model.resample_config,
                                  truth=args.truth)
-    tests = [TestSeries(s.name, s.res) for s in series]
+    tests = [TestSeries(s.name, s.res, s.raw) for s in series]
+    if args.adapt:
+        return _run_adaptive(args, model, tests)
+    if args.skip:
+        raise CommandError("--skip needs --adapt")
     try:
         ev = evaluate_model(model, tests, args.horizons, threshold_m=args.threshold,
                             case_lags=args.case_lags, truth=args.truth,
@@ -90,6 +109,40 @@ def run(args: argparse.Namespace) -> int:
     print(f"{args.model} ({ev.kind}, s={ev.lags}) on {len(tests)} bag(s), threshold "
           f"{100 * args.threshold:.0f} cm")
     print(format_table(result))
+    if args.json:
+        atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSeries]) -> int:
+    """``--adapt``: the adapting model and the same model as trained, on the same cases."""
+    if args.truth:
+        raise CommandError("--truth is not scored with --adapt")
+    if args.uncertainty not in (None, "linear"):
+        raise CommandError("--adapt propagates the uncertainty linearly")
+    try:
+        settings = AdaptSettings(AdaptConfig(half_life_s=args.adapt_half_life,
+                                             trained_floor=args.adapt_floor))
+        ev = evaluate_adaptive(model, tests, args.horizons, settings,
+                               threshold_m=args.threshold, case_lags=args.case_lags,
+                               skip_s=args.skip, name=str(args.model))
+    except (AdaptError, EvaluationError) as exc:
+        raise CommandError(str(exc)) from exc
+    result = ev.to_json()
+    print(f"{args.model} adapting online (half-life {args.adapt_half_life:g} s, trained floor "
+          f"{args.adapt_floor:g}) on {len(tests)} bag(s), cases from {args.skip:g} s into each"
+          f" bag, threshold {100 * args.threshold:.0f} cm")
+    print("adapted:")
+    print(format_table(result["adapted"]))
+    print("as trained (same cases):")
+    print(format_table(result["plain"]))
+    for ts, state in zip(tests, ev.adaptation, strict=True):
+        scales = "/".join(f"{x:.2f}" for x in state["scales"])
+        print(f"{ts.name}: {state['rows_absorbed']} steps absorbed, {state['steps_refused']} "
+              f"refused, variance scale {scales}, published at the end: {state['published']}")
+    if ev.missing:
+        print(f"{ev.missing} case(s) of the offline evaluation got no online prediction "
+              "(the replayed predictor refused: stale or lost VO at the live edge)")
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
     return 0

@@ -44,6 +44,18 @@ calibration's shape stay as trained):
    innovations (z2 = e^2 / var per channel, chi2 with 1 dof) are tracked for the
    diagnostics.
 
+3. **Which posterior is published** (``AdaptSettings.select``).  Forgetting trades the
+   many trained rows for a few hundred recent ones: on a new floor that is the point, on
+   the trained floor it only adds variance (measured: a point or more of k-step success
+   lost in-domain).  Every checked prediction is therefore made twice, by the trained
+   posterior and by the adapted one (each with its own online scale, C1), and the
+   published model is the one whose recent k-step position errors are smaller
+   (exponentially weighted mean of the squared error over the horizons, half-life
+   ``select_half_life_s``), switching only when the other is better by
+   ``SELECT_MARGIN``: a follow-the-leader choice between two experts, made from
+   outcomes alone.  The adapted posterior keeps learning while the trained one is
+   published.
+
 What it does not promise: the scale reacts to errors it has seen; the first seconds on a
 new floor are covered only as well as the trained calibration covers them, and the scale
 needs about ``1 / gain`` checked predictions (and at most ``log(s) / max_rate`` seconds) to
@@ -82,8 +94,15 @@ CHI2_1DOF_95 = 3.841458820694124
 #: Weight of the newest check in the coverage averages shown by the diagnostics
 #: (about the last 100 checked predictions).
 COVERAGE_EWMA = 0.01
-#: Default forgetting of the online posterior: a half-life of 30 s of driving.
+#: Default forgetting of the online posterior: a half-life of 30 s of driving, and the
+#: trained data fading to nothing (the trained posterior itself stays available, item 3).
 DEFAULT_HALF_LIFE_S = 30.0
+DEFAULT_TRAINED_FLOOR = 0.0
+#: The published posterior changes when the other one's recent error is this much smaller.
+SELECT_MARGIN = 0.05
+#: The experts (index into the scales and errors).
+TRAINED, ADAPTED = 0, 1
+EXPERTS = ("trained", "adapted")
 
 
 @dataclass(frozen=True)
@@ -121,14 +140,24 @@ class AdaptSettings:
 
     Attributes:
         posterior: forgetting and safety of the posterior updates (:class:`AdaptConfig`).
-        coverage: online calibration, or None to keep the trained calibration.
+        coverage: online calibration, or None to keep the trained calibration (and to
+            publish the adapted posterior always: the choice needs the checks).
+        select: publish whichever of the trained and the adapted posterior predicted
+            better recently (item 3 of the module docstring); False always publishes
+            the adapted one.
+        select_half_life_s: half-life of the recent errors that choice compares.
     """
 
     posterior: AdaptConfig = field(
-        default_factory=lambda: AdaptConfig(half_life_s=DEFAULT_HALF_LIFE_S))
+        default_factory=lambda: AdaptConfig(half_life_s=DEFAULT_HALF_LIFE_S,
+                                            trained_floor=DEFAULT_TRAINED_FLOOR))
     coverage: CoverageConfig | None = field(default_factory=CoverageConfig)
+    select: bool = True
+    select_half_life_s: float = 20.0
 
     def __post_init__(self) -> None:
+        if not (math.isfinite(self.select_half_life_s) and self.select_half_life_s > 0.0):
+            raise AdaptError(f"select_half_life_s must be > 0, got {self.select_half_life_s}")
         if not isinstance(self.posterior, AdaptConfig):
             raise AdaptError("posterior must be an AdaptConfig")
         if self.coverage is not None and not isinstance(self.coverage, CoverageConfig):
@@ -147,7 +176,11 @@ class AdapterStats:
             a failed update), summed over the channels, by reason.
         effective_size: per channel, trained rows times their weight plus the adapted
             rows' effective number.
-        scales: the online variance scale per speed regime (1 = the trained calibration).
+        scales: the published posterior's online variance scale per speed regime (1 = the
+            trained calibration).
+        published: which posterior predictions use now, "trained" or "adapted".
+        recent_error: recent mean squared k-step position error (m^2) of the trained and
+            of the adapted posterior (NaN before the first check).
         checked: predictions whose outcome has been checked.
         coverage: recent share of checked k-step ellipses that covered (EWMA), or NaN.
         coverage_one_step: recent share of one-step velocity innovations inside their
@@ -161,6 +194,8 @@ class AdapterStats:
     rows_rejected: dict[str, int]
     effective_size: tuple[float, float]
     scales: tuple[float, ...]
+    published: str
+    recent_error: tuple[float, float]
     checked: int
     coverage: float
     coverage_one_step: float
@@ -173,7 +208,8 @@ class _Snapshot(NamedTuple):
 
     step: int
     posteriors: tuple[FitcPosterior, FitcPosterior]
-    log_scales: FloatArray
+    log_scales: FloatArray  # [2 experts, regimes]
+    published: int
 
 
 def _speed_regime(calibration: VarianceCalibration, speed: float) -> int:
@@ -214,8 +250,11 @@ class ModelAdapter:
         self._online = tuple(OnlinePosterior.from_sparse_gp(ch, self.settings.posterior)
                              for ch in self._channels)
         regimes = len(model.calibration.speed_edges) + 1
-        self._log_scales = np.zeros(regimes)
-        self.model = self._model_with(self._log_scales)
+        self._log_scales = np.zeros((2, regimes))
+        self._published = ADAPTED if self.settings.coverage is None or not self.settings.select \
+            else TRAINED
+        self._errors = np.full(2, np.nan)
+        self.model = self._publish()
         self._check_channels: tuple[SparseGP, SparseGP] = (
             copy.copy(self._channels[0]), copy.copy(self._channels[1]))
         self._check_model = replace(model, channels=self._check_channels)
@@ -241,11 +280,14 @@ class ModelAdapter:
 
     # ------------------------------------------------------------------ state
 
-    def _model_with(self, log_scales: FloatArray) -> MotionModel:
+    def _publish(self) -> MotionModel:
+        """The model predictions use: the published posterior at its online scales."""
+        e = self._published
         cal = self.base.calibration
         factors = tuple(float(f * math.exp(ls))
-                        for f, ls in zip(cal.speed_factors, log_scales, strict=True))
-        return replace(self.base, channels=self._channels,
+                        for f, ls in zip(cal.speed_factors, self._log_scales[e], strict=True))
+        channels = self._channels if e == ADAPTED else self.base.channels
+        return replace(self.base, channels=channels,
                        calibration=replace(cal, speed_factors=factors))
 
     def _restart_state(self) -> None:
@@ -269,7 +311,10 @@ class ModelAdapter:
         for online in self._online:
             online.reset()
         self._log_scales = np.zeros_like(self._log_scales)
-        self.model = self._model_with(self._log_scales)
+        self._errors = np.full(2, np.nan)
+        if self.settings.coverage is not None and self.settings.select:
+            self._published = TRAINED
+        self.model = self._publish()
         self._snapshots.clear()
 
     @property
@@ -283,7 +328,9 @@ class ModelAdapter:
             rows_absorbed=min(s_v.rows_absorbed, s_w.rows_absorbed),
             steps_refused=self._steps_refused, rows_rejected=rejected,
             effective_size=(s_v.effective_size, s_w.effective_size),
-            scales=tuple(float(math.exp(x)) for x in self._log_scales),
+            scales=tuple(float(math.exp(x)) for x in self._log_scales[self._published]),
+            published=EXPERTS[self._published],
+            recent_error=(float(self._errors[0]), float(self._errors[1])),
             checked=self._checked, coverage=self._coverage,
             coverage_one_step=self._coverage_one,
             last_update_s=s_v.last_update_s + s_w.last_update_s,
@@ -310,7 +357,8 @@ class ModelAdapter:
             self._check(res, ks, settled)
             posteriors = (self._channels[0].posterior, self._channels[1].posterior)
             if not self._snapshots or self._snapshots[-1].step < newest:
-                self._snapshots.append(_Snapshot(newest, posteriors, self._log_scales.copy()))
+                self._snapshots.append(_Snapshot(newest, posteriors, self._log_scales.copy(),
+                                                 self._published))
             while self._snapshots and self._snapshots[0].step < settled - self.horizon_steps:
                 self._snapshots.popleft()
 
@@ -335,7 +383,7 @@ class ModelAdapter:
         t = np.asarray(res.t)[index[take]]
         for online, (X, y, _) in zip(self._online, rows, strict=True):
             online.absorb_rows(X[take], y[take], t)
-        self.model = self._model_with(self._log_scales)
+        self.model = self._publish()
 
     def _check(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
         """Check the predictions made at steps P with P + k <= settled (C1)."""
@@ -361,38 +409,49 @@ class ModelAdapter:
 
     def _check_case(self, res: Resampled, i: int, snap: _Snapshot, cfg: CoverageConfig
                     ) -> None:
+        """Both experts' predictions at step i against the outcome: C1 and the choice."""
         k, s = self.horizon_steps, self.base.lags
         joy, vel = np.asarray(res.joy), np.asarray(res.vel)
         for ch, post in zip(self._check_channels, snap.posteriors, strict=True):
             ch.posterior = post
-        try:
-            out = rollout(self._check_model, joy[i - s + 1:i + 1], vel[i - s + 1:i + 1],
-                          joy[i + 1:i + k + 1][None], uncertainty="linear")
-        except ValueError:
-            return
         ref = np.asarray(integrate_path(vel[None, i:i + k + 1], self.base.dt))[0, 1:]
-        err = ref[:, :2] - np.asarray(out.pose)[0, :, :2]  # [k, 2]
-        d2 = mahalanobis_sq(err, np.asarray(out.pos_cov)[0])  # [k] at scale 1
         regime = _speed_regime(self.base.calibration, float(vel[i, 0]))
-        scale = math.exp(float(snap.log_scales[regime]))
-        miss = float(np.mean(d2 > CHI2_2DOF_95 * scale))
-        step = cfg.gain * (miss - (1.0 - cfg.target))
         bound = cfg.max_rate * self.base.dt
-        ls = self._log_scales
-        ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound),
-                             math.log(cfg.min_scale)), math.log(cfg.max_scale))
-        self.model = self._model_with(ls)
-        # one-step velocity innovations (at the scale in force)
-        e1 = vel[i + 1] - np.asarray(out.vel)[0, 0]
-        var1 = np.diagonal(np.asarray(out.vel_cov)[0, 0]) * scale
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inside1 = float(np.mean(e1 * e1 <= CHI2_1DOF_95 * var1))
-        inside = 1.0 - miss
+        alpha = 1.0 - 2.0 ** (-self.base.dt / self.settings.select_half_life_s)
+        published_inside = math.nan
+        published_inside1 = math.nan
+        for e, model in ((TRAINED, self.base), (ADAPTED, self._check_model)):
+            try:
+                out = rollout(model, joy[i - s + 1:i + 1], vel[i - s + 1:i + 1],
+                              joy[i + 1:i + k + 1][None], uncertainty="linear")
+            except ValueError:
+                return
+            err = ref[:, :2] - np.asarray(out.pose)[0, :, :2]  # [k, 2]
+            d2 = mahalanobis_sq(err, np.asarray(out.pos_cov)[0])  # [k] at scale 1
+            scale = math.exp(float(snap.log_scales[e, regime]))
+            miss = float(np.mean(d2 > CHI2_2DOF_95 * scale))
+            step = cfg.gain * (miss - (1.0 - cfg.target))
+            ls = self._log_scales[e]
+            ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound),
+                                 math.log(cfg.min_scale)), math.log(cfg.max_scale))
+            sq = float(np.mean(np.sum(err * err, axis=1)))
+            self._errors[e] = sq if math.isnan(self._errors[e]) else \
+                (1.0 - alpha) * self._errors[e] + alpha * sq
+            if e == snap.published:
+                published_inside = 1.0 - miss
+                e1 = vel[i + 1] - np.asarray(out.vel)[0, 0]
+                var1 = np.diagonal(np.asarray(out.vel_cov)[0, 0]) * scale
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    published_inside1 = float(np.mean(e1 * e1 <= CHI2_1DOF_95 * var1))
+        if self.settings.select:
+            other = 1 - self._published
+            if self._errors[other] < (1.0 - SELECT_MARGIN) * self._errors[self._published]:
+                self._published = other
+        self.model = self._publish()
         a = COVERAGE_EWMA
-        self._coverage = inside if math.isnan(self._coverage) else \
-            (1 - a) * self._coverage + a * inside
-        self._coverage_one = inside1 if math.isnan(self._coverage_one) else \
-            (1 - a) * self._coverage_one + a * inside1
+        for name, value in (("_coverage", published_inside), ("_coverage_one", published_inside1)):
+            old = getattr(self, name)
+            setattr(self, name, value if math.isnan(old) else (1 - a) * old + a * value)
         self._checked += 1
 
 
@@ -402,6 +461,7 @@ def describe(stats: AdapterStats) -> dict[str, Any]:
         "rows_absorbed": stats.rows_absorbed, "steps_refused": stats.steps_refused,
         "rows_rejected": dict(stats.rows_rejected),
         "effective_size": list(stats.effective_size), "scales": list(stats.scales),
+        "published": stats.published, "recent_error": list(stats.recent_error),
         "checked": stats.checked, "coverage": stats.coverage,
         "coverage_one_step": stats.coverage_one_step,
         "last_update_s": stats.last_update_s, "last_check_s": stats.last_check_s,

@@ -66,7 +66,12 @@ from asgp_ros import topics
 from asgp_ros.bags import parse_joy_axes
 from asgp_ros.core import online
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
-from asgp_ros.core.adaptive import DEFAULT_HALF_LIFE_S, AdaptSettings, CoverageConfig
+from asgp_ros.core.adaptive import (
+    DEFAULT_HALF_LIFE_S,
+    DEFAULT_TRAINED_FLOOR,
+    AdaptSettings,
+    CoverageConfig,
+)
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
@@ -116,7 +121,7 @@ class PredictorNodeParams:
     diagnostics_period_s: float = 1.0
     adapt_enabled: bool = False
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
-    adapt_trained_floor: float = 0.01
+    adapt_trained_floor: float = DEFAULT_TRAINED_FLOOR
     adapt_calibrate: bool = True
     adapt_max_rate: float = 0.25
 
