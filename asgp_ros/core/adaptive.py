@@ -16,7 +16,9 @@ calibration's shape stay as trained):
    forgetting.  A step is absorbed only once it is ``settle_steps`` behind the newest
    complete step: the stale-VO rule judges a run of repeated readings by its length, so
    a step at the live edge may still turn out stale; after the settle time its flag is
-   what the whole recording would give.
+   what the whole recording would give.  Settled steps are absorbed in blocks of
+   ``update_steps`` (a second at 5 Hz by default): a step's statistics cost O(M^2), a
+   published posterior O(M^3).
 
 2. **The variance scale** (online calibration).  Each prediction is checked once its
    outcome has arrived: k steps after a step P, the model *as it was at P* (the snapshot
@@ -146,6 +148,9 @@ class AdaptSettings:
             better recently (item 3 of the module docstring); False always publishes
             the adapted one.
         select_half_life_s: half-life of the recent errors that choice compares.
+        update_steps: absorb settled steps in blocks of this many (one posterior published
+            per block, i.e. once a second at 5 Hz by default: an update costs O(M^3), a
+            step's statistics O(M^2)); 1 absorbs every step as it settles.
     """
 
     posterior: AdaptConfig = field(
@@ -154,8 +159,13 @@ class AdaptSettings:
     coverage: CoverageConfig | None = field(default_factory=CoverageConfig)
     select: bool = True
     select_half_life_s: float = 20.0
+    update_steps: int = 5
 
     def __post_init__(self) -> None:
+        if isinstance(self.update_steps, bool) or not isinstance(self.update_steps, int) \
+                or not 1 <= self.update_steps <= 100:
+            raise AdaptError(f"update_steps must be an integer in [1, 100], got "
+                             f"{self.update_steps!r}")
         if not (math.isfinite(self.select_half_life_s) and self.select_half_life_s > 0.0):
             raise AdaptError(f"select_half_life_s must be > 0, got {self.select_half_life_s}")
         if not isinstance(self.posterior, AdaptConfig):
@@ -276,7 +286,8 @@ class ModelAdapter:
 
     def history_steps(self) -> int:
         """Grid steps of history the adapter needs in each resampled window."""
-        return self.base.lags + self.horizon_steps + self.settle_steps + 1
+        return (self.base.lags + self.horizon_steps + self.settle_steps
+                + self.settings.update_steps + 1)
 
     # ------------------------------------------------------------------ state
 
@@ -341,30 +352,32 @@ class ModelAdapter:
     def observe(self, res: Resampled, complete: int) -> None:
         """Learn from the first ``complete`` grid points of a resampled window.
 
-        ``res`` is the predictor's buffer on the grid and ``complete`` the number of its
-        points covered by both streams; the newest of them is the step a prediction is
-        about to be made at.  Steps are absorbed and predictions checked once they are
-        ``settle_steps`` behind it; then the current posterior is recorded for the check
-        of the prediction made at the newest step.
+        Call it right after predicting at the newest of those points (the step a
+        prediction was just made at): ``res`` is the predictor's buffer on the grid and
+        ``complete`` the number of its points covered by both streams.  The model the
+        prediction used is recorded for its check; then the steps that have settled
+        (``settle_steps`` behind the newest) are absorbed, once at least ``update_steps``
+        of them are waiting, and the predictions whose outcomes have settled are checked.
         """
         if complete <= 0:
             return
         ks = np.asarray(res.k[:complete], dtype=np.int64)
         newest = int(ks[-1])
         settled = newest - self.settle_steps
+        if self.settings.coverage is not None and (
+                not self._snapshots or self._snapshots[-1].step < newest):
+            self._snapshots.append(_Snapshot(
+                newest, (self._channels[0].posterior, self._channels[1].posterior),
+                self._log_scales.copy(), self._published))
         self._absorb(res, ks, settled)
         if self.settings.coverage is not None:
             self._check(res, ks, settled)
-            posteriors = (self._channels[0].posterior, self._channels[1].posterior)
-            if not self._snapshots or self._snapshots[-1].step < newest:
-                self._snapshots.append(_Snapshot(newest, posteriors, self._log_scales.copy(),
-                                                 self._published))
             while self._snapshots and self._snapshots[0].step < settled - self.horizon_steps:
                 self._snapshots.popleft()
 
     def _absorb(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
         start = ks[0] - 1 if self._absorbed_to is None else self._absorbed_to
-        if settled <= start:
+        if settled - start < self.settings.update_steps:
             return
         lo = int(np.searchsorted(ks, start, side="right"))
         hi = int(np.searchsorted(ks, settled, side="right"))
@@ -386,11 +399,17 @@ class ModelAdapter:
         self.model = self._publish()
 
     def _check(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
-        """Check the predictions made at steps P with P + k <= settled (C1)."""
+        """Check the predictions made at steps P with P + k <= settled (C1), in order.
+
+        The rollouts of the cases that share a snapshot of the posteriors are batched (the
+        posterior changes once per absorbed block); the scales and the choice are then
+        updated case by case, each with the scale that was in force at its P.
+        """
         cfg = self.settings.coverage
         assert cfg is not None
         k, s = self.horizon_steps, self.base.lags
         seg = np.asarray(res.segment)
+        cases: list[tuple[int, _Snapshot]] = []
         while self._snapshots and self._snapshots[0].step + k <= settled:
             snap = self._snapshots.popleft()
             if self._checked_to is not None and snap.step <= self._checked_to:
@@ -403,53 +422,87 @@ class ModelAdapter:
             window = seg[i - s + 1:i + k + 1]
             if window[0] < 0 or not np.all(window == window[0]):
                 continue  # the outcome is not a valid training case: nothing to learn
-            start = time.perf_counter()
-            self._check_case(res, i, snap, cfg)
-            self._last_check_s = time.perf_counter() - start
+            cases.append((i, snap))
+        if not cases:
+            return
+        start = time.perf_counter()
+        outcomes = self._rollouts(res, cases)
+        if outcomes is not None:
+            for (i, snap), out in zip(cases, outcomes, strict=True):
+                self._check_case(np.asarray(res.vel)[i, 0], snap, out, cfg)
+            self.model = self._publish()
+        self._last_check_s = time.perf_counter() - start
 
-    def _check_case(self, res: Resampled, i: int, snap: _Snapshot, cfg: CoverageConfig
-                    ) -> None:
-        """Both experts' predictions at step i against the outcome: C1 and the choice."""
+    def _rollouts(self, res: Resampled, cases: list[tuple[int, _Snapshot]]
+                  ) -> list[tuple[FloatArray, ...]] | None:
+        """Per case: (error [2 experts, k, 2], d2 [2, k], one-step error [2, 2] and its
+        variances [2, 2]), from batched rollouts; None if a rollout failed."""
         k, s = self.horizon_steps, self.base.lags
         joy, vel = np.asarray(res.joy), np.asarray(res.vel)
-        for ch, post in zip(self._check_channels, snap.posteriors, strict=True):
-            ch.posterior = post
-        ref = np.asarray(integrate_path(vel[None, i:i + k + 1], self.base.dt))[0, 1:]
-        regime = _speed_regime(self.base.calibration, float(vel[i, 0]))
+        idx = np.array([i for i, _ in cases])
+        offs = np.arange(-s + 1, 1)
+        jp, vp = joy[idx[:, None] + offs], vel[idx[:, None] + offs]  # [n, s, 2]
+        jf = joy[idx[:, None] + np.arange(1, k + 1)]  # [n, k, 2]
+        ref = np.asarray(integrate_path(vel[idx[:, None] + np.arange(0, k + 1)],
+                                        self.base.dt))[:, 1:]  # [n, k, 3]
+        results: list[Any] = [None, None]
+        try:
+            results[TRAINED] = rollout(self.base, jp, vp, jf, uncertainty="linear")
+            adapted: dict[int, Any] = {}
+            groups: dict[tuple[int, int], list[int]] = {}
+            for n, (_, snap) in enumerate(cases):
+                key = (id(snap.posteriors[0]), id(snap.posteriors[1]))
+                groups.setdefault(key, []).append(n)
+            for members in groups.values():
+                posteriors = cases[members[0]][1].posteriors
+                for ch, post in zip(self._check_channels, posteriors, strict=True):
+                    ch.posterior = post
+                sel = np.asarray(members)
+                out = rollout(self._check_model, jp[sel], vp[sel], jf[sel], uncertainty="linear")
+                for j, n in enumerate(members):
+                    adapted[n] = (out.pose[j], out.pos_cov[j], out.vel[j], out.vel_cov[j])
+        except ValueError:
+            return None
+        per_case = []
+        trained = results[TRAINED]
+        for n, i in enumerate(idx):
+            rows = [(trained.pose[n], trained.pos_cov[n], trained.vel[n], trained.vel_cov[n]),
+                    adapted[n]]
+            err = np.stack([ref[n, :, :2] - r[0][:, :2] for r in rows])  # [2, k, 2]
+            d2 = np.stack([mahalanobis_sq(err[e], np.asarray(rows[e][1])) for e in range(2)])
+            e1 = np.stack([vel[i + 1] - r[2][0] for r in rows])  # [2, 2]
+            var1 = np.stack([np.diagonal(r[3][0]) for r in rows])  # [2, 2]
+            per_case.append((err, d2, e1, var1))
+        return per_case
+
+    def _check_case(self, speed: float, snap: _Snapshot, out: tuple[FloatArray, ...],
+                    cfg: CoverageConfig) -> None:
+        """One checked prediction: C1 for both experts, their recent errors, the choice."""
+        err, d2, e1, var1 = out
+        regime = _speed_regime(self.base.calibration, float(speed))
         bound = cfg.max_rate * self.base.dt
         alpha = 1.0 - 2.0 ** (-self.base.dt / self.settings.select_half_life_s)
-        published_inside = math.nan
-        published_inside1 = math.nan
-        for e, model in ((TRAINED, self.base), (ADAPTED, self._check_model)):
-            try:
-                out = rollout(model, joy[i - s + 1:i + 1], vel[i - s + 1:i + 1],
-                              joy[i + 1:i + k + 1][None], uncertainty="linear")
-            except ValueError:
-                return
-            err = ref[:, :2] - np.asarray(out.pose)[0, :, :2]  # [k, 2]
-            d2 = mahalanobis_sq(err, np.asarray(out.pos_cov)[0])  # [k] at scale 1
+        inside = inside1 = math.nan
+        for e in (TRAINED, ADAPTED):
             scale = math.exp(float(snap.log_scales[e, regime]))
-            miss = float(np.mean(d2 > CHI2_2DOF_95 * scale))
+            miss = float(np.mean(d2[e] > CHI2_2DOF_95 * scale))
             step = cfg.gain * (miss - (1.0 - cfg.target))
             ls = self._log_scales[e]
             ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound),
                                  math.log(cfg.min_scale)), math.log(cfg.max_scale))
-            sq = float(np.mean(np.sum(err * err, axis=1)))
+            sq = float(np.mean(np.sum(err[e] * err[e], axis=1)))
             self._errors[e] = sq if math.isnan(self._errors[e]) else \
                 (1.0 - alpha) * self._errors[e] + alpha * sq
             if e == snap.published:
-                published_inside = 1.0 - miss
-                e1 = vel[i + 1] - np.asarray(out.vel)[0, 0]
-                var1 = np.diagonal(np.asarray(out.vel_cov)[0, 0]) * scale
+                inside = 1.0 - miss
                 with np.errstate(divide="ignore", invalid="ignore"):
-                    published_inside1 = float(np.mean(e1 * e1 <= CHI2_1DOF_95 * var1))
+                    inside1 = float(np.mean(e1[e] * e1[e] <= CHI2_1DOF_95 * var1[e] * scale))
         if self.settings.select:
             other = 1 - self._published
             if self._errors[other] < (1.0 - SELECT_MARGIN) * self._errors[self._published]:
                 self._published = other
-        self.model = self._publish()
         a = COVERAGE_EWMA
-        for name, value in (("_coverage", published_inside), ("_coverage_one", published_inside1)):
+        for name, value in (("_coverage", inside), ("_coverage_one", inside1)):
             old = getattr(self, name)
             setattr(self, name, value if math.isnan(old) else (1 - a) * old + a * value)
         self._checked += 1

@@ -368,6 +368,7 @@ class Predictor:
         self._vo = _Buffer(3)  # v, omega, tracking ok (1.0 / 0.0)
         self._pose = _Buffer(3)
         self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
+        self._to_learn: tuple[Any, int] | None = None  # the last window, for ``learn``
         self._last_now = -math.inf
         self.last_reset_detail = ""
 
@@ -642,7 +643,7 @@ class Predictor:
         t_ready = min(self._joy.newest, self._vo.newest)
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
         if self._adapter is not None:
-            self._adapter.observe(res, n)
+            self._to_learn = (res, n)
         if n < s:
             return Prediction(False, Reason.NOT_ENOUGH_HISTORY,
                               f"{n} grid steps buffered, the model needs {s}")
@@ -673,14 +674,34 @@ class Predictor:
         mode: Uncertainty = "mc" if unc == "mc" else "none" if unc == "none" else "linear"
         return rollout(self.model, joy_past, vel_past, futures, uncertainty=mode)
 
-    def predict(self, now: float, joy_future: FloatArray | None = None) -> Prediction:
+    def learn(self) -> None:
+        """Let an adapting predictor learn from the window of the last query (absorb the
+        settled steps, check the predictions whose outcomes have arrived); a no-op when not
+        adapting or already done.  ``predict``, ``predict_batch`` and ``solve_inverse`` call
+        it after predicting unless told not to: a node that publishes first calls it
+        afterwards, so that learning is not in the path's latency.
+        """
+        pending, self._to_learn = self._to_learn, None
+        if pending is not None and self._adapter is not None:
+            self._adapter.observe(*pending)
+
+    def predict(self, now: float, joy_future: FloatArray | None = None, *,
+                learn: bool = True) -> Prediction:
         """The predicted path at the last complete step, or why there is none.
 
         Args:
             now: current time on the stamps' clock (staleness and clock jumps).
             joy_future: [k, 2] future commands for t0 + dt .. t0 + k*dt; default: a fresh
                 plan if any, else the newest joystick sample held.
+            learn: when adapting, call :meth:`learn` after predicting.
         """
+        try:
+            return self._predict(now, joy_future)
+        finally:
+            if learn:
+                self.learn()
+
+    def _predict(self, now: float, joy_future: FloatArray | None) -> Prediction:
         got = self._window(now)
         if isinstance(got, Prediction):
             return got
@@ -703,8 +724,8 @@ class Predictor:
         return self._result(step, t0, joy_past, vel_past, future[None], out, from_plan,
                             batch=False)
 
-    def solve_inverse(self, target_xy: FloatArray, now: float, **options: Any
-                      ) -> tuple[Prediction, InverseResult | None]:
+    def solve_inverse(self, target_xy: FloatArray, now: float, *, learn: bool = True,
+                      **options: Any) -> tuple[Prediction, InverseResult | None]:
         """The joystick sequence whose predicted path follows ``target_xy`` [k, 2] (positions
         at t0 + i dt in the frame of the pose at t0), from the live buffers.
 
@@ -718,9 +739,15 @@ class Predictor:
         """
         got = self._window(now)
         if isinstance(got, Prediction):
+            if learn:
+                self.learn()
             return got, None
         step, t0, joy_past, vel_past = got
-        result = inverse.solve(self.model, joy_past, vel_past, target_xy, **options)
+        try:
+            result = inverse.solve(self.model, joy_past, vel_past, target_xy, **options)
+        finally:
+            if learn:
+                self.learn()
         k = result.joystick.shape[0]
         window = Prediction(True, Reason.OK, "inverse", t0=t0, step=step, dt=self.dt,
                             times=t0 + self.dt * np.arange(1, k + 1), pose=result.pose,
@@ -728,7 +755,8 @@ class Predictor:
                             joy_past=joy_past, vel_past=vel_past)
         return window, result
 
-    def predict_batch(self, candidates: FloatArray, now: float) -> Prediction:
+    def predict_batch(self, candidates: FloatArray, now: float, *, learn: bool = True
+                      ) -> Prediction:
         """Paths for a batch of candidate future joystick sequences (for planners).
 
         Args:
@@ -743,12 +771,16 @@ class Predictor:
         if cand.ndim != 3 or cand.shape[2] != 2 or cand.shape[0] == 0 or cand.shape[1] == 0:
             raise ValueError(f"candidates must be [B, k, 2], got shape {cand.shape}")
         self._check_commands(cand, "candidates")
-        got = self._window(now)
-        if isinstance(got, Prediction):
-            return got
-        step, t0, joy_past, vel_past = got
-        out = self._rollout(joy_past, vel_past, cand)
-        return self._result(step, t0, joy_past, vel_past, cand, out, False, batch=True)
+        try:
+            got = self._window(now)
+            if isinstance(got, Prediction):
+                return got
+            step, t0, joy_past, vel_past = got
+            out = self._rollout(joy_past, vel_past, cand)
+            return self._result(step, t0, joy_past, vel_past, cand, out, False, batch=True)
+        finally:
+            if learn:
+                self.learn()
 
     def _result(self, step: int, t0: float, joy_past: FloatArray, vel_past: FloatArray,
                 futures: FloatArray, out: Rollout, from_plan: bool, batch: bool) -> Prediction:

@@ -511,7 +511,7 @@ class PredictorNode(Node):
         if step % self.every_n:
             return
         try:
-            result = self.predictor.predict(now)
+            result = self.predictor.predict(now, learn=False)
         except (ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure of one step
             result = Prediction(False, Reason.PREDICTION_ERROR, f"{type(exc).__name__}: {exc}")
             self.get_logger().error(f"prediction failed at step {step}: {result.detail}",
@@ -519,10 +519,20 @@ class PredictorNode(Node):
         self._last_result = result
         if not result.ok or (self._published_step is not None
                              and result.step <= self._published_step):
+            self._learn()
             return
         self._publish(result)
         self._published_step = result.step
         self._latency_ms.append(1e3 * (time.perf_counter() - arrival))
+        self._learn()
+
+    def _learn(self) -> None:
+        """Adaptation's work for the step, after the path is out (not in its latency)."""
+        try:
+            self.predictor.learn()
+        except (ValueError, np.linalg.LinAlgError) as exc:  # never let learning stop paths
+            self.get_logger().error(f"adaptation failed: {type(exc).__name__}: {exc}",
+                                    throttle_duration_sec=5.0)
 
     def _publish(self, result: Prediction) -> None:
         p = self.params
