@@ -488,7 +488,7 @@ def _evaluate_adapting(context: JobContext, train_name: str, model: Compared, lo
     adapting, on the same cases (issue 12's targets)."""
     st = context.settings
     skip = QUICK_ADAPT_FROM_S if st.quick else ADAPT_FROM_S
-    evals, late = {}, {}
+    evals, late, timelines = {}, {}, {}
     for test_name, paths in context.test_sets.items():
         tests = [TestSeries(p, context.series[p].res, context.series[p].raw) for p in paths]
         ev = evaluate_adaptive(loaded, tests, st.horizons, threshold_m=st.threshold_m,
@@ -507,8 +507,12 @@ def _evaluate_adapting(context: JobContext, train_name: str, model: Compared, lo
                               for key, v in cols.items()}}
         late[test_name] = {"from_s": skip, "horizons": horizons, "missing": ev.missing,
                            "state": ev.adaptation}
+        timelines[test_name] = {"t": np.asarray(tl["t"]),
+                                **{f"{key}@{h}": np.asarray(tl[key][h])
+                                   for key in ("hit", "hit_plain", "covered", "covered_plain")
+                                   for h in ev.adapted.horizons}}
     return {"eval_seconds": round(time.perf_counter() - t0, 2), "meta": loaded.meta,
-            "evals": evals, "adaptation": late}
+            "evals": evals, "adaptation": late, "adaptation_timeline": timelines}
 
 
 C = TypeVar("C")
@@ -1020,7 +1024,16 @@ def _adaptation_section(s: dict[str, Any], hk: list[str]) -> list[str]:
     for c in ad["claims"]:
         L.append(f"- {'**holds**' if c['holds'] else '**does not hold**'} (issue 12): "
                  f"{c['claim']} ({c['evidence']}).")
-    L.append("")
+    L.append("\nAdaptation state at the end of each test bag: steps absorbed, steps refused "
+             "(not valid training rows), the posterior published, the online variance scale per "
+             "speed regime.\n")
+    for row in ad["rows"]:
+        for i, st in enumerate(row["state"]):
+            L.append(f"- {row['train']} -> {row['test']}, bag {i + 1}: {st['rows_absorbed']} "
+                     f"absorbed, {st['steps_refused']} refused, {st['published']}, scale "
+                     + "/".join(f"{x:.2f}" for x in st["scales"]))
+    L.append("\n![success and coverage against the time since the floor changed]"
+             "(adaptation.png)\n")
     return L
 
 
@@ -1315,4 +1328,52 @@ def _plots(out: Path, results: list[dict[str, Any]], series: dict[str, Series]) 
     fig.suptitle("Predicted paths (trained on Both) over the VO-integrated recorded path")
     fig.tight_layout()
     fig.savefig(out / "example_paths.png", dpi=100)
+    plt.close(fig)
+    _adaptation_plot(out, results, hk[-1], plt)
+
+
+#: Width of the time bins of the adaptation figure (s).
+ADAPT_BIN_S = 20.0
+
+
+def _adaptation_plot(out: Path, results: list[dict[str, Any]], h: str, plt: Any) -> None:
+    """adaptation.png: success and 95% coverage at horizon h against the time since the
+    floor changed (the start of a test bag on the other surface), adapting and not."""
+    cells = [(r, te) for tr, te in (("Tile", "Carpet"), ("Carpet", "Tile"))
+             for r in results if r["kind"] == ADAPT_ROW and r["train"] == tr
+             and te in r.get("adaptation_timeline", {})]
+    if not cells:
+        return
+    fig, axes = plt.subplots(2, len(cells), figsize=(5.5 * len(cells), 6.5), sharex=True,
+                             squeeze=False)
+    for col, (r, test) in enumerate(cells):
+        tl = r["adaptation_timeline"][test]
+        t = tl["t"]
+        edges = np.arange(0.0, float(t.max()) + ADAPT_BIN_S, ADAPT_BIN_S)
+        mid = 0.5 * (edges[1:] + edges[:-1]) / 60.0
+        own = _rate(results, "asgp", OWN_TRAIN[test], test, h)
+        for row, (key, label) in enumerate((("hit", f"success at {h} s (%)"),
+                                            ("covered", f"95% ellipse coverage at {h} s (%)"))):
+            ax = axes[row, col]
+            for suffix, style, name in (("", "-", "adapting"), ("_plain", "--", "as trained")):
+                v = tl[f"{key}{suffix}@{h}"]
+                y = []
+                for a, b in itertools.pairwise(edges):
+                    sel = (t >= a) & (t < b) & np.isfinite(v)
+                    y.append(100 * float(np.mean(v[sel])) if sel.any() else np.nan)
+                ax.plot(mid, y, style, label=f"{r['train']}-trained, {name}")
+            if key == "hit":
+                ax.axhline(100 * own, color="k", lw=0.8, ls=":",
+                           label=f"{test}-trained ASGP (whole bags)")
+            else:
+                ax.axhspan(100 * COVERAGE_TARGET[0], 100 * COVERAGE_TARGET[1], color="g",
+                           alpha=0.08, label="target")
+            ax.set_ylabel(label)
+            ax.set_title(f"trained on {r['train']}, driving on {test}")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="lower right")
+        axes[1, col].set_xlabel(f"minutes since the floor changed ({ADAPT_BIN_S:g} s bins, "
+                                "the test bags together)")
+    fig.tight_layout()
+    fig.savefig(out / "adaptation.png", dpi=100)
     plt.close(fig)

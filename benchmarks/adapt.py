@@ -17,8 +17,14 @@ is what an update would cost without the online statistics.  BLAS runs on one th
 (threadpoolctl; the updates limit themselves to one thread anyway).  Target from
 issue 12: under 0.3 ms per row at M = 80, D = 18.
 
-The predictor node's latency with adaptation on (the issue's second figure) needs
-``Predictor(..., adapt=...)``, which is not built yet; it will be added here then.
+Then the online predictor (``Predictor``, what the node runs) with and without adaptation,
+side by side: an ASGP of M = ``--m`` pseudo-inputs on coupled s = 4 inputs (D = 18) is
+conditioned at fixed hyperparameters on a simulated tile drive, and a simulated carpet
+drive (``--drive-min`` minutes) is replayed into both predictors sample by sample; at each
+completed grid step the time of ``predict`` (what lies between a VO message and the
+published path: the node calls ``learn`` after publishing) and of ``learn`` (absorbing the
+settled steps, checking the predictions whose outcomes arrived) are measured.  The node's
+own latency across processes: ``benchmarks/predictor_latency.py --adapt both``.
 
 Prints figures only (no assertions).  Timings depend on the machine's load.
 """
@@ -60,6 +66,8 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=3000, help="rows absorbed")
     parser.add_argument("--refits", type=int, default=5, help="batch refits timed")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--drive-min", type=float, default=5.0,
+                        help="minutes of the replayed drive (predictor side by side)")
     args = parser.parse_args()
     rng = np.random.default_rng(args.seed)
     M, D = args.m, args.d
@@ -108,6 +116,70 @@ def main() -> None:
             rtimes.append(time.perf_counter() - start)
         print(f"reference: batch refit (from_params, N = {X_all.shape[0]}): "
               f"{percentiles(np.asarray(rtimes))} per refit")
+
+    predictor_side_by_side(M, args.drive_min, args.seed)
+
+
+def predictor_side_by_side(M: int, minutes: float, seed: int) -> None:
+    """predict() and learn() of the online predictor, adapting and not (see the docstring)."""
+    from asgp_ros.core.adaptive import AdaptSettings
+    from asgp_ros.core.features import FeatureConfig, design_matrix
+    from asgp_ros.core.models import MotionModel
+    from asgp_ros.core.online import Predictor
+    from asgp_ros.core.resample import ResampleConfig, resample
+    from asgp_ros.core.streams import RawStreams
+    from asgp_ros.sim.simulate import simulate
+
+    def streams(surface: str, s: int) -> RawStreams:
+        rec = simulate(surface, minutes, s)
+        return RawStreams(joy_t=rec.joy_t, joy=rec.joy, vel_t=rec.vo_t, vel=rec.vo,
+                          vel_ok=~rec.vo_stale)
+
+    rc, fc = ResampleConfig(), FeatureConfig(lags=4, coupled=True)
+    res = resample(streams("tile", seed + 1), rc)
+    rng = np.random.default_rng(seed)
+    channels = []
+    for c in (0, 1):
+        X, y, _ = design_matrix(res, c, fc)
+        Z = X[rng.choice(X.shape[0], M, replace=False)]
+        channels.append(SparseGP.from_params(X, y, Z, 3.0 * X.std(axis=0) + 1e-3,
+                                             float(np.var(y)), 1e-4))
+    model = MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
+                        channels=(channels[0], channels[1]))
+    drive = streams("carpet", seed + 2)
+    events = sorted([(t, 0, j) for j, t in enumerate(drive.joy_t)]
+                    + [(t, 1, j) for j, t in enumerate(drive.vel_t)])
+    print(f"\nonline predictor, M = {M}, D = {fc.input_dim}, k = 10, a {minutes:g}-minute "
+          "carpet drive replayed (model conditioned on tile):")
+    with threadpool_limits(limits=1, user_api="blas"):
+        for adapt in (None, AdaptSettings()):
+            pred = Predictor(model, adapt=adapt)
+            t_pred, t_learn, last = [], [], None
+            for t, kind, j in events:
+                if kind == 0:
+                    pred.feed_joy(t, drive.joy[j])
+                else:
+                    pred.feed_vo(t, drive.vel[j], bool(drive.vel_ok[j]))
+                step = pred.ready_step()
+                if step is None or step == last:
+                    continue
+                last = step
+                start = time.perf_counter()
+                result = pred.predict(t, learn=False)
+                mid = time.perf_counter()
+                pred.learn()
+                end = time.perf_counter()
+                if result.ok:
+                    t_pred.append(mid - start)
+                    t_learn.append(end - mid)
+            label = "adapting    " if adapt is not None else "not adapting"
+            print(f"  {label}: predict {percentiles(np.asarray(t_pred))}; learn "
+                  f"{percentiles(np.asarray(t_learn))} ({len(t_pred)} steps)")
+            stats = pred.adaptation
+            if stats is not None:
+                print(f"    {stats.rows_absorbed} steps absorbed, {stats.checked} predictions "
+                      f"checked, published {stats.published}, scales "
+                      + "/".join(f"{x:.2f}" for x in stats.scales))
 
 
 if __name__ == "__main__":

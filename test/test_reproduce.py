@@ -68,7 +68,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     assert len(list((data / "tile").iterdir())) == 8 and (data / "manifest.json").exists()
     files = {p.name for p in out.iterdir()}
     assert {"report.md", "results.json", "tables.json", "success_vs_horizon.png",
-            "error_distributions.png", "example_paths.png", "models"} <= files
+            "error_distributions.png", "example_paths.png", "adaptation.png", "models"} <= files
     assert len(list((out / "models").glob("*.npz"))) == 15
     res = json.loads((out / "results.json").read_text())
     assert res["quick"] is True
