@@ -99,12 +99,19 @@ def test_predictor_yaml_matches_the_node_parameters(repo_root):
     from asgp_ros.nodes.predictor_node import SPECS, PredictorNodeParams
 
     data = yaml.safe_load((repo_root / "config" / "predictor.yaml").read_text())
-    params = dict(data["predictor_node"]["ros__parameters"])
+    params = {}
+    for name, value in data["predictor_node"]["ros__parameters"].items():
+        if isinstance(value, dict):  # nested parameters: adapt: {enabled: ...} = adapt.enabled
+            params.update({f"{name}.{key}": v for key, v in value.items()})
+        else:
+            params[name] = value
     params.pop("use_sim_time", None)
     assert set(params) == set(SPECS)
+    fields = {name: name.replace(".", "_") for name in params}
     defaults = PredictorNodeParams.__dataclass_fields__
     for name, value in params.items():
         # same type as the declared default (ROS refuses 2 for a double parameter)
-        assert type(value) is type(defaults[name].default), name
+        assert type(value) is type(defaults[fields[name]].default), name
     # the file's values (with a model path) validate
-    PredictorNodeParams(**{**params, "model_path": "chair.npz"})
+    PredictorNodeParams(**{**{fields[k]: v for k, v in params.items()},
+                           "model_path": "chair.npz"})

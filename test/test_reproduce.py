@@ -59,6 +59,7 @@ def test_missing_or_incomplete_dataset_is_refused(tmp_path, capsys):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # two quick reproductions (about 70 s each on an idle machine)
 def test_reproduce_quick_end_to_end(tmp_path, capsys):
     data, out = tmp_path / "data", tmp_path / "report"
     assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 0

@@ -79,7 +79,7 @@ from numpy.typing import NDArray
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.calibration import VarianceCalibration
 from asgp_ros.core.features import design_matrix
-from asgp_ros.core.metrics import CHI2_2DOF_95, mahalanobis_sq
+from asgp_ros.core.metrics import CHI2_1DOF_95, CHI2_2DOF_95, mahalanobis_sq
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.posterior import FitcPosterior
 from asgp_ros.core.resample import Resampled
@@ -91,8 +91,6 @@ FloatArray = NDArray[np.float64]
 
 __all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter"]
 
-#: chi2 with one degree of freedom at 95 % (the one-step velocity innovations).
-CHI2_1DOF_95 = 3.841458820694124
 #: Weight of the newest check in the coverage averages shown by the diagnostics
 #: (about the last 100 checked predictions).
 COVERAGE_EWMA = 0.01
@@ -372,7 +370,8 @@ class ModelAdapter:
         self._absorb(res, ks, settled)
         if self.settings.coverage is not None:
             self._check(res, ks, settled)
-            while self._snapshots and self._snapshots[0].step < settled - self.horizon_steps:
+            oldest = settled - self.horizon_steps - self.settings.update_steps
+            while self._snapshots and self._snapshots[0].step < oldest:
                 self._snapshots.popleft()
 
     def _absorb(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
@@ -399,7 +398,8 @@ class ModelAdapter:
         self.model = self._publish()
 
     def _check(self, res: Resampled, ks: NDArray[np.int64], settled: int) -> None:
-        """Check the predictions made at steps P with P + k <= settled (C1), in order.
+        """Check the predictions made at steps P with P + k <= settled (C1), in order, once
+        ``update_steps`` of them are waiting.
 
         The rollouts of the cases that share a snapshot of the posteriors are batched (the
         posterior changes once per absorbed block); the scales and the choice are then
@@ -409,6 +409,9 @@ class ModelAdapter:
         assert cfg is not None
         k, s = self.horizon_steps, self.base.lags
         seg = np.asarray(res.segment)
+        ready = sum(1 for snap in self._snapshots if snap.step + k <= settled)
+        if ready < self.settings.update_steps:
+            return  # checked in blocks, as they are absorbed: batched rollouts
         cases: list[tuple[int, _Snapshot]] = []
         while self._snapshots and self._snapshots[0].step + k <= settled:
             snap = self._snapshots.popleft()
@@ -434,7 +437,7 @@ class ModelAdapter:
         self._last_check_s = time.perf_counter() - start
 
     def _rollouts(self, res: Resampled, cases: list[tuple[int, _Snapshot]]
-                  ) -> list[tuple[FloatArray, ...]] | None:
+                  ) -> list[tuple[Any, ...]] | None:
         """Per case: (error [2 experts, k, 2], d2 [2, k], one-step error [2, 2] and its
         variances [2, 2]), from batched rollouts; None if a rollout failed."""
         k, s = self.horizon_steps, self.base.lags
@@ -475,7 +478,7 @@ class ModelAdapter:
             per_case.append((err, d2, e1, var1))
         return per_case
 
-    def _check_case(self, speed: float, snap: _Snapshot, out: tuple[FloatArray, ...],
+    def _check_case(self, speed: float, snap: _Snapshot, out: tuple[Any, ...],
                     cfg: CoverageConfig) -> None:
         """One checked prediction: C1 for both experts, their recent errors, the choice."""
         err, d2, e1, var1 = out

@@ -28,6 +28,9 @@ IntArray = NDArray[np.int64]
 #: chi-square quantile with 2 degrees of freedom at 0.95: -2 ln(0.05) = 5.991 (closed form
 #: for 2 dof): the squared Mahalanobis radius of a 95% position ellipse.
 CHI2_2DOF_95 = -2.0 * math.log(0.05)
+#: chi-square quantile with 1 degree of freedom at 0.95 (1.95996^2): the squared radius of
+#: a 95% interval of one Gaussian quantity (a velocity's one-step innovation).
+CHI2_1DOF_95 = 3.841458820694124
 
 #: The paper's prediction horizons in seconds (k = 5, 7, 10 steps at 5 Hz).
 HORIZONS_S: tuple[float, ...] = (1.0, 1.4, 2.0)
