@@ -398,17 +398,28 @@ class HardwareNode(Node):
         super().destroy_node()
 
 
-def main(args: list[str] | None = None) -> int:
+def main(args: list[str] | None = None,
+         node_class: type[HardwareNode] = HardwareNode) -> int:
+    """Runs the node (or ``node_class``, a subclass) until SIGINT or SIGTERM; exit code 0,
+    1 when its parameters are refused.
+
+    rclpy's signal handlers shut the context down from their own thread, whatever the
+    executor is doing: a publication under way in a callback then fails (RCLError,
+    "publisher's context is invalid"). After a shutdown that is the stop it looks like,
+    not a crash (as in vo_node and predictor_node)."""
     rclpy.init(args=args)
     node: HardwareNode | None = None
     try:
-        node = HardwareNode()
+        node = node_class()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except StartupError as exc:
         rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
         return 1
+    except Exception:
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
