@@ -8,7 +8,8 @@ the demo is killed outright, no node is left behind.
 Stopping: SIGINT to each child's process group (the nodes' normal Ctrl-C path), a
 deadline, then SIGTERM, another deadline, then SIGKILL. Children are reaped with
 ``os.wait4`` so their exact CPU time (user + system) is known; while they run it is read
-from ``/proc/<pid>/stat``.
+from ``/proc/<pid>/stat``. Each child keeps when it was first asked to stop, so its
+shutdown time (first signal to exit, within the 10 ms the stop loop polls at) is known.
 """
 
 from __future__ import annotations
@@ -55,6 +56,15 @@ class Child:
     cpu_s: float = 0.0
     returncode: int | None = None
     signal_used: str = ""
+    stop_requested: float | None = None  # time.monotonic() of the first stop signal
+
+    @property
+    def shutdown_s(self) -> float | None:
+        """Seconds from the first stop signal to the exit; None if never signalled or
+        still running."""
+        if self.stop_requested is None or self.ended is None:
+            return None
+        return self.ended - self.stop_requested
 
     @property
     def pid(self) -> int:
@@ -119,6 +129,10 @@ class ProcessGroup:
         child.cpu_s = usage.ru_utime + usage.ru_stime
         return True
 
+    def reap(self, child: Child) -> bool:
+        """True if ``child`` has exited (its status and CPU time collected); never blocks."""
+        return self._reap(child, block=False)
+
     def poll(self) -> list[Child]:
         """Children that have exited (reaped now or before)."""
         out = []
@@ -128,6 +142,15 @@ class ProcessGroup:
                 out.append(child)
         return out
 
+    def send(self, child: Child, sig: signal.Signals) -> None:
+        """Ask ``child`` to stop with ``sig`` (its process group); the first such signal
+        starts its shutdown time."""
+        child.sample_cpu()
+        if child.stop_requested is None:
+            child.stop_requested = time.monotonic()
+        child.signal_used = sig.name
+        self._signal(child, sig)
+
     def _signal(self, child: Child, sig: signal.Signals) -> None:
         try:
             os.killpg(child.pid, sig)  # the child's own session: its process group
@@ -136,23 +159,24 @@ class ProcessGroup:
         except PermissionError:
             child.proc.send_signal(sig)
 
-    def stop_all(self, int_deadline_s: float = 6.0, term_deadline_s: float = 3.0) -> None:
-        """SIGINT all, wait; SIGTERM the rest, wait; SIGKILL the rest. Never raises."""
+    def stop_all(self, int_deadline_s: float = 6.0, term_deadline_s: float = 3.0,
+                 children: list[Child] | None = None) -> None:
+        """SIGINT all (or ``children``), wait; SIGTERM the rest, wait; SIGKILL the rest.
+        Never raises."""
+        chosen = self.children if children is None else children
         for sig, deadline in ((signal.SIGINT, int_deadline_s),
                               (signal.SIGTERM, term_deadline_s), (signal.SIGKILL, 5.0)):
-            alive = [c for c in self.children if not self._reap(c, block=False)]
+            alive = [c for c in chosen if not self._reap(c, block=False)]
             if not alive:
                 return
             for c in alive:
-                c.sample_cpu()
-                c.signal_used = sig.name
-                self._signal(c, sig)
+                self.send(c, sig)
             end = time.monotonic() + deadline
             while time.monotonic() < end:
                 alive = [c for c in alive if not self._reap(c, block=False)]
                 if not alive:
                     break
-                time.sleep(0.05)
+                time.sleep(0.01)
             for c in alive:
                 log.warning("%s (pid %d) did not stop on %s within %.0f s", c.name, c.pid,
                             sig.name, deadline)
