@@ -1054,7 +1054,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--model", help="model file (default: trained as `asgp demo` does)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--train-minutes", type=float, default=10.0)
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default 150 + pid % 80)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID (default 150 + pid %% 80)")
     ap.add_argument("--cycle-s", type=float, default=120.0, help="period of the faults")
     ap.add_argument("--burst-factor", type=int, default=10)
     ap.add_argument("--window-s", type=float, help="latency / RSS table window "
