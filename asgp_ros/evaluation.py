@@ -150,6 +150,27 @@ def longest_segment_s(series: Sequence[TestSeries], rate_hz: float) -> float:
     return (max(runs) if runs else 0) / rate_hz
 
 
+def _case_setup(model: Any, series: Sequence[TestSeries], horizons_s: Sequence[float],
+                threshold_m: float, case_lags: int | None
+                ) -> tuple[float, int, int, list[int]]:
+    """Checked common inputs of an evaluation: (grid rate, the model's s, the past samples
+    a case needs, k per horizon)."""
+    if not series:
+        raise EvaluationError("no test recordings")
+    if not math.isfinite(threshold_m) or threshold_m <= 0.0:
+        raise EvaluationError(f"threshold must be a positive distance, got {threshold_m}")
+    rate = float(model.resample_config.rate_hz)
+    s = int(model.feature_config.lags)
+    need = s if case_lags is None else int(case_lags)
+    if need < s:
+        raise EvaluationError(f"case_lags={need} is less than the model's {s} lags")
+    try:
+        steps_list = metrics.horizon_steps(list(horizons_s), rate)
+    except ValueError as exc:
+        raise EvaluationError(str(exc)) from exc
+    return rate, s, need, steps_list
+
+
 def evaluate_model(
     model: Any,
     series: Sequence[TestSeries],
@@ -179,25 +200,13 @@ def evaluate_model(
         EvaluationError: no series, a horizon with no case in any series (longer than every
         segment), or truth asked for on series without ground truth.
     """
-    if not series:
-        raise EvaluationError("no test recordings")
-    if not math.isfinite(threshold_m) or threshold_m <= 0.0:
-        raise EvaluationError(f"threshold must be a positive distance, got {threshold_m}")
-    rate = float(model.resample_config.rate_hz)
+    rate, s, need, steps_list = _case_setup(model, series, horizons_s, threshold_m, case_lags)
     dt = 1.0 / rate
-    s = int(model.feature_config.lags)
-    need = s if case_lags is None else int(case_lags)
-    if need < s:
-        raise EvaluationError(f"case_lags={need} is less than the model's {s} lags")
     if truth:
         missing = [ts.name for ts in series if not ts.has_truth]
         if missing:
             raise EvaluationError(f"no ground truth in {', '.join(missing)} (--truth needs "
                                   "simulated bags with a ground-truth topic)")
-    try:
-        steps_list = metrics.horizon_steps(list(horizons_s), rate)
-    except ValueError as exc:
-        raise EvaluationError(str(exc)) from exc
     unc = uncertainty or _uncertainty_for(model)
     out: dict[str, HorizonEvaluation] = {}
     for h, k in zip(horizons_s, steps_list, strict=True):
@@ -316,7 +325,10 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
     L, for the path under the recorded future joystick.  It therefore sees only samples
     stamped at or before that moment: the replay cannot peek.
     """
-    from asgp_ros.core.online import Predictor  # online imports this module's users
+    # imported when an adaptive evaluation runs (the online predictor and the adapter add
+    # a few tenths of a second to every `asgp` command's start-up otherwise)
+    from asgp_ros.core.adaptive import describe
+    from asgp_ros.core.online import Predictor
 
     raw, res = ts.raw, ts.res
     if raw is None:
@@ -355,15 +367,12 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
         p = pred.predict(float(t), future)
         if not p.ok or p.step != step:
             continue
-        regime = int(np.searchsorted(np.asarray(model.calibration.speed_edges),
-                                     abs(float(p.vel_past[-1, 0])), side="right"))
+        regime = int(model.calibration.regime(p.vel_past[-1, 0]))
         out["idx"].append(i + 1)
         out["pose"].append(p.pose)
         out["cov"].append(p.pos_cov)
         stats = pred.adaptation
         out["scale"].append(stats.scales[regime] if stats is not None else 1.0)
-    from asgp_ros.core.adaptive import describe
-
     stats = pred.adaptation
     return {"idx": np.asarray(out["idx"], dtype=np.int64),
             "pose": np.asarray(out["pose"]).reshape(-1, k_max, 3),
@@ -394,24 +403,14 @@ def evaluate_adaptive(
         EvaluationError: as :func:`evaluate_model`, or series without raw streams, or a
             model that cannot adapt.
     """
-    from asgp_ros.core.adapt import AdaptError
+    from asgp_ros.core.adapt import AdaptError  # see _replay_series
     from asgp_ros.core.adaptive import AdaptSettings
     from asgp_ros.core.online import PredictorConfig
 
-    if not series:
-        raise EvaluationError("no test recordings")
     if not (math.isfinite(skip_s) and skip_s >= 0.0):
         raise EvaluationError(f"skip must be a non-negative number of seconds, got {skip_s}")
-    rate = float(model.resample_config.rate_hz)
+    rate, s, need, steps_list = _case_setup(model, series, horizons_s, threshold_m, case_lags)
     dt = 1.0 / rate
-    s = int(model.feature_config.lags)
-    need = s if case_lags is None else int(case_lags)
-    if need < s:
-        raise EvaluationError(f"case_lags={need} is less than the model's {s} lags")
-    try:
-        steps_list = metrics.horizon_steps(list(horizons_s), rate)
-    except ValueError as exc:
-        raise EvaluationError(str(exc)) from exc
     k_max = max(steps_list)
     settings = settings if settings is not None else AdaptSettings()
     config = PredictorConfig(horizon_steps=k_max)

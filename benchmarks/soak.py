@@ -95,7 +95,7 @@ from asgp_ros.demo.orchestrator import (  # noqa: E402
     train_model,
 )
 from asgp_ros.demo.processes import Child, ProcessGroup, proc_cpu_seconds  # noqa: E402
-from asgp_ros.demo.simhw import STEP_S, look_ahead  # noqa: E402
+from asgp_ros.demo.simhw import STEP_S  # noqa: E402
 from asgp_ros.nodes import conversions as conv  # noqa: E402
 
 FAULT_TOPIC = "soak/fault"
@@ -215,20 +215,10 @@ class SoakHardwareNode(HardwareNode):
         self.soak_counts["burst_frames"] += copies - 1
         self.frames += 1
 
-    def _publish_plan(self) -> None:  # HardwareNode._publish_plan, repeated in a burst
-        if not self._snaps:
+    def _publish_plan(self) -> None:  # HardwareNode's plan, repeated in a burst
+        msg = self._plan_message()
+        if msg is None:
             return
-        snap = self._snaps.pop()
-        self.plans_skipped += len(self._snaps)
-        self._snaps.clear()
-        start = time.perf_counter()
-        plan = look_ahead(snap, self.hw.path, 1.0 / self.params.plan_rate_hz,
-                          self.params.plan_rows)
-        self.plan_time.add(time.perf_counter() - start)
-        if not self.context.ok():
-            return
-        grid = 1.0 / self.params.plan_rate_hz
-        msg = conv.plan_to_trajectory(plan, self._stamp(snap.step * STEP_S + grid), grid)
         copies = self._copies()
         for _ in range(copies):
             self.plan_pub.publish(msg)

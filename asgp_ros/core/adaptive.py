@@ -77,7 +77,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
-from asgp_ros.core.calibration import VarianceCalibration
 from asgp_ros.core.features import design_matrix
 from asgp_ros.core.metrics import CHI2_1DOF_95, CHI2_2DOF_95, mahalanobis_sq
 from asgp_ros.core.models import MotionModel
@@ -218,10 +217,6 @@ class _Snapshot(NamedTuple):
     posteriors: tuple[FitcPosterior, FitcPosterior]
     log_scales: FloatArray  # [2 experts, regimes]
     published: int
-
-
-def _speed_regime(calibration: VarianceCalibration, speed: float) -> int:
-    return int(np.searchsorted(np.asarray(calibration.speed_edges), abs(speed), side="right"))
 
 
 class ModelAdapter:
@@ -448,9 +443,8 @@ class ModelAdapter:
         jf = joy[idx[:, None] + np.arange(1, k + 1)]  # [n, k, 2]
         ref = np.asarray(integrate_path(vel[idx[:, None] + np.arange(0, k + 1)],
                                         self.base.dt))[:, 1:]  # [n, k, 3]
-        results: list[Any] = [None, None]
         try:
-            results[TRAINED] = rollout(self.base, jp, vp, jf, uncertainty="linear")
+            trained = rollout(self.base, jp, vp, jf, uncertainty="linear")
             adapted: dict[int, Any] = {}
             groups: dict[tuple[int, int], list[int]] = {}
             for n, (_, snap) in enumerate(cases):
@@ -467,7 +461,6 @@ class ModelAdapter:
         except ValueError:
             return None
         per_case = []
-        trained = results[TRAINED]
         for n, i in enumerate(idx):
             rows = [(trained.pose[n], trained.pos_cov[n], trained.vel[n], trained.vel_cov[n]),
                     adapted[n]]
@@ -482,7 +475,7 @@ class ModelAdapter:
                     cfg: CoverageConfig) -> None:
         """One checked prediction: C1 for both experts, their recent errors, the choice."""
         err, d2, e1, var1 = out
-        regime = _speed_regime(self.base.calibration, float(speed))
+        regime = int(self.base.calibration.regime(speed))
         bound = cfg.max_rate * self.base.dt
         alpha = 1.0 - 2.0 ** (-self.base.dt / self.settings.select_half_life_s)
         inside = inside1 = math.nan

@@ -124,11 +124,15 @@ class VarianceCalibration:
         return (self.scale == (1.0, 1.0) and self.floor == (0.0, 0.0)
                 and self.speed_factors == (1.0,))
 
+    def regime(self, speed: ArrayLike) -> NDArray[np.intp]:
+        """The speed regime (index into ``speed_factors``) of measured speeds |v| (any
+        shape; the result has its shape)."""
+        sp = np.abs(np.asarray(speed, dtype=np.float64))
+        return np.searchsorted(np.asarray(self.speed_edges), sp, side="right")
+
     def factor(self, speed: ArrayLike) -> FloatArray:
         """The regime factor for measured speeds |v| (any shape; the result has its shape)."""
-        sp = np.abs(np.asarray(speed, dtype=np.float64))
-        idx = np.searchsorted(np.asarray(self.speed_edges), sp, side="right")
-        return np.asarray(self.speed_factors)[idx]
+        return np.asarray(self.speed_factors)[self.regime(speed)]
 
     def coefficients(self, speed: ArrayLike | None) -> tuple[FloatArray, FloatArray]:
         """(scale, floor) arrays [..., 2] for rollouts starting at the given speeds [...]

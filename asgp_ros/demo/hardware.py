@@ -316,8 +316,16 @@ class HardwareNode(Node):
                 self._stamp(t), s.x, s.y, s.theta, s.v, s.omega, p.odom_frame, p.base_frame))
 
     def _publish_plan(self) -> None:
+        msg = self._plan_message()
+        if msg is not None:
+            self.plan_pub.publish(msg)
+            self.plans += 1
+
+    def _plan_message(self) -> JointTrajectory | None:
+        """The newest look-ahead as a stamped plan (older queued ones are skipped), or None
+        when there is none or the context is shutting down."""
         if not self._snaps:
-            return
+            return None
         snap = self._snaps.pop()
         self.plans_skipped += len(self._snaps)
         self._snaps.clear()
@@ -326,11 +334,10 @@ class HardwareNode(Node):
                           self.params.plan_rows)
         self.plan_time.add(time.perf_counter() - start)
         if not self.context.ok():
-            return
+            return None
         grid = 1.0 / self.params.plan_rate_hz
-        start = self._stamp(snap.step * STEP_S + grid)  # row 0 is the stick at g + grid
-        self.plan_pub.publish(conv.plan_to_trajectory(plan, start, grid))
-        self.plans += 1
+        stamp = self._stamp(snap.step * STEP_S + grid)  # row 0 is the stick at g + grid
+        return conv.plan_to_trajectory(plan, stamp, grid)
 
     def _on_camera(self) -> None:
         if self._t_start is None:
