@@ -37,9 +37,9 @@ import numpy as np
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
-from asgp_ros.core.features import build_inputs, input_layout
+from asgp_ros.core.features import input_layout
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.rollout import rollout
+from asgp_ros.core.rollout import ChannelStep, rollout
 from asgp_ros.core.unicycle import integrate_path, path_sensitivity
 
 FloatArray = NDArray[np.float64]
@@ -85,48 +85,62 @@ def _window(name: str, a: ArrayLike, s: int) -> FloatArray:
     return arr[arr.shape[0] - s:]
 
 
+def _window_columns(model: MotionModel) -> tuple[list[FloatArray], list[FloatArray]]:
+    """Per channel: the positions in a step's flattened window (joystick past [s, 2],
+    velocity past [s, 2], joystick now [2], each row-major) that feed its input row, and
+    the input columns they feed."""
+    fc = model.feature_config
+    pos, cols = [], []
+    for c in range(2):
+        lay = input_layout(c, fc)
+        flat = np.concatenate([lay.joy_past.ravel(), lay.vel_past.ravel(), lay.joy_now])
+        pos.append(np.flatnonzero(flat >= 0))
+        cols.append(flat[flat >= 0])
+    return pos, cols
+
+
 def path_jacobian(model: MotionModel, joy_past: FloatArray, vel_past: FloatArray,
                   U: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Mean path of the commands ``U`` [k, 2] and its Jacobian (module docstring).
+
+    Forward sensitivities: step t's mean V_t depends on its window W_t = (J[t-s:t],
+    V[t-s:t], J[t]) through the mean's input gradient, so dV_t/dU = G_t dW_t/dU with G_t
+    the gradient laid out on the window; the joystick rows' sensitivities are constant
+    (identity on the commands), the velocity rows' are those of the earlier steps.
 
     Returns:
         (pose [k, 3], vel [k, 2], dpose [k, 3, 2k]): d pose_i / d U, U flattened row-major
         (column 2 j + a is axis a of command j).
     """
-    fc = model.feature_config
-    s, k = fc.lags, U.shape[0]
+    s, k = model.feature_config.lags, U.shape[0]
     P = 2 * k
-    J = np.concatenate([joy_past, U])  # [s + k, 2]
-    V = np.concatenate([vel_past, np.zeros((k, 2))])
+    J = np.concatenate([joy_past, U])[None]  # [1, s + k, 2]
+    V = np.concatenate([vel_past, np.zeros((k, 2))])[None]
+    # sensitivities of every joystick and velocity row: [s + k, 2, P]
     dJ = np.zeros((s + k, 2, P))
     dJ[s:, 0, 0::2] = np.eye(k)
     dJ[s:, 1, 1::2] = np.eye(k)
     dV = np.zeros((s + k, 2, P))
-    layouts = [input_layout(c, fc) for c in range(2)]
+    step = ChannelStep(model, True, V[:, s - 1, 0])
+    pos, cols = _window_columns(model)
+    G = np.zeros((2, 4 * s + 2))  # d V_t / d (flattened window)
+    dW = np.empty((4 * s + 2, P))
     for i in range(k):
         t = s + i
+        mean, _, grad = step(J[:, t - s:t], V[:, t - s:t], J[:, t], True)
+        V[0, t] = mean[0]
         for c in range(2):
-            X = build_inputs(J[t - s:t], V[t - s:t], J[t], c, fc, validate=False)[None]
-            mean, _, grad = model.channels[c].predict_with_grad(X, True)
-            V[t, c] = float(mean[0])
-            g = np.asarray(grad, dtype=np.float64)[0]  # [D]
-            lay = layouts[c]
-            row = np.zeros(P)
-            for a in range(2):
-                cols_j, cols_v = lay.joy_past[:, a], lay.vel_past[:, a]
-                on = cols_j >= 0
-                row += g[cols_j[on]] @ dJ[t - s:t, a][on]
-                on = cols_v >= 0
-                row += g[cols_v[on]] @ dV[t - s:t, a][on]
-                if lay.joy_now[a] >= 0:
-                    row += g[lay.joy_now[a]] * dJ[t, a]
-            dV[t, c] = row
+            G[c, pos[c]] = grad[c][0, cols[c]]
+        dW[:2 * s] = dJ[t - s:t].reshape(2 * s, P)
+        dW[2 * s:4 * s] = dV[t - s:t].reshape(2 * s, P)
+        dW[4 * s:] = dJ[t]
+        dV[t] = G @ dW
     dt = 1.0 / float(model.resample_config.rate_hz)
-    vel = np.concatenate([vel_past[-1:], V[s:]])  # V at t0, then the predicted steps
+    vel = V[0, s - 1:]  # V at t0, then the predicted steps
     pose = integrate_path(vel, dt)[1:]
     dvel = np.concatenate([np.zeros((1, 2, P)), dV[s:]])
     dpose = path_sensitivity(vel, dvel, dt)[1:]
-    return pose, V[s:], dpose
+    return pose, V[0, s:].copy(), dpose
 
 
 def solve(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike, target_xy: ArrayLike,
@@ -232,7 +246,7 @@ def _gauss_newton(model: MotionModel, jp: FloatArray, vp: FloatArray, target: Fl
                           effort * np.eye(2 * k), w_ref * np.eye(2 * k)])
 
     res = scipy.optimize.least_squares(residuals, u0.ravel(), jac=jacobian, bounds=(-1.0, 1.0),
-                                       method="trf", max_nfev=max_iter, xtol=1e-8, ftol=1e-10)
+                                       method="trf", max_nfev=max_iter, xtol=1e-6, ftol=1e-6)
     return np.clip(res.x.reshape(k, 2), -1.0, 1.0), int(res.nfev)
 
 

@@ -190,8 +190,13 @@ class _Workspace(threading.local):
 _WS = _Workspace()
 
 
-class _Step:
-    """One step of both channels: windows -> mean [B, 2], var [B, 2], grads [2][B, D]."""
+class ChannelStep:
+    """One step of both channels: windows -> mean [B, 2], var [B, 2], grads [2][B, D].
+
+    The recursion's unit, shared by the rollouts here and the inverse model's Jacobian
+    (:func:`asgp_ros.core.inverse.path_jacobian`): two :class:`SparseGP` channels are
+    evaluated together from their stacked posteriors, other kinds channel by channel.
+    """
 
     def __init__(self, model: MotionModel, include_noise: bool, speed: FloatArray) -> None:
         """speed: [B] measured v at the start of each rollout (the calibration's regime)."""
@@ -272,7 +277,7 @@ def _rollout_linear(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k:
     B = J.shape[0]
     fc = model.feature_config
     dt = model.dt
-    step = _Step(model, include_noise, V[:, s - 1, 0])
+    step = ChannelStep(model, include_noise, V[:, s - 1, 0])
     if with_cov:
         # S[b, i, c, r]: sensitivity of V_{t-s+i}[c] to innovation r (2 per step);
         # the measured past rows stay 0 (Algorithm 1 treats them as given).
@@ -346,7 +351,7 @@ def _rollout_mc(model: MotionModel, J: FloatArray, V: FloatArray, s: int, k: int
     dt = model.dt
     Js = np.repeat(J, n, axis=0)  # [B*n, s+k, 2], sample-major within each sequence
     Vs = np.repeat(V, n, axis=0)
-    step = _Step(model, include_noise, Vs[:, s - 1, 0])
+    step = ChannelStep(model, include_noise, Vs[:, s - 1, 0])
     for j in range(k):
         z = gen.standard_normal((B * n, 2))
         mean, var, _ = step(Js[:, j:j + s], Vs[:, j:j + s], Js[:, s + j], False)
