@@ -43,6 +43,7 @@ from asgp_ros.core.rollout import ChannelStep, rollout
 from asgp_ros.core.unicycle import integrate_path, path_sensitivity
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 
 __all__ = ["METHODS", "InverseResult", "path_jacobian", "solve"]
 
@@ -85,17 +86,18 @@ def _window(name: str, a: ArrayLike, s: int) -> FloatArray:
     return arr[arr.shape[0] - s:]
 
 
-def _window_columns(model: MotionModel) -> tuple[list[FloatArray], list[FloatArray]]:
+def _window_columns(model: MotionModel) -> tuple[list[IntArray], list[IntArray]]:
     """Per channel: the positions in a step's flattened window (joystick past [s, 2],
     velocity past [s, 2], joystick now [2], each row-major) that feed its input row, and
     the input columns they feed."""
     fc = model.feature_config
-    pos, cols = [], []
+    pos: list[IntArray] = []
+    cols: list[IntArray] = []
     for c in range(2):
         lay = input_layout(c, fc)
         flat = np.concatenate([lay.joy_past.ravel(), lay.vel_past.ravel(), lay.joy_now])
         pos.append(np.flatnonzero(flat >= 0))
-        cols.append(flat[flat >= 0])
+        cols.append(flat[flat >= 0].astype(np.intp))
     return pos, cols
 
 
