@@ -2,8 +2,10 @@
 
 Held-out drives of the simulator (a seed not used for training). Every ``--every`` seconds:
 the desired path is the true path of the next 2 s (in the frame of the pose at t0); the
-inverse (:func:`asgp_ros.core.inverse.solve`) gets the measured past on the model grid (the
-joystick and the velocity with VO-like noise); a copy of the simulated chair, in the same
+inverse (:func:`asgp_ros.core.inverse.solve`) gets the measured past on the model grid as the
+predictor would have it (the joystick the board reports, and the simulator's Fovis-like VO
+of the drive, without tracking failures, resampled by the model's own settings, its VO stamp
+convention included); a copy of the simulated chair, in the same
 state (its floor noise included), is driven with the solved commands (each held for its grid
 step, through the board's passthrough) and its position is compared with the desired one at
 1.0 and 2.0 s. Beside it, the same with:
@@ -19,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import math
 import sys
 
@@ -27,10 +30,13 @@ from threadpoolctl import threadpool_limits
 
 from asgp_ros.core.inverse import solve
 from asgp_ros.core.modelfile import load_model
+from asgp_ros.core.resample import ResampleConfig, resample
 from asgp_ros.core.rollout import rollout
+from asgp_ros.core.streams import RawStreams
 from asgp_ros.demo.simhw import JoystickPath
 from asgp_ros.sim.chair import Chair
 from asgp_ros.sim.driver import Driver
+from asgp_ros.sim.sensors import SensorParams, vo_samples
 from asgp_ros.sim.world import room_for_surface
 
 STEP = 0.01
@@ -51,6 +57,23 @@ def _drive_copy(chair: Chair, commands: np.ndarray, per_row: int, path: Joystick
             st = chair.step(path.chair_input(u), STEP)
         out.append((st.x, st.y))
     return np.array(out)
+
+
+def _measured_velocity(dense: np.ndarray, grid_cmd: np.ndarray, dt: float, surface: str,
+                       config: ResampleConfig, rng: np.random.Generator) -> np.ndarray:
+    """[n_grid, 2] VO velocity on the grid t = g dt: the simulator's Fovis-like VO of the
+    true drive (no tracking failures), resampled with the model's settings; rows the
+    resampler cannot give are NaN (those steps are not tested)."""
+    t_dense = STEP * np.arange(dense.shape[0])
+    params = dataclasses.replace(SensorParams(), failure_rate_per_min={surface: 0.0})
+    vo = vo_samples(float(t_dense[-1]), t_dense, dense, np.ones(t_dense.size, dtype=bool),
+                    surface, rng, params)
+    t_grid = dt * np.arange(grid_cmd.shape[0])
+    res = resample(RawStreams(joy_t=t_grid, joy=grid_cmd, vel_t=vo.stamp, vel=vo.vel), config)
+    out = np.full((t_grid.size, 2), np.nan)
+    ok = res.valid
+    out[res.k[ok]] = res.vel[ok]
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,12 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     grid_state: list = []
     grid_cmd: list = []
     chairs: list = []
-    vel_meas: list = []
+    dense: list = [(state.x, state.y, state.theta)]  # the true pose every STEP
     cmd = np.zeros(2)
     for g in range(n_grid):
         chairs.append(copy.deepcopy(chair))
         grid_state.append(state)
-        vel_meas.append((state.v + rng.normal(0, 0.01), state.omega + rng.normal(0, 0.01)))
         for j in range(per_row):
             n = g * per_row + j
             if n % 2 == 0:
@@ -98,7 +120,10 @@ def main(argv: list[str] | None = None) -> int:
             if j == 0:
                 grid_cmd.append(path.reported(cmd))
             state = chair.step(path.chair_input(cmd), STEP)
+            dense.append((state.x, state.y, state.theta))
     pos = np.array([(st.x, st.y) for st in grid_state])
+    vel_meas = _measured_velocity(np.asarray(dense), np.asarray(grid_cmd), dt, args.surface,
+                                  model.resample_config, rng)
     errs: dict[str, list[tuple[float, float]]] = {"inverse": [], "oracle": [], "naive": []}
     every = max(1, round(args.every / dt))
     with threadpool_limits(limits=1):
@@ -109,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
             pose0 = np.array([st.x, st.y, st.theta])
             target = _frame(pose0, pos[g + 1:g + 1 + k])
             jp = np.array(grid_cmd[g - s + 1:g + 1])
-            vp = np.array(vel_meas[g - s + 1:g + 1])
+            vp = vel_meas[g - s + 1:g + 1]
+            if not np.all(np.isfinite(vp)):
+                continue  # the resampler has no valid VO there
             # the model's t0 is the grid time g: the commands of g+1 .. g+k drive the path
             res = solve(model, jp, vp, target)
             oracle = np.array(grid_cmd[g + 1:g + 1 + k])

@@ -20,7 +20,8 @@ from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.streams import RawStreams
 from asgp_ros.evaluation import TestSeries, _replay_series, evaluate_adaptive
 
-RC = ResampleConfig(rate_hz=5.0)
+# the VO below samples the velocity at its stamps (not frame-interval means): read as such
+RC = ResampleConfig(rate_hz=5.0, vel_stamp="frame")
 FC = FeatureConfig(lags=3)
 T0 = 1000.0
 

@@ -103,8 +103,11 @@ def feed(pred: Predictor, event) -> None:
         pred.feed_vo(t, x)
 
 
-def run_online(pred: Predictor, events, joy_future_of=None):
-    """Feed events; predict on every newly completed step. Returns {step: Prediction}."""
+def run_online(pred: Predictor, events, joy_future_of=None, skipped=None):
+    """Feed events; predict on every newly completed step. Returns {step: Prediction}.
+
+    ``skipped`` (a set) collects the steps completed together with a newer one by one
+    arrival (only the newest complete step is predicted)."""
     out = {}
     last = None
     for ev in events:
@@ -112,6 +115,8 @@ def run_online(pred: Predictor, events, joy_future_of=None):
         step = pred.ready_step()
         if step is None or (last is not None and step <= last):
             continue
+        if skipped is not None and last is not None:
+            skipped.update(range(last + 1, step))
         last = step
         fut = None if joy_future_of is None else joy_future_of(step)
         result = pred.predict(ev[0], joy_future=fut)
@@ -131,7 +136,8 @@ def test_online_features_equal_offline_features(data):
     jt, joy, vt, vel, res = data
     model = linear_model()
     pred = Predictor(model, PredictorConfig(horizon_steps=3, buffer_s=5.0))
-    results = run_online(pred, arrival_order(jt, joy, vt, vel))
+    skipped: set[int] = set()
+    results = run_online(pred, arrival_order(jt, joy, vt, vel), skipped=skipped)
     pos = {int(k): i for i, k in enumerate(res.k)}
     fcfg = model.feature_config
     offline = {c: design_matrix(res, c, fcfg) for c in (0, 1)}
@@ -149,10 +155,13 @@ def test_online_features_equal_offline_features(data):
             online_row = build_inputs(r.joy_past, r.vel_past, res.joy[i + 1], c, fcfg)
             np.testing.assert_array_equal(online_row, X[rows[0]])
             compared += 1
-    # every step whose window is valid offline was predicted online
+    # every step whose window is valid offline was predicted online, unless one VO sample
+    # completed it together with the next (its interval's middle passed two grid points)
     valid_offline = set(int(res.k[j]) for j in offline[0][2] - 1)
     assert compared > 300
-    assert len(valid_offline - set(results)) <= 2, sorted(valid_offline - set(results))[:10]
+    missed = valid_offline - set(results) - skipped
+    assert len(missed) <= 2, sorted(missed)[:10]
+    assert len(skipped) < 0.1 * len(results)
 
 
 def test_prediction_equals_core_rollout_on_offline_windows(data):

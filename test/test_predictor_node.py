@@ -40,8 +40,7 @@ DT = 0.2
 K = 5
 
 
-@pytest.fixture(scope="module")
-def model_file(tmp_path_factory):
+def _model_file(directory, vel_stamp: str) -> str:
     """A small ASGP model fitted on synthetic data (see test_predictor.make_streams)."""
     from test_predictor import make_streams
 
@@ -52,17 +51,44 @@ def model_file(tmp_path_factory):
     from asgp_ros.core.sparse_gp import SparseGP
     from asgp_ros.core.streams import RawStreams
 
+    config = ResampleConfig(vel_stamp=vel_stamp)
     jt, joy, vt, vel = make_streams(60.0)
-    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel), config)
     fc = FeatureConfig(lags=4)
     channels = []
     for c in (0, 1):
         X, y, _ = design_matrix(res, c, fc)
         channels.append(SparseGP(num_inducing=10, seed=0).fit(X, y, max_iter=30))
-    path = tmp_path_factory.mktemp("model") / "chair.npz"
+    path = directory / "chair.npz"
     save_model(path, MotionModel(kind="asgp", feature_config=fc,
-                                 resample_config=ResampleConfig(), channels=tuple(channels)))
+                                 resample_config=config, channels=tuple(channels)))
     return str(path)
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory):
+    """The harness's VO samples the velocity at its stamps: a model reading them as such."""
+    return _model_file(tmp_path_factory.mktemp("model"), "frame")
+
+
+def test_midpoint_stamps_move_the_newest_step_back_by_half_a_vo_interval(
+        rclpy_context, tmp_path):
+    """The same drive with VO every 0.2 s at x.03: read at the frames' stamps the newest
+    path starts at the last VO stamp's grid step (102.0), read at the intervals' middles at
+    the step the last middle reaches (101.93 -> 101.8)."""
+    for stamp, newest in (("frame", 102.0), ("midpoint", 101.8)):
+        h = Harness(rclpy_context, _model_file(tmp_path / stamp, stamp))
+        try:
+            h.drive(100.0, 102.0)
+            h.spin_until(lambda h=h, newest=newest: bool(h.paths)
+                         and _t0(h.paths[-1]) > newest - 1e-9, what="paths")
+            h.clock(102.1)
+            h.joy(102.1, 0.5, 0.0)  # a later joystick sample completes nothing new
+            for _ in range(20):
+                h.executor.spin_once(timeout_sec=0.01)
+            assert abs(_t0(h.paths[-1]) - newest) < 1e-9, stamp
+        finally:
+            h.close()
 
 
 class Harness:

@@ -13,10 +13,14 @@ from asgp_ros.core.resample import (
     RESAMPLE_RANGES,
     ResampleConfig,
     grid_indices,
+    midpoint_stamps,
     resample,
     stale_samples,
 )
 from asgp_ros.core.streams import RawStreams
+
+#: odometry read at its own stamps: the interpolation's mechanics, free of the midpoint shift
+FRAME = ResampleConfig(vel_stamp="frame")
 
 
 def jittery_times(rng: np.random.Generator, t0: float, t1: float, lo: float,
@@ -40,7 +44,7 @@ def recording(seed: int = 0, duration: float = 60.0, t0: float = 1000.03) -> Raw
 
 def test_grid_is_absolute_and_covers_the_overlap() -> None:
     s = recording()
-    res = resample(s)
+    res = resample(s, FRAME)
     assert np.all(np.diff(res.k) == 1)
     np.testing.assert_array_equal(res.t, res.k / 5.0)
     start = max(s.joy_t[0], s.vel_t[0])
@@ -58,7 +62,7 @@ def test_linear_signals_are_interpolated_exactly() -> None:
     vt = jittery_times(rng, 10.0, 40.0, 0.14, 0.25)
     joy = np.stack([0.1 + 0.01 * jt, -0.2 - 0.02 * jt], axis=1)
     vel = np.stack([3.0 - 0.05 * vt, 0.5 + 0.03 * vt], axis=1)
-    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel), FRAME)
     t = res.t
     np.testing.assert_allclose(res.joy, np.stack([0.1 + 0.01 * t, -0.2 - 0.02 * t], 1),
                                rtol=0, atol=1e-12)
@@ -72,7 +76,7 @@ def test_exact_hit_returns_the_sample() -> None:
     vt = np.array([0.0, 0.1, 0.4])
     joy = np.array([[0.1, 0.0], [0.3, 0.0], [0.7, 0.0]])
     vel = np.array([[1.0, 0.0], [1.1, 0.0], [1.7, 0.3]])
-    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
+    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel), FRAME)
     np.testing.assert_array_equal(res.k, [0, 1, 2])
     np.testing.assert_array_equal(res.joy[:, 0], [0.1, 0.3, 0.7])
     assert res.vel[2, 0] == 1.7 and res.vel[2, 1] == 0.3
@@ -81,13 +85,68 @@ def test_exact_hit_returns_the_sample() -> None:
 
 def test_jittery_timing_tracks_smooth_signals() -> None:
     s = recording(seed=2)
-    res = resample(s)
+    res = resample(s, FRAME)
     assert res.valid.all() and len(res.segments()) == 1
     t = res.t
     np.testing.assert_allclose(res.joy[:, 0], np.sin(0.5 * t), atol=2e-3)
     np.testing.assert_allclose(res.joy[:, 1], 0.8 * np.cos(0.3 * t), atol=2e-3)
     # odometry: interpolation error (<= (0.25 s)^2 / 8 * 0.3) plus its 0.01 noise
     np.testing.assert_allclose(res.vel[:, 0], 1.2 * np.sin(0.5 * t - 0.3), atol=0.05)
+
+
+def frame_averages(vt: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """What a frame-to-frame odometry reports for the velocity a + b t: the mean over the
+    interval from the previous frame (the first frame: the value at its stamp)."""
+    prev = np.concatenate([vt[:1], vt[:-1]])
+    mid = 0.5 * (prev + vt)
+    return a + b * mid[:, None]
+
+
+def test_midpoint_stamps_undo_the_frame_lag() -> None:
+    rng = np.random.default_rng(6)
+    jt = jittery_times(rng, 10.0, 40.0, 0.02, 0.05)
+    vt = jittery_times(rng, 10.0, 40.0, 0.14, 0.25)
+    a, b = np.array([0.2, -0.1]), np.array([0.05, 0.03])
+    streams = RawStreams(joy_t=jt, joy=np.zeros((jt.size, 2)), vel_t=vt,
+                         vel=frame_averages(vt, a, b))
+    res = resample(streams)  # the default: midpoint
+    assert ResampleConfig().vel_stamp == "midpoint"
+    np.testing.assert_allclose(res.vel, a + b * res.t[:, None], rtol=0, atol=1e-12)
+    assert res.valid.all()
+    # read at the frame stamps the same data lag by half an interval (0.07-0.125 s)
+    lagged = resample(streams, FRAME)
+    lag = (a + b * lagged.t[:, None] - lagged.vel)[:, 0] / b[0]
+    assert 0.06 < float(np.median(lag)) < 0.13
+    # the grid ends where the last interval's middle is
+    assert res.t[-1] <= 0.5 * (vt[-2] + vt[-1]) < res.t[-1] + 0.2
+
+
+def test_midpoint_stamps_drop_samples_without_a_known_interval() -> None:
+    t = np.array([1.0, 1.2, 1.4, 3.0, 3.2, 3.35])
+    out, known = midpoint_stamps(t, 0.6)
+    np.testing.assert_array_equal(known, [False, True, True, False, True, True])
+    np.testing.assert_allclose(out[known], [1.1, 1.3, 3.1, 3.275])
+    assert np.all(np.diff(out) > 0)
+    assert midpoint_stamps(np.zeros(0), 0.6)[0].size == 0
+    assert not midpoint_stamps(np.array([5.0]), 0.6)[1].any()
+    # after a gap the grid resumes at the first known middle, never across the gap
+    jt = np.arange(0.0, 4.0, 0.03)
+    vel = np.stack([0.1 * np.arange(t.size), np.zeros(t.size)], axis=1)  # never repeated
+    res = resample(RawStreams(joy_t=jt, joy=np.zeros((jt.size, 2)), vel_t=t, vel=vel))
+    assert not res.valid[(res.t > 1.3) & (res.t < 3.1)].any()
+    assert res.valid[(res.t >= 3.1) & (res.t <= 3.275)].all()
+
+
+def test_a_dropped_value_still_marks_its_frame() -> None:
+    """An odometry sample whose value is refused (NaN) still ends the next one's interval."""
+    t = np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
+    vel = np.ones((t.size, 2))
+    vel[2] = np.nan
+    jt = np.arange(0.0, 1.2, 0.03)
+    res = resample(RawStreams(joy_t=jt, joy=np.zeros((jt.size, 2)), vel_t=t, vel=vel))
+    assert res.dropped_vel == 1
+    # samples at 0.2 (0.1), 0.6 (0.5), 0.8 (0.7), 1.0 (0.9): the grid runs 0.2 .. 0.8
+    np.testing.assert_allclose(res.t, [0.2, 0.4, 0.6, 0.8])
 
 
 def test_gaps_split_segments() -> None:
@@ -127,7 +186,7 @@ def driven_stale_recording(value: tuple[float, float], joy_fwd: float,
 
 def test_stale_odometry_is_flagged() -> None:
     s = driven_stale_recording((0.8, 0.1), joy_fwd=0.6)
-    res = resample(s)
+    res = resample(s, FRAME)
     frozen_t = s.vel_t[(s.vel_t >= 20.0) & (s.vel_t <= 22.0)]
     inside = (res.t > frozen_t[0]) & (res.t <= frozen_t[-1])
     assert res.stale[inside].all()
@@ -312,6 +371,14 @@ def test_config_round_trip() -> None:
     assert ResampleConfig.from_dict(d) == cfg
     with pytest.raises(ValueError, match="unknown"):
         ResampleConfig.from_dict({"rate": 5})
+    assert ResampleConfig.from_dict(FRAME.to_dict()) == FRAME
+    # settings stored before odometry stamps were a setting: read as recorded
+    old = cfg.to_dict()
+    del old["vel_stamp"]
+    assert ResampleConfig.from_dict(old).vel_stamp == "frame"
+    for bad in ("end", "", None, 1):
+        with pytest.raises(ValueError, match="vel_stamp"):
+            ResampleConfig(vel_stamp=bad)  # type: ignore[arg-type]
 
 
 # ---- ranges: nothing from a user, a file or a message can make the grid hang ----------

@@ -57,14 +57,18 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
     return lines
 
 
+_STAMPS = {"midpoint": "the middle of its frame interval", "frame": "its frame's stamp"}
+
+
 def describe(path: str, model: MotionModel) -> list[str]:
     fc = model.feature_config
     meta = model.meta
     training = meta.get("training", {})
     lines = [f"{path}: {model.kind}, s = {fc.lags}, "
              f"{'coupled' if fc.coupled else 'one axis per channel'}, "
-             f"{model.rate_hz:g} Hz grid, {training.get('configuration', 'explicit')} "
-             "configuration"]
+             f"{model.rate_hz:g} Hz grid, VO read at "
+             f"{_STAMPS[model.resample_config.vel_stamp]}, "
+             f"{training.get('configuration', 'explicit')} configuration"]
     for ch, info in training.get("channels", {}).items():
         extras = [f"{k} {info[k]}" for k in ("num_inducing", "rows", "posterior_rows",
                                              "iterations", "epochs") if k in info]

@@ -12,7 +12,7 @@ from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import horizon_key
 from asgp_ros.core.modelfile import save_model
 from asgp_ros.core.models import MotionModel, get_kind, trainable_kinds
-from asgp_ros.core.resample import RESAMPLE_RANGES, ResampleConfig
+from asgp_ros.core.resample import RESAMPLE_RANGES, VEL_STAMPS, ResampleConfig
 from asgp_ros.fileio import MODEL_FILE, check_output
 from asgp_ros.training import (
     BUDGET_RANGE_S,
@@ -74,6 +74,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="random seed (%(default)s)")
     p.add_argument("--rate", type=number(*RESAMPLE_RANGES["rate_hz"], unit="Hz"),
                    default=None, help="grid rate in Hz (default 5)")
+    p.add_argument("--vo-stamp", choices=VEL_STAMPS, default="midpoint",
+                   help="the time a VO twist describes: the middle of the interval from "
+                        "the previous one (%(default)s: a frame-to-frame VO's mean "
+                        "velocity), or its own stamp (frame)")
     add_topic_args(p)
     p.set_defaults(func=run)
 
@@ -131,7 +135,8 @@ def selection_table(model: MotionModel) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, MODEL_FILE, inputs=args.bags, force=args.force)
     try:
-        rc = ResampleConfig() if args.rate is None else ResampleConfig(rate_hz=args.rate)
+        rc = ResampleConfig(vel_stamp=args.vo_stamp) if args.rate is None else \
+            ResampleConfig(rate_hz=args.rate, vel_stamp=args.vo_stamp)
         opts = _options(args)
         opts.validate()
     except (TrainingError, ValueError) as exc:

@@ -16,9 +16,11 @@ whole bag.
 
 Indexing (paper Algorithm 1, as in ``rollout``): the *last complete step* ``L`` is the
 newest grid point covered by both streams (a joystick and a VO sample at or after
-``t_L``). The window ``J_{L-s+1..L}``, ``V_{L-s+1..L}`` is the measured past, ``t0 = t_L``
-is the prediction time (origin of the path) and the predicted poses are at
-``t0 + i * dt``, ``i = 1..k``, driven by the future joystick ``J_{L+1..L+k}``:
+``t_L``; the VO sample's time is the middle of its frame interval with the default
+midpoint stamps, see :mod:`asgp_ros.core.resample`). The window ``J_{L-s+1..L}``,
+``V_{L-s+1..L}`` is the measured past, ``t0 = t_L`` is the prediction time (origin of
+the path) and the predicted poses are at ``t0 + i * dt``, ``i = 1..k``, driven by the
+future joystick ``J_{L+1..L+k}``:
 
 * a planner's plans: row ``r`` of a plan received at ``stamp`` is the command over
   ``[stamp + r*dt, stamp + (r+1)*dt)`` (its last row is held); each future grid time
@@ -304,12 +306,16 @@ class _Buffer:
         self.width = width
         self.items: deque[tuple[float, ...]] = deque()
         self.newest = -math.inf
+        self.before_newest = -math.inf  # the newest stamp older than ``newest``
 
     def add(self, t: float, values: tuple[float, ...]) -> bool:
         """Append; True if the stamp was out of order (older than the newest)."""
         self.items.append((t, *values))
         late = t < self.newest
-        self.newest = max(self.newest, t)
+        if t > self.newest:
+            self.before_newest, self.newest = self.newest, t
+        elif self.before_newest < t < self.newest:
+            self.before_newest = t
         return late
 
     def prune(self, horizon_s: float) -> None:
@@ -326,6 +332,7 @@ class _Buffer:
     def clear(self) -> None:
         self.items.clear()
         self.newest = -math.inf
+        self.before_newest = -math.inf
 
     def __len__(self) -> int:
         return len(self.items)
@@ -558,7 +565,22 @@ class Predictor:
         """Grid index of the newest point covered by both streams (cheap), or None."""
         if not self._joy or not self._vo:
             return None
-        return math.floor(min(self._joy.newest, self._vo.newest) / self.dt + 1e-6)
+        ready = min(self._joy.newest, self._vo_covers())
+        if not math.isfinite(ready):
+            return None  # one VO sample, whose interval is not known yet
+        return math.floor(ready / self.dt + 1e-6)
+
+    def _vo_covers(self) -> float:
+        """The newest time the VO buffer gives a velocity for: its newest stamp, or with
+        midpoint stamps (:mod:`asgp_ros.core.resample`) the middle of the newest interval
+        (the previous stamp if that interval is a gap: an upper bound, resampling decides)."""
+        t = self._vo.newest
+        if self.resample_config.vel_stamp != "midpoint":
+            return t
+        prev = self._vo.before_newest
+        if t - prev <= self.resample_config.max_gap_vel_s:
+            return prev + 0.5 * (t - prev)
+        return prev
 
     def plan_future(self, t0: float, now: float, k: int,
                     held: FloatArray | None = None) -> FloatArray | None:
@@ -640,7 +662,7 @@ class Predictor:
                              vel_ok=vo[:, 2] > 0.5, source="live")
         res = resample(streams, self.resample_config)
         s = self.lags
-        t_ready = min(self._joy.newest, self._vo.newest)
+        t_ready = min(self._joy.newest, self._vo_covers())
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
         if self._adapter is not None:
             self._to_learn = (res, n)

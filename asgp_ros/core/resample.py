@@ -14,6 +14,21 @@ Stale-odometry flags depend on the run of repeated values a point belongs to; th
 wherever that run lies inside the window (a run cut by the window's edge can only be
 judged by what the window holds, as an online buffer must).
 
+Odometry stamps (``ResampleConfig.vel_stamp``): a frame-to-frame visual odometry (Fovis,
+:mod:`asgp_ros.vo`) reports the displacement between the previous frame and this one
+divided by their interval, stamped with this frame's time: the mean velocity over the
+interval, which is the velocity at its middle to second order, not at its end. Read at the
+frame's stamp (``"frame"``), the odometry lags the chair by half a frame interval (about
+0.1 s at 4-7 Hz), and a path integrated from it falls behind the real one whenever the
+speed changes. ``"midpoint"`` (the default) moves every sample to the middle of the
+interval from the previous sample, when that interval is at most ``max_gap_vel_s`` (one
+frame's, not a gap); the first sample, and the first after a longer interval, have no
+known interval and are dropped. Times come from the recorded stamps, so a sample whose
+value is dropped (below) still marks its frame. With midpoint stamps a sample's time also
+depends on its predecessor; the first sample of a window, which has none there, is
+dropped, so the window property below still holds for every grid point the window gives.
+Model files record the setting; files from before it existed resample as ``"frame"``.
+
 Validity of a grid point (``Resampled.valid``):
 
 * both streams have a sample at or around it, with the bracketing samples no further
@@ -80,6 +95,8 @@ RESAMPLE_RANGES: dict[str, tuple[float, float]] = {
     "stale_still_after_s": (1e-3, 3600.0),
 }
 RESAMPLE_MAY_BE_INF = ("stale_after_s", "stale_still_after_s")
+#: What an odometry sample's stamp is taken to mean (``ResampleConfig.vel_stamp``).
+VEL_STAMPS = ("midpoint", "frame")
 
 #: Largest |t * rate_hz| on the grid: below 2**50 a grid index and ``k / rate_hz`` are exact
 #: in float64 (times within ``streams.MAX_ABS_TIME_S`` at 100 Hz are far below it).
@@ -108,6 +125,9 @@ class ResampleConfig:
         stale_still_after_s: a repeated zero is stale once the joystick has been deflected
             this long since the repeats began (longer than the chair's start-up lag, so a
             chair that has not started moving yet is not flagged; ``math.inf`` disables).
+        vel_stamp: the time an odometry velocity describes (see "Odometry stamps" in the
+            module docstring): ``"midpoint"`` (default), the middle of the interval from
+            the previous sample; ``"frame"``, its own stamp, as recorded.
     """
 
     rate_hz: float = 5.0
@@ -118,8 +138,11 @@ class ResampleConfig:
     stale_joy_threshold: float = 0.2
     stale_still_speed: float = 1e-3
     stale_still_after_s: float = 0.6
+    vel_stamp: str = "midpoint"
 
     def __post_init__(self) -> None:
+        if self.vel_stamp not in VEL_STAMPS:
+            raise ValueError(f"vel_stamp must be one of {VEL_STAMPS}, got {self.vel_stamp!r}")
         for name, (low, high) in RESAMPLE_RANGES.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
@@ -151,6 +174,8 @@ class ResampleConfig:
         if unknown:
             raise ValueError(f"unknown resample settings: {sorted(unknown)}")
         d = dict(d)
+        # settings stored before odometry stamps were a setting were resampled as recorded
+        d.setdefault("vel_stamp", "frame")
         for name in ("stale_after_s", "stale_still_after_s"):
             if name in d and d[name] is None:
                 d[name] = math.inf
@@ -288,6 +313,29 @@ class _Bracket:
         return np.asarray(flag[self.i] | ((self.w > 0.0) & flag[self.j]), dtype=bool)
 
 
+def midpoint_stamps(vel_t: FloatArray, max_interval_s: float) -> tuple[FloatArray, BoolArray]:
+    """The middle of each odometry sample's interval (module docstring, "Odometry stamps").
+
+    Args:
+        vel_t: [N] strictly increasing stamps, as recorded (a frame's time).
+        max_interval_s: an interval longer than this is not one frame's: the sample after
+            it has no known interval.
+
+    Returns:
+        ([N] times: ``(t[i-1] + t[i]) / 2``, strictly increasing; [N] known: False for the
+        first sample and for a sample after a longer interval, whose time is left as
+        recorded and which the caller drops).
+    """
+    t = np.asarray(vel_t, dtype=np.float64)
+    known = np.zeros(t.shape[0], dtype=bool)
+    out = t.copy()
+    if t.shape[0] > 1:
+        gap = np.diff(t)
+        known[1:] = gap <= max_interval_s
+        out[1:] = np.where(known[1:], t[:-1] + 0.5 * gap, t[1:])
+    return out, known
+
+
 def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: FloatArray,
                   config: ResampleConfig) -> BoolArray:
     """Odometry samples that repeat a frozen reading (see the module docstring).
@@ -344,7 +392,11 @@ def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resam
         logger.debug("%s: dropped %d joystick and %d odometry samples (non-finite or out "
                      "of range)", streams.source or "streams", dropped_joy, dropped_vel)
     joy_t, joy = streams.joy_t[keep_j], streams.joy[keep_j]
-    vel_t, vel, vel_ok = streams.vel_t[keep_v], streams.vel[keep_v], streams.vel_ok[keep_v]
+    vel_t = streams.vel_t
+    if cfg.vel_stamp == "midpoint":
+        vel_t, known = midpoint_stamps(vel_t, cfg.max_gap_vel_s)
+        keep_v &= known
+    vel_t, vel, vel_ok = vel_t[keep_v], streams.vel[keep_v], streams.vel_ok[keep_v]
 
     if joy_t.size and vel_t.size:
         k = grid_indices(max(joy_t[0], vel_t[0]), min(joy_t[-1], vel_t[-1]), cfg.rate_hz)
