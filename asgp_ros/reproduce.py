@@ -54,6 +54,7 @@ from asgp_ros.core.baselines import MLP_LEARNING_RATES, MLP_PATIENCE
 from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.modelfile import load_model, loads_bounded, open_regular_file, save_model
 from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
+from asgp_ros.core.resample import ResampleConfig
 from asgp_ros.core.rollout import rollout
 from asgp_ros.dataset import LAYOUT, BuiltDataset, DatasetError, build_dataset, manifest_topics
 from asgp_ros.dataset import Progress as DatasetProgress
@@ -772,6 +773,7 @@ def _summarise(results: list[dict[str, Any]], st: Settings, train_paths: dict[st
                     "patience": MLP_PATIENCE, "learning_rates": list(MLP_LEARNING_RATES)},
             "case_lags": case_lags([r["lags"] for r in results]), "seed": st.seed,
             "jobs": st.jobs, "cpus": os.cpu_count(),
+            "vel_stamp": ResampleConfig().vel_stamp,
         },
         "train_sets": {k: [Path(p).name for p in v] for k, v in train_paths.items()},
         "test_sets": {k: [Path(p).name for p in v] for k, v in test_paths.items()},
@@ -1124,10 +1126,14 @@ def _markdown(s: dict[str, Any]) -> str:
              "epochs with early stopping on 10% of the training rows (held out; patience "
              f"{m['patience']} epochs, Adam's step {rates} on plateau). Constant velocity: "
              "V_t = V_{t-1}. First-order lag: V_t = a V_{t-1} + b j_t + c (least squares).")
+    stamp = s["settings"].get("vel_stamp", "frame")
+    read_at = ("each VO sample read at the middle of its frame interval, for every model and "
+               "the reference (README, 'VO stamps')" if stamp == "midpoint"
+               else "each VO sample read at its frame's stamp")
     L.append(f"- Success = position error at the horizon <= "
              f"{100 * s['settings']['threshold_m']:.0f} cm against the path integrated "
              "(trapezoidal unicycle) from the recorded VO; horizons "
-             + ", ".join(f"{h} s" for h in hk) + " (k = round(h x 5 Hz)).")
+             + ", ".join(f"{h} s" for h in hk) + f" (k = round(h x 5 Hz)); {read_at}.")
     L.append(f"- Identical case sets for all models: a test step counts when "
              f"{s['settings']['case_lags']} past samples (the largest s of the models) and k "
              "future samples lie in one valid segment; each model uses its own last s of the "
