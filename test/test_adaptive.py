@@ -18,7 +18,7 @@ from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.resample import ResampleConfig, resample
 from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.streams import RawStreams
-from asgp_ros.evaluation import TestSeries, _replay_series, evaluate_adaptive
+from asgp_ros.learning.evaluation import TestSeries, _replay_series, evaluate_adaptive
 
 RC = ResampleConfig(rate_hz=5.0)
 FC = FeatureConfig(lags=3)
@@ -103,7 +103,7 @@ def replay(pred: Predictor, streams: RawStreams, future=None, after: float = -ma
 
 def path_errors(preds: dict, streams: RawStreams, steps: int = 10) -> np.ndarray:
     """Error at the horizon of each prediction against the path of the measured grid."""
-    from asgp_ros.evaluation import reference_path
+    from asgp_ros.learning.evaluation import reference_path
 
     res = resample(streams, RC)
     k0 = int(res.k[0])

@@ -10,10 +10,10 @@ from types import MappingProxyType
 
 import pytest
 
-from asgp_ros import reproduce
 from asgp_ros.cli import main
 from asgp_ros.core.models import trainable_kinds
-from asgp_ros.reproduce import MODELS, ReproduceError, discover, split
+from asgp_ros.learning import reproduce
+from asgp_ros.learning.reproduce import MODELS, ReproduceError, discover, split
 
 
 def _touch_bags(root: Path, counts: dict[str, int]) -> None:
@@ -154,7 +154,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
 
 
 def test_compared_models_come_from_the_registry_of_kinds():
-    from asgp_ros.training import PAPER_OPTIONS, TrainOptions
+    from asgp_ros.learning.training import PAPER_OPTIONS, TrainOptions
 
     kinds = trainable_kinds()
     assert list(MODELS) == ["asgp_paper", kinds[0], "asgp_adapt", *kinds[1:]]
@@ -198,7 +198,7 @@ def test_paper_tables_agree_with_the_papers_summary():
     1.0 s."""
     import numpy as np
 
-    from asgp_ros import paper
+    from asgp_ros.learning import paper
 
     mlp_wins = []
     for h, lead in paper.MEAN_LEAD_POINTS.items():
@@ -242,7 +242,7 @@ def test_the_library_does_not_call_the_command_line(repo_root):
 
 
 def test_bad_manifests_are_refused_without_blocking_or_recursing(tmp_path):
-    from asgp_ros.reproduce import read_manifest
+    from asgp_ros.learning.reproduce import read_manifest
 
     cases = {
         "nested": "[" * 5000 + "]" * 5000,

@@ -4,7 +4,7 @@ Sequence:
 
 1. **Model**: unless one is given, simulate ``train_minutes`` of driving on tile in the demo
    room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live drive's),
-   write it as a bag, and train the ASGP on it (:func:`asgp_ros.training.train`), as
+   write it as a bag, and train the ASGP on it (:func:`asgp_ros.learning.training.train`), as
    ``asgp simulate`` + ``asgp train --model asgp`` would.
 2. **Nodes**, each its own process on a demo-only ROS domain (localhost, UDPv4): the
    simulated hardware (:mod:`asgp_ros.demo.hardware`), ``serial_bridge_node`` on the
@@ -38,16 +38,16 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, TextIO
 
 import asgp_ros
-from asgp_ros import topics
-from asgp_ros.bags import write_bag
+from asgp_ros.common import topics
+from asgp_ros.common.fileio import DEMO_DIR, OutputError, check_output, write_marker
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.demo.common import DemoError, RunState
 from asgp_ros.demo.monitor import format_status
 from asgp_ros.demo.processes import ProcessGroup
 from asgp_ros.demo.report import write_report
-from asgp_ros.fileio import DEMO_DIR, OutputError, check_output, write_marker
+from asgp_ros.learning.training import TrainOptions, read_series, train
+from asgp_ros.recording.bags import write_bag
 from asgp_ros.sim.simulate import simulate
-from asgp_ros.training import TrainOptions, read_series, train
 
 # rclpy (an optional dependency) and the monitor node built on it are imported when the
 # monitor starts, so that this module imports without ROS.

@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from asgp_ros import topics
+from asgp_ros.common import topics
+from asgp_ros.common.fileio import atomic_path, atomic_write_text
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import MotionModel
@@ -39,9 +40,8 @@ from asgp_ros.core.rollout import rollout
 from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware
-from asgp_ros.fileio import atomic_path, atomic_write_text
+from asgp_ros.learning.training import read_series
 from asgp_ros.sim.world import Room, room_for_surface
-from asgp_ros.training import read_series
 
 # matplotlib (slow to import) is imported by figure() alone.
 if TYPE_CHECKING:
@@ -74,7 +74,7 @@ def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
     horizon (the assumption of a predictor without a plan), on the evaluation's cases.
 
     Same cases, rollout and ground-truth displacement as ``asgp evaluate --truth``
-    (:mod:`asgp_ros.evaluation`); only the future joystick differs.
+    (:mod:`asgp_ros.learning.evaluation`); only the future joystick differs.
     """
     series = read_series([str(bag)], resample_config=model.resample_config,
                          truth_topic=topics.BAG_GROUND_TRUTH)

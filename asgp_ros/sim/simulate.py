@@ -4,9 +4,10 @@ The closed loop (driver and chair) runs step by step at the chair's internal rat
 (100 Hz, the driver updates at 50 Hz); the sensors are then sampled from the logged truth
 with vectorised numpy. 20 minutes simulate in a couple of seconds.
 
-A recording is written as a bag through the generic writer, :func:`asgp_ros.bags.write_bag`
-(:func:`write_recording`): the recording serialises itself as ``/joy``, ``/vo/twist`` and
-``/ground_truth/odom`` messages (:meth:`Recording.bag_content`).
+A recording is written as a bag through the generic writer,
+:func:`asgp_ros.recording.bags.write_bag` (:func:`write_recording`): the recording serialises
+itself as ``/joy``, ``/vo/twist`` and ``/ground_truth/odom`` messages
+(:meth:`Recording.bag_content`).
 """
 
 from __future__ import annotations
@@ -22,14 +23,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch, write_bag
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core.quaternion import yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams
+from asgp_ros.recording.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch, write_bag
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.sensors import SensorParams, joystick_samples, vo_samples
 from asgp_ros.sim.world import RECORDING_SURFACES, Room, room_for_surface
-from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 FloatArray = NDArray[np.float64]
 
@@ -108,7 +109,7 @@ class Recording:
         )
 
     def bag_content(self, typestore: Any, ros1: bool, truth: bool = True) -> BagContent:
-        """The recording as bag messages for :func:`asgp_ros.bags.write_bag`.
+        """The recording as bag messages for :func:`asgp_ros.recording.bags.write_bag`.
 
         ``/joy`` (sensor_msgs/Joy, axes = the two deflections) and ``/vo/twist``
         (TwistStamped in base_link) at their recorded stamps and bag times, and with
@@ -205,7 +206,7 @@ def write_recording(path: str | os.PathLike[str], recording: Recording,
         truth: include ``/ground_truth/odom`` (at ``TRUTH_RATE_HZ``).
 
     Raises:
-        asgp_ros.bags.BagError: the bag cannot be written.
+        asgp_ros.recording.bags.BagError: the bag cannot be written.
     """
     class _Source:
         def bag_content(self, typestore: Any, ros1: bool) -> BagContent:

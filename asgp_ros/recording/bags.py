@@ -62,11 +62,11 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
+from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
-from asgp_ros.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
 
 # rosbags is imported where a bag is read or written, not here: ``asgp --help`` and the
 # predictor node import this module, and rosbags takes about 0.1 s to load.

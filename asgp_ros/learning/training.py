@@ -26,7 +26,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from asgp_ros import bags
+from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
@@ -42,14 +42,14 @@ from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import FitBudget, ModelKind, MotionModel, get_kind, trainable_kinds
 from asgp_ros.core.resample import ResampleConfig, Resampled, resample
 from asgp_ros.core.sparse_gp import SparseGP
-from asgp_ros.evaluation import (
+from asgp_ros.learning.evaluation import (
     EvaluationError,
     TestSeries,
     evaluate_model,
     reference_path,
     rollout_cases,
 )
-from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
+from asgp_ros.recording import bags
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ samples fit in one valid segment; each model uses its own last s of those.
 Tables: Table I = tested on Tile, II = tested on Carpet, III = tested on Hybrid; rows =
 train set x model, columns = horizons. Beside each of our cells of a model the paper ran
 (its ASGP and MLP), the 'paper' column gives the paper's published figure for the same
-test set, train set and horizon (:mod:`asgp_ros.paper`; the paper's tables are one per
+test set, train set and horizon (:mod:`asgp_ros.learning.paper`; the paper's tables are one per
 horizon, ours one per test set). Our data are simulated; the paper's come from a real chair.
 """
 
@@ -48,24 +48,7 @@ from typing import Any, TypeVar
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from asgp_ros.bags import BagError, bag_topics
-from asgp_ros.core import metrics
-from asgp_ros.core.baselines import MLP_LEARNING_RATES, MLP_PATIENCE
-from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
-from asgp_ros.core.modelfile import load_model, loads_bounded, open_regular_file, save_model
-from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
-from asgp_ros.core.rollout import rollout
-from asgp_ros.dataset import LAYOUT, BuiltDataset, DatasetError, build_dataset, manifest_topics
-from asgp_ros.dataset import Progress as DatasetProgress
-from asgp_ros.evaluation import (
-    ModelEvaluation,
-    TestSeries,
-    evaluate_adaptive,
-    evaluate_model,
-    reference_path,
-    rollout_cases,
-)
-from asgp_ros.fileio import (
+from asgp_ros.common.fileio import (
     REPORT_DIR,
     OutputError,
     atomic_path,
@@ -76,9 +59,31 @@ from asgp_ros.fileio import (
     signals_deferred,
     write_marker,
 )
-from asgp_ros.paper import MEAN_LEAD_POINTS
-from asgp_ros.paper import success_rate as published_rate
-from asgp_ros.training import (
+from asgp_ros.core import metrics
+from asgp_ros.core.baselines import MLP_LEARNING_RATES, MLP_PATIENCE
+from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.modelfile import load_model, loads_bounded, open_regular_file, save_model
+from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
+from asgp_ros.core.rollout import rollout
+from asgp_ros.learning.dataset import (
+    LAYOUT,
+    BuiltDataset,
+    DatasetError,
+    build_dataset,
+    manifest_topics,
+)
+from asgp_ros.learning.dataset import Progress as DatasetProgress
+from asgp_ros.learning.evaluation import (
+    ModelEvaluation,
+    TestSeries,
+    evaluate_adaptive,
+    evaluate_model,
+    reference_path,
+    rollout_cases,
+)
+from asgp_ros.learning.paper import MEAN_LEAD_POINTS
+from asgp_ros.learning.paper import success_rate as published_rate
+from asgp_ros.learning.training import (
     PAPER_OPTIONS,
     AutoOptions,
     Series,
@@ -87,6 +92,7 @@ from asgp_ros.training import (
     train,
     train_auto,
 )
+from asgp_ros.recording.bags import BagError, bag_topics
 
 log = logging.getLogger(__name__)
 
@@ -110,13 +116,13 @@ class Compared:
         label: its name in the report.
         options: the fixed configuration it is trained with (the seed and the iteration
             budget come from :class:`Settings`); None: the automatic configuration
-            (:func:`asgp_ros.training.train_auto`).
-        paper: the paper's model this row is run as ("ASGP", "MLP"; :mod:`asgp_ros.paper`),
-            whose published figures stand beside its cells; None for a model the paper did
-            not run.
+            (:func:`asgp_ros.learning.training.train_auto`).
+        paper: the paper's model this row is run as ("ASGP", "MLP";
+            :mod:`asgp_ros.learning.paper`), whose published figures stand beside its cells;
+            None for a model the paper did not run.
         colour: plot colour, if not the kind's.
         adapts: not trained itself: the automatic ASGP's model file, adapting online while
-            it is scored (:func:`asgp_ros.evaluation.evaluate_adaptive`).
+            it is scored (:func:`asgp_ros.learning.evaluation.evaluate_adaptive`).
     """
 
     name: str
@@ -222,7 +228,7 @@ class ReproduceError(ValueError):
 @dataclass(frozen=True)
 class Settings:
     """Budgets of one run. ``auto_budget_s``: the automatic configuration's time budget
-    (:class:`asgp_ros.training.AutoOptions`; None: its default, sized for 120 minutes of
+    (:class:`asgp_ros.learning.training.AutoOptions`; None: its default, sized for 120 minutes of
     data)."""
 
     quick: bool = False
@@ -356,7 +362,7 @@ def _manifest_problem(manifest: Any) -> str | None:
 
 def build_quick_dataset(data: Path, scale: float = QUICK_SCALE, *,
                         progress: DatasetProgress | None = None) -> BuiltDataset:
-    """Simulate a small paper-layout dataset into ``data`` (:func:`asgp_ros.dataset.
+    """Simulate a small paper-layout dataset into ``data`` (:func:`asgp_ros.learning.dataset.
     build_dataset`, as ``asgp dataset --out DATA --scale SCALE --jobs 2``)."""
     log.info("building a small dataset (scale %s) in %s", scale, data)
     try:
@@ -399,7 +405,8 @@ def case_lags(trained_lags: Sequence[int] = ()) -> int:
 
 
 def _read_one(topics: Mapping[str, str], path: str) -> Series:
-    """One bag on the grid; ``topics`` by role as in :func:`asgp_ros.dataset.manifest_topics`."""
+    """One bag on the grid; ``topics`` by role as in
+    :func:`asgp_ros.learning.dataset.manifest_topics`."""
     truth: str | None = topics["truth"]
     if truth not in bag_topics(path):
         truth = None  # recorded on a real chair: no ground truth
@@ -592,7 +599,7 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
         dataset_built: Callable[[BuiltDataset], None] | None = None) -> dict[str, Any]:
     """Run the protocol on the dataset in ``data``; write the report directory ``out``.
 
-    ``out`` is checked first (:func:`asgp_ros.fileio.check_output`): it must not be, hold
+    ``out`` is checked first (:func:`asgp_ros.common.fileio.check_output`): it must not be, hold
     or lie inside ``data``, and an existing report directory (one carrying the report's
     marker file) is replaced only with ``force``; anything else there is refused.
     Everything is written into a temporary directory that replaces ``out`` only when
