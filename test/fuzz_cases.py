@@ -875,7 +875,7 @@ def preload() -> None:
     subcommands()
     for name in ("rosbags.highlevel", "rosbags.rosbag1", "rosbags.rosbag2",
                  "rosbags.typesys", "scipy.optimize", "sklearn.neural_network", "yaml",
-                 "asgp_ros.recording.replay", "asgp_ros.learning.reproduce",
+                 "asgp_ros.recording.replay", "asgp_ros.learning.reproduce.run",
                  "asgp_ros.sim.simulate", "asgp_ros.demo.orchestrator", "asgp_ros.sim.board",
                  "asgp_ros.serial.link",
                  "rclpy", "rclpy.executors"):

@@ -10,8 +10,8 @@ from collections.abc import Sequence
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer
 from asgp_ros.cli.dataset import progress_bar
-from asgp_ros.learning.reproduce import ReproduceError
-from asgp_ros.learning.reproduce import run as reproduce
+from asgp_ros.learning.reproduce.protocol import ReproduceError
+from asgp_ros.learning.reproduce.run import run as reproduce
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
