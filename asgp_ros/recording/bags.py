@@ -666,6 +666,15 @@ class _Scan:
         """A complete message; its bytes are copied only if its topic is wanted."""
         self.messages.append((cid, ns, bytes(data) if self.keep(self.conns[cid][0]) else b""))
 
+    def drop_since(self, found: int, what: str) -> None:
+        """Drop the messages added since there were ``found`` (a damaged chunk's: a record
+        after the damage may be read from the wrong bytes), count them as dropped, and
+        report ``what`` with their number."""
+        lost = len(self.messages) - found
+        del self.messages[found:]
+        self.dropped += lost
+        self.problems.append(f"{what} ({lost} messages dropped)")
+
 
 def _u(buf: Any, pos: int, size: int, order: Literal["little", "big"] = "little") -> int:
     if pos < 0 or pos + size > len(buf):
@@ -823,11 +832,7 @@ class _McapScanner:
             found = len(scan.messages)
             with contextlib.suppress(_StopError):
                 self.records(raw, 0, nested=True)  # count what is lost, keep nothing
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} fails its checksum "
-                                 f"({lost} messages dropped)")
+            scan.drop_since(found, f"chunk at byte {at} fails its checksum")
             return at
         found = len(scan.messages)
         try:
@@ -835,11 +840,7 @@ class _McapScanner:
             if tail is not None and not partial:
                 raise _StopError("it ends inside a record")
         except _StopError as exc:
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
-                                 f"({lost} messages dropped)")
+            scan.drop_since(found, f"chunk at byte {at} is damaged inside: {exc}")
             return at
         if tail is not None:
             scan.dropped += 1 if tail in (-1, 0x05) else 0
@@ -1301,11 +1302,7 @@ class _Ros1Scanner:
             if not partial and (tail is not None or inner != size):
                 raise _StopError("it ends inside a record")
         except _StopError as exc:
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
-                                 f"({lost} messages dropped)")
+            scan.drop_since(found, f"chunk at byte {at} is damaged inside: {exc}")
             return 0
         if tail is not None:
             scan.dropped += 1 if tail[0].get("op") == b"\x02" else 0

@@ -83,9 +83,14 @@ def train_job(context: JobContext, task: tuple[str, str]) -> dict[str, Any]:
     train_name, name = task
     try:
         return _train_one(context, train_name, MODELS[name])
-    except ValueError as exc:  # training errors; a plain message crosses the pool
-        raise ReproduceError(f"{MODELS[name].label} on the {train_name} train set: "
-                             f"{exc}") from None
+    except ValueError as exc:  # training errors
+        raise _job_error(MODELS[name], train_name, exc) from None
+
+
+def _job_error(model: Compared, train_name: str, exc: ValueError) -> ReproduceError:
+    """A job's error as it crosses the pool: a plain message naming the row and the train
+    set."""
+    return ReproduceError(f"{model.label} on the {train_name} train set: {exc}")
 
 
 def model_path(context: JobContext, train_name: str, name: str) -> Path:
@@ -129,9 +134,8 @@ def evaluate_job(context: JobContext, task: tuple[str, str]) -> dict[str, Any]:
     train_name, name = task
     try:
         return _evaluate_one(context, train_name, MODELS[name])
-    except ValueError as exc:  # evaluation errors; a plain message crosses the pool
-        raise ReproduceError(f"{MODELS[name].label} on the {train_name} train set: "
-                             f"{exc}") from None
+    except ValueError as exc:  # evaluation errors
+        raise _job_error(MODELS[name], train_name, exc) from None
 
 
 def _evaluate_one(context: JobContext, train_name: str, model: Compared) -> dict[str, Any]:
