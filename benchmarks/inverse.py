@@ -30,8 +30,8 @@ from asgp_ros.core.rollout import rollout
 def _model(path: str | None):
     if path:
         return load_model(path)
+    from asgp_ros.learning.training import AutoOptions, read_series, train_auto
     from asgp_ros.sim.simulate import simulate, write_recording
-    from asgp_ros.training import AutoOptions, read_series, train_auto
 
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / "tile"

@@ -32,8 +32,8 @@ from asgp_ros.sim.world import Room
 def _model(path: str | None):
     if path:
         return load_model(path)
+    from asgp_ros.learning.training import AutoOptions, read_series, train_auto
     from asgp_ros.sim.simulate import simulate, write_recording
-    from asgp_ros.training import AutoOptions, read_series, train_auto
 
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / "tile"

@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from asgp_ros.bags import read_streams, write_bag
+from asgp_ros.recording.bags import read_streams, write_bag
 from asgp_ros.sim.simulate import simulate
 
 

@@ -85,7 +85,7 @@ from rclpy.signals import SignalHandlerOptions  # noqa: E402
 from sensor_msgs.msg import CameraInfo, Joy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from asgp_ros import topics  # noqa: E402
+from asgp_ros.common import topics  # noqa: E402
 from asgp_ros.demo import camera, hardware  # noqa: E402
 from asgp_ros.demo.hardware import NODE_NAME, HardwareNode  # noqa: E402
 from asgp_ros.demo.orchestrator import (  # noqa: E402

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from asgp_ros.cli.train import selection_table
-from asgp_ros.training import PAPER_OPTIONS, AutoOptions, read_series, train, train_auto
+from asgp_ros.learning.training import PAPER_OPTIONS, AutoOptions, read_series, train, train_auto
 
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 

@@ -211,7 +211,7 @@ def main(argv=None) -> int:
         report.append({"sequence": label, "render_ms_median": float(np.median(rtimes) * 1e3),
                        "methods": rows})
     if args.json:
-        from asgp_ros.fileio import atomic_write_text
+        from asgp_ros.common.fileio import atomic_write_text
         atomic_write_text(args.json, json.dumps(report, indent=2))
     return 0
 

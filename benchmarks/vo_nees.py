@@ -305,7 +305,7 @@ def main(argv=None) -> int:
               f"{q_near:.3f} (near a loss); covariance_scale = "
               f"{max(q_all, q_near) / CHI2_3_95:.3f}")
     if args.json:
-        from asgp_ros.fileio import atomic_write_text
+        from asgp_ros.common.fileio import atomic_write_text
         atomic_write_text(args.json, json.dumps(report, indent=1))
     return 0
 

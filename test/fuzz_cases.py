@@ -865,18 +865,19 @@ def run_subprocess(argv: Sequence[str], *, cwd: Path, arena: Arena,
 
 def preload() -> None:
     """Import what the cases use, once, before any fork (a case then costs milliseconds)."""
-    import asgp_ros.bags
     import asgp_ros.cli
     import asgp_ros.core.baselines
     import asgp_ros.core.modelfile
-    import asgp_ros.evaluation
-    import asgp_ros.training  # noqa: F401
+    import asgp_ros.learning.evaluation
+    import asgp_ros.learning.training
+    import asgp_ros.recording.bags  # noqa: F401
 
     subcommands()
     for name in ("rosbags.highlevel", "rosbags.rosbag1", "rosbags.rosbag2",
                  "rosbags.typesys", "scipy.optimize", "sklearn.neural_network", "yaml",
-                 "asgp_ros.replay", "asgp_ros.reproduce", "asgp_ros.sim.simulate",
-                 "asgp_ros.demo.orchestrator", "asgp_ros.sim.board", "asgp_ros.serial.link",
+                 "asgp_ros.recording.replay", "asgp_ros.learning.reproduce.run",
+                 "asgp_ros.sim.simulate", "asgp_ros.demo.orchestrator", "asgp_ros.sim.board",
+                 "asgp_ros.serial.link",
                  "rclpy", "rclpy.executors"):
         with contextlib.suppress(Exception):
             __import__(name)
@@ -1745,7 +1746,7 @@ def call_load_model(path: str) -> dict[str, Any]:
 
 def call_read_bag(path: str, truth: bool) -> dict[str, Any]:
     """read_streams and bag_topics: streams, or BagError (the documented failure)."""
-    from asgp_ros.bags import BagError, bag_topics, read_streams
+    from asgp_ros.recording.bags import BagError, bag_topics, read_streams
 
     out: dict[str, Any] = {}
     try:

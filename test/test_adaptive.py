@@ -18,7 +18,7 @@ from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.resample import ResampleConfig, resample
 from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.streams import RawStreams
-from asgp_ros.evaluation import TestSeries, _replay_series, evaluate_adaptive
+from asgp_ros.learning.evaluation import TestSeries, _replay_series, evaluate_adaptive
 
 # the VO below samples the velocity at its stamps (not frame-interval means): read as such
 RC = ResampleConfig(rate_hz=5.0, vel_stamp="frame")
@@ -104,7 +104,7 @@ def replay(pred: Predictor, streams: RawStreams, future=None, after: float = -ma
 
 def path_errors(preds: dict, streams: RawStreams, steps: int = 10) -> np.ndarray:
     """Error at the horizon of each prediction against the path of the measured grid."""
-    from asgp_ros.evaluation import reference_path
+    from asgp_ros.learning.evaluation import reference_path
 
     res = resample(streams, RC)
     k0 = int(res.k[0])

@@ -31,8 +31,8 @@ from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.resample import Resampled
 from asgp_ros.core.rollout import rollout
 from asgp_ros.core.sparse_gp import SparseGP
-from asgp_ros.evaluation import TestSeries, evaluate_model
-from asgp_ros.training import (
+from asgp_ros.learning.evaluation import TestSeries, evaluate_model
+from asgp_ros.learning.training import (
     PAPER_OPTIONS,
     AutoOptions,
     Series,

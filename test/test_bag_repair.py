@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 
-from asgp_ros import bags
-from asgp_ros.bags import BagError, read_streams, recover_bag, repair_bag
 from asgp_ros.cli import main
+from asgp_ros.recording import bags
+from asgp_ros.recording.bags import BagError, read_streams, recover_bag, repair_bag
 from asgp_ros.sim.simulate import simulate, write_recording
 
 STORAGES = ("mcap", "sqlite3", "ros1")
@@ -146,7 +146,7 @@ def test_read_streams_recovers_a_cut_bag_with_a_warning(written, rec, tmp_path, 
     size = data_file.stat().st_size
     target = _cut_copy(storage, bag, data_file, tmp_path / "cut", size * 3 // 5,
                        metadata=True)
-    with caplog.at_level("WARNING", logger="asgp_ros.bags"):
+    with caplog.at_level("WARNING", logger="asgp_ros.recording.bags"):
         s = read_streams(target, truth_topic="/ground_truth/odom")
     assert "damaged" in caplog.text and "asgp bag repair" in caplog.text
     n = s.joy_t.size

@@ -13,8 +13,8 @@ from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
-from asgp_ros import bags
-from asgp_ros.bags import BagError, JoyAxes, parse_joy_axes, read_streams, write_bag
+from asgp_ros.recording import bags
+from asgp_ros.recording.bags import BagError, JoyAxes, parse_joy_axes, read_streams, write_bag
 from asgp_ros.sim.sensors import SensorParams
 from asgp_ros.sim.simulate import simulate, write_recording
 
@@ -281,7 +281,7 @@ def test_truncated_and_corrupt_bags(mcap_bag, rec, tmp_path, caplog):
     shutil.copytree(mcap_bag, bad)
     data = (bad / "drive.mcap").read_bytes()
     (bad / "drive.mcap").write_bytes(data[: len(data) // 2])
-    with caplog.at_level("WARNING", logger="asgp_ros.bags"):
+    with caplog.at_level("WARNING", logger="asgp_ros.recording.bags"):
         s = read_streams(bad)
     assert 0 < s.joy_t.size < rec.joy_t.size and "damaged mcap bag" in caplog.text
     r1 = write_bag(tmp_path / "one.bag", rec)
@@ -326,7 +326,7 @@ def _read_with_deadline(call: str, deadline_s: float = 30.0) -> str:
 
     code = ("import resource\n"  # a reader that slurps a device fails, not the machine
             "resource.setrlimit(resource.RLIMIT_AS, (3 * 2**30, 3 * 2**30))\n"
-            "from asgp_ros import bags\n"
+            "from asgp_ros.recording import bags\n"
             f"try:\n    {call}\n    print('read')\n"
             "except bags.BagError as exc:\n    print(exc)\n")
     try:
@@ -463,7 +463,7 @@ def test_out_of_range_samples_in_a_bag_are_reported(rec, tmp_path, caplog):
     joy = rec.joy.copy()
     joy[5] = (3.0, 0.0)  # raw counts, a wrong scale...
     bad = write_recording(tmp_path / "scaled", dataclasses.replace(rec, joy=joy), truth=False)
-    with caplog.at_level("WARNING", logger="asgp_ros.bags"):
+    with caplog.at_level("WARNING", logger="asgp_ros.recording.bags"):
         s = read_streams(bad)
     assert s.joy[5, 0] == 3.0  # read as recorded
     assert "1 of" in caplog.text and "joystick samples on /joy" in caplog.text
@@ -472,7 +472,7 @@ def test_out_of_range_samples_in_a_bag_are_reported(rec, tmp_path, caplog):
 def test_a_ros1_bag_without_its_version_line_is_refused_at_once(tmp_path):
     """The ROS 1 reader looks for the end of the version line with readline(): a sparse
     1 TiB file of zeros named .bag made it read for ever."""
-    from asgp_ros.bags import BagError, read_streams
+    from asgp_ros.recording.bags import BagError, read_streams
 
     huge = tmp_path / "huge.bag"
     with open(huge, "wb") as fh:

@@ -9,8 +9,8 @@ import sys
 import numpy as np
 import pytest
 
-from asgp_ros.bags import read_sim_metadata, read_streams
 from asgp_ros.cli import main
+from asgp_ros.recording.bags import read_sim_metadata, read_streams
 
 
 def _asgp(repo_root, *args: str) -> subprocess.CompletedProcess:

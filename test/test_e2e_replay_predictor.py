@@ -7,7 +7,7 @@ publishing /clock). The test subscribes to ``predicted_path`` and its ellipses, 
 * one path per grid step of the model (5 Hz of bag time), each with k poses stamped
   t0 + i*dt;
 * every path received online equals the offline rollout of the evaluation code
-  (``asgp_ros.evaluation.rollout_cases``, what `asgp evaluate` scores) for the same grid
+  (``asgp_ros.learning.evaluation.rollout_cases``, what `asgp evaluate` scores) for the same grid
   step, within float tolerance, and so do the 95% ellipses.
 
 What makes the equality meaningful: `asgp evaluate` rolls the model out over the
@@ -104,12 +104,12 @@ def test_replayed_bag_predictions_equal_offline_evaluation_rollouts(
     from rclpy.qos import QoSProfile
     from visualization_msgs.msg import MarkerArray
 
-    from asgp_ros.bags import read_streams
     from asgp_ros.core.modelfile import load_model
     from asgp_ros.core.online import confidence_ellipses
     from asgp_ros.core.resample import resample
-    from asgp_ros.evaluation import rollout_cases
+    from asgp_ros.learning.evaluation import rollout_cases
     from asgp_ros.nodes.conversions import path_to_poses, stamp_to_seconds
+    from asgp_ros.recording.bags import read_streams
 
     # ---- data and model (offline) --------------------------------------------------
     train_bag, test_bag = tmp_path / "train_bag", tmp_path / "test_bag"

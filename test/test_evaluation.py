@@ -11,7 +11,7 @@ from asgp_ros.core.features import FeatureConfig
 from asgp_ros.core.metrics import horizon_key
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import ResampleConfig, Resampled
-from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_model
+from asgp_ros.learning.evaluation import EvaluationError, TestSeries, evaluate_model
 
 RATE = 5.0
 DT = 1.0 / RATE

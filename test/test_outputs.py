@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from asgp_ros.cli import main
-from asgp_ros.fileio import (
+from asgp_ros.common.fileio import (
     MODEL_FILE,
     OutputError,
     atomic_path,
@@ -166,7 +166,7 @@ def test_simulate_force_replaces_a_bag(tmp_path, capsys):
     assert main(["simulate", "--minutes", "0.1", "--seed", "1", "--out", str(bag)]) == 0
     assert main(["simulate", "--minutes", "0.1", "--seed", "2", "--out", str(bag),
                  "--force"]) == 0
-    from asgp_ros.bags import read_sim_metadata
+    from asgp_ros.recording.bags import read_sim_metadata
 
     assert read_sim_metadata(bag)["seed"] == 2
     assert [p.name for p in tmp_path.iterdir()] == ["b"]  # no temporaries left
@@ -181,7 +181,7 @@ def test_dataset_refuses_other_directories(work, capsys, monkeypatch, tmp_path):
     data = tmp_path / "data"
     (data / "tile").mkdir(parents=True)
     (data / "tile" / "tile_01").write_text("mine\n")
-    from asgp_ros.fileio import write_marker
+    from asgp_ros.common.fileio import write_marker
 
     write_marker(data, "dataset")
     before = _snapshot(data / "tile" / "tile_01")
@@ -257,7 +257,7 @@ def test_check_output_resolves_symlinked_parents(tmp_path):
 
 
 def test_markers(tmp_path):
-    from asgp_ros.fileio import write_marker
+    from asgp_ros.common.fileio import write_marker
 
     write_marker(tmp_path, "demo")
     assert read_marker(tmp_path) == "demo"
@@ -367,7 +367,7 @@ def test_a_termination_lost_in_a_hook_is_raised_again():
     """A signal handler's exception raised inside a ``__del__`` or an at-fork hook is
     discarded by Python (seen as a 10 s hang of reproduce after SIGTERM): the next
     check_signals() raises it again."""
-    from asgp_ros import fileio
+    from asgp_ros.common import fileio
 
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
     try:

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from asgp_ros.paramspec import ParamSpec, check_value
+from asgp_ros.common.paramspec import ParamSpec, check_value
 
 REPO = Path(__file__).resolve().parents[1]
 ROS_BUILTINS = {"use_sim_time"}

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from asgp_ros.paramspec import ParamSpec, check_values
+from asgp_ros.common.paramspec import ParamSpec, check_values
 
 SPECS = (
     ParamSpec("flag", True, "a switch"),

@@ -431,7 +431,7 @@ def test_stamp_conversion_matches_the_bag_reader():
 
     for sec, nsec in ((1_700_000_000, 123_456_789), (0, 1), (12, 999_999_999)):
         t = conv.stamp_to_seconds(Time(sec=sec, nanosec=nsec))
-        assert t == float(sec * 1_000_000_000 + nsec) * 1e-9  # asgp_ros.bags' formula
+        assert t == float(sec * 1_000_000_000 + nsec) * 1e-9  # asgp_ros.recording.bags' formula
         back = conv.seconds_to_stamp(t)
         assert abs((back.sec * 10**9 + back.nanosec) - (sec * 10**9 + nsec)) <= 256
     with pytest.raises(ValueError, match="negative"):

@@ -1,4 +1,4 @@
-"""Tests of bag replay (asgp_ros.replay, `asgp replay`).
+"""Tests of bag replay (asgp_ros.recording.replay, `asgp replay`).
 
 Message conversion is tested on ROS 1 and ROS 2 bags written here with rosbags (Joy with
 a ROS 1 header ``seq``, Odometry with fixed-size covariance arrays, Image with a byte
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from asgp_ros.replay import ReplayConfig, message_class, to_ros2
+from asgp_ros.recording.replay import ReplayConfig, message_class, to_ros2
 
 N_MSGS = 20
 T0_NS = 1_700_000_000_000_000_000
@@ -348,7 +348,7 @@ def test_replay_of_a_corrupt_mcap_is_one_clear_error(repo_root, tmp_path, damage
 def test_replayer_raises_replay_error_for_corrupt_data(rclpy_context, tmp_path):
     import rclpy
 
-    from asgp_ros.replay import BagReplayer, ReplayError
+    from asgp_ros.recording.replay import BagReplayer, ReplayError
 
     bag = write_test_bag(tmp_path / "bag", ros1=False)
     _corrupt_first_joy(bag)
@@ -380,7 +380,7 @@ def test_replay_refuses_a_fifo_at_once(repo_root, tmp_path):
 
 def test_replay_ranges_are_checked_in_the_config_and_on_the_command_line(repo_root,
                                                                         ros2_bag):
-    from asgp_ros.replay import REPLAY_RANGES
+    from asgp_ros.recording.replay import REPLAY_RANGES
 
     for name, (low, high) in REPLAY_RANGES.items():
         ReplayConfig(**{name: low})

@@ -10,10 +10,11 @@ from types import MappingProxyType
 
 import pytest
 
-from asgp_ros import reproduce
 from asgp_ros.cli import main
 from asgp_ros.core.models import trainable_kinds
-from asgp_ros.reproduce import MODELS, ReproduceError, discover, split
+from asgp_ros.learning.reproduce import pool, protocol
+from asgp_ros.learning.reproduce.data import discover, split
+from asgp_ros.learning.reproduce.protocol import MODELS, ReproduceError
 
 
 def _touch_bags(root: Path, counts: dict[str, int]) -> None:
@@ -82,7 +83,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
         for row in t["rows"]:
             for h in ("1.0", "1.4", "2.0"):
                 assert 0.0 <= row[h]["success_rate_pct"] <= 100.0
-                assert row[h]["paper_success_rate_pct"] == reproduce.paper_rate(
+                assert row[h]["paper_success_rate_pct"] == protocol.paper_rate(
                     row["model"], t["test_set"], row["train"], h)
                 assert (row[h]["paper_success_rate_pct"] is None) == (
                     MODELS[row["model"]].paper is None)
@@ -109,7 +110,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     assert [m["train"] for m in auto] == ["Tile", "Carpet", "Both"]
     for m in auto:
         assert m["selection"]["chosen"]["lags"] == m["lags"] <= res["settings"]["case_lags"]
-        assert m["selection"]["budget_s"] == reproduce.Settings.for_mode(True).auto_budget_s
+        assert m["selection"]["budget_s"] == protocol.Settings.for_mode(True).auto_budget_s
         assert "calibration" in m
     paper_asgp = [m for m in res["models"] if m["kind"] == "asgp_paper"]
     for m in paper_asgp:  # exactly the paper's configuration
@@ -125,7 +126,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     adapt = res["adaptation"]
     assert len(adapt["rows"]) == 9 and len(adapt["claims"]) == 3
     for row in adapt["rows"]:
-        assert row["from_s"] == reproduce.QUICK_ADAPT_FROM_S
+        assert row["from_s"] == protocol.QUICK_ADAPT_FROM_S
         assert row["state"][0]["rows_absorbed"] > 0
         for h in ("1.0", "1.4", "2.0"):
             x = row["horizons"][h]
@@ -154,7 +155,7 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
 
 
 def test_compared_models_come_from_the_registry_of_kinds():
-    from asgp_ros.training import PAPER_OPTIONS, TrainOptions
+    from asgp_ros.learning.training import PAPER_OPTIONS, TrainOptions
 
     kinds = trainable_kinds()
     assert list(MODELS) == ["asgp_paper", kinds[0], "asgp_adapt", *kinds[1:]]
@@ -168,18 +169,18 @@ def test_compared_models_come_from_the_registry_of_kinds():
     assert auto.automatic and auto.paper is None  # the paper did not run it
     assert (paper_row.paper, MODELS["mlp"].paper) == ("ASGP", "MLP")
     # the run's budgets change the iterations and the seed, never the configuration
-    st = reproduce.Settings.for_mode(quick=True, seed=3)
+    st = protocol.Settings.for_mode(quick=True, seed=3)
     opts = st.options(paper_row)
     assert (opts.lags, opts.inducing_v, opts.inducing_w, opts.coupled, opts.seed) == (
         4, 20, 40, False, 3)
-    assert reproduce.case_lags() == 10  # the MLP's s
-    assert reproduce.case_lags([4, 12, 2]) == 12  # the automatic ASGP chose s = 12
+    assert protocol.case_lags() == 10  # the MLP's s
+    assert protocol.case_lags([4, 12, 2]) == 12  # the automatic ASGP chose s = 12
 
 
 def test_paper_figures_sit_beside_the_matching_cells():
     """The paper's tables are per horizon (rows test x model, columns train set); ours per
     test set: the look-up goes by (test set, train set, model, horizon)."""
-    rate = reproduce.paper_rate
+    rate = protocol.paper_rate
     assert rate("mlp", "Tile", "Both", "2.0") == 52.06  # Table III, Tile test, MLP, Both
     assert rate("mlp", "Carpet", "Carpet", "1.4") == 50.56  # Table II
     assert rate("asgp_paper", "Hybrid", "Carpet", "2.0") == 50.89  # Table III
@@ -198,7 +199,7 @@ def test_paper_tables_agree_with_the_papers_summary():
     1.0 s."""
     import numpy as np
 
-    from asgp_ros import paper
+    from asgp_ros.learning import paper
 
     mlp_wins = []
     for h, lead in paper.MEAN_LEAD_POINTS.items():
@@ -217,11 +218,14 @@ def _scaled(context, x):
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_jobs_get_their_inputs_as_arguments(jobs):
     """The job functions take the run's context as an argument, inline or in a pool (whose
-    workers receive it through the initializer); the module keeps no run state."""
+    workers receive it through the initializer); the modules keep no run state."""
+    from asgp_ros.learning.reproduce import jobs as job_functions
+    from asgp_ros.learning.reproduce import run as run_module
+
     context = MappingProxyType({"k": 3})
-    assert reproduce._pool_map(_scaled, context, [1, 2, 3, 4], jobs) == [3, 6, 9, 12]
-    assert reproduce._WORKER is None  # set in pool workers only
-    assert not hasattr(reproduce, "_STATE")
+    assert pool.pool_map(_scaled, context, [1, 2, 3, 4], jobs) == [3, 6, 9, 12]
+    assert pool._WORKER is None  # set in pool workers only
+    assert not any(hasattr(m, "_STATE") for m in (pool, job_functions, run_module))
 
 
 def test_the_library_does_not_call_the_command_line(repo_root):
@@ -242,7 +246,7 @@ def test_the_library_does_not_call_the_command_line(repo_root):
 
 
 def test_bad_manifests_are_refused_without_blocking_or_recursing(tmp_path):
-    from asgp_ros.reproduce import read_manifest
+    from asgp_ros.learning.reproduce.data import read_manifest
 
     cases = {
         "nested": "[" * 5000 + "]" * 5000,

@@ -153,8 +153,8 @@ def test_invalid_settings_are_refused(bad):
 @pytest.fixture(scope="module")
 def chair_model(tmp_path_factory):
     """A small ASGP of the simulated chair (2 minutes of tile, as `asgp train --paper`)."""
+    from asgp_ros.learning.training import TrainOptions, read_series, train
     from asgp_ros.sim.simulate import simulate, write_recording
-    from asgp_ros.training import TrainOptions, read_series, train
 
     bag = tmp_path_factory.mktemp("sc") / "tile"
     write_recording(bag, simulate("tile", 2.0, 5))

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from asgp_ros import topics
+from asgp_ros.common import topics
 from asgp_ros.core.features import CHANNELS
 from asgp_ros.core.metrics import CHI2_2DOF_95, HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import BUILTIN_KINDS
@@ -28,7 +28,7 @@ from asgp_ros.core.models import BUILTIN_KINDS
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "asgp_ros"
 
-#: The topic names of asgp_ros.topics (relative; a bag holds them with a leading "/").
+#: The topic names of asgp_ros.common.topics (relative; a bag holds them with a leading "/").
 TOPIC_NAMES = {value for name, value in vars(topics).items()
                if name.isupper() and isinstance(value, str) and not name.startswith("BAG_")}
 KIND_NAMES = {k.name for k in BUILTIN_KINDS}
@@ -180,7 +180,7 @@ CONSTANTS: dict[str, tuple[str | None, Callable[[ast.Module, str], bool]]] = {
     "horizon_key": ("core/metrics.py", _horizon_key),
     "channel names": ("core/features.py", _channels),
     "quaternion <-> yaw": ("core/quaternion.py", _quaternion),
-    "topic names": ("topics.py", _topics),
+    "topic names": ("common/topics.py", _topics),
     "list of model kinds": (None, _kind_list),
 }
 

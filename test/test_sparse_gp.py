@@ -9,13 +9,8 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from asgp_ros.core import SparseGP
-from asgp_ros.core.sparse_gp import (
-    SparseGPError,
-    _fitc_grad,
-    _fitc_terms,
-    _Params,
-    _Workspace,
-)
+from asgp_ros.core.fitc import Params, Workspace, fitc_gradient, fitc_terms
+from asgp_ros.core.sparse_gp import SparseGPError
 
 
 def _data(n: int, seed: int, d: int = 3) -> tuple[np.ndarray, np.ndarray]:
@@ -77,9 +72,9 @@ def test_matches_gpy_fitc_at_fixed_parameters():
     post = gp.posterior
     Xs = (X - post.x_mean) / post.x_scale
     ys = (y - post.y_mean) / post.y_scale
-    params = _Params(post.lengthscales, post.signal_variance, post.noise_variance, post.Z)
-    terms = _fitc_terms(Xs, ys, params, 1e-6)
-    d_log_l, d_log_sf2, d_log_sn2, dZ = _fitc_grad(params, terms)
+    params = Params(post.lengthscales, post.signal_variance, post.noise_variance, post.Z)
+    terms = fitc_terms(Xs, ys, params, 1e-6)
+    d_log_l, d_log_sf2, d_log_sn2, dZ = fitc_gradient(params, terms)
     np.testing.assert_allclose(d_log_l / ls, ref.kern.lengthscale.gradient, rtol=1e-6)
     assert d_log_sf2 / sf2 == pytest.approx(float(ref.kern.variance.gradient[0]), rel=1e-6)
     assert d_log_sn2 / sn2 == pytest.approx(float(ref.likelihood.variance.gradient[0]), rel=1e-6)
@@ -133,28 +128,28 @@ def test_analytic_gradient_matches_finite_differences():
     N, D, M = 60, 3, 7
     X = rng.standard_normal((N, D))
     y = np.sin(2 * X[:, 0]) + X[:, 1] * X[:, 2] + 0.1 * rng.standard_normal(N)
-    p = _Params(np.array([0.7, 1.3, 2.0]), 1.3, 0.05, rng.standard_normal((M, D)))
+    p = Params(np.array([0.7, 1.3, 2.0]), 1.3, 0.05, rng.standard_normal((M, D)))
     jitter = 1e-6
 
-    def pack(q: _Params) -> np.ndarray:
+    def pack(q: Params) -> np.ndarray:
         return np.concatenate(
             [np.log(q.lengthscales), [math.log(q.signal_variance), math.log(q.noise_variance)],
              q.Z.ravel()]
         )
 
-    def unpack(theta: np.ndarray) -> _Params:
-        return _Params(
+    def unpack(theta: np.ndarray) -> Params:
+        return Params(
             np.exp(theta[:D]), float(np.exp(theta[D])), float(np.exp(theta[D + 1])),
             theta[D + 2 :].reshape(M, D),
         )
 
     theta = pack(p)
-    d_l, d_sf2, d_sn2, dZ = _fitc_grad(p, _fitc_terms(X, y, p, jitter))
+    d_l, d_sf2, d_sn2, dZ = fitc_gradient(p, fitc_terms(X, y, p, jitter))
     analytic = np.concatenate([d_l, [d_sf2, d_sn2], dZ.ravel()])
     h = 1e-5
     numeric = np.array([
-        (_fitc_terms(X, y, unpack(theta + h * e), jitter).lml
-         - _fitc_terms(X, y, unpack(theta - h * e), jitter).lml) / (2 * h)
+        (fitc_terms(X, y, unpack(theta + h * e), jitter).lml
+         - fitc_terms(X, y, unpack(theta - h * e), jitter).lml) / (2 * h)
         for e in np.eye(theta.size)
     ])
     assert analytic.shape == (D + 2 + M * D,)
@@ -162,22 +157,22 @@ def test_analytic_gradient_matches_finite_differences():
 
 
 def test_threaded_column_blocks_give_the_same_likelihood_and_gradient():
-    import asgp_ros.core.sparse_gp as module
+    from asgp_ros.core import fitc
 
     rng = np.random.default_rng(16)
     N, D, M = 3000, 4, 9
     X = rng.standard_normal((N, D))
     y = np.tanh(X[:, 0] * X[:, 1]) + 0.1 * rng.standard_normal(N)
-    p = _Params(np.full(D, 1.5), 0.8, 0.02, rng.standard_normal((M, D)))
-    ws = _Workspace(X, y, M, threads=1)
+    p = Params(np.full(D, 1.5), 0.8, 0.02, rng.standard_normal((M, D)))
+    ws = Workspace(X, y, M, threads=1)
     assert len(ws.blocks) == 2  # N >= 2000: two blocks, whatever the thread count
-    blocked = _fitc_terms(X, y, p, 1e-6, ws)
-    g_blocked = _fitc_grad(p, blocked)
+    blocked = fitc_terms(X, y, p, 1e-6, ws)
+    g_blocked = fitc_gradient(p, blocked)
     # The same sums with a single block (what N < 2000 uses).
-    ws.blocks = [module._Block(X, y, M)]
-    single = _fitc_terms(X, y, p, 1e-6, ws)
+    ws.blocks = [fitc._Block(X, y, M)]
+    single = fitc_terms(X, y, p, 1e-6, ws)
     assert blocked.lml == pytest.approx(single.lml, rel=1e-12)
-    for a, b in zip(g_blocked, _fitc_grad(p, single), strict=True):
+    for a, b in zip(g_blocked, fitc_gradient(p, single), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9)
     # Threads change the schedule, not the arithmetic: identical fits.
     fit1 = SparseGP(num_inducing=M, threads=1).fit(X, y, max_iter=5)
@@ -407,20 +402,20 @@ def test_singular_kernel_recovered_by_jitter_or_reported(small):
 
 def test_failed_factorisation_inside_the_optimiser_is_a_rejected_step(small, monkeypatch):
     """A Cholesky failure during the line search makes the objective inf, not an error."""
-    import asgp_ros.core.sparse_gp as module
+    from asgp_ros.core import fitc
 
     X, y = small
-    real = module._fitc_terms
+    real = fitc.fitc_terms
     calls = []
 
     def flaky(*args, **kwargs):
         calls.append(1)
         if len(calls) in (3, 4):
-            raise module._FactorisationError("simulated: not positive definite")
+            raise fitc.FactorisationError("simulated: not positive definite")
         return real(*args, **kwargs)
 
     reference = SparseGP(num_inducing=5).fit(X, y, max_iter=30)
-    monkeypatch.setattr(module, "_fitc_terms", flaky)
+    monkeypatch.setattr(fitc, "fitc_terms", flaky)
     gp = SparseGP(num_inducing=5).fit(X, y, max_iter=30)
     assert len(calls) > 10  # resumed after the failures
     assert gp.log_marginal_likelihood() > reference.optimisation_log[0][1]
@@ -430,8 +425,8 @@ def test_failed_factorisation_inside_the_optimiser_is_a_rejected_step(small, mon
     assert np.all(np.isfinite(gp.predict(X)[0]))
     # With jitter 0 and a duplicated pseudo-input, Kuu is singular: a failure, not a NaN.
     Z = X[[0, 0, 1, 2, 3]]
-    with pytest.raises(module._FactorisationError):
-        real(X, y, _Params(np.ones(3), 1.0, 0.1, Z), 0.0)
+    with pytest.raises(fitc.FactorisationError):
+        real(X, y, Params(np.ones(3), 1.0, 0.1, Z), 0.0)
 
 
 def test_negative_variance_is_clipped_with_a_warning(small):

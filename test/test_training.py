@@ -11,12 +11,12 @@ import pytest
 
 from asgp_ros.cli import main
 from asgp_ros.core.streams import RawStreams
-from asgp_ros.training import Series, TrainingError, TrainOptions, train
+from asgp_ros.learning.training import Series, TrainingError, TrainOptions, train
 
 
 @pytest.fixture(scope="module")
 def bags(tmp_path_factory):
-    from asgp_ros.bags import write_bag
+    from asgp_ros.recording.bags import write_bag
     from asgp_ros.sim.simulate import simulate
 
     d = tmp_path_factory.mktemp("bags")
@@ -52,7 +52,7 @@ def _series(seed: int) -> Series:
 
 @pytest.mark.parametrize("kind", ["asgp", "mlp", "constant_velocity", "first_order_lag"])
 def test_train_every_kind_on_synthetic_data(kind):
-    from asgp_ros.evaluation import TestSeries, evaluate_model
+    from asgp_ros.learning.evaluation import TestSeries, evaluate_model
 
     opts = TrainOptions(kind=kind, max_iter=30, inducing_v=10, inducing_w=10)
     msgs = []

@@ -18,13 +18,13 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from asgp_ros import __version__
-from asgp_ros.fileio import OutputError, Terminated, raise_on_termination
+from asgp_ros.common.fileio import OutputError, Terminated, raise_on_termination
 
 
 class CommandError(Exception):
     """A user-facing failure: printed as ``error: <message>`` and exit code 2, no traceback.
 
-    :class:`asgp_ros.fileio.OutputError` (an output path refused before work starts) and
+    :class:`asgp_ros.common.fileio.OutputError` (an output path refused before work starts) and
     unforeseen :class:`OSError` are reported the same way. SIGTERM and SIGHUP end a command
     as Ctrl-C does, so that every temporary is removed (exit 128 + signal number).
     """

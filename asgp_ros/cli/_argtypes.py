@@ -7,7 +7,7 @@ code 2 (``asgp train: error: argument --rate: must be in [0.5, 100] Hz, got 1e+2
 Ranges that bound a structure of the package live next to it and are used from there
 (``RESAMPLE_RANGES`` of :mod:`asgp_ros.core.resample` for ``--rate``, ``LAGS_RANGE`` of
 :mod:`asgp_ros.core.features` for ``--lags``, ``REPLAY_RANGES`` of
-:mod:`asgp_ros.replay`); the ranges of arguments that exist only on the command line are
+:mod:`asgp_ros.recording.replay`); the ranges of arguments that exist only on the command line are
 in ``CLI_RANGES`` below.
 """
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from asgp_ros.bags import BagError
 from asgp_ros.cli import CommandError
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core.resample import ResampleConfig
-from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
-from asgp_ros.training import Series, read_series
+from asgp_ros.learning.training import Series, read_series
+from asgp_ros.recording.bags import BagError
 
 
 def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> None:

@@ -3,8 +3,9 @@
 ``asgp bag info BAG`` prints the topics, message types, counts, rates, duration and the
 gaps in each stream, and for a damaged bag what was lost. ``asgp bag repair IN OUT``
 writes a clean, indexed copy of every complete message of IN (which is never written to).
-Both read the bag by scanning its storage record by record (:func:`asgp_ros.bags.recover_bag`),
-so they work on a bag without its index, its summary or its metadata.yaml.
+Both read the bag by scanning its storage record by record
+(:func:`asgp_ros.recording.bags.recover_bag`), so they work on a bag without its index, its
+summary or its metadata.yaml.
 """
 
 from __future__ import annotations
@@ -13,10 +14,10 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from asgp_ros.bags import BagError, recover_bag, repair_bag, topic_stats
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
-from asgp_ros.fileio import ROS1_BAG, ROS2_BAG, check_output
+from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, check_output
+from asgp_ros.recording.bags import BagError, recover_bag, repair_bag, topic_stats
 
 GAPS_LISTED = 10
 """Gaps listed per topic by ``asgp bag info`` (the rest are counted)."""

@@ -1,4 +1,4 @@
-"""``asgp dataset``: the paper's recordings, simulated (:mod:`asgp_ros.dataset`)."""
+"""``asgp dataset``: the paper's recordings, simulated (:mod:`asgp_ros.learning.dataset`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import sys
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
-from asgp_ros.dataset import STORAGES, DatasetError, DatasetOptionError, build_dataset
+from asgp_ros.learning.dataset import STORAGES, DatasetError, DatasetOptionError, build_dataset
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

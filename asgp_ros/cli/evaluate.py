@@ -8,13 +8,18 @@ import json
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, check_output
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import DEFAULT_HALF_LIFE_S, DEFAULT_TRAINED_FLOOR, AdaptSettings
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.modelfile import ModelFileError, load_model
-from asgp_ros.evaluation import EvaluationError, TestSeries, evaluate_adaptive, evaluate_model
-from asgp_ros.fileio import SCORES_JSON, atomic_write_text, check_output
+from asgp_ros.learning.evaluation import (
+    EvaluationError,
+    TestSeries,
+    evaluate_adaptive,
+    evaluate_model,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -7,7 +7,13 @@ import logging
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
-from asgp_ros.replay import REPLAY_RANGES, BagReplayer, ReplayConfig, ReplayError, summary
+from asgp_ros.recording.replay import (
+    REPLAY_RANGES,
+    BagReplayer,
+    ReplayConfig,
+    ReplayError,
+    summary,
+)
 
 LOG = logging.getLogger(__name__)
 

@@ -10,8 +10,6 @@ from collections.abc import Sequence
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer
 from asgp_ros.cli.dataset import progress_bar
-from asgp_ros.reproduce import ReproduceError
-from asgp_ros.reproduce import run as reproduce
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,6 +47,10 @@ def command_line(argv: Sequence[str] | None = None) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    # imported when the command runs: the reproduction's modules are not needed for --help
+    from asgp_ros.learning.reproduce.protocol import ReproduceError
+    from asgp_ros.learning.reproduce.run import run as reproduce
+
     if args.jobs is not None and args.jobs < 1:
         raise CommandError("--jobs must be >= 1")
     try:

@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 import time
 
-from asgp_ros.bags import BagError
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
-from asgp_ros.fileio import bag_kind, check_output
+from asgp_ros.common.fileio import bag_kind, check_output
+from asgp_ros.recording.bags import BagError
 from asgp_ros.sim.simulate import simulate, write_recording
 
 

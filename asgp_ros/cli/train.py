@@ -8,13 +8,13 @@ import dataclasses
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.common.fileio import MODEL_FILE, check_output
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import horizon_key
 from asgp_ros.core.modelfile import save_model
 from asgp_ros.core.models import MotionModel, get_kind, trainable_kinds
 from asgp_ros.core.resample import RESAMPLE_RANGES, VEL_STAMPS, ResampleConfig
-from asgp_ros.fileio import MODEL_FILE, check_output
-from asgp_ros.training import (
+from asgp_ros.learning.training import (
     BUDGET_RANGE_S,
     PAPER_OPTIONS,
     AutoOptions,

@@ -15,7 +15,7 @@ depends on its own row only (S&G eq. 6)::
     (A3)  b = sum_i w_i v_i y_i / lambda_i                [M]    (whitened Kuf Lambda^-1 y)
 
 so absorbing a row (x, y) is a rank-one addition to A and b.  With the weights w_i = 1 these
-are exactly the batch FITC terms of :func:`asgp_ros.core.sparse_gp._fitc_terms`
+are exactly the batch FITC terms of :func:`asgp_ros.core.fitc.fitc_terms`
 (A = LA LA^T, b = LA c), and the cached posterior follows as in P1 and P2::
 
     (A4)  LA = chol(A),   alpha = L^-T LA^-T LA^-1 b

@@ -255,19 +255,9 @@ class MLPChannel:
             "early_stopped" (the last stage stopped on its held-out score, not at the
             cap), "final_loss", "best_validation_score" (held-out R^2)}.
         """
-        import warnings
-
-        from sklearn.exceptions import ConvergenceWarning
         from sklearn.neural_network import MLPRegressor
 
-        Xa = np.asarray(X, dtype=np.float64)
-        ya = np.asarray(y, dtype=np.float64).reshape(-1)
-        if Xa.ndim != 2 or ya.shape[0] != Xa.shape[0]:
-            raise ValueError(f"X must be [N, D] with one target each, got {Xa.shape}, {ya.shape}")
-        if Xa.shape[0] < 20:
-            raise ValueError(f"too few training rows for the MLP: {Xa.shape[0]}")
-        if not (np.all(np.isfinite(Xa)) and np.all(np.isfinite(ya))):
-            raise ValueError("MLP training data contain NaN or inf")
+        Xa, ya = _mlp_training_data(X, y)
         if not learning_rates or any(not lr > 0.0 for lr in learning_rates):
             raise ValueError(f"learning rates must be positive, got {learning_rates}")
         if max_iter < 1 or patience < 1:
@@ -291,25 +281,7 @@ class MLPChannel:
             tol=0.0,
             random_state=seed,  # an int: every stage draws the same held-out rows
         )
-        stage_epochs: list[int] = []
-        early_stopped = False
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            for stage, lr in enumerate(learning_rates):
-                left = max_iter - sum(stage_epochs)
-                if left < 1:
-                    break
-                if stage:
-                    # Continue from the best weights (restored by the last stop). Copies:
-                    # sklearn restored them by reference, and Adam updates in place.
-                    reg.coefs_ = [w.copy() for w in reg.coefs_]
-                    reg.intercepts_ = [b.copy() for b in reg.intercepts_]
-                    # The patience count ran out at the last stop; warm_start keeps it.
-                    reg._no_improvement_count = 0
-                reg.set_params(learning_rate_init=lr, max_iter=left, warm_start=stage > 0)
-                reg.fit(Xs, ys)
-                stage_epochs.append(int(reg.n_iter_))
-                early_stopped = int(reg.n_iter_) < left
+        stage_epochs, early_stopped = _fit_in_stages(reg, Xs, ys, learning_rates, max_iter)
         model = cls(list(reg.coefs_), list(reg.intercepts_), x_mean, x_scale, y_mean, y_scale)
         info = {
             "epochs": int(sum(stage_epochs)),
@@ -383,6 +355,51 @@ class MLPChannel:
 
 
 # ------------------------------------------------------------------- channel trainers
+
+
+def _mlp_training_data(X: object, y: object) -> tuple[FloatArray, FloatArray]:
+    """X [N, D] and y [N] as float arrays, checked: one target per row, at least 20 rows,
+    all finite."""
+    Xa = np.asarray(X, dtype=np.float64)
+    ya = np.asarray(y, dtype=np.float64).reshape(-1)
+    if Xa.ndim != 2 or ya.shape[0] != Xa.shape[0]:
+        raise ValueError(f"X must be [N, D] with one target each, got {Xa.shape}, {ya.shape}")
+    if Xa.shape[0] < 20:
+        raise ValueError(f"too few training rows for the MLP: {Xa.shape[0]}")
+    if not (np.all(np.isfinite(Xa)) and np.all(np.isfinite(ya))):
+        raise ValueError("MLP training data contain NaN or inf")
+    return Xa, ya
+
+
+def _fit_in_stages(reg: Any, Xs: FloatArray, ys: FloatArray,
+                   learning_rates: tuple[float, ...], max_iter: int) -> tuple[list[int], bool]:
+    """Train ``reg`` (an early-stopping MLPRegressor) once per learning rate, each stage
+    from the best weights of the last with a fresh Adam state, ``max_iter`` epochs in all;
+    (epochs of each stage, whether the last stage stopped on its held-out score)."""
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    stage_epochs: list[int] = []
+    early_stopped = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        for stage, lr in enumerate(learning_rates):
+            left = max_iter - sum(stage_epochs)
+            if left < 1:
+                break
+            if stage:
+                # Continue from the best weights (restored by the last stop). Copies:
+                # sklearn restored them by reference, and Adam updates in place.
+                reg.coefs_ = [w.copy() for w in reg.coefs_]
+                reg.intercepts_ = [b.copy() for b in reg.intercepts_]
+                # The patience count ran out at the last stop; warm_start keeps it.
+                reg._no_improvement_count = 0
+            reg.set_params(learning_rate_init=lr, max_iter=left, warm_start=stage > 0)
+            reg.fit(Xs, ys)
+            stage_epochs.append(int(reg.n_iter_))
+            early_stopped = int(reg.n_iter_) < left
+    return stage_epochs, early_stopped
 
 class Budget(Protocol):
     """The part of :class:`asgp_ros.core.models.FitBudget` the baselines use."""

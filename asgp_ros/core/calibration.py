@@ -33,7 +33,7 @@ fast), so one global factor would over-cover one regime to under-cover another. 
 regime is known when the prediction is made (the last measured velocity), so the node
 applies the same map. The coverage that results is reported per horizon, per speed
 regime, per steadiness of the joystick and per held-out recording, cross-validated
-(:func:`asgp_ros.training.calibrate`), so that what the map does not fit is visible.
+(:func:`asgp_ros.learning.training.calibrate`), so that what the map does not fit is visible.
 
 What it does not promise: the calibration holds for data like the held-out part of the
 training recordings (same chair, floors, users). Another floor changes the error; the

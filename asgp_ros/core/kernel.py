@@ -1,10 +1,10 @@
 """The ARD squared-exponential kernel and its derivatives: the one implementation.
 
-Training (:mod:`asgp_ros.core.sparse_gp`), prediction and the fused rollout
-(:mod:`asgp_ros.core.posterior`, :mod:`asgp_ros.core.rollout`) and the likelihood gradient
-all evaluate the kernel through this module.  Notation as GPflow's glossary: inputs
-X [N, D], pseudo-inputs Z [M, D], lengthscales l [D], signal variance sf2, and
-|a|_l^2 = sum_d a_d^2 / l_d^2 (``inv_l2`` = 1 / l^2).
+Training (:mod:`asgp_ros.core.sparse_gp`; the FITC terms and the likelihood gradient in
+:mod:`asgp_ros.core.fitc`), prediction and the fused rollout (:mod:`asgp_ros.core.posterior`,
+:mod:`asgp_ros.core.rollout`) all evaluate the kernel through this module.  Notation as
+GPflow's glossary: inputs X [N, D], pseudo-inputs Z [M, D], lengthscales l [D], signal
+variance sf2, and |a|_l^2 = sum_d a_d^2 / l_d^2 (``inv_l2`` = 1 / l^2).
 
 Equations (cited as K1 .. K4 by the callers)::
 

@@ -17,7 +17,7 @@ Layout (format version 1):
 * one numeric array per entry of ``arrays`` (names ``<channel>.<field>`` by convention),
   as the kind's ``to_arrays`` produced them (:mod:`asgp_ros.core.models`).
 
-The file is written atomically (:func:`asgp_ros.fileio.atomic_path`: a failed save leaves
+The file is written atomically (:func:`asgp_ros.common.fileio.atomic_path`: a failed save leaves
 any previous file untouched). Nothing in it is executable, and nothing in it is trusted:
 :func:`load_model` reads it in this order and refuses (:class:`ModelFileError`, naming the
 file and the problem) at the first thing that does not validate:
@@ -59,11 +59,11 @@ from typing import IO, Any
 
 import numpy as np
 
+from asgp_ros.common.fileio import atomic_path
 from asgp_ros.core.calibration import CalibrationError, VarianceCalibration
 from asgp_ros.core.features import CHANNELS, FeatureConfig
 from asgp_ros.core.models import MotionModel, get_kind, registered_kinds
 from asgp_ros.core.resample import ResampleConfig
-from asgp_ros.fileio import atomic_path
 
 logger = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ in reports. The kinds that ship with the package are listed in :data:`BUILTIN_KI
 the end of this module: the ASGP (two :class:`~asgp_ros.core.sparse_gp.SparseGP`, defined
 here) and the baselines of :mod:`asgp_ros.core.baselines`. The dependency is one-way: this
 module imports the baselines, which know nothing of the registry. Training
-(:mod:`asgp_ros.training`), the ``asgp train`` choices, evaluation and the reproduction
+(:mod:`asgp_ros.learning.training`), the ``asgp train`` choices, evaluation and the reproduction
 all read this registry. Other kinds can be added with :func:`register_kind`.
 """
 

@@ -7,7 +7,7 @@ Snelson & Ghahramani (2006) give the SPGP / FITC predictive distribution at a te
     var_f(x) = sf2 - ks^T C ks,           C = Kuu^-1 - (Kuu + Kuf Lambda^-1 Kfu)^-1
     var_y(x) = var_f(x) + sn2
 
-In the factors of the FITC likelihood (:class:`asgp_ros.core.sparse_gp.FitcTerms`),
+In the factors of the FITC likelihood (:class:`asgp_ros.core.fitc.FitcTerms`),
 L = chol(Kuu) and LA = chol(A) with A = I + V Lambda^-1 V^T, V = L^-1 Kuf:
 
     (P1)  alpha = L^-T LA^-T c,   c = LA^-1 V Lambda^-1 y
@@ -132,7 +132,7 @@ def from_factors(x_mean: FloatArray, x_scale: FloatArray, y_mean: float, y_scale
     """The posterior from the Cholesky factors of a FITC fit: C by P2.
 
     Args: as the attributes of :class:`FitcPosterior` (standardised units); L, LA and
-    alpha [M] from :class:`~asgp_ros.core.sparse_gp.FitcTerms`.
+    alpha [M] from :class:`~asgp_ros.core.fitc.FitcTerms`.
     """
     return FitcPosterior(x_mean=x_mean, x_scale=x_scale, y_mean=y_mean, y_scale=y_scale,
                          Z=Z, lengthscales=lengthscales, signal_variance=signal_variance,

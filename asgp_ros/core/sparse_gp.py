@@ -11,15 +11,16 @@ X [N, D], y [N], pseudo-inputs Z [M, D], Kuf = k(Z, X) [M, N], Kuu = k(Z, Z) [M,
 The pieces, each citing the equations it implements:
 
 * the kernel and its derivatives: :mod:`asgp_ros.core.kernel` (K1 - K4);
-* the FITC terms (:class:`FitcTerms`, :func:`_fitc_terms`): the shared Cholesky factors and
-  the log marginal likelihood (S&G eq. 6 and 8 by the matrix inversion and determinant
-  lemmas);
-* the gradient (:func:`_fitc_grad`): Snelson's derivatives of the likelihood in Lambda,
-  Kuf and Kuu and the chain rule through the kernel (K3, K4);
+* the FITC terms (:class:`asgp_ros.core.fitc.FitcTerms`,
+  :func:`asgp_ros.core.fitc.fitc_terms`): the shared Cholesky factors and the log marginal
+  likelihood (S&G eq. 6 and 8 by the matrix inversion and determinant lemmas);
+* the gradient (:func:`asgp_ros.core.fitc.fitc_gradient`): Snelson's derivatives of the
+  likelihood in Lambda, Kuf and Kuu and the chain rule through the kernel (K3, K4); the
+  optimiser minimises the negative log marginal likelihood (:meth:`SparseGP._objective`);
 * the prediction cache (:class:`asgp_ros.core.posterior.FitcPosterior`): alpha and C of
   the predictive equations (S&G eq. 5), built from the FITC terms once after fitting and
   read by :meth:`SparseGP.predict`, the fused rollout and the model file;
-* :class:`SparseGP`: standardisation, initialisation and the optimiser.
+* :class:`SparseGP` (this module): standardisation, initialisation and the optimiser.
 
 The M pseudo-inputs Z and the hyperparameters (log lengthscales, log signal variance,
 log noise variance) are learned jointly by maximising the FITC log marginal likelihood
@@ -60,40 +61,31 @@ Numerical notes:
 from __future__ import annotations
 
 import contextlib
-import itertools
 import logging
 import math
 import warnings
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple, TypeVar, cast
+from typing import NamedTuple, cast
 
 import numpy as np
-import scipy.linalg
-import scipy.linalg.blas
 import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 from scipy.cluster.vq import kmeans2
 from threadpoolctl import ThreadpoolController, threadpool_limits
 
-from asgp_ros.core import kernel, posterior
+from asgp_ros.core import fitc, posterior
+from asgp_ros.core.fitc import FactorisationError, Params, Workspace
 from asgp_ros.core.posterior import FitcPosterior, PosteriorError
 
 FloatArray = NDArray[np.float64]
 ProgressCallback = Callable[[int, float], None]
-_T = TypeVar("_T")
 
 _LOG = logging.getLogger(__name__)
-_LOG_2PI = math.log(2.0 * math.pi)
 
 # Bounds of the optimiser, in standardised units (inputs and outputs have unit variance).
 _LOG_LENGTHSCALE_BOUNDS = (math.log(1e-3), math.log(1e4))
 _LOG_SIGNAL_VAR_BOUNDS = (math.log(1e-4), math.log(1e2))
 _LOG_NOISE_VAR_BOUNDS = (math.log(1e-6), math.log(1e1))
-
-# Column blocks of the likelihood evaluation (see _Workspace).
-_BLOCK_COLUMNS = 4096
-_MIN_BLOCK_COLUMNS = 1000
 
 # Keys of get_state() / from_state() besides the posterior's (posterior.STATE_NDIM), with
 # their expected number of dimensions.
@@ -107,31 +99,6 @@ class SparseGPError(ValueError):
     """Bad input or a numerically impossible model; the message says what and what to do."""
 
 
-class _FactorisationError(Exception):
-    """A Cholesky factorisation failed or FITC's diagonal went non-positive."""
-
-
-# ---------------------------------------------------------------------- the FITC terms
-
-
-class FitcTerms(NamedTuple):
-    """Shared FITC factors of one parameter setting (standardised units).
-
-    One instance feeds the log marginal likelihood, its gradient and the cached posterior
-    (:func:`asgp_ros.core.posterior.from_factors`).  The O(N M) factors (Kuf,
-    V = L^-1 Kuf, Lambda) live in the column blocks of ``workspace`` and are valid until
-    the workspace is used again.
-    """
-
-    Kuu: FloatArray  # [M, M] k(Z, Z) + jitter * sf2 * I
-    L: FloatArray  # [M, M] chol(Kuu), lower
-    LA: FloatArray  # [M, M] chol(A), A = I + V Lambda^-1 V^T
-    c: FloatArray  # [M] LA^-1 V Lambda^-1 y
-    alpha: FloatArray  # [M] posterior weights L^-T LA^-T c  (mean = Ksu alpha)
-    lml: float  # FITC log marginal likelihood of the standardised y
-    workspace: _Workspace
-
-
 class _Scales(NamedTuple):
     """Standardisation: inputs (x - x_mean) / x_scale, outputs (y - y_mean) / y_scale."""
 
@@ -141,28 +108,8 @@ class _Scales(NamedTuple):
     y_scale: float
 
 
-class _Params(NamedTuple):
-    """Parameters in standardised units."""
-
-    lengthscales: FloatArray  # [D]
-    signal_variance: float
-    noise_variance: float
-    Z: FloatArray  # [M, D]
-
-    def pack(self) -> FloatArray:
-        """The optimiser's vector theta = [log l (D), log sf2, log sn2, Z (M * D)]."""
-        return np.concatenate([np.log(self.lengthscales), [math.log(self.signal_variance)],
-                               [math.log(self.noise_variance)], self.Z.ravel()])
-
-    @staticmethod
-    def unpack(theta: FloatArray, M: int, D: int) -> _Params:
-        """Inverse of :meth:`pack`."""
-        return _Params(np.exp(theta[:D]), float(np.exp(theta[D])), float(np.exp(theta[D + 1])),
-                       theta[D + 2:].reshape(M, D))
-
-
 def _theta_bounds(M: int, D: int) -> list[tuple[float | None, float | None]]:
-    """L-BFGS-B bounds of theta (:meth:`_Params.pack`): the hyperparameters are boxed, the
+    """L-BFGS-B bounds of theta (:meth:`Params.pack`): the hyperparameters are boxed, the
     pseudo-inputs free."""
     return ([_LOG_LENGTHSCALE_BOUNDS] * D + [_LOG_SIGNAL_VAR_BOUNDS, _LOG_NOISE_VAR_BOUNDS]
             + [(None, None)] * (M * D))
@@ -172,231 +119,6 @@ def _clip_to(theta: FloatArray, bounds: list[tuple[float | None, float | None]])
     lo = np.array([b[0] if b[0] is not None else -np.inf for b in bounds])
     hi = np.array([b[1] if b[1] is not None else np.inf for b in bounds])
     return np.clip(theta, lo, hi)
-
-
-def _cholesky(K: FloatArray) -> FloatArray:
-    """Lower Cholesky factor, or _FactorisationError."""
-    try:
-        return cast(FloatArray, scipy.linalg.cholesky(K, lower=True, check_finite=False))
-    except np.linalg.LinAlgError as err:
-        raise _FactorisationError(str(err)) from err
-
-
-class _Block:
-    """One column block of the training data with its reusable O(n M) buffers."""
-
-    def __init__(self, X: FloatArray, y: FloatArray, M: int) -> None:
-        n = X.shape[0]
-        self.y = y  # [n]
-        X_sq = X * X
-        self.X_sq = X_sq  # [n, D]
-        # [X, X^2, 1]: the moments of dL/dKuf o Kuf the kernel's chain rule needs
-        self.X1 = np.hstack([X, X_sq, np.ones((n, 1))])  # [n, 2D + 1]
-        # [X^T; 1; |x|^2_l] so that log Kuf is one matrix product (K2; last row per call).
-        self.xaug_t = kernel.augmented_inputs(X)  # [D + 2, n]
-        self.kuf = np.empty((M, n))  # Kuf
-        self.v = np.empty((M + 1, n))  # [V; r^T]: V = L^-1 Kuf and a row for the residual
-        self.a = np.empty((M, n))
-        self.b = np.empty((M, n))
-        self.lam = np.empty(n)  # Lambda
-        self.beta = np.empty(n)  # 1 / Lambda
-
-
-class _Workspace:
-    """Training data split into column blocks, evaluated by up to ``threads`` threads.
-
-    Fresh multi-megabyte temporaries cost page faults on every evaluation, so the
-    optimiser reuses one workspace.  Blocks of about ``_BLOCK_COLUMNS`` columns keep each
-    block's [M, n] buffers in cache (measured 20 % faster than one block at N = 36,000)
-    and give the threads independent work; numpy and BLAS release the GIL, so blocks run
-    in parallel with single-threaded BLAS in each.  The block layout depends on N only and
-    the sums over blocks (A, V Lambda^-1 y and the gradient's reductions) are added in a
-    fixed order, so results do not depend on the number of threads.
-    """
-
-    def __init__(self, X: FloatArray, y: FloatArray, M: int, threads: int = 1) -> None:
-        N = X.shape[0]
-        self.X = X
-        self.y = y
-        self.M = M
-        n_blocks = max(1, -(-N // _BLOCK_COLUMNS), 2 if N >= 2 * _MIN_BLOCK_COLUMNS else 1)
-        edges = np.linspace(0, N, n_blocks + 1).astype(int)
-        self.blocks = [
-            _Block(X[a:b], y[a:b], M) for a, b in itertools.pairwise(edges.tolist())
-        ]
-        workers = min(int(threads), n_blocks)
-        self._pool: ThreadPoolExecutor | None = None
-        if workers > 1:
-            self._pool = ThreadPoolExecutor(workers, thread_name_prefix="spgp")
-
-    def fits(self, X: FloatArray, y: FloatArray, M: int) -> bool:
-        return self.X is X and self.y is y and self.M == M
-
-    def map(self, fn: Callable[[_Block], _T]) -> list[_T]:
-        if self._pool is None:
-            return [fn(b) for b in self.blocks]
-        return list(self._pool.map(fn, self.blocks))
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
-
-
-def _trsm_inplace(L: FloatArray, B: FloatArray) -> FloatArray:
-    """B <- L^-1 B for lower-triangular L [M, M] and a C-ordered B [M, N]; returns B.
-
-    BLAS dtrsm on the transposed problem B^T <- B^T L^-T (side = right, "RLT"): the
-    C-ordered [M, N] buffer is a Fortran-ordered [N, M] matrix, so it is solved in place.
-    (OpenBLAS's RLT kernel is also about twice as fast as the other variants for M << N.)
-    """
-    out = scipy.linalg.blas.dtrsm(1.0, L, B.T, side=1, lower=1, trans_a=1, overwrite_b=1)
-    if not np.shares_memory(out, B):  # pragma: no cover - only for exotic layouts
-        B[...] = out.T
-    return B
-
-
-def _fitc_terms(
-    X: FloatArray, y: FloatArray, p: _Params, jitter: float, ws: _Workspace | None = None
-) -> FitcTerms:
-    """All FITC factors at parameters ``p``.  X [N, D], y [N].
-
-    Raises _FactorisationError when Kuu or A is not positive definite or Lambda <= 0.
-    """
-    N = X.shape[0]
-    M = p.Z.shape[0]
-    if ws is None or not ws.fits(X, y, M):
-        ws = _Workspace(X, y, M)
-    sf2, sn2 = p.signal_variance, p.noise_variance
-    Kuu = kernel.se_ard_jittered(p.Z, p.lengthscales, sf2, jitter)  # [M, M] (K1)
-    L = _cholesky(Kuu)
-    # log Kuf = [Z / l^2, log sf2 - |z|_l^2 / 2, -1/2] @ [X^T; 1; |x|_l^2]  (K2)
-    factors = kernel.cross_factors(p.Z, p.lengthscales, sf2)
-    inv_l2 = factors.inv_l2[0]
-    z_aug = kernel.augmented_pseudo_inputs(factors)  # [M, D + 2]
-
-    def forward(b: _Block) -> tuple[FloatArray, FloatArray, float, float] | None:
-        kernel.set_augmented_norms(b.xaug_t, b.X_sq, inv_l2)
-        kernel.cross_t(z_aug, b.xaug_t, out=b.kuf)  # [M, n] Kuf
-        V = b.v[:M]
-        np.copyto(V, b.kuf)
-        _trsm_inplace(L, V)  # [M, n] L^-1 Kuf
-        # Lambda = diag(Kff - Qff) + sn2  (S&G eq. 6)
-        np.subtract(sf2 + sn2, np.einsum("mn,mn->n", V, V), out=b.lam)
-        if not np.all(b.lam > 0.0):
-            return None
-        np.divide(1.0, b.lam, out=b.beta)
-        Vb = np.multiply(V, np.sqrt(b.beta), out=b.a)  # [M, n] V Lambda^-1/2
-        # V Lambda^-1 V^T by a rank-n update (dsyrk fills the lower triangle, which is all
-        # the Cholesky factorisation reads).
-        A_part = scipy.linalg.blas.dsyrk(1.0, Vb.T, trans=1, lower=1)  # [M, M]
-        Vby = V @ (b.beta * b.y)  # [M]
-        return A_part, Vby, float(np.sum(np.log(b.lam))), float(b.beta @ (b.y * b.y))
-
-    parts = ws.map(forward)
-    if any(part is None for part in parts):
-        raise _FactorisationError("FITC diagonal Lambda is not positive")
-    A = np.eye(M)
-    Vby = np.zeros(M)
-    log_det_lam = y_lam_y = 0.0
-    for part in parts:
-        assert part is not None
-        A += part[0]
-        Vby += part[1]
-        log_det_lam += part[2]
-        y_lam_y += part[3]
-    LA = _cholesky(A)
-    c = scipy.linalg.solve_triangular(LA, Vby, lower=True, check_finite=False)
-    tmp = scipy.linalg.solve_triangular(LA, c, lower=True, trans="T", check_finite=False)
-    alpha = scipy.linalg.solve_triangular(L, tmp, lower=True, trans="T", check_finite=False)
-    # log N(y | 0, Qff + Lambda) by the matrix inversion and determinant lemmas
-    # (S&G eq. 8; Rasmussen & Williams 2006, eq. A.9 and A.10).
-    lml = -0.5 * (
-        N * _LOG_2PI
-        + log_det_lam
-        + 2.0 * float(np.sum(np.log(np.diag(LA))))
-        + y_lam_y
-        - float(c @ c)
-    )
-    return FitcTerms(Kuu, L, LA, c, alpha, lml, ws)
-
-
-# ---------------------------------------------------------------------- the gradient
-
-
-def _fitc_grad(p: _Params, t: FitcTerms) -> tuple[FloatArray, float, float, FloatArray]:
-    """Gradient of the FITC log marginal likelihood at the factors ``t`` of ``p``.
-
-    Returns (dL/dlog l [D], dL/dlog sf2, dL/dlog sn2, dL/dZ [M, D]).
-
-    The derivatives with respect to Lambda, Kuf and Kuu are Snelson's (Snelson 2007, PhD
-    thesis, appendix C; the same expressions as GPy's FITC), with P = L^-T A^-1 L^-1:
-
-        r = y - Kfu alpha,   dL/dLambda = 0.5 (beta^2 (diag(Kfu P Kuf) + r^2) - beta)
-        dL/dKuf = alpha (beta r)^T - P Kuf beta - 2 Kuu^-1 Kuf dL/dLambda
-        dL/dKuu = 0.5 (Kuu^-1 - P - alpha alpha^T) + Kuu^-1 Kuf dL/dLambda Kfu Kuu^-1
-
-    followed by the chain rule through the SE kernel (:func:`asgp_ros.core.kernel.param_grads`,
-    K3 and K4), all as matrix products (no [N, M, D] temporaries).  Cost: three O(N M^2)
-    BLAS-3 calls and one O(N M D) product per block.
-    """
-    M, D = p.Z.shape
-    sf2, sn2 = p.signal_variance, p.noise_variance
-    inv_l2 = 1.0 / np.square(p.lengthscales)
-    L, LA, alpha = t.L, t.LA, t.alpha
-    eye = np.eye(M)
-    Ainv = scipy.linalg.cho_solve((LA, True), eye, check_finite=False)  # [M, M], A >= I
-    u = scipy.linalg.solve_triangular(LA, t.c, lower=True, trans="T", check_finite=False)
-    # Y = A^-1 V - u r^T as one product [A^-1, -u] [V; r^T]; its rows are computed in
-    # reversed order (J Y, J the reversal) for the triangular solve below.
-    left = np.empty((M, M + 1))
-    left[:, :M] = Ainv[::-1]
-    left[:, M] = -u[::-1]
-    # L^-T = J Lr^-1 J with Lr = J L^T J lower triangular: the fast in-place solve.
-    Lr = np.ascontiguousarray(L[::-1, ::-1].T)
-
-    def backward(b: _Block) -> tuple[FloatArray, FloatArray, float]:
-        V, beta, y = b.v[:M], b.beta, b.y
-        r = y - V.T @ u  # [n] residual y - Kfu alpha  (Kfu alpha = V^T LA^-T c)
-        b.v[M] = r
-        Yr = np.matmul(left, b.v, out=b.a)  # [M, n]  J (A^-1 V - u r^T)
-        # diag(Kfu P Kuf) = diag(V^T A^-1 V) = colsum(V o Y) + r (V^T u),  V^T u = y - r.
-        q = np.einsum("mn,mn->n", V[::-1], Yr) + r * (y - r)
-        dlam = 0.5 * (beta * beta * (q + r * r) - beta)  # [n] dL/dLambda
-        Vd = np.multiply(V, 2.0 * dlam, out=b.b)  # [M, n]  2 V dL/dLambda
-        gram = Vd @ V.T  # [M, M]  2 V dL/dLambda V^T
-        # -dL/dKuf = L^-T T, T = Y beta + 2 V dL/dLambda (alpha (beta r)^T = L^-T u (beta r)^T
-        # is folded into Y).
-        Yr *= beta
-        Yr += Vd[::-1]
-        _trsm_inplace(Lr, Yr)  # J (-dL/dKuf)
-        Wn = np.multiply(Yr[::-1], b.kuf, out=b.b)  # [M, n]  -(dL/dKuf o Kuf)
-        return gram, Wn @ b.X1, float(np.sum(dlam))  # [M, M], [M, 2D + 1]
-
-    parts = t.workspace.map(backward)
-    gram = np.zeros((M, M))
-    S = np.zeros((M, 2 * D + 1))
-    sum_dlam = 0.0
-    for part in parts:
-        gram += part[0]
-        S -= part[1]
-        sum_dlam += part[2]
-    # With W = dL/dKuf o Kuf:  S = W [X, X^2, 1]  ->  W X, rows of W X^2, row sums of W.
-    WX, WX_sq, w_row = S[:, :D], S[:, D : 2 * D], S[:, 2 * D]
-    # dL/dKuu = L^-T [0.5 (I - A^-1) + V dLambda V^T] L^-1 - 0.5 alpha alpha^T   [M, M]
-    inner = 0.5 * (eye - Ainv + gram)
-    tmp = scipy.linalg.solve_triangular(L, inner, lower=True, trans="T", check_finite=False)
-    dKuu = scipy.linalg.solve_triangular(L, tmp.T, lower=True, trans="T", check_finite=False)
-    dKuu -= 0.5 * np.outer(alpha, alpha)
-    dKuu = 0.5 * (dKuu + dKuu.T)
-
-    # Chain rule through k (K3, K4), with Wu = dL/dKuu o Kuu (its diagonal includes the
-    # jitter, which scales with sf2); Lambda's diag(Kff) = sf2 adds sf2 sum(dL/dLambda).
-    d_log_l, d_log_sf2_k, dZ = kernel.param_grads(p.Z, inv_l2, WX, WX_sq, w_row,
-                                                  dKuu * t.Kuu)
-    d_log_sf2 = float(d_log_sf2_k + sf2 * sum_dlam)
-    d_log_sn2 = float(sn2 * sum_dlam)
-    return d_log_l, d_log_sf2, d_log_sn2, dZ
 
 
 _BLAS_CONTROLLER: ThreadpoolController | None = None
@@ -662,11 +384,11 @@ class SparseGP:
             "noise_variance": np.asarray(p.noise_variance * sc.y_scale**2),
         }
 
-    def _initial_params(self, Xs: FloatArray, seed: int) -> _Params:
+    def _initial_params(self, Xs: FloatArray, seed: int) -> Params:
         # Lengthscales from the data ranges: half the (standardised) range of each input.
         span = Xs.max(axis=0) - Xs.min(axis=0)
         lengthscales = np.clip(0.5 * span, 0.1, 100.0)
-        return _Params(lengthscales, 1.0, 0.1, self._initial_inducing(Xs, seed))
+        return Params(lengthscales, 1.0, 0.1, self._initial_inducing(Xs, seed))
 
     # ------------------------------------------------------------------ fitting
     def fit(
@@ -712,7 +434,7 @@ class SparseGP:
         self._check_sizes(Xa)
         sc = self._standardisation(Xa, ya)
         Xs, ys = self._standardise(Xa, ya, sc)
-        ws = _Workspace(Xs, ys, self.num_inducing, self.threads)
+        ws = Workspace(Xs, ys, self.num_inducing, self.threads)
         try:
             return self._optimise(Xs, ys, sc, ws, max_iter, max_fun, callback)
         finally:
@@ -723,7 +445,7 @@ class SparseGP:
         Xs: FloatArray,
         ys: FloatArray,
         sc: _Scales,
-        ws: _Workspace,
+        ws: Workspace,
         max_iter: int,
         max_fun: int | None,
         callback: ProgressCallback | None,
@@ -762,14 +484,14 @@ class SparseGP:
         assert best is not None
         self.optimiser_result = best[2]
         self._num_data = N
-        self._set_posterior(Xs, ys, sc, _Params.unpack(best[1].copy(), M, D), lml_offset, ws)
+        self._set_posterior(Xs, ys, sc, Params.unpack(best[1].copy(), M, D), lml_offset, ws)
         _LOG.debug(
             "SPGP fit: N=%d D=%d M=%d, %d iterations, log marginal likelihood %.6g",
             N, D, M, int(getattr(best[2], "nit", 0)), self._lml,
         )
         return self
 
-    def _start_point(self, Xs: FloatArray, restart: int) -> _Params:
+    def _start_point(self, Xs: FloatArray, restart: int) -> Params:
         """Start of optimiser run ``restart``: the data-driven initial point, with the
         lengthscales perturbed (log-normal, sigma 0.5) for every restart after the first."""
         p0 = self._initial_params(Xs, self.seed + 7919 * restart)
@@ -779,21 +501,23 @@ class SparseGP:
             p0 = p0._replace(lengthscales=p0.lengthscales * np.exp(rng.normal(0, 0.5, D)))
         return p0
 
-    def _objective(self, Xs: FloatArray, ys: FloatArray, ws: _Workspace, track: _BestPoint
+    def _objective(self, Xs: FloatArray, ys: FloatArray, ws: Workspace, track: _BestPoint
                    ) -> Callable[[FloatArray], tuple[float, FloatArray]]:
-        """theta -> (-L / N, -dL/dtheta / N): the FITC terms, then the gradient; a failed
-        factorisation is a finite wall (:class:`_BestPoint`). Dividing by N keeps the value
-        O(1), so that L-BFGS-B's tolerances stay meaningful."""
+        """theta -> (-L / N, -dL/dtheta / N), the negative log marginal likelihood and its
+        gradient: the FITC terms (:func:`asgp_ros.core.fitc.fitc_terms`), then the gradient
+        (:func:`asgp_ros.core.fitc.fitc_gradient`); a failed factorisation is a finite wall
+        (:class:`_BestPoint`). Dividing by N keeps the value O(1), so that L-BFGS-B's
+        tolerances stay meaningful."""
         N, D = Xs.shape
         M = self.num_inducing
 
         def objective(theta: FloatArray) -> tuple[float, FloatArray]:
-            p = _Params.unpack(theta, M, D)
+            p = Params.unpack(theta, M, D)
             try:
-                terms = _fitc_terms(Xs, ys, p, self.jitter, ws)
-            except _FactorisationError:
+                terms = fitc.fitc_terms(Xs, ys, p, self.jitter, ws)
+            except FactorisationError:
                 return track.failed_at(theta)
-            d_l, d_sf2, d_sn2, dZ = _fitc_grad(p, terms)
+            d_l, d_sf2, d_sn2, dZ = fitc.fitc_gradient(p, terms)
             grad = np.concatenate([d_l, [d_sf2, d_sn2], dZ.ravel()])
             f = -terms.lml / N
             if f < track.f:
@@ -852,14 +576,14 @@ class SparseGP:
         Xs: FloatArray,
         ys: FloatArray,
         sc: _Scales,
-        p: _Params,
+        p: Params,
         offset: float,
-        ws: _Workspace | None = None,
+        ws: Workspace | None = None,
     ) -> None:
         """Cache the posterior of the FITC terms at ``p`` (posterior.from_factors, P1, P2)."""
         try:
-            t = _fitc_terms(Xs, ys, p, self.jitter, ws)
-        except _FactorisationError as err:
+            t = fitc.fitc_terms(Xs, ys, p, self.jitter, ws)
+        except FactorisationError as err:
             raise SparseGPError(
                 f"FITC factorisation failed ({err}): the kernel matrix of the pseudo-inputs "
                 f"is singular for these parameters; increase jitter (now {self.jitter:g}), "
@@ -904,7 +628,7 @@ class SparseGP:
         sc = gp._standardisation(Xa, ya)
         Xs, ys = gp._standardise(Xa, ya, sc)
         y2 = sc.y_scale**2
-        p = _Params(ls / sc.x_scale, sf2 / y2, sn2 / y2, (Za - sc.x_mean) / sc.x_scale)
+        p = Params(ls / sc.x_scale, sf2 / y2, sn2 / y2, (Za - sc.x_mean) / sc.x_scale)
         gp._num_data = Xa.shape[0]
         gp._set_posterior(Xs, ys, sc, p, -Xa.shape[0] * math.log(sc.y_scale))
         return gp

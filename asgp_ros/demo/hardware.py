@@ -52,11 +52,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from sensor_msgs.msg import CameraInfo, Image, Joy, LaserScan
 from trajectory_msgs.msg import JointTrajectory
 
-from asgp_ros import topics
+from asgp_ros.common import topics
+from asgp_ros.common.paramspec import ParamValue
 from asgp_ros.demo import camera
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snapshot, look_ahead
 from asgp_ros.nodes import conversions as conv
-from asgp_ros.paramspec import ParamValue
 from asgp_ros.sim.chair import ChairState
 from asgp_ros.sim.lidar import room_grid
 

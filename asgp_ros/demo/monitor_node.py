@@ -35,7 +35,7 @@ from sensor_msgs.msg import CameraInfo, Joy
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
-from asgp_ros import topics
+from asgp_ros.common import topics
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.demo.monitor import (
     LatencyStats,

@@ -4,7 +4,7 @@ Sequence:
 
 1. **Model**: unless one is given, simulate ``train_minutes`` of driving on tile in the demo
    room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live drive's),
-   write it as a bag, and train the ASGP on it (:func:`asgp_ros.training.train`), as
+   write it as a bag, and train the ASGP on it (:func:`asgp_ros.learning.training.train`), as
    ``asgp simulate`` + ``asgp train --model asgp`` would.
 2. **Nodes**, each its own process on a demo-only ROS domain (localhost, UDPv4): the
    simulated hardware (:mod:`asgp_ros.demo.hardware`), ``serial_bridge_node`` on the
@@ -38,16 +38,17 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, TextIO
 
 import asgp_ros
-from asgp_ros import topics
-from asgp_ros.bags import write_bag
+from asgp_ros.common import topics
+from asgp_ros.common.fileio import DEMO_DIR, OutputError, check_output, write_marker
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.core.models import MotionModel
 from asgp_ros.demo.common import DemoError, RunState
 from asgp_ros.demo.monitor import format_status
 from asgp_ros.demo.processes import ProcessGroup
 from asgp_ros.demo.report import write_report
-from asgp_ros.fileio import DEMO_DIR, OutputError, check_output, write_marker
+from asgp_ros.learning.training import TrainOptions, read_series, train
+from asgp_ros.recording.bags import write_bag
 from asgp_ros.sim.simulate import simulate
-from asgp_ros.training import TrainOptions, read_series, train
 
 # rclpy (an optional dependency) and the monitor node built on it are imported when the
 # monitor starts, so that this module imports without ROS.
@@ -324,8 +325,18 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     domain = opts.domain_id if opts.domain_id is not None else default_domain_id()
     state = RunState(options={k: str(v) if isinstance(v, Path) else v
                               for k, v in asdict(opts).items()}, domain_id=domain)
+    model, motion_model = _demo_model(opts, out, state, say)  # 1. the model
+    env = _enter_domain(domain, say)  # 2. environment of this process and the nodes
+    bag_final = out / "run_bag"
+    monitor, group = _run_nodes(opts, out, model, env, domain, bag_final, state, say)
+    _check_components(monitor, group, state)  # 3. what every component produced
+    return _report(out, state, monitor, motion_model, bag_final, env, say)  # 4. the report
 
-    # 1. the model
+
+def _demo_model(opts: DemoOptions, out: Path, state: RunState, say: Printer
+                ) -> tuple[Path, MotionModel]:
+    """The model the predictor runs: the one given, one trained now, or OUT/model.npz of an
+    earlier run; its path and the model loaded (recorded in ``state``)."""
     if opts.model is not None:
         model = Path(opts.model)
     elif opts.train:
@@ -338,21 +349,31 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     except (ModelFileError, OSError, ValueError) as exc:
         raise DemoError(f"cannot use the model {model}: {exc}") from exc
     state.model_path = str(model.resolve())
+    return model, motion_model
 
-    # 2. environment of this process and the nodes
+
+def _enter_domain(domain: int, say: Printer) -> dict[str, str]:
+    """The nodes' environment (:func:`child_env`); this process joins the same ROS domain."""
     env = child_env(domain)
     for key in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "FASTDDS_BUILTIN_TRANSPORTS",
                 "AMENT_PREFIX_PATH"):
         os.environ[key] = env[key]
     say(f"ROS_DOMAIN_ID={domain} (watch with: ROS_DOMAIN_ID={domain} "
         "ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST ros2 topic list)")
+    return env
 
+
+def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], domain: int,
+               bag_final: Path, state: RunState, say: Printer
+               ) -> tuple[MonitorNode, ProcessGroup]:
+    """Start the monitor (which records the bag) and the nodes, drive, and stop them all,
+    whatever happens; each node's CPU time, lifetime, exit code and stop signal go to
+    ``state``, the recorded bag to ``bag_final``."""
     runtime = Path(tempfile.mkdtemp(prefix="asgp-demo-"))
     port = str(runtime / "joystick")
     group = ProcessGroup(env, out / "logs")
     stop = _Stop()
     stop.install()
-    bag_final = out / "run_bag"
     bag_tmp = out / ".run_bag.partial"
     started: tuple[MonitorNode, SingleThreadedExecutor, Context] | None = None
     status = Status()
@@ -379,8 +400,12 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
         state.cpu["asgp demo (monitor, recorder)"] = round(_self_cpu() - cpu_before, 3)
         state.lifetimes["asgp demo (monitor, recorder)"] = round(time.monotonic() - t_mon, 3)
         shutil.rmtree(runtime, ignore_errors=True)
+    return monitor, group
 
-    # 3. what every component produced
+
+def _check_components(monitor: MonitorNode, group: ProcessGroup, state: RunState) -> None:
+    """An error in ``state`` for each component that produced nothing, and for each node that
+    exited with a failure (not by the stop signal it was sent)."""
     silent = silent_components(monitor.counts)
     for c in group.children:
         if c.returncode not in (0, None) and c.signal_used in ("", "SIGINT") and \
@@ -389,7 +414,10 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
                                 f"(log {c.log_path}):\n{c.log_tail()}")
     state.errors[:0] = silent
 
-    # 4. the report
+
+def _report(out: Path, state: RunState, monitor: MonitorNode, motion_model: MotionModel,
+            bag_final: Path, env: dict[str, str], say: Printer) -> int:
+    """Write the report and say where it is and what went wrong; the exit code."""
     try:
         paths = write_report(out, state, monitor, motion_model, bag_final, env, say)
     except (DemoError, OSError, ValueError, RuntimeError) as exc:

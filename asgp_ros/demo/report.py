@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from asgp_ros import topics
+from asgp_ros.common import topics
+from asgp_ros.common.fileio import atomic_path, atomic_write_text
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import MotionModel
@@ -39,9 +40,8 @@ from asgp_ros.core.rollout import rollout
 from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware
-from asgp_ros.fileio import atomic_path, atomic_write_text
+from asgp_ros.learning.training import read_series
 from asgp_ros.sim.world import Room, room_for_surface
-from asgp_ros.training import read_series
 
 # matplotlib (slow to import) is imported by figure() alone.
 if TYPE_CHECKING:
@@ -74,7 +74,7 @@ def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
     horizon (the assumption of a predictor without a plan), on the evaluation's cases.
 
     Same cases, rollout and ground-truth displacement as ``asgp evaluate --truth``
-    (:mod:`asgp_ros.evaluation`); only the future joystick differs.
+    (:mod:`asgp_ros.learning.evaluation`); only the future joystick differs.
     """
     series = read_series([str(bag)], resample_config=model.resample_config,
                          truth_topic=topics.BAG_GROUND_TRUTH)
@@ -300,7 +300,6 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse, Rectangle
 
     t, truth = monitor.truth.arrays()
     paths = [p for p in monitor.score.paths if monitor.truth.at(p.t0) is not None]
@@ -309,23 +308,43 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     ax = fig.add_subplot(gs[:, 0])
     az = fig.add_subplot(gs[0, 1])
     ae = fig.add_subplot(gs[1, 1])
+    _drive_panel(ax, monitor, room, t, truth, paths)
+    _zoom_panel(az, monitor, t, truth, paths)
+    _error_panel(ae, t, paths)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
 
-    def draw(axis: Axes, recs: list[PathRecord], ellipses: bool, lw: float) -> None:
-        for rec in recs:
-            p0 = monitor.truth.at(rec.t0)
-            assert p0 is not None  # the paths drawn are those with a true pose at t0
-            c, s = math.cos(p0[2]), math.sin(p0[2])
-            xy = rec.pose[:, :2] @ np.array([[c, s], [-s, c]]) + p0[:2]
-            ok = rec.errors.get("1.0")
-            colour = "tab:green" if ok is not None and ok <= THRESHOLD_M else (
-                "tab:red" if ok is not None else "tab:gray")
-            axis.plot(np.r_[p0[0], xy[:, 0]], np.r_[p0[1], xy[:, 1]], "-", color=colour,
-                      lw=lw, alpha=0.8)
-            if ellipses and rec.ellipses is not None:
-                for (major, minor, ang), (ex, ey) in zip(rec.ellipses, xy, strict=False):
-                    axis.add_patch(Ellipse((ex, ey), 2 * major, 2 * minor,
-                                           angle=math.degrees(ang + p0[2]), fill=False,
-                                           lw=0.6, color="tab:blue", alpha=0.5))
+
+def _draw_paths(axis: Axes, monitor: MonitorNode, recs: list[PathRecord], ellipses: bool,
+                lw: float) -> None:
+    """Predicted paths placed at the true pose where they start, green or red by their
+    1.0 s error, with their 95% ellipses if asked."""
+    from matplotlib.patches import Ellipse
+
+    for rec in recs:
+        p0 = monitor.truth.at(rec.t0)
+        assert p0 is not None  # the paths drawn are those with a true pose at t0
+        c, s = math.cos(p0[2]), math.sin(p0[2])
+        xy = rec.pose[:, :2] @ np.array([[c, s], [-s, c]]) + p0[:2]
+        ok = rec.errors.get("1.0")
+        colour = "tab:green" if ok is not None and ok <= THRESHOLD_M else (
+            "tab:red" if ok is not None else "tab:gray")
+        axis.plot(np.r_[p0[0], xy[:, 0]], np.r_[p0[1], xy[:, 1]], "-", color=colour,
+                  lw=lw, alpha=0.8)
+        if ellipses and rec.ellipses is not None:
+            for (major, minor, ang), (ex, ey) in zip(rec.ellipses, xy, strict=False):
+                axis.add_patch(Ellipse((ex, ey), 2 * major, 2 * minor,
+                                       angle=math.degrees(ang + p0[2]), fill=False,
+                                       lw=0.6, color="tab:blue", alpha=0.5))
+
+
+def _drive_panel(ax: Axes, monitor: MonitorNode, room: Room | None, t: np.ndarray,
+                 truth: np.ndarray, paths: list[PathRecord]) -> None:
+    """The whole drive: the room, the driven path, where shared control overrode, and a
+    predicted path every second."""
+    from matplotlib.patches import Rectangle
 
     if room is not None:
         ax.add_patch(Rectangle((room.x_min, room.y_min), room.x_max - room.x_min,
@@ -342,7 +361,7 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
             w = np.asarray(where)
             ax.plot(w[:, 0], w[:, 1], "x", color="tab:purple", ms=5, mew=1.2,
                     label="shared control overriding")
-    draw(ax, paths[::5], ellipses=True, lw=0.9)
+    _draw_paths(ax, monitor, paths[::5], ellipses=True, lw=0.9)
     ax.plot([], [], color="tab:green", label="predicted 2 s path, 1.0 s error <= 10 cm")
     ax.plot([], [], color="tab:red", label="predicted 2 s path, 1.0 s error > 10 cm")
     ax.plot([], [], color="tab:blue", lw=0.6, label="95% position ellipses")
@@ -352,7 +371,10 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     ax.set_title("Live drive: predicted paths every second")
     ax.legend(loc="upper left", fontsize=7, framealpha=0.85)
 
-    # zoom: the 6 s window with the largest heading change
+
+def _zoom_panel(az: Axes, monitor: MonitorNode, t: np.ndarray, truth: np.ndarray,
+                paths: list[PathRecord]) -> None:
+    """Zoom: the 6 s window with the largest heading change, a predicted path every 0.4 s."""
     if t.size > 10 and paths:
         yaw = truth[:, 2]
         win = 6.0
@@ -363,11 +385,16 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
         ta, tb = t[i0], t[j[i0]]
         sel = (t >= ta) & (t <= tb + 2.0)
         az.plot(truth[sel, 0], truth[sel, 1], "k-", lw=1.5)
-        draw(az, [p for p in paths if ta <= p.t0 <= tb][::2], ellipses=True, lw=1.0)
+        _draw_paths(az, monitor, [p for p in paths if ta <= p.t0 <= tb][::2], ellipses=True,
+                    lw=1.0)
         az.set_aspect("equal", adjustable="datalim")
         az.set_title(f"Zoom: {win:.0f} s of the sharpest manoeuvre, a path every 0.4 s",
                      fontsize=9)
         az.set_xlabel("x (m)")
+
+
+def _error_panel(ae: Axes, t: np.ndarray, paths: list[PathRecord]) -> None:
+    """The online prediction error at 1.0 and 2.0 s against time, and the 10 cm line."""
     t_start = t[0] if t.size else 0.0
     top = 30.0
     for key, colour in (("1.0", "tab:purple"), ("2.0", "tab:orange")):
@@ -380,10 +407,6 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     ae.set_ylabel(f"error vs ground truth (cm, clipped at {top:.0f})")
     ae.legend(fontsize=7, loc="upper right")
     ae.set_title("Online prediction error", fontsize=9)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
 
 
 def write_report(out: Path, state: RunState, monitor: MonitorNode, model: MotionModel, bag: Path,

@@ -1,4 +1,4 @@
-"""rclpy side of :mod:`asgp_ros.paramspec`: descriptors and declarations from a table."""
+"""rclpy side of :mod:`asgp_ros.common.paramspec`: descriptors and declarations from a table."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from collections.abc import Iterable
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from asgp_ros.paramspec import ParamSpec
+from asgp_ros.common.paramspec import ParamSpec
 
 
 def descriptor(spec: ParamSpec) -> ParameterDescriptor:

@@ -62,8 +62,8 @@ from threadpoolctl import threadpool_limits
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
 
-from asgp_ros import topics
-from asgp_ros.bags import parse_joy_axes
+from asgp_ros.common import topics
+from asgp_ros.common.paramspec import ParamSpec, check_value, check_values
 from asgp_ros.core import online
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
@@ -77,7 +77,7 @@ from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
-from asgp_ros.paramspec import ParamSpec, check_value, check_values
+from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "predictor_node"
 

@@ -42,7 +42,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import Joy
 
-from asgp_ros import topics
+from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial import status as board_status

@@ -56,8 +56,8 @@ from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy, LaserScan
 from threadpoolctl import threadpool_limits
 
-from asgp_ros import topics
-from asgp_ros.bags import parse_joy_axes
+from asgp_ros.common import topics
+from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
@@ -72,7 +72,7 @@ from asgp_ros.core.shared_control import (
 from asgp_ros.core.unicycle import integrate_path
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
-from asgp_ros.paramspec import ParamSpec, check_values
+from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
 

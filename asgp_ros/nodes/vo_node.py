@@ -40,7 +40,7 @@ from rclpy.signals import uninstall_signal_handlers
 from rclpy.utilities import ok, try_shutdown
 from sensor_msgs.msg import CameraInfo, Image
 
-from asgp_ros import topics
+from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult

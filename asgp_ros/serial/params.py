@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from asgp_ros.paramspec import ParamSpec, check_values
+from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.serial.calibration import AxisCalibration, JoystickCalibration
 from asgp_ros.serial.link import LinkConfig
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from asgp_ros.fileio import atomic_path
+from asgp_ros.common.fileio import atomic_path
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.sensors import SensorParams
 from asgp_ros.sim.simulate import simulate

@@ -21,6 +21,7 @@ second blank wall (-y side) and the dim zone.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -227,10 +228,40 @@ def build_scene(room: Room | None = None, preset: str = "rich", seed: int = 0,
         room = room_for_surface("tile" if preset == "rich" else "carpet")
     x0, x1, y0, y1 = room.x_min, room.x_max, room.y_min, room.y_max
     H = room.wall_height
-    band = room.furniture_band
     poor = preset == "poor"
     cx, cy = room.centre
     dim_zone = (x0 + 1.5, x1 - 3.5, cy + 1.5, y1 + 1.0) if poor else None
+    # blank stretch on the +y wall, centred on x = -1, 5 m long
+    blank = (-3.5, 1.5, y1)
+
+    quads: list[Quad] = [_floor_quad(room, seed, floor_ppm)]
+    walls = [  # (name, p0, p1) traversed so that u x v points into the room
+        ("wall_-x", (x0, y0), (x0, y1)),
+        ("wall_+y", (x0, y1), (x1, y1)),
+        ("wall_+x", (x1, y1), (x1, y0)),
+        ("wall_-y", (x1, y0), (x0, y0)),
+    ]
+    for k, (name, p0, p1) in enumerate(walls):
+        quads.extend(_wall_and_furniture(room, k, name, p0, p1, seed, wall_ppm, blank, poor))
+    if ceiling:
+        rng = _rng(seed, 30)
+        cw, ch = int((x1 - x0) * 20), int((y1 - y0) * 20)
+        quads.append(Quad(origin=np.array([x0, y0, H]), u=np.array([x1 - x0, 0.0, 0.0]),
+                          v=np.array([0.0, y1 - y0, 0.0]),
+                          texture=_paint(rng, cw, ch, (240, 240, 240)), name="ceiling"))
+    inside = np.array([cx, cy, 0.5 * H])
+    room_faces = {"floor", "ceiling"} | {name for name, _, _ in walls}
+    light = _lighting(room, dim_zone)
+    quads = [_finish(_face(q, inside) if q.name in room_faces else q, light) for q in quads]
+    return Scene(quads=quads, room=room, blank_wall=blank, dim_zone=dim_zone)
+
+
+def _lighting(room: Room, dim_zone: tuple[float, float, float, float] | None
+              ) -> Callable[[np.ndarray], np.ndarray]:
+    """The light factor at points p [..., 3]: ceiling lights over the centre, a gentle
+    fall-off with distance, floor to ceiling, and 70 % darker in ``dim_zone``."""
+    cx, cy = room.centre
+    H = room.wall_height
 
     def light(p: np.ndarray) -> np.ndarray:
         # ceiling lights over the centre: gentle fall-off with distance, floor to ceiling
@@ -245,11 +276,12 @@ def build_scene(room: Room | None = None, preset: str = "rich", seed: int = 0,
             g = g * (1.0 - 0.7 * inside(p[..., 0], zx0, zx1) * inside(p[..., 1], zy0, zy1))
         return g
 
-    quads: list[Quad] = []
-    # blank stretch on the +y wall, centred on x = -1, 5 m long
-    blank = (-3.5, 1.5, y1)
+    return light
 
-    # --- floor -----------------------------------------------------------------------
+
+def _floor_quad(room: Room, seed: int, floor_ppm: float) -> Quad:
+    """The floor: tile or carpet texture by the room's base surface and its patches."""
+    x0, x1, y0, y1 = room.x_min, room.x_max, room.y_min, room.y_max
     fw, fh = int((x1 - x0) * floor_ppm), int((y1 - y0) * floor_ppm)
     rng = _rng(seed, 1)
     tile = _tile_texture(rng, fw, fh, floor_ppm)
@@ -263,93 +295,89 @@ def build_scene(room: Room | None = None, preset: str = "rich", seed: int = 0,
              & (xs[None, :] >= patch.x_min) & (xs[None, :] <= patch.x_max))
         is_carpet[m] = patch.surface == "carpet"
     floor_tex = np.where(is_carpet[..., None], carpet, tile)
-    quads.append(Quad(origin=np.array([x0, y1, 0.0]), u=np.array([x1 - x0, 0.0, 0.0]),
-                      v=np.array([0.0, y0 - y1, 0.0]), texture=floor_tex, name="floor"))
-    # --- walls (visible side faces the room) ------------------------------------------
-    paint = [(205, 215, 222), (180, 200, 210), (200, 205, 190), (215, 210, 205)]
-    walls = [  # (name, p0, p1) traversed so that u x v points into the room
-        ("wall_-x", (x0, y0), (x0, y1)),
-        ("wall_+y", (x0, y1), (x1, y1)),
-        ("wall_+x", (x1, y1), (x1, y0)),
-        ("wall_-y", (x1, y0), (x0, y0)),
-    ]
-    furniture_spans: list[tuple[str, float, float]] = []
-    for k, (name, p0, p1) in enumerate(walls):
-        rng = _rng(seed, 10 + k)
-        length = math.hypot(p1[0] - p0[0], p1[1] - p0[1])
-        w, h = int(length * wall_ppm), int(H * wall_ppm)
-        img = _paint(rng, w, h, paint[k])
-        img[int((H - 0.12) * wall_ppm):] = (235, 235, 235)  # skirting board
-        img[int((H - 0.12) * wall_ppm)] = (150, 150, 150)
-        d = np.array(p1, float) - np.array(p0, float)
-        d /= length
+    return Quad(origin=np.array([x0, y1, 0.0]), u=np.array([x1 - x0, 0.0, 0.0]),
+                v=np.array([0.0, y0 - y1, 0.0]), texture=floor_tex, name="floor")
 
-        def s_of_x(x: float, p0=p0, d=d) -> float:
-            # arc-length coordinate along the wall of world x (for walls along x)
-            return (x - p0[0]) / d[0]
 
-        blank_ranges: list[tuple[float, float]] = []
-        if name == "wall_+y":
-            blank_ranges.append(tuple(sorted((s_of_x(blank[0]), s_of_x(blank[1])))))
-        if poor and name == "wall_-y":
-            blank_ranges.append((0.5, length - 0.5))
+#: Paint of the walls -x, +y, +x, -y.
+_WALL_PAINT = [(205, 215, 222), (180, 200, 210), (200, 205, 190), (215, 210, 205)]
 
-        def free(s_a: float, s_b: float, blank_ranges=blank_ranges) -> bool:
-            return all(s_b < a or s_a > b for a, b in blank_ranges)
 
-        s = 0.3
-        while s < length - 0.8:
-            item_w = float(rng.uniform(0.5, 1.3))
-            if not free(s, s + item_w):
-                s += 0.4
-                continue
-            kind = rng.integers(0, 5)
-            if kind in (0, 1):  # poster
-                ph = item_w * rng.uniform(0.6, 1.4)
-                top = rng.uniform(0.35, 0.8)
-                pw_px, ph_px = int(item_w * wall_ppm), int(ph * wall_ppm)
-                r0, c0 = int(top * wall_ppm), int(s * wall_ppm)
-                if r0 + ph_px < h - 0.5 * wall_ppm and c0 + pw_px < w:
-                    img[r0:r0 + ph_px, c0:c0 + pw_px] = _poster(rng, pw_px, ph_px)
-            elif kind == 2:  # door
-                dw = int(0.9 * wall_ppm)
-                c0, r0 = int(s * wall_ppm), int((H - 2.05) * wall_ppm)
-                if c0 + dw < w:
-                    img[r0:h - int(0.12 * wall_ppm), c0:c0 + dw] = _wood(rng, dw, h - r0 - int(
-                        0.12 * wall_ppm))
-                    cv2.rectangle(img, (c0, r0), (c0 + dw, h), (40, 40, 40), 3)
-                    cv2.circle(img, (c0 + dw - int(0.1 * wall_ppm), r0 + int(1.05 * wall_ppm)),
-                               int(0.03 * wall_ppm), (30, 160, 200), -1)
-                item_w = 0.9
-            else:  # furniture in front of the wall
-                furniture_spans.append((name, s, item_w))
-                r0 = int((H - 1.4) * wall_ppm)
-                cv2.rectangle(img, (int(s * wall_ppm), r0), (int(s * wall_ppm) + 10, r0 + 16),
-                              (235, 235, 235), -1)  # light switch next to it
-            s += item_w + float(rng.uniform(0.2, 0.8))
-        quads.append(_wall_quad(p0, p1, H, img, name))
-        # furniture boxes for this wall
-        inward = np.array([-d[1], d[0]])  # wall direction rotated by 90 deg ...
-        if np.dot(inward, np.array([cx, cy]) - np.array(p0, float)) < 0:
-            inward = -inward  # ... toward the room centre
-        for fname, s0, fw_m in furniture_spans:
-            if fname != name:
-                continue
-            depth = float(rng.uniform(0.35, min(0.55, band)))
-            height = float(rng.uniform(0.75, 1.9))
-            a = np.array(p0, float) + d * s0 + inward * 0.02
-            b = a + d * fw_m
-            quads.extend(_box(rng, a, b, inward * depth, height, wall_ppm, f"{name}_box{s0:.1f}"))
-    if ceiling:
-        rng = _rng(seed, 30)
-        cw, ch = int((x1 - x0) * 20), int((y1 - y0) * 20)
-        quads.append(Quad(origin=np.array([x0, y0, H]), u=np.array([x1 - x0, 0.0, 0.0]),
-                          v=np.array([0.0, y1 - y0, 0.0]),
-                          texture=_paint(rng, cw, ch, (240, 240, 240)), name="ceiling"))
-    inside = np.array([cx, cy, 0.5 * H])
-    room_faces = {"floor", "ceiling"} | {name for name, _, _ in walls}
-    quads = [_finish(_face(q, inside) if q.name in room_faces else q, light) for q in quads]
-    return Scene(quads=quads, room=room, blank_wall=blank, dim_zone=dim_zone)
+def _wall_and_furniture(room: Room, k: int, name: str, p0: tuple[float, float],
+                        p1: tuple[float, float], seed: int, wall_ppm: float,
+                        blank: tuple[float, float, float], poor: bool) -> list[Quad]:
+    """Wall ``k`` from floor point p0 to p1 (visible side facing the room): paint,
+    skirting board, posters, doors and light switches along it, and the furniture boxes
+    standing in front of it; nothing on the blank stretches (``blank`` on the +y wall, and
+    for the poor preset all of the -y wall)."""
+    H = room.wall_height
+    band = room.furniture_band
+    cx, cy = room.centre
+    rng = _rng(seed, 10 + k)
+    length = math.hypot(p1[0] - p0[0], p1[1] - p0[1])
+    w, h = int(length * wall_ppm), int(H * wall_ppm)
+    img = _paint(rng, w, h, _WALL_PAINT[k])
+    img[int((H - 0.12) * wall_ppm):] = (235, 235, 235)  # skirting board
+    img[int((H - 0.12) * wall_ppm)] = (150, 150, 150)
+    d = np.array(p1, float) - np.array(p0, float)
+    d /= length
+
+    def s_of_x(x: float) -> float:
+        # arc-length coordinate along the wall of world x (for walls along x)
+        return (x - p0[0]) / d[0]
+
+    blank_ranges: list[tuple[float, float]] = []
+    if name == "wall_+y":
+        blank_ranges.append(tuple(sorted((s_of_x(blank[0]), s_of_x(blank[1])))))
+    if poor and name == "wall_-y":
+        blank_ranges.append((0.5, length - 0.5))
+
+    def free(s_a: float, s_b: float) -> bool:
+        return all(s_b < a or s_a > b for a, b in blank_ranges)
+
+    furniture_spans: list[tuple[float, float]] = []
+    s = 0.3
+    while s < length - 0.8:
+        item_w = float(rng.uniform(0.5, 1.3))
+        if not free(s, s + item_w):
+            s += 0.4
+            continue
+        kind = rng.integers(0, 5)
+        if kind in (0, 1):  # poster
+            ph = item_w * rng.uniform(0.6, 1.4)
+            top = rng.uniform(0.35, 0.8)
+            pw_px, ph_px = int(item_w * wall_ppm), int(ph * wall_ppm)
+            r0, c0 = int(top * wall_ppm), int(s * wall_ppm)
+            if r0 + ph_px < h - 0.5 * wall_ppm and c0 + pw_px < w:
+                img[r0:r0 + ph_px, c0:c0 + pw_px] = _poster(rng, pw_px, ph_px)
+        elif kind == 2:  # door
+            dw = int(0.9 * wall_ppm)
+            c0, r0 = int(s * wall_ppm), int((H - 2.05) * wall_ppm)
+            if c0 + dw < w:
+                img[r0:h - int(0.12 * wall_ppm), c0:c0 + dw] = _wood(rng, dw, h - r0 - int(
+                    0.12 * wall_ppm))
+                cv2.rectangle(img, (c0, r0), (c0 + dw, h), (40, 40, 40), 3)
+                cv2.circle(img, (c0 + dw - int(0.1 * wall_ppm), r0 + int(1.05 * wall_ppm)),
+                           int(0.03 * wall_ppm), (30, 160, 200), -1)
+            item_w = 0.9
+        else:  # furniture in front of the wall
+            furniture_spans.append((s, item_w))
+            r0 = int((H - 1.4) * wall_ppm)
+            cv2.rectangle(img, (int(s * wall_ppm), r0), (int(s * wall_ppm) + 10, r0 + 16),
+                          (235, 235, 235), -1)  # light switch next to it
+        s += item_w + float(rng.uniform(0.2, 0.8))
+    quads = [_wall_quad(p0, p1, H, img, name)]
+    # furniture boxes for this wall
+    inward = np.array([-d[1], d[0]])  # wall direction rotated by 90 deg ...
+    if np.dot(inward, np.array([cx, cy]) - np.array(p0, float)) < 0:
+        inward = -inward  # ... toward the room centre
+    for s0, fw_m in furniture_spans:
+        depth = float(rng.uniform(0.35, min(0.55, band)))
+        height = float(rng.uniform(0.75, 1.9))
+        a = np.array(p0, float) + d * s0 + inward * 0.02
+        b = a + d * fw_m
+        quads.extend(_box(rng, a, b, inward * depth, height, wall_ppm, f"{name}_box{s0:.1f}"))
+    return quads
 
 
 def _box(rng, a, b, depth_vec, height, ppm, name) -> list[Quad]:

@@ -4,9 +4,10 @@ The closed loop (driver and chair) runs step by step at the chair's internal rat
 (100 Hz, the driver updates at 50 Hz); the sensors are then sampled from the logged truth
 with vectorised numpy. 20 minutes simulate in a couple of seconds.
 
-A recording is written as a bag through the generic writer, :func:`asgp_ros.bags.write_bag`
-(:func:`write_recording`): the recording serialises itself as ``/joy``, ``/vo/twist`` and
-``/ground_truth/odom`` messages (:meth:`Recording.bag_content`).
+A recording is written as a bag through the generic writer,
+:func:`asgp_ros.recording.bags.write_bag` (:func:`write_recording`): the recording serialises
+itself as ``/joy``, ``/vo/twist`` and ``/ground_truth/odom`` messages
+(:meth:`Recording.bag_content`).
 """
 
 from __future__ import annotations
@@ -22,14 +23,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch, write_bag
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core.quaternion import yaw_to_quaternion
 from asgp_ros.core.streams import RawStreams
+from asgp_ros.recording.bags import CUSTOM_DATA_KEY, BagContent, serialise_batch, write_bag
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.sensors import SensorParams, joystick_samples, vo_samples
 from asgp_ros.sim.world import RECORDING_SURFACES, Room, room_for_surface
-from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 FloatArray = NDArray[np.float64]
 
@@ -108,7 +109,7 @@ class Recording:
         )
 
     def bag_content(self, typestore: Any, ros1: bool, truth: bool = True) -> BagContent:
-        """The recording as bag messages for :func:`asgp_ros.bags.write_bag`.
+        """The recording as bag messages for :func:`asgp_ros.recording.bags.write_bag`.
 
         ``/joy`` (sensor_msgs/Joy, axes = the two deflections) and ``/vo/twist``
         (TwistStamped in base_link) at their recorded stamps and bag times, and with
@@ -120,41 +121,7 @@ class Recording:
             ros1: serialise for a ROS 1 bag (headers carry a sequence number) instead of CDR.
             truth: include the ground truth.
         """
-        T = typestore.types
-
-        def header(frame: str, sec: int, nanosec: int, seq: int) -> Any:
-            stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
-            if ros1:
-                return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
-            return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
-
-        def vec(x: float = 0.0, z: float = 0.0) -> Any:
-            return T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=z)
-
-        def twist(v: float, w: float) -> Any:
-            return T["geometry_msgs/msg/Twist"](linear=vec(x=v), angular=vec(z=w))
-
-        def make_joy(sec: int, nanosec: int, a0: float, a1: float, seq: int = 0) -> Any:
-            return T["sensor_msgs/msg/Joy"](
-                header=header("", sec, nanosec, seq),
-                axes=np.array([a0, a1], dtype=np.float32), buttons=np.zeros(0, dtype=np.int32))
-
-        def make_twist(sec: int, nanosec: int, v: float, w: float, seq: int = 0) -> Any:
-            return T["geometry_msgs/msg/TwistStamped"](
-                header=header("base_link", sec, nanosec, seq), twist=twist(v, w))
-
-        def make_odom(sec: int, nanosec: int, x: float, y: float, qz: float, qw: float,
-                      v: float, w: float, seq: int = 0) -> Any:
-            pose = T["geometry_msgs/msg/Pose"](
-                position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
-                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw))
-            return T["nav_msgs/msg/Odometry"](
-                header=header("odom", sec, nanosec, seq), child_frame_id="base_link",
-                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose,
-                                                               covariance=np.zeros(36)),
-                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist(v, w),
-                                                                 covariance=np.zeros(36)))
-
+        msg = _Messages(typestore, ros1)
         stamp_fields = {"sec": "i4", "nanosec": "u4"} | ({"seq": "u4"} if ros1 else {})
         topics = [t for t in BAG_TOPIC_TYPES if truth or t != BAG_GROUND_TRUTH]
         out: list[tuple[int, int, bytes]] = []
@@ -175,22 +142,69 @@ class Recording:
             out.extend(zip(to_ns(bag_t).tolist(), [topics.index(topic)] * n, data,
                            strict=True))
 
-        add(BAG_JOY, make_joy, {"a0": "f4", "a1": "f4"}, self.joy_t, self.joy_bag_t,
+        add(BAG_JOY, msg.joy, {"a0": "f4", "a1": "f4"}, self.joy_t, self.joy_bag_t,
             {"a0": self.joy[:, 0], "a1": self.joy[:, 1]})
-        add(BAG_VO_TWIST, make_twist, {"v": "f8", "w": "f8"}, self.vo_t, self.vo_bag_t,
-            {"v": self.vo[:, 0], "w": self.vo[:, 1]})
+        add(BAG_VO_TWIST, msg.twist_stamped, {"v": "f8", "w": "f8"}, self.vo_t,
+            self.vo_bag_t, {"v": self.vo[:, 0], "w": self.vo[:, 1]})
         if truth:
             period = float(self.truth_t[1] - self.truth_t[0]) if self.truth_t.size > 1 else 1.0
             step = max(1, round(1.0 / (TRUTH_RATE_HZ * period)))
             tt, st = self.truth_t[::step], self.truth[::step]
             _qx, _qy, qz, qw = yaw_to_quaternion(st[:, 2])
-            add(BAG_GROUND_TRUTH, make_odom,
+            add(BAG_GROUND_TRUTH, msg.odometry,
                 {k: "f8" for k in ("x", "y", "qz", "qw", "v", "w")}, tt, tt,
                 {"x": st[:, 0], "y": st[:, 1], "qz": qz, "qw": qw, "v": st[:, 3],
                  "w": st[:, 4]})
         return BagContent(connections=[(t, BAG_TOPIC_TYPES[t]) for t in topics],
                           messages=out,
                           custom_data={CUSTOM_DATA_KEY: json.dumps(self.meta, sort_keys=True)})
+
+
+class _Messages:
+    """Builders of the recording's messages in a bag's type store, from scalar fields (the
+    form :func:`asgp_ros.recording.bags.serialise_batch` fills in); a ROS 1 header carries
+    a sequence number."""
+
+    def __init__(self, typestore: Any, ros1: bool) -> None:
+        self.T = typestore.types
+        self.ros1 = ros1
+
+    def header(self, frame: str, sec: int, nanosec: int, seq: int) -> Any:
+        T = self.T
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        if self.ros1:
+            return T["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame)
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    def vec(self, x: float = 0.0, z: float = 0.0) -> Any:
+        return self.T["geometry_msgs/msg/Vector3"](x=x, y=0.0, z=z)
+
+    def twist(self, v: float, w: float) -> Any:
+        return self.T["geometry_msgs/msg/Twist"](linear=self.vec(x=v), angular=self.vec(z=w))
+
+    def joy(self, sec: int, nanosec: int, a0: float, a1: float, seq: int = 0) -> Any:
+        """sensor_msgs/Joy, axes = (forward, turn) deflection."""
+        return self.T["sensor_msgs/msg/Joy"](
+            header=self.header("", sec, nanosec, seq),
+            axes=np.array([a0, a1], dtype=np.float32), buttons=np.zeros(0, dtype=np.int32))
+
+    def twist_stamped(self, sec: int, nanosec: int, v: float, w: float, seq: int = 0) -> Any:
+        """geometry_msgs/TwistStamped in base_link."""
+        return self.T["geometry_msgs/msg/TwistStamped"](
+            header=self.header("base_link", sec, nanosec, seq), twist=self.twist(v, w))
+
+    def odometry(self, sec: int, nanosec: int, x: float, y: float, qz: float, qw: float,
+                 v: float, w: float, seq: int = 0) -> Any:
+        """nav_msgs/Odometry, odom -> base_link, zero covariances."""
+        T = self.T
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=x, y=y, z=0.0),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=qz, w=qw))
+        return T["nav_msgs/msg/Odometry"](
+            header=self.header("odom", sec, nanosec, seq), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=self.twist(v, w),
+                                                             covariance=np.zeros(36)))
 
 
 def write_recording(path: str | os.PathLike[str], recording: Recording,
@@ -205,7 +219,7 @@ def write_recording(path: str | os.PathLike[str], recording: Recording,
         truth: include ``/ground_truth/odom`` (at ``TRUTH_RATE_HZ``).
 
     Raises:
-        asgp_ros.bags.BagError: the bag cannot be written.
+        asgp_ros.recording.bags.BagError: the bag cannot be written.
     """
     class _Source:
         def bag_content(self, typestore: Any, ros1: bool) -> BagContent:
@@ -248,8 +262,35 @@ def simulate(
     ss = np.random.SeedSequence([seed, RECORDING_SURFACES.index(surface)])
     s_chair, s_driver, s_joy, s_vo = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
 
-    chair = Chair.for_room(room, s_chair, chair_params)
-    driver = Driver(s_driver, room, duration=duration)
+    dt = 1.0 / INTERNAL_RATE_HZ
+    log = _drive(Chair.for_room(room, s_chair, chair_params),
+                 Driver(s_driver, room, duration=duration), duration)
+    wheels = np.stack([log[:, 8], 2.0 * log[:, 4] - log[:, 8]], axis=1)
+    truth_t = log[:, 0].copy()
+    truth = log[:, 1:6].copy()
+    command = log[:, 6:8].copy()
+    moving = (np.abs(truth[:, 3]) > 0.02) | (np.abs(truth[:, 4]) > 0.02)
+
+    joy_t, joy_r, joy_bag = joystick_samples(
+        duration, truth_t, command, np.random.default_rng(s_joy), sp)
+    vo = vo_samples(duration, truth_t, truth[:, :3], moving, surface,
+                    np.random.default_rng(s_vo), sp)
+    meta = _recording_meta(surface, seed, duration, room, sp, vo.failures,
+                           moving_s=float(np.sum(moving[:-1] * dt)),
+                           carpet_fraction=float(np.mean(log[:, 9])))
+    return Recording(
+        surface=surface, seed=int(seed), duration=duration,
+        joy_t=joy_t, joy=joy_r, joy_bag_t=joy_bag,
+        vo_t=vo.stamp, vo=vo.vel, vo_bag_t=vo.bag_time, vo_stale=vo.stale,
+        failures=vo.failures, truth_t=truth_t, truth=truth, command=command,
+        wheels=wheels, floor=log[:, 9].astype(np.int8), epoch_ns=int(epoch_ns), meta=meta,
+    )
+
+
+def _drive(chair: Chair, driver: Driver, duration: float) -> FloatArray:
+    """The closed loop at the chair's rate (the driver's hand at half of it), from rest at
+    the origin; the log [n, 10]: t, x, y, theta, v, omega, the two joystick deflections,
+    the left wheel's speed, and 1 on carpet (0 on tile)."""
     state = chair.reset((0.0, 0.0, 0.0))
     dt = 1.0 / INTERNAL_RATE_HZ
     n = round(duration * INTERNAL_RATE_HZ) + 1
@@ -264,18 +305,15 @@ def simulate(
                   joy[0], joy[1], state.wheel_left, carpet[state.surface])
         if i + 1 < n:
             state = chair.step(joy, dt)
-    wheels = np.stack([log[:, 8], 2.0 * log[:, 4] - log[:, 8]], axis=1)
-    truth_t = log[:, 0].copy()
-    truth = log[:, 1:6].copy()
-    command = log[:, 6:8].copy()
-    moving = (np.abs(truth[:, 3]) > 0.02) | (np.abs(truth[:, 4]) > 0.02)
+    return log
 
-    joy_t, joy_r, joy_bag = joystick_samples(
-        duration, truth_t, command, np.random.default_rng(s_joy), sp)
-    vo = vo_samples(duration, truth_t, truth[:, :3], moving, surface,
-                    np.random.default_rng(s_vo), sp)
-    exposed = float(np.sum(moving[:-1] * dt))
-    meta = {
+
+def _recording_meta(surface: str, seed: int, duration: float, room: Room, sp: SensorParams,
+                    failures: FloatArray, *, moving_s: float, carpet_fraction: float
+                    ) -> dict[str, Any]:
+    """The description of a recording stored with its bag (room, rates, VO failures, time
+    moving, share of carpet)."""
+    return {
         "surface": surface,
         "seed": int(seed),
         "duration_s": duration,
@@ -287,14 +325,7 @@ def simulate(
         "joy_rate_hz": sp.joy_rate_hz,
         "vo_rate_hz": list(sp.vo_rate_hz),
         "vo_failure_rate_per_min": sp.failure_rate(surface),
-        "vo_failures": vo.failures.round(6).tolist(),
-        "moving_s": round(exposed, 3),
-        "carpet_fraction": round(float(np.mean(log[:, 9])), 4),
+        "vo_failures": failures.round(6).tolist(),
+        "moving_s": round(moving_s, 3),
+        "carpet_fraction": round(carpet_fraction, 4),
     }
-    return Recording(
-        surface=surface, seed=int(seed), duration=duration,
-        joy_t=joy_t, joy=joy_r, joy_bag_t=joy_bag,
-        vo_t=vo.stamp, vo=vo.vel, vo_bag_t=vo.bag_time, vo_stale=vo.stale,
-        failures=vo.failures, truth_t=truth_t, truth=truth, command=command,
-        wheels=wheels, floor=log[:, 9].astype(np.int8), epoch_ns=int(epoch_ns), meta=meta,
-    )

@@ -8,8 +8,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from asgp_ros.paramspec import ParamSpec, ParamValue, check_values
-from asgp_ros.topics import CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO
+from asgp_ros.common.paramspec import ParamSpec, ParamValue, check_values
+from asgp_ros.common.topics import CAMERA_COLOR, CAMERA_DEPTH, CAMERA_INFO
 from asgp_ros.vo.extrinsics import DEFAULT_EXTRINSIC, CameraExtrinsic
 from asgp_ros.vo.odometry import VOOptions
 

@@ -28,8 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from asgp_ros.bags import BagError, read_sim_metadata, write_bag
-from asgp_ros.fileio import (
+from asgp_ros.common.fileio import (
     DATASET_DIR,
     atomic_write_text,
     check_output,
@@ -41,8 +40,9 @@ from asgp_ros.fileio import (
     signals_deferred,
     write_marker,
 )
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
+from asgp_ros.recording.bags import BagError, read_sim_metadata, write_bag
 from asgp_ros.sim.simulate import simulate
-from asgp_ros.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
 
 LAYOUT = (("tile", 8), ("carpet", 8), ("hybrid", 2))
 BAG_MINUTES = 20.0
@@ -150,14 +150,14 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
                   progress: Progress | None = None) -> BuiltDataset:
     """Simulate the paper's dataset into ``out`` (module docstring) and write its manifest.
 
-    ``out`` is checked first (:func:`asgp_ros.fileio.check_output`): a new directory, or
+    ``out`` is checked first (:func:`asgp_ros.common.fileio.check_output`): a new directory, or
     a dataset directory (carrying the dataset's marker file), which is resumed; anything
     else is refused. With ``force``, bags already there are simulated again (only bags
     are replaced). ``jobs`` > 1 simulates in a pool of that many processes.
 
     Raises:
         DatasetOptionError: an argument out of range (before anything is written).
-        asgp_ros.fileio.OutputError: ``out`` is refused.
+        asgp_ros.common.fileio.OutputError: ``out`` is refused.
         DatasetError: a bag could not be made; the bags made so far are kept.
     """
     check_options(scale=scale, seed=seed, jobs=jobs)

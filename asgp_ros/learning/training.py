@@ -22,16 +22,17 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from asgp_ros import bags
+from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
     TARGET_COVERAGE,
     CalibrationError,
+    CalibrationFit,
     VarianceCalibration,
     combine,
     coverage,
@@ -42,14 +43,14 @@ from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import FitBudget, ModelKind, MotionModel, get_kind, trainable_kinds
 from asgp_ros.core.resample import ResampleConfig, Resampled, resample
 from asgp_ros.core.sparse_gp import SparseGP
-from asgp_ros.evaluation import (
+from asgp_ros.learning.evaluation import (
     EvaluationError,
     TestSeries,
     evaluate_model,
     reference_path,
     rollout_cases,
 )
-from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
+from asgp_ros.recording import bags
 
 log = logging.getLogger(__name__)
 
@@ -519,8 +520,24 @@ def train_auto(
     calibration, cal_meta = _calibrate_step(model_tr, held, opts, case_lags, report)
     chans = _conditioned_on_all(series, chosen, model_tr, infos)
     fc = chosen.features()
+    seconds = {"selection": round(t_select, 2), "final_fit": round(t_fit, 2),
+               "total": round(time.perf_counter() - t_start, 2)}
+    meta = _automatic_meta(series, opts, chosen, infos, search.table, case_lags, seconds,
+                           cal_meta)
+    return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
+                       channels=(chans[0], chans[1]), meta=meta, calibration=calibration)
+
+
+def _automatic_meta(series: Sequence[Series], opts: AutoOptions, chosen: Candidate,
+                    infos: dict[str, dict[str, Any]], candidates: list[dict[str, Any]],
+                    case_lags: int, seconds: dict[str, float], cal_meta: dict[str, Any]
+                    ) -> dict[str, Any]:
+    """The model file's meta of an automatically configured ASGP: its training data and
+    channels, how the configuration was chosen (criterion, plan, pinned values, every
+    candidate's scores, times) and its calibration."""
+    fc = chosen.features()
     total_rows = max(info["posterior_rows"] for info in infos.values())
-    meta = {
+    return {
         "training_data": data_summary(series, total_rows),
         "training": {"kind": "asgp", "lags": fc.lags, "coupled": fc.coupled,
                      "seed": opts.seed, "max_iter": opts.max_iter, "channels": infos,
@@ -536,14 +553,11 @@ def train_auto(
             "pinned": {k: v for k, v in (("lags", opts.lags), ("coupled", opts.coupled),
                                          ("inducing_v", opts.inducing_v),
                                          ("inducing_w", opts.inducing_w)) if v is not None},
-            "chosen": chosen.to_json(), "candidates": search.table,
-            "seconds": {"selection": round(t_select, 2), "final_fit": round(t_fit, 2),
-                        "total": round(time.perf_counter() - t_start, 2)},
+            "chosen": chosen.to_json(), "candidates": candidates,
+            "seconds": seconds,
         },
         "calibration": cal_meta,
     }
-    return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
-                       channels=(chans[0], chans[1]), meta=meta, calibration=calibration)
 
 
 class _Search:
@@ -690,10 +704,78 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     scored with the map fitted on the other, so no figure is scored on the data its map
     was fitted on. The map stored is fitted on both halves.
     """
-    rate = model.rate_hz
-    steps = metrics.horizon_steps(list(opts.horizons_s), rate)
-    K = max(steps)
-    dt = 1.0 / rate
+    steps = metrics.horizon_steps(list(opts.horizons_s), model.rate_hz)
+    cases = _held_out_cases(model, held, case_lags, max(steps))
+    N = cases.err.shape[0]
+    fit = cases.fit(np.ones(N, dtype=bool))
+    cal = fit.calibration
+    cov_raw = cases.parts[0] + cases.parts[1]
+    cov_cv, cross_validated = _cross_validated_covariances(cases, cal)
+    coverage_table = _CoverageTable(cases, cov_raw, cov_cv, opts.horizons_s, steps)
+    by_speed = coverage_table.by_speed(cal.speed_edges)
+    # keep the map only if, cross-validated, it brings the coverage closer to the target
+    # where it matters: in every speed regime at every horizon (mean absolute deviation)
+    def deviation(which: str) -> float:
+        vals = [t[horizon_key(h)][which] for t in by_speed.values() for h in opts.horizons_s]
+        vals = [v for v in vals if v is not None]
+        return float(np.mean(np.abs(np.array(vals) - TARGET_COVERAGE))) if vals else math.nan
+    dev_raw, dev_cal = deviation("raw"), deviation("calibrated")
+    applied = not (cross_validated and dev_cal > dev_raw)
+    steady = cases.change <= np.median(cases.change)
+    bag = np.array(cases.names)
+    table = coverage_table.table
+    report = {
+        "fitted": True,
+        "applied": applied,
+        "deviation_raw": dev_raw, "deviation_calibrated": dev_cal,
+        "method": "per-channel var' = (scale * var + floor) * factor(speed regime); scale "
+                  "and floor by the Gaussian likelihood of the held-out k-step position "
+                  "errors, one factor per speed regime for 95% coverage in each",
+        "cases": int(N), "steps": int(cases.K), "pairs": fit.cases,
+        "ml_theta": list(fit.ml_theta),
+        "raw_coverage": fit.raw_coverage, "coverage": fit.coverage,
+        "cross_validated": cross_validated,
+        "by_horizon": table(np.ones(N, dtype=bool)),
+        "by_speed": by_speed,
+        "by_steadiness": {"steady joystick": table(steady), "changing joystick": table(~steady)},
+        "by_recording": {name: table(bag == name) for name in dict.fromkeys(cases.names)},
+    }
+    if not applied:
+        report["reason"] = (f"not applied: cross-validated, the map moved the coverage away "
+                            f"from 95% (mean deviation over speed regimes and horizons "
+                            f"{100 * dev_raw:.1f} points raw, {100 * dev_cal:.1f} calibrated)")
+        return VarianceCalibration(), report
+    return cal, report
+
+
+class _HeldOutCases(NamedTuple):
+    """The held-out cases of a calibration: N cases of K steps, in recording order."""
+
+    parts: np.ndarray  # [4, N, K, 2, 2] position covariances under the calibration BASIS
+    err: np.ndarray  # [N, K, 2] position errors, reference - prediction
+    names: list[str]  # [N] the recording of each case
+    speed: np.ndarray  # [N] |v| at the start of the case (its speed regime)
+    change: np.ndarray  # [N] largest change of the future joystick over the case
+    half: np.ndarray  # [N] in the second half of its recording's held-out part
+    K: int
+
+    def fit(self, mask: np.ndarray) -> CalibrationFit:
+        """The variance map fitted on the cases of ``mask`` (all their steps)."""
+        n, K = int(mask.sum()), self.K
+        return fit_calibration(self.parts[:, mask].reshape(4, n * K, 2, 2),
+                               self.err[mask].reshape(n * K, 2),
+                               np.repeat(self.speed[mask], K),
+                               raw=(self.parts[0, mask] + self.parts[1, mask]).reshape(
+                                   n * K, 2, 2),
+                               steps_per_case=K)
+
+
+def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, K: int
+                    ) -> _HeldOutCases:
+    """Every held-out case of K steps with ``case_lags`` past samples, rolled out with each
+    calibration of the BASIS (linearised propagation) and compared with the path
+    integrated from the recorded VO."""
+    dt = 1.0 / model.rate_hz
     parts_l, err_l, names, speed_l, change_l, half_l = [], [], [], [], [], []
     for s in held:
         idx = metrics.case_indices(s.res.segment, case_lags, K)
@@ -717,80 +799,59 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
         half_l.append(idx >= np.median(idx))
     if not err_l:
         raise CalibrationError(f"no held-out case of {K} steps with {case_lags} past samples")
-    parts = np.concatenate(parts_l, axis=1)
-    err = np.concatenate(err_l)
-    speed = np.concatenate(speed_l)
-    change = np.concatenate(change_l)
-    half = np.concatenate(half_l)
-    N = err.shape[0]
+    return _HeldOutCases(np.concatenate(parts_l, axis=1), np.concatenate(err_l), names,
+                         np.concatenate(speed_l), np.concatenate(change_l),
+                         np.concatenate(half_l), K)
 
-    def fit_on(mask: np.ndarray) -> Any:
-        n = int(mask.sum())
-        return fit_calibration(parts[:, mask].reshape(4, n * K, 2, 2),
-                               err[mask].reshape(n * K, 2), np.repeat(speed[mask], K),
-                               raw=(parts[0, mask] + parts[1, mask]).reshape(n * K, 2, 2),
-                               steps_per_case=K)
 
-    fit = fit_on(np.ones(N, dtype=bool))
-    cal = fit.calibration
-    cov_raw = parts[0] + parts[1]
-    # cross-validated calibrated covariances: each half with the other half's map
-    cov_cv = np.empty_like(cov_raw)
+def _cross_validated_covariances(cases: _HeldOutCases, cal: VarianceCalibration
+                                 ) -> tuple[np.ndarray, bool]:
+    """[N, K, 2, 2] calibrated covariances, each half of the cases with the map fitted on the
+    other half (``cal``, the map of all the cases, where a half cannot be fitted; then the
+    figures are not cross-validated, the flag returned)."""
+    cov_cv = np.empty_like(cases.parts[0])
     cross_validated = True
     for h in (False, True):
         try:
-            other = fit_on(half != h).calibration
+            other = cases.fit(cases.half != h).calibration
         except CalibrationError:
             cross_validated = False
             other = cal
         theta = np.array([*other.scale, *other.floor])
-        cov_cv[half == h] = (combine(parts[:, half == h], theta)
-                             * other.factor(speed[half == h])[:, None, None, None])
-    steady = change <= np.median(change)
-    bag = np.array(names)
+        cov_cv[cases.half == h] = (combine(cases.parts[:, cases.half == h], theta)
+                                   * other.factor(cases.speed[cases.half == h])[:, None, None,
+                                                                                 None])
+    return cov_cv, cross_validated
 
-    def cov_metric(e: np.ndarray, c: np.ndarray) -> float | None:
-        v = coverage(e, c)
-        return None if math.isnan(v) else round(v, 4)
 
-    def table(mask: np.ndarray) -> dict[str, Any]:
+class _CoverageTable:
+    """Held-out coverage of the 95% ellipse, raw and calibrated, per horizon, for a subset
+    of the cases."""
+
+    def __init__(self, cases: _HeldOutCases, cov_raw: np.ndarray, cov_cv: np.ndarray,
+                 horizons_s: Sequence[float], steps: Sequence[int]) -> None:
+        self.cases, self.cov_raw, self.cov_cv = cases, cov_raw, cov_cv
+        self.horizons_s, self.steps = horizons_s, steps
+
+    def table(self, mask: np.ndarray) -> dict[str, Any]:
+        """{"cases": n, horizon key: {"raw": coverage, "calibrated": coverage}} of ``mask``
+        (a coverage is None where it cannot be computed)."""
         out: dict[str, Any] = {"cases": int(np.sum(mask))}
-        for h, k in zip(opts.horizons_s, steps, strict=True):
-            e = err[mask, k - 1]
-            out[horizon_key(h)] = {"raw": cov_metric(e, cov_raw[mask, k - 1]),
-                                   "calibrated": cov_metric(e, cov_cv[mask, k - 1])}
+        for h, k in zip(self.horizons_s, self.steps, strict=True):
+            e = self.cases.err[mask, k - 1]
+            out[horizon_key(h)] = {"raw": _coverage_figure(e, self.cov_raw[mask, k - 1]),
+                                   "calibrated": _coverage_figure(e, self.cov_cv[mask, k - 1])}
         return out
 
-    edges = (0.0, *cal.speed_edges, math.inf)
-    by_speed = {f"|v| {lo:.2f}-{hi:.2f} m/s" if math.isfinite(hi) else f"|v| >= {lo:.2f} m/s":
-                table((speed >= lo) & (speed < hi)) for lo, hi in itertools.pairwise(edges)}
-    # keep the map only if, cross-validated, it brings the coverage closer to the target
-    # where it matters: in every speed regime at every horizon (mean absolute deviation)
-    def deviation(which: str) -> float:
-        vals = [t[horizon_key(h)][which] for t in by_speed.values() for h in opts.horizons_s]
-        vals = [v for v in vals if v is not None]
-        return float(np.mean(np.abs(np.array(vals) - TARGET_COVERAGE))) if vals else math.nan
-    dev_raw, dev_cal = deviation("raw"), deviation("calibrated")
-    applied = not (cross_validated and dev_cal > dev_raw)
-    report = {
-        "fitted": True,
-        "applied": applied,
-        "deviation_raw": dev_raw, "deviation_calibrated": dev_cal,
-        "method": "per-channel var' = (scale * var + floor) * factor(speed regime); scale "
-                  "and floor by the Gaussian likelihood of the held-out k-step position "
-                  "errors, one factor per speed regime for 95% coverage in each",
-        "cases": int(N), "steps": int(K), "pairs": fit.cases,
-        "ml_theta": list(fit.ml_theta),
-        "raw_coverage": fit.raw_coverage, "coverage": fit.coverage,
-        "cross_validated": cross_validated,
-        "by_horizon": table(np.ones(N, dtype=bool)),
-        "by_speed": by_speed,
-        "by_steadiness": {"steady joystick": table(steady), "changing joystick": table(~steady)},
-        "by_recording": {name: table(bag == name) for name in dict.fromkeys(names)},
-    }
-    if not applied:
-        report["reason"] = (f"not applied: cross-validated, the map moved the coverage away "
-                            f"from 95% (mean deviation over speed regimes and horizons "
-                            f"{100 * dev_raw:.1f} points raw, {100 * dev_cal:.1f} calibrated)")
-        return VarianceCalibration(), report
-    return cal, report
+    def by_speed(self, speed_edges: Sequence[float]) -> dict[str, Any]:
+        """A table per speed regime of the calibration (its ``speed_edges``)."""
+        speed = self.cases.speed
+        edges = (0.0, *speed_edges, math.inf)
+        return {f"|v| {lo:.2f}-{hi:.2f} m/s" if math.isfinite(hi) else f"|v| >= {lo:.2f} m/s":
+                self.table((speed >= lo) & (speed < hi)) for lo, hi in itertools.pairwise(edges)}
+
+
+def _coverage_figure(e: np.ndarray, c: np.ndarray) -> float | None:
+    """The coverage of errors ``e`` by covariances ``c``, rounded; None where undefined."""
+    v = coverage(e, c)
+    return None if math.isnan(v) else round(v, 4)

@@ -62,11 +62,11 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
+from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
-from asgp_ros.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.topics import BAG_JOY, BAG_VO_TWIST
 
 # rosbags is imported where a bag is read or written, not here: ``asgp --help`` and the
 # predictor node import this module, and rosbags takes about 0.1 s to load.
@@ -666,6 +666,15 @@ class _Scan:
         """A complete message; its bytes are copied only if its topic is wanted."""
         self.messages.append((cid, ns, bytes(data) if self.keep(self.conns[cid][0]) else b""))
 
+    def drop_since(self, found: int, what: str) -> None:
+        """Drop the messages added since there were ``found`` (a damaged chunk's: a record
+        after the damage may be read from the wrong bytes), count them as dropped, and
+        report ``what`` with their number."""
+        lost = len(self.messages) - found
+        del self.messages[found:]
+        self.dropped += lost
+        self.problems.append(f"{what} ({lost} messages dropped)")
+
 
 def _u(buf: Any, pos: int, size: int, order: Literal["little", "big"] = "little") -> int:
     if pos < 0 or pos + size > len(buf):
@@ -708,15 +717,42 @@ def _decompress(data: bytes, compression: str, partial: bool) -> bytes:
 
 def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     """Scan an mcap file's data section record by record (no summary or index needed)."""
-    scan = _Scan(keep=keep)
+    scanner = _McapScanner(keep)
+    scan = scanner.scan
     if bytes(buf[:8]) != MCAP_MAGIC:
         raise BagError(f"{name}: not an mcap file (it does not start with the mcap magic)")
-    schemas: dict[int, tuple[str, str, str]] = {}
-    progress = [8]  # the end of the last complete top-level record
-    data_end = [False]
-    bounds = [0, 2**64]  # message times the current chunk's header allows
+    try:
+        end, tail = scanner.records(buf, 8, nested=False)
+    except _StopError as exc:
+        scan.complete = scanner.progress
+        scan.problems.append(f"unreadable record at byte {scanner.progress}: {exc}")
+        return scan
+    if not scan.ended:
+        scan.complete = end
+        scan.problems.append("the summary or footer is damaged (every message is before it)"
+                             if scanner.data_end else
+                             "no summary or footer (the recording did not finish)")
+        if tail == 0x06:  # a chunk cut short: its complete records are good
+            with contextlib.suppress(_StopError):
+                scan.complete = scanner.chunk(buf[end + 9:], end, partial=True)
+            scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
+        elif tail == 0x05:
+            scan.dropped += 1
+    return scan
 
-    def records(view: Any, pos: int, nested: bool) -> tuple[int, int | None]:
+
+class _McapScanner:
+    """The state of one mcap scan: the schemas seen, the end of the last complete top-level
+    record, whether the data section ended, and the time range of the current chunk."""
+
+    def __init__(self, keep: Callable[[str], bool]) -> None:
+        self.scan = _Scan(keep=keep)
+        self.schemas: dict[int, tuple[str, str, str]] = {}
+        self.progress = 8  # the end of the last complete top-level record
+        self.data_end = False
+        self.bounds = (0, 2**64)  # message times the current chunk's header allows
+
+    def records(self, view: Any, pos: int, nested: bool) -> tuple[int, int | None]:
         """Handle the complete records from ``pos``; return the end of the last one and
         the opcode of a partial record after it (None: the view ended at a record)."""
         n = len(view)
@@ -731,42 +767,51 @@ def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
                 return pos, op
             body = view[pos + 9:end]
             if op == 0x03:  # Schema
-                sid = _u(body, 0, 2)
-                sname, p = _mcap_str(body, 2)
-                enc, p = _mcap_str(body, p)
-                ln = _u(body, p, 4)
-                schemas[sid] = (sname, enc, bytes(body[p + 4:p + 4 + ln]).decode(
-                    "utf-8", "replace"))
+                self._schema(body)
             elif op == 0x04:  # Channel
-                cid, sid = _u(body, 0, 2), _u(body, 2, 2)
-                topic, p = _mcap_str(body, 4)
-                if sid in schemas:
-                    sname, enc, text = schemas[sid]
-                    scan.conns[cid] = (topic, sname, text, enc)
+                self._channel(body)
             elif op == 0x05:  # Message
-                if len(body) < 22:
-                    raise _StopError("message record shorter than its header")
-                cid, log_time = _u(body, 0, 2), _u(body, 6, 8)
-                if nested and not bounds[0] <= log_time <= bounds[1]:
-                    raise _StopError("a message time outside its chunk's range")
-                if cid in scan.conns:
-                    scan.add(cid, log_time, body[22:])
-                else:
-                    scan.dropped += 1
+                self._message(body, nested)
             elif op == 0x06 and not nested:  # Chunk
-                chunk(body, pos, partial=False)
+                self.chunk(body, pos, partial=False)
             elif op == 0x0F and not nested:  # DataEnd: the summary follows
-                data_end[0] = True
-                summary(view, end)
+                self.data_end = True
+                self.summary(view, end)
                 return end, None
             elif nested and op not in (0x03, 0x04, 0x05):
                 raise _StopError(f"record 0x{op:02x} inside a chunk")
             pos = end
             if not nested:
-                progress[0] = end
+                self.progress = end
         return pos, None
 
-    def chunk(body: Any, at: int, partial: bool) -> int:
+    def _schema(self, body: Any) -> None:
+        sid = _u(body, 0, 2)
+        sname, p = _mcap_str(body, 2)
+        enc, p = _mcap_str(body, p)
+        ln = _u(body, p, 4)
+        self.schemas[sid] = (sname, enc, bytes(body[p + 4:p + 4 + ln]).decode(
+            "utf-8", "replace"))
+
+    def _channel(self, body: Any) -> None:
+        cid, sid = _u(body, 0, 2), _u(body, 2, 2)
+        topic, _p = _mcap_str(body, 4)
+        if sid in self.schemas:
+            sname, enc, text = self.schemas[sid]
+            self.scan.conns[cid] = (topic, sname, text, enc)
+
+    def _message(self, body: Any, nested: bool) -> None:
+        if len(body) < 22:
+            raise _StopError("message record shorter than its header")
+        cid, log_time = _u(body, 0, 2), _u(body, 6, 8)
+        if nested and not self.bounds[0] <= log_time <= self.bounds[1]:
+            raise _StopError("a message time outside its chunk's range")
+        if cid in self.scan.conns:
+            self.scan.add(cid, log_time, body[22:])
+        else:
+            self.scan.dropped += 1
+
+    def chunk(self, body: Any, at: int, partial: bool) -> int:
         """Handle a chunk record's body; return the end of its last complete record in
         the file (uncompressed chunks) or ``at`` (compressed ones).
 
@@ -774,7 +819,8 @@ def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
         exactly; otherwise the chunk is damaged inside (a flipped length or time) and none
         of its messages is kept, since a record after the damage may be read from the
         wrong bytes."""
-        bounds[:] = [_u(body, 0, 8), _u(body, 8, 8)]
+        scan = self.scan
+        self.bounds = (_u(body, 0, 8), _u(body, 8, 8))
         size, crc = _u(body, 16, 8), _u(body, 24, 4)
         compression, p = _mcap_str(body, 28)
         stored = _u(body, p, 8)
@@ -785,30 +831,24 @@ def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
         if not partial and (len(raw) != size or (crc and zlib.crc32(raw) != crc)):
             found = len(scan.messages)
             with contextlib.suppress(_StopError):
-                records(raw, 0, nested=True)  # count what is lost, keep nothing
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} fails its checksum "
-                                 f"({lost} messages dropped)")
+                self.records(raw, 0, nested=True)  # count what is lost, keep nothing
+            scan.drop_since(found, f"chunk at byte {at} fails its checksum")
             return at
         found = len(scan.messages)
         try:
-            inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+            inner, tail = self.records(memoryview(raw)[:size], 0, nested=True)
             if tail is not None and not partial:
                 raise _StopError("it ends inside a record")
         except _StopError as exc:
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
-                                 f"({lost} messages dropped)")
+            scan.drop_since(found, f"chunk at byte {at} is damaged inside: {exc}")
             return at
         if tail is not None:
             scan.dropped += 1 if tail in (-1, 0x05) else 0
         return at + 9 + p + 8 + inner if compression in ("", "none") else at
 
-    def summary(view: Any, pos: int) -> None:
+    def summary(self, view: Any, pos: int) -> None:
+        """Read the summary section after DataEnd: the message count of its Statistics, and
+        whether the file ends with a complete footer and the closing magic."""
         n = len(view)
         while pos + 9 <= n:
             op = view[pos]
@@ -816,31 +856,12 @@ def _scan_mcap(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
             if end > n or op == 0x00:
                 return
             if op == 0x0B:  # Statistics
-                scan.expected_messages = _u(view, pos + 9, 8)
+                self.scan.expected_messages = _u(view, pos + 9, 8)
             if op == 0x02 and end + 8 == n and bytes(view[end:]) == MCAP_MAGIC:
-                scan.ended = True
-                scan.complete = n
+                self.scan.ended = True
+                self.scan.complete = n
                 return
             pos = end
-
-    try:
-        end, tail = records(buf, 8, nested=False)
-    except _StopError as exc:
-        scan.complete = progress[0]
-        scan.problems.append(f"unreadable record at byte {progress[0]}: {exc}")
-        return scan
-    if not scan.ended:
-        scan.complete = end
-        scan.problems.append("the summary or footer is damaged (every message is before it)"
-                             if data_end[0] else
-                             "no summary or footer (the recording did not finish)")
-        if tail == 0x06:  # a chunk cut short: its complete records are good
-            with contextlib.suppress(_StopError):
-                scan.complete = chunk(buf[end + 9:], end, partial=True)
-            scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
-        elif tail == 0x05:
-            scan.dropped += 1
-    return scan
 
 
 # --- SQLite: the database file is read page by page, never opened by sqlite itself (which
@@ -957,48 +978,98 @@ def _wal_pages(wal: bytes, page_size: int) -> tuple[dict[int, bytes], str | None
 def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     """Scan a rosbag2 SQLite database page by page (a cut file has no tail pages)."""
     scan = _Scan(keep=keep)
-    if len(buf) < 100 or bytes(buf[:16]) != SQLITE_MAGIC:
-        raise BagError(f"{name}: not an SQLite database (no SQLite header)")
-    ps = _u(buf, 16, 2, "big")
-    ps = 65536 if ps == 1 else ps
-    if ps < 512 or ps & (ps - 1):
-        raise BagError(f"{name}: SQLite header with a bad page size {ps}")
-    usable = ps - buf[20]
-    npages = len(buf) // ps
-    if _u(buf, 24, 4, "big") == _u(buf, 92, 4, "big") and _u(buf, 28, 4, "big"):
-        scan.expected_bytes = _u(buf, 28, 4, "big") * ps
-        if npages > scan.expected_bytes // ps:  # bytes after the database are not its own
-            scan.problems.append(f"{len(buf) - scan.expected_bytes} bytes after the end of "
-                                 "the database")
-            npages = scan.expected_bytes // ps
-    overlay: dict[int, bytes] = {}
-    wal_path = path.with_name(path.name + "-wal")
-    if regular_file_problem(wal_path) is None:
-        overlay, problem = _wal_pages(wal_path.read_bytes(), ps)
-        if problem:
-            scan.problems.append(problem)
-        if overlay:
-            npages = max(npages, max(overlay))
-            scan.expected_bytes = None  # the log holds the newest size
-    if regular_file_problem(path.with_name(path.name + "-journal")) is None:
-        scan.problems.append("a rollback journal was left (the last transaction did not "
-                             "finish); the database is read as it was written")
+    db = _SqlitePages(path, buf, name, scan)
+    claimed = db.free_pages()  # pages on the free list may hold stale rows
+    try:
+        schema = db.rows(1, claimed)
+    except _StopError as exc:
+        raise BagError(f"{name}: unreadable SQLite schema: {exc}") from exc
+    roots = {v[1]: v[3] for _r, v in schema if len(v) == 5 and v[0] == "table"
+             and isinstance(v[3], int)}
+    if "messages" not in roots or "topics" not in roots:
+        raise BagError(f"{name}: not a rosbag2 database (no messages and topics tables)")
+    tables = {t: db.rows(root, claimed) for t, root in roots.items() if t != "messages"}
+    defs = {v[1]: (v[3], v[2]) for _r, v in tables.get("message_definitions", [])
+            if len(v) >= 4 and isinstance(v[1], str) and isinstance(v[3], str)}
+    for rowid, v in tables["topics"]:
+        if len(v) >= 4 and all(isinstance(x, str) for x in v[1:4]):
+            text, enc = defs.get(v[2], ("", ""))
+            scan.conns[rowid] = (v[1], v[2], text, enc)
+    found = db.message_rows(claimed)
+    for rowid in sorted(found):
+        kept = found[rowid]
+        if kept is None or kept[0] not in scan.conns:
+            scan.dropped += 1
+            continue
+        scan.add(*kept)
+    if found:  # ids are 1, 2, 3, ...: a gap below the largest found is a lost row
+        scan.dropped += max(found) - len(found)
+    ps, npages = db.page_size, db.npages
+    scan.complete = min(len(buf) // ps, npages) * ps
+    if len(buf) % ps and len(buf) // ps < npages:
+        scan.problems.append(f"the file ends inside page {len(buf) // ps + 1}")
+    if scan.expected_bytes is not None and scan.expected_bytes > len(buf):
+        scan.problems.append(f"the file is cut: {(scan.expected_bytes - len(buf)) // ps} "
+                             f"of {scan.expected_bytes // ps} pages missing at the end")
+    scan.ended = not scan.problems and not scan.dropped
+    return scan
 
-    def page(p: int) -> bytes | None:
-        if p in overlay:
-            return overlay[p]
-        if 1 <= p <= npages and p * ps <= len(buf):
-            return bytes(buf[(p - 1) * ps:p * ps])
+
+class _SqlitePages:
+    """The pages of one SQLite database file, with the valid pages of its write-ahead log
+    over them (https://sqlite.org/fileformat.html); what is wrong goes to ``scan``."""
+
+    def __init__(self, path: Path, buf: Any, name: str, scan: _Scan) -> None:
+        """Read the header (page size, size in pages), the write-ahead log and whether a
+        rollback journal was left; BagError if the file is not an SQLite database."""
+        if len(buf) < 100 or bytes(buf[:16]) != SQLITE_MAGIC:
+            raise BagError(f"{name}: not an SQLite database (no SQLite header)")
+        ps = _u(buf, 16, 2, "big")
+        ps = 65536 if ps == 1 else ps
+        if ps < 512 or ps & (ps - 1):
+            raise BagError(f"{name}: SQLite header with a bad page size {ps}")
+        self.buf, self.scan, self.page_size = buf, scan, ps
+        self.usable = ps - buf[20]
+        self.npages = len(buf) // ps
+        if _u(buf, 24, 4, "big") == _u(buf, 92, 4, "big") and _u(buf, 28, 4, "big"):
+            scan.expected_bytes = _u(buf, 28, 4, "big") * ps
+            if self.npages > scan.expected_bytes // ps:  # bytes after the database
+                scan.problems.append(f"{len(buf) - scan.expected_bytes} bytes after the end "
+                                     "of the database")
+                self.npages = scan.expected_bytes // ps
+        self.overlay: dict[int, bytes] = {}
+        wal_path = path.with_name(path.name + "-wal")
+        if regular_file_problem(wal_path) is None:
+            self.overlay, problem = _wal_pages(wal_path.read_bytes(), ps)
+            if problem:
+                scan.problems.append(problem)
+            if self.overlay:
+                self.npages = max(self.npages, max(self.overlay))
+                scan.expected_bytes = None  # the log holds the newest size
+        if regular_file_problem(path.with_name(path.name + "-journal")) is None:
+            scan.problems.append("a rollback journal was left (the last transaction did not "
+                                 "finish); the database is read as it was written")
+
+    def page(self, p: int) -> bytes | None:
+        """Page ``p`` (1-based), None where it is missing."""
+        if p in self.overlay:
+            return self.overlay[p]
+        ps = self.page_size
+        if 1 <= p <= self.npages and p * ps <= len(self.buf):
+            return bytes(self.buf[(p - 1) * ps:p * ps])
         return None
 
-    def kind(p: int) -> int:
-        pg = page(p)
+    def kind(self, p: int) -> int:
+        """The b-tree page type of page ``p`` (0x0D table leaf, 0x05 table interior), -1
+        where the page is missing."""
+        pg = self.page(p)
         return -1 if pg is None else pg[100 if p == 1 else 0]
 
-    def cells(p: int) -> list[tuple[int, bytes | None]]:
+    def cells(self, p: int) -> list[tuple[int, bytes | None]]:
         """(rowid, payload or None if an overflow page is missing) of a table leaf."""
-        pg = page(p)
+        pg = self.page(p)
         assert pg is not None
+        usable = self.usable
         h = 100 if p == 1 else 0
         out: list[tuple[int, bytes | None]] = []
         x = usable - 35
@@ -1016,8 +1087,8 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
             local = local if local <= x else m
             data = [pg[c:c + local]]
             have, nxt, hops = local, _u(pg, c + local, 4, "big"), 0
-            while have < size and nxt and hops <= npages:
-                ov = page(nxt)
+            while have < size and nxt and hops <= self.npages:
+                ov = self.page(nxt)
                 if ov is None:
                     break
                 take = min(size - have, usable - 4)
@@ -1026,7 +1097,7 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
             out.append((rowid, b"".join(data) if have == size else None))
         return out
 
-    def leaves(root: int, seen: set[int]) -> list[int]:
+    def leaves(self, root: int, seen: set[int]) -> list[int]:
         """Table leaf pages reached from ``root`` (missing pages are skipped)."""
         found, stack = [], [root]
         while stack:
@@ -1034,11 +1105,11 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
             if p in seen:
                 continue
             seen.add(p)
-            k = kind(p)
+            k = self.kind(p)
             if k == 0x0D:
                 found.append(p)
             elif k == 0x05:
-                pg = page(p)
+                pg = self.page(p)
                 assert pg is not None
                 h = 100 if p == 1 else 0
                 stack.append(_u(pg, h + 8, 4, "big"))
@@ -1046,77 +1117,57 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
                     stack.append(_u(pg, _u(pg, h + 12 + 2 * i, 2, "big"), 4, "big"))
         return found
 
-    def rows(root: int, seen: set[int]) -> list[tuple[int, list[Any]]]:
+    def rows(self, root: int, seen: set[int]) -> list[tuple[int, list[Any]]]:
+        """(rowid, values) of the table whose b-tree starts at page ``root``; its pages are
+        added to ``seen``, an unreadable page is reported and skipped."""
         out: list[tuple[int, list[Any]]] = []
-        for p in leaves(root, seen):
+        for p in self.leaves(root, seen):
             try:
-                out.extend((r, _sqlite_record(d)) for r, d in cells(p) if d is not None)
+                out.extend((r, _sqlite_record(d)) for r, d in self.cells(p) if d is not None)
             except _StopError:
-                scan.problems.append(f"unreadable page {p}")
+                self.scan.problems.append(f"unreadable page {p}")
         return out
 
-    claimed: set[int] = set()
-    free = set()  # pages on the free list may hold stale rows
-    trunk, hops = _u(buf, 32, 4, "big"), 0
-    while trunk and hops <= npages and (pg := page(trunk)) is not None:
-        free.add(trunk)
-        free.update(_u(pg, 8 + 4 * i, 4, "big") for i in range(min(_u(pg, 4, 4, "big"),
-                                                                   usable // 4 - 2)))
-        trunk, hops = _u(pg, 0, 4, "big"), hops + 1
-    claimed |= free
-    try:
-        schema = rows(1, claimed)
-    except _StopError as exc:
-        raise BagError(f"{name}: unreadable SQLite schema: {exc}") from exc
-    roots = {v[1]: v[3] for _r, v in schema if len(v) == 5 and v[0] == "table"
-             and isinstance(v[3], int)}
-    if "messages" not in roots or "topics" not in roots:
-        raise BagError(f"{name}: not a rosbag2 database (no messages and topics tables)")
-    tables = {t: rows(root, claimed) for t, root in roots.items() if t != "messages"}
-    defs = {v[1]: (v[3], v[2]) for _r, v in tables.get("message_definitions", [])
-            if len(v) >= 4 and isinstance(v[1], str) and isinstance(v[3], str)}
-    for rowid, v in tables["topics"]:
-        if len(v) >= 4 and all(isinstance(x, str) for x in v[1:4]):
-            text, enc = defs.get(v[2], ("", ""))
-            scan.conns[rowid] = (v[1], v[2], text, enc)
-    # The messages table: every table leaf not claimed by another table (a cut file may
-    # have lost the interior pages that lead to them), whose rows all have its shape.
-    found: dict[int, tuple[int, int, bytes] | None] = {}
-    for p in range(1, npages + 1):
-        if p in claimed or kind(p) != 0x0D:
-            continue
-        try:
-            page_rows = [(r, _sqlite_record(d) if d is not None else None)
-                         for r, d in cells(p)]
-        except _StopError:
-            scan.problems.append(f"unreadable page {p}")
-            continue
-        if not all(w is None or (len(w) == 4 and w[0] is None and isinstance(w[1], int)
-                                 and isinstance(w[2], int) and isinstance(w[3], bytes))
-                   for _r, w in page_rows):
-            continue  # another table's page
-        for r, w in page_rows:
-            row = None if w is None else (w[1], w[2], w[3])
-            if r in found and found[r] != row:
-                found[r] = None  # two different versions of one row: trust neither
-            else:
-                found[r] = row
-    for rowid in sorted(found):
-        kept = found[rowid]
-        if kept is None or kept[0] not in scan.conns:
-            scan.dropped += 1
-            continue
-        scan.add(*kept)
-    if found:  # ids are 1, 2, 3, ...: a gap below the largest found is a lost row
-        scan.dropped += max(found) - len(found)
-    scan.complete = min(len(buf) // ps, npages) * ps
-    if len(buf) % ps and len(buf) // ps < npages:
-        scan.problems.append(f"the file ends inside page {len(buf) // ps + 1}")
-    if scan.expected_bytes is not None and scan.expected_bytes > len(buf):
-        scan.problems.append(f"the file is cut: {(scan.expected_bytes - len(buf)) // ps} "
-                             f"of {scan.expected_bytes // ps} pages missing at the end")
-    scan.ended = not scan.problems and not scan.dropped
-    return scan
+    def free_pages(self) -> set[int]:
+        """The pages of the free list (trunk and leaf pages), as far as they can be read."""
+        buf, usable = self.buf, self.usable
+        free = set()
+        trunk, hops = _u(buf, 32, 4, "big"), 0
+        while trunk and hops <= self.npages and (pg := self.page(trunk)) is not None:
+            free.add(trunk)
+            free.update(_u(pg, 8 + 4 * i, 4, "big") for i in range(min(_u(pg, 4, 4, "big"),
+                                                                       usable // 4 - 2)))
+            trunk, hops = _u(pg, 0, 4, "big"), hops + 1
+        return free
+
+    def message_rows(self, claimed: set[int]) -> dict[int, tuple[int, int, bytes] | None]:
+        """The rows of the messages table by rowid: (topic id, time, data), or None where
+        two different versions of a row were found or its overflow pages are missing.
+
+        Every table leaf not claimed by another table is read (a cut file may have lost the
+        interior pages that lead to them) when all its rows have the messages table's
+        shape."""
+        found: dict[int, tuple[int, int, bytes] | None] = {}
+        for p in range(1, self.npages + 1):
+            if p in claimed or self.kind(p) != 0x0D:
+                continue
+            try:
+                page_rows = [(r, _sqlite_record(d) if d is not None else None)
+                             for r, d in self.cells(p)]
+            except _StopError:
+                self.scan.problems.append(f"unreadable page {p}")
+                continue
+            if not all(w is None or (len(w) == 4 and w[0] is None and isinstance(w[1], int)
+                                     and isinstance(w[2], int) and isinstance(w[3], bytes))
+                       for _r, w in page_rows):
+                continue  # another table's page
+            for r, w in page_rows:
+                row = None if w is None else (w[1], w[2], w[3])
+                if r in found and found[r] != row:
+                    found[r] = None  # two different versions of one row: trust neither
+                else:
+                    found[r] = row
+        return found
 
 
 # --- ROS 1: records (header, data) from the version line on; chunks hold the messages.
@@ -1140,18 +1191,54 @@ def _ros1_type(name: str) -> str:
 
 
 def _scan_ros1(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
-    scan = _Scan(keep=keep)
+    """Scan a ROS 1 bag record by record from its version line (no index needed)."""
+    scanner = _Ros1Scanner(keep)
+    scan = scanner.scan
     if bytes(buf[:len(ROS1_MAGIC)]) != ROS1_MAGIC:
         raise BagError(f"{name}: not a ROS 1 bag (version 2.0): it does not start with "
                        "'#ROSBAG V2.0'")
-    index_pos = 0
-    chunks = expected_chunks = 0
+    try:
+        end, tail = scanner.records(buf, len(ROS1_MAGIC), nested=False)
+    except _StopError as exc:
+        scan.problems.append(f"unreadable record: {exc}")
+        return scan
+    index_pos, chunks, expected_chunks = (scanner.index_pos, scanner.chunks,
+                                          scanner.expected_chunks)
+    scan.complete = end
+    if index_pos and expected_chunks:
+        scan.expected_bytes = index_pos
+    if tail is not None and tail[0].get("op", b"")[:1] == b"\x05":
+        with contextlib.suppress(_StopError):
+            scan.complete = tail[1] + scanner.chunk(tail[0], buf[tail[1]:], end,
+                                                    partial=True) or end
+        scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
+    elif end < len(buf):
+        scan.problems.append("the index is cut (every message is before it)"
+                             if index_pos and end >= index_pos else
+                             f"the file ends inside a record at byte {end}")
+    if not index_pos:
+        scan.problems.append("no index (the recording did not finish)")
+    elif len(buf) < index_pos:
+        scan.problems.append(f"cut at byte {len(buf)} before the index at byte {index_pos}; "
+                             f"{chunks} of {expected_chunks} chunks complete")
+    scan.ended = not scan.problems and index_pos > 0
+    return scan
 
-    def records(view: Any, pos: int, nested: bool) -> tuple[int, tuple[dict[str, bytes], int]
-                                                            | None]:
+
+class _Ros1Scanner:
+    """The state of one ROS 1 scan: where the bag header says the index is, and the chunks
+    it announces and those found complete."""
+
+    def __init__(self, keep: Callable[[str], bool]) -> None:
+        self.scan = _Scan(keep=keep)
+        self.index_pos = 0
+        self.chunks = 0
+        self.expected_chunks = 0
+
+    def records(self, view: Any, pos: int, nested: bool
+                ) -> tuple[int, tuple[dict[str, bytes], int] | None]:
         """Handle the complete records from ``pos``; return the end of the last one and,
         for a partial record after it, its header and data position."""
-        nonlocal index_pos, chunks, expected_chunks
         n = len(view)
         while pos < n:
             if n - pos < 4:
@@ -1169,34 +1256,41 @@ def _scan_ros1(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
             op = head.get("op", b"\xff")[:1]
             data = view[dpos:end]
             if op == b"\x03" and not nested:  # bag header
-                index_pos = _u(head.get("index_pos", b""), 0, 8)
-                expected_chunks = _u(head.get("chunk_count", b""), 0, 4)
+                self.index_pos = _u(head.get("index_pos", b""), 0, 8)
+                self.expected_chunks = _u(head.get("chunk_count", b""), 0, 4)
             elif op == b"\x05" and not nested:  # chunk
-                chunk(head, data, pos, partial=False)
-                chunks += 1
+                self.chunk(head, data, pos, partial=False)
+                self.chunks += 1
             elif op == b"\x07":  # connection
-                cid = _u(head.get("conn", b""), 0, 4)
-                info = _ros1_header(data)
-                topic = head.get("topic", b"").decode("utf-8", "replace")
-                typ = info.get("type", b"").decode("utf-8", "replace")
-                text = info.get("message_definition", b"").decode("utf-8", "replace")
-                scan.conns[cid] = (topic, _ros1_type(typ), text, "msg")
+                self._connection(head, data)
             elif op == b"\x02":  # message data
-                cid = _u(head.get("conn", b""), 0, 4)
-                t = head.get("time", b"")
-                ns = _u(t, 0, 4) * 1_000_000_000 + _u(t, 4, 4)
-                if cid in scan.conns:
-                    scan.add(cid, ns, data)
-                else:
-                    scan.dropped += 1
+                self._message(head, data)
             elif nested:
                 raise _StopError(f"record op {op!r} inside a chunk")
             pos = end
         return pos, None
 
-    def chunk(head: dict[str, bytes], data: Any, at: int, partial: bool) -> int:
+    def _connection(self, head: dict[str, bytes], data: Any) -> None:
+        cid = _u(head.get("conn", b""), 0, 4)
+        info = _ros1_header(data)
+        topic = head.get("topic", b"").decode("utf-8", "replace")
+        typ = info.get("type", b"").decode("utf-8", "replace")
+        text = info.get("message_definition", b"").decode("utf-8", "replace")
+        self.scan.conns[cid] = (topic, _ros1_type(typ), text, "msg")
+
+    def _message(self, head: dict[str, bytes], data: Any) -> None:
+        cid = _u(head.get("conn", b""), 0, 4)
+        t = head.get("time", b"")
+        ns = _u(t, 0, 4) * 1_000_000_000 + _u(t, 4, 4)
+        if cid in self.scan.conns:
+            self.scan.add(cid, ns, data)
+        else:
+            self.scan.dropped += 1
+
+    def chunk(self, head: dict[str, bytes], data: Any, at: int, partial: bool) -> int:
         """Handle a chunk; return the end of its last complete record in the data
         (uncompressed chunks) or 0 (compressed ones)."""
+        scan = self.scan
         compression = head.get("compression", b"none").decode("ascii", "replace")
         raw = _decompress(bytes(data), compression, partial)
         size = _u(head.get("size", b""), 0, 4)
@@ -1204,43 +1298,15 @@ def _scan_ros1(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
             raise _StopError(f"chunk at byte {at} has {len(raw)} bytes, not {size}")
         found = len(scan.messages)
         try:  # a complete chunk must be filled exactly by its records (as in _scan_mcap)
-            inner, tail = records(memoryview(raw)[:size], 0, nested=True)
+            inner, tail = self.records(memoryview(raw)[:size], 0, nested=True)
             if not partial and (tail is not None or inner != size):
                 raise _StopError("it ends inside a record")
         except _StopError as exc:
-            lost = len(scan.messages) - found
-            del scan.messages[found:]
-            scan.dropped += lost
-            scan.problems.append(f"chunk at byte {at} is damaged inside: {exc} "
-                                 f"({lost} messages dropped)")
+            scan.drop_since(found, f"chunk at byte {at} is damaged inside: {exc}")
             return 0
         if tail is not None:
             scan.dropped += 1 if tail[0].get("op") == b"\x02" else 0
         return inner if compression == "none" else 0
-
-    try:
-        end, tail = records(buf, len(ROS1_MAGIC), nested=False)
-    except _StopError as exc:
-        scan.problems.append(f"unreadable record: {exc}")
-        return scan
-    scan.complete = end
-    if index_pos and expected_chunks:
-        scan.expected_bytes = index_pos
-    if tail is not None and tail[0].get("op", b"")[:1] == b"\x05":
-        with contextlib.suppress(_StopError):
-            scan.complete = tail[1] + chunk(tail[0], buf[tail[1]:], end, partial=True) or end
-        scan.problems.append(f"the last chunk is cut at byte {len(buf)}")
-    elif end < len(buf):
-        scan.problems.append("the index is cut (every message is before it)"
-                             if index_pos and end >= index_pos else
-                             f"the file ends inside a record at byte {end}")
-    if not index_pos:
-        scan.problems.append("no index (the recording did not finish)")
-    elif len(buf) < index_pos:
-        scan.problems.append(f"cut at byte {len(buf)} before the index at byte {index_pos}; "
-                             f"{chunks} of {expected_chunks} chunks complete")
-    scan.ended = not scan.problems and index_pos > 0
-    return scan
 
 
 def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]:
@@ -1320,61 +1386,14 @@ def recover_bag(path: str | os.PathLike[str],
     def keep(topic: str) -> bool:
         return wanted is None or topic in wanted
 
-    custom: dict[str, str] = {}
-    expected_messages = expected_end = None
-    problems: list[str] = []
-    if bag.is_dir():
-        try:
-            info = _bag_metadata(bag)
-            c = info.get("custom_data")
-            custom = {k: v for k, v in c.items() if isinstance(k, str)
-                      and isinstance(v, str)} if isinstance(c, dict) else {}
-            mc, st, du = (info.get("message_count"), info.get("starting_time"),
-                          info.get("duration"))
-            expected_messages = mc if isinstance(mc, int) else None
-            if isinstance(st, dict) and isinstance(du, dict):
-                start = st.get("nanoseconds_since_epoch")
-                dur = du.get("nanoseconds")
-                if isinstance(start, int) and isinstance(dur, int):
-                    expected_end = start + dur
-        except BagError as exc:
-            what = "missing" if "without" in str(exc) else "unreadable"
-            problems.append(f"metadata.yaml {what}")
+    custom, expected_messages, expected_end, problems = _metadata_expectations(bag)
     scans: list[_Scan] = []
     size = 0
     for f in files:
-        with open(f, "rb") as fh:
-            n = os.fstat(fh.fileno()).st_size
-            size += n
-            if n == 0:
-                raise BagError(f"{f}: empty file: nothing to recover") if len(files) == 1 \
-                    else BagError(f"{f}: empty storage file")
-            try:
-                mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)  # not read in memory
-            except (OSError, ValueError, OverflowError) as exc:
-                raise BagError(f"{f}: cannot be mapped for a scan: {_one_line(exc)}") from exc
-            try:
-                if storage == "mcap":
-                    scans.append(_scan_mcap(memoryview(mm), str(f), keep))
-                elif storage == "sqlite3":
-                    scans.append(_scan_sqlite(f, mm, str(f), keep))
-                else:
-                    scans.append(_scan_ros1(memoryview(mm), str(f), keep))
-            finally:
-                with contextlib.suppress(BufferError):  # a view still held: closed when freed
-                    mm.close()
-    connections: list[RecoveredConnection] = []
-    ids: dict[tuple[str, str], int] = {}
-    messages: list[tuple[int, int, bytes]] = []
-    for scan in scans:
-        local: dict[Any, int] = {}
-        for key, (topic, msgtype, text, enc) in scan.conns.items():
-            if (topic, msgtype) not in ids:
-                ids[(topic, msgtype)] = len(connections)
-                connections.append(RecoveredConnection(len(connections), topic, msgtype,
-                                                       text, enc))
-            local[key] = ids[(topic, msgtype)]
-        messages.extend((local[c], ns, data) for c, ns, data in scan.messages)
+        scan, n = _scan_storage_file(f, storage, keep, only=len(files) == 1)
+        scans.append(scan)
+        size += n
+    connections, messages = _merge_scans(scans)
     if not connections:
         found = "; ".join(problems + [p for s in scans for p in s.problems]) or "no data"
         raise BagError(f"{bag}: nothing recoverable: no complete connection record ({found})")
@@ -1395,6 +1414,76 @@ def recover_bag(path: str | os.PathLike[str],
         intact=all(s.ended for s in scans) and not all_problems,
         problems=all_problems)
     return RecoveredBag(connections, messages, storage == "ros1", custom, damage)
+
+
+def _metadata_expectations(bag: Path) -> tuple[dict[str, str], int | None, int | None,
+                                                list[str]]:
+    """What a ROS 2 bag's metadata.yaml says, if it survived: (custom data, message count,
+    end time in ns, problems found); nothing for a ROS 1 bag or a lone storage file."""
+    custom: dict[str, str] = {}
+    expected_messages = expected_end = None
+    problems: list[str] = []
+    if bag.is_dir():
+        try:
+            info = _bag_metadata(bag)
+            c = info.get("custom_data")
+            custom = {k: v for k, v in c.items() if isinstance(k, str)
+                      and isinstance(v, str)} if isinstance(c, dict) else {}
+            mc, st, du = (info.get("message_count"), info.get("starting_time"),
+                          info.get("duration"))
+            expected_messages = mc if isinstance(mc, int) else None
+            if isinstance(st, dict) and isinstance(du, dict):
+                start = st.get("nanoseconds_since_epoch")
+                dur = du.get("nanoseconds")
+                if isinstance(start, int) and isinstance(dur, int):
+                    expected_end = start + dur
+        except BagError as exc:
+            what = "missing" if "without" in str(exc) else "unreadable"
+            problems.append(f"metadata.yaml {what}")
+    return custom, expected_messages, expected_end, problems
+
+
+def _scan_storage_file(f: Path, storage: str, keep: Callable[[str], bool], *, only: bool
+                       ) -> tuple[_Scan, int]:
+    """The scan of one storage file, memory-mapped read-only (not read into memory), and
+    its size; ``only``: the bag's one storage file (its emptiness is then the bag's)."""
+    with open(f, "rb") as fh:
+        n = os.fstat(fh.fileno()).st_size
+        if n == 0:
+            raise BagError(f"{f}: empty file: nothing to recover") if only \
+                else BagError(f"{f}: empty storage file")
+        try:
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)  # not read in memory
+        except (OSError, ValueError, OverflowError) as exc:
+            raise BagError(f"{f}: cannot be mapped for a scan: {_one_line(exc)}") from exc
+        try:
+            if storage == "mcap":
+                return _scan_mcap(memoryview(mm), str(f), keep), n
+            if storage == "sqlite3":
+                return _scan_sqlite(f, mm, str(f), keep), n
+            return _scan_ros1(memoryview(mm), str(f), keep), n
+        finally:
+            with contextlib.suppress(BufferError):  # a view still held: closed when freed
+                mm.close()
+
+
+def _merge_scans(scans: list[_Scan]) -> tuple[list[RecoveredConnection],
+                                              list[tuple[int, int, bytes]]]:
+    """The connections of all the storage files, one per (topic, type) in order of first
+    appearance, and every message with its connection renumbered (in file order)."""
+    connections: list[RecoveredConnection] = []
+    ids: dict[tuple[str, str], int] = {}
+    messages: list[tuple[int, int, bytes]] = []
+    for scan in scans:
+        local: dict[Any, int] = {}
+        for key, (topic, msgtype, text, enc) in scan.conns.items():
+            if (topic, msgtype) not in ids:
+                ids[(topic, msgtype)] = len(connections)
+                connections.append(RecoveredConnection(len(connections), topic, msgtype,
+                                                       text, enc))
+            local[key] = ids[(topic, msgtype)]
+        messages.extend((local[c], ns, data) for c, ns, data in scan.messages)
+    return connections, messages
 
 
 class _RecoveredReader:

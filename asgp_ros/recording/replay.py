@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from asgp_ros.bags import BagError, resolve_bag
+from asgp_ros.recording.bags import BagError, resolve_bag
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
 # (for REPLAY_RANGES) and must stay fast, and rclpy is an optional dependency.
@@ -242,7 +242,7 @@ def _is_transient_local(connection: Connection) -> bool:
 class BagReplayer:
     """Publishes a bag into ROS 2. Use as ``with BagReplayer(path, config, node) as r: r.run()``.
 
-    The path is checked as every bag reader checks it (:func:`asgp_ros.bags.resolve_bag`:
+    The path is checked as every bag reader checks it (:func:`asgp_ros.recording.bags.resolve_bag`:
     ``os.stat`` first, FIFOs, devices and sockets refused); any failure to read the bag,
     when opening it or further into it (a message that does not deserialise), is a
     :class:`ReplayError` naming it. A message that deserialises but does not fit the

@@ -201,7 +201,6 @@ def evaluate_model(
         segment), or truth asked for on series without ground truth.
     """
     rate, s, need, steps_list = _case_setup(model, series, horizons_s, threshold_m, case_lags)
-    dt = 1.0 / rate
     if truth:
         missing = [ts.name for ts in series if not ts.has_truth]
         if missing:
@@ -210,73 +209,9 @@ def evaluate_model(
     unc = uncertainty or _uncertainty_for(model)
     out: dict[str, HorizonEvaluation] = {}
     for h, k in zip(horizons_s, steps_list, strict=True):
-        preds, refs, covs, truths = [], [], [], []
-        ex_pool: list[dict[str, np.ndarray]] = []
-        for ts in series:
-            res = ts.res
-            idx = metrics.case_indices(res.segment, need, k)
-            if idx.size == 0:
-                continue
-            pose, cov, _ = rollout_cases(model, res, idx, k, uncertainty=unc)
-            ref_path = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)  # [N, k, 3]
-            preds.append(pose[:, -1, :2])
-            refs.append(ref_path[:, -1, :2])
-            if cov is not None:
-                covs.append(cov[:, -1])
-            if truth:
-                # Ground-truth displacement t_{t-1} -> t_{t+k-1} in the body frame at t_{t-1};
-                # cases without ground truth at both ends are left out of this score.
-                ok = res.truth_valid[idx - 1] & res.truth_valid[idx + k - 1]
-                disp = metrics.relative_displacement(res.truth[idx - 1, :3],
-                                                     res.truth[idx + k - 1, :3])
-                disp[~ok] = np.nan
-                truths.append(disp)
-            if n_examples:
-                # a spread of manoeuvres: cases ranked by the recorded heading change
-                turn = np.abs(ref_path[:, -1, 2])
-                keep = np.argsort(turn, kind="stable")
-                keep = keep[np.linspace(0, keep.size - 1, min(4 * n_examples, keep.size))
-                            .astype(int)]
-                ex_pool.append({
-                    "pred": pose[keep, :, :2],
-                    "ref": ref_path[keep, :, :2],
-                    "cov": cov[keep] if cov is not None else np.zeros((keep.size, k, 2, 2)),
-                    "score": turn[keep],
-                    "t": res.t[idx[keep]] - res.t[0],
-                    "idx": idx[keep],
-                    "series": np.full(keep.size, ts.name),
-                })
-        if not preds:
-            raise EvaluationError(
-                f"horizon {h} s ({k} steps) with {need} past samples is longer than every "
-                f"valid segment of the test data (longest {longest_segment_s(series, rate):.1f}"
-                " s)")
-        pred_xy = np.concatenate(preds)
-        ref_xy = np.concatenate(refs)
-        pos_cov = np.concatenate(covs) if len(covs) == len(preds) and covs else None
-        try:
-            vo_res, errors = metrics.score(pred_xy, ref_xy, horizon_s=h, steps=k,
-                                           threshold_m=threshold_m, pos_cov=pos_cov)
-            truth_res = None
-            if truth:
-                gt = np.concatenate(truths)
-                ok = np.all(np.isfinite(gt), axis=1)
-                truth_res, _ = metrics.score(
-                    pred_xy[ok], gt[ok], horizon_s=h, steps=k, threshold_m=threshold_m,
-                    pos_cov=None if pos_cov is None else pos_cov[ok])
-        except ValueError as exc:
-            raise EvaluationError(f"{name or model.kind} at {h} s: {exc}") from exc
-        examples = None
-        if n_examples and ex_pool:
-            allx = {key: np.concatenate([p[key] for p in ex_pool]) for key in ex_pool[0]}
-            # Quantiles 0.5 .. 1 of the heading change: a mild, a medium and the sharpest turn.
-            order = np.argsort(allx["score"], kind="stable")
-            q = np.linspace(0.5, 1.0, min(n_examples, order.size))
-            pick = order[np.round(q * (order.size - 1)).astype(int)]
-            examples = {key: v[pick] for key, v in allx.items()}
-        out[horizon_key(h)] = HorizonEvaluation(vo_res, truth_res, errors, examples)
-        log.debug("%s @ %s s: %d cases, success %.3f", name or model.kind, h, vo_res.cases,
-                  vo_res.success_rate)
+        out[horizon_key(h)] = _evaluate_horizon(
+            model, series, h, k, rate, need, uncertainty=unc, threshold_m=threshold_m,
+            truth=truth, n_examples=n_examples, name=name)
     return ModelEvaluation(
         model=name or str(model.kind),
         kind=str(model.kind),
@@ -286,6 +221,95 @@ def evaluate_model(
         test=[ts.name for ts in series],
         horizons=out,
     )
+
+
+def _evaluate_horizon(model: Any, series: Sequence[TestSeries], h: float, k: int, rate: float,
+                      need: int, *, uncertainty: str, threshold_m: float, truth: bool,
+                      n_examples: int, name: str) -> HorizonEvaluation:
+    """Every case of every series at the horizon h (k steps): the model rolled out, the
+    reference path integrated from the recorded VO, the positions at the horizon scored
+    (and against ground truth with ``truth``), and ``n_examples`` example cases kept."""
+    dt = 1.0 / rate
+    preds, refs, covs, truths = [], [], [], []
+    ex_pool: list[dict[str, np.ndarray]] = []
+    for ts in series:
+        res = ts.res
+        idx = metrics.case_indices(res.segment, need, k)
+        if idx.size == 0:
+            continue
+        pose, cov, _ = rollout_cases(model, res, idx, k, uncertainty=uncertainty)
+        ref_path = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)  # [N, k, 3]
+        preds.append(pose[:, -1, :2])
+        refs.append(ref_path[:, -1, :2])
+        if cov is not None:
+            covs.append(cov[:, -1])
+        if truth:
+            truths.append(_truth_displacement(res, idx, k))
+        if n_examples:
+            ex_pool.append(_example_candidates(ts, idx, k, pose, cov, ref_path, n_examples))
+    if not preds:
+        raise EvaluationError(
+            f"horizon {h} s ({k} steps) with {need} past samples is longer than every "
+            f"valid segment of the test data (longest {longest_segment_s(series, rate):.1f}"
+            " s)")
+    pred_xy = np.concatenate(preds)
+    ref_xy = np.concatenate(refs)
+    pos_cov = np.concatenate(covs) if len(covs) == len(preds) and covs else None
+    try:
+        vo_res, errors = metrics.score(pred_xy, ref_xy, horizon_s=h, steps=k,
+                                       threshold_m=threshold_m, pos_cov=pos_cov)
+        truth_res = None
+        if truth:
+            gt = np.concatenate(truths)
+            ok = np.all(np.isfinite(gt), axis=1)
+            truth_res, _ = metrics.score(
+                pred_xy[ok], gt[ok], horizon_s=h, steps=k, threshold_m=threshold_m,
+                pos_cov=None if pos_cov is None else pos_cov[ok])
+    except ValueError as exc:
+        raise EvaluationError(f"{name or model.kind} at {h} s: {exc}") from exc
+    examples = _pick_examples(ex_pool, n_examples) if n_examples and ex_pool else None
+    log.debug("%s @ %s s: %d cases, success %.3f", name or model.kind, h, vo_res.cases,
+              vo_res.success_rate)
+    return HorizonEvaluation(vo_res, truth_res, errors, examples)
+
+
+def _truth_displacement(res: Any, idx: np.ndarray, k: int) -> np.ndarray:
+    """[N, 2] ground-truth displacement t_{t-1} -> t_{t+k-1} in the body frame at t_{t-1};
+    NaN for cases without ground truth at both ends (left out of that score)."""
+    ok = res.truth_valid[idx - 1] & res.truth_valid[idx + k - 1]
+    disp = metrics.relative_displacement(res.truth[idx - 1, :3], res.truth[idx + k - 1, :3])
+    disp[~ok] = np.nan
+    return disp
+
+
+def _example_candidates(ts: TestSeries, idx: np.ndarray, k: int, pose: np.ndarray,
+                        cov: np.ndarray | None, ref_path: np.ndarray, n_examples: int
+                        ) -> dict[str, np.ndarray]:
+    """Up to 4 n_examples cases of one series for the example plots: a spread of manoeuvres,
+    ranked by the recorded heading change ("score")."""
+    turn = np.abs(ref_path[:, -1, 2])
+    keep = np.argsort(turn, kind="stable")
+    keep = keep[np.linspace(0, keep.size - 1, min(4 * n_examples, keep.size)).astype(int)]
+    return {
+        "pred": pose[keep, :, :2],
+        "ref": ref_path[keep, :, :2],
+        "cov": cov[keep] if cov is not None else np.zeros((keep.size, k, 2, 2)),
+        "score": turn[keep],
+        "t": ts.res.t[idx[keep]] - ts.res.t[0],
+        "idx": idx[keep],
+        "series": np.full(keep.size, ts.name),
+    }
+
+
+def _pick_examples(ex_pool: list[dict[str, np.ndarray]], n_examples: int
+                   ) -> dict[str, np.ndarray]:
+    """``n_examples`` of the candidates of every series: the quantiles 0.5 .. 1 of the
+    heading change (a mild, a medium and the sharpest turn)."""
+    allx = {key: np.concatenate([p[key] for p in ex_pool]) for key in ex_pool[0]}
+    order = np.argsort(allx["score"], kind="stable")
+    q = np.linspace(0.5, 1.0, min(n_examples, order.size))
+    pick = order[np.round(q * (order.size - 1)).astype(int)]
+    return {key: v[pick] for key, v in allx.items()}
 
 
 # --------------------------------------------------------------------------- adaptive
@@ -420,57 +444,16 @@ def evaluate_adaptive(
             replays.append(_replay_series(model, ts, k_max, need, settings, config))
         except AdaptError as exc:
             raise EvaluationError(str(exc)) from exc
+    timeline, keep_all = _timeline_of_cases(series, replays, skip_s)
     horizons_a: dict[str, HorizonEvaluation] = {}
     horizons_p: dict[str, HorizonEvaluation] = {}
-    timeline: dict[str, Any] = {"series": [], "t": [], "scale": []}
-    keep_all = []
-    for si, (ts, rep) in enumerate(zip(series, replays, strict=True)):
-        t_rel = ts.res.t[rep["idx"] - 1] - ts.res.t[0] if rep["idx"].size else np.zeros(0)
-        keep = t_rel >= skip_s
-        keep_all.append(keep)
-        timeline["series"].append(np.full(int(keep.sum()), si))
-        timeline["t"].append(t_rel[keep])
-        timeline["scale"].append(rep["scale"][keep])
     for h, k in zip(horizons_s, steps_list, strict=True):
-        cols: dict[str, list[np.ndarray]] = {"pa": [], "pp": [], "ref": [], "ca": [], "cp": []}
-        masks = []
-        for ts, rep, keep in zip(series, replays, keep_all, strict=True):
-            res = ts.res
-            valid_k = np.isin(rep["idx"], metrics.case_indices(res.segment, need, k))
-            use = keep & valid_k
-            masks.append(valid_k[keep])
-            idx = rep["idx"][use]
-            if idx.size == 0:
-                continue
-            plain_pose, plain_cov, _ = rollout_cases(model, res, idx, k, uncertainty="linear")
-            ref = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)
-            cols["pa"].append(rep["pose"][use][:, k - 1, :2])
-            cols["ca"].append(rep["cov"][use][:, k - 1])
-            cols["pp"].append(plain_pose[:, -1, :2])
-            assert plain_cov is not None
-            cols["cp"].append(plain_cov[:, -1])
-            cols["ref"].append(ref[:, -1, :2])
-        if not cols["pa"]:
-            raise EvaluationError(f"no case at the {h} s horizon was predicted online "
-                                  f"{skip_s:g} s or more into a recording")
-        pa, pp, ref, ca, cp = (np.concatenate(cols[c]) for c in ("pa", "pp", "ref", "ca", "cp"))
-        try:
-            res_a, err_a = metrics.score(pa, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
-                                         pos_cov=ca)
-            res_p, err_p = metrics.score(pp, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
-                                         pos_cov=cp)
-        except ValueError as exc:
-            raise EvaluationError(f"{name or model.kind} (adapting) at {h} s: {exc}") from exc
-        horizons_a[horizon_key(h)] = HorizonEvaluation(res_a, None, err_a)
-        horizons_p[horizon_key(h)] = HorizonEvaluation(res_p, None, err_p)
-        # per case of the timeline (NaN where the case is too short for this horizon)
-        mask = np.concatenate(masks)
-        for key, value in (("hit", err_a <= threshold_m), ("hit_plain", err_p <= threshold_m),
-                           ("covered", metrics.mahalanobis_sq(pa - ref, ca) <= CHI2_2DOF_95),
-                           ("covered_plain",
-                            metrics.mahalanobis_sq(pp - ref, cp) <= CHI2_2DOF_95)):
-            col = np.full(mask.shape[0], np.nan)
-            col[mask] = value
+        adapted, plain, columns = _score_adaptive_horizon(
+            model, series, replays, keep_all, h, k, need, dt, threshold_m=threshold_m,
+            skip_s=skip_s, name=name)
+        horizons_a[horizon_key(h)] = adapted
+        horizons_p[horizon_key(h)] = plain
+        for key, col in columns.items():
             timeline.setdefault(key, {})[horizon_key(h)] = col
     timeline["series"] = np.concatenate(timeline["series"])
     timeline["t"] = np.concatenate(timeline["t"])
@@ -486,3 +469,72 @@ def evaluate_adaptive(
         adapted=evaluation(f"{label} + adapt", horizons_a), plain=evaluation(label, horizons_p),
         timeline=timeline, adaptation=[rep["adaptation"] for rep in replays],
         missing=sum(int(rep["missing"]) for rep in replays))
+
+
+def _timeline_of_cases(series: Sequence[TestSeries], replays: list[dict[str, Any]],
+                       skip_s: float) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """The timeline's per-case columns ``series``, ``t`` and ``scale`` (lists of one array
+    per recording), and per recording which of its predicted cases lie ``skip_s`` or more
+    into it."""
+    timeline: dict[str, Any] = {"series": [], "t": [], "scale": []}
+    keep_all = []
+    for si, (ts, rep) in enumerate(zip(series, replays, strict=True)):
+        t_rel = ts.res.t[rep["idx"] - 1] - ts.res.t[0] if rep["idx"].size else np.zeros(0)
+        keep = t_rel >= skip_s
+        keep_all.append(keep)
+        timeline["series"].append(np.full(int(keep.sum()), si))
+        timeline["t"].append(t_rel[keep])
+        timeline["scale"].append(rep["scale"][keep])
+    return timeline, keep_all
+
+
+def _score_adaptive_horizon(model: Any, series: Sequence[TestSeries],
+                            replays: list[dict[str, Any]], keep_all: list[np.ndarray],
+                            h: float, k: int, need: int, dt: float, *, threshold_m: float,
+                            skip_s: float, name: str
+                            ) -> tuple[HorizonEvaluation, HorizonEvaluation,
+                                       dict[str, np.ndarray]]:
+    """The online predictions at the horizon h (k steps) and the model not adapting on the
+    same cases, both scored against the VO reference; and the timeline's per-case columns
+    ``hit``, ``hit_plain``, ``covered`` and ``covered_plain`` (NaN where the case is too
+    short for this horizon)."""
+    cols: dict[str, list[np.ndarray]] = {"pa": [], "pp": [], "ref": [], "ca": [], "cp": []}
+    masks = []
+    for ts, rep, keep in zip(series, replays, keep_all, strict=True):
+        res = ts.res
+        valid_k = np.isin(rep["idx"], metrics.case_indices(res.segment, need, k))
+        use = keep & valid_k
+        masks.append(valid_k[keep])
+        idx = rep["idx"][use]
+        if idx.size == 0:
+            continue
+        plain_pose, plain_cov, _ = rollout_cases(model, res, idx, k, uncertainty="linear")
+        ref = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)
+        cols["pa"].append(rep["pose"][use][:, k - 1, :2])
+        cols["ca"].append(rep["cov"][use][:, k - 1])
+        cols["pp"].append(plain_pose[:, -1, :2])
+        assert plain_cov is not None
+        cols["cp"].append(plain_cov[:, -1])
+        cols["ref"].append(ref[:, -1, :2])
+    if not cols["pa"]:
+        raise EvaluationError(f"no case at the {h} s horizon was predicted online "
+                              f"{skip_s:g} s or more into a recording")
+    pa, pp, ref, ca, cp = (np.concatenate(cols[c]) for c in ("pa", "pp", "ref", "ca", "cp"))
+    try:
+        res_a, err_a = metrics.score(pa, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
+                                     pos_cov=ca)
+        res_p, err_p = metrics.score(pp, ref, horizon_s=h, steps=k, threshold_m=threshold_m,
+                                     pos_cov=cp)
+    except ValueError as exc:
+        raise EvaluationError(f"{name or model.kind} (adapting) at {h} s: {exc}") from exc
+    # per case of the timeline (NaN where the case is too short for this horizon)
+    mask = np.concatenate(masks)
+    columns = {}
+    for key, value in (("hit", err_a <= threshold_m), ("hit_plain", err_p <= threshold_m),
+                       ("covered", metrics.mahalanobis_sq(pa - ref, ca) <= CHI2_2DOF_95),
+                       ("covered_plain", metrics.mahalanobis_sq(pp - ref, cp) <= CHI2_2DOF_95)):
+        col = np.full(mask.shape[0], np.nan)
+        col[mask] = value
+        columns[key] = col
+    return (HorizonEvaluation(res_a, None, err_a), HorizonEvaluation(res_p, None, err_p),
+            columns)
