@@ -369,6 +369,10 @@ def test_demo_runs_end_to_end(demo_run):
     assert (out / "logs" / "shared_control.log").exists()
     assert msgs["joy"] > 50 * 20  # ~100 Hz for 24 s
     assert msgs["predicted_path"] > 40  # ~5 Hz
+    # the hardware counts the plans it published (its last diagnostics, a moment before the
+    # end of the run: a count stuck at 0 once went unnoticed)
+    sim = report["diagnostics"]["demo_hardware: simulation"]["values"]
+    assert int(sim["plans"]) > 0.8 * msgs["joy_plan"] > 0
     run = report["run"]
     assert run["errors"] == []
     assert set(run["returncodes"].values()) == {0}  # every node stopped cleanly on SIGINT
