@@ -99,7 +99,7 @@ HEADING_BIN = math.radians(0.25)
 #: refused (CollisionError): no wheelchair's prediction looks like that.
 MAX_COORDINATE = 1e6
 MAX_VARIANCE = 1e12
-_CELL_BUDGET = 1 << 22  # raster cells of one call (all heading bins): 32 MB of counts
+_CELL_BUDGET = 1 << 21  # raster cells of one call (all heading bins): 8 MB of counts
 _PAIR_BUDGET = 1 << 18  # (step, heading bin) pairs of one call: bins widen beyond
 _CHUNK = 1 << 22  # elements of an intermediate array
 _EPS_M = 1e-7  # boxes grown by this (m): round-off never turns a contact into a miss
@@ -719,7 +719,7 @@ def _raster_touch(fld: DistanceField, rect: _Rect, smp: _Samples, cell: float,
                   np.float32(1.0))
         np.add.at(flat_diff, np.concatenate([(bi + y0) * wc + x1, (bi + y1) * wc + x0]),
                   np.float32(-1.0))
-    marked = (cv2.integral(diff, sdepth=cv2.CV_32F) > 0.5).reshape(-1)
+    covered = cv2.integral(diff, sdepth=cv2.CV_32F).reshape(-1)  # cover counts
     stride = np.int32(wc + 1)
 
     # one lookup per sample: its cell in its heading's bin
@@ -732,29 +732,38 @@ def _raster_touch(fld: DistanceField, rect: _Rect, smp: _Samples, cell: float,
         flat = cells[:, 1] * stride + cells[:, 0] + (row[ib] * stride).astype(
             np.int32)[:, None]
     else:  # a bin per sample
-        D = (L.reshape(3 * n, 3) @ z.T).reshape(n, 3, -1)  # [n, 3, S] offsets x, y, theta
-        px = np.add(D[:, 0], mu[:, :1], out=D[:, 0])
-        py = np.add(D[:, 1], mu[:, 1:], out=D[:, 1])
-        th = np.add(D[:, 2], smp.theta[:, None], out=D[:, 2])
-        k = np.floor(th / width, out=th)  # unwrapped bin numbers (the pairs' formula)
+        # x, y and heading / bin width of every sample in one product (rows 1, z0, z1, z2);
+        # the steps' heading ranges have slack for the round-off of the bins' numbers
+        A = np.zeros((n, 3, 4))
+        A[:, 0, 0], A[:, 1, 0], A[:, 2, 0] = mu[:, 0], mu[:, 1], smp.theta / width
+        A[:, :2, 1:] = L[:, :2, :]
+        A[:, 2, 1:] = L[:, 2, :] / width
+        ones_z = np.concatenate([np.ones((z.shape[0], 1)), z], axis=1).T
+        D = (A.reshape(3 * n, 4) @ ones_z).reshape(n, 3, -1)  # [n, 3, S]
+        px, py = D[:, 0], D[:, 1]
+        k = np.floor(D[:, 2], out=D[:, 2])  # unwrapped bin numbers
         first_bin, span = int(p.b_lo.min()), int(p.b_hi.max() - p.b_lo.min()) + 1
         if span <= 8 * nb:  # a table over the unwrapped bins: no modulo per sample
             k -= first_bin
             ib2 = p.lut[np.mod(np.arange(first_bin, first_bin + span), nb)][k.astype(np.intp)]
         else:
             ib2 = p.lut[np.mod(k.astype(np.int64), nb)]  # [n, S]
-        c, s = c_[ib2], s_[ib2]
+        c, s = np.take(c_, ib2), np.take(s_, ib2)  # (take: faster than indexing)
         gu = c * px
         gu += s * py
-        gu += a_u[ib2]
+        gu += np.take(a_u, ib2)
         gv = c * py
         gv -= s * px
-        gv += a_v[ib2]
-        np.clip(gu, 1.0, top[ib2, 0], out=gu)
-        np.clip(gv, 1.0, top[ib2, 1], out=gv)
-        flat = (gv.astype(np.int32) + row[ib2].astype(np.int32)) * stride \
-            + gu.astype(np.int32)
-    touch: BoolArray = marked[flat]
+        gv += np.take(a_v, ib2)
+        np.minimum(gu, np.take(top[:, 0], ib2), out=gu)
+        np.maximum(gu, 1.0, out=gu)
+        np.minimum(gv, np.take(top[:, 1], ib2), out=gv)
+        np.maximum(gv, 1.0, out=gv)
+        flat = gv.astype(np.int32)
+        flat += np.take(row.astype(np.int32), ib2)
+        flat *= stride
+        flat += gu.astype(np.int32)
+    touch: BoolArray = covered[flat] > 0.5
     return touch, math.sqrt(2.0) * cell * (1.0 + pad) + p.sweep
 
 
@@ -842,7 +851,8 @@ def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
         np.linalg.norm(z, axis=1).max())
     half = np.stack([np.abs(L[..., 0, 0]) * zmax[0],
                      np.abs(L[..., 1, 0]) * zmax[0] + np.abs(L[..., 1, 1]) * zmax[1]], -1)
-    turn = (np.abs(L[..., 2, :]) @ zmax) * (1 + 1e-12)  # [B, k] largest heading offset
+    turn = np.abs(L[..., 2, :]) @ zmax  # [B, k] largest heading offset of a sample, with
+    turn = np.where(turn > 0.0, turn * (1 + 1e-9) + 1e-12 * (1.0 + np.abs(yaw)), 0.0)  # slack
     centres = footprint.centres()[:, 0]  # [D] along x
     offsets = np.stack([np.cos(yaw)[..., None] * centres,
                         np.sin(yaw)[..., None] * centres], axis=-1)  # [B, k, D, 2]
