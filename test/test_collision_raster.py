@@ -120,7 +120,7 @@ def random_paths(rng: np.random.Generator, B: int, k: int, heading: bool
 def assert_bounded(fld, pose, cov, **kw):
     """The raster's per-step and within-horizon probabilities lie between the reference
     and the reference with the rectangle grown by the returned tolerance."""
-    fast = C.contact_probability(fld, pose, cov, **kw)
+    fast = C.contact_probability(fld, pose, cov, **({"method": "raster"} | kw))
     assert np.all(np.isfinite(fast.per_step)) and np.all(np.isfinite(fast.within))
     assert 0.0 <= fast.tolerance < 0.2
     lo_step, lo_within = reference(fld, pose, cov)
@@ -158,6 +158,20 @@ def test_the_raster_is_close_to_the_exact_test_where_it_matters():
     assert np.abs(fast.per_step - exact).mean() < 0.01
     np.testing.assert_allclose(C.contact_probability(fld, pose, cov, method="exact").per_step,
                                exact, atol=1e-12)
+
+
+def test_the_default_is_exact_for_a_path_and_the_raster_for_a_batch():
+    wall = np.stack([np.full(300, 2.0), np.linspace(-3, 3, 300)], 1)
+    fld = points_field(wall)
+    pose = np.zeros((1, 10, 3))
+    pose[..., 0] = np.linspace(0.3, 1.6, 10)
+    cov = np.tile(np.eye(2) * 0.05**2, (1, 10, 1, 1))
+    one = C.contact_probability(fld, pose, cov)
+    assert one.tolerance == 0.0 and one.within[0] > 0.3
+    np.testing.assert_array_equal(one.per_step, reference(fld, pose, cov)[0])
+    many = C.contact_probability(fld, np.repeat(pose, 256, 0), np.repeat(cov, 256, 0))
+    assert 0.0 < many.tolerance < 0.03
+    assert np.all(many.per_step >= one.per_step)
 
 
 def test_edge_cases_stay_finite_and_bounded():

@@ -32,7 +32,7 @@ Model and approximations, stated once:
 * **The footprint test, two methods.** ``method="exact"`` tests the rectangle
   (``length`` x ``width``, centred ``offset`` ahead of the base frame's origin,
   :class:`Footprint`) of every sample against every obstacle point within reach.
-  ``method="raster"`` (the default) makes it one lookup per sample, as planners do with
+  ``method="raster"`` makes it one lookup per sample, as planners do with
   precomputed footprint cells per heading bin (nav2's Smac planner): the headings are cut
   into bins (``heading_bin``); in the frame of a bin's centre heading, the rectangle swept
   over the bin's headings fits in an axis-aligned box, and the raster cells (``raster``)
@@ -50,6 +50,10 @@ Model and approximations, stated once:
   are tried and kept when they lower the tolerance; ``Contact.tolerance`` reports what
   applied (about 1-3 cm for a thousand paths of ten steps near a wall; README, Shared
   control). The exact method reports 0.
+* **Which method.** ``method="auto"`` (the default) takes the exact test when the samples
+  times the obstacle points in their reach are few (``_EXACT_WORK``: a path or two, where
+  the exact test is as fast or faster and a raster would mostly cover empty space) and
+  the raster otherwise.
 * **Speed.** Everything is vectorised over paths, steps and samples; the only loops run
   over chunks of at most ``_CHUNK`` elements and over retries of the layout.
 
@@ -101,6 +105,7 @@ MAX_COORDINATE = 1e6
 MAX_VARIANCE = 1e12
 _CELL_BUDGET = 1 << 21  # raster cells of one call (all heading bins): 8 MB of counts
 _PAIR_BUDGET = 1 << 18  # (step, heading bin) pairs of one call: bins widen beyond
+_EXACT_WORK = 1 << 22  # method "auto": the exact test up to this many sample-point pairs
 _CHUNK = 1 << 22  # elements of an intermediate array
 _EPS_M = 1e-7  # boxes grown by this (m): round-off never turns a contact into a miss
 
@@ -435,6 +440,23 @@ class _Samples(NamedTuple):
         return np.asarray(self.theta[rows][:, None] + L[:, 2, :] @ self.z.T)
 
 
+def _reach_radii(rect: _Rect, smp: _Samples) -> FloatArray:
+    """[n] radius around each step's mean position holding every sample's footprint."""
+    radii: FloatArray = rect.reach + np.hypot(smp.half[:, 0], smp.half[:, 1]) + 1e-9
+    return radii
+
+
+def _exact_work(fld: DistanceField, rect: _Rect, smp: _Samples) -> float:
+    """Sample-point pairs the exact test would start from (inf when clearly many)."""
+    S = int(smp.z.shape[0])
+    if fld._tree is None:  # no obstacle point
+        return 0.0
+    if smp.mu.shape[0] * S > _EXACT_WORK:
+        return math.inf
+    counts = fld._tree.query_ball_point(smp.mu, _reach_radii(rect, smp), return_length=True)
+    return float(np.sum(counts)) * S
+
+
 def _exact_touch(fld: DistanceField, rect: _Rect, smp: _Samples) -> BoolArray:
     """[n, S] exact footprint test of every sample against the obstacle points within
     reach of its step (a CSR gather of the neighbours, all steps at once in chunks).
@@ -445,8 +467,7 @@ def _exact_touch(fld: DistanceField, rect: _Rect, smp: _Samples) -> BoolArray:
     sample by sample."""
     n, S = smp.mu.shape[0], smp.z.shape[0]
     touch = np.zeros((n, S), dtype=bool)
-    radii = rect.reach + np.hypot(smp.half[:, 0], smp.half[:, 1]) + 1e-9
-    found = fld.neighbours(smp.mu, radii)
+    found = fld.neighbours(smp.mu, _reach_radii(rect, smp))
     counts = np.fromiter((len(f) for f in found), dtype=np.intp, count=n)
     if not counts.any():
         return touch
@@ -808,7 +829,7 @@ def _check_inputs(pose: FloatArray, cov: FloatArray,
 def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
                         footprint: Footprint = DEFAULT_FOOTPRINT,
                         transform: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                        samples: int = SAMPLES, *, method: str = "raster",
+                        samples: int = SAMPLES, *, method: str = "auto",
                         raster: float = RASTER, heading_bin: float = HEADING_BIN) -> Contact:
     """Probability that the footprint touches an obstacle of ``fld`` (module docstring).
 
@@ -820,8 +841,10 @@ def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
         footprint: the chair.
         transform: pose (x, y, yaw) of the paths' frame in the field's frame.
         samples: Sobol draws per step (a power of two).
-        method: ``"raster"`` (a lookup per sample, conservative by ``Contact.tolerance``)
-            or ``"exact"`` (the rectangle tested against every obstacle point in reach).
+        method: ``"raster"`` (a lookup per sample, conservative by ``Contact.tolerance``),
+            ``"exact"`` (the rectangle tested against every obstacle point in reach), or
+            ``"auto"``: exact when the samples times the obstacle points in their reach
+            are at most ``_EXACT_WORK`` (a path or two), else the raster.
         raster: cell of the raster method (m); coarser only when the samples spread over
             more than ``_CELL_BUDGET`` cells (the returned tolerance says so).
         heading_bin: width of the raster method's heading bins (rad).
@@ -832,8 +855,8 @@ def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
     P, C = _check_inputs(pose, cov, transform)
     if samples < 2 or samples & (samples - 1):
         raise ValueError(f"samples must be a power of two >= 2, got {samples}")
-    if method not in ("raster", "exact"):
-        raise ValueError(f"method must be 'raster' or 'exact', got {method!r}")
+    if method not in ("auto", "raster", "exact"):
+        raise ValueError(f"method must be 'auto', 'raster' or 'exact', got {method!r}")
     if not (math.isfinite(raster) and 1e-3 <= raster <= 1.0):
         raise ValueError(f"raster must be in [0.001, 1] m, got {raster}")
     if not (math.isfinite(heading_bin) and 1e-3 <= heading_bin <= math.pi):
@@ -881,6 +904,8 @@ def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
         rect = _Rect(footprint.offset - 0.5 * footprint.length - fld.grow,
                      footprint.offset + 0.5 * footprint.length + fld.grow,
                      0.5 * footprint.width + fld.grow)
+        if method == "auto":
+            method = "exact" if _exact_work(fld, rect, smp) <= _EXACT_WORK else "raster"
         if method == "exact":
             touch = _exact_touch(fld, rect, smp)
         else:
