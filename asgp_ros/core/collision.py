@@ -508,13 +508,19 @@ def _exact_touch(fld: DistanceField, rect: _Rect, smp: _Samples) -> BoolArray:
         ex = cr * px + sr * py  # samples and points in the sample's heading frame
         ey = cr * py - sr * px
         ox, oy = o[a:b, :1], o[a:b, 1:]
+        qx, qy = ex[local], ey[local]  # [m', S], then R(theta)^T (o - p) in place
         if one_heading:
-            qx_ = c[step[a:b], None] * ox + s[step[a:b], None] * oy - ex[local]
-            qy_ = c[step[a:b], None] * oy - s[step[a:b], None] * ox - ey[local]
+            cp, sp = c[step[a:b], None], s[step[a:b], None]
+            np.subtract(cp * ox + sp * oy, qx, out=qx)
+            np.subtract(cp * oy - sp * ox, qy, out=qy)
         else:
-            qx_ = cr[local] * ox + sr[local] * oy - ex[local]
-            qy_ = cr[local] * oy - sr[local] * ox - ey[local]
-        hit = (qx_ >= rect.x_lo) & (qx_ <= rect.x_hi) & (np.abs(qy_) <= rect.half_w)
+            cp, sp = cr[local], sr[local]
+            qx = np.subtract(cp * ox + sp * oy, qx, out=qx)
+            qy = np.subtract(cp * oy - sp * ox, qy, out=qy)
+        np.abs(qy, out=qy)
+        hit = qx >= rect.x_lo
+        hit &= qx <= rect.x_hi
+        hit &= qy <= rect.half_w
         touch[rows] |= np.logical_or.reduceat(hit, first[lo:hi] - a, axis=0)
         lo = hi
     return touch
