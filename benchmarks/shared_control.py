@@ -1,13 +1,18 @@
 """Speed of the shared-control layer: the collision check and the whole decision.
 
 Prints:
-* the collision probability of B predicted paths (k = 10) against a 1081-beam scan of the
-  simulated room, for B = 1, 64, 256, 1024 (p50 / p99 ms), on one core;
+* the collision probability of B predicted paths (k = 10) running up to a wall, against a
+  1081-beam scan of the simulated room, for B = 1, 64, 256, 1024 (p50 / p99 of the CPU
+  time, ms, one core): the raster and the exact method (the rectangle against every
+  obstacle point in reach) side by side with position covariances, with the raster's
+  tolerance and how far its per-step probabilities lie above the exact ones; then the
+  default method with position covariances and with pose covariances (the heading sampled
+  too);
 * the layer's decision on a simulated drive of an inattentive user
   (:mod:`asgp_ros.sim.shared_drive`): p50 / p99 ms per decision and the share of one core
   it takes at 5 Hz, beside the same drive without the layer (the simulator's own cost).
 
-Usage: benchmarks/shared_control.py [MODEL] [--minutes M]
+Usage: benchmarks/shared_control.py [MODEL] [--minutes M] [--no-heading] [--no-exact]
 (without MODEL a tile model is trained on 10 simulated minutes first, about a minute).
 """
 
@@ -17,6 +22,7 @@ import argparse
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import load_model
+from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import Lidar
 from asgp_ros.sim.shared_drive import drive
 from asgp_ros.sim.world import Room
@@ -41,49 +48,106 @@ def _model(path: str | None):
         return train_auto(read_series([str(bag)]), AutoOptions(budget_s=30.0))
 
 
-def collision_speed(repeats: int = 30) -> None:
+def _paths(rng: np.random.Generator, B: int) -> tuple[np.ndarray, np.ndarray]:
+    """B paths of 10 steps straight ahead at speeds up to 1 m/s (the first at 1 m/s, into
+    the wall), headings drifting apart; position sd 2 to 10 cm, heading sd 0.6 to 6
+    degrees, correlated with y (a turn)."""
+    pose = np.zeros((B, 10, 3))
+    speed = rng.uniform(0.0, 1.0, B)
+    speed[0] = 1.0
+    pose[..., 0] = speed[:, None] * np.linspace(0.2, 2.0, 10)[None]
+    pose[..., 2] = rng.normal(0.0, 0.3, B)[:, None] * np.linspace(0.1, 1.0, 10)[None]
+    sd = np.linspace(0.02, 0.1, 10)
+    sd_th = np.linspace(0.01, 0.1, 10)
+    cov = np.zeros((B, 10, 3, 3))
+    cov[..., 0, 0] = cov[..., 1, 1] = sd**2
+    cov[..., 2, 2] = sd_th**2
+    cov[..., 1, 2] = cov[..., 2, 1] = 0.5 * sd * sd_th
+    return pose, cov
+
+
+def _time(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
+    """p50 and p99 of the CPU time of ``fn`` (ms): on a machine shared with other jobs
+    the wall time also counts the waits for a core."""
+    times = []
+    for _ in range(repeats):
+        t = time.process_time()
+        fn()
+        times.append(time.process_time() - t)
+    ms = 1e3 * np.array(times)
+    return float(np.percentile(ms, 50)), float(np.percentile(ms, 99))
+
+
+def collision_speed(repeats: int = 30, exact: bool = True) -> None:
     room = Room()
     lidar = Lidar(room, seed=0)
     x_hi = room.free_box[1]
     s = lidar.scan(x_hi - 1.5, 0.0, 0.0)
     scan = collision.Scan(s.ranges, s.angle_min, s.angle_increment, s.range_min, s.range_max)
-    check = collision.scan_check(scan, mount=lidar.config.mount)
+    fld = collision.DistanceField.from_scan(scan)
+    to_scan = collision.inverse_pose(lidar.config.mount)  # base frame -> scan frame
     rng = np.random.default_rng(0)
-    print("collision probability, k = 10 steps, 1081-beam scan, wall 1.5 m ahead")
-    for B in (1, 64, 256, 1024):
-        pose = np.zeros((B, 10, 3))
-        speed = rng.uniform(0.0, 1.0, B)
-        pose[..., 0] = speed[:, None] * np.linspace(0.2, 2.0, 10)[None]
-        pose[..., 2] = rng.normal(0.0, 0.3, B)[:, None] * np.linspace(0.1, 1.0, 10)[None]
-        cov = np.tile(np.eye(2), (B, 10, 1, 1)) * (np.linspace(0.02, 0.1, 10) ** 2)[
-            None, :, None, None]
-        times = []
-        for _ in range(repeats):
-            t = time.perf_counter()
-            check(pose, cov)
-            times.append(time.perf_counter() - t)
-        ms = 1e3 * np.array(times)
-        print(f"  B = {B:5d}: p50 {np.percentile(ms, 50):7.2f} ms  p99 "
-              f"{np.percentile(ms, 99):7.2f} ms")
+
+    def probability(pose: np.ndarray, cov: np.ndarray, method: str = "auto"
+                    ) -> collision.Contact:
+        return collision.contact_probability(fld, pose, cov, transform=to_scan,
+                                             method=method)
+
+    probability(*_paths(np.random.default_rng(1), 1))  # the draws are made on the first call
+    batches = [(B, *_paths(rng, B)) for B in (1, 64, 256, 1024)]
+    print("collision probability, k = 10 steps, 1081-beam scan, wall 1.5 m ahead, CPU time "
+          "on one core")
+    print("the two methods, position covariances (ms; tol: a sample counted as touching "
+          "touches the footprint grown by tol)")
+    print(f"{'B':>6} | {'raster p50 / p99':>17} {'tol':>6} | {'exact p50 / p99':>17} | "
+          "raster - exact per step: mean, largest, smallest")
+    for B, pose, cov in batches:
+        pos = np.ascontiguousarray(cov[..., :2, :2])
+        fast = probability(pose, pos, "raster")
+        r50, r99 = _time(lambda: probability(pose, pos, "raster"), repeats)  # noqa: B023
+        line = f"{B:6d} | {r50:7.2f} / {r99:7.2f} {100 * fast.tolerance:4.1f}cm |"
+        if exact:
+            ref = probability(pose, pos, "exact")
+            e50, e99 = _time(lambda: probability(pose, pos, "exact"),  # noqa: B023
+                             max(3, repeats // (1 + B // 64)))
+            gap = fast.per_step - ref.per_step
+            line += (f" {e50:7.1f} / {e99:7.1f} | {gap.mean():.4f}, {gap.max():.3f}, "
+                     f"{gap.min():.3f}")
+        print(line, flush=True)
+    print("the default (method auto: exact for a path or two, else the raster), position "
+          "covariances and pose covariances (heading sd 0.6 to 6 degrees)")
+    print(f"{'B':>6} | {'position p50 / p99':>19} {'tol':>6} | {'pose p50 / p99':>17} {'tol':>6}")
+    for B, pose, cov in batches:
+        pos = np.ascontiguousarray(cov[..., :2, :2])
+        a, b = probability(pose, pos), probability(pose, cov)
+        p50, p99 = _time(lambda: probability(pose, pos), repeats)  # noqa: B023
+        h50, h99 = _time(lambda: probability(pose, cov), repeats)  # noqa: B023
+        print(f"{B:6d} | {p50:8.2f} / {p99:8.2f} {100 * a.tolerance:4.1f}cm | {h50:7.2f} / "
+              f"{h99:7.2f} {100 * b.tolerance:4.1f}cm", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", nargs="?")
     ap.add_argument("--minutes", type=float, default=5.0)
+    ap.add_argument("--no-heading", action="store_true",
+                    help="the layer checks with the position covariance and mean heading")
+    ap.add_argument("--no-exact", action="store_true", help="skip the exact method")
     args = ap.parse_args(argv)
+    config = SharedControlConfig(heading_uncertainty=not args.no_heading)
     with threadpool_limits(limits=1):
-        collision_speed()
+        collision_speed(exact=not args.no_exact)
         model = _model(args.model)
         t = time.process_time()
         base = drive(model, 60 * args.minutes, 1, layer=False)
         cpu_sim = time.process_time() - t
         t = time.process_time()
-        run = drive(model, 60 * args.minutes, 1, layer=True)
+        run = drive(model, 60 * args.minutes, 1, layer=True, config=config)
         cpu_layer = time.process_time() - t - cpu_sim
     ms = np.asarray(run.solve_ms)
     decisions = len(ms)
-    print(f"decisions on a {args.minutes:g}-minute inattentive drive: {decisions}")
+    print(f"decisions on a {args.minutes:g}-minute inattentive drive (heading "
+          f"{'not ' if args.no_heading else ''}sampled): {decisions}")
     print(f"  per decision: p50 {np.percentile(ms, 50):.2f} ms, p99 {np.percentile(ms, 99):.2f} "
           f"ms, mean {ms.mean():.2f} ms")
     rate = decisions / (60 * args.minutes)

@@ -129,6 +129,35 @@ def test_a_failing_or_non_finite_check_never_intervenes():
         assert d.why is Why.CHECK_FAILED and d.command is None
 
 
+def test_the_check_gets_the_pose_covariance_with_heading_uncertainty():
+    """The prediction carries the rollout's pose covariance; the layer passes it (heading
+    sampled) unless told to use the position covariance and the mean heading."""
+    pred, now = driving(turn=0.5)
+    user = np.array([0.8, 0.5])
+    seen: list[tuple[int, ...]] = []
+
+    def recording(wall: float):
+        inner = wall_ahead(wall)
+
+        def check(pose, cov):
+            seen.append(cov.shape)
+            return inner(pose, cov)
+        return check
+
+    d = decide(pred, now, user, recording(50.0), CONFIG)
+    p = d.prediction
+    assert p.pose_cov.shape == (10, 3, 3) and seen == [(1, 10, 3, 3)]
+    np.testing.assert_array_equal(p.pose_cov[:, :2, :2], p.pos_cov)
+    assert np.all(p.pose_cov[:, 2, 2] > 0.0)  # the heading is uncertain
+    wall = p.pose[-1, 0] + HALF_LENGTH - 0.3
+    seen.clear()
+    decide(pred, now, user, recording(wall), CONFIG)  # intervenes: candidates checked too
+    assert seen == [(1, 10, 3, 3), (len(candidate_commands(user, CONFIG)), 10, 3, 3)]
+    seen.clear()
+    decide(pred, now, user, recording(wall), SharedControlConfig(heading_uncertainty=False))
+    assert [s[-2:] for s in seen] == [(2, 2), (2, 2)]
+
+
 def test_candidates_never_drive_faster_than_the_user_or_leave_the_stick_range():
     for user in ([0.8, 0.0], [-0.5, 0.9], [0.3, -1.0], [1.0, 1.0]):
         u = np.array(user)

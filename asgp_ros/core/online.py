@@ -213,6 +213,8 @@ class Prediction:
         times: [k] t0 + i*dt, i = 1..k.
         pose: [k, 3] (x, y, theta) in the base frame at t0.
         pos_cov: [k, 2, 2] covariance of (x, y).
+        pose_cov: [k, 3, 3] covariance of (x, y, theta) (``pos_cov`` is its top-left
+            block); empty when the prediction has none (an inverse solution).
         ellipses: [k, 3] 95% position ellipse (semi-major, semi-minor, angle of the major
             axis from x), from ``pos_cov``.
         vel: [k, 2] predicted (v, omega) at t0 + dt .. t0 + k dt, the times of ``times``
@@ -235,6 +237,7 @@ class Prediction:
     times: FloatArray = field(default_factory=lambda: np.zeros(0))
     pose: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     pos_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    pose_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     ellipses: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
     vel: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
     vel_cov: FloatArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
@@ -808,19 +811,21 @@ class Predictor:
                 futures: FloatArray, out: Rollout, from_plan: bool, batch: bool) -> Prediction:
         pose = np.asarray(out.pose, dtype=np.float64)
         pos_cov = np.asarray(out.pos_cov, dtype=np.float64)
+        pose_cov = np.asarray(out.pose_cov, dtype=np.float64)
         vel = np.asarray(out.vel, dtype=np.float64)
         vel_cov = np.asarray(out.vel_cov, dtype=np.float64)
         k = futures.shape[1]
         pose_t, pose_v = self._pose.arrays()
         origin = interpolate_pose(t0, pose_t[np.argsort(pose_t)], pose_v[np.argsort(pose_t)])
         if not batch:
-            pose, pos_cov, vel, vel_cov, futures = (
-                pose[0], pos_cov[0], vel[0], vel_cov[0], futures[0])
+            pose, pos_cov, pose_cov, vel, vel_cov, futures = (
+                pose[0], pos_cov[0], pose_cov[0], vel[0], vel_cov[0], futures[0])
         self.stats.predictions += 1
         return Prediction(
             ok=True, reason=Reason.OK, t0=t0, step=step, dt=self.dt,
             times=t0 + self.dt * np.arange(1, k + 1),
-            pose=pose, pos_cov=pos_cov, ellipses=confidence_ellipses(pos_cov),
+            pose=pose, pos_cov=pos_cov, pose_cov=pose_cov,
+            ellipses=confidence_ellipses(pos_cov),
             vel=vel, vel_cov=vel_cov, joy_future=futures,
             joy_past=joy_past, vel_past=vel_past, origin=origin, from_plan=from_plan,
         )

@@ -4,9 +4,10 @@ ROS-free; :mod:`asgp_ros.nodes.shared_control_node` wraps it. Once per model gri
 layer asks the :class:`~asgp_ros.core.online.Predictor` where the chair goes if the user
 holds the current stick for the horizon, and how likely that path is to touch an obstacle
 (a :data:`CollisionCheck`, built from a laser scan or an occupancy grid by
-:mod:`asgp_ros.core.collision`). At or below ``threshold`` nothing happens: the user's
-command passes untouched. Above it, the layer searches for the least intrusive
-replacement:
+:mod:`asgp_ros.core.collision`; with ``heading_uncertainty`` it samples the predicted
+heading with the position, from the rollout's pose covariance). At or below
+``threshold`` nothing happens: the user's command passes untouched. Above it, the layer
+searches for the least intrusive replacement:
 
 * candidates are the user's command with its forward deflection scaled down
   (``speed_scales``) and its turn deflection shifted (``turn_offsets``), each held over the
@@ -49,9 +50,10 @@ from asgp_ros.core.online import Prediction, Predictor
 FloatArray = NDArray[np.float64]
 
 CollisionCheck = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
-"""``check(pose [B, k, 3], pos_cov [B, k, 2, 2]) -> (per_step [B, k], within [B])``:
-probability of contact at each step and within the horizon, for paths in the base frame
-at the prediction time t0 (x forward)."""
+"""``check(pose [B, k, 3], cov [B, k, 2, 2] or [B, k, 3, 3]) -> (per_step [B, k],
+within [B])``: probability of contact at each step and within the horizon, for paths in
+the base frame at the prediction time t0 (x forward); a 3x3 covariance is that of
+(x, y, theta) (:data:`asgp_ros.core.collision.CollisionCheck`)."""
 
 
 class Why(StrEnum):
@@ -85,6 +87,9 @@ class SharedControlConfig:
         turn_offsets: shifts added to the user's turn deflection (must include 0).
         progress_weight: weight of the forward progress given up, per metre squared,
             against the command change squared.
+        heading_uncertainty: give the check the prediction's full pose covariance, so that
+            the heading is sampled with the position (a turning chair's corners sweep);
+            False: the position covariance and the mean heading.
     """
 
     threshold: float = 0.05
@@ -92,6 +97,7 @@ class SharedControlConfig:
     speed_scales: tuple[float, ...] = (1.0, 0.85, 0.7, 0.55, 0.4, 0.25, 0.1, 0.0)
     turn_offsets: tuple[float, ...] = (0.0, -0.15, 0.15, -0.3, 0.3, -0.5, 0.5, -0.8, 0.8)
     progress_weight: float = 0.5
+    heading_uncertainty: bool = True
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.threshold) and 0.0 < self.threshold < 1.0):
@@ -152,6 +158,14 @@ def is_neutral(command: FloatArray, deadband: float) -> bool:
     return bool(np.all(np.abs(command) <= deadband))
 
 
+def check_covariance(pred: Prediction, config: SharedControlConfig) -> FloatArray:
+    """The covariance a check gets for ``pred`` (single or batch): the pose covariance
+    with ``heading_uncertainty`` when the prediction has one, else the position's."""
+    if config.heading_uncertainty and pred.pose_cov.shape == (*pred.pose.shape[:-1], 3, 3):
+        return pred.pose_cov
+    return pred.pos_cov
+
+
 def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatArray:
     """[C, 2] commands: the user's forward scaled, turn shifted (row 0 is the user's)."""
     scales = np.asarray(config.speed_scales, dtype=np.float64)
@@ -205,7 +219,7 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
     if check is None:
         return Decision(Why.NO_OBSTACLES, "no fresh scan or map", user, prediction=pred)
     try:
-        _, within = check(pred.pose[None], pred.pos_cov[None])
+        _, within = check(pred.pose[None], check_covariance(pred, config)[None])
         p_user = float(within[0])
     except ValueError as exc:
         return Decision(Why.CHECK_FAILED, f"collision check failed: {exc}", user,
@@ -223,7 +237,7 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         batch = predictor.predict_batch(futures, now)
         if not batch.ok:
             raise ValueError(f"{batch.reason}: {batch.detail}")
-        _, p_all = check(batch.pose, batch.pos_cov)
+        _, p_all = check(batch.pose, check_covariance(batch, config))
     except ValueError as exc:
         return Decision(Why.CHECK_FAILED, f"candidates failed: {exc}", user, p_user=p_user,
                         solve_s=time.perf_counter() - start, prediction=pred)

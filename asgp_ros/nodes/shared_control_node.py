@@ -131,6 +131,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           "footprint centre ahead of the base frame's origin (m)", -2.5, 2.5),
     _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
           "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
+    _spec("heading_uncertainty", True, "sample the predicted heading with the position "
+          "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
 )
 
@@ -165,6 +167,7 @@ class SharedControlParams:
     footprint_width: float
     footprint_offset: float
     margin: float
+    heading_uncertainty: bool
     diagnostics_period_s: float
 
     def __post_init__(self) -> None:
@@ -183,7 +186,8 @@ class SharedControlParams:
     def config(self) -> SharedControlConfig:
         return SharedControlConfig(threshold=self.threshold,
                                    neutral_deadband=self.neutral_deadband,
-                                   progress_weight=self.progress_weight)
+                                   progress_weight=self.progress_weight,
+                                   heading_uncertainty=self.heading_uncertainty)
 
     def footprint(self) -> collision.Footprint:
         return collision.Footprint(self.footprint_length, self.footprint_width,
