@@ -9,8 +9,9 @@ same seed with the layer on and off:
   watchdog); the chair (:class:`~asgp_ros.sim.chair.Chair`) follows its output and stops
   against the furniture, counting contacts;
 * the layer sees what the nodes see: the stick as the bridge reports it (50 Hz), the
-  velocity with VO-like noise (5 Hz), the scanner (:class:`~asgp_ros.sim.lidar.Lidar`,
-  10 Hz); it decides at every model grid step
+  velocity as a frame-to-frame VO reports it (5 Hz: the body-frame displacement since the
+  previous frame over the interval, stamped with the newer frame, with noise), the scanner
+  (:class:`~asgp_ros.sim.lidar.Lidar`, 10 Hz); it decides at every model grid step
   (:func:`asgp_ros.core.shared_control.decide`), and while it intervenes its override is
   written to the board every 50 ms, as the bridge does.
 
@@ -115,6 +116,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     last_step: int | None = None
     overriding_steps = 0
     active_before = False
+    vo_frame: tuple[float, float, float, float] | None = None  # the VO's previous frame
     n_steps = round(seconds / STEP_S)
     for n in range(n_steps):
         t = n * STEP_S
@@ -169,9 +171,16 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             fed = sent if (sent is not None and active) else user
             predictor.feed_joy(t, fed)
         if n % VO_EVERY == 3:
-            v = state.v + vo_rng.normal(0.0, VO_NOISE[0])
-            w = state.omega + vo_rng.normal(0.0, VO_NOISE[1])
-            predictor.feed_vo(t, (v, w))
+            if vo_frame is not None:
+                x0, y0, th0, t_prev = vo_frame
+                gap = t - t_prev
+                c, sn = math.cos(th0), math.sin(th0)
+                v = (c * (state.x - x0) + sn * (state.y - y0)) / gap \
+                    + vo_rng.normal(0.0, VO_NOISE[0])
+                w = math.remainder(state.theta - th0, 2.0 * math.pi) / gap \
+                    + vo_rng.normal(0.0, VO_NOISE[1])
+                predictor.feed_vo(t, (v, w))
+            vo_frame = (state.x, state.y, state.theta, t)
             step = predictor.ready_step()
             if step is not None and (last_step is None or step > last_step):
                 last_step = step
