@@ -418,6 +418,19 @@ def test_resample_settings_out_of_range_are_refused(saved: Path, field: str,
     expect_error(saved, f"invalid settings: {field} must be in")
 
 
+@pytest.mark.parametrize("value", ["end", "", None, 1, ["midpoint"], "MIDPOINT"])
+def test_an_unknown_vo_stamp_convention_is_refused(saved: Path, value: object) -> None:
+    rewrite(saved, edit_meta(lambda m: m["resample"].update(vel_stamp=value)))
+    expect_error(saved, "invalid settings: vel_stamp must be one of")
+
+
+def test_a_file_without_the_vo_stamp_setting_reads_the_stamps_as_recorded(saved: Path
+                                                                        ) -> None:
+    assert load_model(saved).resample_config.vel_stamp == "midpoint"
+    rewrite(saved, edit_meta(lambda m: m["resample"].pop("vel_stamp")))
+    assert load_model(saved).resample_config.vel_stamp == "frame"
+
+
 def test_top_level_rate_must_be_a_number(saved: Path) -> None:
     rewrite(saved, edit_meta(lambda m: m.update(rate_hz=True)))
     expect_error(saved, "rate_hz True disagrees")

@@ -1,0 +1,81 @@
+"""The shared-control layer over many simulated drives: contacts with and without it.
+
+One drive is chaotic (one different decision changes the rest of it), so versions of the
+layer are compared over many seeds. For every seed, three drives of an inattentive user
+(:func:`asgp_ros.sim.shared_drive.drive`): without the layer, with it checking the mean
+heading, and with it sampling the heading from the pose covariance. Prints each drive and
+the totals: contacts, interventions, the share of time the user's command passed untouched,
+the deepest overlap with the furniture, the decisions' solve p50 / p99.
+
+Usage: benchmarks/shared_drives.py MODEL [--seeds 1-13] [--minutes 10] [--jobs 2]
+[--fov DEG] (the README's figures: the reproduction's tile model, seeds 1-13, 10 minutes;
+``--fov 360`` for a scanner that also sees behind the chair; about 6 minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import sys
+from typing import Any
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from asgp_ros.core.modelfile import load_model
+from asgp_ros.core.shared_control import SharedControlConfig
+from asgp_ros.sim.lidar import LidarConfig
+from asgp_ros.sim.shared_drive import drive
+
+MODES = ("none", "mean heading", "heading sampled")
+
+
+def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
+    path, seed, mode, minutes, fov = task
+    # the default scanner, or another field of view at its angular resolution (4 beams/deg)
+    lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
+                                                                  beams=round(4 * fov))
+    with threadpool_limits(limits=1):
+        result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
+                       config=SharedControlConfig(heading_uncertainty=mode == "heading sampled"),
+                       lidar=lidar)
+    return result.summary() | {"seed": seed, "mode": mode}
+
+
+def _seeds(text: str) -> list[int]:
+    first, _, last = text.partition("-")
+    return list(range(int(first), int(last or first) + 1))
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model")
+    ap.add_argument("--seeds", type=_seeds, default=_seeds("1-13"))
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--fov", type=float, default=270.0, help="scanner field of view (deg)")
+    args = ap.parse_args(argv)
+    tasks = [(args.model, seed, mode, args.minutes, args.fov)
+             for seed in args.seeds for mode in MODES]
+    with multiprocessing.Pool(args.jobs) as pool:
+        rows = pool.map(_one, tasks)
+    print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg")
+    print("seed | mode            | contacts | interventions | untouched | deepest (m) | "
+          "solve p50 / p99 ms")
+    for r in rows:
+        print(f"{r['seed']:4d} | {r['mode']:15s} | {r['contacts']:8d} | "
+              f"{r['interventions']:13d} | {100 * r['untouched_share']:8.1f}% | "
+              f"{r['min_clearance_m']:11.3f} | {r['solve_p50_ms']:.1f} / {r['solve_p99_ms']:.0f}")
+    print("totals:")
+    for mode in MODES:
+        mine = [r for r in rows if r["mode"] == mode]
+        untouched = np.array([r["untouched_share"] for r in mine])
+        print(f"  {mode:15s}: {sum(r['contacts'] for r in mine)} contacts, "
+              f"{sum(r['interventions'] for r in mine)} interventions, untouched "
+              f"{100 * untouched.mean():.1f} % on average ({100 * untouched.min():.1f}-"
+              f"{100 * untouched.max():.1f} % per drive)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
