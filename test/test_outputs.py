@@ -385,3 +385,104 @@ def test_a_termination_lost_in_a_hook_is_raised_again():
             signal.signal(s, h)
         fileio._received.clear()
 
+
+
+_MASK_PROBE = r"""
+import os, signal
+from asgp_ros.common import fileio
+
+fileio.raise_on_termination()
+r, w = os.pipe()
+
+def probe():  # the first Python code a forked child runs
+    mask = sorted(int(s) for s in signal.pthread_sigmask(signal.SIG_BLOCK, []))
+    os.write(w, (" ".join(map(str, mask)) + "\n").encode())
+
+os.register_at_fork(after_in_child=probe)
+with fileio.worker_pool(2) as pool:
+    assert pool.map(abs, [-1, -2, -3]) == [1, 2, 3]
+os.close(w)
+print(os.read(r, 4096).decode(), end="")
+print("parent", " ".join(str(int(s)) for s in signal.pthread_sigmask(signal.SIG_BLOCK, [])))
+"""
+
+
+def test_pool_workers_start_with_the_stop_signals_blocked():
+    """CPython forgets, when a child re-initialises after fork, the signals it has received
+    but not yet handled: a SIGTERM that reached a worker in that window was lost, and the
+    worker then waited forever for a task (``reproduce`` hung on SIGTERM under load). The
+    workers are forked with the stop signals blocked, so such a signal stays pending until
+    the worker's handler is in place; the parent's mask is restored."""
+    out = subprocess.run([sys.executable, "-c", _MASK_PROBE], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    *children, parent = out.stdout.splitlines()
+    assert len(children) == 2
+    stop = {int(signal.SIGTERM), int(signal.SIGINT), int(signal.SIGHUP)}
+    for mask in children:
+        assert stop <= {int(s) for s in mask.split()}, children
+    assert parent.split()[1:] == []
+
+
+def _ignore_sigterm() -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def test_a_pool_worker_that_ignores_sigterm_is_killed(monkeypatch):
+    import multiprocessing
+
+    from asgp_ros.common import fileio
+
+    monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 0.5)
+    before = set(multiprocessing.active_children())
+    with pytest.raises(RuntimeError, match="stop"):
+        with fileio.worker_pool(2, initializer=_ignore_sigterm) as pool:
+            assert pool.map(abs, [-1, -2]) == [1, 2]
+            raise RuntimeError("stop")
+    assert set(multiprocessing.active_children()) <= before
+
+
+_SIGNAL_TARGET = r"""
+import signal, sys, threading
+ready = threading.Event()
+
+def other():  # keeps SIGTERM unblocked: os.kill may hand the signal to this thread
+    ready.set()
+    threading.Event().wait()
+
+signal.signal(signal.SIGTERM, lambda *a: None)
+threading.Thread(target=other, daemon=True).start()
+ready.wait()
+signal.pthread_sigmask(signal.SIG_BLOCK, [signal.SIGTERM])  # the main thread holds it pending
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+def _pending(path: Path) -> dict[str, int]:
+    fields = dict(line.split(":", 1) for line in path.read_text().splitlines() if ":" in line)
+    return {k: int(fields[k].strip(), 16) for k in ("SigPnd", "ShdPnd")}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread signal state: /proc")
+def test_signal_main_thread_reaches_the_main_thread():
+    """A pool worker's stop signal must reach its main thread: taken by another thread
+    (a BLAS thread) it only marks the signal, and a main thread asleep in a lock never
+    runs the handler (``reproduce`` hung after SIGTERM). Here the main thread blocks
+    SIGTERM, so a signal sent to it stays pending on it, visible in /proc."""
+    from asgp_ros.common.fileio import signal_main_thread
+
+    proc = subprocess.Popen([sys.executable, "-c", _SIGNAL_TARGET], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "ready\n"
+        main = Path(f"/proc/{proc.pid}/task/{proc.pid}/status")
+        assert _pending(main) == {"SigPnd": 0, "ShdPnd": 0}
+        signal_main_thread(proc.pid, signal.SIGTERM)
+        bit = 1 << (signal.SIGTERM - 1)
+        pending = _pending(main)
+        assert pending["SigPnd"] & bit and not pending["ShdPnd"] & bit, pending
+    finally:
+        proc.kill()
+        proc.communicate()
+    signal_main_thread(proc.pid, signal.SIGTERM)  # a process that is gone: no error

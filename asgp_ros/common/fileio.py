@@ -11,15 +11,19 @@ the report's own marker file). :func:`check_output` enforces it before any work 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import json
 import multiprocessing
 import multiprocessing.pool
+import multiprocessing.process
 import os
 import shutil
 import signal
 import stat
 import sys
 import tempfile
+import threading
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -109,24 +113,37 @@ def check_signals() -> None:
         raise Terminated(_received[0])
 
 
+_STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+
+
 def quiet_worker_exit() -> None:
     """Pool-worker initialiser: SIGTERM/SIGINT/SIGHUP end the worker through ``SystemExit``.
 
     ``finally`` blocks run (a worker's own temporaries go), and multiprocessing ends a
-    worker on SystemExit without printing a traceback per worker.
+    worker on SystemExit without printing a traceback per worker. The stop signals are
+    unblocked last (:func:`worker_pool` forks its workers with them blocked): one sent to
+    the worker while it started is delivered here, to this handler.
     """
     def handler(signum: int, _frame: FrameType | None) -> None:
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        for sig in _STOP_SIGNALS:
             signal.signal(sig, signal.SIG_IGN)
         sys.exit(128 + signum)
 
-    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+    for sig in _STOP_SIGNALS:
         signal.signal(sig, handler)
     # A worker is forked inside the parent's signals_deferred() block, with the parent's
     # handler: a stop signal that arrived before this initialiser was only recorded.
     _deferring[0] = 0
     if _received:
         handler(_received[-1], None)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+
+
+def _start_pool_worker(initializer: Callable[..., object] | None,
+                       initargs: tuple[Any, ...]) -> None:
+    quiet_worker_exit()
+    if initializer is not None:
+        initializer(*initargs)
 
 
 def interruptible_imap(pool: multiprocessing.pool.Pool, fn: Callable[[_T], _R],
@@ -134,9 +151,9 @@ def interruptible_imap(pool: multiprocessing.pool.Pool, fn: Callable[[_T], _R],
     """``pool.imap(fn, items)`` that a signal interrupts at once.
 
     A wait with no timeout in the main thread is not woken by a signal that the kernel
-    delivers to one of the pool's helper threads, so Ctrl-C or SIGTERM would wait for the
-    next result (minutes, for a training job). Waiting in short slices lets the signal's
-    handler run within 0.1 s.
+    delivers to another thread, so Ctrl-C or SIGTERM would wait for the next result
+    (minutes, for a training job). Waiting in short slices lets the signal's handler run
+    within 0.1 s.
     """
     it = pool.imap(fn, items)
     while True:
@@ -149,27 +166,102 @@ def interruptible_imap(pool: multiprocessing.pool.Pool, fn: Callable[[_T], _R],
             return
 
 
+#: How long the workers of a pool that is being stopped get to end on SIGTERM before
+#: they are killed.
+POOL_STOP_GRACE_S = 5.0
+
+
 @contextlib.contextmanager
-def ended_pool(pool: multiprocessing.pool.Pool) -> Iterator[multiprocessing.pool.Pool]:
-    """Use ``pool``; its workers are gone when the block ends.
+def worker_pool(processes: int, initializer: Callable[..., object] | None = None,
+                initargs: tuple[Any, ...] = ()) -> Iterator[multiprocessing.pool.Pool]:
+    """A pool of forked workers that a stop signal ends at any moment, gone when the block ends.
 
-    On success the pool is closed and joined: each worker ends on the pool's own sentinel,
-    no signal involved. On an exception (an error, or a stop signal turned into one) the
-    pool is terminated: SIGTERM, which :func:`quiet_worker_exit` turns into ``SystemExit``
-    so that the workers' ``finally`` blocks run.
+    - The workers are forked with SIGTERM, SIGINT and SIGHUP blocked, and unblock them once
+      their handlers are in place (:func:`quiet_worker_exit`, then ``initializer``). A
+      signal sent to a worker between its fork and that point stays pending instead of
+      being lost: CPython clears the signals a child has received but not yet handled when
+      it re-initialises after fork, and a worker that lost its SIGTERM that way waited
+      forever for a task while the parent waited for it to end. Threads started in the
+      worker (BLAS, OpenMP) and the pool's own threads in the parent inherit the block, so
+      the signals reach the main threads, the only ones that handle them.
+    - On success the pool is closed and joined: each worker ends on the pool's own
+      sentinel, no signal involved. On an exception (an error, or a stop signal turned into
+      one) the pool is terminated: SIGTERM, which :func:`quiet_worker_exit` turns into
+      ``SystemExit`` so that the workers' ``finally`` blocks run; workers still alive after
+      :data:`POOL_STOP_GRACE_S` are killed. A signal that arrives while the pool starts
+      is raised once the pool exists, and stops it the same way.
 
-    Why not ``with pool:``: its ``__exit__`` terminates the pool also after success, and
-    that hung in the test suite: the parent waited forever in ``join`` for a worker that
-    sat idle in the task queue and did not end on SIGTERM (why it did not was not found;
-    the worker had the handler installed, SIGTERM neither blocked nor pending).
+    Why not ``with pool:``: its ``__exit__`` terminates the pool also after success.
     """
+    ctx = multiprocessing.get_context("fork")
+    before = set(multiprocessing.active_children())
+    pool: multiprocessing.pool.Pool | None = None
     try:
+        with signals_deferred():  # a signal inside fork's hooks would be lost
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+            try:
+                pool = ctx.Pool(processes, initializer=_start_pool_worker,
+                                initargs=(initializer, initargs))
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         yield pool
     except BaseException:
-        pool.terminate()
+        if pool is not None:
+            _stop_pool(pool, before)
         raise
     pool.close()
     pool.join()
+
+
+def _stop_pool(pool: multiprocessing.pool.Pool,
+               others: set[multiprocessing.process.BaseProcess]) -> None:
+    """Terminate ``pool``; kill its workers that outlive the grace period.
+
+    Each worker's main thread is sent SIGTERM first (:func:`signal_main_thread`):
+    ``pool.terminate()`` signals the process, and the kernel may hand that signal to any
+    of the worker's threads; one taken by a BLAS thread only marks the signal for Python,
+    whose handler then waits for the main thread, which, idle between tasks, sleeps in a
+    lock the terminating pool never releases. ``pool.terminate()`` runs in a helper
+    thread so that a worker that does not end cannot hold up the main thread beyond the
+    grace period.
+    """
+    workers = [c for c in multiprocessing.active_children() if c not in others]
+    for worker in workers:
+        if worker.pid is not None:
+            signal_main_thread(worker.pid, signal.SIGTERM)
+    stopper = threading.Thread(target=pool.terminate, name="pool-stop", daemon=True)
+    stopper.start()
+    stopper.join(POOL_STOP_GRACE_S)
+    if stopper.is_alive():
+        for child in multiprocessing.active_children():
+            if child not in others:
+                child.kill()
+        stopper.join(POOL_STOP_GRACE_S)
+
+
+def signal_main_thread(pid: int, signum: int) -> None:
+    """Send ``signum`` to the main thread of process ``pid``, where Python handles signals.
+
+    ``os.kill`` lets the kernel pick any thread that does not block the signal; Python
+    runs its handler only in the main thread, and a main thread asleep in a C call is only
+    woken if the signal is delivered to it. Linux's ``tgkill`` (the main thread's id is
+    the process id) aims it there; elsewhere, or without ``tgkill``, ``os.kill``. A process
+    that is gone is not an error.
+    """
+    try:
+        if sys.platform.startswith("linux"):
+            libc = ctypes.CDLL(None, use_errno=True)
+            tgkill = getattr(libc, "tgkill", None)
+            if tgkill is not None:
+                if tgkill(ctypes.c_int(pid), ctypes.c_int(pid), ctypes.c_int(signum)) == 0:
+                    return
+                err = ctypes.get_errno()
+                if err == errno.ESRCH:
+                    return
+                raise OSError(err, os.strerror(err))
+        os.kill(pid, signum)
+    except ProcessLookupError:
+        pass
 
 
 # ----------------------------------------------------------------------------- atomic output

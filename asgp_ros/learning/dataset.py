@@ -20,7 +20,6 @@ runs to make its small dataset.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import time
 from collections.abc import Callable
@@ -33,11 +32,9 @@ from asgp_ros.common.fileio import (
     atomic_write_text,
     check_output,
     describe_kind,
-    ended_pool,
     interruptible_imap,
     is_ros2_bag,
-    quiet_worker_exit,
-    signals_deferred,
+    worker_pool,
     write_marker,
 )
 from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
@@ -182,10 +179,7 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
         else:
             # On an error or a signal the workers stop at once (each removes its own
             # temporaries on the way out) instead of finishing the queue.
-            ctx = multiprocessing.get_context("fork")
-            with signals_deferred():  # a signal inside fork's hooks would be lost
-                pool = ctx.Pool(jobs, initializer=quiet_worker_exit)
-            with ended_pool(pool):
+            with worker_pool(jobs) as pool:
                 for r in interruptible_imap(pool, _make, jobs_args):
                     results[r["name"]] = r
                     report(len(results), len(jobs_args), r["name"],

@@ -8,19 +8,13 @@ worker's job is set once, in the worker.
 
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from threadpoolctl import threadpool_limits
 
-from asgp_ros.common.fileio import (
-    ended_pool,
-    interruptible_imap,
-    quiet_worker_exit,
-    signals_deferred,
-)
+from asgp_ros.common.fileio import interruptible_imap, worker_pool
 
 C = TypeVar("C")
 T = TypeVar("T")
@@ -42,9 +36,8 @@ _WORKER: _Worker | None = None
 
 
 def _start_worker(worker: _Worker) -> None:
-    """Pool initializer: quiet exit on signals, BLAS/OpenMP limits, the worker's job."""
+    """Pool initializer: BLAS/OpenMP limits, the worker's job."""
     global _WORKER
-    quiet_worker_exit()
     if worker.one_thread:
         # one BLAS/OpenMP thread per worker, for the worker's life: the workers share
         # the cores
@@ -69,10 +62,7 @@ def pool_map(fn: Callable[[C, T], R], context: C, items: Sequence[T], jobs: int,
     if jobs <= 1 or len(items) <= 1:
         return [fn(context, x) for x in items]
 
-    ctx = multiprocessing.get_context("fork")
-    with signals_deferred():  # a signal inside fork's hooks would be lost
-        pool = ctx.Pool(processes=min(jobs, len(items)), initializer=_start_worker,
-                        initargs=(_Worker(fn, context, one_thread),))
     # Leaving the block on an error or a signal stops the workers at once.
-    with ended_pool(pool):
+    with worker_pool(min(jobs, len(items)), initializer=_start_worker,
+                     initargs=(_Worker(fn, context, one_thread),)) as pool:
         return list(interruptible_imap(pool, _run_in_worker, items))
