@@ -435,10 +435,10 @@ def test_a_pool_worker_that_ignores_sigterm_is_killed(monkeypatch):
 
     monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 0.5)
     before = set(multiprocessing.active_children())
-    with pytest.raises(RuntimeError, match="stop"):
-        with fileio.worker_pool(2, initializer=_ignore_sigterm) as pool:
-            assert pool.map(abs, [-1, -2]) == [1, 2]
-            raise RuntimeError("stop")
+    with (pytest.raises(RuntimeError, match="stop"),
+          fileio.worker_pool(2, initializer=_ignore_sigterm) as pool):
+        assert pool.map(abs, [-1, -2]) == [1, 2]
+        raise RuntimeError("stop")
     assert set(multiprocessing.active_children()) <= before
 
 
