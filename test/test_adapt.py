@@ -253,6 +253,29 @@ def test_half_life_in_seconds_uses_the_stamps() -> None:
         online.absorb(X2[0], float(y2[0]))
 
 
+@pytest.mark.parametrize("unit", ["s", "rows"])
+def test_trained_data_fade_with_their_own_half_life(unit: str) -> None:
+    """A7': the trained weight decays with h_T, the new rows with h, in either unit."""
+    h, h_t, rho = 500.0, 50.0, 0.1
+    cfg = (AdaptConfig(half_life_s=h, trained_half_life=h_t, trained_floor=rho) if unit == "s"
+           else AdaptConfig(half_life_rows=h, trained_half_life=h_t, trained_floor=rho))
+    online = OnlinePosterior(trained().posterior, 300, cfg)
+    X2, y2 = rows(200, seed=9)
+    t = 1.0 * np.arange(200)  # one second per row: seconds and rows decay alike
+    assert online.absorb_rows(X2[:120], y2[:120], t[:120]) == 120
+    assert online.absorb_rows(X2[120:], y2[120:], t[120:]) == 80
+    s = online.stats
+    # stamps: the first row decays nothing (no earlier stamp); rows: every row decays
+    decays = 199 if unit == "s" else 200
+    assert s.data_weight == pytest.approx(sum(2.0 ** (-i / h) for i in range(200)), rel=1e-12)
+    assert s.trained_weight == pytest.approx(rho + (1 - rho) * 2.0 ** (-decays / h_t),
+                                             rel=1e-12)
+    with pytest.raises(AdaptError, match="needs half_life"):
+        AdaptConfig(trained_half_life=5.0)
+    with pytest.raises(AdaptError, match="trained_half_life"):
+        AdaptConfig(half_life_s=10.0, trained_half_life=float("nan"))
+
+
 def test_forgetting_with_floor_zero_returns_to_the_prior_where_no_data_come() -> None:
     """rho = 0: the trained data fade completely; far from the new rows the posterior is
     the prior (mean y_mean, variance sf2), and it stays positive definite."""

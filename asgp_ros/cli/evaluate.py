@@ -10,7 +10,12 @@ from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, check_output
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
-from asgp_ros.core.adaptive import DEFAULT_HALF_LIFE_S, DEFAULT_TRAINED_FLOOR, AdaptSettings
+from asgp_ros.core.adaptive import (
+    DEFAULT_HALF_LIFE_S,
+    DEFAULT_TRAINED_FLOOR,
+    DEFAULT_TRAINED_HALF_LIFE_S,
+    AdaptSettings,
+)
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.modelfile import ModelFileError, load_model
@@ -52,7 +57,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "and scored beside the same model not adapting, on the same cases")
     p.add_argument("--adapt-half-life", type=cli_number("half_life_s", "s"),
                    default=DEFAULT_HALF_LIFE_S,
-                   help="forgetting half-life of the adapted posterior (%(default)s s)")
+                   help="forgetting half-life of the rows the adapted posterior absorbs "
+                        "(%(default)s s)")
+    p.add_argument("--adapt-trained-half-life", type=cli_number("half_life_s", "s"),
+                   default=DEFAULT_TRAINED_HALF_LIFE_S,
+                   help="half-life of the trained data's weight in the adapted posterior "
+                        "(%(default)s s)")
     p.add_argument("--adapt-floor", type=cli_number("trained_floor", ""),
                    default=DEFAULT_TRAINED_FLOOR,
                    help="weight the trained data decay to, in [0, 1] (%(default)s)")
@@ -127,14 +137,16 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
         raise CommandError("--adapt propagates the uncertainty linearly")
     try:
         settings = AdaptSettings(AdaptConfig(half_life_s=args.adapt_half_life,
-                                             trained_floor=args.adapt_floor))
+                                             trained_floor=args.adapt_floor,
+                                             trained_half_life=args.adapt_trained_half_life))
         ev = evaluate_adaptive(model, tests, args.horizons, settings,
                                threshold_m=args.threshold, case_lags=args.case_lags,
                                skip_s=args.skip, name=str(args.model))
     except (AdaptError, EvaluationError) as exc:
         raise CommandError(str(exc)) from exc
     result = ev.to_json()
-    print(f"{args.model} adapting online (half-life {args.adapt_half_life:g} s, trained floor "
+    print(f"{args.model} adapting online (half-life {args.adapt_half_life:g} s, trained data "
+          f"{args.adapt_trained_half_life:g} s, trained floor "
           f"{args.adapt_floor:g}) on {len(tests)} bag(s), cases from {args.skip:g} s into each"
           f" bag, threshold {100 * args.threshold:.0f} cm")
     print("adapted:")

@@ -42,6 +42,11 @@ gamma = 2^(-1/h) (rows) or 2^(-dt/h) (seconds), then adds itself with weight 1::
     (A7)  P_D <- gamma P_D + v v^T / lambda,   b_D <- gamma b_D + v y / lambda,
           n_D <- gamma n_D + 1,                w_T <- rho + gamma (w_T - rho)
 
+Its own half-life h_T (``AdaptConfig.trained_half_life``, the data's by default) lets the
+trained data fade faster than the new rows, with gamma_T = gamma^(h / h_T)::
+
+    (A7') w_T <- rho + gamma_T (w_T - rho)
+
 n_D, the adapted data's effective size, stays below 1 / (1 - gamma) (about h / ln 2 rows
 for a half-life of h rows), so memory and information are bounded.  The trained data fade
 with the same half-life, not to nothing but to the floor weight rho
@@ -166,6 +171,10 @@ class AdaptConfig:
         half_life_rows: forgetting half-life in absorbed rows, or None.  At most one of
             the two; neither means no forgetting (every row counts forever).
         trained_floor: rho in [0, 1], the weight the trained statistics decay to (A7).
+        trained_half_life: the trained statistics' own half-life, in the unit of the
+            data's (seconds with ``half_life_s``, rows with ``half_life_rows``); None:
+            the data's (A7').  Shorter than the data's: a new floor's rows are kept
+            longer than the trained floor's.
         max_distance: rows farther than this many lengthscales from every pseudo-input
             are not absorbed (safety rule); None absorbs everywhere.
     """
@@ -173,17 +182,20 @@ class AdaptConfig:
     half_life_s: float | None = None
     half_life_rows: float | None = None
     trained_floor: float = 0.01
+    trained_half_life: float | None = None
     max_distance: float | None = 3.0
 
     def __post_init__(self) -> None:
         if self.half_life_s is not None and self.half_life_rows is not None:
             raise AdaptError("give half_life_s or half_life_rows, not both")
-        for name in ("half_life_s", "half_life_rows", "max_distance"):
+        for name in ("half_life_s", "half_life_rows", "trained_half_life", "max_distance"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0.0):
                 raise AdaptError(f"{name} must be a finite number > 0 or None, got {value!r}")
         if not 0.0 <= self.trained_floor <= 1.0:
             raise AdaptError(f"trained_floor must be in [0, 1], got {self.trained_floor!r}")
+        if self.trained_half_life is not None and not self.forgets:
+            raise AdaptError("trained_half_life needs half_life_s or half_life_rows")
 
     @property
     def forgets(self) -> bool:
@@ -395,7 +407,8 @@ class OnlinePosterior:
             P_D = total * s.P_D + (Vk * wk) @ Vk.T  # A7, rank n_keep
             b_D = total * s.b_data + Vk @ (wk * ys[idx])
         rho = self.config.trained_floor
-        w_T = rho + total * (s.w_trained - rho) if self.config.forgets else 1.0
+        w_T = rho + self._trained_decay(total) * (s.w_trained - rho) \
+            if self.config.forgets else 1.0
         new = _Stats(P_D, b_D, total * s.n_data + float(after.sum()), w_T, t_last,
                      s.rows + len(keep))
         published = self._posterior_of(new)
@@ -408,6 +421,14 @@ class OnlinePosterior:
         self._last_cost = time.perf_counter() - start
         self._last_rows = len(keep)
         return len(keep)
+
+    def _trained_decay(self, total: float) -> float:
+        """The trained weight's decay over a block whose data decay by ``total`` (A7')."""
+        cfg = self.config
+        h = cfg.half_life_s if cfg.half_life_s is not None else cfg.half_life_rows
+        if cfg.trained_half_life is None or h is None:
+            return total
+        return float(total ** (h / cfg.trained_half_life))
 
     def _select(self, finite: BoolArray, inside: BoolArray, lam_ok: BoolArray,
                 ta: FloatArray | None, t_last: float | None

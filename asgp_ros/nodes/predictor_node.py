@@ -69,6 +69,7 @@ from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
     DEFAULT_HALF_LIFE_S,
     DEFAULT_TRAINED_FLOOR,
+    DEFAULT_TRAINED_HALF_LIFE_S,
     AdaptSettings,
     CoverageConfig,
 )
@@ -122,6 +123,7 @@ class PredictorNodeParams:
     adapt_enabled: bool = False
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
     adapt_trained_floor: float = DEFAULT_TRAINED_FLOOR
+    adapt_trained_half_life_s: float = DEFAULT_TRAINED_HALF_LIFE_S
     adapt_calibrate: bool = True
     adapt_max_rate: float = 0.25
 
@@ -159,7 +161,8 @@ class PredictorNodeParams:
         try:
             settings = AdaptSettings(
                 AdaptConfig(half_life_s=self.adapt_half_life_s,
-                            trained_floor=self.adapt_trained_floor),
+                            trained_floor=self.adapt_trained_floor,
+                            trained_half_life=self.adapt_trained_half_life_s),
                 CoverageConfig(max_rate=self.adapt_max_rate) if self.adapt_calibrate else None)
         except AdaptError as exc:
             raise ValueError(f"adapt: {exc}") from exc
@@ -238,8 +241,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
     _spec("adapt.enabled", "adapt an ASGP online: absorb each valid completed step into its "
           "posterior and keep its 95% ellipses covering (asgp_ros.core.adaptive)"),
-    _spec("adapt.half_life_s", "forgetting half-life of the adapted posterior, seconds of "
-          "driving", 1.0, 86400.0),
+    _spec("adapt.half_life_s", "forgetting half-life of the rows the adapted posterior "
+          "absorbs, seconds of driving", 1.0, 86400.0),
+    _spec("adapt.trained_half_life_s", "half-life of the trained data's weight in the adapted "
+          "posterior, seconds of driving", 1.0, 86400.0),
     _spec("adapt.trained_floor", "weight the trained data decay to (0 = forget them, 1 = keep "
           "them whole)", 0.0, 1.0),
     _spec("adapt.calibrate", "adjust the variance scale from the outcomes of the predictions"),
@@ -334,7 +339,8 @@ class PredictorNode(Node):
         adapt = p.adapt_settings()
         if adapt is not None:
             self.get_logger().info(
-                f"adapting online: half-life {p.adapt_half_life_s:g} s, trained floor "
+                f"adapting online: half-life {p.adapt_half_life_s:g} s (trained data "
+                f"{p.adapt_trained_half_life_s:g} s), trained floor "
                 f"{p.adapt_trained_floor:g}, calibration "
                 f"{'on' if adapt.coverage is not None else 'off'}")
         self.get_logger().info(
