@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from asgp_ros.core.adaptive import AdaptSettings
 from asgp_ros.learning.paper import MEAN_LEAD_POINTS
 from asgp_ros.learning.reproduce.protocol import (
     ADAPT_ACROSS,
@@ -172,7 +173,17 @@ def adaptation_summary(results: list[dict[str, Any]], hk: list[str]) -> dict[str
     """Issue 12's targets for the adapting row, from ADAPT_FROM_S into each test bag: a row
     per (train set, test set) and the claims checked on them."""
     rows = _adaptation_rows(results, hk)
-    return {"rows": rows, "claims": _adaptation_claims(rows, hk)}
+    return {"rows": rows, "claims": _adaptation_claims(rows, hk),
+            "settings": adaptation_settings()}
+
+
+def adaptation_settings() -> dict[str, Any]:
+    """What the adapting row runs with (the default :class:`AdaptSettings`), for the report."""
+    st = AdaptSettings()
+    return {"half_life_s": st.posterior.half_life_s,
+            "trained_half_life_s": st.posterior.trained_half_life,
+            "trained_floor": st.posterior.trained_floor,
+            "select_half_life_s": st.select_half_life_s}
 
 
 def _adaptation_rows(results: list[dict[str, Any]], hk: list[str]) -> list[dict[str, Any]]:

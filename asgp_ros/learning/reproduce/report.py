@@ -80,10 +80,16 @@ def _adaptation_section(s: dict[str, Any], hk: list[str]) -> list[str]:
     if not ad.get("rows"):
         return []
     from_s = ad["rows"][0]["from_s"]
+    st = ad.get("settings") or {}
+    trained_h = st.get("trained_half_life_s") or st.get("half_life_s")
+    forgetting = (f"the absorbed rows forgotten with a half-life of {st['half_life_s']:g} s, "
+                  f"the trained data with one of {trained_h:g} s, down to a weight of "
+                  f"{st['trained_floor']:g}"
+                  if st.get("half_life_s") else "exponential forgetting")
     L = ["## The adaptive ASGP (ASGP + adapt)\n",
          "Each test bag replayed from the automatic ASGP's model file through the online "
-         "predictor, adapting (`asgp_ros.core.adaptive`, default settings: forgetting "
-         "half-life 30 s, online variance scale by adaptive conformal inference, the "
+         f"predictor, adapting (`asgp_ros.core.adaptive`, default settings: {forgetting}, "
+         "online variance scale by adaptive conformal inference, the "
          "published posterior chosen by recent k-step error), causally: a prediction uses "
          "only the samples stamped before it is made. The 'ASGP + adapt' rows of the tables "
          "above count from the start of each bag, on the common cases (less those the online "
