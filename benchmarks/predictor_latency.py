@@ -8,7 +8,8 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
 (5 Hz) and subscribes to ``predicted_path``.
 
 1. Latency: for each of ``--steps`` grid steps, the joystick samples of the step are sent
-   first, then the VO message that completes the step; the latency is the wall time from
+   first, then the VO message that completes the step (the next step's VO message when
+   the model reads the VO at the middle of its interval); the latency is the wall time from
    publishing that VO message to receiving the step's path here (so it includes DDS
    delivery both ways and the node's executor, not only the prediction). The next step
    starts when the path has arrived. The node's own figure (VO callback entry to path
@@ -149,6 +150,13 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
     """Start the node on ``model`` (adapting or not), measure, print, stop it."""
     import rclpy
 
+    from asgp_ros.core.modelfile import load_model
+
+    # The VO message sent for step n is stamped just after t_n. Read at its own stamp
+    # ("frame") it completes step n; read at the middle of its interval ("midpoint", a
+    # frame-to-frame VO's mean velocity) it completes step n - 1 (README, "VO stamps").
+    lag = 1 if load_model(model).resample_config.vel_stamp == "midpoint" else 0
+
     env = dict(os.environ, PYTHONPATH=str(REPO))
     node = subprocess.Popen(
         [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
@@ -169,7 +177,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         while not drv.received:
             drv.send_step_inputs(n)
             drv.send_vo(n)
-            drv.spin_until(lambda n=n: n in drv.received, 0.5)
+            drv.spin_until(lambda n=n: n - lag in drv.received, 0.5)
             n += 1
             if n > 1100:
                 print("no path from the node", file=sys.stderr)
@@ -177,7 +185,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         for _ in range(20):
             drv.send_step_inputs(n)
             drv.send_vo(n)
-            drv.spin_until(lambda n=n: n in drv.received, 1.0)
+            drv.spin_until(lambda n=n: n - lag in drv.received, 1.0)
             n += 1
 
         # ---- 1. latency -------------------------------------------------------------
@@ -186,8 +194,8 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
             drv.send_step_inputs(n)
             drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
             sent = drv.send_vo(n)
-            if drv.spin_until(lambda n=n: n in drv.received, 1.0):
-                latencies.append(drv.received[n] - sent)
+            if drv.spin_until(lambda n=n: n - lag in drv.received, 1.0):
+                latencies.append(drv.received[n - lag] - sent)
             else:
                 missed += 1
             n += 1
