@@ -15,7 +15,10 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
    starts when the path has arrived. The node's own figure (VO callback entry to path
    publication) is read from its diagnostics.
 2. CPU: the same inputs at their real rates (5 Hz steps) for ``--cpu-seconds``; the node
-   process's user + system time from /proc/<pid>/stat divided by the wall time.
+   process's user + system time from /proc/<pid>/stat divided by the wall time. The
+   latency of these steps is printed too: in 1. a step follows the previous path at once,
+   so whatever the node does after publishing (adaptation's learning) delays it; at the
+   real rate that work ends before the next step.
 
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
@@ -207,12 +210,15 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
         steps_cpu = round(args.cpu_seconds / DT)
         start = time.monotonic()
+        sent_at: dict[int, float] = {}
         for i in range(steps_cpu):
             drv.send_step_inputs(n)
-            drv.send_vo(n)
+            sent_at[n - lag] = drv.send_vo(n)
             n += 1
             drv.spin_until(lambda i=i: time.monotonic() >= start + (i + 1) * DT, DT + 0.1)
         cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
+        paced_ms = 1e3 * np.asarray([drv.received[k] - t for k, t in sent_at.items()
+                                     if k in drv.received])
     finally:
         drv.executor.shutdown()
         drv.node.destroy_node()
@@ -235,6 +241,10 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
           f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
           f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")
     print(f"  inside the node (VO callback -> path published): p99 {node_p99} ms")
+    if len(paced_ms):
+        print(f"  at the real rate (a step every {1e3 * DT:.0f} ms, {len(paced_ms)} steps): "
+              f"p50 {np.percentile(paced_ms, 50):.2f} ms, p99 "
+              f"{np.percentile(paced_ms, 99):.2f} ms")
     print(f"  CPU at 5 Hz (joystick 30 Hz, VO 5 Hz): {100 * cpu:.1f}% of one core "
           f"(target < 5%)")
     return 0
