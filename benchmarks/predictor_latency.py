@@ -18,7 +18,8 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
    process's user + system time from /proc/<pid>/stat divided by the wall time. The
    latency of these steps is printed too: in 1. a step follows the previous path at once,
    so whatever the node does after publishing (adaptation's learning) delays it; at the
-   real rate that work ends before the next step.
+   real rate that work ends before the next step (the joystick samples are sent at their
+   own times, 30 Hz, and the VO message just after the step's end).
 
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
@@ -102,14 +103,24 @@ class Driver:
             self.executor.spin_once(timeout_sec=0.001)
         return True
 
-    def send_step_inputs(self, n: int) -> None:
-        """/clock and the six joystick samples of grid step n (the last one after t_n)."""
+    def send_step_inputs(self, n: int, paced_from: float | None = None) -> None:
+        """/clock and the six joystick samples of grid step n (the last one after t_n).
+
+        ``paced_from``: the wall time (time.monotonic) the step's interval starts; each
+        sample is then sent at its own time within the interval (30 Hz), spinning between
+        them, instead of all at once."""
         t_prev = n * DT - DT
         for j in range(6):
             t = t_prev + 0.04 + j * (DT / 6)
+            if paced_from is not None:
+                due = paced_from + 0.04 + j * (DT / 6)
+                self.spin_until(lambda due=due: time.monotonic() >= due, DT)
             self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
             self.joy_pub.publish(self.conv.joy_from_sample(
                 t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t)))
+        if paced_from is not None:
+            due = paced_from + DT + 0.01
+            self.spin_until(lambda: time.monotonic() >= due, DT)
         self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(n * DT + 0.03)))
 
     def send_vo(self, n: int) -> float:
@@ -212,10 +223,9 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         start = time.monotonic()
         sent_at: dict[int, float] = {}
         for i in range(steps_cpu):
-            drv.send_step_inputs(n)
+            drv.send_step_inputs(n, paced_from=start + i * DT)
             sent_at[n - lag] = drv.send_vo(n)
             n += 1
-            drv.spin_until(lambda i=i: time.monotonic() >= start + (i + 1) * DT, DT + 0.1)
         cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
         paced_ms = 1e3 * np.asarray([drv.received[k] - t for k, t in sent_at.items()
                                      if k in drv.received])
