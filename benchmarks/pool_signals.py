@@ -14,6 +14,7 @@ Usage: benchmarks/pool_signals.py [--runs 100] [--load 3] [--signal TERM|INT] [-
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import signal
@@ -75,7 +76,8 @@ def _one(root: Path, data: Path, sig: int, timeout: float) -> float | None:
         for pid in [proc.pid, *map(int, kids)]:
             print("\n".join(_threads(pid)))
         for pid in map(int, kids):
-            os.kill(pid, signal.SIGKILL)
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
         proc.kill()
         proc.communicate()
         return None

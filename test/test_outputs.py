@@ -486,3 +486,22 @@ def test_signal_main_thread_reaches_the_main_thread():
         proc.kill()
         proc.communicate()
     signal_main_thread(proc.pid, signal.SIGTERM)  # a process that is gone: no error
+
+
+def test_a_failed_main_thread_signal_still_stops_the_pool(monkeypatch):
+    """The clean-up must not end on its first failure: the pool is terminated anyway and
+    the exception that stopped it is the one raised."""
+    import multiprocessing
+
+    from asgp_ros.common import fileio
+
+    def refuse(_pid: int, _signum: int) -> None:
+        raise PermissionError("not allowed")
+
+    monkeypatch.setattr(fileio, "signal_main_thread", refuse)
+    before = set(multiprocessing.active_children())
+    with (pytest.raises(RuntimeError, match="stop"),
+          fileio.worker_pool(2) as pool):
+        assert pool.map(abs, [-1, -2]) == [1, 2]
+        raise RuntimeError("stop")
+    assert set(multiprocessing.active_children()) <= before

@@ -181,9 +181,9 @@ def worker_pool(processes: int, initializer: Callable[..., object] | None = None
       signal sent to a worker between its fork and that point stays pending instead of
       being lost: CPython clears the signals a child has received but not yet handled when
       it re-initialises after fork, and a worker that lost its SIGTERM that way waited
-      forever for a task while the parent waited for it to end. Threads started in the
-      worker (BLAS, OpenMP) and the pool's own threads in the parent inherit the block, so
-      the signals reach the main threads, the only ones that handle them.
+      forever for a task while the parent waited for it to end. The pool's own threads in
+      the parent inherit the block; threads a worker starts later (BLAS, OpenMP) do not,
+      which is why a stopping pool signals each worker's main thread (:func:`_stop_pool`).
     - On success the pool is closed and joined: each worker ends on the pool's own
       sentinel, no signal involved. On an exception (an error, or a stop signal turned into
       one) the pool is terminated: SIGTERM, which :func:`quiet_worker_exit` turns into
@@ -228,7 +228,8 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     workers = [c for c in multiprocessing.active_children() if c not in others]
     for worker in workers:
         if worker.pid is not None:
-            signal_main_thread(worker.pid, signal.SIGTERM)
+            with contextlib.suppress(OSError):  # pool.terminate() below signals it anyway
+                signal_main_thread(worker.pid, signal.SIGTERM)
     stopper = threading.Thread(target=pool.terminate, name="pool-stop", daemon=True)
     stopper.start()
     stopper.join(POOL_STOP_GRACE_S)

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from asgp_ros.core.adaptive import AdaptSettings
 from asgp_ros.learning.paper import MEAN_LEAD_POINTS
 from asgp_ros.learning.reproduce.protocol import (
     ADAPT_ACROSS,
     ADAPT_ROW,
+    ADAPT_SETTINGS,
     ASGP_ROWS,
     COVERAGE_TARGET,
     MATCHED,
@@ -178,8 +178,8 @@ def adaptation_summary(results: list[dict[str, Any]], hk: list[str]) -> dict[str
 
 
 def adaptation_settings() -> dict[str, Any]:
-    """What the adapting row runs with (the default :class:`AdaptSettings`), for the report."""
-    st = AdaptSettings()
+    """What the adapting row runs with (:data:`ADAPT_SETTINGS`), for the report."""
+    st = ADAPT_SETTINGS
     return {"half_life_s": st.posterior.half_life_s,
             "trained_half_life_s": st.posterior.trained_half_life,
             "trained_floor": st.posterior.trained_floor,

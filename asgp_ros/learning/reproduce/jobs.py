@@ -30,6 +30,7 @@ from asgp_ros.learning.evaluation import (
 )
 from asgp_ros.learning.reproduce.protocol import (
     ADAPT_FROM_S,
+    ADAPT_SETTINGS,
     MODELS,
     QUICK_ADAPT_FROM_S,
     Compared,
@@ -159,7 +160,7 @@ def _evaluate_one(context: JobContext, train_name: str, model: Compared) -> dict
 def _evaluate_adapting(context: JobContext, train_name: str, model: Compared, loaded: Any,
                        t0: float) -> dict[str, Any]:
     """The adapting row: each test bag replayed from the trained model through the online
-    predictor (default :class:`asgp_ros.core.adaptive.AdaptSettings`), causally, on the
+    predictor (``ADAPT_SETTINGS``, the defaults), causally, on the
     common cases; and the scores from ``ADAPT_FROM_S`` into each bag beside the model not
     adapting, on the same cases (issue 12's targets)."""
     st = context.settings
@@ -167,7 +168,8 @@ def _evaluate_adapting(context: JobContext, train_name: str, model: Compared, lo
     evals, late, timelines = {}, {}, {}
     for test_name, paths in context.test_sets.items():
         tests = [TestSeries(p, context.series[p].res, context.series[p].raw) for p in paths]
-        ev = evaluate_adaptive(loaded, tests, st.horizons, threshold_m=st.threshold_m,
+        ev = evaluate_adaptive(loaded, tests, st.horizons, ADAPT_SETTINGS,
+                               threshold_m=st.threshold_m,
                                case_lags=context.case_lags,
                                name=f"{model.label} ({train_name})")
         evals[test_name] = ev.adapted

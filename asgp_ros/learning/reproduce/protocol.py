@@ -13,6 +13,7 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
+from asgp_ros.core.adaptive import AdaptSettings
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M
 from asgp_ros.core.models import ModelKind, get_kind, trainable_kinds
 from asgp_ros.learning.paper import success_rate as published_rate
@@ -23,6 +24,9 @@ from asgp_ros.learning.training import PAPER_OPTIONS, TrainOptions
 ADAPT_ROW = "asgp_adapt"
 ADAPT_FROM_S = 60.0
 QUICK_ADAPT_FROM_S = 10.0
+#: What the adapting row runs with (the defaults of the node and of ``asgp evaluate
+#: --adapt``); the report states them from here.
+ADAPT_SETTINGS = AdaptSettings()
 
 
 @dataclass(frozen=True)
