@@ -1,15 +1,17 @@
 """The shared-control layer over many simulated drives: contacts with and without it.
 
 One drive is chaotic (one different decision changes the rest of it), so versions of the
-layer are compared over many seeds. For every seed, three drives of an inattentive user
-(:func:`asgp_ros.sim.shared_drive.drive`): without the layer, with it checking the mean
-heading, and with it sampling the heading from the pose covariance. Prints each drive and
+layer are compared over many seeds. For every seed, drives of an inattentive user
+(:func:`asgp_ros.sim.shared_drive.drive`) in each of ``--modes`` (:data:`MODES`; by default
+without the layer, with it sampling the heading against the newest scan alone, and the
+layer as the node runs it). Prints each drive and
 the totals: contacts, interventions, the share of time the user's command passed untouched,
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
 Usage: benchmarks/shared_drives.py MODEL [--seeds 1-13] [--minutes 10] [--jobs 2]
-[--fov DEG] (the README's figures: the reproduction's tile model, seeds 1-13, 10 minutes;
-``--fov 360`` for a scanner that also sees behind the chair; about 6 minutes on 2 cores).
+[--fov DEG] [--modes none,memory] (the README's figures: the reproduction's tile model,
+seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also sees behind the chair; about
+6 minutes on 2 cores for three modes).
 """
 
 from __future__ import annotations
@@ -25,9 +27,14 @@ from threadpoolctl import threadpool_limits
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
-from asgp_ros.sim.shared_drive import drive
+from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
 
-MODES = ("none", "mean heading", "heading sampled")
+MODES = ("none", "mean heading", "heading sampled", "memory", "layer")
+"""Without the layer; with it checking the mean heading or sampling it, against the
+newest scan alone; sampling it against the scan and the memory of earlier scans; and the
+layer as the node runs it by default: that, and within the margin the candidates ranked
+with the chair's own footprint."""
+DEFAULT_MODES = ("none", "heading sampled", "layer")
 
 
 def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
@@ -37,14 +44,24 @@ def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
                                                                   beams=round(4 * fov))
     with threadpool_limits(limits=1):
         result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
-                       config=SharedControlConfig(heading_uncertainty=mode == "heading sampled"),
-                       lidar=lidar)
+                       config=SharedControlConfig(heading_uncertainty=mode != "mean heading"),
+                       lidar=lidar,
+                       memory=DEFAULT_MEMORY if mode in ("memory", "layer") else None,
+                       tight=mode == "layer")
     return result.summary() | {"seed": seed, "mode": mode}
 
 
 def _seeds(text: str) -> list[int]:
     first, _, last = text.partition("-")
     return list(range(int(first), int(last or first) + 1))
+
+
+def _modes(text: str) -> tuple[str, ...]:
+    modes = tuple(m.strip() for m in text.split(","))
+    unknown = [m for m in modes if m not in MODES]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown modes {unknown}; known: {MODES}")
+    return modes
 
 
 def main(argv: list[str]) -> int:
@@ -54,9 +71,11 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--fov", type=float, default=270.0, help="scanner field of view (deg)")
+    ap.add_argument("--modes", type=_modes, default=DEFAULT_MODES,
+                    help=f"comma-separated, of {', '.join(MODES)}")
     args = ap.parse_args(argv)
     tasks = [(args.model, seed, mode, args.minutes, args.fov)
-             for seed in args.seeds for mode in MODES]
+             for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
     print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg")
@@ -67,7 +86,7 @@ def main(argv: list[str]) -> int:
               f"{r['interventions']:13d} | {100 * r['untouched_share']:8.1f}% | "
               f"{r['min_clearance_m']:11.3f} | {r['solve_p50_ms']:.1f} / {r['solve_p99_ms']:.0f}")
     print("totals:")
-    for mode in MODES:
+    for mode in args.modes:
         mine = [r for r in rows if r["mode"] == mode]
         untouched = np.array([r["untouched_share"] for r in mine])
         print(f"  {mode:15s}: {sum(r['contacts'] for r in mine)} contacts, "

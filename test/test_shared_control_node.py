@@ -281,3 +281,71 @@ def test_the_board_hands_the_chair_back_when_the_node_dies(repo_root, model_file
         for f in logs.values():
             f.close()
         board.stop()
+
+
+def post_scan_msg(t: float, centre: tuple[float, float], radius: float = 0.05,
+                  beams: int = 1081) -> LaserScan:
+    """A 270-degree scan of a post (a disc at ``centre`` in the scanner's frame)."""
+    a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
+    ang = a0 + inc * np.arange(beams)
+    d = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    c = np.asarray(centre)
+    along = d @ c
+    miss = along**2 - (c @ c - radius**2)
+    with np.errstate(invalid="ignore"):
+        r = np.where((miss >= 0.0) & (along > 0.0), along - np.sqrt(miss), np.inf)
+    return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, "laser")
+
+
+def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
+    """Driving past a post: once it is behind, out of the 270-degree view, the node still
+    holds it where it is, carried along by the VO's twists (the scans here are drawn from
+    the same twists, so any error is the node's)."""
+    h = harness(memory_s=10.0)
+    post = np.array([2.0, 0.6])  # in the frame of the chair's pose at the first twist
+    stats = h.node.predictor.stats
+    rng = np.random.default_rng(5)
+    x, t_twist, v = 0.0, None, 0.0
+    for i in range(80):  # 4 s at 20 Hz
+        t = 100.0 + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 == 3:
+            v = 0.72 + rng.normal(0.0, 0.003)
+            if t_twist is not None:
+                x += v * (t - t_twist)
+            t_twist = t
+            n = stats.vo_samples
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
+            h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+        if i % 2 == 1:
+            at = x + v * (t - t_twist) if t_twist is not None else 0.0
+            arrived = h.node._scan
+            h.scan_pub.publish(post_scan_msg(t, (post[0] - at - LASER_X, post[1])))
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+    sensor_x = x + v * (t - t_twist) + LASER_X
+    assert math.degrees(math.atan2(post[1], post[0] - sensor_x)) > 140.0  # out of view
+    _, _, extra = h.node._scan
+    assert extra is not None and extra.shape[0] >= 3
+    gap = np.hypot(extra[:, 0] - (post[0] - sensor_x), extra[:, 1] - post[1])
+    assert np.all(np.abs(gap - 0.05) < 0.02), gap  # on the post's surface
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert int(diag["memory_points"]) >= 3 and diag["odometry_breaks"] == "0"
+    # the VO stops: the next scan has no pose, the memory is emptied, never moved blind
+    for i in range(12):
+        t = 104.05 + 0.05 * i
+        h.clock(t)
+        if i % 2 == 1:
+            arrived = h.node._scan
+            h.scan_pub.publish(post_scan_msg(t, (post[0] - sensor_x, post[1])))
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+    assert h.node._scan[2].shape == (0, 2) and h.node.memory.size == 0
+
+
+def test_the_memory_can_be_turned_off(harness):
+    h = harness(memory_s=0.0)
+    h.drive(100.0, 101.0, wall=3.0)
+    assert h.node.memory is None and h.node._scan[2] is None
+    assert conv.diagnostic_values(h.node.diagnostic_status())["memory_points"] == "off"

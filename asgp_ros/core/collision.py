@@ -208,6 +208,25 @@ class Grid:
         object.__setattr__(self, "data", d.astype(np.int8, copy=False))
 
 
+def scan_points(scan: Scan) -> FloatArray:
+    """[m, 2] a scan's obstacle points in its own frame: every beam with a return in
+    [range_min, range_max], and a beam too close to measure (-inf, or under range_min) at
+    ``range_min`` (REP-117); +inf (nothing in range) and NaN (erroneous) give none."""
+    r = scan.ranges
+    nan = np.isnan(r)
+    angles = scan.angle_min + scan.angle_increment * np.arange(r.size)
+    close = (r < scan.range_min) & ~nan  # includes -inf: too close to measure
+    hit = close | ((r >= scan.range_min) & (r <= scan.range_max))
+    rr = np.where(close, scan.range_min, r)[hit]
+    pts: FloatArray = np.stack([rr * np.cos(angles[hit]), rr * np.sin(angles[hit])], axis=1)
+    return pts
+
+
+def scan_invalid_share(scan: Scan) -> float:
+    """The share of a scan's beams that are NaN (erroneous)."""
+    return float(np.isnan(scan.ranges).mean())
+
+
 def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     """Distance (m) from every cell centre to the nearest obstacle cell, less half a cell
     (so it never overstates a clearance); inf without obstacles."""
@@ -259,20 +278,27 @@ class DistanceField:
         return int(self.points.shape[0])
 
     @staticmethod
-    def from_scan(scan: Scan, resolution: float = 0.05, max_invalid: float = 0.5
-                  ) -> DistanceField:
-        """The field of a scan's obstacles in its own frame, over ``range_max`` around it."""
-        r = scan.ranges
-        nan = np.isnan(r)
-        if nan.all() or nan.mean() > max_invalid:
-            raise CollisionError(f"scan has {int(nan.sum())} of {r.size} beams NaN "
+    def from_scan(scan: Scan, resolution: float = 0.05, max_invalid: float = 0.5,
+                  extra: FloatArray | None = None) -> DistanceField:
+        """The field of a scan's obstacles in its own frame, over ``range_max`` around it.
+
+        ``extra`` [m, 2]: more obstacle points in the scan's frame (what an
+        :class:`~asgp_ros.core.obstacle_memory.ScanMemory` remembers outside the scan's
+        view); those farther than ``range_max`` from the scanner are left out, as the
+        window ends there (beyond it everything counts as touching)."""
+        if scan_invalid_share(scan) > max_invalid or np.isnan(scan.ranges).all():
+            nan = int(np.isnan(scan.ranges).sum())
+            raise CollisionError(f"scan has {nan} of {scan.ranges.size} beams NaN "
                                  "(erroneous): it cannot show the way is clear")
-        angles = scan.angle_min + scan.angle_increment * np.arange(r.size)
-        close = (r < scan.range_min) & ~nan  # includes -inf: too close to measure
-        hit = close | ((r >= scan.range_min) & (r <= scan.range_max))
-        rr = np.where(close, scan.range_min, r)[hit]
-        pts = np.stack([rr * np.cos(angles[hit]), rr * np.sin(angles[hit])], axis=1)
+        pts = scan_points(scan)
         half = scan.range_max + 2 * resolution
+        if extra is not None and extra.shape[0]:
+            extra = np.asarray(extra, dtype=np.float64).reshape(-1, 2)
+            if not np.all(np.isfinite(extra)) or np.abs(extra).max() > MAX_COORDINATE:
+                raise CollisionError("extra obstacle points must be finite and within "
+                                     f"{MAX_COORDINATE:g} m")
+            pts = np.concatenate([pts, extra[np.hypot(extra[:, 0], extra[:, 1])
+                                             <= scan.range_max]])
         n = math.ceil(2 * half / resolution)
         origin = (-half, -half, 0.0)
         mask = np.zeros((n, n), dtype=bool)
@@ -954,7 +980,7 @@ within [B])``: :func:`contact_probability` of paths in the base frame (a 3x3 cov
 def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
                mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
                base_motion: tuple[float, float, float] = (0.0, 0.0, 0.0),
-               resolution: float = 0.05) -> CollisionCheck:
+               resolution: float = 0.05, extra: FloatArray | None = None) -> CollisionCheck:
     """A check of paths in the base frame against ``scan`` (:data:`CollisionCheck`).
 
     Args:
@@ -964,11 +990,14 @@ def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
         base_motion: pose of the paths' base frame (at the prediction time) in the base
             frame at the scan's time: the chair's motion in between.
         resolution: raster of the distance field (m).
+        extra: [m, 2] more obstacle points in the scan's frame
+            (:meth:`asgp_ros.core.obstacle_memory.ScanMemory.points`: what earlier scans
+            saw outside this one's view).
 
     Raises:
         CollisionError: a scan that cannot show the way is clear.
     """
-    fld = DistanceField.from_scan(scan, resolution)
+    fld = DistanceField.from_scan(scan, resolution, extra=extra)
     Rm, tm = _pose_matrix(inverse_pose(mount))
     Rb, tb = _pose_matrix(base_motion)
     R = Rm @ Rb

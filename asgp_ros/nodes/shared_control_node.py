@@ -13,6 +13,11 @@ bridge stops writing, and the board's 200 ms watchdog
 hands the chair back to the user. The firmware also ignores an override while the user's
 stick is neutral, and this node never sends one then.
 
+The scans' obstacles are remembered for ``memory_s``, carried along by dead reckoning of
+the VO's twists (:mod:`asgp_ros.core.obstacle_memory`): what has left the scanner's view,
+behind the chair, still counts when it turns. Lost tracking or a gap in the VO empties
+the memory; the newest scan alone is used then.
+
 Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per decision:
 what was done and why, probability before and after, change, solve time) and
 ``diagnostics``.
@@ -30,6 +35,7 @@ Run: ``shared_control_node --ros-args --params-file config/shared_control.yaml
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import sys
@@ -60,6 +66,7 @@ from asgp_ros.common import topics
 from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
+from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.core.shared_control import (
     CollisionCheck,
@@ -131,6 +138,11 @@ PARAMS: tuple[ParamSpec, ...] = (
           "footprint centre ahead of the base frame's origin (m)", -2.5, 2.5),
     _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
           "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
+    _spec("memory_s", 10.0, "the laser's obstacles are remembered this long, carried along "
+          "by the VO, so that what left the scanner's view (behind the chair) still counts; "
+          "0 turns the memory off", 0.0, 600.0),
+    _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
+          "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
@@ -167,6 +179,8 @@ class SharedControlParams:
     footprint_width: float
     footprint_offset: float
     margin: float
+    memory_s: float
+    memory_radius_m: float
     heading_uncertainty: bool
     diagnostics_period_s: float
 
@@ -189,9 +203,18 @@ class SharedControlParams:
                                    progress_weight=self.progress_weight,
                                    heading_uncertainty=self.heading_uncertainty)
 
-    def footprint(self) -> collision.Footprint:
-        return collision.Footprint(self.footprint_length, self.footprint_width,
-                                   self.footprint_offset).grown(self.margin)
+    def memory(self) -> MemoryConfig | None:
+        """The obstacle memory's settings, None when it is off."""
+        if self.memory_s <= 0.0:
+            return None
+        return MemoryConfig(max_age_s=self.memory_s, radius_m=self.memory_radius_m,
+                            max_gap_s=self.vo_timeout_s)
+
+    def footprint(self, margin: bool = True) -> collision.Footprint:
+        """The chair's footprint, grown by ``margin`` unless told not to."""
+        bare = collision.Footprint(self.footprint_length, self.footprint_width,
+                                   self.footprint_offset)
+        return bare.grown(self.margin) if margin else bare
 
 
 def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
@@ -230,9 +253,15 @@ class SharedControlNode(Node):
             vo_timeout_s=p.vo_timeout_s))
         self.config = p.config()
         self.footprint = p.footprint()
+        self.bare_footprint = p.footprint(margin=False)
+        memory = p.memory()
+        mount = (p.laser_x, p.laser_y, p.laser_yaw)
+        self.odometer = Odometer(memory.max_gap_s) if memory is not None else None
+        self.memory = ScanMemory(mount, memory) if memory is not None else None
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
-        self._scan: tuple[float, collision.Scan] | None = None  # (arrival, scan)
+        # (arrival, scan with its stamp, remembered points outside its view)
+        self._scan: tuple[float, collision.Scan, np.ndarray | None] | None = None
         self._grid: collision.DistanceField | None = None
         self._grid_problem = ""
         self._decision: Decision | None = None
@@ -318,7 +347,10 @@ class SharedControlNode(Node):
         if now is None:
             return
         t, vel = conv.twist_stamped_to_sample(msg)
-        if self.predictor.feed_vo(self._stamp(t, now), vel):
+        t = self._stamp(t, now)
+        if self.odometer is not None:
+            self.odometer.feed(t, float(vel[0]), float(vel[1]))
+        if self.predictor.feed_vo(t, vel):
             self._maybe_decide(now)
 
     def _on_odometry(self, msg: Odometry) -> None:
@@ -329,6 +361,11 @@ class SharedControlNode(Node):
         t = self._stamp(t, now)
         if ok:
             self.predictor.feed_pose(t, *pose)
+        if self.odometer is not None:
+            if ok:
+                self.odometer.feed(t, float(vel[0]), float(vel[1]))
+            else:
+                self.odometer.lost()  # no twist to carry the memory along
         if self.predictor.feed_vo(t, vel, ok=ok):
             self._maybe_decide(now)
 
@@ -343,7 +380,13 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
-        self._scan = (now, scan)
+        if scan.stamp <= 0.0:
+            scan = dataclasses.replace(scan, stamp=now)
+        extra = None
+        if self.memory is not None and self.odometer is not None:
+            extra = self.memory.add(scan, self.odometer.pose_at(scan.stamp),
+                                    self.odometer.epoch)
+        self._scan = (now, scan, extra)
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # while intervening, every scan is judged at once
 
@@ -365,7 +408,8 @@ class SharedControlNode(Node):
 
     # ---- deciding -----------------------------------------------------------------------
 
-    def _check_for(self, now: float) -> Callable[[Prediction], CollisionCheck | None]:
+    def _check_for(self, now: float, footprint: collision.Footprint
+                   ) -> Callable[[Prediction], CollisionCheck | None]:
         """The collision check of the fresh obstacle sources for a prediction, or None.
 
         A scan is placed relative to the path's origin with the chair's motion between
@@ -376,17 +420,16 @@ class SharedControlNode(Node):
         def build(pred: Prediction) -> CollisionCheck | None:
             checks: list[CollisionCheck] = []
             if self._scan is not None:
-                arrival, scan = self._scan
-                stamp = scan.stamp if scan.stamp > 0.0 else arrival
-                if now - stamp <= p.scan_timeout_s:
+                _, scan, extra = self._scan
+                if now - scan.stamp <= p.scan_timeout_s:
                     v, w = (float(x) for x in pred.vel_past[-1])
-                    motion = _motion(v, w, pred.t0 - stamp)
+                    motion = _motion(v, w, pred.t0 - scan.stamp)
                     checks.append(collision.scan_check(
-                        scan, self.footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
-                        base_motion=motion))
+                        scan, footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
+                        base_motion=motion, extra=extra))
             if self._grid is not None and pred.origin is not None:
                 origin = (float(pred.origin[0]), float(pred.origin[1]), float(pred.origin[2]))
-                checks.append(collision.grid_check(self._grid, self.footprint, origin=origin))
+                checks.append(collision.grid_check(self._grid, footprint, origin=origin))
             if not checks:
                 return None
             if len(checks) == 1:
@@ -409,7 +452,8 @@ class SharedControlNode(Node):
     def _decide(self, now: float) -> None:
         user = self._user[1] if self._user is not None else np.full(2, np.nan)
         decision = decide(self.predictor, now, user, None, self.config,
-                          check_for=self._check_for(now))
+                          check_for=self._check_for(now, self.footprint),
+                          tight_for=self._check_for(now, self.bare_footprint))
         self._decision, self._decision_t = decision, now
         self._decisions += 1
         if decision.solve_s > 0.0:
@@ -491,6 +535,9 @@ class SharedControlNode(Node):
             "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
             "scan": "none" if self._scan is None else "received",
+            "memory_points": "off" if self.memory is None else str(self.memory.size),
+            "memory_resets": "off" if self.memory is None else str(self.memory.resets),
+            "odometry_breaks": "off" if self.odometer is None else str(self.odometer.breaks),
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
             "bad_messages": str(self._bad_messages),
         }

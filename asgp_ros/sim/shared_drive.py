@@ -24,18 +24,20 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from asgp_ros.core import collision
 from asgp_ros.core.models import MotionModel
+from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
 from asgp_ros.core.unicycle import integrate_path
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode
-from asgp_ros.sim.chair import Chair
+from asgp_ros.sim.chair import Chair, ChairState
 from asgp_ros.sim.driver import Driver, DriverParams
 from asgp_ros.sim.lidar import Lidar, LidarConfig
 from asgp_ros.sim.world import room_for_surface
@@ -43,6 +45,7 @@ from asgp_ros.sim.world import room_for_surface
 STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
+DEFAULT_MEMORY = MemoryConfig()
 
 
 @dataclass
@@ -60,6 +63,7 @@ class DriveResult:
     solve_ms: list[float] = field(default_factory=list)
     decisions: dict[str, int] = field(default_factory=dict)
     contact_points: list[tuple[float, float]] = field(default_factory=list)
+    contact_events: list[dict[str, float | str]] = field(default_factory=list)
     intervention_points: list[tuple[float, float]] = field(default_factory=list)
     path: list[tuple[float, float]] = field(default_factory=list)
 
@@ -85,11 +89,49 @@ def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
     return pose if dt > 0.0 else collision.inverse_pose(pose)
 
 
+def _scan_check_for(scan: collision.Scan | None, extra: np.ndarray | None, now: float,
+                    footprint: collision.Footprint, mount: tuple[float, float, float]
+                    ) -> Callable[[Prediction], collision.CollisionCheck | None]:
+    """The layer's check of a prediction against the newest scan (and the memory's
+    points), as the node builds it; None when the scan is stale."""
+
+    def build(pred: Prediction) -> collision.CollisionCheck | None:
+        if scan is None or now - scan.stamp > 0.3:
+            return None
+        v0, w0 = (float(x) for x in pred.vel_past[-1])
+        return collision.scan_check(scan, footprint, mount=mount,
+                                    base_motion=_motion(v0, w0, pred.t0 - scan.stamp),
+                                    extra=extra)
+
+    return build
+
+
+def _contact_event(t: float, state: ChairState, user: np.ndarray,
+                   applied: tuple[float, float], active: bool, decision: Decision | None,
+                   age: float) -> dict[str, float | str]:
+    """What the layer knew and did when the chair touched (for inspecting a drive)."""
+    event: dict[str, float | str] = {
+        "t": round(t, 2), "x": round(state.x, 3), "y": round(state.y, 3),
+        "theta_deg": round(math.degrees(state.theta), 1),
+        "v": round(state.v, 3), "omega": round(state.omega, 3),
+        "user_forward": round(float(user[0]), 3), "user_turn": round(float(user[1]), 3),
+        "applied_forward": round(applied[0], 3), "applied_turn": round(applied[1], 3),
+        "override": "active" if active else "none"}
+    if decision is not None:
+        event |= {"decision": decision.why.value, "decision_age_s": round(age, 2),
+                  "p_user": round(decision.p_user, 4), "p_command": round(decision.p_command, 4)}
+    return event
+
+
 def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           inattention: float = 0.1, surface: str = "tile",
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
-          lidar: LidarConfig | None = None, margin: float = 0.05) -> DriveResult:
-    """One drive (module docstring); the same ``seed`` gives the same user and floor."""
+          lidar: LidarConfig | None = None, margin: float = 0.05,
+          memory: MemoryConfig | None = DEFAULT_MEMORY, tight: bool = True) -> DriveResult:
+    """One drive (module docstring); the same ``seed`` gives the same user and floor.
+    ``memory``: the layer remembers earlier scans (None: the newest scan alone); ``tight``:
+    within the margin, candidates are ranked with the chair's own footprint (``tight_for``
+    of :func:`~asgp_ros.core.shared_control.decide`)."""
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -105,7 +147,11 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     rate = float(model.resample_config.rate_hz)
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
     mount = scanner.config.mount
-    footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
+    bare = collision.DEFAULT_FOOTPRINT
+    footprint = bare.grown(margin)
+    odometer = Odometer(memory.max_gap_s) if memory is not None else None
+    scan_memory = ScanMemory(mount, memory) if memory is not None else None
+    extra: np.ndarray | None = None
 
     out = DriveResult(seconds=seconds, layer=layer)
     stick = np.zeros(2)
@@ -135,6 +181,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 r = scanner.scan(state.x, state.y, state.theta)
                 scan = collision.Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min,
                                       r.range_max, stamp=t)
+                if scan_memory is not None and odometer is not None:
+                    extra = scan_memory.add(scan, odometer.pose_at(t), odometer.epoch)
             if decision is not None and decision.command is not None and \
                     t - decision_t <= 0.35 and not is_neutral(user, config.neutral_deadband):
                 if n % OVERRIDE_EVERY == 0:
@@ -159,6 +207,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
         state = chair.step(applied, STEP_S)
         if chair.contacts > contacts_before:
             out.contact_points.append((state.x, state.y))
+            out.contact_events.append(_contact_event(t, state, user, applied, active,
+                                                     decision, t - decision_t))
         out.min_clearance_m = min(out.min_clearance_m, room.footprint_clearance(
             state.x, state.y, state.theta) - room.furniture_band)
         if n % 50 == 0:
@@ -180,22 +230,18 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 w = math.remainder(state.theta - th0, 2.0 * math.pi) / gap \
                     + vo_rng.normal(0.0, VO_NOISE[1])
                 predictor.feed_vo(t, (v, w))
+                if odometer is not None:
+                    odometer.feed(t, v, w)
             vo_frame = (state.x, state.y, state.theta, t)
             step = predictor.ready_step()
             if step is not None and (last_step is None or step > last_step):
                 last_step = step
 
-                def check_for(pred: Prediction, scan: collision.Scan | None = scan,
-                              t: float = t
-                              ) -> collision.CollisionCheck | None:
-                    if scan is None or t - scan.stamp > 0.3:
-                        return None
-                    v0, w0 = (float(x) for x in pred.vel_past[-1])
-                    return collision.scan_check(scan, footprint, mount=mount,
-                                                base_motion=_motion(v0, w0, pred.t0 - scan.stamp))
-
                 start = time.perf_counter()
-                decision = decide(predictor, t, user, None, config, check_for=check_for)
+                decision = decide(
+                    predictor, t, user, None, config,
+                    check_for=_scan_check_for(scan, extra, t, footprint, mount),
+                    tight_for=_scan_check_for(scan, extra, t, bare, mount) if tight else None)
                 out.solve_ms.append(1e3 * (time.perf_counter() - start))
                 decision_t = t
                 out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
