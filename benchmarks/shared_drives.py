@@ -3,8 +3,8 @@
 One drive is chaotic (one different decision changes the rest of it), so versions of the
 layer are compared over many seeds. For every seed, drives of an inattentive user
 (:func:`asgp_ros.sim.shared_drive.drive`) in each of ``--modes`` (:data:`MODES`; by default
-without the layer, with it sampling the heading against the newest scan alone, and the
-layer as the node runs it). Prints each drive and
+without the layer, with it sampling the heading against the newest scan alone, and as the
+node runs it, remembering earlier scans). Prints each drive and
 the totals: contacts, interventions, the share of time the user's command passed untouched,
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
@@ -29,12 +29,11 @@ from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
 from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
 
-MODES = ("none", "mean heading", "heading sampled", "memory", "layer")
+MODES = ("none", "mean heading", "heading sampled", "memory")
 """Without the layer; with it checking the mean heading or sampling it, against the
-newest scan alone; sampling it against the scan and the memory of earlier scans; and the
-layer as the node runs it by default: that, and within the margin the candidates ranked
-with the chair's own footprint."""
-DEFAULT_MODES = ("none", "heading sampled", "layer")
+newest scan alone; and as the node runs it by default: sampling the heading, against the
+scan and the memory of earlier scans."""
+DEFAULT_MODES = ("none", "heading sampled", "memory")
 
 
 def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
@@ -46,8 +45,7 @@ def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
         result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
                        config=SharedControlConfig(heading_uncertainty=mode != "mean heading"),
                        lidar=lidar,
-                       memory=DEFAULT_MEMORY if mode in ("memory", "layer") else None,
-                       tight=mode == "layer")
+                       memory=DEFAULT_MEMORY if mode == "memory" else None)
     return result.summary() | {"seed": seed, "mode": mode}
 
 

@@ -96,38 +96,19 @@ def test_no_safe_command_sends_the_least_likely_or_lets_the_user_back_away():
     assert path_x[-1] > stop_x
 
 
-def test_within_the_margin_the_chair_own_footprint_ranks_the_candidates():
-    """Standing within the margin, every candidate "touches" with the grown footprint;
-    turning on the spot into furniture must still be told from stopping."""
-    pred, now = driving(forward=0.0, turn=0.8)
-    user = np.array([0.0, 0.8])
+def test_a_turn_on_the_spot_can_be_stopped():
+    """Stopping altogether is a candidate even for a turn on the spot (forward 0), which
+    shifting the turn by the offsets alone never reaches."""
+    pred, now = driving(forward=0.0, turn=1.0)
+    user = np.array([0.0, 1.0])  # the offsets reach down to a turn of 0.2
 
-    def saturated(pose, cov):  # the grown footprint: already in contact
-        return np.ones(pose.shape[:2]), np.ones(pose.shape[0])
-
-    def turning_into_it(pose, cov):  # the chair's own: the more it turns left, the likelier
+    def turning_into_it(pose, cov):  # the more it turns left, the likelier
         per_step = np.clip(pose[..., 2] / 0.5, 0.0, 1.0)
         return per_step, per_step.max(axis=-1)
 
-    d = decide(pred, now, user, saturated, CONFIG, tight_for=lambda p: turning_into_it)
-    assert d.why is Why.NO_SAFE_COMMAND and d.command is not None
-    np.testing.assert_allclose(d.command, [0.0, 0.0])  # stop turning into it
-    assert "within the margin" in d.detail
-    # without the tight ranking the user's command passed (the chair turned into it)
-    assert decide(pred, now, user, saturated, CONFIG).command is None
-    # the user's own command is as unlikely as any to touch: it passes (backing away)
-    d = decide(pred, now, user, saturated, CONFIG,
-               tight_for=lambda p: lambda pose, cov: (np.zeros(pose.shape[:2]),
-                                                      np.zeros(pose.shape[0])))
-    assert d.command is None and "user" in d.detail
-    # the tight check cannot be made (no scan for it, or it fails): the margin's rule
-    for tight_for in (lambda p: None, lambda p: _raise):
-        d = decide(pred, now, user, saturated, CONFIG, tight_for=tight_for)
-        assert d.command is None
-
-
-def _raise(pose, cov):
-    raise ValueError("scan refused")
+    d = decide(pred, now, user, turning_into_it, CONFIG)
+    assert d.command is not None and d.p_command < d.p_user
+    np.testing.assert_allclose(d.command, [0.0, 0.0])  # the least turning there is
 
 
 def test_a_neutral_stick_never_commands_anything():

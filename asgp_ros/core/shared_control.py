@@ -22,13 +22,9 @@ searches for the least intrusive replacement:
 * the chosen command is the cheapest candidate whose probability is at or below the
   threshold; when none is, the candidate with the lowest probability is used, the one
   with the least motion among equals (stopping is always a candidate), and the decision
-  says ``no_safe_command``. The check's footprint is grown by a safety margin, so once the
-  chair stands within the margin every candidate, stopping included, is certain to
-  "touch": then the candidates are ranked again with the chair's own footprint
-  (``tight_for``), which tells turning into the furniture from stopping or turning away.
-  If even the best is no less likely than the user's command (the chair already touches,
-  say), the user's command passes: overriding would only pin the chair against the
-  obstacle.
+  says ``no_safe_command``; if even that is no less likely than the user's command (the
+  chair already touches, or stands within the margin, say), the user's command passes:
+  overriding would only pin the chair against the obstacle.
 
 Safety rules, whatever the numbers say:
 
@@ -188,25 +184,9 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
     return grid[np.sort(first)]
 
 
-def _tight_probabilities(tight_for: Callable[[Prediction], CollisionCheck | None],
-                         pred: Prediction, batch: Prediction, config: SharedControlConfig
-                         ) -> FloatArray | None:
-    """[C] the candidates' probabilities with the chair's own footprint, or None when
-    that check cannot be made (then the margin's ranking stands)."""
-    try:
-        tight = tight_for(pred)
-        if tight is None:
-            return None
-        _, p = tight(batch.pose, check_covariance(batch, config))
-    except ValueError:
-        return None
-    return np.where(np.isfinite(p), p, 1.0)
-
-
 def decide(predictor: Predictor, now: float, user: FloatArray,
            check: CollisionCheck | None, config: SharedControlConfig, *,
-           check_for: Callable[[Prediction], CollisionCheck | None] | None = None,
-           tight_for: Callable[[Prediction], CollisionCheck | None] | None = None
+           check_for: Callable[[Prediction], CollisionCheck | None] | None = None
            ) -> Decision:
     """One step of the layer (module docstring).
 
@@ -218,9 +198,6 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         config: the settings.
         check_for: instead of ``check``, builds it from the user's prediction (its t0,
             origin and velocities place the paths relative to the obstacles' data).
-        tight_for: builds the same check with the chair's own footprint (no margin) from
-            the user's prediction; used only to rank the candidates when none is less
-            likely to touch than the user's command with the margin (module docstring).
     """
     user = np.asarray(user, dtype=np.float64).reshape(2)
     if not np.all(np.isfinite(user)):
@@ -278,19 +255,11 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         best = int(np.flatnonzero(safe)[np.argmin(cost[safe])])
         why, words = Why.INTERVENING, "changed the command"
     else:
-        rank, p_ref = p_all, min(p_user, float(p_all[0]))
-        why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
-        if tight_for is not None and p_all.min() >= p_ref - 1e-9:
-            # within the margin every candidate "touches": rank with the chair's footprint
-            tight_p = _tight_probabilities(tight_for, pred, batch, config)
-            if tight_p is not None:
-                rank, p_ref = tight_p, float(tight_p[0])
-                words += (f" (within the margin; without it p {p_ref:.3f} -> "
-                          f"{float(tight_p.min()):.3f})")
-        low = np.flatnonzero(rank <= rank.min() + 1e-12)
+        low = np.flatnonzero(p_all <= p_all.min() + 1e-12)
         motion = np.linalg.norm(commands[low], axis=1)  # ties: the least motion
         best = int(low[np.lexsort((cost[low], motion))[0]])
-        if rank[best] >= p_ref - 1e-9:
+        why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
+        if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9:
             # nothing does better than the user (already touching, say): the layer would
             # only pin the chair there; the user's command passes (to back away)
             return Decision(why, f"{words}, and none does better than the user's command "

@@ -210,11 +210,9 @@ class SharedControlParams:
         return MemoryConfig(max_age_s=self.memory_s, radius_m=self.memory_radius_m,
                             max_gap_s=self.vo_timeout_s)
 
-    def footprint(self, margin: bool = True) -> collision.Footprint:
-        """The chair's footprint, grown by ``margin`` unless told not to."""
-        bare = collision.Footprint(self.footprint_length, self.footprint_width,
-                                   self.footprint_offset)
-        return bare.grown(self.margin) if margin else bare
+    def footprint(self) -> collision.Footprint:
+        return collision.Footprint(self.footprint_length, self.footprint_width,
+                                   self.footprint_offset).grown(self.margin)
 
 
 def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
@@ -253,7 +251,6 @@ class SharedControlNode(Node):
             vo_timeout_s=p.vo_timeout_s))
         self.config = p.config()
         self.footprint = p.footprint()
-        self.bare_footprint = p.footprint(margin=False)
         memory = p.memory()
         mount = (p.laser_x, p.laser_y, p.laser_yaw)
         self.odometer = Odometer(memory.max_gap_s) if memory is not None else None
@@ -408,8 +405,7 @@ class SharedControlNode(Node):
 
     # ---- deciding -----------------------------------------------------------------------
 
-    def _check_for(self, now: float, footprint: collision.Footprint
-                   ) -> Callable[[Prediction], CollisionCheck | None]:
+    def _check_for(self, now: float) -> Callable[[Prediction], CollisionCheck | None]:
         """The collision check of the fresh obstacle sources for a prediction, or None.
 
         A scan is placed relative to the path's origin with the chair's motion between
@@ -425,11 +421,11 @@ class SharedControlNode(Node):
                     v, w = (float(x) for x in pred.vel_past[-1])
                     motion = _motion(v, w, pred.t0 - scan.stamp)
                     checks.append(collision.scan_check(
-                        scan, footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
+                        scan, self.footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
                         base_motion=motion, extra=extra))
             if self._grid is not None and pred.origin is not None:
                 origin = (float(pred.origin[0]), float(pred.origin[1]), float(pred.origin[2]))
-                checks.append(collision.grid_check(self._grid, footprint, origin=origin))
+                checks.append(collision.grid_check(self._grid, self.footprint, origin=origin))
             if not checks:
                 return None
             if len(checks) == 1:
@@ -452,8 +448,7 @@ class SharedControlNode(Node):
     def _decide(self, now: float) -> None:
         user = self._user[1] if self._user is not None else np.full(2, np.nan)
         decision = decide(self.predictor, now, user, None, self.config,
-                          check_for=self._check_for(now, self.footprint),
-                          tight_for=self._check_for(now, self.bare_footprint))
+                          check_for=self._check_for(now))
         self._decision, self._decision_t = decision, now
         self._decisions += 1
         if decision.solve_s > 0.0:

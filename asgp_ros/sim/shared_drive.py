@@ -127,11 +127,9 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           inattention: float = 0.1, surface: str = "tile",
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
-          memory: MemoryConfig | None = DEFAULT_MEMORY, tight: bool = True) -> DriveResult:
+          memory: MemoryConfig | None = DEFAULT_MEMORY) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
-    ``memory``: the layer remembers earlier scans (None: the newest scan alone); ``tight``:
-    within the margin, candidates are ranked with the chair's own footprint (``tight_for``
-    of :func:`~asgp_ros.core.shared_control.decide`)."""
+    ``memory``: the layer remembers earlier scans (None: the newest scan alone)."""
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -147,8 +145,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     rate = float(model.resample_config.rate_hz)
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
     mount = scanner.config.mount
-    bare = collision.DEFAULT_FOOTPRINT
-    footprint = bare.grown(margin)
+    footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
     odometer = Odometer(memory.max_gap_s) if memory is not None else None
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
     extra: np.ndarray | None = None
@@ -238,10 +235,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 last_step = step
 
                 start = time.perf_counter()
-                decision = decide(
-                    predictor, t, user, None, config,
-                    check_for=_scan_check_for(scan, extra, t, footprint, mount),
-                    tight_for=_scan_check_for(scan, extra, t, bare, mount) if tight else None)
+                decision = decide(predictor, t, user, None, config,
+                                  check_for=_scan_check_for(scan, extra, t, footprint, mount))
                 out.solve_ms.append(1e3 * (time.perf_counter() - start))
                 decision_t = t
                 out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
