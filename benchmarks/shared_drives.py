@@ -25,6 +25,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from asgp_ros.core.modelfile import load_model
+from asgp_ros.core.obstacle_memory import MemoryConfig
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
 from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
@@ -36,8 +37,8 @@ scan and the memory of earlier scans."""
 DEFAULT_MODES = ("none", "heading sampled", "memory")
 
 
-def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
-    path, seed, mode, minutes, fov = task
+def _one(task: tuple[str, int, str, float, float, float]) -> dict[str, Any]:
+    path, seed, mode, minutes, fov, memory_s = task
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -45,7 +46,7 @@ def _one(task: tuple[str, int, str, float, float]) -> dict[str, Any]:
         result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
                        config=SharedControlConfig(heading_uncertainty=mode != "mean heading"),
                        lidar=lidar,
-                       memory=DEFAULT_MEMORY if mode == "memory" else None)
+                       memory=MemoryConfig(max_age_s=memory_s) if mode == "memory" else None)
     return result.summary() | {"seed": seed, "mode": mode}
 
 
@@ -69,14 +70,17 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--fov", type=float, default=270.0, help="scanner field of view (deg)")
+    ap.add_argument("--memory-s", type=float, default=DEFAULT_MEMORY.max_age_s,
+                    help="how long the memory keeps a point (s)")
     ap.add_argument("--modes", type=_modes, default=DEFAULT_MODES,
                     help=f"comma-separated, of {', '.join(MODES)}")
     args = ap.parse_args(argv)
-    tasks = [(args.model, seed, mode, args.minutes, args.fov)
+    tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s)
              for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
-    print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg")
+    print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
+          f"memory {args.memory_s:g} s")
     print("seed | mode            | contacts | interventions | untouched | deepest (m) | "
           "solve p50 / p99 ms")
     for r in rows:

@@ -1,0 +1,102 @@
+"""How far the obstacle memory's dead reckoning drifts: the error of a remembered point.
+
+The shared-control layer carries the scans' obstacle points along with the VO's twists
+(:class:`asgp_ros.core.obstacle_memory.Odometer`). A point seen ``age`` seconds ago, 1 m
+from the chair, is misplaced by the error of the chair's relative pose over that time:
+the translation error plus the heading error times 1 m. This drives the simulated chair
+with the simulated user, feeds the odometer what the offline shared-control drive feeds
+it (a frame-to-frame VO at 5 Hz, with noise; :mod:`asgp_ros.sim.shared_drive`) and prints
+the error's median, p95 and maximum for ages of 2, 5 and 10 s, at the simulated VO's noise
+and at multiples of it.
+
+Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import numpy as np
+
+from asgp_ros.core.obstacle_memory import Odometer
+from asgp_ros.sim.chair import Chair
+from asgp_ros.sim.driver import Driver
+from asgp_ros.sim.shared_drive import STEP_S, VO_EVERY, VO_NOISE
+from asgp_ros.sim.world import room_for_surface
+
+AGES_S = (2.0, 5.0, 10.0)
+
+
+def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pose b in the frame of pose a."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
+
+
+def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarray]:
+    room = room_for_surface("tile")
+    chair = Chair.for_room(room, seed=seed, blocked=room.overlap)
+    state = chair.reset((0.0, 0.0, 0.0))
+    driver = Driver(seed + 1, room)
+    rng = np.random.default_rng(seed + 2)
+    odo = Odometer(0.5)
+    truth, est = [], []
+    prev = None
+    stick = np.zeros(2)
+    for n in range(round(60.0 * minutes / STEP_S)):
+        t = n * STEP_S
+        if n % 2 == 0:
+            stick = driver.command(t, state)
+        state = chair.step(stick, STEP_S)
+        if n % VO_EVERY != 3:
+            continue
+        if prev is not None:  # as the offline drive's VO: displacement over the interval
+            x0, y0, th0, tp = prev
+            gap = t - tp
+            c, s = math.cos(th0), math.sin(th0)
+            v = (c * (state.x - x0) + s * (state.y - y0)) / gap \
+                + rng.normal(0.0, noise_scale * VO_NOISE[0])
+            w = math.remainder(state.theta - th0, 2 * math.pi) / gap \
+                + rng.normal(0.0, noise_scale * VO_NOISE[1])
+            odo.feed(t, v, w)
+            pose = odo.pose_at(t)
+            assert pose is not None
+            truth.append((state.x, state.y, state.theta))
+            est.append(pose)
+        prev = (state.x, state.y, state.theta, t)
+    tr, es = np.array(truth), np.array(est)
+    per_s = 1.0 / (VO_EVERY * STEP_S)
+    out = {}
+    for age in AGES_S:
+        lag = round(age * per_s)
+        errs = []
+        for i in range(0, len(tr) - lag):
+            rt, re = relative(tr[i], tr[i + lag]), relative(es[i], es[i + lag])
+            errs.append(math.hypot(rt[0] - re[0], rt[1] - re[1])
+                        + abs(math.remainder(rt[2] - re[2], 2 * math.pi)) * 1.0)
+        out[age] = np.array(errs)
+    return out
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--noise", default="1,2,4",
+                    help="multiples of the simulated VO's noise (1 cm/s, 0.01 rad/s)")
+    args = ap.parse_args(argv)
+    print(f"error of a point 1 m from the chair, remembered for AGE ({args.minutes:g} "
+          f"simulated minutes, seed {args.seed})")
+    print("VO noise      | age  | median  | p95     | max")
+    for scale in (float(x) for x in args.noise.split(",")):
+        for age, errs in drift(args.minutes, args.seed, scale).items():
+            print(f"{scale:4g} x sim     | {age:4g} s | {100 * np.median(errs):5.1f} cm | "
+                  f"{100 * np.percentile(errs, 95):5.1f} cm | {100 * errs.max():5.1f} cm")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
