@@ -256,3 +256,28 @@ def test_extra_points_beyond_the_scan_window_are_left_out():
 def test_invalid_memory_settings_are_refused(bad):
     with pytest.raises(ValueError):
         MemoryConfig(**bad)
+
+
+def test_a_scan_sweeping_clockwise_is_read_the_same():
+    """angle_increment < 0 (a scanner mounted upside down): the same beams reversed."""
+    ccw = cast((0, 0, 0), [(1.0, -0.2, 1.0, 0.2)], 0.0)
+    cw = collision.Scan(ccw.ranges[::-1].copy(), -ccw.angle_min, -ccw.angle_increment,
+                        ccw.range_min, ccw.range_max, 0.0)
+    for first, second in ((ccw, ccw), (cw, cw), (ccw, cw)):
+        mem = ScanMemory()
+        mem.add(first, (0.0, 0.0, 0.0))
+        assert mem.size > 0
+        # the post gone: every beam of the second scan (either sweep) clears it
+        empty = collision.Scan(np.full(second.ranges.size, math.inf), second.angle_min,
+                               second.angle_increment, second.range_min, second.range_max,
+                               0.1)
+        mem.add(empty, (0.0, 0.0, 0.0))
+        assert mem.size == 0
+
+
+@pytest.mark.parametrize("stamp", [math.nan, math.inf])
+def test_a_scan_without_a_finite_stamp_empties_the_memory(stamp):
+    mem = ScanMemory()
+    mem.add(cast((0, 0, 0), WALL_AHEAD, 0.0), (0.0, 0.0, 0.0))
+    bad = cast((0, 0, math.pi), WALL_AHEAD, stamp)
+    assert mem.add(bad, (0.0, 0.0, math.pi)).shape == (0, 2) and mem.size == 0
