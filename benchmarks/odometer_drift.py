@@ -7,9 +7,11 @@ the translation error plus the heading error times 1 m. This drives the simulate
 with the simulated user, feeds the odometer what the offline shared-control drive feeds
 it (a frame-to-frame VO at 5 Hz, with noise; :mod:`asgp_ros.sim.shared_drive`) and prints
 the error's median, p95 and maximum for ages of 2, 5 and 10 s, at the simulated VO's noise
-and at multiples of it.
+and at multiples of it; with ``--bag``, the same from a recording's ``vo/twist`` against its
+``ground_truth/odom`` (``asgp demo`` records both in ``run_bag``: the rendered camera's VO;
+on a real chair, any ground truth published as nav_msgs/Odometry on that topic).
 
-Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4]
+Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4] [--bag BAG]
 """
 
 from __future__ import annotations
@@ -20,7 +22,9 @@ import sys
 
 import numpy as np
 
+from asgp_ros.common import topics
 from asgp_ros.core.obstacle_memory import Odometer
+from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.sim.chair import Chair
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.shared_drive import STEP_S, VO_EVERY, VO_NOISE
@@ -34,6 +38,60 @@ def relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     c, s = math.cos(a[2]), math.sin(a[2])
     dx, dy = b[0] - a[0], b[1] - a[1]
     return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi)])
+
+
+def point_errors(stamps: np.ndarray, truth: np.ndarray, est: np.ndarray, epochs: np.ndarray
+                 ) -> dict[float, np.ndarray]:
+    """Error (m) of a point 1 m from the chair remembered for each of ``AGES_S``: truth and
+    est [n, 3] poses at ``stamps`` [n]; pairs across an epoch break are skipped."""
+    out = {}
+    for age in AGES_S:
+        later = np.searchsorted(stamps, stamps + age)
+        errs = []
+        for i, j in enumerate(later):
+            if j >= len(stamps) or epochs[j] != epochs[i]:
+                continue
+            rt, re = relative(truth[i], truth[j]), relative(est[i], est[j])
+            errs.append(math.hypot(rt[0] - re[0], rt[1] - re[1])
+                        + abs(math.remainder(rt[2] - re[2], 2 * math.pi)) * 1.0)
+        out[age] = np.array(errs)
+    return out
+
+
+def bag_drift(bag: str) -> tuple[dict[float, np.ndarray], int]:
+    """:func:`point_errors` of a recording's twists against its ground truth."""
+    from pathlib import Path
+
+    from rosbags.highlevel import AnyReader  # only for --bag
+
+    twists, truth = [], []
+    with AnyReader([Path(bag)]) as reader:
+        wanted = {topics.in_bag(topics.VO_TWIST), topics.BAG_GROUND_TRUTH}
+        conns = [c for c in reader.connections if c.topic in wanted]
+        if {c.topic for c in conns} != wanted:
+            raise SystemExit(f"{bag} needs {sorted(wanted)}")
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            if conn.topic == topics.BAG_GROUND_TRUTH:
+                q = msg.pose.pose.orientation
+                truth.append((t, msg.pose.pose.position.x, msg.pose.pose.position.y,
+                              float(quaternion_to_yaw(q.x, q.y, q.z, q.w))))
+            else:
+                twists.append((t, msg.twist.linear.x, msg.twist.angular.z))
+    tw, gt = np.array(sorted(twists)), np.array(sorted(truth))
+    odo = Odometer(0.5)
+    stamps, est, epochs = [], [], []
+    for t, v, w in tw:
+        if odo.feed(t, v, w):
+            pose = odo.pose_at(t)
+            assert pose is not None
+            stamps.append(t)
+            est.append(pose)
+            epochs.append(odo.epoch)
+    st = np.array(stamps)
+    idx = np.clip(np.searchsorted(gt[:, 0], st), 0, len(gt) - 1)  # the truth at each twist
+    return point_errors(st, gt[idx, 1:], np.array(est), np.array(epochs)), odo.breaks
 
 
 def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarray]:
@@ -68,17 +126,8 @@ def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarr
             est.append(pose)
         prev = (state.x, state.y, state.theta, t)
     tr, es = np.array(truth), np.array(est)
-    per_s = 1.0 / (VO_EVERY * STEP_S)
-    out = {}
-    for age in AGES_S:
-        lag = round(age * per_s)
-        errs = []
-        for i in range(0, len(tr) - lag):
-            rt, re = relative(tr[i], tr[i + lag]), relative(es[i], es[i + lag])
-            errs.append(math.hypot(rt[0] - re[0], rt[1] - re[1])
-                        + abs(math.remainder(rt[2] - re[2], 2 * math.pi)) * 1.0)
-        out[age] = np.array(errs)
-    return out
+    stamps = VO_EVERY * STEP_S * np.arange(len(tr))
+    return point_errors(stamps, tr, es, np.zeros(len(tr), dtype=int))
 
 
 def main(argv: list[str]) -> int:
@@ -87,7 +136,17 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--noise", default="1,2,4",
                     help="multiples of the simulated VO's noise (1 cm/s, 0.01 rad/s)")
+    ap.add_argument("--bag", help="a recording with vo/twist and ground_truth/odom instead")
     args = ap.parse_args(argv)
+    if args.bag:
+        errors, breaks = bag_drift(args.bag)
+        print(f"error of a point 1 m from the chair, remembered for AGE ({args.bag}: "
+              f"vo/twist against ground_truth/odom; {breaks} breaks in the twists)")
+        print("age  | median  | p95     | max")
+        for age, errs in errors.items():
+            print(f"{age:4g} s | {100 * np.median(errs):5.1f} cm | "
+                  f"{100 * np.percentile(errs, 95):5.1f} cm | {100 * errs.max():5.1f} cm")
+        return 0
     print(f"error of a point 1 m from the chair, remembered for AGE ({args.minutes:g} "
           f"simulated minutes, seed {args.seed})")
     print("VO noise      | age  | median  | p95     | max")

@@ -3,8 +3,8 @@
 One drive is chaotic (one different decision changes the rest of it), so versions of the
 layer are compared over many seeds. For every seed, drives of an inattentive user
 (:func:`asgp_ros.sim.shared_drive.drive`) in each of ``--modes`` (:data:`MODES`; by default
-without the layer, with it sampling the heading against the newest scan alone, and as the
-node runs it, remembering earlier scans). Prints each drive and
+without the layer, as the node runs it by default (the heading sampled, the newest scan
+alone), and remembering earlier scans). Prints each drive and
 the totals: contacts, interventions, the share of time the user's command passed untouched,
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
@@ -31,9 +31,9 @@ from asgp_ros.sim.lidar import LidarConfig
 from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
 
 MODES = ("none", "mean heading", "heading sampled", "memory")
-"""Without the layer; with it checking the mean heading or sampling it, against the
-newest scan alone; and as the node runs it by default: sampling the heading, against the
-scan and the memory of earlier scans."""
+"""Without the layer; with it checking the mean heading or sampling it (as the node does by
+default), against the newest scan alone; sampling it against the scan and the memory of
+earlier scans (``memory_s`` > 0)."""
 DEFAULT_MODES = ("none", "heading sampled", "memory")
 
 

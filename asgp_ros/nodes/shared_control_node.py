@@ -13,10 +13,10 @@ bridge stops writing, and the board's 200 ms watchdog
 hands the chair back to the user. The firmware also ignores an override while the user's
 stick is neutral, and this node never sends one then.
 
-The scans' obstacles are remembered for ``memory_s``, carried along by dead reckoning of
-the VO's twists (:mod:`asgp_ros.core.obstacle_memory`): what has left the scanner's view,
-behind the chair, still counts when it turns. Lost tracking or a gap in the VO empties
-the memory; the newest scan alone is used then.
+With ``memory_s`` > 0 (off by default) the scans' obstacles are remembered that long,
+carried along by dead reckoning of the VO's twists (:mod:`asgp_ros.core.obstacle_memory`):
+what has left the scanner's view, behind the chair, still counts when it turns. Lost
+tracking or a gap in the VO empties the memory; the newest scan alone is used then.
 
 Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per decision:
 what was done and why, probability before and after, change, solve time) and
@@ -138,9 +138,10 @@ PARAMS: tuple[ParamSpec, ...] = (
           "footprint centre ahead of the base frame's origin (m)", -2.5, 2.5),
     _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
           "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
-    _spec("memory_s", 10.0, "the laser's obstacles are remembered this long, carried along "
-          "by the VO, so that what left the scanner's view (behind the chair) still counts; "
-          "0 turns the memory off", 0.0, 600.0),
+    _spec("memory_s", 0.0, "the laser's obstacles are remembered this long, carried along "
+          "by the VO's twists, so that what left the scanner's view (behind the chair) still "
+          "counts; 0 (the default): no memory. Only for odometry that drifts less than the "
+          "margin over this time", 0.0, 600.0),
     _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
           "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "

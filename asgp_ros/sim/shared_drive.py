@@ -46,6 +46,7 @@ STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
 DEFAULT_MEMORY = MemoryConfig()
+"""The memory's settings when one is asked for (``memory_s`` 10 s)."""
 
 
 @dataclass
@@ -127,9 +128,10 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           inattention: float = 0.1, surface: str = "tile",
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
-          memory: MemoryConfig | None = DEFAULT_MEMORY) -> DriveResult:
+          memory: MemoryConfig | None = None) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
-    ``memory``: the layer remembers earlier scans (None: the newest scan alone)."""
+    ``memory``: the layer remembers earlier scans (None, as the node by default: the newest
+    scan alone)."""
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
