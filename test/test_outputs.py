@@ -505,3 +505,26 @@ def test_a_failed_main_thread_signal_still_stops_the_pool(monkeypatch):
         assert pool.map(abs, [-1, -2]) == [1, 2]
         raise RuntimeError("stop")
     assert set(multiprocessing.active_children()) <= before
+
+
+def test_a_stopping_pool_leaves_other_children_alone():
+    """Only the pool's own workers are signalled and killed, not a process the caller
+    started while the pool ran."""
+    import multiprocessing
+    import time
+
+    from asgp_ros.common import fileio
+
+    other = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,))
+    try:
+        with (pytest.raises(RuntimeError, match="stop"),
+              fileio.worker_pool(2) as pool):
+            assert pool.map(abs, [-1, -2]) == [1, 2]
+            other.start()
+            raise RuntimeError("stop")
+        assert other.is_alive()
+        assert not any(w.is_alive() for w in pool._pool)  # the workers are gone
+    finally:
+        if other.pid is not None:
+            other.kill()
+            other.join()

@@ -225,7 +225,7 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     thread so that a worker that does not end cannot hold up the main thread beyond the
     grace period.
     """
-    workers = [c for c in multiprocessing.active_children() if c not in others]
+    workers = _pool_workers(pool, others)
     for worker in workers:
         if worker.pid is not None:
             with contextlib.suppress(OSError):  # pool.terminate() below signals it anyway
@@ -234,10 +234,21 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     stopper.start()
     stopper.join(POOL_STOP_GRACE_S)
     if stopper.is_alive():
-        for child in multiprocessing.active_children():
-            if child not in others:
-                child.kill()
+        for worker in {*workers, *_pool_workers(pool, others)}:
+            if worker.is_alive():
+                worker.kill()
         stopper.join(POOL_STOP_GRACE_S)
+
+
+def _pool_workers(pool: multiprocessing.pool.Pool,
+                  others: set[multiprocessing.process.BaseProcess]
+                  ) -> list[multiprocessing.process.BaseProcess]:
+    """The pool's worker processes: CPython's ``Pool._pool``; without it, the children
+    that were not there before the pool (which may include other children started since)."""
+    listed = getattr(pool, "_pool", None)
+    if isinstance(listed, list):
+        return [w for w in listed if isinstance(w, multiprocessing.process.BaseProcess)]
+    return [c for c in multiprocessing.active_children() if c not in others]
 
 
 def signal_main_thread(pid: int, signum: int) -> None:
