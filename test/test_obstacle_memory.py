@@ -68,6 +68,7 @@ def test_the_odometer_integrates_held_twists_and_interpolates():
     straight.feed(0.2, 1.0, 0.0)
     assert straight.pose_at(0.3) == pytest.approx((0.3, 0.0, 0.0), abs=1e-12)
     assert odo.pose_at(2.6) is None  # stale: past max_gap_s
+    assert odo.stamp == pytest.approx(2.0)
     assert odo.pose_at(-0.1) is None  # before the history
 
 

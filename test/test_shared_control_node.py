@@ -297,16 +297,16 @@ def post_scan_msg(t: float, centre: tuple[float, float], radius: float = 0.05,
     return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, "laser")
 
 
-def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
-    """Driving past a post: once it is behind, out of the 270-degree view, the node still
-    holds it where it is, carried along by the VO's twists (the scans here are drawn from
-    the same twists, so any error is the node's)."""
-    h = harness(memory_s=10.0)
-    post = np.array([2.0, 0.6])  # in the frame of the chair's pose at the first twist
+def drive_past_post(h: Harness, post: np.ndarray, vo_scale: float = 1.0,
+                    wheel: object | None = None) -> float:
+    """4 s past ``post`` at 0.72 m/s: joystick at 20 Hz, twists at 5 Hz (the VO's scaled
+    by ``vo_scale``; exact ones on the publisher ``wheel`` too, if given), scans at 10 Hz
+    drawn from the exact twists. Returns the chair's x at the end."""
     stats = h.node.predictor.stats
     rng = np.random.default_rng(5)
     x, t_twist, v = 0.0, None, 0.0
-    for i in range(80):  # 4 s at 20 Hz
+    t = 100.0
+    for i in range(80):
         t = 100.0 + 0.05 * (i + 1)
         h.clock(t)
         n = stats.joy_samples
@@ -318,22 +318,42 @@ def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
                 x += v * (t - t_twist)
             t_twist = t
             n = stats.vo_samples
-            h.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, vo_scale * v, 0.0))
             h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+            if wheel is not None:
+                wheel.publish(conv.odometry_from_pose(t, x, 0.0, 0.0, v, 0.0))
+                h.spin_until(lambda t=t: abs((h.node.odometer.stamp or 0.0) - t) < 1e-6,
+                             what="wheel odometry")
         if i % 2 == 1:
             at = x + v * (t - t_twist) if t_twist is not None else 0.0
             arrived = h.node._scan
             h.scan_pub.publish(post_scan_msg(t, (post[0] - at - LASER_X, post[1])))
             h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
-    sensor_x = x + v * (t - t_twist) + LASER_X
+    return x + v * (t - t_twist)
+
+
+def remembered_post_gap(h: Harness, post: np.ndarray, chair_x: float) -> np.ndarray:
+    """Distance of each remembered point from the post's centre (scanner frame)."""
+    sensor_x = chair_x + LASER_X
     assert math.degrees(math.atan2(post[1], post[0] - sensor_x)) > 140.0  # out of view
     _, _, extra = h.node._scan
     assert extra is not None and extra.shape[0] >= 3
-    gap = np.hypot(extra[:, 0] - (post[0] - sensor_x), extra[:, 1] - post[1])
+    return np.hypot(extra[:, 0] - (post[0] - sensor_x), extra[:, 1] - post[1])
+
+
+def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
+    """Driving past a post: once it is behind, out of the 270-degree view, the node still
+    holds it where it is, carried along by the VO's twists (the scans here are drawn from
+    the same twists, so any error is the node's)."""
+    h = harness(memory_s=10.0)
+    post = np.array([2.0, 0.6])  # in the frame of the chair's pose at the first twist
+    chair_x = drive_past_post(h, post)
+    gap = remembered_post_gap(h, post, chair_x)
     assert np.all(np.abs(gap - 0.05) < 0.02), gap  # on the post's surface
     diag = conv.diagnostic_values(h.node.diagnostic_status())
     assert int(diag["memory_points"]) >= 3 and diag["odometry_breaks"] == "0"
     # the VO stops: the next scan has no pose, the memory is emptied, never moved blind
+    sensor_x = chair_x + LASER_X
     for i in range(12):
         t = 104.05 + 0.05 * i
         h.clock(t)
@@ -342,6 +362,26 @@ def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
             h.scan_pub.publish(post_scan_msg(t, (post[0] - sensor_x, post[1])))
             h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
     assert h.node._scan[2].shape == (0, 2) and h.node.memory.size == 0
+
+
+def test_the_memory_can_follow_other_odometry(harness):
+    """With ``memory_odom_topic`` the memory is carried by that odometry (wheel odometry,
+    say), not by the VO: here the VO over-reads the speed by 20 %, which would misplace
+    the post by about half a metre, and the wheel odometry is exact."""
+    from nav_msgs.msg import Odometry
+
+    h = harness(memory_s=10.0, memory_odom_topic="wheel/odom")
+    wheel = h.test.create_publisher(Odometry, "wheel/odom", qos_profile_sensor_data)
+    h.spin_until(lambda: wheel.get_subscription_count() > 0, what="discovery")
+    post = np.array([2.0, 0.6])
+    chair_x = drive_past_post(h, post, vo_scale=1.2, wheel=wheel)
+    gap = remembered_post_gap(h, post, chair_x)
+    assert np.all(np.abs(gap - 0.05) < 0.02), gap
+    # lost tracking on that odometry (a huge twist variance) empties the memory
+    lost = conv.odometry_from_pose(104.1, 0.0, 0.0, 0.0, 0.0, 0.0)
+    lost.twist.covariance[0] = 1e12
+    wheel.publish(lost)
+    h.spin_until(lambda: h.node.odometer.breaks == 1, what="odometry break")
 
 
 def test_the_memory_can_be_turned_off(harness):

@@ -113,6 +113,11 @@ class Odometer:
         self.breaks = 0  # epochs started after the first
         self._history: deque[tuple[float, Pose, float, float]] = deque()  # (t, pose, v, w)
 
+    @property
+    def stamp(self) -> float | None:
+        """The newest twist's stamp in this epoch (None: none yet)."""
+        return self._history[-1][0] if self._history else None
+
     def lost(self) -> None:
         """Tracking lost: the next twist starts a new epoch."""
         if self._history:

@@ -14,7 +14,8 @@ hands the chair back to the user. The firmware also ignores an override while th
 stick is neutral, and this node never sends one then.
 
 With ``memory_s`` > 0 (off by default) the scans' obstacles are remembered that long,
-carried along by dead reckoning of the VO's twists (:mod:`asgp_ros.core.obstacle_memory`):
+carried along by dead reckoning of the VO's twists, or of ``memory_odom_topic``'s
+(:mod:`asgp_ros.core.obstacle_memory`):
 what has left the scanner's view, behind the chair, still counts when it turns. Lost
 tracking or a gap in the VO empties the memory; the newest scan alone is used then.
 
@@ -142,6 +143,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           "by the VO's twists, so that what left the scanner's view (behind the chair) still "
           "counts; 0 (the default): no memory. Only for odometry that drifts less than the "
           "margin over this time", 0.0, 600.0),
+    _spec("memory_odom_topic", "", "odometry that carries the memory (nav_msgs/Odometry: its "
+          "twist; wheel odometry or a filter fusing it, say); empty: the VO's twists"),
     _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
           "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
@@ -181,6 +184,7 @@ class SharedControlParams:
     footprint_offset: float
     margin: float
     memory_s: float
+    memory_odom_topic: str
     memory_radius_m: float
     heading_uncertainty: bool
     diagnostics_period_s: float
@@ -289,6 +293,9 @@ class SharedControlNode(Node):
         else:
             self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
                                      qos_profile_sensor_data)
+        if self.odometer is not None and p.memory_odom_topic:
+            self.create_subscription(Odometry, p.memory_odom_topic, self._on_memory_odom,
+                                     qos_profile_sensor_data)
         if p.obstacles in ("laser", "both"):
             self.create_subscription(LaserScan, p.scan_topic, self._on_scan,
                                      qos_profile_sensor_data)
@@ -346,7 +353,7 @@ class SharedControlNode(Node):
             return
         t, vel = conv.twist_stamped_to_sample(msg)
         t = self._stamp(t, now)
-        if self.odometer is not None:
+        if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
         if self.predictor.feed_vo(t, vel):
             self._maybe_decide(now)
@@ -359,13 +366,24 @@ class SharedControlNode(Node):
         t = self._stamp(t, now)
         if ok:
             self.predictor.feed_pose(t, *pose)
-        if self.odometer is not None:
-            if ok:
-                self.odometer.feed(t, float(vel[0]), float(vel[1]))
-            else:
-                self.odometer.lost()  # no twist to carry the memory along
+        if self.odometer is not None and not self.params.memory_odom_topic:
+            self._feed_odometer(t, vel, ok)
         if self.predictor.feed_vo(t, vel, ok=ok):
             self._maybe_decide(now)
+
+    def _on_memory_odom(self, msg: Odometry) -> None:
+        now = self._now()
+        if now is None:
+            return
+        t, vel, ok, _ = conv.odometry_to_sample(msg)
+        self._feed_odometer(self._stamp(t, now), vel, ok)
+
+    def _feed_odometer(self, t: float, vel: tuple[float, float], ok: bool) -> None:
+        assert self.odometer is not None
+        if ok:
+            self.odometer.feed(t, float(vel[0]), float(vel[1]))
+        else:
+            self.odometer.lost()  # no twist to carry the memory along
 
     def _on_scan(self, msg: LaserScan) -> None:
         now = self._now()
