@@ -9,9 +9,14 @@ it (a frame-to-frame VO at 5 Hz, with noise; :mod:`asgp_ros.sim.shared_drive`) a
 the error's median, p95 and maximum for ages of 2, 5 and 10 s, at the simulated VO's noise
 and at multiples of it; with ``--bag``, the same from a recording's ``vo/twist`` against its
 ``ground_truth/odom`` (``asgp demo`` records both in ``run_bag``: the rendered camera's VO;
-on a real chair, any ground truth published as nav_msgs/Odometry on that topic).
+on a real chair, any ground truth published as nav_msgs/Odometry on that topic). For a
+bag of the simulated room (``asgp demo``, ``--surface`` its floor) it also replays the
+memory itself: scans cast from the true poses at 10 Hz, the memory (10 s) carried by the
+bag's twists and, for comparison, by the true ones, and prints the share of remembered
+points that sit more than 5 cm inside the free floor (ghost obstacles).
 
-Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4] [--bag BAG]
+Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4]
+[--bag BAG [--surface tile]]
 """
 
 from __future__ import annotations
@@ -23,11 +28,13 @@ import sys
 import numpy as np
 
 from asgp_ros.common import topics
-from asgp_ros.core.obstacle_memory import Odometer
+from asgp_ros.core import collision
+from asgp_ros.core.obstacle_memory import Odometer, ScanMemory, compose
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.sim.chair import Chair
 from asgp_ros.sim.driver import Driver
-from asgp_ros.sim.shared_drive import STEP_S, VO_EVERY, VO_NOISE
+from asgp_ros.sim.lidar import Lidar
+from asgp_ros.sim.shared_drive import STEP_S, VO_EVERY, VO_NOISE, frame_twist
 from asgp_ros.sim.world import room_for_surface
 
 AGES_S = (2.0, 5.0, 10.0)
@@ -58,8 +65,8 @@ def point_errors(stamps: np.ndarray, truth: np.ndarray, est: np.ndarray, epochs:
     return out
 
 
-def bag_drift(bag: str) -> tuple[dict[float, np.ndarray], int]:
-    """:func:`point_errors` of a recording's twists against its ground truth."""
+def read_bag(bag: str) -> tuple[np.ndarray, np.ndarray]:
+    """A recording's twists [n, 3] (t, v, omega) and ground truth [m, 4] (t, x, y, yaw)."""
     from pathlib import Path
 
     from rosbags.highlevel import AnyReader  # only for --bag
@@ -79,7 +86,11 @@ def bag_drift(bag: str) -> tuple[dict[float, np.ndarray], int]:
                               float(quaternion_to_yaw(q.x, q.y, q.z, q.w))))
             else:
                 twists.append((t, msg.twist.linear.x, msg.twist.angular.z))
-    tw, gt = np.array(sorted(twists)), np.array(sorted(truth))
+    return np.array(sorted(twists)), np.array(sorted(truth))
+
+
+def bag_drift(tw: np.ndarray, gt: np.ndarray) -> tuple[dict[float, np.ndarray], int]:
+    """:func:`point_errors` of a recording's twists against its ground truth."""
     odo = Odometer(0.5)
     stamps, est, epochs = [], [], []
     for t, v, w in tw:
@@ -92,6 +103,37 @@ def bag_drift(bag: str) -> tuple[dict[float, np.ndarray], int]:
     st = np.array(stamps)
     idx = np.clip(np.searchsorted(gt[:, 0], st), 0, len(gt) - 1)  # the truth at each twist
     return point_errors(st, gt[idx, 1:], np.array(est), np.array(epochs)), odo.breaks
+
+
+def ghost_share(tw: np.ndarray, gt: np.ndarray, surface: str) -> float:
+    """Share of remembered points more than 5 cm inside the simulated room's free floor,
+    the memory carried by the twists ``tw`` [n, 3] and scans cast from the truth ``gt``."""
+    room = room_for_surface(surface)
+    lidar = Lidar(room, seed=1)
+    mount = lidar.config.mount
+    odo, memory = Odometer(0.5), ScanMemory(mount)
+    x_lo, x_hi, y_lo, y_hi = room.free_box
+    k, inside, total = 0, 0, 0
+    for t in np.arange(gt[0, 0] + 1.0, gt[-1, 0], 1.0 / lidar.config.rate_hz):
+        while k < len(tw) and tw[k, 0] <= t:
+            odo.feed(*tw[k])
+            k += 1
+        i = min(int(np.searchsorted(gt[:, 0], t)), len(gt) - 1)
+        x, y, th = gt[i, 1:]
+        r = lidar.scan(x, y, th)
+        scan = collision.Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min,
+                              r.range_max, float(t))
+        extra = memory.add(scan, odo.pose_at(float(t)), odo.epoch)
+        if not extra.size:
+            continue
+        sx, sy, sth = compose((x, y, th), mount)  # the scanner's true pose
+        c, s = math.cos(sth), math.sin(sth)
+        wx = sx + c * extra[:, 0] - s * extra[:, 1]
+        wy = sy + s * extra[:, 0] + c * extra[:, 1]
+        depth = np.minimum.reduce([wx - x_lo, x_hi - wx, wy - y_lo, y_hi - wy])
+        inside += int((depth > 0.05).sum())
+        total += extra.shape[0]
+    return inside / max(total, 1)
 
 
 def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarray]:
@@ -111,14 +153,9 @@ def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarr
         state = chair.step(stick, STEP_S)
         if n % VO_EVERY != 3:
             continue
-        if prev is not None:  # as the offline drive's VO: displacement over the interval
-            x0, y0, th0, tp = prev
-            gap = t - tp
-            c, s = math.cos(th0), math.sin(th0)
-            v = (c * (state.x - x0) + s * (state.y - y0)) / gap \
-                + rng.normal(0.0, noise_scale * VO_NOISE[0])
-            w = math.remainder(state.theta - th0, 2 * math.pi) / gap \
-                + rng.normal(0.0, noise_scale * VO_NOISE[1])
+        if prev is not None:  # the offline drive's VO
+            v, w = frame_twist(prev, state, t, rng,
+                               (noise_scale * VO_NOISE[0], noise_scale * VO_NOISE[1]))
             odo.feed(t, v, w)
             pose = odo.pose_at(t)
             assert pose is not None
@@ -137,15 +174,26 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--noise", default="1,2,4",
                     help="multiples of the simulated VO's noise (1 cm/s, 0.01 rad/s)")
     ap.add_argument("--bag", help="a recording with vo/twist and ground_truth/odom instead")
+    ap.add_argument("--surface", default="tile", help="the simulated room of --bag")
     args = ap.parse_args(argv)
     if args.bag:
-        errors, breaks = bag_drift(args.bag)
+        tw, gt = read_bag(args.bag)
+        errors, breaks = bag_drift(tw, gt)
         print(f"error of a point 1 m from the chair, remembered for AGE ({args.bag}: "
               f"vo/twist against ground_truth/odom; {breaks} breaks in the twists)")
         print("age  | median  | p95     | max")
         for age, errs in errors.items():
             print(f"{age:4g} s | {100 * np.median(errs):5.1f} cm | "
                   f"{100 * np.percentile(errs, 95):5.1f} cm | {100 * errs.max():5.1f} cm")
+        # the truth's twists: the differences of its poses over their intervals
+        rel = [relative(gt[j - 1, 1:], gt[j, 1:]) for j in range(1, len(gt))]
+        dt = np.diff(gt[:, 0])
+        truth_twists = np.column_stack([gt[1:, 0], [r[0] for r in rel] / dt,
+                                        [r[2] for r in rel] / dt])
+        print(f"remembered points > 5 cm inside the free floor ({args.surface} room, memory "
+              f"10 s): {100 * ghost_share(tw, gt, args.surface):.2f} % carried by the bag's "
+              f"twists, {100 * ghost_share(truth_twists, gt, args.surface):.2f} % by the "
+              "truth's")
         return 0
     print(f"error of a point 1 m from the chair, remembered for AGE ({args.minutes:g} "
           f"simulated minutes, seed {args.seed})")

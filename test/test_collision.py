@@ -239,3 +239,24 @@ def test_an_inattentive_driver_bumps_into_furniture_an_attentive_one_does_not():
         _drive(DriverParams(inattention=0.3), 60.0, seed=5)  # deterministic for a seed
     with pytest.raises(ValueError):
         DriverParams(inattention=1.5)
+
+
+def test_a_long_range_scan_gets_a_bounded_raster_and_the_same_answer():
+    """A scan's range_max (up to 1000 m, from a message) sets the raster's extent: at 5 cm
+    cells a 1000 m scanner would need 40,000 cells a side (gigabytes, at every decision).
+    The raster is capped; the probabilities stay those of the short-range scan."""
+    near = wall_scan(2.0)
+    far = C.Scan(np.where(np.isinf(near.ranges),
+                          2.0 / np.maximum(np.cos(near.angle_min + near.angle_increment
+                                                  * np.arange(near.ranges.size)), 1e-9),
+                          near.ranges), near.angle_min, near.angle_increment, 0.05, 1000.0)
+    fld = C.DistanceField.from_scan(far)
+    assert max(fld.dist.shape) <= C.MAX_SCAN_FIELD_SIDE
+    assert C.DistanceField.from_scan(near).resolution == 0.05  # short range: unchanged
+    x = np.linspace(0.0, 1.5, 10)
+    pose = np.stack([x, np.zeros(10), np.zeros(10)], axis=1)[None]
+    cov = np.tile(np.eye(2) * 0.05**2, (1, 10, 1, 1))
+    a = C.scan_check(near, C.DEFAULT_FOOTPRINT)(pose, cov)
+    b = C.scan_check(far, C.DEFAULT_FOOTPRINT)(pose, cov)
+    assert a[1][0] > 0.5
+    np.testing.assert_allclose(b[0], a[0], atol=1e-12)

@@ -282,3 +282,15 @@ def test_a_scan_without_a_finite_stamp_empties_the_memory(stamp):
     mem.add(cast((0, 0, 0), WALL_AHEAD, 0.0), (0.0, 0.0, 0.0))
     bad = cast((0, 0, math.pi), WALL_AHEAD, stamp)
     assert mem.add(bad, (0.0, 0.0, math.pi)).shape == (0, 2) and mem.size == 0
+
+
+def test_a_flood_of_twists_keeps_the_odometer_bounded():
+    from asgp_ros.core.obstacle_memory import MAX_HISTORY
+
+    odo = Odometer(max_gap_s=0.5, history_s=5.0)
+    for i in range(3 * MAX_HISTORY):  # 100 kHz for a while
+        odo.feed(1e-5 * i, 0.5, 0.0)
+    assert len(odo._history) == MAX_HISTORY
+    t = 1e-5 * (3 * MAX_HISTORY - 1)
+    assert odo.pose_at(t)[0] == pytest.approx(0.5 * t, abs=1e-9)  # still integrated
+    assert odo.pose_at(0.0) is None  # the oldest went first

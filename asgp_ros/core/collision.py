@@ -103,6 +103,8 @@ HEADING_BIN = math.radians(0.25)
 #: refused (CollisionError): no wheelchair's prediction looks like that.
 MAX_COORDINATE = 1e6
 MAX_VARIANCE = 1e12
+#: Cells a side of a scan's distance field, at most (range_max 25 m at 5 cm cells).
+MAX_SCAN_FIELD_SIDE = 1024
 _CELL_BUDGET = 1 << 21  # raster cells of one call (all heading bins): 8 MB of counts
 _PAIR_BUDGET = 1 << 18  # (step, heading bin) pairs of one call: bins widen beyond
 _EXACT_WORK = 1 << 22  # method "auto": the exact test up to this many sample-point pairs
@@ -222,11 +224,6 @@ def scan_points(scan: Scan) -> FloatArray:
     return pts
 
 
-def scan_invalid_share(scan: Scan) -> float:
-    """The share of a scan's beams that are NaN (erroneous)."""
-    return float(np.isnan(scan.ranges).mean())
-
-
 def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     """Distance (m) from every cell centre to the nearest obstacle cell, less half a cell
     (so it never overstates a clearance); inf without obstacles."""
@@ -285,12 +282,17 @@ class DistanceField:
         ``extra`` [m, 2]: more obstacle points in the scan's frame (what an
         :class:`~asgp_ros.core.obstacle_memory.ScanMemory` remembers outside the scan's
         view); those farther than ``range_max`` from the scanner are left out, as the
-        window ends there (beyond it everything counts as touching)."""
-        if scan_invalid_share(scan) > max_invalid or np.isnan(scan.ranges).all():
-            nan = int(np.isnan(scan.ranges).sum())
-            raise CollisionError(f"scan has {nan} of {scan.ranges.size} beams NaN "
+        window ends there (beyond it everything counts as touching).
+
+        The raster has at most :data:`MAX_SCAN_FIELD_SIDE` cells a side: a long-range scan
+        gets coarser cells (the pruning's margins grow with them; the footprint tests use
+        the points themselves), never gigabytes of raster."""
+        nan = np.isnan(scan.ranges)
+        if nan.all() or nan.mean() > max_invalid:
+            raise CollisionError(f"scan has {int(nan.sum())} of {nan.size} beams NaN "
                                  "(erroneous): it cannot show the way is clear")
         pts = scan_points(scan)
+        resolution = max(resolution, 2.0 * scan.range_max / (MAX_SCAN_FIELD_SIDE - 4))
         half = scan.range_max + 2 * resolution
         if extra is not None and extra.shape[0]:
             extra = np.asarray(extra, dtype=np.float64).reshape(-1, 2)

@@ -42,6 +42,9 @@ Pose = tuple[float, float, float]
 MAX_SPEED = 10.0
 MAX_TURN_RATE = 20.0
 
+#: Twists an :class:`Odometer` keeps (a flood of them keeps the newest).
+MAX_HISTORY = 4096
+
 
 @dataclass(frozen=True)
 class MemoryConfig:
@@ -111,7 +114,8 @@ class Odometer:
         self.history_s = history_s
         self.epoch = 0
         self.breaks = 0  # epochs started after the first
-        self._history: deque[tuple[float, Pose, float, float]] = deque()  # (t, pose, v, w)
+        # (t, pose, v, w); at most MAX_HISTORY entries, whatever rate the twists come at
+        self._history: deque[tuple[float, Pose, float, float]] = deque(maxlen=MAX_HISTORY)
 
     @property
     def stamp(self) -> float | None:

@@ -90,6 +90,20 @@ def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
     return pose if dt > 0.0 else collision.inverse_pose(pose)
 
 
+def frame_twist(frame: tuple[float, float, float, float], state: ChairState, t: float,
+                rng: np.random.Generator, noise: tuple[float, float] = VO_NOISE
+                ) -> tuple[float, float]:
+    """The frame-to-frame VO's twist at ``t``: the body-frame displacement since the
+    previous frame (x, y, theta, stamp) over the interval, plus Gaussian ``noise``
+    (m/s, rad/s)."""
+    x0, y0, th0, t_prev = frame
+    gap = t - t_prev
+    c, s = math.cos(th0), math.sin(th0)
+    v = (c * (state.x - x0) + s * (state.y - y0)) / gap + rng.normal(0.0, noise[0])
+    w = math.remainder(state.theta - th0, 2.0 * math.pi) / gap + rng.normal(0.0, noise[1])
+    return v, w
+
+
 def _scan_check_for(scan: collision.Scan | None, extra: np.ndarray | None, now: float,
                     footprint: collision.Footprint, mount: tuple[float, float, float]
                     ) -> Callable[[Prediction], collision.CollisionCheck | None]:
@@ -221,13 +235,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             predictor.feed_joy(t, fed)
         if n % VO_EVERY == 3:
             if vo_frame is not None:
-                x0, y0, th0, t_prev = vo_frame
-                gap = t - t_prev
-                c, sn = math.cos(th0), math.sin(th0)
-                v = (c * (state.x - x0) + sn * (state.y - y0)) / gap \
-                    + vo_rng.normal(0.0, VO_NOISE[0])
-                w = math.remainder(state.theta - th0, 2.0 * math.pi) / gap \
-                    + vo_rng.normal(0.0, VO_NOISE[1])
+                v, w = frame_twist(vo_frame, state, t, vo_rng)
                 predictor.feed_vo(t, (v, w))
                 if odometer is not None:
                     odometer.feed(t, v, w)
