@@ -78,6 +78,7 @@ from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.runtime import init_rclpy
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "predictor_node"
@@ -650,8 +651,8 @@ def main(args: list[str] | None = None) -> int:
     # about twice as slowly with OpenBLAS's default two threads).
     threadpool_limits(limits=1)
     # rclpy's handlers (installed by init) turn SIGINT and SIGTERM into a context shutdown:
-    # spin returns, and so does a start-up that is loading the model.
-    rclpy.init(args=args)
+    # spin returns, and so does a start-up that is loading the model; no KeyboardInterrupt
+    init_rclpy(args)
     # the executor exists before the node: a signal during start-up finds it ready to stop
     executor = SingleThreadedExecutor()
     node: PredictorNode | None = None

@@ -43,6 +43,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.runtime import init_rclpy
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
 from asgp_ros.vo.planar import PlanarOdometry
@@ -275,8 +276,9 @@ class VONode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT or SIGTERM (rclpy's handlers shut the context down, which
-    ends the spin at once, whatever the node is doing). Exit code 1: bad parameters."""
-    rclpy.init(args=args)
+    ends the spin at once, whatever the node is doing; no KeyboardInterrupt is raised, see
+    :mod:`asgp_ros.nodes.runtime`). Exit code 1: bad parameters."""
+    init_rclpy(args)
     # the executor exists before the node: a signal during start-up finds it ready to stop
     executor = SingleThreadedExecutor()
     node = None
