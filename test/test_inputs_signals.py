@@ -331,22 +331,29 @@ _SIGINT_IN_PYTHON_CODE = """
 import os, signal, sys, time
 import rclpy
 from rclpy.utilities import ok
-from asgp_ros.nodes.runtime import init_rclpy
-init_rclpy() if sys.argv[1] == "node" else rclpy.init()
+from asgp_ros.nodes import runtime
+if sys.argv[1] == "node":
+    stops = runtime.StopSignals().__enter__()
+    runtime.init()
+else:
+    rclpy.init()
 os.kill(os.getpid(), signal.SIGINT)
 deadline = time.monotonic() + 10.0
 spins = 0
-while ok() and time.monotonic() < deadline:  # plain Python code when the signal lands
-    spins += 1
-print("context down" if not ok() else "context up", flush=True)
+while not runtime.stop_requested() and time.monotonic() < deadline:
+    spins += 1  # plain Python code when the signal lands
+print("stop requested" if runtime.stop_requested() else "no stop", flush=True)
+print("context up" if ok() else "context down", flush=True)
+rclpy.try_shutdown()
 """
 
 
-def test_sigint_shuts_the_context_down_and_raises_nothing_in_python_code(repo_root):
-    """The VO and predictor nodes stop through rclpy's context shutdown. A SIGINT must not
-    also raise KeyboardInterrupt wherever the main thread happens to be: inside
-    ``rclpy.task.Future.__del__`` it printed a traceback ("Exception ignored in ...") at a
-    node's exit in CI. Plain rclpy.init raises it (the control); the nodes' start-up not."""
+def test_a_stop_signal_only_sets_the_flag_the_main_thread_shuts_down(repo_root):
+    """Every node stops through nodes.runtime: a SIGINT raises nothing wherever the main
+    thread is (with rclpy's handlers it raised KeyboardInterrupt there, and inside
+    ``rclpy.task.Future.__del__`` that printed a traceback at the VO node's exit in CI),
+    and nothing shuts the context down behind the main thread's back. Plain rclpy.init is
+    the control: there the same SIGINT raises."""
     def run(mode: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-c", _SIGINT_IN_PYTHON_CODE, mode],
                               cwd=repo_root, capture_output=True, text=True, timeout=60)
@@ -355,5 +362,45 @@ def test_sigint_shuts_the_context_down_and_raises_nothing_in_python_code(repo_ro
     assert control.returncode != 0 and "KeyboardInterrupt" in control.stderr, control
     node = run("node")
     assert node.returncode == 0, node.stderr
-    assert node.stdout.strip() == "context down"
+    assert node.stdout.split("\n")[:2] == ["stop requested", "context up"], node.stdout
     assert "Traceback" not in node.stderr, node.stderr
+
+
+def test_a_stop_signal_while_the_model_read_blocks_ends_start_up(rclpy_context, model_file,
+                                                                 monkeypatch):
+    """As with a context shutdown above: a SIGINT (which now only sets the stop flag) ends
+    a start-up whose model read hangs."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.core.modelfile import ModelFileError
+    from asgp_ros.nodes import predictor_node as pn
+    from asgp_ros.nodes import runtime
+
+    entered, release = threading.Event(), threading.Event()
+
+    def stuck_read(path, kind=None):
+        entered.set()
+        release.wait(30.0)
+        raise ModelFileError(path, "released by the test")
+
+    monkeypatch.setattr(pn, "load_model", stuck_read)
+    sent: list[float] = []
+
+    def interrupt() -> None:
+        assert entered.wait(30.0)
+        sent.append(time.monotonic())
+        os.kill(os.getpid(), signal.SIGINT)
+
+    thread = threading.Thread(target=interrupt)
+    try:
+        with runtime.StopSignals():
+            thread.start()
+            with pytest.raises(pn.StartupInterruptedError, match="while loading"):
+                pn.PredictorNode(context=rclpy_context,
+                                 parameter_overrides=[Parameter("model_path", value=model_file)])
+            assert time.monotonic() - sent[0] < EXIT_BOUND_S
+            assert runtime.stop_requested()
+        assert not runtime.stop_requested()  # cleared with the handlers restored
+    finally:
+        release.set()
+        thread.join()

@@ -50,12 +50,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.signals import uninstall_signal_handlers
-from rclpy.utilities import ok, try_shutdown
+from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
@@ -77,8 +76,8 @@ from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
-from asgp_ros.nodes.runtime import init_rclpy
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "predictor_node"
@@ -353,8 +352,8 @@ class PredictorNode(Node):
         )
 
     def _load_model(self, path: str) -> MotionModel:
-        """``load_model`` in a worker thread; the main thread returns as soon as the context
-        shuts down (a signal), whatever the read is doing.
+        """``load_model`` in a worker thread; the main thread returns as soon as a stop
+        signal arrives or the context shuts down, whatever the read is doing.
 
         Raises:
             StartupError: the file does not load. StartupInterruptedError: shutdown requested.
@@ -374,7 +373,7 @@ class PredictorNode(Node):
 
         threading.Thread(target=work, name="model_loader", daemon=True).start()
         while not done.wait(_LOAD_POLL_S):
-            if not self.context.ok():
+            if not self.context.ok() or runtime.stop_requested():
                 raise StartupInterruptedError(f"shutdown requested while loading {path}")
         if failed:
             error = failed[0]
@@ -650,34 +649,26 @@ def main(args: list[str] | None = None) -> int:
     # other nodes on the wheelchair laptop (a loaded 2-core machine ran batched rollouts
     # about twice as slowly with OpenBLAS's default two threads).
     threadpool_limits(limits=1)
-    # rclpy's handlers (installed by init) turn SIGINT and SIGTERM into a context shutdown:
-    # spin returns, and so does a start-up that is loading the model; no KeyboardInterrupt
-    init_rclpy(args)
-    # the executor exists before the node: a signal during start-up finds it ready to stop
-    executor = SingleThreadedExecutor()
-    node: PredictorNode | None = None
-    try:
-        node = PredictorNode()
-        rclpy.spin(node, executor)
-    except StartupError as exc:
-        if not ok():  # a failure caused by the shutdown itself
-            return 0
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException, StartupInterruptedError):
-        pass
-    except Exception:
-        if ok():
-            raise
-        # rclpy calls made while the context shuts down fail: the node is stopping anyway
-    finally:
-        executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
-        # stop rclpy's signal-handling thread before the interpreter finalises (a signal
-        # arriving while it tears down crashed a node, about once in 60 exits)
-        uninstall_signal_handlers()
+    # SIGINT and SIGTERM only set a flag: spin returns, and so does a start-up that is
+    # loading the model; the main thread then destroys the node and shuts rclpy down
+    with runtime.StopSignals():
+        runtime.init(args)
+        executor = SingleThreadedExecutor()
+        node: PredictorNode | None = None
+        try:
+            node = PredictorNode()
+            executor.add_node(node)
+            runtime.spin(executor)
+        except StartupError as exc:
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
+            return 1
+        except StartupInterruptedError:
+            pass
+        finally:
+            executor.shutdown()
+            if node is not None:
+                node.destroy_node()
+            try_shutdown()
     return 0
 
 

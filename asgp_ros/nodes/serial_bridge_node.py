@@ -21,7 +21,6 @@ guard condition and publish diagnostics at once.
 from __future__ import annotations
 
 import contextlib
-import signal
 import sys
 import threading
 import time
@@ -38,20 +37,17 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import ok, try_shutdown
+from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy
 
 from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial import status as board_status
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode, Status
-
-#: Longest wait of one executor slice (s): how soon a SIGINT or SIGTERM is acted on.
-SPIN_SLICE_S = 0.05
 
 _LEVEL = {
     LinkState.CONNECTED: "OK",
@@ -291,22 +287,16 @@ def main(args: list[str] | None = None) -> int:
     passthrough), destroys the node, shuts rclpy down and returns 0. Exit code 1: a
     parameter refused at start-up (out of its range, NaN, inconsistent), said in one line.
 
-    The node handles the two signals itself instead of rclpy's handlers, which shut the
-    context down at the signal: the link's reader thread publishes ``joy``, and letting it
-    publish into, and end after, a context already shut down crashed the process natively
-    now and then at exit. Here the signal only sets a flag; the executor spins in short
-    slices and, once the flag is set, the link stops while the context is still up. A
-    signal while the node is being built is honoured as soon as it is built."""
-    stop = threading.Event()
-
-    def on_signal(_signum: int, _frame: object) -> None:
-        stop.set()
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    node = None
-    try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    SIGINT and SIGTERM only set a flag (:mod:`asgp_ros.nodes.runtime`): the link's reader
+    thread publishes ``joy``, and rclpy's own handlers, which shut the context down at the
+    signal, let it publish into, and end after, a context already shut down, which crashed
+    the process natively now and then at exit. Once the flag is set the link stops while
+    the context is still up. A signal while the node is being built is honoured as soon
+    as it is built."""
+    with runtime.StopSignals():
+        runtime.init(args)
         executor = SingleThreadedExecutor()
+        node = None
         try:
             try:
                 node = SerialBridgeNode()
@@ -314,16 +304,12 @@ def main(args: list[str] | None = None) -> int:
                 rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
                 return 1
             executor.add_node(node)
-            while not stop.is_set() and ok():
-                executor.spin_once(timeout_sec=SPIN_SLICE_S)
+            runtime.spin(executor)
         finally:
             executor.shutdown()
             if node is not None:
                 node.destroy_node()  # stops the link first, the context still up
             try_shutdown()
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     return 0
 
 

@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import signal
 import sys
 from collections import deque
 from collections.abc import Callable
@@ -58,7 +57,6 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
-from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy, LaserScan
 from threadpoolctl import threadpool_limits
@@ -79,13 +77,11 @@ from asgp_ros.core.shared_control import (
 )
 from asgp_ros.core.unicycle import integrate_path
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
-
-#: Longest wait of one executor slice (s): how soon a SIGINT or SIGTERM is acted on.
-SPIN_SLICE_S = 0.05
 
 #: The board's override watchdog (s): an override older than this no longer drives.
 BOARD_WATCHDOG_S = 0.2
@@ -571,30 +567,22 @@ class SharedControlNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     threadpool_limits(limits=1)  # small matrices: BLAS threads only add contention
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop: list[int] = []
-
-    def on_signal(signum: int, _frame: object) -> None:
-        stop.append(signum)
-
-    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
-    executor = SingleThreadedExecutor()
-    node: SharedControlNode | None = None
-    try:
-        node = SharedControlNode()
-        executor.add_node(node)
-        while not stop:
-            executor.spin_once(timeout_sec=SPIN_SLICE_S)
-    except StartupError as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
-        return 1
-    finally:
-        executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with runtime.StopSignals():  # SIGINT and SIGTERM only set a flag
+        runtime.init(args)
+        executor = SingleThreadedExecutor()
+        node: SharedControlNode | None = None
+        try:
+            node = SharedControlNode()
+            executor.add_node(node)
+            runtime.spin(executor)
+        except StartupError as exc:
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
+            return 1
+        finally:
+            executor.shutdown()
+            if node is not None:
+                node.destroy_node()
+            try_shutdown()
     return 0
 
 

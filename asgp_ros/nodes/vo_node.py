@@ -32,18 +32,17 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rclpy.signals import uninstall_signal_handlers
-from rclpy.utilities import ok, try_shutdown
+from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import CameraInfo, Image
 
 from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
-from asgp_ros.nodes.runtime import init_rclpy
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
 from asgp_ros.vo.planar import PlanarOdometry
@@ -275,37 +274,26 @@ class VONode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the node until SIGINT or SIGTERM (rclpy's handlers shut the context down, which
-    ends the spin at once, whatever the node is doing; no KeyboardInterrupt is raised, see
-    :mod:`asgp_ros.nodes.runtime`). Exit code 1: bad parameters."""
-    init_rclpy(args)
-    # the executor exists before the node: a signal during start-up finds it ready to stop
-    executor = SingleThreadedExecutor()
-    node = None
-    try:
+    """Run the node until SIGINT or SIGTERM, which only set a flag: the main thread then
+    destroys the node and shuts rclpy down itself (:mod:`asgp_ros.nodes.runtime`).
+    Exit code 1: bad parameters."""
+    with runtime.StopSignals():
+        runtime.init(args)
+        executor = SingleThreadedExecutor()
+        node = None
         try:
-            node = VONode()
-        except ValueError as exc:  # a parameter out of its range
-            if not ok():
-                return 0
-            rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
-            return 1
-        rclpy.spin(node, executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except Exception:
-        if ok():
-            raise
-        # a callback (a publish) or the executor met the context a signal had just shut
-        # down: the node is stopping anyway
-    finally:
-        executor.shutdown()
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
-        # stop rclpy's signal-handling thread before the interpreter finalises (a signal
-        # arriving while it tears down crashed a node, about once in 60 exits)
-        uninstall_signal_handlers()
+            try:
+                node = VONode()
+            except ValueError as exc:  # a parameter out of its range
+                rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
+                return 1
+            executor.add_node(node)
+            runtime.spin(executor)
+        finally:
+            executor.shutdown()
+            if node is not None:
+                node.destroy_node()
+            try_shutdown()
     return 0
 
 
