@@ -24,6 +24,11 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
 
+``--clock system`` runs the node as on the chair: without ``use_sim_time``, so no /clock
+messages (with ``sim``, as when a bag is replayed, this script publishes /clock with every
+joystick sample, and each one wakes the node too); the inputs are stamped with the wall
+clock and sent at their own times, so only the real-rate part (2.) is measured.
+
 Targets: p99 latency under 5 ms (with adaptation too); CPU under 5% of one core.
 """
 
@@ -60,7 +65,7 @@ def _cpu_seconds(pid: int) -> float:
 class Driver:
     """Publishes the clock and the inputs; receives the paths."""
 
-    def __init__(self) -> None:
+    def __init__(self, sim_clock: bool = True) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import TwistStamped
@@ -73,6 +78,10 @@ class Driver:
 
         self.conv = conv
         self.Clock = Clock
+        self.sim_clock = sim_clock
+        # stamps are n * DT seconds; on the system clock they are wall times, and a step's
+        # inputs are sent when the wall clock reads their stamps
+        self.wall_offset = time.time() - time.monotonic()
         self.node = rclpy.create_node("predictor_latency_bench")
         self.executor = rclpy.executors.SingleThreadedExecutor()
         self.executor.add_node(self.node)
@@ -81,6 +90,7 @@ class Driver:
         self.vo_pub = self.node.create_publisher(TwistStamped, "vo/twist",
                                                  qos_profile_sensor_data)
         self.received: dict[int, float] = {}
+        self.lat_ms, self.missed, self.node_p99 = np.zeros(0), 0, "nan"
         self.diag: dict[str, str] = {}
         self.node.create_subscription(PathMsg, "predicted_path", self._on_path,
                                       QoSProfile(depth=10))
@@ -110,18 +120,22 @@ class Driver:
         sample is then sent at its own time within the interval (30 Hz), spinning between
         them, instead of all at once."""
         t_prev = n * DT - DT
+        if not self.sim_clock:
+            paced_from = t_prev - self.wall_offset
         for j in range(6):
             t = t_prev + 0.04 + j * (DT / 6)
             if paced_from is not None:
                 due = paced_from + 0.04 + j * (DT / 6)
                 self.spin_until(lambda due=due: time.monotonic() >= due, DT)
-            self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
+            if self.sim_clock:
+                self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
             self.joy_pub.publish(self.conv.joy_from_sample(
                 t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t)))
         if paced_from is not None:
             due = paced_from + DT + 0.01
             self.spin_until(lambda: time.monotonic() >= due, DT)
-        self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(n * DT + 0.03)))
+        if self.sim_clock:
+            self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(n * DT + 0.03)))
 
     def send_vo(self, n: int) -> float:
         t = n * DT + 0.01
@@ -139,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="duration of the real-rate CPU measurement (20)")
     parser.add_argument("--horizon", type=int, default=10, help="k steps (10 = 2.0 s)")
     parser.add_argument("--model", help="model file (default: train one on a simulated bag)")
+    parser.add_argument("--clock", choices=("sim", "system"), default="sim",
+                        help="sim: use_sim_time and /clock from this script (bag replay); "
+                             "system: the wall clock, no /clock (on the chair)")
     parser.add_argument("--adapt", choices=("off", "on", "both"), default="off",
                         help="online adaptation (adapt.enabled) of the node: off, on, or both "
                              "one after the other (side by side)")
@@ -160,6 +177,45 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag: int
+                                     ) -> int | None:
+    """Warm-up, then part 1 (sim clock): the next step number, or None without a path;
+    the figures are left on ``drv``."""
+    # discovery of every endpoint, then warm-up steps (buffers, first allocations)
+    n = 1000
+    while not drv.received:
+        drv.send_step_inputs(n)
+        drv.send_vo(n)
+        drv.spin_until(lambda n=n: n - lag in drv.received, 0.5)
+        n += 1
+        if n > 1100:
+            print("no path from the node", file=sys.stderr)
+            return None
+    for _ in range(20):
+        drv.send_step_inputs(n)
+        drv.send_vo(n)
+        drv.spin_until(lambda n=n: n - lag in drv.received, 1.0)
+        n += 1
+
+    # ---- 1. latency ---------------------------------------------------------------------
+    latencies, missed = [], 0
+    for _ in range(args.steps):
+        drv.send_step_inputs(n)
+        drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
+        sent = drv.send_vo(n)
+        if drv.spin_until(lambda n=n: n - lag in drv.received, 1.0):
+            latencies.append(drv.received[n - lag] - sent)
+        else:
+            missed += 1
+        n += 1
+    lat_ms = 1e3 * np.asarray(latencies)
+    drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
+    node_p99 = drv.diag.get("latency_p99_ms", "nan")
+
+    drv.lat_ms, drv.missed, drv.node_p99 = lat_ms, missed, node_p99
+    return n
+
+
 def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
     """Start the node on ``model`` (adapting or not), measure, print, stop it."""
     import rclpy
@@ -171,51 +227,37 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
     # frame-to-frame VO's mean velocity) it completes step n - 1 (README, "VO stamps").
     lag = 1 if load_model(model).resample_config.vel_stamp == "midpoint" else 0
 
+    sim = args.clock == "sim"
     env = dict(os.environ, PYTHONPATH=str(REPO))
     node = subprocess.Popen(
         [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
-         "-p", f"model_path:={model}", "-p", "use_sim_time:=true",
+         "-p", f"model_path:={model}", "-p", f"use_sim_time:={str(sim).lower()}",
          "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
          "-p", f"adapt.enabled:={'true' if adapt else 'false'}",
          "--log-level", "warn"],
         cwd=REPO, env=env)
     rclpy.init()
-    drv = Driver()
+    drv = Driver(sim_clock=sim)
+    lat_ms, missed, node_p99 = np.zeros(0), 0, "nan"
     try:
         if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
                               and drv.node.count_publishers("predicted_path") > 0, 30.0):
             print("the predictor node did not come up", file=sys.stderr)
             return 1
-        # discovery of every endpoint, then warm-up steps (buffers, first allocations)
-        n = 1000
-        while not drv.received:
-            drv.send_step_inputs(n)
-            drv.send_vo(n)
-            drv.spin_until(lambda n=n: n - lag in drv.received, 0.5)
-            n += 1
-            if n > 1100:
+        if sim:
+            n = warm_up_and_measure_back_to_back(drv, args, lag)
+            if n is None:
+                return 1
+            lat_ms, missed, node_p99 = drv.lat_ms, drv.missed, drv.node_p99
+        else:  # inputs at their wall-clock times from the start: 5 s of warm-up
+            n = math.ceil(time.time() / DT) + 2
+            for _ in range(25):
+                drv.send_step_inputs(n)
+                drv.send_vo(n)
+                n += 1
+            if not drv.received:
                 print("no path from the node", file=sys.stderr)
                 return 1
-        for _ in range(20):
-            drv.send_step_inputs(n)
-            drv.send_vo(n)
-            drv.spin_until(lambda n=n: n - lag in drv.received, 1.0)
-            n += 1
-
-        # ---- 1. latency -------------------------------------------------------------
-        latencies, missed = [], 0
-        for _ in range(args.steps):
-            drv.send_step_inputs(n)
-            drv.spin_until(lambda: False, 0.002)  # let the joystick samples land first
-            sent = drv.send_vo(n)
-            if drv.spin_until(lambda n=n: n - lag in drv.received, 1.0):
-                latencies.append(drv.received[n - lag] - sent)
-            else:
-                missed += 1
-            n += 1
-        lat_ms = 1e3 * np.asarray(latencies)
-        drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
-        node_p99 = drv.diag.get("latency_p99_ms", "nan")
 
         # ---- 2. CPU at the real rate ------------------------------------------------
         cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
@@ -223,7 +265,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         start = time.monotonic()
         sent_at: dict[int, float] = {}
         for i in range(steps_cpu):
-            drv.send_step_inputs(n, paced_from=start + i * DT)
+            drv.send_step_inputs(n, paced_from=start + i * DT if sim else None)
             sent_at[n - lag] = drv.send_vo(n)
             n += 1
         cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
@@ -242,20 +284,23 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
             node.wait()
 
     print(f"predictor node, adaptation {'on' if adapt else 'off'}, horizon {args.horizon} "
-          f"steps, {len(lat_ms)} steps ({missed} without a path)")
+          f"steps, clock {args.clock}, {len(lat_ms)} steps back to back ({missed} without a "
+          "path)")
     if adapt:
         print(f"  adaptation: {drv.diag.get('adapt_rows_absorbed', '?')} steps absorbed, "
               f"last update {drv.diag.get('adapt_last_update_ms', '?')} ms, last check "
               f"{drv.diag.get('adapt_last_check_ms', '?')} ms")
-    print(f"  VO publish -> path received (across processes): p50 "
-          f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
-          f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")
-    print(f"  inside the node (VO callback -> path published): p99 {node_p99} ms")
+    if len(lat_ms):
+        print(f"  VO publish -> path received (across processes): p50 "
+              f"{np.percentile(lat_ms, 50):.2f} ms, p99 {np.percentile(lat_ms, 99):.2f} ms, "
+              f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")
+        print(f"  inside the node (VO callback -> path published): p99 {node_p99} ms")
     if len(paced_ms):
         print(f"  at the real rate (a step every {1e3 * DT:.0f} ms, {len(paced_ms)} steps): "
               f"p50 {np.percentile(paced_ms, 50):.2f} ms, p99 "
               f"{np.percentile(paced_ms, 99):.2f} ms")
-    print(f"  CPU at 5 Hz (joystick 30 Hz, VO 5 Hz): {100 * cpu:.1f}% of one core "
+    clock = "/clock 35 Hz, " if sim else ""
+    print(f"  CPU at 5 Hz (joystick 30 Hz, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
           f"(target < 5%)")
     return 0
 

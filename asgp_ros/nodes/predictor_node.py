@@ -651,14 +651,14 @@ def main(args: list[str] | None = None) -> int:
     threadpool_limits(limits=1)
     # SIGINT and SIGTERM only set a flag: spin returns, and so does a start-up that is
     # loading the model; the main thread then destroys the node and shuts rclpy down
-    with runtime.StopSignals():
+    with runtime.StopSignals() as stops:
         runtime.init(args)
         executor = SingleThreadedExecutor()
         node: PredictorNode | None = None
         try:
             node = PredictorNode()
             executor.add_node(node)
-            runtime.spin(executor)
+            stops.spin(executor)
         except StartupError as exc:
             rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
             return 1

@@ -15,16 +15,21 @@ thread runs next. Both bit the nodes:
   then at exit.
 
 Here rclpy installs no handler (``SignalHandlerOptions.NO``). The signals set a flag
-(:class:`StopSignals`), nothing else; :func:`spin` runs the executor in short slices and
-returns once the flag is set, so the main thread alone destroys the node and then shuts
-the context down, in that order, with nothing else running. A long start-up (a model
-being read) polls :func:`stop_requested`. A signal during start-up is honoured as soon as
-the node is built.
+(:class:`StopSignals`), nothing else, and wake the executor: Python writes each signal's
+number to a socket (``signal.set_wakeup_fd``) at once, even while the main thread waits
+inside rcl, and a small thread reading that socket triggers the executor's guard condition
+(``Executor.wake``). :meth:`StopSignals.spin` returns once the flag is set, so the main
+thread alone destroys the node and then shuts the context down, in that order, with
+nothing else running; the executor never wakes only to look at the flag. A long start-up
+(a model being read) polls :func:`stop_requested`. A signal during start-up is honoured as
+soon as the node is built.
 """
 
 from __future__ import annotations
 
+import contextlib
 import signal
+import socket
 import threading
 import types
 from collections.abc import Callable
@@ -34,14 +39,12 @@ from rclpy.executors import Executor
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok
 
-__all__ = ["SPIN_SLICE_S", "StopSignals", "init", "spin", "stop_requested"]
-
-#: Longest wait of the executor between two looks at the stop flag (s): the bound on how
-#: late a stop signal is seen when no message arrives.
-SPIN_SLICE_S = 0.05
+__all__ = ["StopSignals", "init", "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+_Handler = Callable[[int, types.FrameType | None], object] | int | None
 
 
 def stop_requested() -> bool:
@@ -50,22 +53,34 @@ def stop_requested() -> bool:
 
 
 class StopSignals:
-    """Context manager: SIGINT and SIGTERM set the stop flag (:func:`stop_requested`)
-    instead of raising or killing. The flag starts clear and is cleared again on exit,
-    when the previous handlers come back."""
+    """Context manager (main thread): SIGINT and SIGTERM set the stop flag
+    (:func:`stop_requested`) instead of raising or killing, and wake :meth:`spin`. The
+    flag starts clear and is cleared again on exit, when the previous handlers and wake-up
+    fd come back."""
 
     def __init__(self) -> None:
-        self._previous: dict[int, Callable[[int, types.FrameType | None], object] | int
-                             | None] = {}
+        self._previous: dict[int, _Handler] = {}
+        self._previous_fd = -1
+        self._read: socket.socket | None = None
+        self._write: socket.socket | None = None
 
     def __enter__(self) -> StopSignals:
         _STOP.clear()
+        self._read, self._write = socket.socketpair()
+        self._write.setblocking(False)
+        self._previous_fd = signal.set_wakeup_fd(self._write.fileno(),
+                                                 warn_on_full_buffer=False)
         self._previous = {sig: signal.signal(sig, self._on_signal) for sig in _SIGNALS}
         return self
 
     def __exit__(self, *exc: object) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+        signal.set_wakeup_fd(self._previous_fd)
+        for sock in (self._read, self._write):
+            if sock is not None:
+                sock.close()
+        self._read = self._write = None
         _STOP.clear()
 
     @staticmethod
@@ -73,13 +88,38 @@ class StopSignals:
         del signum, frame
         _STOP.set()
 
+    def spin(self, executor: Executor) -> None:
+        """Run ``executor`` until a stop signal (or until its context is shut down)."""
+        if self._read is None or self._write is None:
+            raise RuntimeError("StopSignals.spin outside its with block")
+        read, write = self._read, self._write
+        done = threading.Event()
+
+        def wake_on_signal() -> None:
+            # a byte per signal arrives here as the signal does; the main thread may be
+            # waiting inside rcl, where Python runs no handler until the wait returns
+            while not done.is_set():
+                try:
+                    if not read.recv(64):
+                        return
+                except OSError:
+                    return
+                if not done.is_set():
+                    executor.wake()
+
+        waker = threading.Thread(target=wake_on_signal, name="stop_signal_waker",
+                                 daemon=True)
+        waker.start()
+        try:
+            while not _STOP.is_set() and ok(context=executor.context):
+                executor.spin_once()
+        finally:
+            done.set()
+            with contextlib.suppress(OSError):
+                write.send(b"\0")  # ends the waker's recv
+            waker.join()
+
 
 def init(args: list[str] | None = None) -> None:
     """``rclpy.init`` without rclpy's signal handlers (use inside :class:`StopSignals`)."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-
-
-def spin(executor: Executor, slice_s: float = SPIN_SLICE_S) -> None:
-    """Run ``executor`` until a stop signal (or until its context is shut down)."""
-    while not _STOP.is_set() and ok(context=executor.context):
-        executor.spin_once(timeout_sec=slice_s)

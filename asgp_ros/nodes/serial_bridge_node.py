@@ -293,7 +293,7 @@ def main(args: list[str] | None = None) -> int:
     the process natively now and then at exit. Once the flag is set the link stops while
     the context is still up. A signal while the node is being built is honoured as soon
     as it is built."""
-    with runtime.StopSignals():
+    with runtime.StopSignals() as stops:
         runtime.init(args)
         executor = SingleThreadedExecutor()
         node = None
@@ -304,7 +304,7 @@ def main(args: list[str] | None = None) -> int:
                 rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
                 return 1
             executor.add_node(node)
-            runtime.spin(executor)
+            stops.spin(executor)
         finally:
             executor.shutdown()
             if node is not None:

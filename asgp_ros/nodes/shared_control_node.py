@@ -567,14 +567,14 @@ class SharedControlNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     threadpool_limits(limits=1)  # small matrices: BLAS threads only add contention
-    with runtime.StopSignals():  # SIGINT and SIGTERM only set a flag
+    with runtime.StopSignals() as stops:  # SIGINT and SIGTERM only set a flag
         runtime.init(args)
         executor = SingleThreadedExecutor()
         node: SharedControlNode | None = None
         try:
             node = SharedControlNode()
             executor.add_node(node)
-            runtime.spin(executor)
+            stops.spin(executor)
         except StartupError as exc:
             rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
             return 1

@@ -277,7 +277,7 @@ def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT or SIGTERM, which only set a flag: the main thread then
     destroys the node and shuts rclpy down itself (:mod:`asgp_ros.nodes.runtime`).
     Exit code 1: bad parameters."""
-    with runtime.StopSignals():
+    with runtime.StopSignals() as stops:
         runtime.init(args)
         executor = SingleThreadedExecutor()
         node = None
@@ -288,7 +288,7 @@ def main(args: list[str] | None = None) -> int:
                 rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
                 return 1
             executor.add_node(node)
-            runtime.spin(executor)
+            stops.spin(executor)
         finally:
             executor.shutdown()
             if node is not None:
