@@ -404,3 +404,59 @@ def test_a_stop_signal_while_the_model_read_blocks_ends_start_up(rclpy_context, 
     finally:
         release.set()
         thread.join()
+
+
+_SLOW_PREDICTION = """
+import sys, time
+from asgp_ros.core import online
+from asgp_ros.nodes import predictor_node
+original = online.Predictor.predict
+calls = [0]
+def slow(self, *args, **kwargs):
+    calls[0] += 1
+    if calls[0] == 5:
+        print("slow prediction: started", flush=True)
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end:  # Python code, where a KeyboardInterrupt would land
+            pass
+        print("slow prediction: finished", flush=True)
+    return original(self, *args, **kwargs)
+publish = predictor_node.PredictorNode._publish
+def announced(self, result):
+    publish(self, result)
+    if calls[0] == 5:
+        print("slow prediction: published", flush=True)
+online.Predictor.predict = slow
+predictor_node.PredictorNode._publish = announced
+sys.exit(predictor_node.main())
+"""
+
+
+def test_a_sigint_during_a_prediction_lets_it_finish_and_publish(repo_root, rclpy_context,
+                                                                 model_file):
+    """The node in the middle of a callback when SIGINT comes: the callback runs to its end
+    (its path is published) and the node then exits 0 without a traceback. Under rclpy's
+    handlers the signal raised KeyboardInterrupt inside the prediction and shut the
+    context down under it."""
+    env = dict(os.environ, PYTHONPATH=str(repo_root), PYTHONUNBUFFERED="1",
+               RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    node = NodeProcess.__new__(NodeProcess)
+    node.proc = subprocess.Popen(
+        [sys.executable, "-c", _SLOW_PREDICTION, "--ros-args", "-p",
+         f"model_path:={model_file}", "-p", "horizon_steps:=5"],
+        cwd=repo_root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    node.lines = []
+    node._reader = threading.Thread(target=node._read, daemon=True)
+    node._reader.start()
+    feeder = _Feeder(rclpy_context)
+    try:
+        node.wait_for("horizon 5 steps")
+        feeder.until(lambda: "slow prediction: started" in node.output, 60.0,
+                     "the slow prediction")
+        code = node.stop(signal.SIGINT, while_waiting=feeder.step)
+    finally:
+        node.kill()
+        feeder.close()
+    assert code == 0, node.output
+    assert "slow prediction: published" in node.output, node.output
+    assert "Traceback" not in node.output, node.output
