@@ -21,10 +21,6 @@ from types import MappingProxyType
 MODELS = ("MLP", "ASGP")
 TRAIN_SETS = ("Tile", "Carpet", "Both")
 TEST_SETS = ("Tile", "Carpet", "Hybrid")
-#: The paper's table of each horizon (s): I = 1.0 s (k = 5), II = 1.4 s (k = 7),
-#: III = 2.0 s (k = 10).
-TABLE_OF_HORIZON = MappingProxyType({"1.0": "I", "1.4": "II", "2.0": "III"})
-
 _Table = Mapping[str, Mapping[str, tuple[float, float, float]]]
 
 
@@ -55,9 +51,6 @@ TABLES: Mapping[str, _Table] = MappingProxyType({
 #: The paper's summary (Sec. V): ASGP's lead over the MLP averaged over the nine
 #: train x test pairs, in points, at 1.0, 1.4 and 2.0 s.
 MEAN_LEAD_POINTS = MappingProxyType({"1.0": 2.14, "1.4": 5.66, "2.0": 9.73})
-
-SOURCE = ("Fan et al., ICRA 2018, Tables I-III: a real chair (Permobil M300) with Fovis VO; "
-          "120-minute train sets, 40-minute test sets")
 
 
 def success_rate(test: str, train: str, model: str, horizon: str) -> float | None:
