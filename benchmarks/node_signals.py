@@ -26,7 +26,6 @@ import random
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -113,18 +112,18 @@ class Traffic:
         self.i += 1
 
 
-def one_run(kind: str, model: str, timeout: float, rng: random.Random,
+def one_run(traffic: Traffic, model: str, timeout: float, rng: random.Random,
             env: dict[str, str]) -> tuple[str, float, int | None, str]:
     """Start, flood, SIGINT, wait: (outcome, exit time, return code, stderr)."""
     import rclpy
 
+    kind = traffic.kind
     module = {"predictor": "asgp_ros.nodes.predictor_node", "vo": "asgp_ros.nodes.vo_node"}
     args = [sys.executable, "-m", module[kind], "--ros-args", "--log-level", "warn"]
     if kind == "predictor":
         args[-2:-2] = ["-p", f"model_path:={model}"]
     proc = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    traffic = TRAFFIC[kind]
     period = 1 / 60 if kind == "predictor" else 1 / 30
     try:
         deadline = time.monotonic() + 30.0
@@ -160,9 +159,6 @@ def one_run(kind: str, model: str, timeout: float, rng: random.Random,
             proc.wait()
 
 
-TRAFFIC: dict[str, Traffic] = {}
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=100, help="runs per node (100)")
@@ -192,11 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     try:
         for kind in kinds:
-            TRAFFIC[kind] = Traffic(kind)
+            traffic = Traffic(kind)
             times: list[float] = []
             bad: dict[str, list[tuple[int, int | None, str]]] = {}
             for run in range(args.runs):
-                outcome, elapsed, code, err = one_run(kind, model, args.timeout, rng, env)
+                outcome, elapsed, code, err = one_run(traffic, model, args.timeout, rng, env)
                 if math.isfinite(elapsed):
                     times.append(elapsed)
                 if outcome != "ok":
@@ -215,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"--- first '{outcome}' (run {run}, exit {code}) stderr:\n"
                       f"{err.strip()[-3000:]}\n---")
             failed += sum(len(v) for v in bad.values()) + slow
-            TRAFFIC[kind].node.destroy_node()
+            traffic.node.destroy_node()
     finally:
         rclpy.try_shutdown()
         for p in loads:
@@ -225,5 +221,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    with tempfile.TemporaryDirectory():
-        sys.exit(main())
+    sys.exit(main())

@@ -90,7 +90,6 @@ class Driver:
         self.vo_pub = self.node.create_publisher(TwistStamped, "vo/twist",
                                                  qos_profile_sensor_data)
         self.received: dict[int, float] = {}
-        self.lat_ms, self.missed, self.node_p99 = np.zeros(0), 0, "nan"
         self.diag: dict[str, str] = {}
         self.node.create_subscription(PathMsg, "predicted_path", self._on_path,
                                       QoSProfile(depth=10))
@@ -178,9 +177,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag: int
-                                     ) -> int | None:
-    """Warm-up, then part 1 (sim clock): the next step number, or None without a path;
-    the figures are left on ``drv``."""
+                                     ) -> tuple[int, np.ndarray, int, str] | None:
+    """Warm-up, then part 1 (sim clock): the next step number, the latencies (ms), the
+    steps without a path and the node's own p99 (from its diagnostics); None when no path
+    came during the warm-up."""
     # discovery of every endpoint, then warm-up steps (buffers, first allocations)
     n = 1000
     while not drv.received:
@@ -212,8 +212,7 @@ def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag:
     drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
     node_p99 = drv.diag.get("latency_p99_ms", "nan")
 
-    drv.lat_ms, drv.missed, drv.node_p99 = lat_ms, missed, node_p99
-    return n
+    return n, lat_ms, missed, node_p99
 
 
 def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
@@ -245,10 +244,10 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
             print("the predictor node did not come up", file=sys.stderr)
             return 1
         if sim:
-            n = warm_up_and_measure_back_to_back(drv, args, lag)
-            if n is None:
+            measured = warm_up_and_measure_back_to_back(drv, args, lag)
+            if measured is None:
                 return 1
-            lat_ms, missed, node_p99 = drv.lat_ms, drv.missed, drv.node_p99
+            n, lat_ms, missed, node_p99 = measured
         else:  # inputs at their wall-clock times from the start: 5 s of warm-up
             n = math.ceil(time.time() / DT) + 2
             for _ in range(25):

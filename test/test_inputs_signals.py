@@ -36,11 +36,14 @@ SIGNALS = [signal.SIGINT, signal.SIGTERM]
 class NodeProcess:
     """A node in a subprocess; its log lines are collected by a reader thread."""
 
-    def __init__(self, repo_root: Path, module: str, *ros_args: str) -> None:
+    def __init__(self, repo_root: Path, module: str, *ros_args: str, code: str | None = None
+                 ) -> None:
+        """Runs ``python -m module``, or ``python -c code`` when ``code`` is given."""
         env = dict(os.environ, PYTHONPATH=str(repo_root), PYTHONUNBUFFERED="1",
                    RCUTILS_LOGGING_BUFFERED_STREAM="0")
+        program = ["-c", code] if code is not None else ["-m", module]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", module, "--ros-args", *ros_args], cwd=repo_root, env=env,
+            [sys.executable, *program, "--ros-args", *ros_args], cwd=repo_root, env=env,
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -200,15 +203,18 @@ def test_predictor_node_exits_on_signals_in_every_state(repo_root, rclpy_context
     assert "Traceback" not in node.output, node.output
 
 
-def test_shutdown_while_the_model_read_blocks_ends_start_up(rclpy_context, model_file,
-                                                           monkeypatch):
+@pytest.mark.parametrize("how", ["context_shutdown", "sigint"])
+def test_a_stop_while_the_model_read_blocks_ends_start_up(rclpy_context, model_file,
+                                                          monkeypatch, how):
     """A read that never returns (a hung network file system) cannot keep the node alive:
-    the loader is stuck, the context shuts down (what a signal does), start-up ends."""
+    the loader is stuck, then the context shuts down, or a SIGINT comes (which only sets
+    the stop flag of nodes.runtime): start-up ends either way."""
     import rclpy
     from rclpy.parameter import Parameter
 
     from asgp_ros.core.modelfile import ModelFileError
     from asgp_ros.nodes import predictor_node as pn
+    from asgp_ros.nodes import runtime
 
     entered, release = threading.Event(), threading.Event()
 
@@ -218,20 +224,26 @@ def test_shutdown_while_the_model_read_blocks_ends_start_up(rclpy_context, model
         raise ModelFileError(path, "released by the test")
 
     monkeypatch.setattr(pn, "load_model", stuck_read)
-    shut_at: list[float] = []
+    stopped_at: list[float] = []
 
-    def shutdown() -> None:
+    def stop() -> None:
         assert entered.wait(30.0)
-        shut_at.append(time.monotonic())
-        rclpy.try_shutdown(context=rclpy_context)
+        stopped_at.append(time.monotonic())
+        if how == "sigint":
+            os.kill(os.getpid(), signal.SIGINT)
+        else:
+            rclpy.try_shutdown(context=rclpy_context)
 
-    thread = threading.Thread(target=shutdown)
-    thread.start()
+    thread = threading.Thread(target=stop)
     try:
-        with pytest.raises(pn.StartupInterruptedError, match="while loading"):
-            pn.PredictorNode(context=rclpy_context,
-                             parameter_overrides=[Parameter("model_path", value=model_file)])
-        assert time.monotonic() - shut_at[0] < EXIT_BOUND_S
+        with runtime.StopSignals():
+            thread.start()
+            with pytest.raises(pn.StartupInterruptedError, match="while loading"):
+                pn.PredictorNode(context=rclpy_context,
+                                 parameter_overrides=[Parameter("model_path", value=model_file)])
+            assert time.monotonic() - stopped_at[0] < EXIT_BOUND_S
+            assert runtime.stop_requested() == (how == "sigint")
+        assert not runtime.stop_requested()  # cleared with the handlers restored
     finally:
         release.set()
         thread.join()
@@ -366,46 +378,6 @@ def test_a_stop_signal_only_sets_the_flag_the_main_thread_shuts_down(repo_root):
     assert "Traceback" not in node.stderr, node.stderr
 
 
-def test_a_stop_signal_while_the_model_read_blocks_ends_start_up(rclpy_context, model_file,
-                                                                 monkeypatch):
-    """As with a context shutdown above: a SIGINT (which now only sets the stop flag) ends
-    a start-up whose model read hangs."""
-    from rclpy.parameter import Parameter
-
-    from asgp_ros.core.modelfile import ModelFileError
-    from asgp_ros.nodes import predictor_node as pn
-    from asgp_ros.nodes import runtime
-
-    entered, release = threading.Event(), threading.Event()
-
-    def stuck_read(path, kind=None):
-        entered.set()
-        release.wait(30.0)
-        raise ModelFileError(path, "released by the test")
-
-    monkeypatch.setattr(pn, "load_model", stuck_read)
-    sent: list[float] = []
-
-    def interrupt() -> None:
-        assert entered.wait(30.0)
-        sent.append(time.monotonic())
-        os.kill(os.getpid(), signal.SIGINT)
-
-    thread = threading.Thread(target=interrupt)
-    try:
-        with runtime.StopSignals():
-            thread.start()
-            with pytest.raises(pn.StartupInterruptedError, match="while loading"):
-                pn.PredictorNode(context=rclpy_context,
-                                 parameter_overrides=[Parameter("model_path", value=model_file)])
-            assert time.monotonic() - sent[0] < EXIT_BOUND_S
-            assert runtime.stop_requested()
-        assert not runtime.stop_requested()  # cleared with the handlers restored
-    finally:
-        release.set()
-        thread.join()
-
-
 _SLOW_PREDICTION = """
 import sys, time
 from asgp_ros.core import online
@@ -438,16 +410,8 @@ def test_a_sigint_during_a_prediction_lets_it_finish_and_publish(repo_root, rclp
     (its path is published) and the node then exits 0 without a traceback. Under rclpy's
     handlers the signal raised KeyboardInterrupt inside the prediction and shut the
     context down under it."""
-    env = dict(os.environ, PYTHONPATH=str(repo_root), PYTHONUNBUFFERED="1",
-               RCUTILS_LOGGING_BUFFERED_STREAM="0")
-    node = NodeProcess.__new__(NodeProcess)
-    node.proc = subprocess.Popen(
-        [sys.executable, "-c", _SLOW_PREDICTION, "--ros-args", "-p",
-         f"model_path:={model_file}", "-p", "horizon_steps:=5"],
-        cwd=repo_root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    node.lines = []
-    node._reader = threading.Thread(target=node._read, daemon=True)
-    node._reader.start()
+    node = NodeProcess(repo_root, PREDICTOR, "-p", f"model_path:={model_file}",
+                       "-p", "horizon_steps:=5", code=_SLOW_PREDICTION)
     feeder = _Feeder(rclpy_context)
     try:
         node.wait_for("horizon 5 steps")

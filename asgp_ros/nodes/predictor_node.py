@@ -45,16 +45,13 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy
 from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
@@ -645,31 +642,14 @@ class PredictorNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """Run the node until SIGINT or SIGTERM (:func:`asgp_ros.nodes.runtime.run`); a signal
+    while the model loads ends the start-up. Exit code 1: a refused model or parameter."""
     # The rollout works on small matrices: extra BLAS threads only add contention with the
     # other nodes on the wheelchair laptop (a loaded 2-core machine ran batched rollouts
     # about twice as slowly with OpenBLAS's default two threads).
     threadpool_limits(limits=1)
-    # SIGINT and SIGTERM only set a flag: spin returns, and so does a start-up that is
-    # loading the model; the main thread then destroys the node and shuts rclpy down
-    with runtime.StopSignals() as stops:
-        runtime.init(args)
-        executor = SingleThreadedExecutor()
-        node: PredictorNode | None = None
-        try:
-            node = PredictorNode()
-            executor.add_node(node)
-            stops.spin(executor)
-        except StartupError as exc:
-            rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
-            return 1
-        except StartupInterruptedError:
-            pass
-        finally:
-            executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            try_shutdown()
-    return 0
+    return runtime.run(PredictorNode, args, name=NODE_NAME, refused=(StartupError,),
+                       interrupted=(StartupInterruptedError,))
 
 
 if __name__ == "__main__":

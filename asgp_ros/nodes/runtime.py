@@ -23,9 +23,9 @@ number to a socket (``signal.set_wakeup_fd``) at once, even while the main threa
 inside rcl, and a small thread reading that socket triggers the executor's guard condition
 (``Executor.wake``). :meth:`StopSignals.spin` returns once the flag is set, so the main
 thread alone destroys the node and then shuts the context down, in that order, with
-nothing else running; the executor never wakes only to look at the flag. A long start-up
-(a model being read) polls :func:`stop_requested`. A signal during start-up is honoured as
-soon as the node is built.
+nothing else running (:func:`run`, every node's ``main``); the executor never wakes only
+to look at the flag. A long start-up (a model being read) polls :func:`stop_requested`. A
+signal during start-up is honoured as soon as the node is built.
 """
 
 from __future__ import annotations
@@ -38,11 +38,12 @@ import types
 from collections.abc import Callable
 
 import rclpy
-from rclpy.executors import Executor
+from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from rclpy.utilities import ok
+from rclpy.utilities import ok, try_shutdown
 
-__all__ = ["StopSignals", "init", "stop_requested"]
+__all__ = ["StopSignals", "init", "run", "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -126,3 +127,41 @@ class StopSignals:
 def init(args: list[str] | None = None) -> None:
     """``rclpy.init`` without rclpy's signal handlers (use inside :class:`StopSignals`)."""
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+
+def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
+        refused: tuple[type[Exception], ...],
+        interrupted: tuple[type[Exception], ...] = ()) -> int:
+    """A node's ``main``: build it and spin it until SIGINT or SIGTERM, then destroy it and
+    shut rclpy down, all in the calling (main) thread.
+
+    Args:
+        build: makes the node (after ``rclpy.init``).
+        name: the logger of the start-up refusal.
+        refused: what ``build`` raises for a bad parameter or file: logged as
+            "refusing to start: ...", exit code 1.
+        interrupted: what ``build`` raises when a stop signal cut it short: exit code 0.
+
+    Returns:
+        0 after a stop signal, 1 when the node refused to start.
+    """
+    with StopSignals() as stops:
+        init(args)
+        executor = SingleThreadedExecutor()
+        node: Node | None = None
+        try:
+            try:
+                node = build()
+            except refused as exc:
+                rclpy.logging.get_logger(name).fatal(f"refusing to start: {exc}")
+                return 1
+            except interrupted:
+                return 0
+            executor.add_node(node)
+            stops.spin(executor)
+        finally:
+            executor.shutdown()
+            if node is not None:
+                node.destroy_node()  # before the context goes: a node's own threads stop
+            try_shutdown()
+    return 0

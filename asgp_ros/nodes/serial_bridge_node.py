@@ -28,16 +28,13 @@ from collections.abc import Iterator
 from dataclasses import replace
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import ParameterException
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy
 
 from asgp_ros.common import topics
@@ -293,24 +290,8 @@ def main(args: list[str] | None = None) -> int:
     the process natively now and then at exit. Once the flag is set the link stops while
     the context is still up. A signal while the node is being built is honoured as soon
     as it is built."""
-    with runtime.StopSignals() as stops:
-        runtime.init(args)
-        executor = SingleThreadedExecutor()
-        node = None
-        try:
-            try:
-                node = SerialBridgeNode()
-            except (ValueError, ParameterException) as exc:
-                rclpy.logging.get_logger("serial_bridge_node").fatal(f"refusing to start: {exc}")
-                return 1
-            executor.add_node(node)
-            stops.spin(executor)
-        finally:
-            executor.shutdown()
-            if node is not None:
-                node.destroy_node()  # stops the link first, the context still up
-            try_shutdown()
-    return 0
+    return runtime.run(SerialBridgeNode, args, name="serial_bridge_node",
+                       refused=(ValueError, ParameterException))
 
 
 if __name__ == "__main__":

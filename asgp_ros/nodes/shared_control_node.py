@@ -45,11 +45,9 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -57,7 +55,6 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
-from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import Joy, LaserScan
 from threadpoolctl import threadpool_limits
 
@@ -566,24 +563,10 @@ class SharedControlNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
+    """Run the node until SIGINT or SIGTERM (:func:`asgp_ros.nodes.runtime.run`).
+    Exit code 1: a refused model or parameter."""
     threadpool_limits(limits=1)  # small matrices: BLAS threads only add contention
-    with runtime.StopSignals() as stops:  # SIGINT and SIGTERM only set a flag
-        runtime.init(args)
-        executor = SingleThreadedExecutor()
-        node: SharedControlNode | None = None
-        try:
-            node = SharedControlNode()
-            executor.add_node(node)
-            stops.spin(executor)
-        except StartupError as exc:
-            rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
-            return 1
-        finally:
-            executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            try_shutdown()
-    return 0
+    return runtime.run(SharedControlNode, args, name=NODE_NAME, refused=(StartupError,))
 
 
 if __name__ == "__main__":

@@ -27,16 +27,13 @@ import time
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rclpy.utilities import try_shutdown
 from sensor_msgs.msg import CameraInfo, Image
 
 from asgp_ros.common import topics
@@ -275,26 +272,9 @@ class VONode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT or SIGTERM, which only set a flag: the main thread then
-    destroys the node and shuts rclpy down itself (:mod:`asgp_ros.nodes.runtime`).
+    destroys the node and shuts rclpy down itself (:func:`asgp_ros.nodes.runtime.run`).
     Exit code 1: bad parameters."""
-    with runtime.StopSignals() as stops:
-        runtime.init(args)
-        executor = SingleThreadedExecutor()
-        node = None
-        try:
-            try:
-                node = VONode()
-            except ValueError as exc:  # a parameter out of its range
-                rclpy.logging.get_logger("vo_node").fatal(f"refusing to start: {exc}")
-                return 1
-            executor.add_node(node)
-            stops.spin(executor)
-        finally:
-            executor.shutdown()
-            if node is not None:
-                node.destroy_node()
-            try_shutdown()
-    return 0
+    return runtime.run(VONode, args, name="vo_node", refused=(ValueError,))
 
 
 if __name__ == "__main__":
