@@ -14,7 +14,7 @@ step, through the board's passthrough) and its position is compared with the des
 * a naive inverse: per step, the forward speed and turn rate the target path asks for,
   divided by the chair's steady-state gains (measured on the model: full deflection held).
 
-Usage: benchmarks/inverse_tracking.py MODEL [--minutes M] [--seed S] [--every E]
+Usage: benchmarks/inverse_tracking.py [MODEL] [--minutes M] [--seed S] [--every E]
 [--jerk W] [--effort W]
 """
 
@@ -25,6 +25,7 @@ import copy
 import dataclasses
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -39,6 +40,9 @@ from asgp_ros.sim.chair import Chair
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.sensors import SensorParams, vo_samples
 from asgp_ros.sim.world import room_for_surface
+
+#: the committed reproduction's tile model
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
 
 STEP = 0.01
 
@@ -79,7 +83,8 @@ def _measured_velocity(dense: np.ndarray, grid_cmd: np.ndarray, dt: float, surfa
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
+    ap.add_argument("model", nargs="?", default=str(DEFAULT_MODEL),
+                    help="model file (default: the committed tile model)")
     ap.add_argument("--minutes", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--every", type=float, default=2.0)

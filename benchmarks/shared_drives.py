@@ -8,7 +8,7 @@ alone), and remembering earlier scans). Prints each drive and
 the totals: contacts, interventions, the share of time the user's command passed untouched,
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
-Usage: benchmarks/shared_drives.py MODEL [--seeds 1-13] [--minutes 10] [--jobs 2]
+Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
 [--fov DEG] [--modes none,memory] (the README's figures: the reproduction's tile model,
 seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also sees behind the chair; about
 6 minutes on 2 cores for three modes).
@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -29,6 +30,9 @@ from asgp_ros.core.obstacle_memory import MemoryConfig
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
 from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
+
+#: the committed reproduction's tile model
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
 
 MODES = ("none", "mean heading", "heading sampled", "memory")
 """Without the layer; with it checking the mean heading or sampling it (as the node does by
@@ -65,7 +69,8 @@ def _modes(text: str) -> tuple[str, ...]:
 
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("model")
+    ap.add_argument("model", nargs="?", default=str(DEFAULT_MODEL),
+                    help="model file (default: the committed tile model)")
     ap.add_argument("--seeds", type=_seeds, default=_seeds("1-13"))
     ap.add_argument("--minutes", type=float, default=10.0)
     ap.add_argument("--jobs", type=int, default=2)
