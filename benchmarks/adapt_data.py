@@ -14,19 +14,23 @@ from, two of 10 minutes to test on). On the bags of a dataset made by ``asgp dat
         --learn DATA/tile/tile_01 --test DATA/tile/tile_07 DATA/tile/tile_08 \\
         --reference docs/reproduction/models/tile_asgp.npz
 
-For each N of ``--minutes``, two models learn from the first N minutes of ``--learn``
-(a recording of the new floor), and are scored on ``--test`` (k-step success rate at 1.0,
-1.4 and 2.0 s, as ``asgp evaluate``, on the same cases):
+For each N of ``--minutes``, MODEL learns from the first N minutes of ``--learn`` (a
+recording of the new floor) in three ways, each scored on ``--test`` (k-step success rate at
+1.0, 1.4 and 2.0 s, as ``asgp evaluate``, on the same cases):
 
-1. *posterior*: MODEL's FITC posterior formed again, at its own hyperparameters and
-   pseudo-inputs, on those N minutes alone (``SparseGP.from_params``). This is the best the
-   online adaptation (``asgp_ros.core.adapt``: the same posterior, updated row by row, its
-   trained data forgotten) can reach after N minutes of the new floor without forgetting any
-   of them; with forgetting it holds less.
-2. *linear correction*: MODEL unchanged plus a ridge regression of its one-step residuals
-   on the input row (D + 1 weights per channel). Few parameters: it learns from little
-   data, but can only correct what is linear in the inputs.
+1. *constant mean*: the online posterior (``asgp_ros.core.adapt.OnlinePosterior``, at
+   MODEL's hyperparameters and pseudo-inputs) absorbs every row of the N minutes, with the
+   constant prior mean (``AdaptConfig(trained_mean=False)``, A6); the trained data are
+   forgotten at once, the new rows never. This is the FITC posterior of those N minutes
+   alone: the best the adaptation of earlier versions could reach after N minutes.
+2. *trained mean*: the same with the trained posterior's mean as the prior mean (A9, the
+   default): the rows teach a correction to the trained function.
+3. *linear correction*: MODEL unchanged plus a ridge regression of its one-step residuals
+   on the input row (D + 1 weights per channel): few parameters, which learn from little
+   data but can only correct what is linear in the inputs.
 
+The adaptation as it runs forgets the new rows too (a half-life of 300 s by default), so
+it holds less than N minutes once N is past a few minutes.
 MODEL as trained and, with ``--reference``, a model trained on the new floor, are scored
 on the same cases beside them. Prints figures only (no assertions).
 """
@@ -34,6 +38,7 @@ on the same cases beside them. Prints figures only (no assertions).
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import os
 import subprocess
@@ -48,6 +53,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from asgp_ros.core.adapt import AdaptConfig, OnlinePosterior  # noqa: E402
 from asgp_ros.core.features import CHANNELS  # noqa: E402
 from asgp_ros.core.modelfile import load_model  # noqa: E402
 from asgp_ros.core.models import MotionModel  # noqa: E402
@@ -84,17 +90,19 @@ class LinearCorrection:
         return m + X @ self.w + self.b, v, g + self.w[None, :]
 
 
-def posterior_on(model: MotionModel, learn: list[Series]) -> MotionModel:
-    """MODEL's posterior formed again on ``learn`` at its hyperparameters and
-    pseudo-inputs."""
+def adapted(model: MotionModel, learn: list[Series], trained_mean: bool) -> MotionModel:
+    """MODEL adapted (``OnlinePosterior``) to every row of ``learn``: none of them forgotten,
+    the trained data forgotten at once (their weight is 0 from the first row on)."""
+    config = AdaptConfig(half_life_rows=1e15, trained_half_life=1e-9, trained_floor=0.0,
+                         trained_mean=trained_mean)
     chans = []
     for c, ch in enumerate(model.channels):
         if not isinstance(ch, SparseGP):
             raise SystemExit(f"{CHANNELS[c]}: not an ASGP channel ({type(ch).__name__})")
+        gp = copy.deepcopy(ch)
         X, y = design(learn, c, model.feature_config)
-        chans.append(SparseGP.from_params(X, y, ch.inducing_inputs, ch.lengthscales,
-                                          ch.signal_variance, ch.noise_variance,
-                                          jitter=ch.jitter))
+        OnlinePosterior.from_sparse_gp(gp, config).absorb_rows(X, y)
+        chans.append(gp)
     return dataclasses.replace(model, channels=(chans[0], chans[1]))
 
 
@@ -109,39 +117,6 @@ def corrected(model: MotionModel, learn: list[Series]) -> MotionModel:
         reg[-1, -1] = 0.0  # the offset is not shrunk
         coef = np.linalg.solve(A.T @ A + reg, A.T @ r)
         chans.append(LinearCorrection(ch, coef[:-1], float(coef[-1])))
-    return dataclasses.replace(model, channels=(chans[0], chans[1]))
-
-
-class Sum:
-    """Two channels added: means and gradients add, the variance is the second's."""
-
-    def __init__(self, first: object, second: object) -> None:
-        self.first, self.second = first, second
-
-    def predict(self, X: np.ndarray, include_noise: bool = True
-                ) -> tuple[np.ndarray, np.ndarray]:
-        m1, _ = self.first.predict(X, include_noise)  # type: ignore[attr-defined]
-        m2, v2 = self.second.predict(X, include_noise)  # type: ignore[attr-defined]
-        return m1 + m2, v2
-
-    def predict_with_grad(self, X: np.ndarray, include_noise: bool = True
-                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        m1, _, g1 = self.first.predict_with_grad(X, include_noise)  # type: ignore[attr-defined]
-        m2, v2, g2 = self.second.predict_with_grad(X, include_noise)  # type: ignore[attr-defined]
-        return m1 + m2, v2, g1 + g2
-
-
-def both(model: MotionModel, learn: list[Series]) -> MotionModel:
-    """The linear correction, then a posterior of its residuals at MODEL's hyperparameters
-    and pseudo-inputs: MODEL's function as the prior mean, corrected."""
-    lin = corrected(model, learn)
-    chans = []
-    for c, (ch, cc) in enumerate(zip(model.channels, lin.channels, strict=True)):
-        X, y = design(learn, c, model.feature_config)
-        r = y - cc.predict(X)[0]
-        gp = SparseGP.from_params(X, r, ch.inducing_inputs, ch.lengthscales,
-                                  ch.signal_variance, ch.noise_variance, jitter=ch.jitter)
-        chans.append(Sum(cc, gp))
     return dataclasses.replace(model, channels=(chans[0], chans[1]))
 
 
@@ -178,7 +153,6 @@ def main(argv: list[str] | None = None) -> int:
 
 def run(args: argparse.Namespace) -> int:
     """Print the curve for parsed arguments (``--learn`` and ``--test`` given)."""
-
     model = load_model(args.model)
     rc = model.resample_config
     learn = read_series([args.learn], resample_config=rc)[0]
@@ -203,12 +177,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"  as trained:                          {score(model)}")
         if reference is not None:
             print(f"  trained on the new floor (reference): {score(reference)}")
-        print("  minutes   posterior on them      linear correction      both")
+        print("  minutes   constant mean          trained mean           linear correction")
         for minutes in [m for m in args.minutes if m < minutes_held] + [minutes_held]:
             steps = min(round(minutes * 60 * rate), steps_held)
             part = [Series(learn.name, slice_resampled(learn.res, 0, steps))]
-            print(f"  {minutes:7.3g}   {score(posterior_on(model, part))}    "
-                  f"{score(corrected(model, part))}    {score(both(model, part))}", flush=True)
+            print(f"  {minutes:7.3g}   {score(adapted(model, part, False))}    "
+                  f"{score(adapted(model, part, True))}    {score(corrected(model, part))}",
+                  flush=True)
     return 0
 
 

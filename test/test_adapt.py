@@ -295,6 +295,83 @@ def test_forgetting_with_floor_zero_returns_to_the_prior_where_no_data_come() ->
     assert np.all(np.linalg.eigvalsh(post.LA @ post.LA.T) >= 1.0 - 1e-9)
 
 
+# --------------------------------------------------------------- the trained mean (A9)
+
+
+@pytest.mark.parametrize("config", [dict(), dict(half_life_rows=50.0, trained_floor=0.3)],
+                         ids=["no forgetting", "forgetting"])
+def test_trained_mean_has_the_same_variance_and_without_fading_the_same_mean(
+        config: dict[str, float]) -> None:
+    """A9 changes the mean only: C (and LA) are those of A6 for the same rows; while the
+    trained data keep their whole weight the mean is A6's too (A9 is A6 then, by the
+    algebra in the module docstring), and once they fade it is not."""
+    X2, y2 = rows(200, seed=21, gain=0.6)
+    posts = {}
+    for trained_mean in (False, True):
+        gp = trained()
+        online = OnlinePosterior.from_sparse_gp(
+            gp, AdaptConfig(trained_mean=trained_mean, **config))  # type: ignore[arg-type]
+        assert online.absorb_rows(X2, y2) == 200
+        posts[trained_mean] = (online.posterior, gp)
+    (a6, gp6), (a9, gp9) = posts[False], posts[True]
+    np.testing.assert_array_equal(a9.C, a6.C)
+    np.testing.assert_array_equal(a9.LA, a6.LA)
+    m6, v6 = gp6.predict(X_TEST)
+    m9, v9 = gp9.predict(X_TEST)
+    np.testing.assert_array_equal(v9, v6)
+    if not config:
+        np.testing.assert_allclose(m9, m6, rtol=0.0, atol=1e-9 * np.abs(m6).max())
+    else:
+        assert np.max(np.abs(m9 - m6)) > 1e-3
+
+
+def _trained_mean_reference(gp: SparseGP, X_new: np.ndarray, y_new: np.ndarray,
+                            Xq: np.ndarray) -> np.ndarray:
+    """A9 with the trained data forgotten (w_T = 0), from the dense FITC formulas: the
+    trained mean plus the FITC posterior mean of the residuals y - m_T(x) under the
+    zero-mean prior of the same kernel (standardised units, S&G eq. 5)."""
+    post = gp.posterior
+    m_T = gp.predict(X_new)[0]
+    r = (y_new - m_T) / post.y_scale
+    Xs = (X_new - post.x_mean) / post.x_scale
+    Xqs = (Xq - post.x_mean) / post.x_scale
+    Kuu = kernel.se_ard_jittered(post.Z, post.lengthscales, post.signal_variance, post.jitter)
+    Kuf = kernel.se_ard(post.Z, Xs, post.lengthscales, post.signal_variance)
+    Q_diag = np.einsum("mn,mn->n", Kuf, np.linalg.solve(Kuu, Kuf))
+    lam = post.signal_variance + post.noise_variance - Q_diag
+    Sigma = Kuu + (Kuf / lam) @ Kuf.T
+    ks = kernel.se_ard(post.Z, Xqs, post.lengthscales, post.signal_variance)
+    correction = ks.T @ np.linalg.solve(Sigma, Kuf @ (r / lam))
+    return gp.predict(Xq)[0] + post.y_scale * correction
+
+
+def test_trained_mean_is_the_trained_function_plus_a_residual_posterior() -> None:
+    """With the trained data forgotten (floor 0, a short trained half-life) and the new rows
+    kept, the published mean is m_T + the FITC posterior of the residuals (dense
+    reference), and where no new row came the trained function still holds, while the
+    constant prior mean (A6) falls back to y_mean there."""
+    rng = np.random.default_rng(31)
+    X2 = rng.uniform(-2.0, 2.0, size=(300, D))
+    X2[:, 0] = rng.uniform(1.0, 2.0, size=300)  # the new rows all at x0 in [1, 2]
+    y2 = f(X2, gain=0.5) + SN * rng.standard_normal(300)
+    config = dict(half_life_rows=1e12, trained_half_life=1e-6, trained_floor=0.0)
+    gp9, gp6 = trained(), trained()
+    reference = trained()
+    o9 = OnlinePosterior.from_sparse_gp(gp9, AdaptConfig(trained_mean=True, **config))
+    o6 = OnlinePosterior.from_sparse_gp(gp6, AdaptConfig(trained_mean=False, **config))
+    assert o9.absorb_rows(X2, y2) == 300 and o6.absorb_rows(X2, y2) == 300
+    assert o9.stats.trained_weight == 0.0
+    Xq = np.random.default_rng(32).uniform(-2.5, 2.5, size=(300, D))
+    expected = _trained_mean_reference(reference, X2, y2, Xq)
+    np.testing.assert_allclose(gp9.predict(Xq)[0], expected, rtol=0.0,
+                               atol=1e-6 * np.abs(expected).max())
+    # where the chair drove, both learnt the new function; elsewhere only A9 kept the old
+    near = np.column_stack([rng.uniform(1.2, 1.8, 200), rng.uniform(-2.0, 2.0, (200, 2))])
+    far = np.column_stack([rng.uniform(-2.0, -1.5, 200), rng.uniform(-2.0, 2.0, (200, 2))])
+    assert rmse(gp9, near, gain=0.5) < 0.05 and rmse(gp6, near, gain=0.5) < 0.05
+    assert rmse(gp9, far) < 0.5 * rmse(gp6, far)
+
+
 # --------------------------------------------------------------- refused and failed
 
 
@@ -482,7 +559,8 @@ def test_far_outside_the_training_range_the_variance_does_not_shrink() -> None:
 def test_config_is_validated() -> None:
     for bad in (dict(half_life_s=1.0, half_life_rows=1.0), dict(half_life_s=0.0),
                 dict(half_life_rows=-1.0), dict(half_life_s=math.inf),
-                dict(trained_floor=1.5), dict(trained_floor=-0.1), dict(max_distance=0.0)):
+                dict(trained_floor=1.5), dict(trained_floor=-0.1), dict(max_distance=0.0),
+                dict(trained_mean=1)):
         with pytest.raises(AdaptError):
             AdaptConfig(**bad)  # type: ignore[arg-type]
     with pytest.raises(AdaptError):

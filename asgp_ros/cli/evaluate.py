@@ -66,6 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--adapt-floor", type=cli_number("trained_floor", ""),
                    default=DEFAULT_TRAINED_FLOOR,
                    help="weight the trained data decay to, in [0, 1] (%(default)s)")
+    p.add_argument("--adapt-constant-mean", action="store_true",
+                   help="the absorbed rows teach the function against a constant prior mean, "
+                        "not a correction to the trained function")
     p.add_argument("--skip", type=cli_number("skip_s", "s"), default=0.0,
                    help="with --adapt: score cases from this many seconds into each bag")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the scores as JSON")
@@ -138,7 +141,8 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
     try:
         settings = AdaptSettings(AdaptConfig(half_life_s=args.adapt_half_life,
                                              trained_floor=args.adapt_floor,
-                                             trained_half_life=args.adapt_trained_half_life))
+                                             trained_half_life=args.adapt_trained_half_life,
+                                             trained_mean=not args.adapt_constant_mean))
         ev = evaluate_adaptive(model, tests, args.horizons, settings,
                                threshold_m=args.threshold, case_lags=args.case_lags,
                                skip_s=args.skip, name=str(args.model))
@@ -147,7 +151,8 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
     result = ev.to_json()
     print(f"{args.model} adapting online (half-life {args.adapt_half_life:g} s, trained data "
           f"{args.adapt_trained_half_life:g} s, trained floor "
-          f"{args.adapt_floor:g}) on {len(tests)} bag(s), cases from {args.skip:g} s into each"
+          f"{args.adapt_floor:g}, {'constant' if args.adapt_constant_mean else 'trained'} "
+          f"prior mean) on {len(tests)} bag(s), cases from {args.skip:g} s into each"
           f" bag, threshold {100 * args.threshold:.0f} cm")
     print("adapted:")
     print(format_table(result["adapted"]))

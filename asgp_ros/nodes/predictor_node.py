@@ -121,6 +121,7 @@ class PredictorNodeParams:
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
     adapt_trained_floor: float = DEFAULT_TRAINED_FLOOR
     adapt_trained_half_life_s: float = DEFAULT_TRAINED_HALF_LIFE_S
+    adapt_trained_mean: bool = True
     adapt_calibrate: bool = True
     adapt_max_rate: float = 0.25
 
@@ -159,7 +160,8 @@ class PredictorNodeParams:
             settings = AdaptSettings(
                 AdaptConfig(half_life_s=self.adapt_half_life_s,
                             trained_floor=self.adapt_trained_floor,
-                            trained_half_life=self.adapt_trained_half_life_s),
+                            trained_half_life=self.adapt_trained_half_life_s,
+                            trained_mean=self.adapt_trained_mean),
                 CoverageConfig(max_rate=self.adapt_max_rate) if self.adapt_calibrate else None)
         except AdaptError as exc:
             raise ValueError(f"adapt: {exc}") from exc
@@ -244,6 +246,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           "posterior, seconds of driving", 1.0, 86400.0),
     _spec("adapt.trained_floor", "weight the trained data decay to (0 = forget them, 1 = keep "
           "them whole)", 0.0, 1.0),
+    _spec("adapt.trained_mean", "the rows teach a correction to the trained function (its "
+          "mean is the prior mean); false: the function itself, against a constant mean"),
     _spec("adapt.calibrate", "adjust the variance scale from the outcomes of the predictions"),
     _spec("adapt.max_rate", "largest change of the log variance scale per second", 0.001, 100.0),
 )

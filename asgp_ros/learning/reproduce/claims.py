@@ -183,6 +183,7 @@ def adaptation_settings() -> dict[str, Any]:
     return {"half_life_s": st.posterior.half_life_s,
             "trained_half_life_s": st.posterior.trained_half_life,
             "trained_floor": st.posterior.trained_floor,
+            "trained_mean": st.posterior.trained_mean,
             "select_half_life_s": st.select_half_life_s}
 
 

@@ -86,6 +86,9 @@ def _adaptation_section(s: dict[str, Any], hk: list[str]) -> list[str]:
                   f"the trained data with one of {trained_h:g} s, down to a weight of "
                   f"{st['trained_floor']:g}"
                   if st.get("half_life_s") else "exponential forgetting")
+    if st.get("trained_mean"):
+        forgetting += (", the rows teaching a correction to the trained function (its mean the "
+                       "prior mean)")
     L = ["## The adaptive ASGP (ASGP + adapt)\n",
          "Each test bag replayed from the automatic ASGP's model file through the online "
          f"predictor, adapting (`asgp_ros.core.adaptive`, default settings: {forgetting}, "
