@@ -20,7 +20,8 @@ code; the diagnostics count the refusals by code (``rejected``) and give the new
 
 Adaptation (``adapt.enabled``, an ASGP model only): every completed grid step that
 training would accept updates the posterior, with forgetting (``adapt.half_life_s``,
-``adapt.trained_floor``), and the outcomes of the predictions keep the 95 % ellipses
+``adapt.trained_floor``), as a correction to the trained function (``adapt.trained_mean``),
+and the outcomes of the predictions keep the 95 % ellipses
 covering (``adapt.calibrate``, ``adapt.max_rate``); see :mod:`asgp_ros.core.adaptive`.
 The diagnostics show the rows absorbed, the effective data size, the variance scale per
 speed regime, the recent coverage and the last update's cost. The service
