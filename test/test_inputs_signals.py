@@ -360,18 +360,52 @@ rclpy.try_shutdown()
 """
 
 
+_THREAD_MASKS = """
+import os, signal
+import rclpy
+from asgp_ros.nodes import runtime
+def blocked(tid):
+    with open(f"/proc/self/task/{tid}/status") as fh:
+        mask = int(next(l for l in fh if l.startswith("SigBlk")).split()[1], 16)
+    return {sig for sig in (signal.SIGINT, signal.SIGTERM) if mask >> (sig - 1) & 1}
+with runtime.StopSignals():
+    runtime.init()
+    pid = os.getpid()
+    others = [int(t) for t in os.listdir("/proc/self/task") if int(t) != pid]
+    print(len(others), sum(1 for t in others if len(blocked(t)) == 2), len(blocked(pid)))
+    rclpy.try_shutdown()
+"""
+
+
+def test_threads_rclpy_starts_never_receive_the_stop_signals(repo_root):
+    """rclpy.init starts a C++ thread (its deferred signal handler) that inherits the
+    caller's signal mask. A SIGINT the kernel hands to it runs Python's C handler there,
+    which does not make the main thread look: a main thread busy in Python code alone never
+    ran the handler (11 of 120 tries, CI once). runtime.init blocks the signals in the
+    threads it starts and leaves the main thread's mask as it was."""
+    out = subprocess.run([sys.executable, "-c", _THREAD_MASKS], cwd=repo_root,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    others, blocking, main_blocked = (int(v) for v in out.stdout.split())
+    assert others >= 1  # rclpy's thread exists: the check is not vacuous
+    assert blocking == others and main_blocked == 0, out.stdout
+
+
 def test_a_stop_signal_only_sets_the_flag_the_main_thread_shuts_down(repo_root):
     """Every node stops through nodes.runtime: a SIGINT raises nothing wherever the main
     thread is (with rclpy's handlers it raised KeyboardInterrupt there, and inside
     ``rclpy.task.Future.__del__`` that printed a traceback at the VO node's exit in CI),
     and nothing shuts the context down behind the main thread's back. Plain rclpy.init is
-    the control: there the same SIGINT raises."""
+    the control: there rclpy's own thread shuts the context down, and the same SIGINT
+    usually raises KeyboardInterrupt in the main thread too (once in CI, under load, it did
+    not: the context was down and the loop ran to its deadline)."""
     def run(mode: str) -> subprocess.CompletedProcess[str]:
         return subprocess.run([sys.executable, "-c", _SIGINT_IN_PYTHON_CODE, mode],
                               cwd=repo_root, capture_output=True, text=True, timeout=60)
 
     control = run("plain")
-    assert control.returncode != 0 and "KeyboardInterrupt" in control.stderr, control
+    raised = control.returncode != 0 and "KeyboardInterrupt" in control.stderr
+    assert raised or "context down" in control.stdout, control
     node = run("node")
     assert node.returncode == 0, node.stderr
     assert node.stdout.split("\n")[:2] == ["stop requested", "context up"], node.stdout

