@@ -260,3 +260,21 @@ def test_a_long_range_scan_gets_a_bounded_raster_and_the_same_answer():
     b = C.scan_check(far, C.DEFAULT_FOOTPRINT)(pose, cov)
     assert a[1][0] > 0.5
     np.testing.assert_allclose(b[0], a[0], atol=1e-12)
+
+
+def test_constant_twist_motion_moves_a_scan_into_the_prediction_frame() -> None:
+    """The pose after dt at a constant twist is the unicycle's; dt < 0 is its inverse, so
+    going forward and then back composes to the identity; dt = 0 is the identity."""
+    from asgp_ros.core.unicycle import integrate_path
+
+    v, w, dt = 0.6, 0.8, 0.35
+    ahead = C.constant_twist_motion(v, w, dt)
+    np.testing.assert_allclose(ahead, integrate_path(np.array([[v, w], [v, w]]), dt)[-1])
+    assert ahead[0] > 0.0 and ahead[1] > 0.0 and math.isclose(ahead[2], w * dt)
+    back = C.constant_twist_motion(v, w, -dt)
+    assert back == C.inverse_pose(ahead)
+    c, s = math.cos(ahead[2]), math.sin(ahead[2])  # compose ahead then back
+    x = ahead[0] + c * back[0] - s * back[1]
+    y = ahead[1] + s * back[0] + c * back[1]
+    np.testing.assert_allclose([x, y, ahead[2] + back[2]], 0.0, atol=1e-12)
+    assert C.constant_twist_motion(v, w, 0.0) == (0.0, 0.0, 0.0)

@@ -88,11 +88,14 @@ import scipy.spatial
 from numpy.typing import NDArray
 from scipy.stats import norm, qmc
 
+from asgp_ros.core.unicycle import integrate_path
+
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = ["DEFAULT_FOOTPRINT", "CollisionError", "Contact", "DistanceField", "Footprint",
-           "Grid", "Scan", "contact_probability", "grid_check", "scan_check"]
+           "Grid", "Scan", "constant_twist_motion", "contact_probability", "grid_check",
+           "inverse_pose", "scan_check"]
 
 #: Sobol points per step (a power of two); the probability resolution is 1 / SAMPLES.
 SAMPLES = 256
@@ -243,6 +246,18 @@ def inverse_pose(pose: tuple[float, float, float]) -> tuple[float, float, float]
     c, s = math.cos(pose[2]), math.sin(pose[2])
     x, y = pose[0], pose[1]
     return (-(c * x + s * y), s * x - c * y, -pose[2])
+
+
+def constant_twist_motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
+    """The pose (x, y, yaw) after ``dt`` seconds at the constant twist (v, w), in the frame
+    of the start (``dt`` < 0: the pose ``-dt`` seconds before, in the frame of now); as the
+    trapezoidal unicycle integrates it (:func:`asgp_ros.core.unicycle.integrate_path`).
+    Moves a scan stamped at t_s into the frame of a prediction at t0: dt = t0 - t_s."""
+    if abs(dt) < 1e-9:
+        return (0.0, 0.0, 0.0)
+    end = integrate_path(np.array([[v, w], [v, w]]), abs(dt))[-1]
+    pose = (float(end[0]), float(end[1]), float(end[2]))
+    return pose if dt > 0.0 else inverse_pose(pose)
 
 
 @dataclass(frozen=True)

@@ -72,7 +72,6 @@ from asgp_ros.core.shared_control import (
     decide,
     is_neutral,
 )
-from asgp_ros.core.unicycle import integrate_path
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
@@ -211,15 +210,6 @@ class SharedControlParams:
     def footprint(self) -> collision.Footprint:
         return collision.Footprint(self.footprint_length, self.footprint_width,
                                    self.footprint_offset).grown(self.margin)
-
-
-def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
-    """Pose after ``dt`` seconds (negative: before) at the constant twist (v, w)."""
-    if abs(dt) < 1e-9:
-        return (0.0, 0.0, 0.0)
-    end = integrate_path(np.array([[v, w], [v, w]]), abs(dt))[-1]
-    pose = (float(end[0]), float(end[1]), float(end[2]))
-    return pose if dt > 0.0 else collision.inverse_pose(pose)
 
 
 class SharedControlNode(Node):
@@ -431,7 +421,7 @@ class SharedControlNode(Node):
                 _, scan, extra = self._scan
                 if now - scan.stamp <= p.scan_timeout_s:
                     v, w = (float(x) for x in pred.vel_past[-1])
-                    motion = _motion(v, w, pred.t0 - scan.stamp)
+                    motion = collision.constant_twist_motion(v, w, pred.t0 - scan.stamp)
                     checks.append(collision.scan_check(
                         scan, self.footprint, mount=(p.laser_x, p.laser_y, p.laser_yaw),
                         base_motion=motion, extra=extra))

@@ -34,7 +34,6 @@ from asgp_ros.core.models import MotionModel
 from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
-from asgp_ros.core.unicycle import integrate_path
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode
 from asgp_ros.sim.chair import Chair, ChairState
@@ -82,14 +81,6 @@ class DriveResult:
         }
 
 
-def _motion(v: float, w: float, dt: float) -> tuple[float, float, float]:
-    if abs(dt) < 1e-9:
-        return (0.0, 0.0, 0.0)
-    end = integrate_path(np.array([[v, w], [v, w]]), abs(dt))[-1]
-    pose = (float(end[0]), float(end[1]), float(end[2]))
-    return pose if dt > 0.0 else collision.inverse_pose(pose)
-
-
 def frame_twist(frame: tuple[float, float, float, float], state: ChairState, t: float,
                 rng: np.random.Generator, noise: tuple[float, float] = VO_NOISE
                 ) -> tuple[float, float]:
@@ -115,7 +106,8 @@ def _scan_check_for(scan: collision.Scan | None, extra: np.ndarray | None, now: 
             return None
         v0, w0 = (float(x) for x in pred.vel_past[-1])
         return collision.scan_check(scan, footprint, mount=mount,
-                                    base_motion=_motion(v0, w0, pred.t0 - scan.stamp),
+                                    base_motion=collision.constant_twist_motion(
+                                        v0, w0, pred.t0 - scan.stamp),
                                     extra=extra)
 
     return build
