@@ -123,6 +123,7 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     assert rc == 0
     text = capsys.readouterr().out
     assert "adapting online (half-life 20 s" in text and "as trained (same cases)" in text
+    assert "trained prior mean" in text
     assert "steps absorbed" in text
     adapted = json.loads(adapt_json.read_text())
     for key, h in adapted["adapted"]["horizons"].items():
@@ -132,6 +133,15 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     assert main(["evaluate", str(model), bags["test"], "--skip", "10"]) == 2
     assert "--skip needs --adapt" in capsys.readouterr().err
     assert main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-floor", "2"]) == 2
+    capsys.readouterr()
+    # the rows teach the function against a constant prior mean: another adapted model
+    constant_json = tmp_path / "adapt_constant.json"
+    assert main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-half-life", "20",
+                 "--adapt-constant-mean", "--skip", "10", "--json", str(constant_json)]) == 0
+    assert "constant prior mean" in capsys.readouterr().out
+    constant = json.loads(constant_json.read_text())
+    assert constant["plain"] == adapted["plain"]
+    assert constant["adapted"] != adapted["adapted"]
 
 
 def test_cli_bad_inputs_write_nothing(bags, tmp_path, capsys):
