@@ -32,7 +32,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.online import Reason
 from asgp_ros.nodes import conversions as conv
-from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
+from asgp_ros.nodes.predictor_node import PredictorNode, PredictorNodeParams, StartupError
 
 pytestmark = pytest.mark.ros
 
@@ -576,3 +576,14 @@ def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context,
     with pytest.raises(StartupError, match="only an ASGP adapts"):
         PredictorNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=str(path)), Parameter("adapt.enabled", value=True)])
+
+
+def test_adapt_parameters_reach_the_adaptation_settings():
+    """adapt.trained_mean (on by default) and the half-lives reach the AdaptConfig."""
+    on = PredictorNodeParams(model_path="chair.npz", adapt_enabled=True).adapt_settings()
+    assert on is not None and on.posterior.trained_mean
+    off = PredictorNodeParams(model_path="chair.npz", adapt_enabled=True,
+                              adapt_trained_mean=False, adapt_half_life_s=60.0).adapt_settings()
+    assert off is not None and not off.posterior.trained_mean
+    assert off.posterior.half_life_s == 60.0
+    assert PredictorNodeParams(model_path="chair.npz").adapt_settings() is None
