@@ -3,8 +3,9 @@
 The hyperparameters (lengthscales, sf2, sn2, jitter) and the pseudo-inputs Z of a trained
 :class:`~asgp_ros.core.sparse_gp.SparseGP` stay fixed; only the posterior moves.  All
 quantities are in the trained model's standardised units (its x_mean, x_scale, y_mean,
-y_scale: a row given in original units is converted with them, and the prior mean stays
-the trained y_mean).
+y_scale: a row given in original units is converted with them).  What the rows teach is
+measured against a prior mean: by default the trained posterior's mean (A9 below), else
+the constant trained y_mean (A1 - A7 as written).
 
 Sufficient statistics (Snelson & Ghahramani 2006; the factors of
 :mod:`asgp_ros.core.posterior`, L = chol(Kuu), v = L^-1 k(Z, x) [M]).  FITC's diagonal
