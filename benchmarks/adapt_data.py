@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import math
 import os
 import subprocess
 import sys
@@ -120,6 +121,26 @@ def corrected(model: MotionModel, learn: list[Series]) -> MotionModel:
     return dataclasses.replace(model, channels=(chans[0], chans[1]))
 
 
+def simulate_tile(out: Path, recordings: tuple[tuple[int, float], ...]) -> list[str]:
+    """Tile recordings (seed, minutes) simulated into ``out`` by ``asgp simulate``."""
+    bags = []
+    for seed, minutes in recordings:
+        bags.append(str(out / f"tile_{seed}"))
+        print(f"simulating {minutes:g} minutes of tile (seed {seed}) ...", flush=True)
+        subprocess.run([sys.executable, "-m", "asgp_ros.cli", "simulate", "--surface",
+                        "tile", "--minutes", str(minutes), "--seed", str(seed), "--out",
+                        bags[-1], "--no-truth"], cwd=REPO, check=True,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    return bags
+
+
+def _minutes(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"minutes must be a number > 0, got {text}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("model", nargs="?", default=str(MODELS / "carpet_asgp.npz"),
@@ -127,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
                          "model)")
     ap.add_argument("--learn", help="a recording of the new floor to learn from")
     ap.add_argument("--test", nargs="+", help="recordings of the new floor")
-    ap.add_argument("--minutes", nargs="+", type=float, default=[0.5, 1, 2, 5, 10],
+    ap.add_argument("--minutes", nargs="+", type=_minutes, default=[0.5, 1, 2, 5, 10],
                     help="learn from the first N minutes (and from the whole recording)")
     ap.add_argument("--reference", help="a model trained on the new floor, scored beside "
                     "(default with simulated recordings: the committed tile model)")
@@ -137,14 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.learn is not None:
         return run(args)
     with tempfile.TemporaryDirectory() as tmp:
-        bags = []
-        for seed, minutes in SIMULATED:
-            bags.append(str(Path(tmp) / f"tile_{seed}"))
-            print(f"simulating {minutes:g} minutes of tile (seed {seed}) ...", flush=True)
-            subprocess.run([sys.executable, "-m", "asgp_ros.cli", "simulate", "--surface",
-                            "tile", "--minutes", str(minutes), "--seed", str(seed), "--out",
-                            bags[-1], "--no-truth"], cwd=REPO, check=True,
-                           env=dict(os.environ, PYTHONPATH=str(REPO)))
+        bags = simulate_tile(Path(tmp), SIMULATED)
         args.learn, args.test = bags[0], bags[1:]
         if args.reference is None:
             args.reference = str(MODELS / "tile_asgp.npz")

@@ -100,7 +100,7 @@ variance rises as in A6) and keeps it as the mean.  On a new floor the correctio
 learnt where the chair drives, and the trained function still holds where it has not:
 the trained floor's function is a far better starting point than a constant (measured by
 ``benchmarks/adapt_data.py``: the carpet model on 5 minutes of tile, 2.0 s success 93.8 %
-with the trained mean against 90.1 % without; the tile model 98.0 %).
+with the trained mean against 90.2 % without; the tile model 98.0 %).
 
 A row with NaN or inf, a stamp older than the last absorbed one, a non-positive lambda,
 a failed factorisation or non-finite cached terms leave the published posterior and the
