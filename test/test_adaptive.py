@@ -12,7 +12,7 @@ import pytest
 
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.adaptive import AdaptSettings, CoverageConfig, ModelAdapter
-from asgp_ros.core.features import FeatureConfig, design_matrix
+from asgp_ros.core.features import FeatureConfig, build_inputs, design_matrix
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.resample import ResampleConfig, resample
@@ -222,6 +222,63 @@ def test_a_changed_floor_is_learnt_and_the_ellipses_widen(model: MotionModel) ->
     assert stats.checked > 500
     assert max(stats.scales) > 1.0
     assert 0.85 <= stats.coverage <= 1.0
+
+
+def test_over_wide_ellipses_narrow_where_the_model_has_learnt_and_nowhere_else(
+        model: MotionModel) -> None:
+    """A calibration 25 times too wide: the adapted posterior's online scale falls below 1
+    (the trained one's never does) and its ellipses narrow among the pseudo-inputs, while
+    far outside the training range the published variance stays at the trained model's."""
+    from dataclasses import replace
+
+    from asgp_ros.core.adaptive import ADAPTED, TRAINED, OutsideFloor
+    from asgp_ros.core.calibration import VarianceCalibration
+
+    wide = replace(model, calibration=VarianceCalibration(scale=(25.0, 25.0)))
+    s = drive(120.0, seed=9)
+    res = resample(drive(60.0, seed=11), RC)  # windows a chair drives through
+    idx = np.arange(FC.lags, res.t.shape[0] - 1)
+    idx = idx[np.all(np.isfinite(res.vel[idx]), axis=1)][:400]
+    n = idx.shape[0]
+    lag = np.arange(-FC.lags + 1, 1)
+    jp, vp, jn = res.joy[idx[:, None] + lag], res.vel[idx[:, None] + lag], res.joy[idx + 1]
+    vp[:100] += 30.0  # far outside the training range
+    for select in (False, True):
+        pred = Predictor(wide, adapt=AdaptSettings(select=select))
+        replay(pred, s, recorded_future(s))
+        adapter = pred._adapter
+        assert adapter is not None
+        assert float(np.max(adapter._log_scales[ADAPTED])) < math.log(0.5)
+        assert float(np.min(adapter._log_scales[TRAINED])) >= 0.0
+        if select:
+            continue
+        stats = pred.adaptation
+        assert stats is not None and stats.published == "adapted"
+        assert max(stats.scales) < 0.5
+        published = pred.model
+        floor = published.variance_floor
+        assert floor is not None
+        assert all(isinstance(ch, OutsideFloor) for ch in floor.channels)
+        _, v_pub = published.predict_step(jp, vp, jn)
+        _, v_trained = wide.predict_step(jp, vp, jn)
+        # far outside: never below the trained model's variance
+        np.testing.assert_allclose(v_pub[:100], v_trained[:100], rtol=1e-9)
+        # where the model has learnt, narrower than the trained calibration
+        assert np.mean(v_pub[100:] < 0.5 * v_trained[100:]) > 0.9
+        # at a scale of 1 the floor never binds (so it is attached only below 1)
+        at_one = replace(published, calibration=wide.calibration, variance_floor=None)
+        np.testing.assert_array_equal(
+            replace(at_one, variance_floor=floor).predict_step(jp, vp, jn)[1],
+            at_one.predict_step(jp, vp, jn)[1])
+        assert Predictor(wide, adapt=AdaptSettings(select=False)).model.variance_floor is None
+        # below the trained variance by at most the calibrated q(x, x) everywhere
+        for c, ch in enumerate(wide.channels):
+            X = np.stack([build_inputs(jp[i], vp[i], jn[i], c, FC) for i in range(n)])
+            _, var = ch.predict(X)
+            _, short = OutsideFloor(ch).predict(X)
+            q = var - short
+            assert np.all(q >= -1e-12)
+            assert np.all(v_pub[:, c] >= 25.0 * (var - np.maximum(q, 0.0)) - 1e-12)
 
 
 def test_a_stationary_stream_keeps_the_accuracy(model: MotionModel) -> None:

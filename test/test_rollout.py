@@ -404,3 +404,62 @@ def test_concurrent_rollouts_from_threads(gp_model: tuple[MotionModel, Resampled
             parallel = list(pool.map(lambda job: rollout(model, *job).pose_cov, jobs))
             for a, b in zip(serial, parallel, strict=True):
                 np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-18)
+
+
+@pytest.mark.parametrize("use_gp", [False, True])
+def test_a_variance_floor_raises_each_step_to_the_floor_models_variance(
+        use_gp: bool, gp_model: tuple[MotionModel, Resampled]) -> None:
+    """MotionModel.variance_floor: every step's calibrated variance is raised to the floor
+    model's at the same input row (the trained model under an adapted one); the mean is
+    untouched, and a floor that never binds changes nothing."""
+    from dataclasses import replace
+
+    from asgp_ros.core.calibration import VarianceCalibration
+
+    model = gp_model[0] if use_gp else chair_model()
+    s = model.lags
+    rng = np.random.default_rng(21)
+    jp, vp, _ = windows(rng, 6, 8, s=s)
+    vp[0] *= 40.0  # far outside anything seen: the floor holds there too
+    jf = rng.uniform(-0.9, 0.9, (6, 8, 2))
+    narrow = replace(model, calibration=VarianceCalibration(scale=(0.01, 0.02)))
+    floored = replace(narrow, variance_floor=model)
+    for unc in ("linear", "none"):
+        a = rollout(floored, jp, vp, jf, unc)  # type: ignore[arg-type]
+        b = rollout(model, jp, vp, jf, unc)  # type: ignore[arg-type]
+        # the floor is the wider model at every step: the rollout is the floor's exactly
+        for name in ("vel", "vel_cov", "pose", "pose_cov"):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-12,
+                                       atol=1e-15, err_msg=name)
+    assert np.all(rollout(narrow, jp, vp, jf).pos_cov[:, -1, 0, 0]
+                  < rollout(floored, jp, vp, jf).pos_cov[:, -1, 0, 0])
+    # a floor below the model everywhere never binds
+    low_floor = replace(model, variance_floor=narrow)
+    np.testing.assert_array_equal(rollout(low_floor, jp, vp, jf).pose_cov,
+                                  rollout(model, jp, vp, jf).pose_cov)
+    # Monte Carlo samples with the floored variance, the one-step prediction floors too
+    np.testing.assert_allclose(rollout(floored, jp, vp, jf, "mc", n_samples=40, rng=2).pose_cov,
+                               rollout(model, jp, vp, jf, "mc", n_samples=40, rng=2).pose_cov,
+                               rtol=1e-12, atol=1e-15)
+    m_f, v_f = floored.predict_step(jp, vp, jf[:, 0])
+    m_m, v_m = model.predict_step(jp, vp, jf[:, 0])
+    np.testing.assert_array_equal(m_f, m_m)
+    np.testing.assert_allclose(v_f, v_m, rtol=1e-12)
+    # a NaN of the floor or of the model itself is never hidden: the rollout refuses
+    class NanVariance(TanhChannel):
+        def predict(self, X: np.ndarray, include_noise: bool = True
+                    ) -> tuple[np.ndarray, np.ndarray]:
+            mean, var = super().predict(X, include_noise)
+            return mean, np.full_like(var, np.nan)
+
+    base = chair_model(lags=s)
+    nan_chs = tuple(NanVariance(c.w, c.u, c.amp, c.latent, c.noise) for c in base.channels)
+    nan_model = replace(base, channels=nan_chs)
+    for a, b in ((base, nan_model), (nan_model, base)):
+        with pytest.raises(ValueError, match="NaN"):
+            rollout(replace(a, variance_floor=b), jp, vp, jf)
+        assert np.all(np.isnan(replace(a, variance_floor=b).predict_step(jp, vp, jf[:, 0])[1]))
+    # the floor must read the same input rows
+    with pytest.raises(TypeError, match="variance_floor"):
+        replace(model, variance_floor=replace(
+            model, feature_config=FeatureConfig(lags=s + 1)))

@@ -73,9 +73,9 @@ distance) from every pseudo-input is not absorbed (rejected as ``outside``), so
 measurements beyond the training range never teach the posterior (through the edge
 pseudo-inputs they would move the mean and shrink the variance at and beyond the edge).
 With forgetting, the fading of the trained data usually raises the variance outside more
-than the in-range rows lower it.  An exact max(adapted, trained) at every input is not
-expressible by a single FitcPosterior read unchanged by the prediction; it would need
-:func:`asgp_ros.core.posterior.predict` to read the trained posterior as well.
+than the in-range rows lower it.  (The online variance scale of
+:mod:`asgp_ros.core.adaptive`, which may narrow the adapted posterior's ellipses, is held
+to the same bound by a floor at prediction time: the trained variance less q(x, x).)
 
 The trained function as the prior mean (``AdaptConfig.trained_mean``, the default).  Above,
 the rows teach the function itself, against the constant prior mean y_mean: once the

@@ -39,11 +39,22 @@ calibration's shape stay as trained):
    d2 by 1/s exactly: a miss is ``d2 > chi2_95 * s``.  Over a long run ACI's miss rate
    tends to 1 - target whatever the errors do; the step is bounded by ``max_rate`` (log
    units per second) so that one bad step cannot swing the ellipses, and the scale stays
-   in [``min_scale``, ``max_scale``].  ``min_scale`` defaults to 1: the online scale
-   only ever widens the trained calibration's ellipses, so adaptation cannot make the
-   published variance smaller than the calibrated posterior gives (the safety rule of
-   the adapted posterior, :mod:`asgp_ros.core.adapt` A8, is kept).  One-step velocity
-   innovations (z2 = e^2 / var per channel, chi2 with 1 dof) are tracked for the
+   in [``min_scale``, ``max_scale``].  The trained posterior's scale never goes below 1.
+   The adapted posterior's may (down to ``min_scale``, 0.1 by default): on a floor where
+   it predicts better than the trained calibration assumed (a smoother floor than the
+   trained one, say: the noise variance sn2 is a hyperparameter and stays as trained),
+   its ellipses would otherwise over-cover.  Far outside the training range that must not
+   narrow anything: the published adapted model's variance is floored, at every step of
+   every rollout (:attr:`~asgp_ros.core.models.MotionModel.variance_floor`), by the
+   trained model's variance less the part its pseudo-inputs explain
+   (:class:`OutsideFloor`, at the trained calibration).  So the published variance is
+   below the trained model's by at most the calibrated q(x, x) of A8
+   (:mod:`asgp_ros.core.adapt`), which vanishes outside the training range: there the
+   variance never goes below the trained posterior's, whatever the scale.  The scale
+   itself is learnt without the floor (the checks roll out the posterior at the trained
+   calibration and scale the d2), so it says what the adapted posterior needs where it
+   has learnt, and does not wind down while the floor holds the ellipses up.  One-step
+   velocity innovations (z2 = e^2 / var per channel, chi2 with 1 dof) are tracked for the
    diagnostics.
 
 3. **Which posterior is published** (``AdaptSettings.select``).  Forgetting trades the
@@ -74,8 +85,10 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple, cast
 
 import numpy as np
-from numpy.typing import NDArray
+import scipy.linalg
+from numpy.typing import ArrayLike, NDArray
 
+from asgp_ros.core import kernel
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.features import design_matrix
 from asgp_ros.core.metrics import CHI2_1DOF_95, CHI2_2DOF_95, mahalanobis_sq
@@ -88,7 +101,7 @@ from asgp_ros.core.unicycle import integrate_path
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter"]
+__all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter", "OutsideFloor"]
 
 #: Weight of the newest check in the coverage averages shown by the diagnostics
 #: (about the last 100 checked predictions).
@@ -123,13 +136,15 @@ class CoverageConfig:
     Attributes:
         gain: ACI step on the log scale per checked prediction.
         max_rate: bound on |d log s| per second of stream time.
-        min_scale, max_scale: range of each regime's scale.
+        min_scale, max_scale: range of each regime's scale (the trained posterior's
+            scale stays at 1 or above whatever ``min_scale`` says; the adapted one's
+            published variance is floored by the trained model's, module docstring).
         target: the coverage the 95 % ellipses are held to.
     """
 
     gain: float = 0.05
     max_rate: float = 0.25
-    min_scale: float = 1.0
+    min_scale: float = 0.1
     max_scale: float = 100.0
     target: float = 0.95
 
@@ -202,7 +217,9 @@ class AdapterStats:
         recent_error: recent mean squared k-step position error (m^2) of the trained and
             of the adapted posterior (NaN before the first check).
         checked: predictions whose outcome has been checked.
-        coverage: recent share of checked k-step ellipses that covered (EWMA), or NaN.
+        coverage: recent share of checked k-step ellipses that covered (EWMA), or NaN;
+            for the adapted posterior without the trained floor, so a lower bound of the
+            published ellipses' coverage.
         coverage_one_step: recent share of one-step velocity innovations inside their
             95 % interval (both channels), or NaN.
         last_update_s: wall-clock cost of the last absorption (both channels).
@@ -230,6 +247,55 @@ class _Snapshot(NamedTuple):
     posteriors: tuple[FitcPosterior, FitcPosterior]
     log_scales: FloatArray  # [2 experts, regimes]
     published: int
+
+
+class OutsideFloor:
+    """A trained ASGP channel's predictive variance less what its pseudo-inputs explain.
+
+    At x, with u = L^-1 k(Z, x) and q(x, x) = u^T u (A8 of :mod:`asgp_ros.core.adapt`)::
+
+        floor(x) = max(var_T(x) - q(x, x), 0) = max(sf2 - k^T (C_T + Kuu^-1) k [+ sn2], 0)
+
+    in original units.  Among the pseudo-inputs q(x, x) is nearly the whole prior
+    variance sf2 and the floor is at most the noise (usually nothing); far from them q
+    vanishes and the floor is the trained posterior's variance there.  As the published
+    adapted model's :attr:`~asgp_ros.core.models.MotionModel.variance_floor` (at the
+    trained calibration) it lets the online scale narrow the ellipses where the
+    pseudo-inputs reach and nowhere else: the published variance is below the trained
+    model's by at most the calibrated q(x, x), which vanishes outside the training range.
+    The mean is the trained channel's (unused by the floor).
+
+    At an online scale s >= 1 the floor never binds: the adapted latent variance is
+    sf2 - q + u^T A^-1 u >= sf2 - q, while var_T - q = sf2 - 2 q + u^T A_T^-1 u
+    <= sf2 - q (A8), and the calibration's map is increasing in both.
+    """
+
+    def __init__(self, channel: SparseGP) -> None:
+        post = channel.posterior
+        M = post.num_inducing
+        Linv = scipy.linalg.solve_triangular(post.L, np.eye(M), lower=True)
+        self.post = post
+        self._Q = post.C + Linv.T @ Linv  # C_T + Kuu^-1
+
+    def _moments(self, X: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+        post = self.post
+        Xs = (np.asarray(X, dtype=np.float64) - post.x_mean) / post.x_scale
+        K = kernel.cross(np.atleast_2d(Xs), post.kernel)  # [N, M]
+        mean = (K @ post.alpha) * post.y_scale + post.y_mean
+        short = post.signal_variance - np.einsum("nm,nm->n", K @ self._Q, K)
+        return mean, short, K
+
+    def predict(self, X: ArrayLike, include_noise: bool = True
+                ) -> tuple[FloatArray, FloatArray]:
+        mean, short, _ = self._moments(X)
+        if include_noise:
+            short = short + self.post.noise_variance
+        return mean, np.maximum(short, 0.0) * self.post.y_scale ** 2
+
+    def predict_with_grad(self, X: ArrayLike, include_noise: bool = True
+                          ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        mean, var = self.predict(X, include_noise)
+        return mean, var, np.zeros(np.shape(np.atleast_2d(X)))
 
 
 class ModelAdapter:
@@ -270,6 +336,8 @@ class ModelAdapter:
         self._published = ADAPTED if self.settings.coverage is None or not self.settings.select \
             else TRAINED
         self._errors = np.full(2, np.nan)
+        base = cast(tuple[SparseGP, SparseGP], model.channels)
+        self._floor = replace(model, channels=(OutsideFloor(base[0]), OutsideFloor(base[1])))
         self.model = self._publish()
         self._check_channels: tuple[SparseGP, SparseGP] = (
             copy.copy(self._channels[0]), copy.copy(self._channels[1]))
@@ -303,9 +371,14 @@ class ModelAdapter:
         cal = self.base.calibration
         factors = tuple(float(f * math.exp(ls))
                         for f, ls in zip(cal.speed_factors, self._log_scales[e], strict=True))
-        channels = self._channels if e == ADAPTED else self.base.channels
-        return replace(self.base, channels=channels,
-                       calibration=replace(cal, speed_factors=factors))
+        if e == TRAINED:
+            return replace(self.base, calibration=replace(cal, speed_factors=factors))
+        # at a scale >= 1 the floor cannot bind (OutsideFloor): it costs a second
+        # evaluation per step, so it is attached only while a regime's scale is below 1
+        narrowed = bool(np.any(self._log_scales[ADAPTED] < 0.0))
+        return replace(self.base, channels=self._channels,
+                       calibration=replace(cal, speed_factors=factors),
+                       variance_floor=self._floor if narrowed else None)
 
     def _restart_state(self) -> None:
         self._absorbed_to: int | None = None  # newest grid index absorbed or judged
@@ -497,8 +570,9 @@ class ModelAdapter:
             miss = float(np.mean(d2[e] > CHI2_2DOF_95 * scale))
             step = cfg.gain * (miss - (1.0 - cfg.target))
             ls = self._log_scales[e]
-            ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound),
-                                 math.log(cfg.min_scale)), math.log(cfg.max_scale))
+            lowest = math.log(cfg.min_scale if e == ADAPTED else max(cfg.min_scale, 1.0))
+            ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound), lowest),
+                             math.log(cfg.max_scale))
             sq = float(np.mean(np.sum(err[e] * err[e], axis=1)))
             self._errors[e] = sq if math.isnan(self._errors[e]) else \
                 (1.0 - alpha) * self._errors[e] + alpha * sq

@@ -63,6 +63,11 @@ class MotionModel:
         calibration: the map applied to each channel's predictive variance before it is
             used or propagated (:mod:`asgp_ros.core.calibration`); the identity unless the
             model was calibrated on held-out data.
+        variance_floor: a model of the same inputs whose calibrated predictive variance at
+            each input row bounds this one's from below (a model adapted online publishes
+            the trained model here: its variance never goes below the trained posterior's,
+            :mod:`asgp_ros.core.adaptive`).  Held at run time only: a model file never
+            stores it.
     """
 
     kind: str
@@ -71,8 +76,13 @@ class MotionModel:
     channels: tuple[ChannelModel, ChannelModel]
     meta: dict[str, Any] = field(default_factory=dict)
     calibration: VarianceCalibration = field(default_factory=VarianceCalibration)
+    variance_floor: MotionModel | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
+        floor = self.variance_floor
+        if floor is not None and (not isinstance(floor, MotionModel)
+                                  or floor.feature_config != self.feature_config):
+            raise TypeError("variance_floor must be a MotionModel of the same input rows")
         if not isinstance(self.calibration, VarianceCalibration):
             raise TypeError("calibration must be a VarianceCalibration, got "
                             f"{type(self.calibration).__name__}")
@@ -107,7 +117,8 @@ class MotionModel:
 
         Returns:
             mean [..., 2] and variance [..., 2] of (v_t, omega_t), the variance calibrated
-            (:attr:`calibration`, in the regime of the last measured speed).
+            (:attr:`calibration`, in the regime of the last measured speed) and not below
+            :attr:`variance_floor`'s.
         """
         means, variances = [], []
         for c, ch in enumerate(self.channels):
@@ -117,8 +128,12 @@ class MotionModel:
             means.append(np.asarray(m).reshape(lead))
             variances.append(np.asarray(v).reshape(lead))
         speed = np.asarray(vel_past, dtype=np.float64)[..., -1, 0]
-        return np.stack(means, axis=-1), self.calibration.apply(np.stack(variances, axis=-1),
-                                                                speed)
+        var = self.calibration.apply(np.stack(variances, axis=-1), speed)
+        if self.variance_floor is not None:
+            _, floor = self.variance_floor.predict_step(joy_past, vel_past, joy_now,
+                                                        include_noise)
+            var = np.maximum(var, floor)  # a NaN of either stays visible
+        return np.stack(means, axis=-1), var
 
 
 # --------------------------------------------------------------------------- registry

@@ -35,7 +35,8 @@ Uncertainty (the paper's future work), ``uncertainty=``:
 
 Each step's predictive variance passes through the model's variance calibration
 (:attr:`MotionModel.calibration`, :mod:`asgp_ros.core.calibration`; its regime is the
-measured speed V_{t-1} at t0) before it is propagated or sampled.
+measured speed V_{t-1} at t0), and is raised to its :attr:`MotionModel.variance_floor`'s
+at the same input row where it has one, before it is propagated or sampled.
 """
 
 from __future__ import annotations
@@ -198,23 +199,29 @@ class ChannelStep:
     evaluated together from their stacked posteriors, other kinds channel by channel.
     """
 
-    def __init__(self, model: MotionModel, include_noise: bool, speed: FloatArray) -> None:
-        """speed: [B] measured v at the start of each rollout (the calibration's regime)."""
+    def __init__(self, model: MotionModel, include_noise: bool, speed: FloatArray,
+                 scratch: bool = True) -> None:
+        """speed: [B] measured v at the start of each rollout (the calibration's regime);
+        scratch: compute in the shared workspace (results valid until the next step)."""
         self.model = model
         self.fc = model.feature_config
         self.include_noise = include_noise
         self.fused = _fused_posterior(model)
         cal = model.calibration
         self.calibrate = None if cal.is_identity else cal.coefficients(speed)
+        self.get = _WS.get if scratch else _fresh
+        # the floor is evaluated after this step's arrays are read, in fresh memory
+        self.floor = None if model.variance_floor is None else ChannelStep(
+            model.variance_floor, include_noise, speed, scratch=False)
 
     def __call__(self, jp: FloatArray, vp: FloatArray, jn: FloatArray, with_grad: bool
                  ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
         if self.fused is not None:
-            X = _WS.get("X", (2, jn.shape[0], self.fc.input_dim))
+            X = self.get("X", (2, jn.shape[0], self.fc.input_dim))
             for c in range(2):
                 build_inputs(jp, vp, jn, c, self.fc, validate=False, out=X[c])
             m, v, g = posterior.predict(self.fused, X, self.include_noise, with_grad,
-                                        scratch=_WS.get, stacklevel=4)
+                                        scratch=self.get, stacklevel=4)
             mean, var = m.T, v.T
             grad = [] if g is None else [g[0], g[1]]
         else:
@@ -240,7 +247,14 @@ class ChannelStep:
                 _checked(_NAMES[c], mean[:, c], var[:, c])
         if self.calibrate is not None:
             var = var * self.calibrate[0] + self.calibrate[1]
+        if self.floor is not None:
+            var = np.maximum(var, self.floor(jp, vp, jn, False)[1])  # (checked finite)
         return mean, var, grad
+
+
+def _fresh(name: str, shape: tuple[int, ...]) -> FloatArray:
+    """A new array (the workspace's signature, for a step that must not share it)."""
+    return np.empty(shape)
 
 
 def _fused_posterior(model: MotionModel) -> posterior.Stacked | None:
