@@ -424,6 +424,36 @@ def test_pool_workers_start_with_the_stop_signals_blocked():
     assert parent.split()[1:] == []
 
 
+_SWALLOWED_EXIT = """
+import os, signal, time, weakref
+from asgp_ros.common.fileio import quiet_worker_exit
+quiet_worker_exit()
+class A:
+    pass
+a = A()
+def callback(_ref):
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(10**6):  # the handler runs in here, inside the weakref callback
+        pass
+ref = weakref.ref(a, callback)
+del a
+time.sleep(0.5)
+print("went on")
+"""
+
+
+def test_a_worker_exit_swallowed_by_a_weakref_callback_still_ends_the_worker():
+    """A stop signal handled while a pool worker runs a weakref callback (an import's
+    module-lock callback, found by the fuzzer under load) raised SystemExit where Python
+    only prints it: the worker printed a traceback and went on working. It now ends,
+    silently, with the signal's exit status."""
+    out = subprocess.run([sys.executable, "-c", _SWALLOWED_EXIT], capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 128 + signal.SIGTERM, (out.stdout, out.stderr)
+    assert "went on" not in out.stdout
+    assert out.stderr == ""
+
+
 def _ignore_sigterm() -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
 

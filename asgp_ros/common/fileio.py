@@ -123,12 +123,27 @@ def quiet_worker_exit() -> None:
     worker on SystemExit without printing a traceback per worker. The stop signals are
     unblocked last (:func:`worker_pool` forks its workers with them blocked): one sent to
     the worker while it started is delivered here, to this handler.
+
+    A handler runs wherever the main thread is, and an exception raised inside a weakref
+    callback or a ``__del__`` (an import's module-lock callback, say) is not propagated:
+    Python prints it as "Exception ignored" and goes on. Such a swallowed exit still ends
+    the worker, at once and without the traceback (``sys.unraisablehook``).
     """
+    previous_hook = sys.unraisablehook
+    exiting: list[int] = []
+
     def handler(signum: int, _frame: FrameType | None) -> None:
         for sig in _STOP_SIGNALS:
             signal.signal(sig, signal.SIG_IGN)
+        exiting.append(128 + signum)
         sys.exit(128 + signum)
 
+    def unraisable(info: Any) -> None:
+        if exiting and isinstance(info.exc_value, SystemExit):
+            os._exit(exiting[0])  # the handler's exit, swallowed where it was raised
+        previous_hook(info)
+
+    sys.unraisablehook = unraisable
     for sig in _STOP_SIGNALS:
         signal.signal(sig, handler)
     # A worker is forked inside the parent's signals_deferred() block, with the parent's
