@@ -1,19 +1,23 @@
-"""How far the obstacle memory's dead reckoning drifts: the error of a remembered point.
+"""How far the obstacle memory's odometry drifts: the error of a remembered point.
 
-The shared-control layer carries the scans' obstacle points along with the VO's twists
-(:class:`asgp_ros.core.obstacle_memory.Odometer`). A point seen ``age`` seconds ago, 1 m
+The shared-control layer carries the scans' obstacle points along with the chair
+(:class:`asgp_ros.core.obstacle_memory.ScanMemory`), by dead reckoning of the VO's twists
+(:class:`~asgp_ros.core.obstacle_memory.Odometer`) or by matching the scans
+(:class:`asgp_ros.core.scan_match.ScanOdometer`). A point seen ``age`` seconds ago, 1 m
 from the chair, is misplaced by the error of the chair's relative pose over that time:
 the translation error plus the heading error times 1 m. This drives the simulated chair
 with the simulated user, feeds the odometer what the offline shared-control drive feeds
 it (a frame-to-frame VO at 5 Hz, with noise; :mod:`asgp_ros.sim.shared_drive`) and prints
 the error's median, p95 and maximum for ages of 2, 5 and 10 s, at the simulated VO's noise
-and at multiples of it; with ``--bag``, the same from a recording's ``vo/twist`` against its
+and at multiples of it, and of scan matching on the simulated scanner's scans of the same
+drive. With ``--bag``, the same from a recording's ``vo/twist`` against its
 ``ground_truth/odom`` (``asgp demo`` records both in ``run_bag``: the rendered camera's VO;
-on a real chair, any ground truth published as nav_msgs/Odometry on that topic). For a
-bag of the simulated room (``asgp demo``, ``--surface`` its floor) it also replays the
-memory itself: scans cast from the true poses at 10 Hz, the memory (10 s) carried by the
-bag's twists and, for comparison, by the true ones, and prints the share of remembered
-points that sit more than 5 cm inside the free floor (ghost obstacles).
+on a real chair, any ground truth published as nav_msgs/Odometry on that topic), and scan
+matching on scans cast from that ground truth. For a bag of the simulated room (``asgp
+demo``, ``--surface`` its floor) it also replays the memory itself: scans cast from the
+true poses at 10 Hz, the memory (10 s) carried by the bag's twists, by the true ones and by
+scan matching, and prints the share of remembered points that sit more than 5 cm inside
+the free floor (ghost obstacles).
 
 Usage: benchmarks/odometer_drift.py [--minutes 10] [--seed 1] [--noise 1,2,4]
 [--bag BAG [--surface tile]]
@@ -31,6 +35,7 @@ from asgp_ros.common import topics
 from asgp_ros.core import collision
 from asgp_ros.core.obstacle_memory import Odometer, ScanMemory, compose
 from asgp_ros.core.quaternion import quaternion_to_yaw
+from asgp_ros.core.scan_match import ScanOdometer
 from asgp_ros.sim.chair import Chair
 from asgp_ros.sim.driver import Driver
 from asgp_ros.sim.lidar import Lidar
@@ -105,17 +110,19 @@ def bag_drift(tw: np.ndarray, gt: np.ndarray) -> tuple[dict[float, np.ndarray], 
     return point_errors(st, gt[idx, 1:], np.array(est), np.array(epochs)), odo.breaks
 
 
-def ghost_share(tw: np.ndarray, gt: np.ndarray, surface: str) -> float:
+def ghost_share(tw: np.ndarray | None, gt: np.ndarray, surface: str) -> float:
     """Share of remembered points more than 5 cm inside the simulated room's free floor,
-    the memory carried by the twists ``tw`` [n, 3] and scans cast from the truth ``gt``."""
+    the memory carried by the twists ``tw`` [n, 3] (None: by matching the scans) and scans
+    cast from the truth ``gt``."""
     room = room_for_surface(surface)
     lidar = Lidar(room, seed=1)
     mount = lidar.config.mount
     odo, memory = Odometer(0.5), ScanMemory(mount)
+    matcher = ScanOdometer(mount)
     x_lo, x_hi, y_lo, y_hi = room.free_box
     k, inside, total = 0, 0, 0
     for t in np.arange(gt[0, 0] + 1.0, gt[-1, 0], 1.0 / lidar.config.rate_hz):
-        while k < len(tw) and tw[k, 0] <= t:
+        while tw is not None and k < len(tw) and tw[k, 0] <= t:
             odo.feed(*tw[k])
             k += 1
         i = min(int(np.searchsorted(gt[:, 0], t)), len(gt) - 1)
@@ -123,7 +130,10 @@ def ghost_share(tw: np.ndarray, gt: np.ndarray, surface: str) -> float:
         r = lidar.scan(x, y, th)
         scan = collision.Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min,
                               r.range_max, float(t))
-        extra = memory.add(scan, odo.pose_at(float(t)), odo.epoch)
+        if tw is None:
+            extra = memory.add(scan, matcher.add(scan), matcher.epoch)
+        else:
+            extra = memory.add(scan, odo.pose_at(float(t)), odo.epoch)
         if not extra.size:
             continue
         sx, sy, sth = compose((x, y, th), mount)  # the scanner's true pose
@@ -167,6 +177,50 @@ def drift(minutes: float, seed: int, noise_scale: float) -> dict[float, np.ndarr
     return point_errors(stamps, tr, es, np.zeros(len(tr), dtype=int))
 
 
+def scan_drift(stamps: np.ndarray, gt: np.ndarray, surface: str
+               ) -> tuple[dict[float, np.ndarray], int]:
+    """:func:`point_errors` of the scan matcher (:mod:`asgp_ros.core.scan_match`) on scans
+    cast from the poses ``gt`` [n, 3] at ``stamps`` [n] in the simulated room."""
+    room = room_for_surface(surface)
+    lidar = Lidar(room, seed=2)
+    odo = ScanOdometer(lidar.config.mount)
+    est, epochs = [], []
+    for t, (x, y, th) in zip(stamps, gt, strict=True):
+        r = lidar.scan(x, y, th)
+        est.append(odo.add(collision.Scan(r.ranges, r.angle_min, r.angle_increment,
+                                          r.range_min, r.range_max, float(t))))
+        epochs.append(odo.epoch)
+    return point_errors(stamps, gt, np.array(est), np.array(epochs)), odo.breaks
+
+
+def truth_at_scans(minutes: float, seed: int, rate_hz: float = 10.0
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The simulated user's drive of :func:`drift` (same seed): stamps and true poses at the
+    scanner's rate."""
+    room = room_for_surface("tile")
+    chair = Chair.for_room(room, seed=seed, blocked=room.overlap)
+    state = chair.reset((0.0, 0.0, 0.0))
+    driver = Driver(seed + 1, room)
+    every = round(1.0 / (rate_hz * STEP_S))
+    stamps, poses = [], []
+    stick = np.zeros(2)
+    for n in range(round(60.0 * minutes / STEP_S)):
+        t = n * STEP_S
+        if n % 2 == 0:
+            stick = driver.command(t, state)
+        state = chair.step(stick, STEP_S)
+        if n % every == 0:
+            stamps.append(t)
+            poses.append((state.x, state.y, state.theta))
+    return np.array(stamps), np.array(poses)
+
+
+def print_errors(label: str, errors: dict[float, np.ndarray]) -> None:
+    for age, errs in errors.items():
+        print(f"{label} | {age:4g} s | {100 * np.median(errs):5.1f} cm | "
+              f"{100 * np.percentile(errs, 95):5.1f} cm | {100 * errs.max():5.1f} cm")
+
+
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=10.0)
@@ -193,15 +247,22 @@ def main(argv: list[str]) -> int:
         print(f"remembered points > 5 cm inside the free floor ({args.surface} room, memory "
               f"10 s): {100 * ghost_share(tw, gt, args.surface):.2f} % carried by the bag's "
               f"twists, {100 * ghost_share(truth_twists, gt, args.surface):.2f} % by the "
-              "truth's")
+              f"truth's, {100 * ghost_share(None, gt, args.surface):.2f} % by scan matching")
+        at = np.arange(gt[0, 0] + 1.0, gt[-1, 0], 0.1)  # the truth at 10 Hz
+        idx = np.clip(np.searchsorted(gt[:, 0], at), 0, len(gt) - 1)
+        errors, breaks = scan_drift(at, gt[idx, 1:], args.surface)
+        print(f"scan matching on scans cast from the truth ({breaks} breaks):")
+        print_errors("scan matching", errors)
         return 0
     print(f"error of a point 1 m from the chair, remembered for AGE ({args.minutes:g} "
           f"simulated minutes, seed {args.seed})")
     print("VO noise      | age  | median  | p95     | max")
     for scale in (float(x) for x in args.noise.split(",")):
-        for age, errs in drift(args.minutes, args.seed, scale).items():
-            print(f"{scale:4g} x sim     | {age:4g} s | {100 * np.median(errs):5.1f} cm | "
-                  f"{100 * np.percentile(errs, 95):5.1f} cm | {100 * errs.max():5.1f} cm")
+        print_errors(f"{scale:4g} x sim    ", drift(args.minutes, args.seed, scale))
+    stamps, poses = truth_at_scans(args.minutes, args.seed)
+    errors, breaks = scan_drift(stamps, poses, "tile")
+    print_errors("scan matching", errors)
+    print(f"(scan matching, 10 Hz scans of the simulated room: {breaks} breaks)")
     return 0
 
 

@@ -34,10 +34,11 @@ from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
 #: the committed reproduction's tile model
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
 
-MODES = ("none", "mean heading", "heading sampled", "memory")
+MODES = ("none", "mean heading", "heading sampled", "memory", "scan memory")
 """Without the layer; with it checking the mean heading or sampling it (as the node does by
 default), against the newest scan alone; sampling it against the scan and the memory of
-earlier scans (``memory_s`` > 0)."""
+earlier scans (``memory_s`` > 0), carried by the VO's twists ("memory") or by matching
+the scans ("scan memory", :mod:`asgp_ros.core.scan_match`)."""
 DEFAULT_MODES = ("none", "heading sampled", "memory")
 
 
@@ -50,7 +51,10 @@ def _one(task: tuple[str, int, str, float, float, float]) -> dict[str, Any]:
         result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
                        config=SharedControlConfig(heading_uncertainty=mode != "mean heading"),
                        lidar=lidar,
-                       memory=MemoryConfig(max_age_s=memory_s) if mode == "memory" else None)
+                       memory=MemoryConfig(max_age_s=memory_s) if mode.endswith("memory")
+                       else None,
+                       memory_odometry="scan_matching" if mode == "scan memory"
+                       else "dead_reckoning")
     return result.summary() | {"seed": seed, "mode": mode}
 
 

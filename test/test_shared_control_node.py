@@ -192,6 +192,10 @@ def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noq
     with pytest.raises(StartupError, match="model"):
         SharedControlNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value="/nonexistent.npz")])
+    with pytest.raises(StartupError, match="memory_odometry"):
+        SharedControlNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file),
+            Parameter("memory_odometry", value="scan")])
     h = harness()
     h.clock(100.0)
     bad = wall_scan_msg(100.0, 2.0)
@@ -343,9 +347,9 @@ def remembered_post_gap(h: Harness, post: np.ndarray, chair_x: float) -> np.ndar
 
 def test_the_memory_keeps_a_post_the_chair_drove_past(harness):
     """Driving past a post: once it is behind, out of the 270-degree view, the node still
-    holds it where it is, carried along by the VO's twists (the scans here are drawn from
-    the same twists, so any error is the node's)."""
-    h = harness(memory_s=10.0)
+    holds it where it is, carried along by the VO's twists (``dead_reckoning``; the scans
+    here are drawn from the same twists, so any error is the node's)."""
+    h = harness(memory_s=10.0, memory_odometry="dead_reckoning")
     post = np.array([2.0, 0.6])  # in the frame of the chair's pose at the first twist
     chair_x = drive_past_post(h, post)
     gap = remembered_post_gap(h, post, chair_x)
@@ -370,7 +374,8 @@ def test_the_memory_can_follow_other_odometry(harness):
     the post by about half a metre, and the wheel odometry is exact."""
     from nav_msgs.msg import Odometry
 
-    h = harness(memory_s=10.0, memory_odom_topic="wheel/odom")
+    h = harness(memory_s=10.0, memory_odometry="dead_reckoning",
+                memory_odom_topic="wheel/odom")
     wheel = h.test.create_publisher(Odometry, "wheel/odom", qos_profile_sensor_data)
     h.spin_until(lambda: wheel.get_subscription_count() > 0, what="discovery")
     post = np.array([2.0, 0.6])
@@ -382,6 +387,65 @@ def test_the_memory_can_follow_other_odometry(harness):
     lost.twist.covariance[0] = 1e12
     wheel.publish(lost)
     h.spin_until(lambda: h.node.odometer.breaks == 1, what="odometry break")
+
+
+def test_scan_matching_carries_the_memory_whatever_the_vo_says(harness):
+    """``memory_odometry: scan_matching`` (the default): the simulated room's scans, 2 s of
+    driving at 0.72 m/s away from a wall, the VO over-reading the speed by 30 %. The walls
+    that left the scanner's view, the one behind included, are remembered where they are
+    (matched scans, not the VO's twists, which would put the wall behind 40 cm off); scans
+    with nothing to match (all beyond range) empty the memory, counted."""
+    from asgp_ros.sim.lidar import Lidar
+    from asgp_ros.sim.world import room_for_surface
+
+    room = room_for_surface("tile")
+    lidar = Lidar(room, None, seed=7)
+    assert lidar.config.mount[0] == LASER_X
+    h = harness(memory_s=10.0)
+    assert h.node.odometer is None and h.node.scan_odometer is not None
+    stats = h.node.predictor.stats
+    x0, y0 = room.free_box[0] + 1.0, room.free_box[2] + 0.9  # a wall behind, one right
+    t = 100.0
+    x = x0
+    for i in range(40):
+        t = 100.0 + 0.05 * (i + 1)
+        x = x0 + 0.72 * (t - 100.0)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 == 3:
+            n = stats.vo_samples
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, 1.3 * 0.72, 0.0))
+            h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+        if i % 2 == 1:
+            r = lidar.scan(x, y0, 0.0)
+            arrived = h.node._scan
+            h.scan_pub.publish(conv.scan_to_msg(r.ranges, r.angle_min, r.angle_increment,
+                                                r.range_min, r.range_max, t, "laser"))
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+    _, _, extra = h.node._scan
+    assert extra is not None and extra.shape[0] > 20
+    sensor = np.array([x + LASER_X, y0])
+    world = extra + sensor  # the chair faces +x: the scanner frame is the world's, shifted
+    x_lo, x_hi, y_lo, y_hi = room.free_box
+    depth = np.minimum.reduce([world[:, 0] - x_lo, x_hi - world[:, 0],
+                               world[:, 1] - y_lo, y_hi - world[:, 1]])
+    # on the furniture's front (range noise and the 2 cm cells), not inside the floor
+    assert np.all(depth < 0.04), np.sort(depth)[-5:]
+    behind = np.degrees(np.abs(np.arctan2(extra[:, 1], extra[:, 0]))) > 140.0
+    assert np.sum(behind & (world[:, 0] < x_lo + 0.05)) > 10  # the wall behind
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert diag["odometry_breaks"] == "0" and int(diag["memory_points"]) > 20
+    # a scan with nothing to match: the matcher refuses, the memory is emptied
+    h.clock(t + 0.1)
+    arrived = h.node._scan
+    h.scan_pub.publish(conv.scan_to_msg(np.full(r.ranges.shape, np.inf), r.angle_min,
+                                        r.angle_increment, r.range_min, r.range_max,
+                                        t + 0.1, "laser"))
+    h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+    assert h.node.memory.size == 0
+    assert conv.diagnostic_values(h.node.diagnostic_status())["odometry_breaks"] == "1"
 
 
 def test_the_memory_can_be_turned_off(harness):

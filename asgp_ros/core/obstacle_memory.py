@@ -45,6 +45,11 @@ MAX_TURN_RATE = 20.0
 #: Twists an :class:`Odometer` keeps (a flood of them keeps the newest).
 MAX_HISTORY = 4096
 
+#: What can carry the memory: the scans matched to each other
+#: (:class:`asgp_ros.core.scan_match.ScanOdometer`), or dead reckoning of twists
+#: (:class:`Odometer`).
+MEMORY_ODOMETRY = ("scan_matching", "dead_reckoning")
+
 
 @dataclass(frozen=True)
 class MemoryConfig:

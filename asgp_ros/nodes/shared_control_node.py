@@ -13,11 +13,13 @@ bridge stops writing, and the board's 200 ms watchdog
 hands the chair back to the user. The firmware also ignores an override while the user's
 stick is neutral, and this node never sends one then.
 
-With ``memory_s`` > 0 (off by default) the scans' obstacles are remembered that long,
-carried along by dead reckoning of the VO's twists, or of ``memory_odom_topic``'s
-(:mod:`asgp_ros.core.obstacle_memory`):
-what has left the scanner's view, behind the chair, still counts when it turns. Lost
-tracking or a gap in the VO empties the memory; the newest scan alone is used then.
+With ``memory_s`` > 0 (off by default) the scans' obstacles are remembered that long
+(:mod:`asgp_ros.core.obstacle_memory`), carried along by matching each scan to a keyframe
+scan (``memory_odometry: scan_matching``, :mod:`asgp_ros.core.scan_match`), or by dead
+reckoning of the VO's twists or of ``memory_odom_topic``'s (``dead_reckoning``): what has
+left the scanner's view, behind the chair, still counts when it turns. A refused match
+(too little structure, a corridor), lost tracking or a gap empties the memory; the newest
+scan alone is used then.
 
 Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per decision:
 what was done and why, probability before and after, change, solve time) and
@@ -62,8 +64,9 @@ from asgp_ros.common import topics
 from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
-from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer, ScanMemory
+from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odometer, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.scan_match import ScanOdometer
 from asgp_ros.core.shared_control import (
     CollisionCheck,
     Decision,
@@ -132,11 +135,16 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
           "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
     _spec("memory_s", 0.0, "the laser's obstacles are remembered this long, carried along "
-          "by the VO's twists, so that what left the scanner's view (behind the chair) still "
+          "by memory_odometry, so that what left the scanner's view (behind the chair) still "
           "counts; 0 (the default): no memory. Only for odometry that drifts less than the "
           "margin over this time", 0.0, 600.0),
-    _spec("memory_odom_topic", "", "odometry that carries the memory (nav_msgs/Odometry: its "
-          "twist; wheel odometry or a filter fusing it, say); empty: the VO's twists"),
+    _spec("memory_odometry", "scan_matching", "what carries the memory: 'scan_matching' "
+          "(the scans matched to each other, asgp_ros.core.scan_match: millimetres over "
+          "seconds indoors; a refused match empties the memory) or 'dead_reckoning' (the "
+          "twists of the VO or of memory_odom_topic)"),
+    _spec("memory_odom_topic", "", "with memory_odometry 'dead_reckoning': odometry that "
+          "carries the memory (nav_msgs/Odometry: its twist; wheel odometry or a filter "
+          "fusing it, say); empty: the VO's twists"),
     _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
           "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
@@ -176,6 +184,7 @@ class SharedControlParams:
     footprint_offset: float
     margin: float
     memory_s: float
+    memory_odometry: str
     memory_odom_topic: str
     memory_radius_m: float
     heading_uncertainty: bool
@@ -189,6 +198,13 @@ class SharedControlParams:
                              f"{self.obstacles!r}")
         if self.vo_type not in ("twist", "odometry"):
             raise ValueError(f"vo_type must be 'twist' or 'odometry', got {self.vo_type!r}")
+        if self.memory_odometry not in MEMORY_ODOMETRY:
+            raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
+                             f"{self.memory_odometry!r}")
+        if self.memory_s > 0.0 and self.memory_odometry == "scan_matching" \
+                and self.obstacles == "grid":
+            raise ValueError("memory_odometry 'scan_matching' needs the laser (obstacles "
+                             "'laser' or 'both')")
         if self.obstacles != "laser" and self.vo_type != "odometry":
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
         parse_joy_axes(self.joy_axes)
@@ -241,7 +257,10 @@ class SharedControlNode(Node):
         self.footprint = p.footprint()
         memory = p.memory()
         mount = (p.laser_x, p.laser_y, p.laser_yaw)
-        self.odometer = Odometer(memory.max_gap_s) if memory is not None else None
+        dead_reckoning = memory is not None and p.memory_odometry == "dead_reckoning"
+        self.odometer = Odometer(memory.max_gap_s) if dead_reckoning and memory else None
+        self.scan_odometer = ScanOdometer(mount, max_gap_s=memory.max_gap_s) \
+            if memory is not None and not dead_reckoning else None
         self.memory = ScanMemory(mount, memory) if memory is not None else None
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
@@ -385,6 +404,9 @@ class SharedControlNode(Node):
         if self.memory is not None and self.odometer is not None:
             extra = self.memory.add(scan, self.odometer.pose_at(scan.stamp),
                                     self.odometer.epoch)
+        elif self.memory is not None and self.scan_odometer is not None:
+            extra = self.memory.add(scan, self.scan_odometer.add(scan),
+                                    self.scan_odometer.epoch)
         self._scan = (now, scan, extra)
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # while intervening, every scan is judged at once
@@ -534,7 +556,8 @@ class SharedControlNode(Node):
             "scan": "none" if self._scan is None else "received",
             "memory_points": "off" if self.memory is None else str(self.memory.size),
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
-            "odometry_breaks": "off" if self.odometer is None else str(self.odometer.breaks),
+            "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
+            str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
             "bad_messages": str(self._bad_messages),
         }

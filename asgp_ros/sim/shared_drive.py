@@ -31,8 +31,9 @@ import numpy as np
 
 from asgp_ros.core import collision
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer, ScanMemory
+from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odometer, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.scan_match import ScanOdometer
 from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode
@@ -134,10 +135,16 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           inattention: float = 0.1, surface: str = "tile",
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
-          memory: MemoryConfig | None = None) -> DriveResult:
+          memory: MemoryConfig | None = None, memory_odometry: str = "dead_reckoning"
+          ) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (None, as the node by default: the newest
-    scan alone)."""
+    scan alone), carried along by dead reckoning of the VO's twists (``memory_odometry``
+    "dead_reckoning") or by matching the scans (:mod:`asgp_ros.core.scan_match`,
+    "scan_matching")."""
+    if memory_odometry not in MEMORY_ODOMETRY:
+        raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
+                         f"{memory_odometry!r}")
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -154,7 +161,10 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
     mount = scanner.config.mount
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
-    odometer = Odometer(memory.max_gap_s) if memory is not None else None
+    odometer = Odometer(memory.max_gap_s) if memory is not None and \
+        memory_odometry == "dead_reckoning" else None
+    scan_odometer = ScanOdometer(mount, max_gap_s=memory.max_gap_s) if memory is not None \
+        and memory_odometry == "scan_matching" else None
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
     extra: np.ndarray | None = None
 
@@ -188,6 +198,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                                       r.range_max, stamp=t)
                 if scan_memory is not None and odometer is not None:
                     extra = scan_memory.add(scan, odometer.pose_at(t), odometer.epoch)
+                elif scan_memory is not None and scan_odometer is not None:
+                    extra = scan_memory.add(scan, scan_odometer.add(scan), scan_odometer.epoch)
             if decision is not None and decision.command is not None and \
                     t - decision_t <= 0.35 and not is_neutral(user, config.neutral_deadband):
                 if n % OVERRIDE_EVERY == 0:

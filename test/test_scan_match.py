@@ -1,0 +1,102 @@
+"""Laser odometry (asgp_ros.core.scan_match): known motions recovered from simulated scans,
+degenerate and hostile input refused rather than guessed, and the odometer's epochs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from asgp_ros.core.collision import Scan
+from asgp_ros.core.obstacle_memory import compose
+from asgp_ros.core.scan_match import MatchConfig, Reference, ScanOdometer, _between, match
+from asgp_ros.sim.lidar import Lidar
+from asgp_ros.sim.world import room_for_surface
+
+
+@pytest.fixture(scope="module")
+def lidar() -> Lidar:
+    return Lidar(room_for_surface("tile"), None, seed=4)
+
+
+def scan_at(lidar: Lidar, pose: tuple[float, float, float], t: float = 0.0) -> Scan:
+    r = lidar.scan(*pose)
+    return Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min, r.range_max, stamp=t)
+
+
+def base_points(lidar: Lidar, pose: tuple[float, float, float]) -> np.ndarray:
+    odo = ScanOdometer(lidar.config.mount)
+    return odo._base_points(scan_at(lidar, pose))
+
+
+@pytest.mark.parametrize("motion", [(0.08, -0.02, 0.1), (0.0, 0.0, -0.3), (-0.1, 0.03, 0.0),
+                                    (0.25, 0.05, 0.2)])
+def test_a_known_motion_is_recovered(lidar: Lidar, motion: tuple[float, float, float]) -> None:
+    a = (-1.5, 0.7, 0.4)
+    b = compose(a, motion)
+    res = match(base_points(lidar, a), base_points(lidar, b))  # seeded at no motion
+    assert res.ok, res.why
+    assert math.hypot(res.pose[0] - motion[0], res.pose[1] - motion[1]) < 0.005
+    assert abs(res.pose[2] - motion[2]) < math.radians(0.2)
+    assert res.rms < 0.02 and res.constraint > 0.1
+
+
+def test_a_corridor_is_refused_not_guessed() -> None:
+    rng = np.random.default_rng(1)
+    x = np.linspace(-5.0, 5.0, 400)
+    walls = np.concatenate([np.stack([x, np.full_like(x, 1.0)], 1),
+                            np.stack([x, np.full_like(x, -1.0)], 1)])
+    ref = walls + rng.normal(0.0, 0.003, walls.shape)
+    cur = walls + np.array([0.1, 0.0]) + rng.normal(0.0, 0.003, walls.shape)  # along the axis
+    res = match(ref, cur)
+    assert not res.ok and "degenerate" in res.why
+    assert res.constraint < MatchConfig().min_constraint
+
+
+def test_hostile_input_never_gives_a_trusted_pose(lidar: Lidar) -> None:
+    ref = base_points(lidar, (0.0, 0.0, 0.0))
+    rng = np.random.default_rng(2)
+    assert not match(ref, rng.uniform(-5, 5, (500, 2))).ok  # unrelated points
+    assert not match(ref, ref[:10]).ok  # too few
+    assert not match(np.zeros((0, 2)), ref).ok
+    bad = ref.copy()
+    bad[::2] = np.nan
+    res = match(ref, bad)  # NaN points are dropped, the rest still match
+    assert res.ok and math.hypot(*res.pose[:2]) < 0.005
+    assert not match(ref, ref, seed=(math.nan, 0.0, 0.0)).ok
+    assert not match(ref, np.full((500, 2), 1e30)).ok
+    # a seed in the wrong basin is refused rather than followed far
+    far = match(ref, base_points(lidar, (1.0, 0.0, 0.0)), config=MatchConfig(max_step_m=0.3))
+    assert not far.ok
+    with pytest.raises(ValueError, match="trim"):
+        MatchConfig(trim=0.9)
+    assert isinstance(Reference(ref), Reference)
+
+
+def test_the_odometer_follows_a_drive_and_breaks_on_gaps(lidar: Lidar) -> None:
+    odo = ScanOdometer(lidar.config.mount)
+    pose = (-2.0, 0.0, 0.0)
+    t = 0.0
+    assert odo.add(scan_at(lidar, pose, t)) == (0.0, 0.0, 0.0)  # the epoch's origin
+    start = pose
+    errors = []
+    for i in range(150):  # 15 s of driving and turning at 10 scans a second
+        t += 0.1
+        v, w = 0.4 + 0.2 * math.sin(i / 7.0), 0.6 * math.sin(i / 11.0)
+        pose = compose(pose, (v * 0.1 * math.cos(0.05 * w), v * 0.1 * math.sin(0.05 * w),
+                              0.1 * w))
+        est = odo.add(scan_at(lidar, pose, t))
+        truth = _between(start, pose)
+        errors.append(math.hypot(est[0] - truth[0], est[1] - truth[1]))
+    assert odo.epoch == 0, odo.refused
+    assert max(errors) < 0.03  # 15 s and about 6 m
+    # a gap, then a stamp going back: new epochs, poses restart at the origin
+    assert odo.add(scan_at(lidar, pose, t + 2.0)) == (0.0, 0.0, 0.0)
+    assert odo.epoch == 1
+    assert odo.add(scan_at(lidar, pose, t)) == (0.0, 0.0, 0.0)
+    assert odo.epoch == 2 and odo.breaks == 2
+    # a scan of garbage: refused, a new epoch, never a pose far from the last
+    blank = Scan(np.full(1081, np.inf), -2.35, 0.00436, 0.05, 8.0, stamp=t + 0.1)
+    assert odo.add(blank) == (0.0, 0.0, 0.0)
+    assert odo.epoch == 3
