@@ -137,6 +137,26 @@ def test_a_fifo_model_path_fails_fast_with_a_clear_error(repo_root, tmp_path):
            "(named pipe), not a regular file" in node.output
 
 
+@pytest.mark.parametrize("sig", SIGNALS, ids=lambda s: signal.Signals(s).name)
+@pytest.mark.parametrize("module", [PREDICTOR, "asgp_ros.nodes.shared_control_node"])
+def test_a_node_on_a_stopped_simulated_clock_still_stops(repo_root, model_file, module, sig):
+    """``use_sim_time`` with no /clock (a bag replay that ended, a simulator that stopped):
+    no timer is ever due, and the executor's wait returns only for work. The stop signal's
+    wake-up (a guard condition with no work) restarted the wait, and the node hung until
+    killed (the predictor's "shutdown hang after heavy traffic": the benchmark's feeder had
+    stopped its clock before the SIGINT). The signal now gives the executor a task."""
+    node = NodeProcess(repo_root, module, "-p", f"model_path:={model_file}",
+                       "-p", "use_sim_time:=true")
+    try:
+        node.wait_for("horizon")
+        time.sleep(0.5)  # the main thread settles into its wait (no deadline is relied on)
+        code = node.stop(sig)
+    finally:
+        node.kill()
+    assert code == 0, node.output
+    assert "Traceback" not in node.output, node.output
+
+
 class _Feeder:
     """Joystick (20 Hz) and VO (5 Hz) with wall-clock stamps; collects predicted paths."""
 

@@ -20,8 +20,11 @@ rclpy's handlers (a SIGSEGV, and that ``RuntimeError``), none of 450 since.
 Here rclpy installs no handler (``SignalHandlerOptions.NO``). The signals set a flag
 (:class:`StopSignals`), nothing else, and wake the executor: Python writes each signal's
 number to a socket (``signal.set_wakeup_fd``) at once, even while the main thread waits
-inside rcl, and a small thread reading that socket triggers the executor's guard condition
-(``Executor.wake``). :meth:`StopSignals.spin` returns once the flag is set, so the main
+inside rcl, and a small thread reading that socket sets the flag and hands the executor an
+empty task. (``Executor.wake`` alone is not enough: ``spin_once`` returns only after running
+some work, and a wake-up without any restarts its wait; with no timer due, as on a simulated
+clock that stopped, the node then hung on SIGINT until killed.)
+:meth:`StopSignals.spin` returns once the flag is set, so the main
 thread alone destroys the node and then shuts the context down, in that order, with
 nothing else running (:func:`run`, every node's ``main``); the executor never wakes only
 to look at the flag. A long start-up (a model being read) polls :func:`stop_requested`. A
@@ -47,6 +50,7 @@ __all__ = ["StopSignals", "init", "run", "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_SIGNAL_BYTES = frozenset(int(sig) for sig in _SIGNALS)  # as the wake-up fd writes them
 
 _Handler = Callable[[int, types.FrameType | None], object] | int | None
 
@@ -100,16 +104,25 @@ class StopSignals:
         done = threading.Event()
 
         def wake_on_signal() -> None:
-            # a byte per signal arrives here as the signal does; the main thread may be
-            # waiting inside rcl, where Python runs no handler until the wait returns
+            # A byte per signal (its number) arrives here as the signal does; the main
+            # thread may be waiting inside rcl, where Python runs no handler until the wait
+            # returns. The flag is set here, not left to the Python handler (which the main
+            # thread runs only once CPython notices the signal), and the executor is given
+            # a task: spin_once returns only after running some work, and a wake-up with
+            # none (Executor.wake) just starts its wait again. With no timer due (a
+            # simulated clock that stopped) that wait never returned: the node hung on
+            # SIGINT until killed.
             while not done.is_set():
                 try:
-                    if not read.recv(64):
-                        return
+                    data = read.recv(64)
                 except OSError:
                     return
-                if not done.is_set():
-                    executor.wake()
+                if not data:
+                    return
+                if any(b in _SIGNAL_BYTES for b in data):
+                    _STOP.set()
+                    if not done.is_set():
+                        executor.create_task(_nothing)
 
         waker = threading.Thread(target=wake_on_signal, name="stop_signal_waker",
                                  daemon=True)
@@ -122,6 +135,10 @@ class StopSignals:
             with contextlib.suppress(OSError):
                 write.send(b"\0")  # ends the waker's recv
             waker.join()
+
+
+def _nothing() -> None:
+    """The task that makes :meth:`Executor.spin_once` return after a stop signal."""
 
 
 def init(args: list[str] | None = None) -> None:
