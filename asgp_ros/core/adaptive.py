@@ -263,7 +263,7 @@ class OutsideFloor:
     trained calibration) it lets the online scale narrow the ellipses where the
     pseudo-inputs reach and nowhere else: the published variance is below the trained
     model's by at most the calibrated q(x, x), which vanishes outside the training range.
-    The mean is the trained channel's (unused by the floor).
+    The mean is the trained channel's (unused by the floor); there is no gradient.
 
     At an online scale s >= 1 the floor never binds: the adapted latent variance is
     sf2 - q + u^T A^-1 u >= sf2 - q, while var_T - q = sf2 - 2 q + u^T A_T^-1 u
@@ -294,8 +294,8 @@ class OutsideFloor:
 
     def predict_with_grad(self, X: ArrayLike, include_noise: bool = True
                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        mean, var = self.predict(X, include_noise)
-        return mean, var, np.zeros(np.shape(np.atleast_2d(X)))
+        """Not provided: a floor is read for its variance only (never propagated)."""
+        raise NotImplementedError("a variance floor has no mean gradient; use predict")
 
 
 class ModelAdapter:
