@@ -271,6 +271,14 @@ def test_over_wide_ellipses_narrow_where_the_model_has_learnt_and_nowhere_else(
             replace(at_one, variance_floor=floor).predict_step(jp, vp, jn)[1],
             at_one.predict_step(jp, vp, jn)[1])
         assert Predictor(wide, adapt=AdaptSettings(select=False)).model.variance_floor is None
+        # the floored model serves the batch and inverse paths too (planners, shared control)
+        now = float(s.vel_t[-1])
+        k = pred.config.horizon_steps
+        batch = pred.predict_batch(np.zeros((8, k, 2)) + [0.5, 0.1], now, learn=False)
+        assert batch.ok and np.all(np.isfinite(batch.pos_cov))
+        window, inverse = pred.solve_inverse(np.stack([0.1 * np.arange(1, k + 1),
+                                                       np.zeros(k)], axis=1), now, learn=False)
+        assert window.ok and inverse is not None and np.all(np.isfinite(inverse.pos_cov))
         # below the trained variance by at most the calibrated q(x, x) everywhere
         for c, ch in enumerate(wide.channels):
             X = np.stack([build_inputs(jp[i], vp[i], jn[i], c, FC) for i in range(n)])
