@@ -231,8 +231,9 @@ def test_over_wide_ellipses_narrow_where_the_model_has_learnt_and_nowhere_else(
     far outside the training range the published variance stays at the trained model's."""
     from dataclasses import replace
 
-    from asgp_ros.core.adaptive import ADAPTED, TRAINED, OutsideFloor
+    from asgp_ros.core.adaptive import ADAPTED, TRAINED
     from asgp_ros.core.calibration import VarianceCalibration
+    from asgp_ros.core.posterior import OutsideFloor
 
     wide = replace(model, calibration=VarianceCalibration(scale=(25.0, 25.0)))
     s = drive(120.0, seed=9)
@@ -274,7 +275,7 @@ def test_over_wide_ellipses_narrow_where_the_model_has_learnt_and_nowhere_else(
         # the floored model serves the batch and inverse paths too (planners, shared control)
         now = float(s.vel_t[-1])
         k = pred.config.horizon_steps
-        batch = pred.predict_batch(np.zeros((8, k, 2)) + [0.5, 0.1], now, learn=False)
+        batch = pred.predict_batch(np.tile([0.5, 0.1], (8, k, 1)), now, learn=False)
         assert batch.ok and np.all(np.isfinite(batch.pos_cov))
         window, inverse = pred.solve_inverse(np.stack([0.1 * np.arange(1, k + 1),
                                                        np.zeros(k)], axis=1), now, learn=False)
@@ -283,7 +284,7 @@ def test_over_wide_ellipses_narrow_where_the_model_has_learnt_and_nowhere_else(
         for c, ch in enumerate(wide.channels):
             X = np.stack([build_inputs(jp[i], vp[i], jn[i], c, FC) for i in range(n)])
             _, var = ch.predict(X)
-            _, short = OutsideFloor(ch).predict(X)
+            _, short = OutsideFloor(ch.posterior).predict(X)
             q = var - short
             assert np.all(q >= -1e-12)
             assert np.all(v_pub[:, c] >= 25.0 * (var - np.maximum(q, 0.0)) - 1e-12)

@@ -463,3 +463,47 @@ def test_a_variance_floor_raises_each_step_to_the_floor_models_variance(
     with pytest.raises(TypeError, match="variance_floor"):
         replace(model, variance_floor=replace(
             model, feature_config=FeatureConfig(lags=s + 1)))
+
+
+def test_the_fused_outside_floor_equals_the_channel_by_channel_one(
+        gp_model: tuple[MotionModel, Resampled]) -> None:
+    """Both OutsideFloor channels are evaluated together from the step's input rows
+    (P3, :func:`asgp_ros.core.posterior.floor_variance`); the same floors behind a wrapper
+    go channel by channel: the rollouts agree, and far outside the training range the
+    floor is the trained variance (here it binds), among the pseudo-inputs it does not."""
+    from dataclasses import replace
+
+    from asgp_ros.core.calibration import VarianceCalibration
+    from asgp_ros.core.posterior import OutsideFloor
+
+    model = gp_model[0]
+    floors = tuple(OutsideFloor(ch.posterior) for ch in model.channels)  # type: ignore[attr-defined]
+
+    class Hidden:
+        def __init__(self, f: OutsideFloor) -> None:
+            self.f = f
+
+        def predict(self, X: np.ndarray, include_noise: bool = True):
+            return self.f.predict(X, include_noise)
+
+        def predict_with_grad(self, X: np.ndarray, include_noise: bool = True):
+            return self.f.predict_with_grad(X, include_noise)
+
+    fused_floor = replace(model, channels=floors)
+    generic_floor = replace(model, channels=(Hidden(floors[0]), Hidden(floors[1])))
+    narrow = replace(model, calibration=VarianceCalibration(scale=(0.05, 0.05)))
+    rng = np.random.default_rng(22)
+    jp, vp, _ = windows(rng, 6, 8)
+    vp[:3] *= 40.0  # far outside: the floor binds
+    jf = rng.uniform(-0.9, 0.9, (6, 8, 2))
+    a = rollout(replace(narrow, variance_floor=fused_floor), jp, vp, jf)
+    b = rollout(replace(narrow, variance_floor=generic_floor), jp, vp, jf)
+    for name in ("vel", "vel_cov", "pose", "pose_cov"):
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-10,
+                                   atol=1e-15, err_msg=name)
+    plain = rollout(model, jp, vp, jf)
+    bare = rollout(narrow, jp, vp, jf)
+    # far outside: as wide as the unnarrowed model's first step; inside: the narrow one's
+    np.testing.assert_allclose(a.vel_cov[:3, 0], plain.vel_cov[:3, 0], rtol=1e-4)  # q ~ 0
+    assert np.all(a.vel_cov[3:, 0, 0, 0] < 0.5 * plain.vel_cov[3:, 0, 0, 0])
+    assert np.all(a.vel_cov[:, 0] >= bare.vel_cov[:, 0] - 1e-15)

@@ -47,9 +47,9 @@ calibration's shape stay as trained):
    narrow anything: the published adapted model's variance is floored, at every step of
    every rollout (:attr:`~asgp_ros.core.models.MotionModel.variance_floor`), by the
    trained model's variance less the part its pseudo-inputs explain
-   (:class:`OutsideFloor`, at the trained calibration).  So the published variance is
-   below the trained model's by at most the calibrated q(x, x) of A8
-   (:mod:`asgp_ros.core.adapt`), which vanishes outside the training range: there the
+   (:class:`~asgp_ros.core.posterior.OutsideFloor`, at the trained calibration).  So the
+   published variance is below the trained model's by at most the calibrated q(x, x) of
+   A8 (:mod:`asgp_ros.core.adapt`), which vanishes outside the training range: there the
    variance never goes below the trained posterior's, whatever the scale.  The scale
    itself is learnt without the floor (the checks roll out the posterior at the trained
    calibration and scale the d2), so it says what the adapted posterior needs where it
@@ -85,15 +85,13 @@ from dataclasses import dataclass, field, replace
 from typing import Any, NamedTuple, cast
 
 import numpy as np
-import scipy.linalg
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
-from asgp_ros.core import kernel
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.features import design_matrix
 from asgp_ros.core.metrics import CHI2_1DOF_95, CHI2_2DOF_95, mahalanobis_sq
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.posterior import FitcPosterior
+from asgp_ros.core.posterior import FitcPosterior, OutsideFloor
 from asgp_ros.core.resample import Resampled
 from asgp_ros.core.rollout import rollout
 from asgp_ros.core.sparse_gp import SparseGP
@@ -101,7 +99,7 @@ from asgp_ros.core.unicycle import integrate_path
 
 FloatArray = NDArray[np.float64]
 
-__all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter", "OutsideFloor"]
+__all__ = ["AdaptSettings", "AdapterStats", "CoverageConfig", "ModelAdapter"]
 
 #: Weight of the newest check in the coverage averages shown by the diagnostics
 #: (about the last 100 checked predictions).
@@ -249,55 +247,6 @@ class _Snapshot(NamedTuple):
     published: int
 
 
-class OutsideFloor:
-    """A trained ASGP channel's predictive variance less what its pseudo-inputs explain.
-
-    At x, with u = L^-1 k(Z, x) and q(x, x) = u^T u (A8 of :mod:`asgp_ros.core.adapt`)::
-
-        floor(x) = max(var_T(x) - q(x, x), 0) = max(sf2 - k^T (C_T + Kuu^-1) k [+ sn2], 0)
-
-    in original units.  Among the pseudo-inputs q(x, x) is nearly the whole prior
-    variance sf2 and the floor is at most the noise (usually nothing); far from them q
-    vanishes and the floor is the trained posterior's variance there.  As the published
-    adapted model's :attr:`~asgp_ros.core.models.MotionModel.variance_floor` (at the
-    trained calibration) it lets the online scale narrow the ellipses where the
-    pseudo-inputs reach and nowhere else: the published variance is below the trained
-    model's by at most the calibrated q(x, x), which vanishes outside the training range.
-    The mean is the trained channel's (unused by the floor); there is no gradient.
-
-    At an online scale s >= 1 the floor never binds: the adapted latent variance is
-    sf2 - q + u^T A^-1 u >= sf2 - q, while var_T - q = sf2 - 2 q + u^T A_T^-1 u
-    <= sf2 - q (A8), and the calibration's map is increasing in both.
-    """
-
-    def __init__(self, channel: SparseGP) -> None:
-        post = channel.posterior
-        M = post.num_inducing
-        Linv = scipy.linalg.solve_triangular(post.L, np.eye(M), lower=True)
-        self.post = post
-        self._Q = post.C + Linv.T @ Linv  # C_T + Kuu^-1
-
-    def _moments(self, X: ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-        post = self.post
-        Xs = (np.asarray(X, dtype=np.float64) - post.x_mean) / post.x_scale
-        K = kernel.cross(np.atleast_2d(Xs), post.kernel)  # [N, M]
-        mean = (K @ post.alpha) * post.y_scale + post.y_mean
-        short = post.signal_variance - np.einsum("nm,nm->n", K @ self._Q, K)
-        return mean, short, K
-
-    def predict(self, X: ArrayLike, include_noise: bool = True
-                ) -> tuple[FloatArray, FloatArray]:
-        mean, short, _ = self._moments(X)
-        if include_noise:
-            short = short + self.post.noise_variance
-        return mean, np.maximum(short, 0.0) * self.post.y_scale ** 2
-
-    def predict_with_grad(self, X: ArrayLike, include_noise: bool = True
-                          ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Not provided: a floor is read for its variance only (never propagated)."""
-        raise NotImplementedError("a variance floor has no mean gradient; use predict")
-
-
 class ModelAdapter:
     """Online posterior and calibration of one ASGP model (see the module docstring).
 
@@ -337,7 +286,8 @@ class ModelAdapter:
             else TRAINED
         self._errors = np.full(2, np.nan)
         base = cast(tuple[SparseGP, SparseGP], model.channels)
-        self._floor = replace(model, channels=(OutsideFloor(base[0]), OutsideFloor(base[1])))
+        self._floor = replace(model, channels=(OutsideFloor(base[0].posterior),
+                                               OutsideFloor(base[1].posterior)))
         self.model = self._publish()
         self._check_channels: tuple[SparseGP, SparseGP] = (
             copy.copy(self._channels[0]), copy.copy(self._channels[1]))

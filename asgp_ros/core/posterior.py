@@ -424,3 +424,73 @@ def _clip_negative(var: FloatArray, signal_variance: FloatArray, stacklevel: int
             stacklevel=stacklevel + 1,
         )
     np.maximum(var, 0.0, out=var)
+
+
+# --------------------------------------------------------------------------- the floor
+
+class OutsideFloor:
+    """A posterior's predictive variance less what its pseudo-inputs explain.
+
+    At x, with u = L^-1 k(Z, x) and q(x, x) = u^T u (A8 of :mod:`asgp_ros.core.adapt`)::
+
+        (P3)  floor(x) = max(var(x) - q(x, x), 0) = max(sf2 - k^T (C + Kuu^-1) k [+ sn2], 0)
+
+    in original units.  Among the pseudo-inputs q(x, x) is nearly the whole prior
+    variance sf2 and the floor is at most the noise (usually nothing); far from them q
+    vanishes and the floor is the posterior's variance there.  An adapted model publishes
+    the trained posterior's floors as its
+    :attr:`~asgp_ros.core.models.MotionModel.variance_floor` (at the trained calibration,
+    :mod:`asgp_ros.core.adaptive`), so that its online scale narrows the ellipses where
+    the pseudo-inputs reach and nowhere else: the published variance is below the trained
+    model's by at most the calibrated q(x, x), which vanishes outside the training range.
+    It is a channel (``predict``) whose mean is the posterior's; it has no gradient.  The
+    rollout evaluates both channels' floors together (:func:`stack_floors`,
+    :func:`floor_variance`).
+
+    At an online scale s >= 1 the floor never binds: the adapted latent variance is
+    sf2 - q + u^T A^-1 u >= sf2 - q, while var_T - q = sf2 - 2 q + u^T A_T^-1 u
+    <= sf2 - q (A8), and the calibration's map is increasing in both.
+    """
+
+    def __init__(self, post: FitcPosterior) -> None:
+        M = post.num_inducing
+        Linv = scipy.linalg.solve_triangular(post.L, np.eye(M), lower=True)
+        self.post = post
+        self.Q: FloatArray = post.C + Linv.T @ Linv  # C + Kuu^-1
+
+    def predict(self, X: ArrayLike, include_noise: bool = True
+                ) -> tuple[FloatArray, FloatArray]:
+        Xa = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        S = self.post.stacked
+        mean, var = floor_variance(S, self.Q[None], Xa[None], include_noise)
+        return mean[0], var[0]
+
+    def predict_with_grad(self, X: ArrayLike, include_noise: bool = True
+                          ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Not provided: a floor is read for its variance only (never propagated)."""
+        raise NotImplementedError("a variance floor has no mean gradient; use predict")
+
+
+def stack_floors(floors: Sequence[OutsideFloor]) -> tuple[Stacked, FloatArray]:
+    """The floors' posteriors stacked (:func:`stack`) and their Q = C + Kuu^-1 [P, M, M],
+    padded with zeros as C is."""
+    S = stack([f.post for f in floors])
+    M = S.C.shape[1]
+    Q = np.zeros((len(floors), M, M))
+    for c, f in enumerate(floors):
+        m = f.post.num_inducing
+        Q[c, :m, :m] = f.Q
+    return S, Q
+
+
+def floor_variance(S: Stacked, Q: FloatArray, X: FloatArray, include_noise: bool
+                   ) -> tuple[FloatArray, FloatArray]:
+    """The posteriors' mean [P, N] and floor (P3) [P, N] at inputs X [P, N, D] (original
+    units); Q [P, M, M] as :func:`stack_floors` gives it."""
+    Xn = (X - S.x_mean) / S.x_scale
+    K = kernel.cross(Xn, S.kernel)  # [P, N, M]
+    mean = np.matmul(K, S.alpha)[..., 0] * S.y_scale + S.y_mean
+    short = S.signal_variance - np.einsum("pnm,pnm->pn", np.matmul(K, Q), K)
+    if include_noise:
+        short = short + S.noise_variance
+    return mean, np.maximum(short, 0.0) * S.y_var

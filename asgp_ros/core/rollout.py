@@ -210,9 +210,24 @@ class ChannelStep:
         cal = model.calibration
         self.calibrate = None if cal.is_identity else cal.coefficients(speed)
         self.get = _WS.get if scratch else _fresh
-        # the floor is evaluated after this step's arrays are read, in fresh memory
-        self.floor = None if model.variance_floor is None else ChannelStep(
-            model.variance_floor, include_noise, speed, scratch=False)
+        # the floor: both OutsideFloor channels from this step's input rows at once, or any
+        # other floor model as a step of its own (after this step's arrays are read, in
+        # fresh memory)
+        self.floor: ChannelStep | None = None
+        self.fused_floor: tuple[posterior.Stacked, FloatArray,
+                                tuple[FloatArray, FloatArray] | None] | None = None
+        floor = model.variance_floor
+        if floor is not None:
+            chans = floor.channels
+            if self.fused is not None and all(type(ch) is posterior.OutsideFloor
+                                              for ch in chans):
+                floors = cast(list[posterior.OutsideFloor], list(chans))
+                S, Q = _fused_floor(floors[0], floors[1])
+                fcal = floor.calibration
+                self.fused_floor = (S, Q, None if fcal.is_identity
+                                    else fcal.coefficients(speed))
+            else:
+                self.floor = ChannelStep(floor, include_noise, speed, scratch=False)
 
     def __call__(self, jp: FloatArray, vp: FloatArray, jn: FloatArray, with_grad: bool
                  ) -> tuple[FloatArray, FloatArray, list[FloatArray]]:
@@ -247,7 +262,13 @@ class ChannelStep:
                 _checked(_NAMES[c], mean[:, c], var[:, c])
         if self.calibrate is not None:
             var = var * self.calibrate[0] + self.calibrate[1]
-        if self.floor is not None:
+        if self.fused_floor is not None:
+            S, Q, fcal = self.fused_floor
+            floor = posterior.floor_variance(S, Q, X, self.include_noise)[1].T  # [B, 2]
+            if fcal is not None:
+                floor = floor * fcal[0] + fcal[1]
+            var = np.maximum(var, floor)
+        elif self.floor is not None:
             var = np.maximum(var, self.floor(jp, vp, jn, False)[1])  # (checked finite)
         return mean, var, grad
 
@@ -278,6 +299,24 @@ def _fused_posterior(model: MotionModel) -> posterior.Stacked | None:
     fused = posterior.stack([post_v, post_w])
     _FUSED_CACHE[post_v] = (post_w, fused)
     return fused
+
+
+def _fused_floor(v: posterior.OutsideFloor, w: posterior.OutsideFloor
+                 ) -> tuple[posterior.Stacked, FloatArray]:
+    """Both channels' floors stacked (:func:`asgp_ros.core.posterior.stack_floors`),
+    cached by the floor objects (an adapter keeps its floors for its lifetime)."""
+    hit = _FLOOR_CACHE.get(v)
+    if hit is not None and hit[0] is w:
+        return hit[1]
+    fused = posterior.stack_floors([v, w])
+    _FLOOR_CACHE[v] = (w, fused)
+    return fused
+
+
+_FLOOR_CACHE: weakref.WeakKeyDictionary[
+    posterior.OutsideFloor,
+    tuple[posterior.OutsideFloor, tuple[posterior.Stacked, FloatArray]]
+] = weakref.WeakKeyDictionary()
 
 
 #: stacked posteriors by the v channel's posterior: (omega channel's posterior, stack)
