@@ -66,6 +66,11 @@ def test_hostile_input_never_gives_a_trusted_pose(lidar: Lidar) -> None:
     assert res.ok and math.hypot(*res.pose[:2]) < 0.005
     assert not match(ref, ref, seed=(math.nan, 0.0, 0.0)).ok
     assert not match(ref, np.full((500, 2), 1e30)).ok
+    # a round room constrains no rotation about its centre: refused, not a pose
+    ang = np.linspace(-2.35, 2.35, 1081)
+    circle = np.stack([2.0 * np.cos(ang), 2.0 * np.sin(ang)], axis=1)
+    res = match(circle, circle)
+    assert not res.ok and "degenerate" in res.why
     # a seed in the wrong basin is refused rather than followed far
     far = match(ref, base_points(lidar, (1.0, 0.0, 0.0)), config=MatchConfig(max_step_m=0.3))
     assert not far.ok

@@ -17,9 +17,10 @@ in the reference one minimises::
 over the pairs closer than a distance that shrinks as the iterations converge, trimmed of
 the worst ``trim`` share; each iteration is one Gauss-Newton step of (M1). The match says
 whether it can be trusted (:class:`Match`): enough pairs, a small residual, and a
-well-conditioned problem. A corridor constrains nothing along its axis: the smallest
-eigenvalue of the normals' scatter (the translation block of the normal equations per
-pair) must be at least ``min_constraint``; otherwise the match is refused, not guessed.
+well-conditioned problem. A corridor constrains nothing along its axis, a round room
+nothing of a rotation about its centre: the smallest eigenvalue of the normal equations
+per pair (the rotation in metres at the points' RMS radius) must be at least
+``min_constraint``; otherwise the match is refused, not guessed.
 
 :class:`ScanOdometer` chains matches into the pose of the base frame at each scan, against
 a keyframe scan that is replaced once the chair has moved ``keyframe_m`` or turned
@@ -38,7 +39,8 @@ import numpy as np
 import scipy.spatial
 from numpy.typing import NDArray
 
-from asgp_ros.core.collision import Scan, scan_points
+from asgp_ros.core.collision import Scan, inverse_pose, scan_points
+from asgp_ros.core.obstacle_memory import compose
 
 FloatArray = NDArray[np.float64]
 Pose = tuple[float, float, float]
@@ -61,8 +63,11 @@ class MatchConfig:
         iterations: at most this many Gauss-Newton steps.
         min_pairs: a match needs at least this many pairs.
         max_rms_m: a match whose point-to-line RMS residual is larger is refused.
-        min_constraint: the smallest eigenvalue of the pairs' normal scatter (mean n n^T:
-            1/2 for normals spread evenly, 0 in a straight corridor) a match needs.
+        min_constraint: the smallest eigenvalue of the pairs' normal equations per pair,
+            the rotation measured in metres at the points' RMS radius (for the
+            translation alone the normal scatter mean n n^T: 1/2 for normals spread
+            evenly, 0 in a straight corridor; 0 too for a rotation about the scanner in
+            a round room) a match needs.
         max_step_m, max_step_rad: a match further than this from its seed is refused (a
             wrong basin, not a chair's motion between two scans).
         max_points: points of the current scan used (evenly spaced along it).
@@ -207,8 +212,11 @@ def match(reference: FloatArray | Reference, current: FloatArray,
         H = J.T @ J
         pairs = int(r.shape[0])
         rms = float(np.sqrt(np.mean(r * r)))
-        a, b, d = H[0, 0] / pairs, H[0, 1] / pairs, H[1, 1] / pairs  # 2x2 eigenvalue
-        constraint = float(0.5 * (a + d) - math.hypot(0.5 * (a - d), b))
+        # the weakest direction of (x, y, theta), theta in metres at the points' RMS
+        # radius: a corridor leaves a translation free, a round room a rotation
+        radius = math.sqrt(float(np.mean(np.sum(cu * cu, axis=1)))) or 1.0
+        unit = np.array([1.0, 1.0, 1.0 / radius])
+        constraint = float(np.linalg.eigvalsh(H * np.outer(unit, unit) / pairs)[0])
         try:
             step = np.linalg.solve(H + 1e-9 * np.eye(3), -J.T @ r)
         except np.linalg.LinAlgError:
@@ -236,17 +244,9 @@ def match(reference: FloatArray | Reference, current: FloatArray,
     return Match(pose, True, "", pairs, rms, constraint, it)
 
 
-def _compose(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
-            math.remainder(a[2] + b[2], 2.0 * math.pi))
-
-
 def _between(a: Pose, b: Pose) -> Pose:
     """b in a's frame (a^-1 b)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2.0 * math.pi))
+    return compose(inverse_pose(a), b)
 
 
 class ScanOdometer:
@@ -315,13 +315,13 @@ class ScanOdometer:
             motion = (self._velocity[0] * gap, self._velocity[1] * gap,
                       self._velocity[2] * gap)
         key, key_pose = self._key
-        seed = _between(key_pose, _compose(self._pose, motion))
+        seed = _between(key_pose, compose(self._pose, motion))
         result = match(key, pts, seed, self.config)
         self.last = result
         if not result.ok:
             return self._restart(pts, t, result.why.split(" (")[0])
         previous = self._pose
-        self._pose = _compose(key_pose, result.pose)
+        self._pose = compose(key_pose, result.pose)
         step = _between(previous, self._pose)
         self._velocity = (step[0] / gap, step[1] / gap, step[2] / gap)
         self._stamp = t
