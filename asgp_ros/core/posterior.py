@@ -443,7 +443,8 @@ class OutsideFloor:
     :mod:`asgp_ros.core.adaptive`), so that its online scale narrows the ellipses where
     the pseudo-inputs reach and nowhere else: the published variance is below the trained
     model's by at most the calibrated q(x, x), which vanishes outside the training range.
-    It is a channel (``predict``) whose mean is the posterior's; it has no gradient.  The
+    It is a channel (``predict``) whose mean is the posterior's (:func:`predict`); it has no
+    gradient.  The
     rollout evaluates both channels' floors together (:func:`stack_floors`,
     :func:`floor_variance`).
 
@@ -461,9 +462,9 @@ class OutsideFloor:
     def predict(self, X: ArrayLike, include_noise: bool = True
                 ) -> tuple[FloatArray, FloatArray]:
         Xa = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        S = self.post.stacked
-        mean, var = floor_variance(S, self.Q[None], Xa[None], include_noise)
-        return mean[0], var[0]
+        mean, _, _ = predict(self.post.stacked, Xa[None], include_noise, with_grad=False)
+        return mean[0], floor_variance(self.post.stacked, self.Q[None], Xa[None],
+                                       include_noise)[0]
 
     def predict_with_grad(self, X: ArrayLike, include_noise: bool = True
                           ) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -484,13 +485,13 @@ def stack_floors(floors: Sequence[OutsideFloor]) -> tuple[Stacked, FloatArray]:
 
 
 def floor_variance(S: Stacked, Q: FloatArray, X: FloatArray, include_noise: bool
-                   ) -> tuple[FloatArray, FloatArray]:
-    """The posteriors' mean [P, N] and floor (P3) [P, N] at inputs X [P, N, D] (original
-    units); Q [P, M, M] as :func:`stack_floors` gives it."""
+                   ) -> FloatArray:
+    """The floor (P3) [P, N] at inputs X [P, N, D] (original units); Q [P, M, M] as
+    :func:`stack_floors` gives it."""
     Xn = (X - S.x_mean) / S.x_scale
     K = kernel.cross(Xn, S.kernel)  # [P, N, M]
-    mean = np.matmul(K, S.alpha)[..., 0] * S.y_scale + S.y_mean
     short = S.signal_variance - np.einsum("pnm,pnm->pn", np.matmul(K, Q), K)
     if include_noise:
         short = short + S.noise_variance
-    return mean, np.maximum(short, 0.0) * S.y_var
+    out: FloatArray = np.maximum(short, 0.0) * S.y_var
+    return out

@@ -44,8 +44,9 @@ from __future__ import annotations
 import math
 import threading
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, cast
+from typing import Literal, TypeVar, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -264,7 +265,7 @@ class ChannelStep:
             var = var * self.calibrate[0] + self.calibrate[1]
         if self.fused_floor is not None:
             S, Q, fcal = self.fused_floor
-            floor = posterior.floor_variance(S, Q, X, self.include_noise)[1].T  # [B, 2]
+            floor = posterior.floor_variance(S, Q, X, self.include_noise).T  # [B, 2]
             if fcal is not None:
                 floor = floor * fcal[0] + fcal[1]
             var = np.maximum(var, floor)
@@ -293,35 +294,39 @@ def _fused_posterior(model: MotionModel) -> posterior.Stacked | None:
         return None
     post_v = cast(SparseGP, chans[0]).posterior
     post_w = cast(SparseGP, chans[1]).posterior
-    hit = _FUSED_CACHE.get(post_v)
-    if hit is not None and hit[0] is post_w:
-        return hit[1]
-    fused = posterior.stack([post_v, post_w])
-    _FUSED_CACHE[post_v] = (post_w, fused)
-    return fused
+    return _cached_pair(_FUSED_CACHE, post_v, post_w, posterior.stack)
 
 
 def _fused_floor(v: posterior.OutsideFloor, w: posterior.OutsideFloor
                  ) -> tuple[posterior.Stacked, FloatArray]:
     """Both channels' floors stacked (:func:`asgp_ros.core.posterior.stack_floors`),
     cached by the floor objects (an adapter keeps its floors for its lifetime)."""
-    hit = _FLOOR_CACHE.get(v)
-    if hit is not None and hit[0] is w:
+    return _cached_pair(_FLOOR_CACHE, v, w, posterior.stack_floors)
+
+
+_K = TypeVar("_K")
+_V = TypeVar("_V")
+
+
+def _cached_pair(cache: weakref.WeakKeyDictionary[_K, tuple[_K, _V]], first: _K,
+                 second: _K, build: Callable[[list[_K]], _V]) -> _V:
+    """``build([first, second])``, cached by the identity of the two (immutable) objects."""
+    hit = cache.get(first)
+    if hit is not None and hit[0] is second:
         return hit[1]
-    fused = posterior.stack_floors([v, w])
-    _FLOOR_CACHE[v] = (w, fused)
-    return fused
-
-
-_FLOOR_CACHE: weakref.WeakKeyDictionary[
-    posterior.OutsideFloor,
-    tuple[posterior.OutsideFloor, tuple[posterior.Stacked, FloatArray]]
-] = weakref.WeakKeyDictionary()
+    value = build([first, second])
+    cache[first] = (second, value)
+    return value
 
 
 #: stacked posteriors by the v channel's posterior: (omega channel's posterior, stack)
 _FUSED_CACHE: weakref.WeakKeyDictionary[
     posterior.FitcPosterior, tuple[posterior.FitcPosterior, posterior.Stacked]
+] = weakref.WeakKeyDictionary()
+#: the same for the floors of an adapted model (MotionModel.variance_floor)
+_FLOOR_CACHE: weakref.WeakKeyDictionary[
+    posterior.OutsideFloor,
+    tuple[posterior.OutsideFloor, tuple[posterior.Stacked, FloatArray]]
 ] = weakref.WeakKeyDictionary()
 
 
