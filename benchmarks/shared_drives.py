@@ -9,9 +9,9 @@ the totals: contacts, interventions, the share of time the user's command passed
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
-[--fov DEG] [--modes none,memory] (the README's figures: the reproduction's tile model,
-seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also sees behind the chair; about
-6 minutes on 2 cores for three modes).
+[--fov DEG] [--modes none,memory] [--contacts] (the README's figures: the reproduction's
+tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also sees behind the
+chair; about 6 minutes on 2 cores for three modes).
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def _one(task: tuple[str, int, str, float, float, float]) -> dict[str, Any]:
                        else None,
                        memory_odometry="scan_matching" if mode == "scan memory"
                        else "dead_reckoning")
-    return result.summary() | {"seed": seed, "mode": mode}
+    return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events}
 
 
 def _seeds(text: str) -> list[int]:
@@ -83,6 +83,10 @@ def main(argv: list[str]) -> int:
                     help="how long the memory keeps a point (s)")
     ap.add_argument("--modes", type=_modes, default=DEFAULT_MODES,
                     help=f"comma-separated, of {', '.join(MODES)}")
+    ap.add_argument("--contacts", action="store_true",
+                    help="also print every contact: the layer's last decision before it and "
+                         "how far from the touching footprint the nearest obstacle point it "
+                         "knew (scan or memory) was")
     args = ap.parse_args(argv)
     tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s)
              for seed in args.seeds for mode in args.modes]
@@ -96,6 +100,14 @@ def main(argv: list[str]) -> int:
         print(f"{r['seed']:4d} | {r['mode']:15s} | {r['contacts']:8d} | "
               f"{r['interventions']:13d} | {100 * r['untouched_share']:8.1f}% | "
               f"{r['min_clearance_m']:11.3f} | {r['solve_p50_ms']:.1f} / {r['solve_p99_ms']:.0f}")
+    if args.contacts:
+        print("contacts: seed | mode | t (s) | decision | p of the command | nearest known "
+              "obstacle to the footprint (m)")
+        for r in rows:
+            for e in r["events"]:
+                print(f"  {r['seed']:4d} | {r['mode']:15s} | {e['t']:7.2f} | "
+                      f"{e.get('decision', '-'):15s} | {e.get('p_command', float('nan')):.3f} "
+                      f"| {e.get('known_obstacle_m', float('nan')):.3f}")
     print("totals:")
     for mode in args.modes:
         mine = [r for r in rows if r["mode"] == mode]

@@ -31,7 +31,13 @@ import numpy as np
 
 from asgp_ros.core import collision
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odometer, ScanMemory
+from asgp_ros.core.obstacle_memory import (
+    MEMORY_ODOMETRY,
+    MemoryConfig,
+    Odometer,
+    ScanMemory,
+    compose,
+)
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.core.scan_match import ScanOdometer
 from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
@@ -114,6 +120,34 @@ def _scan_check_for(scan: collision.Scan | None, extra: np.ndarray | None, now: 
     return build
 
 
+def _known_points(scan: collision.Scan, extra: np.ndarray | None, state: ChairState,
+                  mount: tuple[float, float, float]) -> np.ndarray:
+    """[m, 2] the obstacle points the layer's check gets from ``scan`` (and the memory's
+    ``extra``), placed in the room by the chair's true pose when the scan was taken."""
+    pts = collision.scan_points(scan)
+    if extra is not None and extra.size:
+        pts = np.concatenate([pts, extra])
+    sx, sy, sth = compose((state.x, state.y, state.theta), mount)
+    c, s = math.cos(sth), math.sin(sth)
+    out: np.ndarray = pts @ np.array([[c, s], [-s, c]]) + (sx, sy)
+    return out
+
+
+def _footprint_distance(points: np.ndarray, state: ChairState) -> float:
+    """Distance (m) from the chair's footprint at ``state`` to the nearest of ``points``
+    (inf without any): how close to the touching chair the layer knew of an obstacle."""
+    if points.shape[0] == 0:
+        return math.inf
+    fp = collision.DEFAULT_FOOTPRINT
+    c, s = math.cos(state.theta), math.sin(state.theta)
+    d = points - (state.x, state.y)
+    along = d[:, 0] * c + d[:, 1] * s - fp.offset
+    across = -d[:, 0] * s + d[:, 1] * c
+    gap = np.hypot(np.maximum(np.abs(along) - 0.5 * fp.length, 0.0),
+                   np.maximum(np.abs(across) - 0.5 * fp.width, 0.0))
+    return float(gap.min())
+
+
 def _contact_event(t: float, state: ChairState, user: np.ndarray,
                    applied: tuple[float, float], active: bool, decision: Decision | None,
                    age: float) -> dict[str, float | str]:
@@ -167,6 +201,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
         and memory_odometry == "scan_matching" else None
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
     extra: np.ndarray | None = None
+    known: np.ndarray | None = None  # what the layer's newest check knows, in the room
 
     out = DriveResult(seconds=seconds, layer=layer)
     stick = np.zeros(2)
@@ -200,6 +235,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                     extra = scan_memory.add(scan, odometer.pose_at(t), odometer.epoch)
                 elif scan_memory is not None and scan_odometer is not None:
                     extra = scan_memory.add(scan, scan_odometer.add(scan), scan_odometer.epoch)
+                known = _known_points(scan, extra, state, mount)
             if decision is not None and decision.command is not None and \
                     t - decision_t <= 0.35 and not is_neutral(user, config.neutral_deadband):
                 if n % OVERRIDE_EVERY == 0:
@@ -226,6 +262,9 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             out.contact_points.append((state.x, state.y))
             out.contact_events.append(_contact_event(t, state, user, applied, active,
                                                      decision, t - decision_t))
+            if known is not None:
+                out.contact_events[-1]["known_obstacle_m"] = round(
+                    _footprint_distance(known, state), 3)
         out.min_clearance_m = min(out.min_clearance_m, room.footprint_clearance(
             state.x, state.y, state.theta) - room.furniture_band)
         if n % 50 == 0:
