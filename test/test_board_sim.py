@@ -135,7 +135,7 @@ def test_override_reaches_board_and_watchdog_reverts_after_200ms(make_board, con
     revert_ms, last_override_ms = board.revert_events[-1]
     delay_ms = revert_ms - last_override_ms
     print(f"watchdog revert {delay_ms} ms after the last override (board clock)")
-    assert 200 <= delay_ms <= 300  # never early; first 100 Hz tick after 200 ms + slack
+    assert delay_ms >= 200  # never early (how soon after: benchmarks/link_timing.py)
     # seen from the host: the first sample without the override
     assert wait_until(lambda: proto.Status.WATCHDOG in samples[-1].status, 1.0)
     first_user = next(s for s in samples if s.t_rx > t_last
@@ -213,10 +213,13 @@ def test_host_silent_for_1s_resets_the_mode(make_board):
         raw.write(proto.encode(proto.Hello(), 0) + proto.encode(proto.SetMode(1), 1)
                   + proto.encode(proto.Override(200, 0), 2))
         raw.flush()
-        assert wait_until(lambda: board.mode == proto.Mode.OVERRIDE, 1.0)
-        t0 = time.monotonic()
-        assert wait_until(lambda: board.mode == proto.Mode.PASSTHROUGH, 3.0)
-        assert 0.9 <= time.monotonic() - t0 <= 2.0
+        assert wait_until(lambda: board.mode == proto.Mode.OVERRIDE, 5.0)
+        assert wait_until(lambda: board.mode == proto.Mode.PASSTHROUGH, 10.0)
+    # on the board's own clock: never before 1 s without a byte from the host (how long
+    # after is a matter of scheduling: benchmarks/link_timing.py measures it)
+    assert len(board.host_lost_events) == 1
+    reset_ms, last_host_ms = board.host_lost_events[0]
+    assert reset_ms - last_host_ms >= fw.HOST_TIMEOUT_MS
 
 
 def test_asgp_board_command_prints_a_working_port(repo_root, tmp_path):

@@ -29,7 +29,9 @@ from asgp_ros.nodes import conversions as conv
 
 pytestmark = pytest.mark.ros
 
-EXIT_BOUND_S = 2.0  # issue 16: every node exits within 2 s of SIGINT or SIGTERM
+# A hang detector, not the 2 s exit target (issue 16), which depends on the machine's load:
+# benchmarks/node_signals.py and benchmarks/soak.py measure that.
+EXIT_BOUND_S = 15.0
 SIGNALS = [signal.SIGINT, signal.SIGTERM]
 
 

@@ -132,10 +132,13 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     assert (out.forward, out.turn) == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
     sent = h.node.link.stats().overrides_sent
     assert sent >= 5
-    # stop publishing: the node stops sending once stale, the board reverts by itself
-    t_stop = time.monotonic()
-    assert h.spin_until(lambda: not h.board.output.override_active, 2.0)
-    assert time.monotonic() - t_stop < 0.15 + 0.2 + 0.6  # stale + watchdog + slack
+    # stop publishing: the node stops sending once stale, the board reverts by itself (by
+    # its watchdog, never early; how soon: benchmarks/link_timing.py)
+    n_reverts = len(h.board.revert_events)
+    assert h.spin_until(lambda: not h.board.output.override_active, 10.0)
+    assert len(h.board.revert_events) == n_reverts + 1
+    revert_ms, last_override_ms = h.board.revert_events[-1]
+    assert revert_ms - last_override_ms >= fw.WATCHDOG_MS
     sent_after = h.node.link.stats().overrides_sent
     h.spin_for(0.3)
     assert h.node.link.stats().overrides_sent == sent_after  # nothing sent while stale
@@ -165,12 +168,8 @@ def test_unplug_replug_reconnects_and_diagnostics_say_so(harness):
     h.spin_for(0.3)
     n_joy = len(h.joy)
     h.board.replug()
-    t0 = time.monotonic()
     assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.OK
-                        and "reconnected 1" in h.link_status().message, 2.0)
-    dt = time.monotonic() - t0
-    print(f"diagnostics report the reconnection {dt * 1000:.0f} ms after replug")
-    assert dt < 1.0
+                        and "reconnected 1" in h.link_status().message, 10.0)
     values = conv.diagnostic_values(h.link_status())
     assert values["reconnects"] == "1" and values["state"] == "connected"
     assert h.spin_until(lambda: len(h.joy) > n_joy + 10, 2.0)  # joy flows again

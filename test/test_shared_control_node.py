@@ -207,8 +207,9 @@ def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noq
 
 def test_the_board_hands_the_chair_back_when_the_node_dies(repo_root, model_file, tmp_path):  # noqa: F811
     """Bridge and simulated board in their own processes (as on the chair), the layer in
-    its own: it overrides before a wall; SIGKILL it, and within the bridge's override
-    timeout plus the board's 200 ms watchdog the chair follows the user's stick again."""
+    its own: it overrides before a wall; SIGKILL it, and the bridge stops forwarding, the
+    board's 200 ms watchdog hands the chair back and it follows the user's stick again.
+    (How soon, stale timeout plus watchdog, is measured by benchmarks/link_timing.py.)"""
     import rclpy
     from geometry_msgs.msg import TwistStamped
 
@@ -264,12 +265,19 @@ def test_the_board_hands_the_chair_back_when_the_node_dies(repo_root, model_file
                    "the layer to override the board")
         out = board.output
         assert out.forward < out.user_forward - 0.05  # slower than the stick asks
+        n_reverts = len(board.revert_events)
         procs["layer"].send_signal(signal.SIGKILL)
         killed = True
-        t_kill = time.monotonic()
-        spin_until(lambda: not board.output.override_active, 3.0, "the board to revert")
-        assert time.monotonic() - t_kill < 0.15 + 0.2 + 0.6  # stale + watchdog + slack
+        spin_until(lambda: not board.output.override_active, 20.0, "the board to revert")
+        assert len(board.revert_events) == n_reverts + 1  # by the watchdog, not a neutral stop
+        revert_ms, last_override_ms = board.revert_events[-1]
+        assert revert_ms - last_override_ms >= 200
         assert board.output.forward == pytest.approx(board.output.user_forward, abs=2e-3)
+        # and it stays handed back: nothing left in the bridge re-engages the override
+        settle = time.monotonic() + 1.0
+        spin_until(lambda: time.monotonic() > settle or board.output.override_active, 20.0,
+                   "a second")
+        assert not board.output.override_active
     finally:
         executor.shutdown()
         node.destroy_node()

@@ -125,6 +125,8 @@ class SimulatedBoard:
         self.sent: list[SentSample] = []
         self.frames_dropped = 0       # frames the pty could not take (nobody reading)
         self.revert_events: list[tuple[int, int]] = []  # (revert ms, last override ms)
+        # host-loss resets to passthrough, on the board's clock: (reset ms, last host ms)
+        self.host_lost_events: list[tuple[int, int]] = []
         self.error: BaseException | None = None
         self._logic = fw.BoardLogic(self._write, self._cal, round(rate_hz), fw.WATCHDOG_MS)
         self._lock = threading.Lock()
@@ -325,6 +327,8 @@ class SimulatedBoard:
         if Status.OVERRIDE_ACTIVE in before and Status.OVERRIDE_ACTIVE not in out.status \
                 and Status.NEUTRAL_STOP not in out.status:
             self.revert_events.append((now_ms, self._logic.safety.override_ms))
+        if Status.HOST_LOST in out.status and Status.HOST_LOST not in before:
+            self.host_lost_events.append((now_ms, self._logic.safety.host_ms))
         cal = self._cal
         output = BoardOutput(
             t=t, forward=cal[0].dac_to_deflection(out.out_code[0]),
