@@ -386,6 +386,20 @@ def test_demo_runs_end_to_end(demo_run):
 
 @pytest.mark.e2e
 @pytest.mark.slow
+def test_a_second_demo_replaces_the_first_ones_evaluation(demo_run):
+    """`make demo` twice: the second run's offline evaluation goes where the first one's is
+    (it failed at the very end with 'an evaluation JSON file exists there')."""
+    from asgp_ros.demo.common import evaluate_bag
+
+    _, out = demo_run
+    before = (out / "evaluate.json").stat().st_mtime_ns
+    got = evaluate_bag(out / "model.npz", out / "run_bag", out / "evaluate.json", _env())
+    assert got == json.loads((out / "evaluate.json").read_text())
+    assert (out / "evaluate.json").stat().st_mtime_ns != before
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
 def test_demo_leaves_no_processes_and_stops_on_ctrl_c(demo_run, tmp_path):
     _, first_out = demo_run
     assert not _demo_children()  # nothing left behind by the first run

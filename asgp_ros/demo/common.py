@@ -36,9 +36,14 @@ class RunState:
 
 def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
                  timeout_s: float = 300.0) -> dict[str, Any]:
-    """``asgp evaluate MODEL BAG --truth --json OUT`` in a subprocess; its JSON."""
+    """``asgp evaluate MODEL BAG --truth --json OUT --force`` in a subprocess; its JSON.
+
+    ``--force``: ``out_json`` lies in the demo's own output directory, which the demo has
+    checked is new or an earlier demo's (and ``asgp demo --force`` replaces the latter): a
+    second run into it replaces the first one's evaluation instead of failing at the end.
+    """
     argv = [sys.executable, "-m", "asgp_ros.cli", "evaluate", str(model), str(bag), "--truth",
-            "--json", str(out_json)]
+            "--json", str(out_json), "--force"]
     proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s,
                           check=False)
     if proc.returncode != 0:
