@@ -158,6 +158,42 @@ def test_invalid_overrides_are_refused(harness):
     assert not h.board.output.override_active
 
 
+def _override_status(h: Harness) -> DiagnosticStatus | None:
+    for arr in reversed(h.diag):
+        for st in arr.status:
+            if st.name == "serial_bridge: override":
+                return st
+    return None
+
+
+def test_a_stamped_override_delivered_late_never_drives_the_chair(harness):
+    """A joy_override stamped more than override_timeout before the node's clock (held back
+    by a transport, or a publisher's clock behind) is refused and counted, and the
+    diagnostics say why; one stamped now drives the chair."""
+    h = harness(lambda t: (0.5, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: len(h.joy) > 5, 10.0)
+
+    def stamped(age_s: float) -> Joy:
+        now = h.node.get_clock().now().nanoseconds * 1e-9
+        return conv.joy_from_sample(now - age_s, -0.25, 0.6)
+
+    h.spin_for(0.5, each=lambda: h.override_pub.publish(stamped(1.0)))
+    assert h.node.link.stats().overrides_sent == 0
+    assert not h.board.output.override_active
+    assert h.spin_until(lambda: (st := _override_status(h)) is not None
+                        and st.level == DiagnosticStatus.WARN, 10.0)
+    st = _override_status(h)
+    assert "refused" in st.message and "stamped 1.0" in st.message
+    assert int(conv.diagnostic_values(st)["overrides_stale"]) >= 5
+    # a fresh stamp: sent, and the board follows it
+    h.spin_for(0.5, each=lambda: h.override_pub.publish(stamped(0.0)))
+    assert h.node.link.stats().overrides_sent >= 5
+    assert h.board.output.override_active
+    assert (h.board.output.forward, h.board.output.turn) == pytest.approx(
+        (-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    assert _override_status(h).level == DiagnosticStatus.OK
+
+
 def test_unplug_replug_reconnects_and_diagnostics_say_so(harness):
     h = harness(lambda t: (0.3, 0.0), diagnostics_period=0.2)
     assert h.spin_until(lambda: (st := h.link_status()) is not None

@@ -3,8 +3,10 @@
 Publishes ``joy`` (sensor_msgs/Joy, axes [forward, turn], + forward / + left, sensor-data
 QoS) for every joystick sample the board sends that carries a reading, stamped at
 reception (a sample with ADC_FAULT carries none: it is withheld, never published as a
-deflection); subscribes ``joy_override`` and forwards it to the board while it is fresh
-(then simply stops, so the firmware's 200 ms watchdog returns the chair to the user);
+deflection); subscribes ``joy_override`` (best effort: a lost message is replaced by the
+next, and none holds later ones back) and forwards it to the board while it is fresh, by
+arrival and, when stamped, by its stamp (:mod:`asgp_ros.serial.override_gate`), then
+simply stops, so the firmware's 200 ms watchdog returns the chair to the user;
 publishes the link state, the joystick reading's and the override's fate on
 ``diagnostics`` (:mod:`asgp_ros.serial.status` decides levels and messages). The serial
 work (port, reader thread, reconnection, handshake, heartbeats) lives in
@@ -43,6 +45,7 @@ from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial import status as board_status
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
+from asgp_ros.serial.override_gate import OverrideGate
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode, Status
 
@@ -68,13 +71,12 @@ class SerialBridgeNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                                QoSProfile(depth=10))
         self.create_subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
-                                 QoSProfile(depth=10))
+                                 qos_profile_sensor_data)
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)
         self._diag_lock = threading.Lock()  # diagnostics come from two threads
         self._diag_levels: tuple[object, ...] = ()  # levels of the last diagnostics published
-        self._override: tuple[float, float] | None = None
-        self._override_t = -float("inf")  # time.monotonic() of the last valid override
+        self._gate = OverrideGate()
         self._override_rejected = 0
         self._last_state_reason = ""
         self._published = 0
@@ -160,22 +162,35 @@ class SerialBridgeNode(Node):
 
     def _on_override(self, msg: Joy) -> None:
         try:
-            self._override = conv.joy_to_override(msg)
+            command = conv.joy_to_override(msg)
         except ValueError as exc:
             self._override_rejected += 1
             self.get_logger().warn(f"override refused: {exc}", throttle_duration_sec=1.0)
             return
-        self._override_t = time.monotonic()
+        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        stamp = conv.stamp_to_seconds(msg.header.stamp) if stamp_ns else None
+        if not self._gate.offer(command, stamp, time.monotonic(), self._clock_s(),
+                                self.params.override_timeout):
+            self.get_logger().warn(
+                f"joy_override refused: stamped {self._gate.last_refused_age:.3f} s before "
+                f"this node's clock, older than override_timeout "
+                f"{self.params.override_timeout} s (delivered late, or the clocks differ)",
+                throttle_duration_sec=1.0)
+
+    def _clock_s(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
 
     def _send_override(self) -> None:
         # the board's mode as its samples report it, not as we last asked: the board may
         # have reset it (HOST_LOST, a restart), and then the next override needs MODE first
         board_mode = self.link.board_mode
-        age = time.monotonic() - self._override_t
-        if self._override is not None and age <= self.params.override_timeout:
+        now = time.monotonic()
+        age = self._gate.age(now)
+        command = self._gate.fresh(now, self._clock_s(), self.params.override_timeout)
+        if command is not None:
             if board_mode != Mode.OVERRIDE:
                 self.link.set_mode(Mode.OVERRIDE)
-            self.link.send_override(*self._override)
+            self.link.send_override(*command)
         elif board_mode == Mode.OVERRIDE and age > self.params.mode_release_after:
             # the firmware already fell back to the user after 200 ms; tidy the mode up
             self.link.set_mode(Mode.PASSTHROUGH)
@@ -255,7 +270,9 @@ class SerialBridgeNode(Node):
         return conv.diagnostic_status("serial_bridge: joystick", level, msg, st.port, values)
 
     def _override_status(self, st: LinkStats) -> DiagnosticStatus:
-        fresh = time.monotonic() - self._override_t <= self.params.override_timeout
+        now = time.monotonic()
+        gate = self._gate
+        fresh = gate.fresh(now, self._clock_s(), self.params.override_timeout) is not None
         board_mode = "override" if st.board_mode == Mode.OVERRIDE else "passthrough"
         s = self._last_sample
         if s is None or st.state not in (LinkState.CONNECTED, LinkState.STALE):
@@ -264,11 +281,17 @@ class SerialBridgeNode(Node):
         else:
             verdict = board_status.override_verdict(s.status, fresh)
             flags = board_status.flag_names(s.status)
+        if not fresh and gate.refusing(now):
+            verdict = board_status.Verdict(
+                "WARN", f"refused: joy_override arrives stamped {gate.last_refused_age:.3f} s "
+                        f"old, past override_timeout (delivered late, or the publisher's "
+                        f"clock is behind this node's); the user drives")
         return conv.diagnostic_status(
             "serial_bridge: override", verdict.level,
             f"{verdict.message} (board mode {board_mode})", st.port, {
                 "fresh": fresh, "overrides_sent": st.overrides_sent,
-                "overrides_refused": self._override_rejected, "board_mode": board_mode,
+                "overrides_refused": self._override_rejected,
+                "overrides_stale": gate.refused_stale, "board_mode": board_mode,
                 "status": flags,
             })
 

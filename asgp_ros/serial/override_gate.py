@@ -1,0 +1,71 @@
+"""Which ``joy_override`` command is still fresh enough to drive the chair (ROS-free).
+
+The bridge re-sends the last override to the board while it is fresh and then simply stops,
+so that the firmware's 200 ms watchdog hands the chair back to the user. "Fresh" has two
+clocks:
+
+* **arrival** (the bridge's monotonic clock): at most ``timeout`` since the command was
+  received. This alone bounds how long any one message can drive the chair.
+* **stamp** (the ROS clock, when the message carries a header stamp): at most ``timeout``
+  since the publisher stamped it. A transport may hand over a message late (a reliable
+  stream holds every later sample back until a lost one is resent, up to a heartbeat
+  period); by arrival alone such a command would count as new. A stamped command that is
+  already older than ``timeout`` when it arrives is refused and counted, and a stamped
+  command stops counting as fresh ``timeout`` after its stamp even if it arrived late.
+
+An unstamped command (``header.stamp`` zero, as ``ros2 topic pub`` sends by default) is
+judged by arrival alone. A stamp ahead of the bridge's clock is accepted (arrival still
+bounds it). A publisher whose clock runs behind the bridge's by more than ``timeout`` has
+every override refused: the user keeps the chair, and the bridge's diagnostics say why.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass
+class OverrideGate:
+    """The last accepted override and the refusals of stale ones; times in seconds."""
+
+    command: tuple[float, float] | None = None
+    arrival: float = -math.inf       # monotonic clock, when the command was accepted
+    stamp: float | None = None       # ROS clock, the command's header stamp (None: unstamped)
+    refused_stale: int = 0           # stamped commands already stale when they arrived
+    last_refusal: float = -math.inf  # monotonic clock of the last such refusal
+    last_refused_age: float = math.nan  # how old (by stamp) that refused command was
+
+    def offer(self, command: tuple[float, float], stamp: float | None, arrival: float,
+              clock_now: float, timeout: float) -> bool:
+        """Takes ``command`` received at ``arrival`` (monotonic) with header ``stamp``
+        (ROS seconds, None if unstamped) when the ROS clock reads ``clock_now``; returns
+        False, counting it, if its stamp is already more than ``timeout`` old (or the age
+        is not a finite number)."""
+        if stamp is not None:
+            age = clock_now - stamp
+            if not (math.isfinite(age) and age <= timeout):
+                self.refused_stale += 1
+                self.last_refusal = arrival
+                self.last_refused_age = age
+                return False
+        self.command, self.stamp, self.arrival = command, stamp, arrival
+        return True
+
+    def fresh(self, mono_now: float, clock_now: float, timeout: float
+              ) -> tuple[float, float] | None:
+        """The command to send now, or None once it is stale on either clock."""
+        if self.command is None or not mono_now - self.arrival <= timeout:
+            return None
+        if self.stamp is not None and not clock_now - self.stamp <= timeout:
+            return None
+        return self.command
+
+    def age(self, mono_now: float) -> float:
+        """Seconds since the last accepted command arrived (inf: none yet)."""
+        return mono_now - self.arrival
+
+    def refusing(self, mono_now: float, within: float = 1.0) -> bool:
+        """Stale commands were refused within the last ``within`` s and none was accepted
+        since: someone is trying to override and nothing reaches the chair."""
+        return self.last_refusal > self.arrival and mono_now - self.last_refusal <= within

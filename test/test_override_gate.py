@@ -1,0 +1,65 @@
+"""OverrideGate: which joy_override may still drive the chair, on a clock the test sets."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from asgp_ros.serial.override_gate import OverrideGate
+
+T = 0.15  # override_timeout
+
+
+def test_an_unstamped_command_is_fresh_for_timeout_after_its_arrival():
+    g = OverrideGate()
+    assert g.fresh(0.0, 100.0, T) is None  # nothing yet
+    assert g.offer((0.3, -0.1), None, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.fresh(10.0, 100.0, T) == (0.3, -0.1)
+    assert g.fresh(10.0 + T - 1e-9, 500.0, T) == (0.3, -0.1)  # the ROS clock plays no part
+    assert g.fresh(10.0 + T + 1e-6, 100.0, T) is None
+    assert g.age(10.5) == pytest.approx(0.5)
+
+
+def test_a_stamped_command_older_than_the_timeout_on_arrival_is_refused_and_counted():
+    g = OverrideGate()
+    assert g.offer((0.2, 0.0), 99.95, arrival=10.0, clock_now=100.0, timeout=T)
+    # held back by the transport: stamped 1 s ago, arriving now
+    assert not g.offer((-0.5, 0.5), 99.1, arrival=10.05, clock_now=100.1, timeout=T)
+    assert g.refused_stale == 1
+    assert g.last_refused_age == pytest.approx(1.0)
+    # the earlier command is kept, with its own freshness; the late one never counts
+    assert g.fresh(10.05, 100.05, T) == (0.2, 0.0)
+    assert g.fresh(10.11, 100.11, T) is None  # 0.16 s after the earlier stamp
+    assert g.refusing(10.2)
+    assert not g.refusing(11.1)  # none refused in the last second
+
+
+def test_a_late_command_stops_counting_timeout_after_its_stamp():
+    g = OverrideGate()
+    assert g.offer((0.4, 0.0), 99.9, arrival=10.0, clock_now=100.0, timeout=T)  # 0.1 s old
+    assert g.fresh(10.04, 100.04, T) == (0.4, 0.0)
+    assert g.fresh(10.06, 100.06, T) is None  # fresh by arrival, not by its stamp
+
+
+def test_a_stamp_ahead_of_the_clock_is_still_bounded_by_arrival():
+    g = OverrideGate()
+    assert g.offer((0.4, 0.0), 130.0, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.fresh(10.1, 100.1, T) == (0.4, 0.0)
+    assert g.fresh(10.2, 100.2, T) is None
+
+
+@pytest.mark.parametrize("bad", [math.nan, -math.inf])
+def test_a_stamp_or_clock_that_is_not_a_number_is_refused(bad):
+    g = OverrideGate()
+    assert not g.offer((0.4, 0.0), 100.0, arrival=10.0, clock_now=bad, timeout=T)
+    assert not g.offer((0.4, 0.0), -bad, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.fresh(10.0, 100.0, T) is None and g.refused_stale == 2
+
+
+def test_refusals_stop_being_reported_once_a_command_is_accepted():
+    g = OverrideGate()
+    assert not g.offer((0.4, 0.0), 90.0, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.refusing(10.1)
+    assert g.offer((0.4, 0.0), 100.2, arrival=10.2, clock_now=100.2, timeout=T)
+    assert not g.refusing(10.3)
