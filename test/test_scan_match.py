@@ -105,3 +105,18 @@ def test_the_odometer_follows_a_drive_and_breaks_on_gaps(lidar: Lidar) -> None:
     blank = Scan(np.full(1081, np.inf), -2.35, 0.00436, 0.05, 8.0, stamp=t + 0.1)
     assert odo.add(blank) == (0.0, 0.0, 0.0)
     assert odo.epoch == 3
+
+
+def test_memory_odometers_pick_what_carries_the_memory():
+    from asgp_ros.core.obstacle_memory import MemoryConfig, Odometer
+    from asgp_ros.core.scan_match import ScanOdometer, memory_odometers
+
+    mount = (0.3, 0.0, 0.0)
+    memory = MemoryConfig()
+    odo, scan = memory_odometers(memory, "dead_reckoning", mount)
+    assert isinstance(odo, Odometer) and scan is None
+    odo, scan = memory_odometers(memory, "scan_matching", mount)
+    assert odo is None and isinstance(scan, ScanOdometer)
+    assert memory_odometers(None, "scan_matching", mount) == (None, None)
+    with pytest.raises(ValueError, match="memory_odometry must be one of"):
+        memory_odometers(None, "gps", mount)

@@ -40,7 +40,7 @@ import scipy.spatial
 from numpy.typing import NDArray
 
 from asgp_ros.core.collision import Scan, inverse_pose, scan_points
-from asgp_ros.core.obstacle_memory import compose
+from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odometer, compose
 
 FloatArray = NDArray[np.float64]
 Pose = tuple[float, float, float]
@@ -329,3 +329,22 @@ class ScanOdometer:
                 abs(result.pose[2]) >= self.keyframe_rad:
             self._key = (Reference(pts, self.config), self._pose)
         return self._pose
+
+
+def memory_odometers(memory: MemoryConfig | None, kind: str,
+                     mount: tuple[float, float, float]
+                     ) -> tuple[Odometer | None, ScanOdometer | None]:
+    """What carries an obstacle memory: ``kind`` "dead_reckoning" gives the twist
+    :class:`Odometer`, "scan_matching" the :class:`ScanOdometer` of the laser at ``mount``
+    (the other one None); both None without a memory.
+
+    Raises:
+        ValueError: ``kind`` is not one of :data:`MEMORY_ODOMETRY`.
+    """
+    if kind not in MEMORY_ODOMETRY:
+        raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got {kind!r}")
+    if memory is None:
+        return None, None
+    if kind == "dead_reckoning":
+        return Odometer(memory.max_gap_s), None
+    return None, ScanOdometer(mount, max_gap_s=memory.max_gap_s)

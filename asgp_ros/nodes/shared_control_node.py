@@ -64,9 +64,9 @@ from asgp_ros.common import topics
 from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
-from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odometer, ScanMemory
+from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import ScanOdometer
+from asgp_ros.core.scan_match import memory_odometers
 from asgp_ros.core.shared_control import (
     CollisionCheck,
     Decision,
@@ -257,10 +257,7 @@ class SharedControlNode(Node):
         self.footprint = p.footprint()
         memory = p.memory()
         mount = (p.laser_x, p.laser_y, p.laser_yaw)
-        dead_reckoning = memory is not None and p.memory_odometry == "dead_reckoning"
-        self.odometer = Odometer(memory.max_gap_s) if dead_reckoning and memory else None
-        self.scan_odometer = ScanOdometer(mount, max_gap_s=memory.max_gap_s) \
-            if memory is not None and not dead_reckoning else None
+        self.odometer, self.scan_odometer = memory_odometers(memory, p.memory_odometry, mount)
         self.memory = ScanMemory(mount, memory) if memory is not None else None
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command

@@ -32,14 +32,12 @@ import numpy as np
 from asgp_ros.core import collision
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.obstacle_memory import (
-    MEMORY_ODOMETRY,
     MemoryConfig,
-    Odometer,
     ScanMemory,
     compose,
 )
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import ScanOdometer
+from asgp_ros.core.scan_match import memory_odometers
 from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode
@@ -176,9 +174,6 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     scan alone), carried along by dead reckoning of the VO's twists (``memory_odometry``
     "dead_reckoning") or by matching the scans (:mod:`asgp_ros.core.scan_match`,
     "scan_matching")."""
-    if memory_odometry not in MEMORY_ODOMETRY:
-        raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
-                         f"{memory_odometry!r}")
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -195,10 +190,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
     mount = scanner.config.mount
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
-    odometer = Odometer(memory.max_gap_s) if memory is not None and \
-        memory_odometry == "dead_reckoning" else None
-    scan_odometer = ScanOdometer(mount, max_gap_s=memory.max_gap_s) if memory is not None \
-        and memory_odometry == "scan_matching" else None
+    odometer, scan_odometer = memory_odometers(memory, memory_odometry, mount)
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
     extra: np.ndarray | None = None
     known: np.ndarray | None = None  # what the layer's newest check knows, in the room
