@@ -96,6 +96,42 @@ def test_covariance_grows_near_a_loss(bench, blank_run):
     assert np.median(near) > 1.5 * np.median(far)
 
 
+def test_the_recovery_regime_is_the_first_tracked_frames_after_a_loss(bench, blank_run,
+                                                                     monkeypatch):
+    """``recovering`` marks exactly the first ``recovery_frames`` tracked frames after an
+    untracked one (never the frames of the first track), and only their covariances (pose
+    and twist) carry ``recovery_scale``; tracking itself does not change."""
+    _, results = blank_run
+    n = VisualOdometry.recovery_frames
+    expected, since, started = [], n, False
+    for r in results:
+        if r.ok:
+            expected.append(since < n)
+            since += 1
+        else:
+            expected.append(False)
+            if started and r.status is not Status.BAD_INPUT:
+                since = 0
+        started = started or r.status is Status.REFERENCE_SET
+    assert [r.recovering for r in results] == expected
+    assert sum(expected) >= n  # the drive does lose track and recover
+    runs = {}
+    for scale in (1.0, 3.0):
+        monkeypatch.setattr(VisualOdometry, "recovery_scale", scale)
+        runs[scale] = bench.run_drive(bench.DriveSpec("blank-7", "blank", SEED, 100 + SEED,
+                                                      15.0, 12.0, "test"))[1]
+    for a, b in zip(runs[1.0], runs[3.0], strict=True):
+        assert a.status is b.status and a.recovering == b.recovering
+        if not a.ok:
+            continue
+        np.testing.assert_array_equal(a.motion, b.motion)
+        k = 3.0 if a.recovering else 1.0
+        np.testing.assert_allclose(b.covariance, k * a.covariance, rtol=1e-12)
+        if a.twist_covariance is not None:
+            np.testing.assert_allclose(b.twist_covariance, k * a.twist_covariance,
+                                       rtol=1e-12)
+
+
 # ---- the covariance stage on one rendered frame pair ---------------------------------------
 
 

@@ -49,7 +49,10 @@ section 3:
      of H^-1 itself;
    * s = :attr:`VisualOdometry.covariance_scale`, calibrated on rendered drives so that
      95 % of the frames' planar increments fall inside their 95 % ellipsoid
-     (``benchmarks/vo_nees.py``; ``docs/vo_nees.md`` has the held-out figures).
+     (``benchmarks/vo_nees.py``; ``docs/vo_nees.md`` has the held-out figures), and on
+     the first :attr:`VisualOdometry.recovery_frames` tracked frames after a loss
+     (``VOResult.recovering``) by :attr:`VisualOdometry.recovery_scale` as well, calibrated
+     on those frames alone.
 
    The reported ``covariance`` is that of ``motion``: when the reference was kept,
    motion = T_ref_prev^-1 T_ref_cur, and the previous frame's covariance, moved into the
@@ -204,6 +207,9 @@ class VOResult:
         keyframe_changed: the current frame became the reference for the next one.
         reset: tracking was re-initialised on this frame (the motion since the last tracked
             frame is lost).
+        recovering: one of the first :attr:`VisualOdometry.recovery_frames` tracked frames
+            after a frame that could not be tracked; its covariances carry
+            :attr:`VisualOdometry.recovery_scale`.
         message: human-readable detail for failures.
         elapsed: processing time (s).
     """
@@ -222,6 +228,7 @@ class VOResult:
     reprojection_error: float = float("nan")
     keyframe_changed: bool = False
     reset: bool = False
+    recovering: bool = False
     message: str = ""
     elapsed: float = 0.0
 
@@ -321,7 +328,14 @@ class VisualOdometry:
 
     #: Calibrated scale of the covariance model (module docstring, step 9):
     #: ``benchmarks/vo_nees.py --calibrate`` on the calibration drives.
-    covariance_scale: float = 1.2
+    covariance_scale: float = 1.5
+    #: The first ``recovery_frames`` tracked frames after a frame that could not be tracked
+    #: are a regime of their own (a new or long-kept reference seen from the edge of what
+    #: the camera can track): their covariances are multiplied by ``recovery_scale``,
+    #: calibrated on those frames of the calibration drives alone
+    #: (``benchmarks/vo_nees.py --calibrate``).
+    recovery_frames: int = 5
+    recovery_scale: float = 1.34
 
     def __init__(self, camera_matrix, extrinsic: CameraExtrinsic = DEFAULT_EXTRINSIC,
                  image_size: tuple[int, int] | None = None, **options) -> None:
@@ -353,6 +367,7 @@ class VisualOdometry:
         self._prev_stamp: float | None = None  # last processed frame
         self._ok_stamp: float | None = None  # last tracked frame
         self._lost = 0
+        self._since_loss = self.recovery_frames  # tracked frames since an untracked one
 
     @property
     def pose(self) -> np.ndarray:
@@ -400,8 +415,9 @@ class VisualOdometry:
             return self._set_reference(frame, t0, reset=False)
         result = self._track(frame, t0)
         if result.ok:
-            return result
+            return self._recovery(result)
         self._lost += 1
+        self._since_loss = 0
         if self._lost > self.options.max_frames_lost:
             # the reference cannot be found again: start over from this frame, pose held
             reset = self._set_reference(frame, t0, reset=True)
@@ -450,10 +466,25 @@ class VisualOdometry:
         d[bad] = 0.0
         return d
 
+    def _recovery(self, result: VOResult) -> VOResult:
+        """Marks (and widens the covariances of) a tracked frame soon after a loss."""
+        if self._since_loss < self.recovery_frames:
+            result.recovering = True
+            s = self.recovery_scale
+            if s != 1.0:
+                if result.covariance is not None:
+                    result.covariance = s * result.covariance
+                if result.twist_covariance is not None:
+                    result.twist_covariance = s * result.twist_covariance
+        self._since_loss += 1
+        return result
+
     def _fail(self, status: Status, stamp: float, t0: float, message: str,
               nfeat: int = 0) -> VOResult:
         if status is Status.BAD_INPUT:
             _log.debug("bad input: %s", message)
+        elif self._ref is not None:  # a frame lost once tracking has started
+            self._since_loss = 0
         return VOResult(status=status, stamp=stamp, pose=self._pose.copy(), message=message,
                         num_features=nfeat, elapsed=time.perf_counter() - t0)
 
