@@ -1,11 +1,15 @@
-"""How the predictor and VO nodes end on SIGINT in the middle of heavy traffic, many times.
+"""How the nodes end on SIGINT in the middle of heavy traffic, many times.
 
-    .venv/bin/python benchmarks/node_signals.py [--runs 100] [--node predictor|vo|both]
-        [--load 0] [--timeout 10] [--model M.npz]
+    .venv/bin/python benchmarks/node_signals.py [--runs 100]
+        [--node predictor|vo|shared_control|bridge|both|all] [--load 0] [--timeout 10]
+        [--model M.npz]
 
 Each run starts the node as its own process on a ROS domain of its own (localhost, UDPv4),
 waits for discovery, floods it (predictor: joystick at 300 Hz and VO twists at 60 Hz, a
-prediction at every model step; VO: 320x240 rendered RGB-D frames at 30 Hz), sends SIGINT
+prediction at every model step; VO: 320x240 rendered RGB-D frames at 30 Hz;
+shared_control: the same joystick and VO plus 1081-beam scans of a wall 1.2 m ahead at
+60 Hz, so that it decides and overrides; bridge: ``joy_override`` at 300 Hz, with a
+simulated board on a pty in this process streaming its samples at 100 Hz), sends SIGINT
 after a random 0.3-1.5 s of it, keeps the traffic going, and waits up to ``--timeout`` s
 for the exit.
 ``--load N`` keeps N busy loops beside it (signal races show under load).
@@ -59,10 +63,19 @@ class Traffic:
         self.conv = conv
         self.node = rclpy.create_node("node_signals_bench")
         qos = qos_profile_sensor_data
-        if node_kind == "predictor":
+        if node_kind in ("predictor", "shared_control"):
             self.joy = self.node.create_publisher(Joy, "joy", qos)
             self.vo = self.node.create_publisher(TwistStamped, "vo/twist", qos)
             self.inputs = "vo/twist"
+            if node_kind == "shared_control":
+                from sensor_msgs.msg import LaserScan
+                self.scan = self.node.create_publisher(LaserScan, "scan", qos)
+                self.inputs = "scan"
+        elif node_kind == "bridge":
+            from asgp_ros.sim.board import SimulatedBoard
+            self.override = self.node.create_publisher(Joy, "joy_override", 10)
+            self.board = SimulatedBoard(lambda t: (0.6, 0.1)).start()
+            self.inputs = "joy_override"
         else:
             from asgp_ros.demo import camera as demo_camera
 
@@ -88,19 +101,38 @@ class Traffic:
             frames.append((color, np.rint(depth * 1000).astype(np.uint16)))
         return r.K, frames
 
+    def _wall_scan(self, t: float, beams: int = 1081, distance: float = 1.2):
+        """A 270-degree scan of a wall ``distance`` ahead (inf beyond 8 m)."""
+        a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
+        ang = a0 + inc * np.arange(beams)
+        with np.errstate(divide="ignore"):
+            r = np.where(np.cos(ang) > 1e-9, distance / np.cos(ang), np.inf)
+        return self.conv.scan_to_msg(np.where(r > 8.0, np.inf, r), a0, inc, 0.05, 8.0, t,
+                                     "laser")
+
+    def close(self) -> None:
+        if self.kind == "bridge":
+            self.board.stop()
+        self.node.destroy_node()
+
     def ready(self) -> bool:
         return self.node.count_subscribers(self.inputs) > 0
 
     def send(self) -> None:
         """One burst's worth: 5 joystick messages and one VO twist, or one camera frame."""
         t = time.time()
-        if self.kind == "predictor":
+        if self.kind in ("predictor", "shared_control"):
             for j in range(5):
                 tj = t - 0.015 + 0.003 * j
                 self.joy.publish(self.conv.joy_from_sample(
                     tj, 0.5 + 0.4 * math.sin(0.3 * tj), 0.3 * math.cos(0.2 * tj)))
             self.vo.publish(self.conv.twist_stamped_from_sample(
                 t, 0.45 + 0.35 * math.sin(0.3 * t), 0.25 * math.cos(0.2 * t)))
+            if self.kind == "shared_control":
+                self.scan.publish(self._wall_scan(t))
+        elif self.kind == "bridge":
+            for _ in range(5):
+                self.override.publish(self.conv.joy_from_sample(t, 0.3, -0.2))
         else:
             K, frames = self.frames
             color, depth = frames[self.i % len(frames)]
@@ -118,13 +150,17 @@ def one_run(traffic: Traffic, model: str, timeout: float, rng: random.Random,
     import rclpy
 
     kind = traffic.kind
-    module = {"predictor": "asgp_ros.nodes.predictor_node", "vo": "asgp_ros.nodes.vo_node"}
+    module = {"predictor": "asgp_ros.nodes.predictor_node", "vo": "asgp_ros.nodes.vo_node",
+              "shared_control": "asgp_ros.nodes.shared_control_node",
+              "bridge": "asgp_ros.nodes.serial_bridge_node"}
     args = [sys.executable, "-m", module[kind], "--ros-args", "--log-level", "warn"]
-    if kind == "predictor":
+    if kind in ("predictor", "shared_control"):
         args[-2:-2] = ["-p", f"model_path:={model}"]
+    elif kind == "bridge":
+        args[-2:-2] = ["-p", f"port:={traffic.board.port}"]
     proc = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
-    period = 1 / 60 if kind == "predictor" else 1 / 30
+    period = 1 / 30 if kind == "vo" else 1 / 60
     try:
         deadline = time.monotonic() + 30.0
         while not traffic.ready():
@@ -162,7 +198,9 @@ def one_run(traffic: Traffic, model: str, timeout: float, rng: random.Random,
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=100, help="runs per node (100)")
-    ap.add_argument("--node", choices=("predictor", "vo", "both"), default="both")
+    ap.add_argument("--node", choices=("predictor", "vo", "shared_control", "bridge", "both",
+                                       "all"), default="both",
+                    help="both: predictor and vo; all: the four")
     ap.add_argument("--load", type=int, default=0, help="busy loops beside the runs (0)")
     ap.add_argument("--timeout", type=float, default=10.0, help="a hang after this (10 s)")
     ap.add_argument("--model", help="predictor model (default: the reproduction's tile model)")
@@ -176,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
                       FASTDDS_BUILTIN_TRANSPORTS="UDPv4")
     # a native crash prints the Python stack of every thread (faulthandler)
     env = dict(os.environ, PYTHONPATH=str(REPO), PYTHONFAULTHANDLER="1")
-    kinds = ["predictor", "vo"] if args.node == "both" else [args.node]
+    kinds = {"both": ["predictor", "vo"],
+             "all": ["predictor", "vo", "shared_control", "bridge"]}.get(args.node, [args.node])
     loads = [multiprocessing.Process(target=_busy, daemon=True) for _ in range(args.load)]
     for p in loads:
         p.start()
@@ -201,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
                           flush=True)
             t = np.array(times) if times else np.array([math.nan])
             slow = int(np.sum(t > EXIT_TARGET_S))
-            print(f"{kind}_node, {args.runs} SIGINTs in heavy traffic (load {args.load}): "
+            label = "serial_bridge" if kind == "bridge" else kind
+            print(f"{label}_node, {args.runs} SIGINTs in heavy traffic (load {args.load}): "
                   f"exit p50 {np.percentile(t, 50):.2f} s, p99 {np.percentile(t, 99):.2f} s, "
                   f"max {np.max(t):.2f} s; over {EXIT_TARGET_S:.0f} s: {slow}; "
                   + ", ".join(f"{k}: {len(v)}" for k, v in sorted(bad.items()))
@@ -211,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"--- first '{outcome}' (run {run}, exit {code}) stderr:\n"
                       f"{err.strip()[-3000:]}\n---")
             failed += sum(len(v) for v in bad.values()) + slow
-            traffic.node.destroy_node()
+            traffic.close()
     finally:
         rclpy.try_shutdown()
         for p in loads:
