@@ -498,6 +498,18 @@ def test_the_fused_outside_floor_equals_the_channel_by_channel_one(
     jf = rng.uniform(-0.9, 0.9, (6, 8, 2))
     a = rollout(replace(narrow, variance_floor=fused_floor), jp, vp, jf)
     b = rollout(replace(narrow, variance_floor=generic_floor), jp, vp, jf)
+    # the fused floor takes the step's own kernel rows (same pseudo-inputs and kernel)
+    from asgp_ros.core import posterior
+    from asgp_ros.core.rollout import ChannelStep
+
+    step = ChannelStep(replace(narrow, variance_floor=fused_floor), True, np.zeros(6),
+                       scratch=False)
+    assert step.floor_shares_kernel
+    S = posterior.stack([ch.posterior for ch in model.channels])  # type: ignore[attr-defined]
+    assert posterior.same_kernel_rows(S, S)
+    assert not posterior.same_kernel_rows(S, S._replace(x_scale=S.x_scale * 1.01))
+    assert not posterior.same_kernel_rows(
+        S, S._replace(kernel=S.kernel._replace(inv_l2=S.kernel.inv_l2 * 2.0)))
     for name in ("vel", "vel_cov", "pose", "pose_cov"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-10,
                                    atol=1e-15, err_msg=name)

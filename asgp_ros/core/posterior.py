@@ -370,7 +370,18 @@ def _empty(name: str, shape: tuple[int, ...]) -> FloatArray:
 def predict(S: Stacked, X: FloatArray, include_noise: bool, with_grad: bool,
             scratch: Scratch | None = None, stacklevel: int = 2
             ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
-    """Predictive mean, variance and the mean's input gradient (S&G eq. 5, K2, K3).
+    """Predictive mean, variance and the mean's input gradient (S&G eq. 5, K2, K3):
+    :func:`predict_with_kernel` without the kernel matrix."""
+    mean, var, grad, _ = predict_with_kernel(S, X, include_noise, with_grad, scratch,
+                                             stacklevel + 1)
+    return mean, var, grad
+
+
+def predict_with_kernel(S: Stacked, X: FloatArray, include_noise: bool, with_grad: bool,
+                        scratch: Scratch | None = None, stacklevel: int = 2
+                        ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray]:
+    """Predictive mean, variance and the mean's input gradient (S&G eq. 5, K2, K3), and the
+    kernel matrix K [P, N, M] of X against the pseudo-inputs (for :func:`floor_variance`).
 
     Args:
         S: P stacked posteriors.
@@ -384,7 +395,8 @@ def predict(S: Stacked, X: FloatArray, include_noise: bool, with_grad: bool,
         stacklevel: of the negative-variance warning, as seen from the caller.
 
     Returns:
-        mean [P, N], variance [P, N] (original units) and d mean / d x [P, N, D] or None.
+        mean [P, N], variance [P, N] (original units), d mean / d x [P, N, D] or None, and
+        K [P, N, M] (scratch memory when ``scratch`` is given, like the gradient).
 
     A negative latent variance (cancellation in sf2 - ks^T C ks) is clipped to 0; below
     -1e-8 sf2 a RuntimeWarning says so.
@@ -409,7 +421,15 @@ def predict(S: Stacked, X: FloatArray, include_noise: bool, with_grad: bool,
     if with_grad:
         grad = kernel.cross_grad(K, Xn, S.alpha_z, k_alpha, S.grad_scale,
                                  out=get("g", X.shape))
-    return mean, var, grad
+    return mean, var, grad, K
+
+
+def same_kernel_rows(a: Stacked, b: Stacked) -> bool:
+    """Inputs give the same kernel matrix K under both stacks: equal input scaling,
+    pseudo-inputs and kernel hyperparameters (an adapted posterior and its trained floor)."""
+    return all(np.array_equal(x, y) for x, y in
+               ((a.x_mean, b.x_mean), (a.x_scale, b.x_scale), *zip(a.kernel, b.kernel,
+                                                                  strict=True)))
 
 
 def _clip_negative(var: FloatArray, signal_variance: FloatArray, stacklevel: int) -> None:
@@ -484,12 +504,15 @@ def stack_floors(floors: Sequence[OutsideFloor]) -> tuple[Stacked, FloatArray]:
     return S, Q
 
 
-def floor_variance(S: Stacked, Q: FloatArray, X: FloatArray, include_noise: bool
-                   ) -> FloatArray:
+def floor_variance(S: Stacked, Q: FloatArray, X: FloatArray, include_noise: bool,
+                   K: FloatArray | None = None) -> FloatArray:
     """The floor (P3) [P, N] at inputs X [P, N, D] (original units); Q [P, M, M] as
-    :func:`stack_floors` gives it."""
-    Xn = (X - S.x_mean) / S.x_scale
-    K = kernel.cross(Xn, S.kernel)  # [P, N, M]
+    :func:`stack_floors` gives it. ``K``: X's kernel matrix [P, N, M] under ``S`` when
+    already computed (by :func:`predict_with_kernel` on a stack with
+    :func:`same_kernel_rows`), instead of computing it again."""
+    if K is None:
+        Xn = (X - S.x_mean) / S.x_scale
+        K = kernel.cross(Xn, S.kernel)  # [P, N, M]
     short = S.signal_variance - np.einsum("pnm,pnm->pn", np.matmul(K, Q), K)
     if include_noise:
         short = short + S.noise_variance

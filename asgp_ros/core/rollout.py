@@ -217,6 +217,7 @@ class ChannelStep:
         self.floor: ChannelStep | None = None
         self.fused_floor: tuple[posterior.Stacked, FloatArray,
                                 tuple[FloatArray, FloatArray] | None] | None = None
+        self.floor_shares_kernel = False  # the floor reuses the step's kernel rows
         floor = model.variance_floor
         if floor is not None:
             chans = floor.channels
@@ -227,6 +228,9 @@ class ChannelStep:
                 fcal = floor.calibration
                 self.fused_floor = (S, Q, None if fcal.is_identity
                                     else fcal.coefficients(speed))
+                # an adapted posterior keeps the trained pseudo-inputs and kernel: the
+                # floor's K is the one the step has just computed
+                self.floor_shares_kernel = posterior.same_kernel_rows(self.fused, S)
             else:
                 self.floor = ChannelStep(floor, include_noise, speed, scratch=False)
 
@@ -236,8 +240,9 @@ class ChannelStep:
             X = self.get("X", (2, jn.shape[0], self.fc.input_dim))
             for c in range(2):
                 build_inputs(jp, vp, jn, c, self.fc, validate=False, out=X[c])
-            m, v, g = posterior.predict(self.fused, X, self.include_noise, with_grad,
-                                        scratch=self.get, stacklevel=4)
+            m, v, g, K_step = posterior.predict_with_kernel(
+                self.fused, X, self.include_noise, with_grad, scratch=self.get, stacklevel=4)
+            K = K_step if self.floor_shares_kernel else None
             mean, var = m.T, v.T
             grad = [] if g is None else [g[0], g[1]]
         else:
@@ -265,7 +270,7 @@ class ChannelStep:
             var = var * self.calibrate[0] + self.calibrate[1]
         if self.fused_floor is not None:
             S, Q, fcal = self.fused_floor
-            floor = posterior.floor_variance(S, Q, X, self.include_noise).T  # [B, 2]
+            floor = posterior.floor_variance(S, Q, X, self.include_noise, K).T  # [B, 2]
             if fcal is not None:
                 floor = floor * fcal[0] + fcal[1]
             var = np.maximum(var, floor)
