@@ -1,6 +1,7 @@
 """Soak test: the bridge, the VO and the predictor for a long run with faults injected.
 
     .venv/bin/python benchmarks/soak.py [--minutes 30] [--out soak-output] [--model M.npz]
+        [--shared-control [--inattention 0.1]]
 
 Not part of ``make test``. The three real nodes run as separate processes, started and
 stopped by the demo's process management (:mod:`asgp_ros.demo.processes`, each through
@@ -12,7 +13,9 @@ stopped by the demo's process management (:mod:`asgp_ros.demo.processes`, each t
   with ``diagnostics_period_s`` 0.2 s so that its own latency figure is read after
   nearly every prediction;
 
-and a fourth process, the demo's simulated hardware (:mod:`asgp_ros.demo.hardware`:
+with ``--shared-control`` also ``shared_control_node`` on the hardware's simulated scanner
+(the driver inattentive, ``--inattention``, so that it intervenes through the bridge);
+and a further process, the demo's simulated hardware (:mod:`asgp_ros.demo.hardware`:
 driver, board on a pty, chair, camera, joy_plan) extended here by the faults
 (:class:`SoakHardwareNode`), which it applies when this script asks on ``soak/fault``
 and acknowledges on ``soak/fault_ack``.
@@ -34,10 +37,11 @@ offsets into the cycle:
  85 s  10x traffic for 12 s: joy at 10x the bridge's 100 Hz (an extra publisher), each
        camera frame and each joy_plan published 10 times
  90 s  SIGINT to one node in the middle of that burst (cycles 1, 2, 3: predictor, VO,
-       bridge; the middle cycle: predictor again), restarted as soon as it has exited
+       bridge; cycle 4 with --shared-control: the layer; the middle cycle of a run of
+       more than 6 cycles: predictor again), restarted as soon as it has exited
 ====== ===================================================================================
 
-The run ends in a last burst: SIGINT to the three nodes 4 s into it.
+The run ends in a last burst: SIGINT to every node 4 s into it.
 
 Report (printed, and ``OUT/soak.json``; the node logs in ``OUT/logs``): per time window
 the predictor's latency p99 (its own timing, VO callback to publication, from its
@@ -75,7 +79,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import rclpy  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import TwistStamped  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -270,9 +274,10 @@ class Episode:
     end: float
 
 
-def build_schedule(total_s: float, warmup_s: float, cycle_s: float, burst_factor: int
-                   ) -> tuple[list[Action], list[Episode]]:
-    """The faults of a run of ``total_s`` seconds (module docstring)."""
+def build_schedule(total_s: float, warmup_s: float, cycle_s: float, burst_factor: int,
+                   shared_control: bool = False) -> tuple[list[Action], list[Episode]]:
+    """The faults of a run of ``total_s`` seconds (module docstring); with
+    ``shared_control`` the fourth cycle's SIGINT goes to the shared-control layer."""
     actions: list[Action] = []
     episodes: list[Episode] = []
 
@@ -286,6 +291,8 @@ def build_schedule(total_s: float, warmup_s: float, cycle_s: float, burst_factor
         starts.append(c)
         c += cycle_s
     targets = {0: "predictor", 1: "vo", 2: "serial_bridge"}
+    if shared_control:
+        targets[3] = "shared_control"
     if len(starts) > 6:
         targets[len(starts) // 2] = "predictor"
     for i, c in enumerate(starts):
@@ -345,6 +352,9 @@ class SoakMonitor(Node):
                                  qos_profile_sensor_data, raw=True)
         self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info,
                                  qos_profile_sensor_data, raw=True)
+        self.create_subscription(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
+                                 self._on_layer_status, RELIABLE, raw=True)
+        self.layer_status: list[float] = []  # soak times of the layer's status messages
         self.joy_per_s: dict[int, int] = {}  # soak second -> joy messages received
         self.frames_per_s: dict[int, int] = {}  # soak second -> camera_info received
         self.paths: list[tuple[float, float]] = []  # (soak time, arrival - t0 stamp)
@@ -396,6 +406,9 @@ class SoakMonitor(Node):
 
     def _on_twist(self, _data: bytes) -> None:
         self.twists.append(self.now())
+
+    def _on_layer_status(self, _data: bytes) -> None:
+        self.layer_status.append(self.now())
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         t = self.now()
@@ -541,7 +554,8 @@ class Soak:
         self.warmup = min(60.0, 0.15 * self.total)
         self.out = Path(args.out)
         self.actions, self.episodes = build_schedule(self.total, self.warmup, args.cycle_s,
-                                                     args.burst_factor)
+                                                     args.burst_factor, args.shared_control)
+        self.nodes = NODES + (("shared_control",) if args.shared_control else ())
         self.incarnations: list[Incarnation] = []
         self.current: dict[str, Incarnation] = {}
         self.shutdowns: list[Shutdown] = []
@@ -655,7 +669,9 @@ class Soak:
         runtime = Path(tempfile.mkdtemp(prefix="asgp-soak-"))
         port = str(runtime / "joystick")
         opts = DemoOptions(minutes=args.minutes, seed=args.seed, domain_id=domain,
-                           out=self.out, model=model, train=False)
+                           out=self.out, model=model, train=False,
+                           shared_control=args.shared_control,
+                           inattention=args.inattention if args.shared_control else 0.0)
         self.commands = {name: (entry, argv) for name, entry, argv
                          in node_commands(opts, model, port)}
         self.commands[HARNESS] = ("soak:hardware_main", self.commands[HARNESS][1])
@@ -674,7 +690,7 @@ class Soak:
         self.say(f"ROS_DOMAIN_ID={domain}; model {model}; logs in {logs}")
         interrupted = False
         try:
-            for role in (HARNESS, *NODES):
+            for role in (HARNESS, *self.nodes):
                 self.start(role)
             self._wait_for_start(executor)
             self._loop(executor)
@@ -766,7 +782,7 @@ class Soak:
     def _final_stop(self, executor: SingleThreadedExecutor) -> None:
         """SIGINT to every node at once (mid-burst), as ``asgp demo`` stops them, with the
         deadlines of :meth:`ProcessGroup.stop_all`; then the hardware."""
-        for role in NODES:
+        for role in self.nodes:
             inc = self.current.get(role)
             if inc is not None and role not in self.stopping and inc.child.returncode is None:
                 self.sample_rss()
@@ -807,6 +823,8 @@ class Soak:
             times = [a for a, _ in self.mon.paths]
         elif role == "vo":
             times = self.mon.twists
+        elif role == "shared_control":
+            times = self.mon.layer_status
         else:
             times = self.mon.bridge_joy
         return next((x - t for x in times if x >= t), None)
@@ -821,7 +839,7 @@ class Soak:
         # -- windows: latency, paths, RSS
         win = a.window_s
         nwin = max(1, math.ceil(self.total / win))
-        roles = [*NODES, HARNESS]
+        roles = [*self.nodes, HARNESS]
         print()
         print(f"Per {win:g}-s window: predictor latency in ms (own: VO callback -> "
               "publication, from its diagnostics; e2e: path arrival here - its t0 stamp); "
@@ -954,7 +972,8 @@ class Soak:
         if restarts:
             print()
             print("Restarts: time from the restart to the node's first output "
-                  "(bridge: joy, VO: vo/twist, predictor: predicted_path)")
+                  "(bridge: joy, VO: vo/twist, predictor: predicted_path, shared control: "
+                  "shared_control/status)")
             for r in restarts:
                 print(f"  {r['process']:<18} restarted at {r['t']:7.1f} s, output after "
                       f"{_fmt_s(r['first_output_s'])}")
@@ -1051,6 +1070,12 @@ def main(argv: list[str] | None = None) -> int:
                     "(default 60 s, 30 s for runs under 10 minutes)")
     ap.add_argument("--rss-period", type=float, default=2.0, help="RSS sampling period (s)")
     ap.add_argument("--startup-timeout", type=float, default=120.0)
+    ap.add_argument("--shared-control", action="store_true",
+                    help="run shared_control_node too (on the hardware's scanner; the "
+                         "fourth cycle's SIGINT goes to it)")
+    ap.add_argument("--inattention", type=float, default=0.1,
+                    help="with --shared-control: the simulated driver's inattention, so "
+                         "that the layer intervenes (0.1)")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.minutes) and 1.0 <= args.minutes <= 600.0):
         ap.error("--minutes must be in [1, 600]")

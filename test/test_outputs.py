@@ -341,8 +341,8 @@ def test_sigterm_to_board_removes_its_link(tmp_path):
     proc = _start(["board", "--link", str(link), "--source", "neutral"], tmp_path)
     _wait_for(lambda: link.is_symlink(), 30, proc)
     proc.send_signal(signal.SIGTERM)
-    proc.communicate(timeout=10)
-    assert proc.returncode == 128 + signal.SIGTERM
+    out, err = proc.communicate(timeout=10)
+    assert proc.returncode == 128 + signal.SIGTERM, (proc.returncode, out[-2000:], err[-4000:])
     assert not os.path.lexists(link)
 
 
