@@ -24,6 +24,7 @@ import stat
 import sys
 import tempfile
 import threading
+import time
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -239,17 +240,31 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     lock the terminating pool never releases. ``pool.terminate()`` runs in a helper
     thread so that a worker that does not end cannot hold up the main thread beyond the
     grace period.
+
+    ``pool.terminate()`` may also fail: it drains the task queue, and a worker stopped
+    half-way through reading a task leaves part of a message there (``EOFError: Ran out of
+    input`` from the pipe, seen under load). Its failure is not the command's: it is
+    swallowed (the pool is being thrown away), and every worker still alive after the grace
+    period is killed whether the helper thread ended or not.
     """
     workers = _pool_workers(pool, others)
     for worker in workers:
         if worker.pid is not None:
             with contextlib.suppress(OSError):  # pool.terminate() below signals it anyway
                 signal_main_thread(worker.pid, signal.SIGTERM)
-    stopper = threading.Thread(target=pool.terminate, name="pool-stop", daemon=True)
+
+    def terminate() -> None:
+        with contextlib.suppress(Exception):  # the teardown of a pool being thrown away
+            pool.terminate()
+
+    deadline = time.monotonic() + POOL_STOP_GRACE_S
+    stopper = threading.Thread(target=terminate, name="pool-stop", daemon=True)
     stopper.start()
     stopper.join(POOL_STOP_GRACE_S)
-    if stopper.is_alive():
-        for worker in {*workers, *_pool_workers(pool, others)}:
+    left = [w for w in {*workers, *_pool_workers(pool, others)} if w.is_alive()]
+    if stopper.is_alive() or left:
+        for worker in left:  # what is left of the grace period (a failed terminate() ends
+            worker.join(max(0.0, deadline - time.monotonic()))  # early), then the kill
             if worker.is_alive():
                 worker.kill()
         stopper.join(POOL_STOP_GRACE_S)
