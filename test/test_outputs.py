@@ -6,6 +6,7 @@ exceptions do."""
 
 from __future__ import annotations
 
+import fnmatch
 import hashlib
 import os
 import signal
@@ -292,7 +293,11 @@ def _wait_for(cond, timeout: float, proc: subprocess.Popen) -> None:
 
 
 def _temporaries(root: Path) -> list[Path]:
-    return [p for p in root.rglob(".*.tmp")]
+    """Files and directories named ``.*.tmp`` under ``root``. Polled while a command runs:
+    os.walk skips a directory that vanishes between its listing and its scan (rglob raised
+    FileNotFoundError for a temporary directory renamed in between, in CI)."""
+    return [Path(top) / name for top, dirs, files in os.walk(root)
+            for name in dirs + files if fnmatch.fnmatch(name, ".*.tmp")]
 
 
 def _stop_and_check(proc: subprocess.Popen, sig: int, root: Path) -> None:
