@@ -81,6 +81,7 @@ if str(REPO) not in sys.path:
 import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from geometry_msgs.msg import TwistStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
@@ -353,8 +354,11 @@ class SoakMonitor(Node):
         self.create_subscription(CameraInfo, topics.CAMERA_INFO, self._on_info,
                                  qos_profile_sensor_data, raw=True)
         self.create_subscription(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
-                                 self._on_layer_status, RELIABLE, raw=True)
+                                 self._on_layer_status, RELIABLE)
         self.layer_status: list[float] = []  # soak times of the layer's status messages
+        self.layer_why: list[tuple[float, str]] = []  # (soak time, why) when it changes
+        self.create_subscription(Odometry, topics.GROUND_TRUTH, self._on_truth, RELIABLE)
+        self.poses: list[tuple[float, float, float, float]] = []  # (t, x, y, yaw) at 2 Hz
         self.joy_per_s: dict[int, int] = {}  # soak second -> joy messages received
         self.frames_per_s: dict[int, int] = {}  # soak second -> camera_info received
         self.paths: list[tuple[float, float]] = []  # (soak time, arrival - t0 stamp)
@@ -407,8 +411,20 @@ class SoakMonitor(Node):
     def _on_twist(self, _data: bytes) -> None:
         self.twists.append(self.now())
 
-    def _on_layer_status(self, _data: bytes) -> None:
-        self.layer_status.append(self.now())
+    def _on_layer_status(self, msg: DiagnosticStatus) -> None:
+        t = self.now()
+        self.layer_status.append(t)
+        why = conv.diagnostic_values(msg).get("why", "?")
+        if not self.layer_why or self.layer_why[-1][1] != why:
+            self.layer_why.append((t, why))
+
+    def _on_truth(self, msg: Odometry) -> None:
+        t = self.now()
+        if self.poses and t - self.poses[-1][0] < 0.5:
+            return
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        self.poses.append((t, float(p.x), float(p.y), yaw))
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         t = self.now()
@@ -961,6 +977,28 @@ class Soak:
               + ", ".join(f"{k} {v}" for k, v in sorted(mon.reasons.items(),
                                                           key=lambda kv: -kv[1])))
 
+        # -- stalls: no path for 10 s or more outside the faults' own effect, with the pose
+        stalls = []
+        times = sorted(t for t, _ in mon.paths)
+        for a_t, b_t in zip([self.warmup, *times], [*times, self.total], strict=True):
+            if b_t - a_t >= 10.0:
+                inside = [p for p in mon.poses if a_t <= p[0] <= b_t]
+                moved = (max(math.hypot(p[1] - inside[0][1], p[2] - inside[0][2])
+                              for p in inside) if inside else math.nan)
+                whys = sorted({w for t, w in mon.layer_why if a_t - 5.0 <= t <= b_t})
+                stalls.append({"start": a_t, "end": b_t, "pose_start": inside[0][1:]
+                               if inside else None, "moved_m": moved, "layer": whys})
+        if stalls:
+            print()
+            print("Stalls: no path for 10 s or more (the chair's pose from ground truth; the "
+                  "layer's decisions around it)")
+            for st in stalls:
+                pose = st["pose_start"]
+                where = (f"at ({pose[0]:.2f}, {pose[1]:.2f}) heading "
+                         f"{math.degrees(pose[2]):.0f} deg" if pose else "pose unknown")
+                print(f"  {st['start']:7.1f}-{st['end']:7.1f} s  {where}, moved at most "
+                      f"{st['moved_m']:.2f} m; layer: {', '.join(st['layer']) or '-'}")
+
         # -- restarts
         restarts = []
         for inc in self.incarnations:
@@ -1033,7 +1071,8 @@ class Soak:
             "findings": [asdict(f) for f in findings], "unexpected_exits": self.unexpected,
             "soak_errors": self.soak_errors, "predictor_states": mon.reasons,
             "latency_own_ms": [(s.t, s.own_ms) for s in mon.latency],
-            "paths": mon.paths, "targets": {"rss": rss_ok, "exceptions": exc_ok,
+            "paths": mon.paths, "poses": mon.poses, "layer_why": mon.layer_why,
+            "stalls": stalls, "targets": {"rss": rss_ok, "exceptions": exc_ok,
                                             "shutdowns": shut_ok},
         }
         (self.out / "soak.json").write_text(json.dumps(result, indent=1, default=str))
