@@ -167,8 +167,7 @@ class SerialBridgeNode(Node):
             self._override_rejected += 1
             self.get_logger().warn(f"override refused: {exc}", throttle_duration_sec=1.0)
             return
-        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        stamp = conv.stamp_to_seconds(msg.header.stamp) if stamp_ns else None
+        stamp = conv.stamp_to_seconds(msg.header.stamp) or None  # zero: unstamped
         if not self._gate.offer(command, stamp, time.monotonic(), self._clock_s(),
                                 self.params.override_timeout):
             self.get_logger().warn(
