@@ -241,6 +241,37 @@ def test_an_inattentive_driver_bumps_into_furniture_an_attentive_one_does_not():
         DriverParams(inattention=1.5)
 
 
+def _longest_standstill(params: DriverParams, seconds: float, chair_seed: int,
+                        driver_seed: int) -> float:
+    """The longest time (s) the chair stays within 0.3 m and 0.5 rad of where it stood,
+    from the end of the driver's lead-in (its rest) to the end of the drive."""
+    room = Room()
+    chair = Chair.for_room(room, seed=chair_seed, blocked=room.overlap)
+    state = chair.reset((0.0, 0.0, 0.0))
+    driver = Driver(driver_seed, room, params=params)
+    cmd = np.zeros(2)
+    anchor, since, longest = (0.0, 0.0, 0.0), 0.0, 0.0
+    for n in range(int(seconds * 100)):
+        t = n * 0.01
+        if n % 2 == 0:
+            cmd = driver.command(t, state)
+        state = chair.step(cmd, 0.01)
+        if (math.hypot(state.x - anchor[0], state.y - anchor[1]) > 0.3
+                or abs(state.theta - anchor[2]) > 0.5 or driver.mode == "rest"):
+            anchor, since = (state.x, state.y, state.theta), t
+        longest = max(longest, t - since)
+    return longest
+
+
+def test_an_inattentive_driver_never_stands_still_for_long():
+    """Regression: after an inattentive bout the simulated user's avoidance could stand
+    still for minutes (a creep of 0.1 inside the chair's dead zone; lined up with its goal
+    along a wall; backing off into the furniture of a corner), which stalled the soak's
+    chair for 400 s. This seed stood still 43 s in its first 2 minutes, and for 27-77 s six
+    times in 30 minutes."""
+    assert _longest_standstill(DriverParams(inattention=0.1), 150.0, 1, 1001) < 20.0
+
+
 def test_a_long_range_scan_gets_a_bounded_raster_and_the_same_answer():
     """A scan's range_max (up to 1000 m, from a message) sets the raster's extent: at 5 cm
     cells a 1000 m scanner would need 40,000 cells a side (gigabytes, at every decision).

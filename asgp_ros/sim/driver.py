@@ -200,10 +200,19 @@ class Driver:
         return np.array([fwd, turn])
 
     def _back_off(self, state: ChairState) -> np.ndarray:
-        """Reverse away from the nearest furniture, turning the back towards the room."""
+        """Get away from the furniture by the end of the chair that faces the room: reverse,
+        turning the back towards the room, or, when the front already faces it (reversing
+        would push into the furniture behind), ease forward, turning the front towards it.
+        "The room" is away from the nearest wall, and from both walls in a corner."""
         r = self.room
-        gaps = (state.x - r.x_min, r.x_max - state.x, state.y - r.y_min, r.y_max - state.y)
-        inward = (0.0, math.pi, 0.5 * math.pi, -0.5 * math.pi)[int(np.argmin(gaps))]
+        gaps = np.array([state.x - r.x_min, r.x_max - state.x,
+                         state.y - r.y_min, r.y_max - state.y])
+        normals = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+        ix, iy = normals[gaps <= gaps.min() + 0.3].sum(axis=0)
+        inward = math.atan2(iy, ix)
+        front = math.atan2(math.sin(inward - state.theta), math.cos(inward - state.theta))
+        if abs(front) < 0.5 * math.pi:
+            return np.array([0.4, max(-0.6, min(0.6, 1.5 * front))])
         err = inward - (state.theta + math.pi)  # the back should point inward
         err = math.atan2(math.sin(err), math.cos(err))
         return np.array([-0.5, max(-0.6, min(0.6, 1.5 * err))])
@@ -288,8 +297,11 @@ class Driver:
             stick = None
             if self.params.inattention > 0.0 and self._mode != "back_off":
                 # pinned against the furniture (a bump the attentive rules never meet):
-                # asking to move, not moving for a second -> back off
-                asking = float(np.max(np.abs(self._pos))) > 0.3
+                # asking to move, or steering away from the furniture, and not moving for a
+                # second -> back off. (The avoidance alone can stand still for good after an
+                # inattentive bout: a creep of 0.1 inside the chair's dead zone, or lined up
+                # with its goal along a wall, where going ahead gains no clearance.)
+                asking = self._avoiding or float(np.max(np.abs(self._pos))) > 0.3
                 moving = abs(state.v) > 0.02 or abs(state.omega) > 0.02
                 self._stuck_s = self._stuck_s + dt if asking and not moving else 0.0
                 if self._stuck_s > 1.0:
