@@ -73,7 +73,10 @@ class DriveResult:
     path: list[tuple[float, float]] = field(default_factory=list)
 
     def summary(self) -> dict[str, float | int | bool]:
-        solve = np.asarray(self.solve_ms) if self.solve_ms else np.full(1, np.nan)
+        def solve_ms(q: float) -> float:  # NaN for a drive without the layer's decisions
+            return round(float(np.percentile(self.solve_ms, q)), 2) if self.solve_ms \
+                else math.nan
+
         return {
             "layer": self.layer, "minutes": round(self.seconds / 60.0, 2),
             "contacts": self.contacts, "min_clearance_m": round(self.min_clearance_m, 3),
@@ -81,8 +84,8 @@ class DriveResult:
             "intervention_s": round(self.intervention_s, 1),
             "mean_change": round(float(np.mean(self.changes)), 3) if self.changes else 0.0,
             "untouched_share": round(self.untouched_share, 4),
-            "solve_p50_ms": round(float(np.nanpercentile(solve, 50)), 2),
-            "solve_p99_ms": round(float(np.nanpercentile(solve, 99)), 2),
+            "solve_p50_ms": solve_ms(50),
+            "solve_p99_ms": solve_ms(99),
         }
 
 
