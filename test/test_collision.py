@@ -241,6 +241,31 @@ def test_an_inattentive_driver_bumps_into_furniture_an_attentive_one_does_not():
         DriverParams(inattention=1.5)
 
 
+def test_the_exact_test_of_a_large_batch_keeps_its_memory_bounded():
+    """Regression: the exact test worked in chunks of up to 4 M elements per intermediate
+    array (32 MB each): one decision of the layer next to furniture peaked at 160 MB, and the
+    soak saw the node's RSS swing by 50 MB. These 256 paths peaked at 174 MB; in chunks of
+    64 k elements, 57 MB (mostly the samples' own arrays)."""
+    import tracemalloc
+
+    fld = C.DistanceField.from_scan(wall_scan(1.2))
+    rng = np.random.default_rng(0)
+    B, k = 256, 10
+    x = np.linspace(0.1, 1.0, k)[None, :] + rng.uniform(-0.1, 0.1, (B, 1))
+    pose = np.stack([x, rng.uniform(-0.3, 0.3, (B, k)), np.zeros((B, k))], axis=-1)
+    cov = np.broadcast_to(np.eye(2) * 0.05**2, (B, k, 2, 2)).copy()
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        res = C.contact_probability(fld, pose, cov, method="exact")
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    front = C.DEFAULT_FOOTPRINT.offset + 0.5 * C.DEFAULT_FOOTPRINT.length
+    assert np.all(res.within[x[:, -1] > 1.2 - front + 0.2] > 0.9)  # those reach the wall
+    assert peak < 80e6, f"the exact test of {B} paths peaked at {peak / 1e6:.0f} MB"  # 174 before
+
+
 def _longest_standstill(params: DriverParams, seconds: float, chair_seed: int,
                         driver_seed: int) -> float:
     """The longest time (s) the chair stays within 0.3 m and 0.5 rad of where it stood,
