@@ -13,9 +13,10 @@ bridge stops writing, and the board's 200 ms watchdog
 hands the chair back to the user. The firmware also ignores an override while the user's
 stick is neutral, and this node never sends one then.
 
-With ``memory_s`` > 0 (off by default) the scans' obstacles are remembered that long
-(:mod:`asgp_ros.core.obstacle_memory`), carried along by matching each scan to a keyframe
-scan (``memory_odometry: scan_matching``, :mod:`asgp_ros.core.scan_match`), or by dead
+With ``memory_s`` > 0 (10 s by default; 0 turns it off) the scans' obstacles are remembered
+that long (:mod:`asgp_ros.core.obstacle_memory`), carried along by matching each scan to a
+keyframe scan (``memory_odometry: scan_matching``, the default: :mod:`asgp_ros.core.scan_match`,
+independent of the VO's drift), or by dead
 reckoning of the VO's twists or of ``memory_odom_topic``'s (``dead_reckoning``): what has
 left the scanner's view, behind the chair, still counts when it turns. A refused match
 (too little structure, a corridor), lost tracking or a gap empties the memory; the newest
@@ -134,10 +135,11 @@ PARAMS: tuple[ParamSpec, ...] = (
           "footprint centre ahead of the base frame's origin (m)", -2.5, 2.5),
     _spec("margin", 0.05, "safety margin added to every side of the footprint (m): the "
           "layer keeps the grown footprint off the obstacles", 0.0, 0.5),
-    _spec("memory_s", 0.0, "the laser's obstacles are remembered this long, carried along "
+    _spec("memory_s", 10.0, "the laser's obstacles are remembered this long, carried along "
           "by memory_odometry, so that what left the scanner's view (behind the chair) still "
-          "counts; 0 (the default): no memory. Only for odometry that drifts less than the "
-          "margin over this time", 0.0, 600.0),
+          "counts; 0: no memory; none with obstacles 'grid' (a map holds what is behind). "
+          "Only for odometry that drifts less than the margin over this time (scan matching "
+          "does indoors)", 0.0, 600.0),
     _spec("memory_odometry", "scan_matching", "what carries the memory: 'scan_matching' "
           "(the scans matched to each other, asgp_ros.core.scan_match: millimetres over "
           "seconds indoors; a refused match empties the memory) or 'dead_reckoning' (the "
@@ -201,10 +203,6 @@ class SharedControlParams:
         if self.memory_odometry not in MEMORY_ODOMETRY:
             raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
                              f"{self.memory_odometry!r}")
-        if self.memory_s > 0.0 and self.memory_odometry == "scan_matching" \
-                and self.obstacles == "grid":
-            raise ValueError("memory_odometry 'scan_matching' needs the laser (obstacles "
-                             "'laser' or 'both')")
         if self.obstacles != "laser" and self.vo_type != "odometry":
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
         parse_joy_axes(self.joy_axes)
@@ -217,8 +215,8 @@ class SharedControlParams:
                                    heading_uncertainty=self.heading_uncertainty)
 
     def memory(self) -> MemoryConfig | None:
-        """The obstacle memory's settings, None when it is off."""
-        if self.memory_s <= 0.0:
+        """The obstacle memory's settings, None when it is off (memory_s 0, or no laser)."""
+        if self.memory_s <= 0.0 or self.obstacles == "grid":
             return None
         return MemoryConfig(max_age_s=self.memory_s, radius_m=self.memory_radius_m,
                             max_gap_s=self.vo_timeout_s)

@@ -50,7 +50,7 @@ STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
 DEFAULT_MEMORY = MemoryConfig()
-"""The memory's settings when one is asked for (``memory_s`` 10 s)."""
+"""The memory's settings, the node's default (``memory_s`` 10 s)."""
 
 
 @dataclass
@@ -170,13 +170,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           inattention: float = 0.1, surface: str = "tile",
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
-          memory: MemoryConfig | None = None, memory_odometry: str = "dead_reckoning"
-          ) -> DriveResult:
+          memory: MemoryConfig | None = DEFAULT_MEMORY,
+          memory_odometry: str = "scan_matching") -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
-    ``memory``: the layer remembers earlier scans (None, as the node by default: the newest
-    scan alone), carried along by dead reckoning of the VO's twists (``memory_odometry``
-    "dead_reckoning") or by matching the scans (:mod:`asgp_ros.core.scan_match`,
-    "scan_matching")."""
+    ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
+    newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
+    ``memory_odometry`` "scan_matching", the node's default) or by dead reckoning of the VO's
+    twists ("dead_reckoning")."""
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
