@@ -456,6 +456,21 @@ def test_scan_matching_carries_the_memory_whatever_the_vo_says(harness):
     assert conv.diagnostic_values(h.node.diagnostic_status())["odometry_breaks"] == "1"
 
 
+def test_the_memory_is_on_by_default_and_carried_by_scan_matching(harness):
+    """The default since the offline drives measured it (README): remembered for 10 s,
+    carried by the scans themselves, not by the VO; a map (obstacles 'grid') has no scan to
+    remember and starts without it instead of refusing."""
+    from asgp_ros.nodes.shared_control_node import PARAMS, SharedControlParams
+
+    h = harness()
+    assert h.node.memory is not None and h.node.scan_odometer is not None
+    assert h.node.odometer is None and h.node.params.memory_s == 10.0
+    defaults = {spec.name: spec.default for spec in PARAMS} | {"model_path": "chair.npz"}
+    grid = SharedControlParams(**(defaults | {"obstacles": "grid", "vo_type": "odometry"}))
+    assert grid.memory() is None
+    assert SharedControlParams(**(defaults | {"memory_s": 0.0})).memory() is None
+
+
 def test_the_memory_can_be_turned_off(harness):
     h = harness(memory_s=0.0)
     h.drive(100.0, 101.0, wall=3.0)
