@@ -91,6 +91,7 @@ from sensor_msgs.msg import CameraInfo, Joy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
 from asgp_ros.common import topics  # noqa: E402
+from asgp_ros.core.quaternion import quaternion_to_yaw  # noqa: E402
 from asgp_ros.demo import camera, hardware  # noqa: E402
 from asgp_ros.demo.hardware import NODE_NAME, HardwareNode  # noqa: E402
 from asgp_ros.demo.orchestrator import (  # noqa: E402
@@ -423,7 +424,7 @@ class SoakMonitor(Node):
         if self.poses and t - self.poses[-1][0] < 0.5:
             return
         p, q = msg.pose.pose.position, msg.pose.pose.orientation
-        yaw = math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+        yaw = float(quaternion_to_yaw(q.x, q.y, q.z, q.w))
         self.poses.append((t, float(p.x), float(p.y), yaw))
 
     def _on_diag(self, msg: DiagnosticArray) -> None:

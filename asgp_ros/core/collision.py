@@ -55,9 +55,9 @@ Model and approximations, stated once:
   the exact test is as fast or faster and a raster would mostly cover empty space) and
   the raster otherwise.
 * **Speed.** Everything is vectorised over paths, steps and samples; the only loops run
-  over chunks of at most ``_CHUNK`` elements (the exact test; its intermediate arrays were
-  up to 32 MB each at 4 M elements, 160 MB at the peak of one decision, and are now 0.5 MB,
-  which is also faster) or ``_BOX_CHUNK`` pairs (the raster) and over retries of the layout.
+  over chunks of at most ``_CHUNK`` elements (the exact test: 0.5 MB per intermediate
+  array, which bounds a decision's memory and is no slower than larger chunks) or
+  ``_BOX_CHUNK`` pairs (the raster's box marking) and over retries of the layout.
 
 REP-117 for scans: ``+inf`` or a range beyond ``range_max`` is no return within range
 (free as far as the scan sees); ``-inf`` or a range below ``range_min`` is an object too
