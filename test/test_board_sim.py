@@ -254,6 +254,69 @@ def test_board_as_a_context_manager_removes_its_pty_and_link(tmp_path):
     assert board.error is None
 
 
+def test_a_board_whose_start_was_cut_short_still_stops_and_removes_its_link(
+        tmp_path, monkeypatch):
+    # Ctrl-C inside Thread.start(), before the thread ran: stop() used to raise "cannot
+    # join thread before it is started" and leave the link behind.
+    import threading
+
+    def interrupted(self):
+        raise KeyboardInterrupt
+
+    link_path = tmp_path / "joystick"
+    board = SimulatedBoard(lambda t: (0.0, 0.0), link_path=link_path)
+    monkeypatch.setattr(threading.Thread, "start", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        board.start()
+    monkeypatch.undo()
+    board.stop()
+    assert not os.path.lexists(link_path)
+
+    link = LinkManager(LinkConfig(str(tmp_path / "no_port")))
+    monkeypatch.setattr(threading.Thread, "start", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        link.start()
+    monkeypatch.undo()
+    link.stop()
+    assert link.state is LinkState.STOPPED
+
+
+_SIGTERM_IN_START = """
+import os, signal, sys, threading
+from pathlib import Path
+from asgp_ros.common.fileio import Terminated, raise_on_termination
+from asgp_ros.sim.board import SimulatedBoard
+
+raise_on_termination()
+real_start = threading.Thread.start
+
+def start_after_a_sigterm(self):
+    os.kill(os.getpid(), signal.SIGTERM)  # the handler runs before the thread starts
+    real_start(self)
+
+threading.Thread.start = start_after_a_sigterm
+board = SimulatedBoard(lambda t: (0.0, 0.0), link_path=Path(sys.argv[1]))
+try:
+    board.start()
+except Terminated:
+    print("alive" if board._thread is not None and board._thread.is_alive() else "dead")
+finally:
+    board.stop()
+"""
+
+
+def test_a_stop_signal_during_the_boards_start_waits_until_it_is_up(repo_root, tmp_path):
+    # asgp board's SIGTERM between the link's creation and the thread's start: the
+    # exception is held until start() is done, so that stop() joins a started thread.
+    link_path = tmp_path / "joystick"
+    proc = subprocess.run([sys.executable, "-c", _SIGTERM_IN_START, str(link_path)],
+                          capture_output=True, text=True, timeout=60, cwd=repo_root,
+                          env=dict(os.environ, PYTHONPATH=str(repo_root)))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.strip() == "alive"
+    assert not os.path.lexists(link_path)
+
+
 def test_board_rejects_bad_configuration():
     with pytest.raises(ValueError, match="rate_hz"):
         SimulatedBoard(rate_hz=0.5)

@@ -114,6 +114,24 @@ def check_signals() -> None:
         raise Terminated(_received[0])
 
 
+def join_if_started(thread: threading.Thread, timeout: float) -> None:
+    """``thread.join(timeout)``, or nothing for a thread whose ``start()`` never ran.
+
+    An exception (Ctrl-C, a stop signal) can cut ``start()`` short, before or just after
+    the thread began; ``join`` then raises "cannot join thread before it is started". The
+    thread's own stop flag, set by the caller first, ends one that did begin.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            thread.join(max(0.0, deadline - time.monotonic()))
+            return
+        except RuntimeError:  # begun (it has an ident) but not yet flagged started: wait
+            if thread.ident is None or time.monotonic() >= deadline:
+                return
+            time.sleep(0.005)
+
+
 _STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import serial
 
+from asgp_ros.common.fileio import join_if_started, signals_deferred
 from asgp_ros.serial import protocol as proto
 from asgp_ros.serial.calibration import JoystickCalibration
 
@@ -218,8 +219,10 @@ class LinkManager:
         if self._thread is not None:
             raise RuntimeError("link already started")
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="asgp-serial-link", daemon=True)
-        self._thread.start()
+        with signals_deferred():  # a stop signal's exception waits until the thread is up
+            self._thread = threading.Thread(target=self._run, name="asgp-serial-link",
+                                            daemon=True)
+            self._thread.start()
 
     def stop(self, timeout: float = 2.0) -> None:
         """Stops the reader; asks the board for passthrough first if connected."""
@@ -227,7 +230,7 @@ class LinkManager:
             self.set_mode(proto.Mode.PASSTHROUGH)
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout)
+            join_if_started(self._thread, timeout)
             if self._thread.is_alive():
                 log.warning("serial reader thread did not stop within %.1f s", timeout)
             self._thread = None

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from asgp_ros.common.fileio import join_if_started, signals_deferred
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode, MsgType, Status
 from asgp_ros.sim.chair import Chair, ChairParams
@@ -202,18 +203,22 @@ class SimulatedBoard:
     def start(self) -> SimulatedBoard:
         if self._thread is not None:
             raise RuntimeError("board already started")
-        self._open_pty()
-        self._t0 = time.monotonic()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="asgp-sim-board", daemon=True)
-        self._thread.start()
+        # A stop signal's exception (asgp board) waits until the pty, the link and the thread
+        # are all up, so that stop() finds a started thread to join.
+        with signals_deferred():
+            self._open_pty()
+            self._t0 = time.monotonic()
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="asgp-sim-board",
+                                            daemon=True)
+            self._thread.start()
         return self
 
     def stop(self) -> None:
         self._stop.set()
         self._wake()
         if self._thread is not None:
-            self._thread.join(2.0)
+            join_if_started(self._thread, 2.0)
             self._thread = None
         self._close_pty()
         for fd in (self._wake_r, self._wake_w):
