@@ -8,15 +8,22 @@ alone), and remembering earlier scans). Prints each drive and
 the totals: contacts, interventions, the share of time the user's command passed untouched,
 the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
+With ``--audit``, every decision of the layer is also checked against the plant
+(:func:`asgp_ros.sim.shared_drive.drive`'s ``audit``): the share of the interventions whose
+user command, held for the horizon as the layer assumes, would have touched ("needed"), the
+decisions that let a touching command pass ("missed"), and how often a held command touched
+against the probability the layer gave it.
+
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
-[--fov DEG] [--modes none,memory] [--contacts] (the README's figures: the reproduction's
-tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also sees behind the
-chair; about 6 minutes on 2 cores for three modes).
+[--fov DEG] [--modes none,memory] [--contacts] [--audit] (the README's figures: the
+reproduction's tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also
+sees behind the chair; about 6 minutes on 2 cores for three modes).
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import multiprocessing
 import sys
 from pathlib import Path
@@ -40,10 +47,13 @@ default), against the newest scan alone; sampling it against the scan and the me
 earlier scans (``memory_s`` > 0), carried by the VO's twists ("memory") or by matching
 the scans ("scan memory", :mod:`asgp_ros.core.scan_match`)."""
 DEFAULT_MODES = ("none", "heading sampled", "memory")
+MARGIN = 0.05
+"""The layer's footprint is the chair's grown by this (m), as in ``drive``'s default."""
+P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float]) -> dict[str, Any]:
-    path, seed, mode, minutes, fov, memory_s = task
+def _one(task: tuple[str, int, str, float, float, float, bool]) -> dict[str, Any]:
+    path, seed, mode, minutes, fov, memory_s, audit = task
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -54,8 +64,10 @@ def _one(task: tuple[str, int, str, float, float, float]) -> dict[str, Any]:
                        memory=MemoryConfig(max_age_s=memory_s) if mode.endswith("memory")
                        else None,
                        memory_odometry="scan_matching" if mode == "scan memory"
-                       else "dead_reckoning")
-    return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events}
+                       else "dead_reckoning", margin=MARGIN, audit=audit)
+    return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
+                               "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched)
+                                         for r in result.audit]}
 
 
 def _seeds(text: str) -> list[int]:
@@ -87,8 +99,11 @@ def main(argv: list[str]) -> int:
                     help="also print every contact: the layer's last decision before it and "
                          "how far from the touching footprint the nearest obstacle point it "
                          "knew (scan or memory) was")
+    ap.add_argument("--audit", action="store_true",
+                    help="check every decision against the plant: interventions needed, "
+                         "touching commands let pass, probabilities against outcomes")
     args = ap.parse_args(argv)
-    tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s)
+    tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit)
              for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
@@ -116,7 +131,35 @@ def main(argv: list[str]) -> int:
               f"{sum(r['interventions'] for r in mine)} interventions, untouched "
               f"{100 * untouched.mean():.1f} % on average ({100 * untouched.min():.1f}-"
               f"{100 * untouched.max():.1f} % per drive)")
+    if args.audit:
+        _print_audit(rows, args.modes)
     return 0
+
+
+def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
+    print("audit (the user's command held for the horizon, driven by a copy of the chair):")
+    print("seed | mode            | interventions | needed | missed")
+    for r in rows:
+        if r["audit"]:
+            print(f"{r['seed']:4d} | {r['mode']:15s} | {r['audit_interventions']:13d} | "
+                  f"{100 * r['audit_needed_share']:5.1f}% | {r['audit_missed']:6d}")
+    for mode in modes:
+        a = np.array([row for r in rows if r["mode"] == mode for row in r["audit"]],
+                     dtype=float).reshape(-1, 4)  # p, intervened, clearance, touched
+        if not a.size:
+            continue
+        acted = a[:, 1] > 0
+        print(f"  {mode}: {int(acted.sum())} intervening decisions, "
+              f"{100 * a[acted, 3].mean():.1f} % needed (their held command touched); "
+              f"{int(a[~acted, 3].sum())} of {int((~acted).sum())} passing decisions let a "
+              "touching command pass")
+        print("    p (layer)   | decisions | touched | footprint + margin touched")
+        for lo, hi in itertools.pairwise(P_BINS):
+            sel = (a[:, 0] >= lo) & ((a[:, 0] < hi) | (hi == P_BINS[-1]))
+            if sel.any():
+                print(f"    {lo:4.2f} - {hi:4.2f} | {int(sel.sum()):9d} | "
+                      f"{100 * a[sel, 3].mean():6.1f}% | "
+                      f"{100 * (a[sel, 2] < MARGIN).mean():6.1f}%")
 
 
 if __name__ == "__main__":

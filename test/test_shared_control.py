@@ -223,3 +223,45 @@ def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
     assert again.summary() | {"solve_p50_ms": 0, "solve_p99_ms": 0} == \
         drive(chair_model, 12.0, 4, layer=True, inattention=0.5).summary() | {
             "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed
+
+
+def test_a_held_command_is_replayed_on_a_copy_of_the_chair():
+    """The audit's plant: a copy of the chair drives a command held for the horizon and
+    reports the closest approach; the chair itself does not move."""
+    from asgp_ros.sim.chair import Chair
+    from asgp_ros.sim.shared_drive import held_clearance
+    from asgp_ros.sim.world import room_for_surface
+
+    room = room_for_surface("tile")
+    chair = Chair.for_room(room, seed=1, blocked=room.overlap)
+    xs = np.linspace(0.0, room.x_max, 601)
+    gaps = [room.footprint_clearance(x, 0.0, 0.0) - room.furniture_band for x in xs]
+    x = float(xs[np.argmin(np.abs(np.array(gaps) - 0.3))])  # 0.3 m from the furniture ahead
+    chair.reset((x, 0.0, 0.0))
+    before = chair.state
+    ahead, touched = held_clearance(chair, room, np.array([1.0, 0.0]), 2.0)
+    assert touched and ahead <= 0.0
+    still, touched = held_clearance(chair, room, np.array([0.0, 0.0]), 2.0)
+    assert not touched and still == pytest.approx(0.3, abs=0.01)
+    back, touched = held_clearance(chair, room, np.array([-0.5, 0.0]), 2.0)
+    assert not touched and back >= still
+    assert chair.state == before and chair.contacts == 0
+
+
+def test_the_audit_checks_the_layers_decisions_without_changing_the_drive(chair_model):
+    from asgp_ros.sim.shared_drive import drive
+
+    plain = drive(chair_model, 40.0, 4, layer=True, inattention=0.5)
+    audited = drive(chair_model, 40.0, 4, layer=True, inattention=0.5, audit=True)
+    keys = ("contacts", "interventions", "intervention_s", "untouched_share",
+            "min_clearance_m")
+    assert {k: audited.summary()[k] for k in keys} == {k: plain.summary()[k] for k in keys}
+    assert plain.audit == [] and "audit_needed_share" not in plain.summary()
+    rows = audited.audit
+    assert 0 < len(rows) <= sum(audited.decisions.values())
+    acted = [r for r in rows if r.intervened]
+    assert acted and audited.summary()["audit_interventions"] == len(acted)
+    # the layer acts where the held command touches, and passes where it does not
+    assert np.mean([r.touched for r in acted]) > 0.5
+    assert np.mean([r.touched for r in rows if not r.intervened]) < 0.1
+    assert all(r.clearance_m <= 0.0 for r in rows if r.touched)

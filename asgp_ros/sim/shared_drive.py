@@ -18,10 +18,18 @@ same seed with the layer on and off:
 The result counts what the demo report shows: contacts, minimum clearance, interventions
 (count, duration, mean change of the command), the share of time the user's command
 passed untouched, and the decision's solve time.
+
+With ``audit``, every decision that computed the probability of contact is checked against
+the plant: a copy of the chair, in its state at that moment, drives the user's command held
+for the horizon (the layer's own assumption) and the closest the footprint comes to the
+furniture is recorded (:class:`AuditRow`). That tells an intervention the user's command
+needed (it would have touched) from a false alarm, shows the contacts the layer let pass,
+and checks the probabilities against what happened.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
@@ -44,13 +52,34 @@ from asgp_ros.serial.protocol import Mode
 from asgp_ros.sim.chair import Chair, ChairState
 from asgp_ros.sim.driver import Driver, DriverParams
 from asgp_ros.sim.lidar import Lidar, LidarConfig
-from asgp_ros.sim.world import room_for_surface
+from asgp_ros.sim.world import Room, room_for_surface
 
 STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
 DEFAULT_MEMORY = MemoryConfig()
 """The memory's settings, the node's default (``memory_s`` 10 s)."""
+
+
+@dataclass(frozen=True)
+class AuditRow:
+    """One decision checked against the plant (``drive(..., audit=True)``).
+
+    Attributes:
+        t: the decision's time (s).
+        p_user: the layer's probability of contact within the horizon, the user's command
+            held, for its footprint grown by the margin.
+        intervened: the layer changed the command.
+        clearance_m: the closest the chair's footprint came to the furniture (m, negative:
+            overlap) when a copy of the chair drove the user's command held for the horizon.
+        touched: that copy touched (a contact as the chair counts it).
+    """
+
+    t: float
+    p_user: float
+    intervened: bool
+    clearance_m: float
+    touched: bool
 
 
 @dataclass
@@ -71,6 +100,7 @@ class DriveResult:
     contact_events: list[dict[str, float | str]] = field(default_factory=list)
     intervention_points: list[tuple[float, float]] = field(default_factory=list)
     path: list[tuple[float, float]] = field(default_factory=list)
+    audit: list[AuditRow] = field(default_factory=list)
 
     def summary(self) -> dict[str, float | int | bool]:
         def solve_ms(q: float) -> float:  # NaN for a drive without the layer's decisions
@@ -86,7 +116,34 @@ class DriveResult:
             "untouched_share": round(self.untouched_share, 4),
             "solve_p50_ms": solve_ms(50),
             "solve_p99_ms": solve_ms(99),
-        }
+        } | self._audit_summary()
+
+    def _audit_summary(self) -> dict[str, float | int | bool]:
+        """Of the interventions, the share whose held user command would have touched; the
+        decisions that let a touching command pass (empty without an audit)."""
+        if not self.audit:
+            return {}
+        hits = [r.touched for r in self.audit if r.intervened]
+        return {"audit_decisions": len(self.audit), "audit_interventions": len(hits),
+                "audit_needed_share": round(float(np.mean(hits)), 4) if hits else math.nan,
+                "audit_missed": sum(r.touched and not r.intervened for r in self.audit)}
+
+
+def held_clearance(chair: Chair, room: Room, command: np.ndarray, seconds: float
+                   ) -> tuple[float, bool]:
+    """The closest (m) a copy of ``chair`` comes to the furniture driving ``command`` held
+    for ``seconds`` (0 or less if it touched), and whether it touched; ``chair`` itself is
+    left as it is."""
+    twin = copy.deepcopy(chair, {id(room): room})  # its own state and noise, the same room
+    before = twin.contacts
+    closest = math.inf
+    for _ in range(round(seconds / STEP_S)):
+        st = twin.step(command, STEP_S)
+        closest = min(closest, room.footprint_clearance(st.x, st.y, st.theta)
+                      - room.furniture_band)
+    touched = twin.contacts > before
+    # the chair stops against an obstacle one internal step before the overlap: touching is 0
+    return (min(closest, 0.0) if touched else closest), touched
 
 
 def frame_twist(frame: tuple[float, float, float, float], state: ChairState, t: float,
@@ -171,12 +228,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
           memory: MemoryConfig | None = DEFAULT_MEMORY,
-          memory_odometry: str = "scan_matching") -> DriveResult:
+          memory_odometry: str = "scan_matching", audit: bool = False) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
     ``memory_odometry`` "scan_matching", the node's default) or by dead reckoning of the VO's
-    twists ("dead_reckoning")."""
+    twists ("dead_reckoning"). ``audit``: check the decisions against the plant (module
+    docstring; slower)."""
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -290,6 +348,10 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
                 if decision.command is not None:
                     out.changes.append(decision.change)
+                if audit and math.isfinite(decision.p_user):
+                    closest, touched = held_clearance(chair, room, decision.user, horizon_s)
+                    out.audit.append(AuditRow(t, decision.p_user, decision.command is not None,
+                                              closest, touched))
     out.contacts = chair.contacts
     out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
     return out
