@@ -10,9 +10,9 @@ the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
 With ``--audit``, every decision of the layer is also checked against the plant
 (:func:`asgp_ros.sim.shared_drive.drive`'s ``audit``): the share of the interventions whose
-user command, held for the horizon as the layer assumes, would have touched ("needed"), the
-decisions that let a touching command pass ("missed"), and how often a held command touched
-against the probability the layer gave it.
+user command, held to the end of the predicted path as the layer assumes, would have touched
+("needed"), the decisions that let a touching command pass ("missed"), and how often a held
+command touched against the probability the layer gave it.
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
 [--fov DEG] [--modes none,memory] [--contacts] [--audit] (the README's figures: the
@@ -137,7 +137,8 @@ def main(argv: list[str]) -> int:
 
 
 def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
-    print("audit (the user's command held for the horizon, driven by a copy of the chair):")
+    print("audit (the user's command held to the end of the layer's path, driven by a copy of "
+          "the chair):")
     print("seed | mode            | interventions | needed | missed")
     for r in rows:
         if r["audit"]:

@@ -265,3 +265,5 @@ def test_the_audit_checks_the_layers_decisions_without_changing_the_drive(chair_
     assert np.mean([r.touched for r in acted]) > 0.5
     assert np.mean([r.touched for r in rows if not r.intervened]) < 0.1
     assert all(r.clearance_m <= 0.0 for r in rows if r.touched)
+    # the replay ends with the layer's path, which starts at the last complete grid step
+    assert all(1.6 <= r.seconds <= 2.0 for r in rows)

@@ -21,10 +21,10 @@ passed untouched, and the decision's solve time.
 
 With ``audit``, every decision that computed the probability of contact is checked against
 the plant: a copy of the chair, in its state at that moment, drives the user's command held
-for the horizon (the layer's own assumption) and the closest the footprint comes to the
-furniture is recorded (:class:`AuditRow`). That tells an intervention the user's command
-needed (it would have touched) from a false alarm, shows the contacts the layer let pass,
-and checks the probabilities against what happened.
+to the end of the layer's predicted path (the layer's own assumption) and the closest the
+footprint comes to the furniture is recorded (:class:`AuditRow`). That tells an
+intervention the user's command needed (it would have touched) from a false alarm, shows the
+contacts the layer let pass, and checks the probabilities against what happened.
 """
 
 from __future__ import annotations
@@ -71,8 +71,11 @@ class AuditRow:
             held, for its footprint grown by the margin.
         intervened: the layer changed the command.
         clearance_m: the closest the chair's footprint came to the furniture (m, negative:
-            overlap) when a copy of the chair drove the user's command held for the horizon.
+            overlap) when a copy of the chair drove the user's command held to the end of
+            the layer's path.
         touched: that copy touched (a contact as the chair counts it).
+        seconds: how long the copy drove: from now to the last step of the layer's predicted
+            path (which starts at the last complete grid step, a little before now).
     """
 
     t: float
@@ -80,6 +83,7 @@ class AuditRow:
     intervened: bool
     clearance_m: float
     touched: bool
+    seconds: float
 
 
 @dataclass
@@ -348,10 +352,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
                 if decision.command is not None:
                     out.changes.append(decision.change)
-                if audit and math.isfinite(decision.p_user):
-                    closest, touched = held_clearance(chair, room, decision.user, horizon_s)
+                if audit and math.isfinite(decision.p_user) and decision.prediction is not None:
+                    # the layer's path starts at its last complete grid step, before now: the
+                    # replay covers what is left of it, to its last predicted step
+                    ahead = float(decision.prediction.times[-1]) - t
+                    closest, touched = held_clearance(chair, room, decision.user, ahead)
                     out.audit.append(AuditRow(t, decision.p_user, decision.command is not None,
-                                              closest, touched))
+                                              closest, touched, ahead))
     out.contacts = chair.contacts
     out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
     return out
