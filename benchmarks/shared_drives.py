@@ -151,7 +151,8 @@ def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
             continue
         acted = a[:, 1] > 0
         print(f"  {mode}: {int(acted.sum())} intervening decisions, "
-              f"{100 * a[acted, 3].mean():.1f} % needed (their held command touched); "
+              f"{100 * a[acted, 3].mean():.1f} % needed (their held command touched; "
+              f"{100 * (a[acted, 2] < MARGIN).mean():.1f} % with the layer's margin); "
               f"{int(a[~acted, 3].sum())} of {int((~acted).sum())} passing decisions let a "
               "touching command pass")
         print("    p (layer)   | decisions | touched | footprint + margin touched")
