@@ -183,6 +183,26 @@ def test_covariance_grows_as_inliers_are_removed(frame_pair):
     assert np.linalg.slogdet(bunched)[1] > np.linalg.slogdet(covs[-1])[1] + 2.0
 
 
+def test_the_few_inliers_factor_widens_by_one_plus_n0_over_n_to_the_p(frame_pair):
+    """The covariance of an estimate from n inliers carries 1 + (n0 / n)^p, and nothing
+    else changes: with n0 = 0 it is the model without the factor."""
+    vo, m = frame_pair
+    order = np.random.default_rng(SEED).permutation(len(m.P))
+    for k in (1, 4, 8):
+        sub = _subset(m, np.sort(order[:len(m.P) // k]))
+        fit = vo._refine(sub, vo._clique(sub))
+        n = len(fit.inliers)
+        plain, wide = copy.copy(vo), copy.copy(vo)
+        plain.inlier_count_scale = 0.0
+        wide.inlier_count_scale, wide.inlier_count_power = 30.0, 1.5
+        a = plain._covariance(sub, fit)
+        b = wide._covariance(sub, fit)
+        np.testing.assert_allclose(b.covariance, (1.0 + (30.0 / n) ** 1.5) * a.covariance,
+                                   rtol=1e-12)
+        assert (b.sigma2, b.dof, b.cells, b.translation_std) == \
+            (a.sigma2, a.dof, a.cells, a.translation_std)
+
+
 def test_covariance_stage_is_spd_and_finite_in_degenerate_cases(frame_pair):
     """Matches all in one image cell (one cluster: no cluster-robust information), all
     along one image row, or only a dozen: the stage returns a symmetric positive definite,
