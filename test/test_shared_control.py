@@ -245,6 +245,8 @@ def test_a_held_command_is_replayed_on_a_copy_of_the_chair():
     assert not touched and still == pytest.approx(0.3, abs=0.01)
     back, touched = held_clearance(chair, room, np.array([-0.5, 0.0]), 2.0)
     assert not touched and back >= still
+    now, touched = held_clearance(chair, room, np.array([1.0, 0.0]), 0.0)  # no time: now
+    assert not touched and now == pytest.approx(0.3, abs=0.01)
     assert chair.state == before and chair.contacts == 0
 
 

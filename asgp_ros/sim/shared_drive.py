@@ -140,7 +140,8 @@ def held_clearance(chair: Chair, room: Room, command: np.ndarray, seconds: float
     left as it is."""
     twin = copy.deepcopy(chair, {id(room): room})  # its own state and noise, the same room
     before = twin.contacts
-    closest = math.inf
+    st = twin.state
+    closest = room.footprint_clearance(st.x, st.y, st.theta) - room.furniture_band
     for _ in range(round(seconds / STEP_S)):
         st = twin.step(command, STEP_S)
         closest = min(closest, room.footprint_clearance(st.x, st.y, st.theta)
@@ -355,7 +356,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 if audit and math.isfinite(decision.p_user) and decision.prediction is not None:
                     # the layer's path starts at its last complete grid step, before now: the
                     # replay covers what is left of it, to its last predicted step
-                    ahead = float(decision.prediction.times[-1]) - t
+                    ahead = max(0.0, float(decision.prediction.times[-1]) - t)
                     closest, touched = held_clearance(chair, room, decision.user, ahead)
                     out.audit.append(AuditRow(t, decision.p_user, decision.command is not None,
                                               closest, touched, ahead))
