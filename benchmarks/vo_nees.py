@@ -126,18 +126,31 @@ def drives(quick: bool = False) -> list[DriveSpec]:
                           mirror=mirror)]
     # and more of them for the few-inliers factor, whose frames are few too (seeds 14-19)
     out += _loss_drives(range(14, 20), "calibration")
+    # and more loops, so that each room's group of frames rests on more than two drives
+    out += _loops(((6, 30.0, 0.6), (7, 15.0, 0.5), (8, 20.0, 0.65), (9, 30.0, 0.45)),
+                  "calibration", s)
     # more held-out drives that lose tracking, so that the near-loss share rests on a few
     # hundred frames rather than on the 68 of seeds 1-4 (fixed before any was run)
     out += _loss_drives(range(20, 32), "held-out")
     # held out from the few-inliers factor's design, fixed before any was run: loops of
     # seeds 40-43 and drives that lose track of seeds 40-51
-    for seed, rate, speed in ((40, 30.0, 0.65), (41, 15.0, 0.5), (42, 20.0, 0.6),
-                              (43, 30.0, 0.45)):
-        out += [DriveSpec(f"rich-{seed}", "rich", seed, 100 + seed, rate, 12.0 * s,
-                          "held-out", speed),
-                DriveSpec(f"poor-{seed}", "poor", seed, 100 + seed, rate, 12.0 * s,
-                          "held-out", speed)]
+    out += _loops(((40, 30.0, 0.65), (41, 15.0, 0.5), (42, 20.0, 0.6), (43, 30.0, 0.45)),
+                  "held-out", s)
     out += _loss_drives(range(40, 52), "held-out")
+    # held out from the calibration with the loops of seeds 6-9, fixed before any was run
+    out += _loops(((60, 30.0, 0.55), (61, 15.0, 0.6), (62, 20.0, 0.5), (63, 30.0, 0.7)),
+                  "held-out", s)
+    out += _loss_drives(range(60, 72), "held-out")
+    return out
+
+
+def _loops(specs: tuple[tuple[int, float, float], ...], role: str, length: float
+           ) -> list[DriveSpec]:
+    """The loops in both rooms for each (seed, rate, speed); ``length`` scales the 12 s."""
+    out = []
+    for seed, rate, speed in specs:
+        out += [DriveSpec(f"{kind}-{seed}", kind, seed, 100 + seed, rate, 12.0 * length, role,
+                          speed) for kind in ("rich", "poor")]
     return out
 
 
