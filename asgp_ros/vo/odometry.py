@@ -335,12 +335,12 @@ class VisualOdometry:
 
     #: Calibrated scale of the covariance model (module docstring, step 9):
     #: ``benchmarks/vo_nees.py --calibrate`` on the calibration drives.
-    covariance_scale: float = 1.263
+    covariance_scale: float = 1.504
     #: The few-inliers factor 1 + (inlier_count_scale / n)^inlier_count_power on the
     #: covariance of an estimate from n inliers (module docstring, step 9; chosen by
     #: ``benchmarks/vo_nees.py --calibrate``; 0 turns it off).
-    inlier_count_scale: float = 30.0
-    inlier_count_power: float = 2.0
+    inlier_count_scale: float = 20.0
+    inlier_count_power: float = 1.0
     #: The first ``recovery_frames`` tracked frames after a frame that could not be tracked
     #: are a regime of their own (a new or long-kept reference seen from the edge of what
     #: the camera can track): their covariances are multiplied by ``recovery_scale``,
