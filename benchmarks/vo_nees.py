@@ -139,7 +139,7 @@ def drives(quick: bool = False) -> list[DriveSpec]:
     out += _loops(((40, 30.0, 0.65), (41, 15.0, 0.5), (42, 20.0, 0.6), (43, 30.0, 0.45)),
                   "held-out", s)
     out += _loss_drives(range(40, 52), "held-out")
-    # held out from the calibration with the loops of seeds 6-9, fixed before any was run
+    # held out from the calibration with loops in both rooms, fixed before any was run
     out += _loops(((60, 30.0, 0.55), (61, 15.0, 0.6), (62, 20.0, 0.5), (63, 30.0, 0.7)),
                   "held-out", s)
     out += _loss_drives(range(60, 72), "held-out")
