@@ -12,7 +12,10 @@ With ``--audit``, every decision of the layer is also checked against the plant
 (:func:`asgp_ros.sim.shared_drive.drive`'s ``audit``): the share of the interventions whose
 user command, held to the end of the predicted path as the layer assumes, would have touched
 ("needed"), the decisions that let a touching command pass ("missed"), and how often a held
-command touched against the probability the layer gave it.
+command touched against the probability the layer gave it, and against the probability the
+same check of the same prediction gives with the room's true map in place of the scans
+(``p_map``): where the layer's probability is high and the map's low, the scans' obstacle
+points, not the prediction, made it so.
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
 [--fov DEG] [--modes none,memory] [--contacts] [--audit] (the README's figures: the
@@ -66,8 +69,8 @@ def _one(task: tuple[str, int, str, float, float, float, bool]) -> dict[str, Any
                        memory_odometry="scan_matching" if mode == "scan memory"
                        else "dead_reckoning", margin=MARGIN, audit=audit)
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
-                               "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched)
-                                         for r in result.audit]}
+                               "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
+                                          r.p_map) for r in result.audit]}
 
 
 def _seeds(text: str) -> list[int]:
@@ -146,7 +149,7 @@ def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
                   f"{100 * r['audit_needed_share']:5.1f}% | {r['audit_missed']:6d}")
     for mode in modes:
         a = np.array([row for r in rows if r["mode"] == mode for row in r["audit"]],
-                     dtype=float).reshape(-1, 4)  # p, intervened, clearance, touched
+                     dtype=float).reshape(-1, 5)  # p, intervened, clearance, touched, p_map
         if not a.size:
             continue
         acted = a[:, 1] > 0
@@ -155,13 +158,16 @@ def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
               f"{100 * (a[acted, 2] < MARGIN).mean():.1f} % with the layer's margin); "
               f"{int(a[~acted, 3].sum())} of {int((~acted).sum())} passing decisions let a "
               "touching command pass")
-        print("    p (layer)   | decisions | touched | footprint + margin touched")
-        for lo, hi in itertools.pairwise(P_BINS):
-            sel = (a[:, 0] >= lo) & ((a[:, 0] < hi) | (hi == P_BINS[-1]))
-            if sel.any():
-                print(f"    {lo:4.2f} - {hi:4.2f} | {int(sel.sum()):9d} | "
-                      f"{100 * a[sel, 3].mean():6.1f}% | "
-                      f"{100 * (a[sel, 2] < MARGIN).mean():6.1f}%")
+        for col, name in ((0, "p (layer)  "), (4, "p (map)    ")):
+            print(f"    {name} | decisions | mean p (layer / map) | touched | "
+                  "footprint + margin touched")
+            for lo, hi in itertools.pairwise(P_BINS):
+                sel = (a[:, col] >= lo) & ((a[:, col] < hi) | (hi == P_BINS[-1]))
+                if sel.any():
+                    print(f"    {lo:4.2f} - {hi:4.2f} | {int(sel.sum()):9d} | "
+                          f"{a[sel, 0].mean():10.3f} / {np.nanmean(a[sel, 4]):5.3f} | "
+                          f"{100 * a[sel, 3].mean():6.1f}% | "
+                          f"{100 * (a[sel, 2] < MARGIN).mean():6.1f}%")
 
 
 if __name__ == "__main__":

@@ -269,3 +269,42 @@ def test_the_audit_checks_the_layers_decisions_without_changing_the_drive(chair_
     assert all(r.clearance_m <= 0.0 for r in rows if r.touched)
     # the replay ends with the layer's path, which starts at the last complete grid step
     assert all(1.6 <= r.seconds <= 2.0 for r in rows)
+    # the same check against the room's true map: known for every decision, and it too
+    # tells the held commands that touched from those that did not
+    assert all(0.0 <= r.p_map <= 1.0 for r in rows)
+    assert np.mean([r.p_map for r in rows if r.touched]) > 0.8
+    assert np.mean([r.p_map for r in rows if not r.touched]) < 0.1
+
+
+def test_the_audits_map_check_places_the_prediction_by_the_true_pose():
+    """``map_probability``: the prediction (in its base frame) is placed by the true pose,
+    turned and moved, against the room's map."""
+    from asgp_ros.core import collision
+    from asgp_ros.core.online import Prediction, Reason
+    from asgp_ros.sim.chair import Chair
+    from asgp_ros.sim.lidar import room_grid
+    from asgp_ros.sim.shared_drive import map_probability
+    from asgp_ros.sim.world import room_for_surface
+
+    room = room_for_surface("tile")
+    g = room_grid(room, 0.02)
+    fld = collision.DistanceField.from_grid(collision.Grid(g.data, g.resolution, g.origin))
+    k = 10
+    pose = np.zeros((k, 3))
+    pose[:, 0] = 0.1 * np.arange(1, k + 1)  # 1 m straight ahead over the horizon
+    cov = np.tile(np.diag([1e-4, 1e-4, 1e-4]), (k, 1, 1))
+    pred = Prediction(True, Reason.OK, t0=0.0, pose=pose, pos_cov=cov[:, :2, :2],
+                      pose_cov=cov)
+    config = SharedControlConfig()
+    fp = collision.DEFAULT_FOOTPRINT.grown(0.05)
+    x_lo, x_hi, _, _ = room.free_box
+    chair = Chair.for_room(room, seed=1)
+
+    def at(x: float, theta: float) -> float:
+        return map_probability(fld, pred, chair.reset((x, 0.0, theta)), fp, config)
+
+    near = x_hi - 0.6 - 0.5  # the front 0.5 m from the furniture, facing it
+    assert at(near, 0.0) == 1.0 and at(near, math.pi) == 0.0
+    far = x_lo + 0.6 + 0.5  # the back 0.5 m from the opposite furniture
+    assert at(far, math.pi) == 1.0 and at(far, 0.0) == 0.0
+    assert 0.0 < at(x_hi - 0.6 - 1.05, 0.0) < 1.0  # the last step at the margin's edge

@@ -24,7 +24,12 @@ the plant: a copy of the chair, in its state at that moment, drives the user's c
 to the end of the layer's predicted path (the layer's own assumption) and the closest the
 footprint comes to the furniture is recorded (:class:`AuditRow`). That tells an
 intervention the user's command needed (it would have touched) from a false alarm, shows the
-contacts the layer let pass, and checks the probabilities against what happened.
+contacts the layer let pass, and checks the probabilities against what happened. Beside the
+layer's probability, the audit computes the same check of the same prediction against the
+room's true map (:func:`~asgp_ros.sim.lidar.room_grid` at ``AUDIT_MAP_RESOLUTION``, placed by
+the chair's true pose at the prediction's origin): what the layer would have said with
+perfect obstacles. Where the two disagree, the obstacles the scans gave it are the cause, not
+the prediction.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -46,17 +52,26 @@ from asgp_ros.core.obstacle_memory import (
 )
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
 from asgp_ros.core.scan_match import memory_odometers
-from asgp_ros.core.shared_control import Decision, SharedControlConfig, decide, is_neutral
+from asgp_ros.core.shared_control import (
+    Decision,
+    SharedControlConfig,
+    check_covariance,
+    decide,
+    is_neutral,
+)
 from asgp_ros.serial import safety as fw
 from asgp_ros.serial.protocol import Mode
 from asgp_ros.sim.chair import Chair, ChairState
 from asgp_ros.sim.driver import Driver, DriverParams
-from asgp_ros.sim.lidar import Lidar, LidarConfig
+from asgp_ros.sim.lidar import Lidar, LidarConfig, room_grid
 from asgp_ros.sim.world import Room, room_for_surface
 
 STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
+AUDIT_MAP_RESOLUTION = 0.02
+"""Cell (m) of the room's map the audit checks the layer's predictions against: its cells
+make that check conservative by at most half a cell (the rectangle is grown by it)."""
 DEFAULT_MEMORY = MemoryConfig()
 """The memory's settings, the node's default (``memory_s`` 10 s)."""
 
@@ -76,6 +91,9 @@ class AuditRow:
         touched: that copy touched (a contact as the chair counts it).
         seconds: how long the copy drove: from now to the last step of the layer's predicted
             path (which starts at the last complete grid step, a little before now).
+        p_map: the layer's check of the same prediction, footprint and covariance against the
+            room's true map instead of the scans, the path placed by the chair's true pose at
+            the prediction's origin (NaN when that pose is not known).
     """
 
     t: float
@@ -84,6 +102,7 @@ class AuditRow:
     clearance_m: float
     touched: bool
     seconds: float
+    p_map: float = math.nan
 
 
 @dataclass
@@ -149,6 +168,22 @@ def held_clearance(chair: Chair, room: Room, command: np.ndarray, seconds: float
     touched = twin.contacts > before
     # the chair stops against an obstacle one internal step before the overlap: touching is 0
     return (min(closest, 0.0) if touched else closest), touched
+
+
+def map_probability(fld: collision.DistanceField, pred: Prediction, origin: ChairState,
+                    footprint: collision.Footprint, config: SharedControlConfig) -> float:
+    """The layer's probability of contact within the horizon for ``pred`` (the covariance
+    its check gets), against the obstacles of ``fld`` (the room's frame), the path's base
+    frame placed at the true pose ``origin``."""
+    c = collision.contact_probability(fld, pred.pose, check_covariance(pred, config),
+                                      footprint, (origin.x, origin.y, origin.theta))
+    return float(np.ravel(c.within)[0])
+
+
+def _truth_at(truth: deque[tuple[int, ChairState]], index: int) -> ChairState | None:
+    """The chair's true state after ``index`` steps of ``STEP_S``, if still held."""
+    j = len(truth) - 1 - (truth[-1][0] - index) if truth else -1
+    return truth[j][1] if 0 <= j < len(truth) and truth[j][0] == index else None
 
 
 def frame_twist(frame: tuple[float, float, float, float], state: ChairState, t: float,
@@ -260,6 +295,12 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
     extra: np.ndarray | None = None
     known: np.ndarray | None = None  # what the layer's newest check knows, in the room
+    true_map: collision.DistanceField | None = None
+    if audit:
+        g = room_grid(room, AUDIT_MAP_RESOLUTION)
+        true_map = collision.DistanceField.from_grid(collision.Grid(g.data, g.resolution,
+                                                                    g.origin))
+    truth: deque[tuple[int, ChairState]] = deque([(0, state)], maxlen=round(2.0 / STEP_S))
 
     out = DriveResult(seconds=seconds, layer=layer)
     stick = np.zeros(2)
@@ -316,6 +357,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
         active_before = active
         contacts_before = chair.contacts
         state = chair.step(applied, STEP_S)
+        truth.append((n + 1, state))
         if chair.contacts > contacts_before:
             out.contact_points.append((state.x, state.y))
             out.contact_events.append(_contact_event(t, state, user, applied, active,
@@ -358,8 +400,12 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                     # replay covers what is left of it, to its last predicted step
                     ahead = max(0.0, float(decision.prediction.times[-1]) - t)
                     closest, touched = held_clearance(chair, room, decision.user, ahead)
+                    origin = _truth_at(truth, round(decision.prediction.t0 / STEP_S))
+                    p_map = math.nan if origin is None or true_map is None else \
+                        map_probability(true_map, decision.prediction, origin, footprint,
+                                        config)
                     out.audit.append(AuditRow(t, decision.p_user, decision.command is not None,
-                                              closest, touched, ahead))
+                                              closest, touched, ahead, p_map))
     out.contacts = chair.contacts
     out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
     return out
