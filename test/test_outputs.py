@@ -118,6 +118,24 @@ def test_train_refuses_every_bad_output(work, capsys, monkeypatch):
         _refused([*base, "--out", str(out), "--force"], capsys, *watched)
 
 
+@pytest.mark.parametrize("argv", [
+    ["info", "a\nb\r.npz"],  # a missing file whose name holds a newline
+    ["info", "--json", "x.npz", "extra\n\x8d\udc92"],  # unknown arguments, the same
+    ["evaluate", "m\x1b[2J.npz", "bag"],
+])
+def test_an_error_naming_a_strange_file_stays_on_one_line(argv, capsys, tmp_path,
+                                                          monkeypatch):
+    """Control characters and undecodable bytes of a file name are escaped in the error."""
+    from asgp_ros.cli import one_line
+
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.endswith("\n") and "\x1b" not in err
+    assert err.rstrip("\n").isprintable()
+    assert one_line("a\nb\té\udc92") == "a\\nb\\té\\udc92"
+
+
 def test_train_force_replaces_only_a_model(work, capsys, tmp_path):
     target = tmp_path / "copy.npz"
     target.write_bytes(work["model"].read_bytes())

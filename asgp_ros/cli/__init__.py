@@ -30,11 +30,18 @@ class CommandError(Exception):
     """
 
 
+def one_line(text: str) -> str:
+    """``text`` with every character that is not printable (a newline, a control character,
+    the lone surrogate of an undecodable file name) escaped as Python writes it in a string
+    literal, so that an error naming a file stays on one line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class _Parser(argparse.ArgumentParser):
     """Usage errors in one line (``asgp train: error: ... (asgp train --help)``), exit 2."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,16 +81,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (CommandError, OutputError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     except OSError as exc:
         # A file system failure the command did not foresee (disk full, permission denied):
         # the user needs the path and the reason, not a traceback.
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"error: {one_line(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
         return 2
     except Terminated as exc:
-        print(f"terminated ({exc})", file=sys.stderr)
+        print(f"terminated ({one_line(str(exc))})", file=sys.stderr)
         return 128 + exc.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
