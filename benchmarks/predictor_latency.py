@@ -19,7 +19,10 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
    latency of these steps is printed too: in 1. a step follows the previous path at once,
    so whatever the node does after publishing (adaptation's learning) delays it; at the
    real rate that work ends before the next step (the joystick samples are sent at their
-   own times, 30 Hz, and the VO message just after the step's end).
+   own times, 30 Hz, and the VO message just after the step's end). The node's own p99
+   over its last 1,000 paths, two of its parts (the prediction; the path's message made
+   and published) and the ellipses' message that follows the path, are read from its
+   diagnostics after these steps: with a small ``--steps`` they are mostly real-rate paths.
 
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
@@ -238,6 +241,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
     rclpy.init()
     drv = Driver(sim_clock=sim)
     lat_ms, missed, node_p99 = np.zeros(0), 0, "nan"
+    paced_node: dict[str, str] = {}
     try:
         if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
                               and drv.node.count_publishers("predicted_path") > 0, 30.0):
@@ -268,6 +272,9 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
             sent_at[n - lag] = drv.send_vo(n)
             n += 1
         cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
+        drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
+        paced_node = {k: drv.diag.get(k, "nan") for k in (
+            "latency_p99_ms", "predict_p99_ms", "path_p99_ms", "ellipses_p99_ms")}
         paced_ms = 1e3 * np.asarray([drv.received[k] - t for k, t in sent_at.items()
                                      if k in drv.received])
     finally:
@@ -298,6 +305,11 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
         print(f"  at the real rate (a step every {1e3 * DT:.0f} ms, {len(paced_ms)} steps): "
               f"p50 {np.percentile(paced_ms, 50):.2f} ms, p99 "
               f"{np.percentile(paced_ms, 99):.2f} ms")
+        print("  inside the node, over its last 1,000 paths (mostly at the real rate with a "
+              f"small --steps): p99 {paced_node.get('latency_p99_ms', 'nan')} ms; its parts: "
+              f"prediction p99 {paced_node.get('predict_p99_ms', 'nan')} ms, the path's "
+              f"message p99 {paced_node.get('path_p99_ms', 'nan')} ms; then the ellipses' "
+              f"p99 {paced_node.get('ellipses_p99_ms', 'nan')} ms")
     clock = "/clock 35 Hz, " if sim else ""
     print(f"  CPU at 5 Hz (joystick 30 Hz, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
           f"(target < 5%)")

@@ -250,6 +250,13 @@ def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model
         keys = {kv.key for kv in h.diags[-1].status[0].values}
         assert {"joy_rate_hz", "vo_rate_hz", "joy_age_s", "vo_age_s",
                 "last_latency_ms", "reason"} <= keys
+        values = {kv.key: kv.value for kv in h.diags[-1].status[0].values}
+        # the latency (VO callback -> path published), its parts over the same paths, and
+        # the ellipses' message that follows
+        parts = [float(values[k]) for k in ("latency_p99_ms", "predict_p99_ms", "path_p99_ms",
+                                            "ellipses_p99_ms")]
+        assert all(0.0 < x < 1e4 for x in parts)
+        assert parts[1] <= parts[0] and parts[2] <= parts[0]
     finally:
         h.close()
 

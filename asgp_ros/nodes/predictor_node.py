@@ -314,6 +314,11 @@ class PredictorNode(Node):
         self._published_step: int | None = None
         self._markers_shown = False
         self._latency_ms: deque[float] = deque(maxlen=1000)
+        # VO callback -> path published, two of its parts (the prediction; the path's
+        # message made and published) and what follows it (the ellipses' message)
+        self._predict_ms: deque[float] = deque(maxlen=1000)
+        self._path_ms: deque[float] = deque(maxlen=1000)
+        self._ellipses_ms: deque[float] = deque(maxlen=1000)
         self._joy_rate = _RateMeter()
         self._vo_rate = _RateMeter()
         self._paths_published = 0
@@ -518,20 +523,25 @@ class PredictorNode(Node):
         self._last_step = step
         if step % self.every_n:
             return
+        started = time.perf_counter()
         try:
             result = self.predictor.predict(now, learn=False)
         except (ValueError, np.linalg.LinAlgError) as exc:  # a numerical failure of one step
             result = Prediction(False, Reason.PREDICTION_ERROR, f"{type(exc).__name__}: {exc}")
             self.get_logger().error(f"prediction failed at step {step}: {result.detail}",
                                     throttle_duration_sec=5.0)
+        predicted = time.perf_counter()
         self._last_result = result
         if not result.ok or (self._published_step is not None
                              and result.step <= self._published_step):
             self._learn()
             return
-        self._publish(result)
+        path_out = self._publish(result)
         self._published_step = result.step
-        self._latency_ms.append(1e3 * (time.perf_counter() - arrival))
+        if path_out is not None:
+            self._latency_ms.append(1e3 * (path_out - arrival))
+            self._predict_ms.append(1e3 * (predicted - started))
+            self._path_ms.append(1e3 * (path_out - predicted))
         self._learn()
 
     def _learn(self) -> None:
@@ -542,7 +552,9 @@ class PredictorNode(Node):
             self.get_logger().error(f"adaptation failed: {type(exc).__name__}: {exc}",
                                     throttle_duration_sec=5.0)
 
-    def _publish(self, result: Prediction) -> None:
+    def _publish(self, result: Prediction) -> float | None:
+        """Publish the path, then its ellipses; the ``perf_counter`` time when the path was
+        out (None when there was no path to publish)."""
         p = self.params
         pose, cov = result.pose, result.pos_cov
         frame = p.base_frame
@@ -550,16 +562,19 @@ class PredictorNode(Node):
             if result.origin is None:
                 self._last_result = replace(result, ok=False, reason=Reason.NO_POSE,
                                             detail="no odometry pose at the prediction time")
-                return
+                return None
             pose, cov = online.to_frame(pose, cov, result.origin)
             frame = p.odom_frame
         self.path_pub.publish(conv.path_from_poses(pose, result.times, frame, result.t0))
+        path_out = time.perf_counter()
         self._paths_published += 1
         if p.publish_uncertainty:
             ellipses = online.confidence_ellipses(cov)
             self.marker_pub.publish(
                 conv.ellipse_markers(pose[:, :2], ellipses, frame, result.t0))
             self._markers_shown = True
+            self._ellipses_ms.append(1e3 * (time.perf_counter() - path_out))
+        return path_out
 
     def _on_watchdog(self) -> None:
         now = self._now()
@@ -604,6 +619,9 @@ class PredictorNode(Node):
             "vo_age_s": age(vo_newest),
             "last_latency_ms": f"{lat[-1]:.3f}" if lat.size else "nan",
             "latency_p99_ms": f"{np.percentile(lat, 99):.3f}" if lat.size else "nan",
+            "predict_p99_ms": _p99(self._predict_ms),
+            "path_p99_ms": _p99(self._path_ms),
+            "ellipses_p99_ms": _p99(self._ellipses_ms),
             "paths_published": str(self._paths_published),
             "horizon_steps": str(self.predictor.config.horizon_steps),
             "dropped_nonfinite": str(stats.dropped_nonfinite),
@@ -644,6 +662,10 @@ class PredictorNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self.diag_pub.publish(msg)
+
+
+def _p99(ms: deque[float]) -> str:
+    return f"{np.percentile(np.asarray(ms), 99):.3f}" if ms else "nan"
 
 
 def main(args: list[str] | None = None) -> int:
