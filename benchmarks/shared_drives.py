@@ -15,7 +15,8 @@ user command, held to the end of the predicted path as the layer assumes, would 
 command touched against the probability the layer gave it, and against the probability the
 same check of the same prediction gives with the room's true map in place of the scans
 (``p_map``): where the layer's probability is high and the map's low, the scans' obstacle
-points, not the prediction, made it so.
+points, not the prediction, made it so; and the share of those obstacle points that lie
+short of the furniture (the scanner's range noise).
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
 [--fov DEG] [--modes none,memory] [--contacts] [--audit] (the README's figures: the
@@ -39,7 +40,7 @@ from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.obstacle_memory import MemoryConfig
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
-from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, drive
+from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, SHORT_OF_FURNITURE_M, drive
 
 #: the committed reproduction's tile model
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
@@ -70,7 +71,8 @@ def _one(task: tuple[str, int, str, float, float, float, bool]) -> dict[str, Any
                        else "dead_reckoning", margin=MARGIN, audit=audit)
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
-                                          r.p_map) for r in result.audit]}
+                                          r.p_map) for r in result.audit],
+                               "points": (result.obstacle_points, result.points_short)}
 
 
 def _seeds(text: str) -> list[int]:
@@ -158,6 +160,12 @@ def _print_audit(rows: list[dict[str, Any]], modes: tuple[str, ...]) -> None:
               f"{100 * (a[acted, 2] < MARGIN).mean():.1f} % with the layer's margin); "
               f"{int(a[~acted, 3].sum())} of {int((~acted).sum())} passing decisions let a "
               "touching command pass")
+        seen = sum(r["points"][0] for r in rows if r["mode"] == mode)
+        short = np.sum([r["points"][1] for r in rows if r["mode"] == mode], axis=0)
+        if seen:
+            print(f"    the checks' obstacle points: {seen}; short of the furniture by more "
+                  "than " + ", ".join(f"{100 * d:.0f} cm: {100 * c / seen:.2f} %" for d, c in
+                                      zip(SHORT_OF_FURNITURE_M, short, strict=True)))
         for col, name in ((0, "p (layer)  "), (4, "p (map)    ")):
             print(f"    {name} | decisions | mean p (layer / map) | touched | "
                   "footprint + margin touched")

@@ -274,6 +274,23 @@ def test_the_audit_checks_the_layers_decisions_without_changing_the_drive(chair_
     assert all(0.0 <= r.p_map <= 1.0 for r in rows)
     assert np.mean([r.p_map for r in rows if r.touched]) > 0.8
     assert np.mean([r.p_map for r in rows if not r.touched]) < 0.1
+    # the checks' obstacle points, counted by how far short of the furniture they lie (the
+    # scanner's 1 cm range noise: a few beyond 1 cm, fewer beyond 2 cm)
+    one, two = audited.points_short
+    assert audited.obstacle_points > 1000 and two <= one < 0.5 * audited.obstacle_points
+    assert plain.obstacle_points == 0 and plain.points_short == [0, 0]
+
+
+def test_short_of_furniture_is_the_depth_inside_the_free_floor():
+    from asgp_ros.sim.shared_drive import short_of_furniture
+    from asgp_ros.sim.world import room_for_surface
+
+    room = room_for_surface("tile")
+    x_lo, x_hi, y_lo, y_hi = room.free_box
+    pts = np.array([[x_hi, 0.0], [x_hi - 0.03, 0.0], [x_hi + 0.1, 0.0], [0.0, y_lo + 0.02],
+                    [x_lo + 0.5, y_hi - 0.01]])
+    np.testing.assert_allclose(short_of_furniture(pts, room), [0.0, 0.03, -0.1, 0.02, 0.01],
+                               atol=1e-12)
 
 
 def test_the_audits_map_check_places_the_prediction_by_the_true_pose():

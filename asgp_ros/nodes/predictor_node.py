@@ -618,7 +618,7 @@ class PredictorNode(Node):
             "joy_age_s": age(joy_newest),
             "vo_age_s": age(vo_newest),
             "last_latency_ms": f"{lat[-1]:.3f}" if lat.size else "nan",
-            "latency_p99_ms": f"{np.percentile(lat, 99):.3f}" if lat.size else "nan",
+            "latency_p99_ms": _p99(self._latency_ms),
             "predict_p99_ms": _p99(self._predict_ms),
             "path_p99_ms": _p99(self._path_ms),
             "ellipses_p99_ms": _p99(self._ellipses_ms),

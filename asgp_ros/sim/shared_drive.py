@@ -72,6 +72,9 @@ VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
 AUDIT_MAP_RESOLUTION = 0.02
 """Cell (m) of the room's map the audit checks the layer's predictions against: its cells
 make that check conservative by at most half a cell (the rectangle is grown by it)."""
+SHORT_OF_FURNITURE_M = (0.01, 0.02)
+"""The audit counts the obstacle points the layer's check gets that lie more than these (m)
+short of the furniture, inside the free floor (the scanner's range noise)."""
 DEFAULT_MEMORY = MemoryConfig()
 """The memory's settings, the node's default (``memory_s`` 10 s)."""
 
@@ -124,6 +127,11 @@ class DriveResult:
     intervention_points: list[tuple[float, float]] = field(default_factory=list)
     path: list[tuple[float, float]] = field(default_factory=list)
     audit: list[AuditRow] = field(default_factory=list)
+    obstacle_points: int = 0
+    """With ``audit``: the obstacle points the layer's checks got (scan and memory, every
+    scan), and how many of them lay short of the furniture by more than each distance of
+    ``SHORT_OF_FURNITURE_M`` (``points_short``)."""
+    points_short: list[int] = field(default_factory=lambda: [0] * len(SHORT_OF_FURNITURE_M))
 
     def summary(self) -> dict[str, float | int | bool]:
         def solve_ms(q: float) -> float:  # NaN for a drive without the layer's decisions
@@ -178,6 +186,16 @@ def map_probability(fld: collision.DistanceField, pred: Prediction, origin: Chai
     c = collision.contact_probability(fld, pred.pose, check_covariance(pred, config),
                                       footprint, (origin.x, origin.y, origin.theta))
     return float(np.ravel(c.within)[0])
+
+
+def short_of_furniture(points: np.ndarray, room: Room) -> np.ndarray:
+    """[m] how far (m) each of ``points`` (in the room) lies inside the free floor, short of
+    the furniture's front (0 or less: on or behind it)."""
+    x_lo, x_hi, y_lo, y_hi = room.free_box
+    x, y = points[:, 0], points[:, 1]
+    inside: np.ndarray = np.minimum(np.minimum(x - x_lo, x_hi - x), np.minimum(y - y_lo,
+                                                                                y_hi - y))
+    return inside
 
 
 def _truth_at(truth: deque[tuple[int, ChairState]], index: int) -> ChairState | None:
@@ -335,6 +353,11 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 elif scan_memory is not None and scan_odometer is not None:
                     extra = scan_memory.add(scan, scan_odometer.add(scan), scan_odometer.epoch)
                 known = _known_points(scan, extra, state, mount)
+                if audit:
+                    short = short_of_furniture(known, room)
+                    out.obstacle_points += short.size
+                    for i, d in enumerate(SHORT_OF_FURNITURE_M):
+                        out.points_short[i] += int(np.count_nonzero(short > d))
             if decision is not None and decision.command is not None and \
                     t - decision_t <= 0.35 and not is_neutral(user, config.neutral_deadband):
                 if n % OVERRIDE_EVERY == 0:
