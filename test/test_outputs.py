@@ -136,6 +136,26 @@ def test_an_error_naming_a_strange_file_stays_on_one_line(argv, capsys, tmp_path
     assert one_line("a\nb\té\udc92") == "a\\nb\\té\\udc92"
 
 
+def test_a_reader_that_stops_early_ends_the_command_quietly(work, tmp_path):
+    """``asgp ... | head -1``: once the pipe is closed, the command stops with exit 141
+    (128 + SIGPIPE), prints nothing on stderr (no logging traceback, no error line) and
+    leaves no partial output; found attacking ``asgp adapt``."""
+    out = tmp_path / "m.npz"
+    argv = [sys.executable, "-m", "asgp_ros.cli", "train", "--model", "constant_velocity",
+            str(work["bag"]), "--out", str(out)]
+    r, w = os.pipe()
+    os.close(r)  # the reader has gone before the first line
+    try:
+        proc = subprocess.run(argv, stdout=w, stderr=subprocess.PIPE, text=True,
+                              timeout=120, cwd=Path(__file__).resolve().parents[1])
+    finally:
+        os.close(w)
+    assert proc.returncode == 141, proc.stderr
+    assert proc.stderr == ""
+    assert not out.exists() or out.stat().st_size > 0
+    assert not [p for p in tmp_path.iterdir() if p.name != "m.npz"]
+
+
 def test_train_force_replaces_only_a_model(work, capsys, tmp_path):
     target = tmp_path / "copy.npz"
     target.write_bytes(work["model"].read_bytes())

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import pkgutil
 import sys
 import threading
@@ -35,6 +36,21 @@ def one_line(text: str) -> str:
     the lone surrogate of an undecodable file name) escaped as Python writes it in a string
     literal, so that an error naming a file stays on one line."""
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+#: Exit code when standard output is closed by its reader (128 + SIGPIPE, as a shell
+#: reports a filter that SIGPIPE ended).
+EXIT_BROKEN_PIPE = 141
+
+
+def _silence_stdout() -> None:
+    """Point standard output at /dev/null, so that the interpreter's final flush of a
+    closed pipe prints nothing."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # not a real file (tests, embedding)
+        pass
 
 
 class _Parser(argparse.ArgumentParser):
@@ -78,8 +94,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if threading.current_thread() is threading.main_thread():
         raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
+    # A reader that stops early (``asgp info MODEL | head``) ends the command quietly, as
+    # for any Unix filter: no logging traceback, no error line.
+    logging.raiseExceptions = False
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except (CommandError, OutputError) as exc:
         print(f"error: {one_line(str(exc))}", file=sys.stderr)
         return 2
