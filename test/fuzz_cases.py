@@ -1017,6 +1017,12 @@ PROFILES: dict[str, Profile] = {
                              _bags(0, 2)).map(lambda t: [t[0], *t[1]]),
         values={"--joy-axes": _AXES, "--joy-topic": _TOPICS, "--twist-topic": _TOPICS,
                 "--truth-topic": _TOPICS}),
+    "adapt": Profile(
+        positional=st.tuples(st.one_of(_paths(VALID_MODELS), _paths(MODEL_PATHS)),
+                             _bags(0, 2)).map(lambda t: [t[0], *t[1]]),
+        values={"--trained-weight": st.sampled_from(["0", "1", "0.5", "-0", "1.0000001", "-1",
+                                                     "nan", "inf", "", "x", "1e-300"]),
+                "--joy-axes": _AXES, "--joy-topic": _TOPICS, "--twist-topic": _TOPICS}),
     "reproduce": Profile(values={"--data": _paths(DATA_PATHS)}),
     "replay": Profile(
         positional=_bags(1, 1),

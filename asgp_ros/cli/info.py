@@ -9,6 +9,7 @@ import json
 from typing import Any
 
 from asgp_ros.cli import CommandError
+from asgp_ros.cli.adapt import summary_lines
 from asgp_ros.cli.train import selection_table
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
@@ -90,6 +91,7 @@ def describe(path: str, model: MotionModel) -> list[str]:
             f"{100 * sel.get('holdout_fraction', 0):.0f}% of each bag; "
             f"{secs.get('total', '?')} s"))
         lines += ["  " + line for line in selection_table(model)]
+    lines += summary_lines(meta)
     cal = model.calibration
     lines.append("variance calibration: "
                  + ("identity" if cal.is_identity else

@@ -1,0 +1,113 @@
+"""``asgp adapt``: a trained ASGP brought to a new floor, chair or user by recordings made
+there (:mod:`asgp_ros.learning.adapting`), saved as a new model file."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from asgp_ros.cli import CommandError
+from asgp_ros.cli._argtypes import number
+from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
+from asgp_ros.common.fileio import MODEL_FILE, check_output
+from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.learning.adapting import AdaptingError, OfflineAdaptOptions, adapt_model
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "adapt",
+        help="adapt a trained ASGP to recordings of a new floor, chair or user and save it "
+             "as a new model file",
+        description="Absorb every row of the bags that training would accept into the "
+                    "trained ASGP's posterior (hyperparameters and pseudo-inputs as "
+                    "trained; the rows teach a correction to the trained function), fit "
+                    "the variance calibration again on the last 20%% of each bag (held "
+                    "out, then absorbed too), and write the result as a new model file. "
+                    "Prints the held-out k-step success of the model as trained and as "
+                    "adapted. MODEL is never modified.",
+    )
+    p.add_argument("model", metavar="MODEL", help="trained ASGP model file (.npz)")
+    p.add_argument("bags", nargs="+", metavar="BAG",
+                   help="recordings of the new floor, chair or user (ROS 1 or ROS 2)")
+    p.add_argument("--out", required=True, metavar="MODEL2", help="model file to write (.npz)")
+    p.add_argument("--force", action="store_true",
+                   help="replace an existing model file at --out (never MODEL itself)")
+    p.add_argument("--trained-weight", type=number(0.0, 1.0), default=0.0,
+                   help="weight the trained data keep against the new rows: 0 (default) "
+                        "lets the new rows alone correct the trained function where they "
+                        "reach; 1 keeps the trained data whole (the posterior of old and "
+                        "new rows together)")
+    p.add_argument("--no-calibration", action="store_true",
+                   help="keep the trained variance calibration (and hold nothing out)")
+    add_topic_args(p)
+    p.set_defaults(func=run)
+
+
+def _pct(x: float | None) -> str:
+    return "  -  " if x is None else f"{100 * x:5.1f}%"
+
+
+def summary_lines(meta: dict) -> list[str]:
+    """What ``asgp adapt`` did, from the model's ``adaptation`` meta (also ``asgp info``)."""
+    ad = meta.get("adaptation")
+    if not isinstance(ad, dict):
+        return []
+    data = ad.get("data", {})
+    chans = ad.get("channels", {})
+    lines = [f"adapted to {len(data.get('bags', []))} bag(s), "
+             f"{data.get('duration_s', 0.0) / 60:.1f} min; trained data's weight "
+             f"{ad.get('trained_weight', '?')}; calibration {ad.get('calibration', '?')}"]
+    for name, ch in chans.items():
+        refused = ", ".join(f"{v} {k}" for k, v in ch.get("refused", {}).items()) or "none"
+        lines.append(f"  {name}: {ch.get('absorbed', '?')} of {ch.get('rows', '?')} rows "
+                     f"absorbed (refused: {refused}), effective size "
+                     f"{ch.get('effective_size', 0.0):.0f}")
+    held = ad.get("held_out", {})
+    before, after = held.get("trained"), held.get("adapted")
+    if before and after:
+        lines.append("  held-out success (coverage of the 95% ellipse), as trained -> "
+                     "adapted on the rest:")
+        for key in before:
+            b, a = before[key], after.get(key, {})
+            lines.append(f"    {key} s: {_pct(b.get('success'))} ({_pct(b.get('coverage_95'))})"
+                         f" -> {_pct(a.get('success'))} ({_pct(a.get('coverage_95'))}), "
+                         f"{b.get('cases', 0)} cases")
+    elif ad.get("holdout_fraction"):
+        lines.append("  held-out success: no held-out case (recordings too short)")
+    return lines
+
+
+def run(args: argparse.Namespace) -> int:
+    check_output(args.out, MODEL_FILE, inputs=[args.model, *args.bags], force=args.force)
+    seen: dict[Path, str] = {}
+    for bag in args.bags:  # a bag given twice would count its rows twice
+        key = Path(bag).resolve()
+        if key in seen:
+            raise CommandError(f"{bag}: the same recording as {seen[key]}; give each once")
+        seen[key] = bag
+    opts = OfflineAdaptOptions(trained_weight=args.trained_weight,
+                               holdout=0.0 if args.no_calibration else 0.2,
+                               calibrate=not args.no_calibration)
+    try:
+        opts.validate()
+        model = load_model(args.model)
+    except (AdaptingError, ModelFileError) as exc:
+        raise CommandError(str(exc)) from exc
+    if model.kind != "asgp":
+        raise CommandError(f"{args.model}: only an ASGP can be adapted; this model is "
+                           f"{model.kind!r}")
+    series = read_series_or_fail(args.bags, args, resample_config=model.resample_config)
+
+    def progress(stage: str, message: str) -> None:
+        print(f"[adapt {stage}] {message}", flush=True)
+
+    try:
+        adapted = adapt_model(model, series, opts, progress=progress)
+    except (AdaptingError, ValueError) as exc:
+        raise CommandError(str(exc)) from exc
+    save_model(args.out, adapted)
+    for line in summary_lines(adapted.meta):
+        print(line)
+    print(f"wrote {args.out}: {args.model} adapted (asgp info {args.out} shows it)")
+    return 0

@@ -1,0 +1,237 @@
+"""``asgp adapt`` and :mod:`asgp_ros.learning.adapting`: a trained ASGP brought to another
+floor by its recordings, written as a new model file."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from asgp_ros.cli import main
+from asgp_ros.core.adapt import AdaptConfig, OnlinePosterior
+from asgp_ros.core.modelfile import load_model, save_model
+from asgp_ros.core.resample import ResampleConfig, resample
+from asgp_ros.core.sparse_gp import SparseGP
+from asgp_ros.learning.adapting import AdaptingError, OfflineAdaptOptions, adapt_model
+from asgp_ros.learning.evaluation import TestSeries, evaluate_model
+from asgp_ros.learning.training import Series, TrainOptions, design, read_series, train
+
+SMALL = TrainOptions(kind="asgp", lags=2, coupled=True, inducing_v=20, inducing_w=20,
+                     max_iter=40)
+
+
+@pytest.fixture(scope="module")
+def floors(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Simulated recordings: tile to train on, carpet to adapt to and carpet to test on."""
+    out = tmp_path_factory.mktemp("floors")
+    bags = {}
+    for name, surface, minutes, seed in (("tile", "tile", 4, 11), ("carpet", "carpet", 8, 12),
+                                         ("carpet_test", "carpet", 3, 13)):
+        bags[name] = out / name
+        assert main(["simulate", "--surface", surface, "--minutes", str(minutes), "--seed",
+                     str(seed), "--out", str(bags[name]), "--no-truth"]) == 0
+    return bags
+
+
+@pytest.fixture(scope="module")
+def tile_model(floors: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("models") / "tile.npz"
+    save_model(path, train(read_series([str(floors["tile"])]), SMALL))
+    return path
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_adapting_to_another_floor_recovers_success_and_coverage(
+        floors: dict[str, Path], tile_model: Path) -> None:
+    model = load_model(tile_model)
+    adapted = adapt_model(model, read_series([str(floors["carpet"])]))
+    test = [TestSeries(s.name, s.res) for s in read_series([str(floors["carpet_test"])])]
+    before = evaluate_model(model, test, (1.0, 2.0)).horizons
+    after = evaluate_model(adapted, test, (1.0, 2.0)).horizons
+    # on fresh recordings of the new floor: better predictions, and honest ellipses
+    assert after["2.0"].vo.success_rate > before["2.0"].vo.success_rate + 0.08
+    for key in ("1.0", "2.0"):
+        assert before[key].vo.coverage_95 < 0.6
+        assert 0.85 <= after[key].vo.coverage_95 <= 0.99
+    ad = adapted.meta["adaptation"]
+    assert ad["calibration"] == "fitted on the held-out part"
+    held = ad["held_out"]
+    assert held["adapted"]["2.0"]["success"] > held["trained"]["2.0"]["success"]
+    # the trained model object is left as it was
+    fresh = load_model(tile_model)
+    for a, b in zip(model.channels, fresh.channels, strict=True):
+        assert np.array_equal(a.posterior.alpha, b.posterior.alpha)
+        assert np.array_equal(a.posterior.C, b.posterior.C)
+    assert model.calibration == fresh.calibration and "adaptation" not in model.meta
+
+
+def test_with_the_trained_data_whole_it_is_the_batch_posterior(floors: dict[str, Path]
+                                                               ) -> None:
+    """trained_weight = 1 absorbs every row of the recordings into the trained statistics
+    and forgets nothing: the online posterior of all the rows, which test_adapt.py shows is
+    the batch FITC posterior of the old and new rows (at the trained prior mean)."""
+    old = read_series([str(floors["tile"])])
+    new = read_series([str(floors["carpet"])])
+    model = train(old, SMALL)
+    opts = OfflineAdaptOptions(trained_weight=1.0, holdout=0.0, calibrate=False,
+                               max_distance=None)
+    adapted = adapt_model(model, new, opts)
+    fc = model.feature_config
+    Xq, _ = design(new, 0, fc)
+    for c, (trained, got) in enumerate(zip(model.channels, adapted.channels, strict=True)):
+        assert isinstance(trained, SparseGP)
+        X0, _ = design(old, c, fc)
+        X1, y1 = design(new, c, fc)
+        assert model.meta["training"]["channels"][("v", "omega")[c]]["rows"] == X0.shape[0]
+        ref = copy.deepcopy(trained)
+        OnlinePosterior.from_sparse_gp(ref, AdaptConfig(max_distance=None)).absorb_rows(X1, y1)
+        for a, b in zip(got.predict(Xq), ref.predict(Xq), strict=True):
+            assert np.array_equal(a, b)
+        st = adapted.meta["adaptation"]["channels"][("v", "omega")[c]]
+        assert st["absorbed"] == st["rows"] == X1.shape[0] and not st["refused"]
+        assert st["effective_size"] == X0.shape[0] + X1.shape[0]
+        # the file's number of data says what the posterior holds now
+        assert got.get_state()["num_data"] == X0.shape[0] + X1.shape[0]
+    assert adapted.calibration == model.calibration  # kept as trained
+    assert adapted.meta["adaptation"]["calibration"] == "kept as trained"
+
+
+def _lost_from(new: Series, t_lost: float, seed: int, config: ResampleConfig) -> Series:
+    """``new`` with the VO reporting tracking loss from ``t_lost`` on, its readings there
+    replaced by random (in range) garbage."""
+    raw = new.raw
+    lost = raw.vel_t >= t_lost
+    vel = raw.vel.copy()
+    vel[lost] = np.random.default_rng(seed).uniform(-0.5, 0.5, size=(int(lost.sum()), 2))
+    bad = dataclasses.replace(raw, vel=vel, vel_ok=raw.vel_ok & ~lost)
+    return Series(new.name, resample(bad, config), bad)
+
+
+def test_invalid_steps_never_teach_the_model(floors: dict[str, Path]) -> None:
+    model = train(read_series([str(floors["tile"])]), SMALL)
+    new = read_series([str(floors["carpet"])], resample_config=model.resample_config)[0]
+    rc = model.resample_config
+    t_mid = float(np.median(new.raw.vel_t))
+    opts = OfflineAdaptOptions(holdout=0.0, calibrate=False)
+    # two recordings that differ only in what the VO read while it reported tracking loss
+    a = adapt_model(model, [_lost_from(new, t_mid, 1, rc)], opts)
+    b = adapt_model(model, [_lost_from(new, t_mid, 2, rc)], opts)
+    X, _ = design([new], 0, model.feature_config)
+    for ca, cb in zip(a.channels, b.channels, strict=True):
+        assert np.array_equal(ca.predict(X)[0], cb.predict(X)[0])
+        assert np.array_equal(ca.predict(X)[1], cb.predict(X)[1])
+    half = a.meta["adaptation"]["channels"]["v"]["absorbed"]
+    whole = adapt_model(model, [new], opts).meta["adaptation"]["channels"]["v"]["absorbed"]
+    assert 0.3 * whole < half < 0.6 * whole
+    # a recording whose VO never tracked teaches nothing, and says so
+    with pytest.raises(AdaptingError, match="no usable row"):
+        adapt_model(model, [_lost_from(new, -np.inf, 3, rc)], opts)
+
+
+def test_options_are_checked() -> None:
+    for bad in (dict(trained_weight=1.5), dict(trained_weight=float("nan")),
+                dict(holdout=0.9), dict(holdout=0.0, calibrate=True),
+                dict(max_distance=0.0), dict(horizons_s=())):
+        with pytest.raises(AdaptingError):
+            OfflineAdaptOptions(**bad).validate()  # type: ignore[arg-type]
+
+
+def test_asgp_adapt_writes_a_model_the_predictor_can_adapt_further(
+        floors: dict[str, Path], tile_model: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "carpet.npz"
+    before = _digest(tile_model)
+    assert main(["adapt", str(tile_model), str(floors["carpet"]), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "held-out success" in printed and f"wrote {out}" in printed
+    assert _digest(tile_model) == before
+    model = load_model(out)
+    assert model.meta["adaptation"]["data"]["bags"] == [str(floors["carpet"])]
+    # asgp info tells what was done
+    assert main(["info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "adapted to 1 bag(s)" in info and "rows absorbed" in info
+    # the saved posterior can adapt online again (its LA factor is in the file)
+    for ch in model.channels:
+        assert isinstance(ch, SparseGP)
+        online = OnlinePosterior.from_sparse_gp(ch, bind=False)
+        assert online.stats.rows_absorbed == 0
+    # deterministic: the same inputs give the same file contents
+    again = tmp_path / "again.npz"
+    assert main(["adapt", str(tile_model), str(floors["carpet"]), "--out", str(again)]) == 0
+    a, b = _arrays(out), _arrays(again)
+    assert a.keys() == b.keys()
+    for key in a:
+        if key != "__meta__":
+            assert np.array_equal(a[key], b[key]), key
+
+
+def test_asgp_adapt_refuses_what_it_cannot_do_and_writes_nothing(
+        floors: dict[str, Path], tile_model: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    carpet = str(floors["carpet"])
+    before = _digest(tile_model)
+    # the output pointed at the model itself, with or without --force
+    for extra in ([], ["--force"]):
+        assert main(["adapt", str(tile_model), carpet, "--out", str(tile_model), *extra]) != 0
+        assert "refusing to overwrite" in capsys.readouterr().err
+    assert _digest(tile_model) == before
+    # an existing output is kept unless --force
+    out = tmp_path / "out.npz"
+    out.write_bytes(b"mine")
+    assert main(["adapt", str(tile_model), carpet, "--out", str(out)]) != 0
+    assert out.read_bytes() == b"mine"
+    capsys.readouterr()
+    # not an ASGP
+    mlp = tmp_path / "fol.npz"
+    assert main(["train", "--model", "first_order_lag", str(floors["tile"]), "--out",
+                 str(mlp)]) == 0
+    capsys.readouterr()
+    new = tmp_path / "new.npz"
+    assert main(["adapt", str(mlp), carpet, "--out", str(new)]) == 2
+    err = capsys.readouterr().err
+    assert "only an ASGP can be adapted" in err and len(err.strip().splitlines()) == 1
+    # a model file that is not one, a bag that is not one
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"\x00" * 100)
+    assert main(["adapt", str(junk), carpet, "--out", str(new)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert main(["adapt", str(tile_model), str(junk), "--out", str(new)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    # a weight outside [0, 1] is a usage error
+    assert main(["adapt", str(tile_model), carpet, "--out", str(new),
+                 "--trained-weight", "nan"]) == 2
+    assert not new.exists()
+
+
+def test_a_short_recording_keeps_the_trained_calibration(
+        floors: dict[str, Path], tile_model: Path, tmp_path: Path,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Half a minute gives a few dozen held-out cases: a map fitted on them is noise (a v
+    scale of 1e-5 was seen), so the trained calibration is kept, and the output says why."""
+    short = tmp_path / "short"
+    assert main(["simulate", "--surface", "carpet", "--minutes", "0.5", "--seed", "6",
+                 "--out", str(short), "--no-truth"]) == 0
+    out = tmp_path / "short.npz"
+    assert main(["adapt", str(tile_model), str(short), "--out", str(out)]) == 0
+    assert "fewer than the 300 a calibration needs" in capsys.readouterr().out
+    model, trained = load_model(out), load_model(tile_model)
+    assert model.calibration == trained.calibration
+    assert model.meta["adaptation"]["calibration"] == "kept as trained"
+    # the same recording twice would count its rows twice
+    again = tmp_path / "again.npz"
+    assert main(["adapt", str(tile_model), str(short), str(tmp_path / "." / "short"),
+                 "--out", str(again)]) == 2
+    assert "the same recording" in capsys.readouterr().err and not again.exists()
