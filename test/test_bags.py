@@ -479,3 +479,26 @@ def test_a_ros1_bag_without_its_version_line_is_refused_at_once(tmp_path):
         fh.truncate(1 << 40)  # sparse: takes no disk space
     with pytest.raises(BagError, match="not a ROS 1 bag"):
         read_streams(huge)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("value", ["&a [*a]", "[1, 2]", "3", "{x: 1}"])
+def test_metadata_naming_a_type_that_is_not_text_reads_from_a_scan(rec, tmp_path, storage,
+                                                                    value, caplog):
+    """A metadata.yaml whose topic type is a YAML alias cycle, a list, a number or a map
+    (found by benchmarks/fuzz.py, seed 3317: a TypeError and a traceback) is a damaged
+    bag: its storage is scanned as for a killed recording, or a one-line BagError."""
+    bag = write_bag(tmp_path / "drive", rec, storage=storage)
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    first = text.index("type: ") + len("type: ")
+    end = text.index("\n", first)
+    meta.write_text(text[:first] + value + text[end:])
+    with caplog.at_level("WARNING", logger="asgp_ros.recording.bags"):
+        try:
+            s = read_streams(bag)
+        except BagError as exc:
+            assert "\n" not in str(exc) and "drive" in str(exc)
+        else:
+            _check_streams(s, rec, truth=False)
+            assert "scan" in caplog.text

@@ -352,6 +352,15 @@ def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = 
         return _open_recovered(bag, BagError(
             f"{bag}: cannot open bag (corrupt or truncated): "
             f"{_one_line(f'{type(exc).__name__}: {exc}')}"), topics)
+    odd = [c for c in reader.connections
+           if not (isinstance(c.topic, str) and isinstance(c.msgtype, str))]
+    if odd:  # a damaged metadata.yaml (a list, a number or a YAML alias as a name)
+        with contextlib.suppress(Exception):
+            reader.close()
+        return _open_recovered(bag, BagError(
+            f"{bag}: cannot open bag: its metadata names a topic or a message type that is "
+            f"not text ({_one_line(repr(odd[0].topic))[:60]} "
+            f"[{_one_line(repr(odd[0].msgtype))[:60]}])"), topics)
     return reader
 
 
