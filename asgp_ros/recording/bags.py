@@ -1546,9 +1546,15 @@ def _open_recovered(path: str | os.PathLike[str], why: BagError,
         recovered = recover_bag(path, topics)
     except BagError as exc:
         raise BagError(f"{why}; {exc}" if str(exc) not in str(why) else str(why)) from exc
-    log.warning("%s", recovered.damage.summary())
-    log.warning("%s: read from a scan of the damaged bag; `asgp bag repair` writes a clean "
-                "copy", recovered.damage.bag)
+    damage = recovered.damage
+    if damage.intact:  # the storage is whole; what failed is around it (its metadata.yaml)
+        log.warning("%s; its storage is intact (%s, %d messages): read from a scan of it; "
+                    "`asgp bag repair` writes a clean copy", why, damage.storage,
+                    damage.messages)
+    else:
+        log.warning("%s", damage.summary())
+        log.warning("%s: read from a scan of the damaged bag; `asgp bag repair` writes a "
+                    "clean copy", damage.bag)
     store = get_typestore(Stores.ROS1_NOETIC if recovered.ros1 else Stores.ROS2_JAZZY)
     return _RecoveredReader(recovered, store)
 
