@@ -66,8 +66,10 @@ def summary_lines(meta: dict) -> list[str]:
     held = ad.get("held_out", {})
     before, after = held.get("trained"), held.get("adapted")
     if before and after:
-        lines.append("  held-out success (coverage of the 95% ellipse), as trained -> "
-                     "adapted on the rest:")
+        cv = any(row.get("coverage_cross_validated") for row in after.values())
+        lines.append("  held-out success (coverage of the 95% ellipse"
+                     + (", cross-validated when adapted" if cv else "")
+                     + "), as trained -> adapted on the rest:")
         for key in before:
             b, a = before[key], after.get(key, {})
             lines.append(f"    {key} s: {_pct(b.get('success'))} ({_pct(b.get('coverage_95'))})"

@@ -25,7 +25,9 @@ made once, from recordings, and kept:
    (:func:`~asgp_ros.learning.training.calibrate`, cross-validated, kept only where it
    brings the held-out coverage closer to 95 %): the trained one describes the old floor.
    The held-out k-step success of the model as trained and as adapted (on the training
-   part) is recorded, so that the gain, or its absence, is visible.
+   part) is recorded, so that the gain, or its absence, is visible; the adapted model's
+   held-out coverage is the calibration's cross-validated one (each half of the held-out
+   cases scored with the map fitted on the other).
 4. The held-out rows are absorbed too, and the model is written with the trained
    configuration, the new posterior and calibration, and in its meta what was done
    (``adaptation``).
@@ -243,6 +245,13 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
                                       "calibration is kept")
         after = _held_out_scores(dataclasses.replace(adapted_fit, calibration=calibration),
                                  held, opts)
+        if after is not None and cal_meta.get("fitted") and cal_meta.get("applied", True):
+            # the map was fitted on these cases: their coverage is the cross-validated one
+            # (each half scored with the map of the other), not the in-sample figure
+            cv = cal_meta.get("by_horizon", {})
+            for key, row in after.items():
+                row["coverage_95"] = cv.get(key, {}).get("calibrated")
+                row["coverage_cross_validated"] = bool(cal_meta.get("cross_validated"))
         absorber.absorb(held)
     stats = [online.stats for online in absorber.online]
     for ch, st in zip(absorber.chans, stats, strict=True):
