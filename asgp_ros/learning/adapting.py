@@ -225,7 +225,8 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
     report("absorb", f"{absorber.rows[0]} rows of the training part (last "
                      f"{100 * opts.holdout:.0f}% of each recording held out)")
     before = after = None
-    calibration, cal_meta = model.calibration, {"fitted": False, "reason": "kept as trained"}
+    calibration = model.calibration
+    cal_meta: dict[str, Any] = {"fitted": False, "reason": "kept as trained"}
     if held:
         adapted_fit = absorber.adapted()
         before = _held_out_scores(model, held, opts)
