@@ -38,7 +38,6 @@ on the same cases beside them. Prints figures only (no assertions).
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import math
 import os
@@ -54,11 +53,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from asgp_ros.core.adapt import AdaptConfig, OnlinePosterior  # noqa: E402
-from asgp_ros.core.features import CHANNELS  # noqa: E402
 from asgp_ros.core.modelfile import load_model  # noqa: E402
 from asgp_ros.core.models import MotionModel  # noqa: E402
-from asgp_ros.core.sparse_gp import SparseGP  # noqa: E402
+from asgp_ros.learning.adapting import OfflineAdaptOptions, adapt_model  # noqa: E402
 from asgp_ros.learning.evaluation import TestSeries, evaluate_model  # noqa: E402
 from asgp_ros.learning.training import (  # noqa: E402
     Series,
@@ -92,19 +89,12 @@ class LinearCorrection:
 
 
 def adapted(model: MotionModel, learn: list[Series], trained_mean: bool) -> MotionModel:
-    """MODEL adapted (``OnlinePosterior``) to every row of ``learn``: none of them forgotten,
-    the trained data forgotten at once (their weight is 0 from the first row on)."""
-    config = AdaptConfig(half_life_rows=1e15, trained_half_life=1e-9, trained_floor=0.0,
-                         trained_mean=trained_mean)
-    chans = []
-    for c, ch in enumerate(model.channels):
-        if not isinstance(ch, SparseGP):
-            raise SystemExit(f"{CHANNELS[c]}: not an ASGP channel ({type(ch).__name__})")
-        gp = copy.deepcopy(ch)
-        X, y = design(learn, c, model.feature_config)
-        OnlinePosterior.from_sparse_gp(gp, config).absorb_rows(X, y)
-        chans.append(gp)
-    return dataclasses.replace(model, channels=(chans[0], chans[1]))
+    """MODEL adapted to every row of ``learn`` (``asgp adapt``'s
+    :func:`~asgp_ros.learning.adapting.adapt_model`): none of them forgotten, the trained
+    data forgotten at once (their weight is 0 from the first row on), nothing held out."""
+    opts = OfflineAdaptOptions(trained_weight=0.0, holdout=0.0, calibrate=False,
+                               trained_mean=trained_mean)
+    return adapt_model(model, learn, opts)
 
 
 def corrected(model: MotionModel, learn: list[Series]) -> MotionModel:

@@ -104,6 +104,9 @@ class OfflineAdaptOptions:
             refused (None: none is).
         horizons_s, threshold_m: the k-step criterion of the held-out scores and the
             calibration's coverage table.
+        trained_mean: the rows teach a correction to the trained function (A9, the
+            default); False: the function itself, against the constant prior mean (A6, for
+            comparisons: ``benchmarks/adapt_data.py``).
     """
 
     trained_weight: float = 0.0
@@ -112,6 +115,7 @@ class OfflineAdaptOptions:
     max_distance: float | None = AdaptConfig.max_distance
     horizons_s: tuple[float, ...] = HORIZONS_S
     threshold_m: float = THRESHOLD_M
+    trained_mean: bool = True
 
     def validate(self) -> None:
         if not (math.isfinite(self.trained_weight) and 0.0 <= self.trained_weight <= 1.0):
@@ -131,10 +135,11 @@ class OfflineAdaptOptions:
 
     def config(self) -> AdaptConfig:
         """The online posterior's settings of this update (A7 of :mod:`asgp_ros.core.adapt`)."""
-        if self.trained_weight == 1.0:
-            return AdaptConfig(max_distance=self.max_distance)  # nothing forgotten: A6
+        if self.trained_weight == 1.0:  # nothing forgotten: A6
+            return AdaptConfig(max_distance=self.max_distance, trained_mean=self.trained_mean)
         return AdaptConfig(half_life_rows=_NEVER_ROWS, trained_half_life=_AT_ONCE_ROWS,
-                           trained_floor=self.trained_weight, max_distance=self.max_distance)
+                           trained_floor=self.trained_weight, max_distance=self.max_distance,
+                           trained_mean=self.trained_mean)
 
 
 def _channels(model: MotionModel) -> tuple[SparseGP, SparseGP]:
