@@ -210,6 +210,12 @@ def test_asgp_adapt_refuses_what_it_cannot_do_and_writes_nothing(
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert main(["adapt", str(tile_model), str(junk), "--out", str(new)]) == 2
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    # a symbolic link loop as a bag (found by benchmarks/fuzz.py, seed 5151: a traceback)
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    assert main(["adapt", str(tile_model), str(loop), "--out", str(new)]) == 2
+    err = capsys.readouterr().err
+    assert "loop" in err and len(err.strip().splitlines()) == 1
     # a weight outside [0, 1] is a usage error
     assert main(["adapt", str(tile_model), carpet, "--out", str(new),
                  "--trained-weight", "nan"]) == 2

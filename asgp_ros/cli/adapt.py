@@ -4,7 +4,7 @@ there (:mod:`asgp_ros.learning.adapting`), saved as a new model file."""
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+import os
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
@@ -82,9 +82,9 @@ def summary_lines(meta: dict) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, MODEL_FILE, inputs=[args.model, *args.bags], force=args.force)
-    seen: dict[Path, str] = {}
+    seen: dict[str, str] = {}
     for bag in args.bags:  # a bag given twice would count its rows twice
-        key = Path(bag).resolve()
+        key = os.path.realpath(bag)  # (a symbolic link loop stays a path: the reader says)
         if key in seen:
             raise CommandError(f"{bag}: the same recording as {seen[key]}; give each once")
         seen[key] = bag
