@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -618,6 +619,45 @@ class _TornPool:
 
     def terminate(self) -> None:
         raise EOFError("Ran out of input")
+
+
+class _StuckPool:
+    """A pool whose teardown never returns, as CPython's did once its workers were gone:
+    its task handler blocked writing to the task queue that nobody read, and terminate()
+    waited for it (benchmarks/fuzz.py, seed 5151: ``asgp reproduce`` took 10 s to stop)."""
+
+    def __init__(self, workers) -> None:
+        self._pool = workers
+
+    def terminate(self) -> None:
+        threading.Event().wait()
+
+
+def test_a_pool_whose_teardown_never_returns_stops_when_its_workers_have(monkeypatch):
+    """The wait for a stopping pool ends when its workers have ended, not after the whole
+    grace period and another (here 2 x 60 s: the test would fail at its 20-s bound)."""
+    import multiprocessing
+
+    from asgp_ros.common import fileio
+
+    monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 60.0)
+    worker = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,),
+                                                         daemon=True)
+    worker.start()
+    stopped = threading.Event()
+
+    def stop() -> None:
+        fileio._stop_pool(_StuckPool([worker]), set())  # type: ignore[arg-type]
+        stopped.set()
+
+    try:
+        threading.Thread(target=stop, daemon=True).start()
+        assert stopped.wait(20.0), "the stop waited for a teardown that never returns"
+        assert not worker.is_alive()  # it ended on its SIGTERM
+    finally:
+        if worker.is_alive():
+            worker.kill()
+        worker.join()
 
 
 def _sleep_ignoring_sigterm() -> None:

@@ -203,6 +203,10 @@ def interruptible_imap(pool: multiprocessing.pool.Pool, fn: Callable[[_T], _R],
 #: How long the workers of a pool that is being stopped get to end on SIGTERM before
 #: they are killed.
 POOL_STOP_GRACE_S = 5.0
+#: How often a stopping pool looks whether its workers have ended, and how long its
+#: ``terminate()`` may still take once they all have.
+_POOL_STOP_POLL_S = 0.05
+_POOL_STOP_AFTER_KILL_S = 1.0
 
 
 @contextlib.contextmanager
@@ -263,7 +267,10 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     half-way through reading a task leaves part of a message there (``EOFError: Ran out of
     input`` from the pipe, seen under load). Its failure is not the command's: it is
     swallowed (the pool is being thrown away), and every worker still alive after the grace
-    period is killed whether the helper thread ended or not.
+    period is killed whether the helper thread ended or not. Or it may never return: once
+    every worker is gone, nothing reads the task queue, and a teardown waiting to write
+    there waits for good. So the wait ends as soon as the workers have (not at the end of
+    the grace period), and the helper thread gets :data:`_POOL_STOP_AFTER_KILL_S` more.
     """
     workers = _pool_workers(pool, others)
     for worker in workers:
@@ -278,14 +285,22 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
     deadline = time.monotonic() + POOL_STOP_GRACE_S
     stopper = threading.Thread(target=terminate, name="pool-stop", daemon=True)
     stopper.start()
-    stopper.join(POOL_STOP_GRACE_S)
+    while time.monotonic() < deadline:
+        stopper.join(_POOL_STOP_POLL_S)
+        if not stopper.is_alive() or not any(
+                w.is_alive() for w in {*workers, *_pool_workers(pool, others)}):
+            break
     left = [w for w in {*workers, *_pool_workers(pool, others)} if w.is_alive()]
     if stopper.is_alive() or left:
         for worker in left:  # what is left of the grace period (a failed terminate() ends
             worker.join(max(0.0, deadline - time.monotonic()))  # early), then the kill
             if worker.is_alive():
                 worker.kill()
-        stopper.join(POOL_STOP_GRACE_S)
+        # With every worker gone, terminate() either ends at once or never: it can be
+        # stuck for good on the task queue that no worker reads any more (its own task
+        # handler blocked in a write; seen by benchmarks/fuzz.py, seed 5151, as a
+        # 10-second stop of ``asgp reproduce``). The daemon thread is then left behind.
+        stopper.join(_POOL_STOP_AFTER_KILL_S)
 
 
 def _pool_workers(pool: multiprocessing.pool.Pool,
