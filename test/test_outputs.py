@@ -621,6 +621,14 @@ class _TornPool:
         raise EOFError("Ran out of input")
 
 
+def _sleep_until_sigterm() -> None:
+    """A worker that ends on SIGTERM, as a pool's do, whatever the forking test process had
+    blocked or handled (a test before may have left SIGTERM blocked in the main thread)."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGTERM])
+    time.sleep(60)
+
+
 class _StuckPool:
     """A pool whose teardown never returns, as CPython's did once its workers were gone:
     its task handler blocked writing to the task queue that nobody read, and terminate()
@@ -641,7 +649,7 @@ def test_a_pool_whose_teardown_never_returns_stops_when_its_workers_have(monkeyp
     from asgp_ros.common import fileio
 
     monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 60.0)
-    worker = multiprocessing.get_context("fork").Process(target=time.sleep, args=(60,),
+    worker = multiprocessing.get_context("fork").Process(target=_sleep_until_sigterm,
                                                          daemon=True)
     worker.start()
     stopped = threading.Event()
