@@ -621,11 +621,14 @@ class _TornPool:
         raise EOFError("Ran out of input")
 
 
-def _sleep_until_sigterm() -> None:
+def _sleep_until_sigterm(ready) -> None:  # type: ignore[no-untyped-def]
     """A worker that ends on SIGTERM, as a pool's do, whatever the forking test process had
-    blocked or handled (a test before may have left SIGTERM blocked in the main thread)."""
+    blocked or handled (in a full run an earlier in-process test has received a SIGTERM, and
+    the handler of raise_on_termination ignores a repeated one); ``ready`` is set once the
+    signal would end it."""
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGTERM])
+    ready.set()
     time.sleep(60)
 
 
@@ -649,9 +652,11 @@ def test_a_pool_whose_teardown_never_returns_stops_when_its_workers_have(monkeyp
     from asgp_ros.common import fileio
 
     monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 60.0)
-    worker = multiprocessing.get_context("fork").Process(target=_sleep_until_sigterm,
-                                                         daemon=True)
+    ctx = multiprocessing.get_context("fork")
+    ready = ctx.Event()
+    worker = ctx.Process(target=_sleep_until_sigterm, args=(ready,), daemon=True)
     worker.start()
+    assert ready.wait(20.0)
     stopped = threading.Event()
 
     def stop() -> None:
