@@ -241,3 +241,25 @@ def test_a_short_recording_keeps_the_trained_calibration(
     assert main(["adapt", str(tile_model), str(short), str(tmp_path / "." / "short"),
                  "--out", str(again)]) == 2
     assert "the same recording" in capsys.readouterr().err and not again.exists()
+
+
+def test_blocks_and_refusals(floors: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rows are absorbed in blocks of bounded size, with the same posterior as one block;
+    when every row is refused (here all beyond a tiny max_distance), nothing is written as
+    if adapted: the error names the reason."""
+    from asgp_ros.learning import adapting
+
+    model = train(read_series([str(floors["tile"])]), SMALL)
+    new = read_series([str(floors["carpet"])])
+    opts = OfflineAdaptOptions(holdout=0.0, calibrate=False)
+    whole = adapt_model(model, new, opts)
+    monkeypatch.setattr(adapting, "BLOCK_ROWS", 97)
+    blocks = adapt_model(model, new, opts)
+    X, _ = design(new, 0, model.feature_config)
+    for a, b in zip(whole.channels, blocks.channels, strict=True):
+        for pa, pb in zip(a.predict(X), b.predict(X), strict=True):
+            np.testing.assert_allclose(pb, pa, rtol=1e-9, atol=1e-12)
+    assert blocks.meta["adaptation"]["channels"]["v"]["absorbed"] == X.shape[0]
+    with pytest.raises(AdaptingError, match=r"no row could be absorbed.*outside"):
+        adapt_model(model, new, OfflineAdaptOptions(holdout=0.0, calibrate=False,
+                                                    max_distance=1e-6))

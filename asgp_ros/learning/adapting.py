@@ -79,6 +79,9 @@ _NEVER_ROWS = 1e15
 _AT_ONCE_ROWS = 1e-9
 
 
+#: Rows absorbed per block (one posterior each): the block's kernel rows take
+#: 2 x BLOCK_ROWS x M floats (32 MB at M = 200), whatever the length of the recordings.
+BLOCK_ROWS = 10_000
 #: The fewest held-out cases the calibration is fitted again on (a speed regime's own
 #: minimum, :data:`asgp_ros.core.calibration.MIN_REGIME_CASES`): fewer (a recording of a
 #: few minutes) keep the trained calibration rather than trust a map fitted on a handful.
@@ -175,7 +178,8 @@ class _Absorber:
             except TrainingError:
                 continue  # no valid row in these pieces
             self.rows[c] += int(X.shape[0])
-            online.absorb_rows(X, y)
+            for start in range(0, X.shape[0], BLOCK_ROWS):  # bounded memory per block
+                online.absorb_rows(X[start:start + BLOCK_ROWS], y[start:start + BLOCK_ROWS])
 
     def adapted(self) -> MotionModel:
         """The model with the channels' current posteriors (copies: later rows leave it)."""
@@ -260,6 +264,10 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
                 row["coverage_cross_validated"] = bool(cal_meta.get("cross_validated"))
         absorber.absorb(held)
     stats = [online.stats for online in absorber.online]
+    for name, st in zip(CHANNELS, stats, strict=True):
+        if st.rows_absorbed == 0:  # every block refused: the model would be the trained one
+            refused = ", ".join(f"{v} {k}" for k, v in st.rejected.items() if v) or "none"
+            raise AdaptingError(f"{name}: no row could be absorbed (refused: {refused})")
     for ch, st in zip(absorber.chans, stats, strict=True):
         ch._num_data = round(st.effective_size)  # the rows the posterior now holds
     adapted = absorber.adapted()
