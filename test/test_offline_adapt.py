@@ -236,6 +236,15 @@ def test_a_short_recording_keeps_the_trained_calibration(
     model, trained = load_model(out), load_model(tile_model)
     assert model.calibration == trained.calibration
     assert model.meta["adaptation"]["calibration"] == "kept as trained"
+    # a recording the model was trained on: said, since its rows are in the posterior
+    trained = tmp_path / "trained.npz"
+    assert main(["train", "--lags", "2", "--coupled", "--inducing-v", "20", "--inducing-w",
+                 "20", "--max-iter", "20", "--no-calibration", str(short), "--out",
+                 str(trained)]) == 0
+    capsys.readouterr()
+    assert main(["adapt", str(trained), str(short), "--out", str(tmp_path / "t2.npz"),
+                 "--trained-weight", "1"]) == 0
+    assert "is one of the recordings" in capsys.readouterr().out
     # the same recording twice would count its rows twice
     again = tmp_path / "again.npz"
     assert main(["adapt", str(tile_model), str(short), str(tmp_path / "." / "short"),

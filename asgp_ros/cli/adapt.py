@@ -99,6 +99,14 @@ def run(args: argparse.Namespace) -> int:
     if model.kind != "asgp":
         raise CommandError(f"{args.model}: only an ASGP can be adapted; this model is "
                            f"{model.kind!r}")
+    trained_on = {os.path.realpath(b) for b in model.meta.get("training_data", {}).get("bags", [])
+                  if isinstance(b, str) and os.path.exists(b)}
+    for bag in args.bags:
+        if os.path.realpath(bag) in trained_on:
+            print(f"warning: {bag} is one of the recordings {args.model} was trained on: its "
+                  "rows are in the posterior already"
+                  + (" and count twice with --trained-weight 1"
+                     if args.trained_weight > 0.0 else ""), flush=True)
     series = read_series_or_fail(args.bags, args, resample_config=model.resample_config)
 
     def progress(stage: str, message: str) -> None:
