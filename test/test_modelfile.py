@@ -418,6 +418,26 @@ def test_resample_settings_out_of_range_are_refused(saved: Path, field: str,
     expect_error(saved, f"invalid settings: {field} must be in")
 
 
+@pytest.mark.parametrize("where", ["resample.stale_after_s", "resample.rate_hz", "rate_hz",
+                                   "calibration.scale", "calibration.speed_factors"])
+@pytest.mark.parametrize("sign", [1, -1])
+def test_an_integer_beyond_floats_range_is_refused(saved: Path, where: str, sign: int) -> None:
+    """JSON holds integers of any size: 10**400 in a setting raised OverflowError with a
+    traceback (benchmarks/fuzz.py, seed 7373, in resample.stale_after_s; the same in
+    rate_hz and the calibration)."""
+    huge = sign * 10**400
+
+    def change(m: dict[str, Any]) -> None:
+        section, _, key = where.rpartition(".")
+        target = m[section] if section else m
+        target[key] = [huge, 1.0] if key == "scale" else [huge] if key == "speed_factors" \
+            else huge
+
+    rewrite(saved, edit_meta(change))
+    err = expect_error(saved, "")
+    assert "\n" not in str(err) and len(str(err)) < 2000
+
+
 @pytest.mark.parametrize("value", ["end", "", None, 1, ["midpoint"], "MIDPOINT"])
 def test_an_unknown_vo_stamp_convention_is_refused(saved: Path, value: object) -> None:
     rewrite(saved, edit_meta(lambda m: m["resample"].update(vel_stamp=value)))

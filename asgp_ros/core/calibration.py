@@ -75,6 +75,14 @@ FIT_POSITION_STD_M = 1e-3
 TARGET_COVERAGE = 0.95
 
 
+def _finite(x: int | float) -> bool:
+    """A finite number (an integer too large for a float is not: a hostile file)."""
+    try:
+        return math.isfinite(x)
+    except OverflowError:
+        return False
+
+
 class CalibrationError(ValueError):
     """The calibration cannot be fitted or read; the message says why."""
 
@@ -105,7 +113,7 @@ class VarianceCalibration:
                                        f"got {len(values)}")
             for x in values:
                 if isinstance(x, bool) or not isinstance(x, int | float) \
-                        or not math.isfinite(x) or not lo <= x <= hi:
+                        or not _finite(x) or not lo <= x <= hi:
                     raise CalibrationError(f"calibration {name} must hold numbers in "
                                            f"[{lo:g}, {hi:g}], got {x!r}")
             object.__setattr__(self, name, tuple(float(x) for x in values))

@@ -63,7 +63,7 @@ from asgp_ros.common.fileio import atomic_path
 from asgp_ros.core.calibration import CalibrationError, VarianceCalibration
 from asgp_ros.core.features import CHANNELS, FeatureConfig
 from asgp_ros.core.models import MotionModel, get_kind, registered_kinds
-from asgp_ros.core.resample import ResampleConfig
+from asgp_ros.core.resample import RESAMPLE_RANGES, ResampleConfig
 
 logger = logging.getLogger(__name__)
 
@@ -506,8 +506,10 @@ def _check_meta(p: Path, meta: Any, kind: str | None
         raise ModelFileError(p, f"invalid settings: {exc}") from exc
     rate = meta.get("rate_hz", resample_cfg.rate_hz)
     if (isinstance(rate, bool) or not isinstance(rate, int | float)
+            or abs(rate) > RESAMPLE_RANGES["rate_hz"][1]  # (an int beyond float's range too)
             or not math.isclose(rate, resample_cfg.rate_hz)):
-        raise ModelFileError(p, f"rate_hz {rate!r} disagrees with the resample settings")
+        raise ModelFileError(p, f"rate_hz {repr(rate)[:40]} disagrees with the resample "
+                                "settings")
     manifest = _require(p, meta, "arrays", dict)
     if len(manifest) >= MAX_MEMBERS:
         raise ModelFileError(p, f"the manifest lists {len(manifest)} arrays, more than "
