@@ -126,6 +126,9 @@ class SimulatedBoard:
         self.sent: list[SentSample] = []
         self.frames_dropped = 0       # frames the pty could not take (nobody reading)
         self.revert_events: list[tuple[int, int]] = []  # (revert ms, last override ms)
+        # the status of each revert's tick: WATCHDOG set for a revert by the watchdog, not
+        # for one by a MODE frame (the host handing the chair back, or its link resetting)
+        self.revert_status: list[Status] = []
         # host-loss resets to passthrough, on the board's clock: (reset ms, last host ms)
         self.host_lost_events: list[tuple[int, int]] = []
         self.error: BaseException | None = None
@@ -332,6 +335,7 @@ class SimulatedBoard:
         if Status.OVERRIDE_ACTIVE in before and Status.OVERRIDE_ACTIVE not in out.status \
                 and Status.NEUTRAL_STOP not in out.status:
             self.revert_events.append((now_ms, self._logic.safety.override_ms))
+            self.revert_status.append(out.status)
         if Status.HOST_LOST in out.status and Status.HOST_LOST not in before:
             self.host_lost_events.append((now_ms, self._logic.safety.host_ms))
         cal = self._cal
