@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -272,3 +273,55 @@ def test_blocks_and_refusals(floors: dict[str, Path], monkeypatch: pytest.Monkey
     with pytest.raises(AdaptingError, match=r"no row could be absorbed.*outside"):
         adapt_model(model, new, OfflineAdaptOptions(holdout=0.0, calibrate=False,
                                                     max_distance=1e-6))
+
+
+def test_a_calibration_that_training_would_not_apply_is_said_as_it_is(
+        floors: dict[str, Path], tile_model: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """When the map fitted on the held-out part moves its coverage away from 95 %
+    (cross-validated), the adapted model has no calibration, as training decides; its meta
+    said 'kept as trained' for it."""
+    from asgp_ros.core.calibration import VarianceCalibration
+    from asgp_ros.learning import adapting
+
+    def not_applied(*_args, **_kwargs):  # type: ignore[no-untyped-def]
+        return VarianceCalibration(), {"fitted": True, "applied": False, "cases": 500,
+                                       "cross_validated": True, "reason": "not applied: ..."}
+
+    monkeypatch.setattr(adapting, "_calibrate_step", not_applied)
+    model = dataclasses.replace(load_model(tile_model),
+                                calibration=VarianceCalibration(scale=(2.0, 3.0)))
+    adapted = adapt_model(model, read_series([str(floors["carpet"])]))
+    assert adapted.calibration.is_identity
+    assert adapted.meta["adaptation"]["calibration"].startswith("none")
+
+
+def _with_meta(src: Path, dest: Path, change) -> Path:  # type: ignore[no-untyped-def]
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["__meta__"][()]))
+    change(meta["meta"])
+    arrays["__meta__"] = np.array(json.dumps(meta))
+    np.savez(dest, **arrays)
+    return dest
+
+
+@pytest.mark.parametrize("record", [
+    {"training_data": [1, 2]},
+    {"training_data": {"bags": "abc", "duration_s": "x"}},
+    {"adaptation": {"data": [1], "channels": [1], "held_out": 3}},
+    {"adaptation": {"data": {"bags": 5}, "channels": {"v": {"effective_size": "x"}},
+                    "held_out": {"trained": {"1.0": 3}, "adapted": {"1.0": {}}}}},
+    {"training": ["x"], "selection": {"candidates": 7}, "calibration": {"fitted": 1}},
+])
+def test_a_model_file_with_a_record_of_another_shape(
+        floors: dict[str, Path], tile_model: Path, tmp_path: Path, record: dict,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The metadata record of a model file is free JSON: a section of another shape made
+    asgp info and asgp adapt fail with a traceback. Now info says which section it cannot
+    read and shows the rest; adapt does not need the record."""
+    bad = _with_meta(tile_model, tmp_path / "odd.npz", lambda m: m.update(record))
+    assert main(["info", str(bad)]) == 0
+    out = capsys.readouterr().out
+    assert "variance calibration" in out
+    assert main(["adapt", str(bad), str(floors["carpet"]), "--out", str(tmp_path / "o.npz")]) == 0
+    capsys.readouterr()

@@ -11,7 +11,12 @@ from asgp_ros.cli._argtypes import number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.common.fileio import MODEL_FILE, check_output
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
-from asgp_ros.learning.adapting import AdaptingError, OfflineAdaptOptions, adapt_model
+from asgp_ros.learning.adapting import (
+    AdaptingError,
+    OfflineAdaptOptions,
+    adapt_model,
+    check_adaptable,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -94,12 +99,13 @@ def run(args: argparse.Namespace) -> int:
     try:
         opts.validate()
         model = load_model(args.model)
+        check_adaptable(model)  # before reading the bags
     except (AdaptingError, ModelFileError) as exc:
-        raise CommandError(str(exc)) from exc
-    if model.kind != "asgp":
-        raise CommandError(f"{args.model}: only an ASGP can be adapted; this model is "
-                           f"{model.kind!r}")
-    trained_on = {os.path.realpath(b) for b in model.meta.get("training_data", {}).get("bags", [])
+        raise CommandError(f"{args.model}: {exc}" if isinstance(exc, AdaptingError)
+                           else str(exc)) from exc
+    data = model.meta.get("training_data")  # (a record: any shape in a foreign file)
+    bags = data.get("bags") if isinstance(data, dict) else None
+    trained_on = {os.path.realpath(b) for b in (bags if isinstance(bags, list) else [])
                   if isinstance(b, str) and os.path.exists(b)}
     for bag in args.bags:
         if os.path.realpath(bag) in trained_on:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from typing import Any
 
 from asgp_ros.cli import CommandError
@@ -61,48 +62,82 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
 _STAMPS = {"midpoint": "the middle of its frame interval", "frame": "its frame's stamp"}
 
 
-def describe(path: str, model: MotionModel) -> list[str]:
-    fc = model.feature_config
-    meta = model.meta
-    training = meta.get("training", {})
-    lines = [f"{path}: {model.kind}, s = {fc.lags}, "
-             f"{'coupled' if fc.coupled else 'one axis per channel'}, "
-             f"{model.rate_hz:g} Hz grid, VO read at "
-             f"{_STAMPS[model.resample_config.vel_stamp]}, "
-             f"{training.get('configuration', 'explicit')} configuration"]
+#: What a section's description may raise on a model file whose metadata record (free
+#: JSON: what training, selection, calibration and adaptation wrote) has another shape.
+_MALFORMED = (AttributeError, TypeError, KeyError, ValueError, IndexError)
+
+
+def _section(name: str, lines: Callable[[], list[str]]) -> list[str]:
+    """``lines()``, or one line saying the section's record is malformed: a model file's
+    metadata is a record for people, and a damaged one must not hide the rest."""
+    try:
+        return lines()
+    except _MALFORMED as exc:
+        return [f"{name}: not readable in this file ({type(exc).__name__})"]
+
+
+def _channel_lines(training: dict[str, Any]) -> list[str]:
+    lines = []
     for ch, info in training.get("channels", {}).items():
         extras = [f"{k} {info[k]}" for k in ("num_inducing", "rows", "posterior_rows",
                                              "iterations", "epochs") if k in info]
         if "noise_std" in info:
             extras.append(f"noise std {info['noise_std']:.4g}")
         lines.append(f"  {ch}: " + ", ".join(extras))
-    data = meta.get("training_data", {})
-    if data:
-        lines.append(f"training data: {len(data.get('bags', []))} bag(s), "
-                     f"{data.get('duration_s', 0.0) / 60:.1f} min, "
-                     f"{data.get('training_rows', '?')} rows, {data.get('segments', '?')} "
-                     f"segments, stale {100 * data.get('stale_fraction', 0.0):.1f}%")
-    sel = meta.get("selection")
-    if isinstance(sel, dict):
-        secs = sel.get("seconds", {})
-        lines.append("automatic configuration: " + (
-            f"fell back ({sel['fallback']})" if "fallback" in sel else
-            f"chosen by {sel.get('criterion', '?')} on the last "
-            f"{100 * sel.get('holdout_fraction', 0):.0f}% of each bag; "
-            f"{secs.get('total', '?')} s"))
-        lines += ["  " + line for line in selection_table(model)]
-    lines += summary_lines(meta)
-    cal = model.calibration
-    lines.append("variance calibration: "
-                 + ("identity" if cal.is_identity else
-                    f"scale v {cal.scale[0]:.4g}, omega {cal.scale[1]:.4g}; floor v "
-                    f"{cal.floor[0]:.3g} (m/s)^2, omega {cal.floor[1]:.3g} (rad/s)^2; "
-                    "speed regimes "
-                    + ", ".join(f"{f:.3g}" for f in cal.speed_factors)
-                    + (f" split at |v| = {', '.join(f'{e:.3g}' for e in cal.speed_edges)}"
-                       " m/s" if cal.speed_edges else "")))
-    lines += ["  " + line for line in coverage_lines(meta.get("calibration", {}))]
     return lines
+
+
+def _data_lines(data: dict[str, Any]) -> list[str]:
+    if not data:
+        return []
+    return [f"training data: {len(data.get('bags', []))} bag(s), "
+            f"{data.get('duration_s', 0.0) / 60:.1f} min, "
+            f"{data.get('training_rows', '?')} rows, {data.get('segments', '?')} "
+            f"segments, stale {100 * data.get('stale_fraction', 0.0):.1f}%"]
+
+
+def _selection_lines(model: MotionModel) -> list[str]:
+    sel = model.meta.get("selection")
+    if not isinstance(sel, dict):
+        return []
+    secs = sel.get("seconds", {})
+    return ["automatic configuration: " + (
+        f"fell back ({sel['fallback']})" if "fallback" in sel else
+        f"chosen by {sel.get('criterion', '?')} on the last "
+        f"{100 * sel.get('holdout_fraction', 0):.0f}% of each bag; "
+        f"{secs.get('total', '?')} s")] + ["  " + line for line in selection_table(model)]
+
+
+def _calibration_lines(model: MotionModel) -> list[str]:
+    cal = model.calibration  # (checked on loading)
+    head = ("variance calibration: "
+            + ("identity" if cal.is_identity else
+               f"scale v {cal.scale[0]:.4g}, omega {cal.scale[1]:.4g}; floor v "
+               f"{cal.floor[0]:.3g} (m/s)^2, omega {cal.floor[1]:.3g} (rad/s)^2; "
+               "speed regimes "
+               + ", ".join(f"{f:.3g}" for f in cal.speed_factors)
+               + (f" split at |v| = {', '.join(f'{e:.3g}' for e in cal.speed_edges)}"
+                  " m/s" if cal.speed_edges else "")))
+    return [head, *_section("  held-out coverage", lambda: [
+        "  " + line for line in coverage_lines(model.meta.get("calibration", {}))])]
+
+
+def describe(path: str, model: MotionModel) -> list[str]:
+    fc = model.feature_config
+    meta = model.meta
+    training = meta.get("training", {})
+    configuration = training.get("configuration", "explicit") \
+        if isinstance(training, dict) else "?"
+    lines = [f"{path}: {model.kind}, s = {fc.lags}, "
+             f"{'coupled' if fc.coupled else 'one axis per channel'}, "
+             f"{model.rate_hz:g} Hz grid, VO read at "
+             f"{_STAMPS[model.resample_config.vel_stamp]}, "
+             f"{configuration} configuration"]
+    lines += _section("  channels", lambda: _channel_lines(training))
+    lines += _section("training data", lambda: _data_lines(meta.get("training_data", {})))
+    lines += _section("automatic configuration", lambda: _selection_lines(model))
+    lines += _section("adaptation", lambda: summary_lines(meta))
+    return lines + _calibration_lines(model)
 
 
 def run(args: argparse.Namespace) -> int:

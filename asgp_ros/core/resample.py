@@ -150,8 +150,8 @@ class ResampleConfig:
             try:
                 value = float(value)
             except OverflowError:  # an integer beyond float's range (a hostile file)
-                raise ValueError(f"{name} must be in [{low:g}, {high:g}], got an integer of "
-                                 f"{len(str(abs(int(value))))} digits") from None
+                raise ValueError(f"{name} must be in [{low:g}, {high:g}], got an integer "
+                                 "too large for a float") from None
             disabled = name in RESAMPLE_MAY_BE_INF and value == math.inf
             if not (disabled or low <= value <= high):
                 extra = " or inf (disabled)" if name in RESAMPLE_MAY_BE_INF else ""

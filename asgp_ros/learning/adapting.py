@@ -49,6 +49,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.calibration import MIN_REGIME_CASES
 from asgp_ros.core.features import CHANNELS
@@ -69,7 +71,7 @@ from asgp_ros.learning.training import (
     split_holdout,
 )
 
-__all__ = ["AdaptingError", "OfflineAdaptOptions", "adapt_model"]
+__all__ = ["AdaptingError", "OfflineAdaptOptions", "adapt_model", "check_adaptable"]
 
 #: The new rows' forgetting half-life, in rows, of the offline update: none is forgotten
 #: (2^(-1/1e15) is 1 to 7e-16, which over a million rows moves a weight by 1e-9).
@@ -145,16 +147,24 @@ class OfflineAdaptOptions:
                            trained_mean=self.trained_mean)
 
 
-def _channels(model: MotionModel) -> tuple[SparseGP, SparseGP]:
+def check_adaptable(model: MotionModel) -> tuple[SparseGP, SparseGP]:
+    """The model's two SparseGP channels, or AdaptingError saying why it cannot be adapted
+    (not an ASGP; a posterior without its LA factor)."""
     v, w = model.channels
     if model.kind != "asgp" or not (isinstance(v, SparseGP) and isinstance(w, SparseGP)):
         raise AdaptingError(f"only an ASGP can be adapted; this model is {model.kind!r}")
-    chans = (copy.deepcopy(v), copy.deepcopy(w))
-    for name, ch in zip(CHANNELS, chans, strict=True):
+    for name, ch in zip(CHANNELS, (v, w), strict=True):
         if ch.posterior.LA is None:
             raise AdaptingError(f"{name}: the model file does not give the posterior's LA "
                                 "factor back (written by an old version); train it again")
-    return chans[0], chans[1]
+    return v, w
+
+
+def _with_num_data(gp: SparseGP, num_data: float) -> SparseGP:
+    """A copy of ``gp`` whose number of data is ``num_data`` (rounded)."""
+    state = gp.get_state()
+    state["num_data"] = np.asarray(float(round(num_data)), dtype=np.float64)
+    return SparseGP.from_state(state)
 
 
 class _Absorber:
@@ -162,7 +172,8 @@ class _Absorber:
 
     def __init__(self, model: MotionModel, opts: OfflineAdaptOptions) -> None:
         self.model = model
-        self.chans = _channels(model)
+        v, w = check_adaptable(model)
+        self.chans = (copy.deepcopy(v), copy.deepcopy(w))
         try:
             self.online = [OnlinePosterior.from_sparse_gp(ch, opts.config())
                            for ch in self.chans]
@@ -204,6 +215,16 @@ def _held_out_scores(model: MotionModel, held: Sequence[Series], opts: OfflineAd
                              "median_error_m": r.vo.median_error_m,
                              "coverage_95": r.vo.coverage_95, "cases": r.vo.cases}
             for h, r in zip(horizons, ev.horizons.values(), strict=True)}
+
+
+def _calibration_label(cal_meta: dict[str, Any]) -> str:
+    """What the adapted model's calibration is, in words (for its meta and the output)."""
+    if not cal_meta.get("fitted"):
+        return "kept as trained"
+    if cal_meta.get("applied", True):
+        return "fitted on the held-out part"
+    return ("none (the posterior's own variance): the map fitted on the held-out part moved "
+            "its coverage away from 95 %, cross-validated, as training decides")
 
 
 def adapt_model(model: MotionModel, series: Sequence[Series],
@@ -268,9 +289,10 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
         if st.rows_absorbed == 0:  # every block refused: the model would be the trained one
             refused = ", ".join(f"{v} {k}" for k, v in st.rejected.items() if v) or "none"
             raise AdaptingError(f"{name}: no row could be absorbed (refused: {refused})")
-    for ch, st in zip(absorber.chans, stats, strict=True):
-        ch._num_data = round(st.effective_size)  # the rows the posterior now holds
-    adapted = absorber.adapted()
+    # the number of data says what the posterior now holds (its effective size)
+    v, w = (_with_num_data(ch, st.effective_size)
+            for ch, st in zip(absorber.chans, stats, strict=True))
+    adapted = dataclasses.replace(model, channels=(v, w))
     meta = dict(model.meta)
     meta["adaptation"] = {
         "data": data_summary(series, max(absorber.rows)),
@@ -282,8 +304,7 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
                             "effective_size": st.effective_size}
                      for c, (name, st) in enumerate(zip(CHANNELS, stats, strict=True))},
         "held_out": {"trained": before, "adapted": after},
-        "calibration": "fitted on the held-out part" if cal_meta.get("fitted")
-                       and cal_meta.get("applied", True) else "kept as trained",
+        "calibration": _calibration_label(cal_meta),
         "seconds": round(time.perf_counter() - t_start, 2),
     }
     if cal_meta.get("fitted"):
