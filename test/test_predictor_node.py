@@ -553,8 +553,10 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
         values = {kv.key: kv.value for kv in h.diags[-1].status[0].values}
         assert values["adapt"] == "on"
         for key in ("adapt_effective_size", "adapt_variance_scale", "adapt_last_update_ms",
-                    "adapt_coverage_95", "adapt_steps_refused"):
+                    "adapt_coverage_95", "adapt_steps_refused", "adapt_choice_t",
+                    "adapt_switches"):
             assert values[key]
+        assert values["adapt_published"] in ("trained", "adapted")
         short = h.node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
         assert not short.successful and "adapting" in short.reason
         client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")

@@ -161,7 +161,8 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
     for ts, state in zip(tests, ev.adaptation, strict=True):
         scales = "/".join(f"{x:.2f}" for x in state["scales"])
         print(f"{ts.name}: {state['rows_absorbed']} steps absorbed, {state['steps_refused']} "
-              f"refused, variance scale {scales}, published at the end: {state['published']}")
+              f"refused, variance scale {scales}, published at the end: {state['published']} "
+              f"({state['switches']} change(s) of the published posterior)")
     if ev.missing:
         print(f"{ev.missing} case(s) of the offline evaluation got no online prediction "
               "(the replayed predictor refused: stale or lost VO at the live edge)")

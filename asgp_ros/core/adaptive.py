@@ -299,6 +299,12 @@ class AdapterStats:
         recent_error: recent mean squared k-step position error (m^2) of the trained and
             of the adapted posterior (NaN before the first check).
         checked: predictions whose outcome has been checked.
+        choice_t: the choice's test statistic (:class:`PosteriorChoice`: the other
+            posterior's recent k-step loss minus the published one's, over its standard
+            error; below ``-choice_critical`` the other is published), NaN while there is
+            no test to make.
+        choice_critical: the statistic's critical value at ``SELECT_LEVEL``, or NaN.
+        switches: changes of the published posterior since the start or the last reset.
         coverage: recent share of checked k-step ellipses that covered (EWMA), or NaN;
             for the adapted posterior without the trained floor, so a lower bound of the
             published ellipses' coverage.
@@ -316,6 +322,9 @@ class AdapterStats:
     published: str
     recent_error: tuple[float, float]
     checked: int
+    choice_t: float
+    choice_critical: float
+    switches: int
     coverage: float
     coverage_one_step: float
     last_update_s: float
@@ -454,6 +463,7 @@ class ModelAdapter:
             for key, n in online.stats.rejected.items():
                 rejected[key] = rejected.get(key, 0) + n
         s_v, s_w = (online.stats for online in self._online)
+        choice = self._choice.statistic()
         return AdapterStats(
             rows_absorbed=min(s_v.rows_absorbed, s_w.rows_absorbed),
             steps_refused=self._steps_refused, rows_rejected=rejected,
@@ -461,7 +471,8 @@ class ModelAdapter:
             scales=tuple(float(math.exp(x)) for x in self._log_scales[self._published]),
             published=EXPERTS[self._published],
             recent_error=(float(self._errors[0]), float(self._errors[1])),
-            checked=self._checked, coverage=self._coverage,
+            checked=self._checked, choice_t=choice[0], choice_critical=choice[1],
+            switches=self._choice.switches, coverage=self._coverage,
             coverage_one_step=self._coverage_one,
             last_update_s=s_v.last_update_s + s_w.last_update_s,
             last_check_s=self._last_check_s)
@@ -638,7 +649,9 @@ def describe(stats: AdapterStats) -> dict[str, Any]:
         "rows_rejected": dict(stats.rows_rejected),
         "effective_size": list(stats.effective_size), "scales": list(stats.scales),
         "published": stats.published, "recent_error": list(stats.recent_error),
-        "checked": stats.checked, "coverage": stats.coverage,
+        "checked": stats.checked, "choice_t": stats.choice_t,
+        "choice_critical": stats.choice_critical, "switches": stats.switches,
+        "coverage": stats.coverage,
         "coverage_one_step": stats.coverage_one_step,
         "last_update_s": stats.last_update_s, "last_check_s": stats.last_check_s,
     }

@@ -646,6 +646,10 @@ class PredictorNode(Node):
                 "adapt_effective_size": "/".join(f"{x:.0f}" for x in adaptation.effective_size),
                 "adapt_variance_scale": "/".join(f"{x:.3g}" for x in adaptation.scales),
                 "adapt_checked": str(adaptation.checked),
+                "adapt_published": adaptation.published,
+                "adapt_choice_t": f"{adaptation.choice_t:.2f} (critical "
+                                  f"{adaptation.choice_critical:.2f})",
+                "adapt_switches": str(adaptation.switches),
                 "adapt_coverage_95": f"{adaptation.coverage:.3f}",
                 "adapt_coverage_one_step": f"{adaptation.coverage_one_step:.3f}",
                 "adapt_last_update_ms": f"{1e3 * adaptation.last_update_s:.3f}",
