@@ -441,6 +441,9 @@ def test_the_choice_needs_evidence_before_it_switches() -> None:
     for _ in range(19):
         assert choice.update(-1.0) == 0  # identical differentials: no spread to test
     assert choice.update(math.nan) == 0 and choice.update(math.inf) == 0
+    # a differential too large to square is no evidence either, and leaves the test working
+    assert choice.update(-1e200) == 0
+    assert all(math.isfinite(x) for x in (choice._s1, choice._s2, choice._w, choice._w2))
     fresh = PosteriorChoice(half_life=100.0, lag=10)
     for n in range(15):
         fresh.update(-1.0 + 1e-3 * math.sin(n))

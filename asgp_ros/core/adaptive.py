@@ -227,8 +227,9 @@ class PosteriorChoice:
 
     def update(self, d: float) -> int:
         """Add one check's loss differential (the other's loss minus the published one's;
-        a non-finite ``d`` is ignored) and return the expert to publish."""
-        if not math.isfinite(d):
+        a ``d`` that is not finite or whose square is not is ignored) and return the expert
+        to publish."""
+        if not math.isfinite(d * d):  # NaN, inf, or too large to square: no evidence
             return self.published
         k = self.decay
         self._w, self._w2 = k * self._w + 1.0, k * k * self._w2 + 1.0
