@@ -251,10 +251,10 @@ class AdaptSettings:
         posterior: forgetting and safety of the posterior updates (:class:`AdaptConfig`).
         coverage: online calibration, or None to keep the trained calibration (and to
             publish the adapted posterior always: the choice needs the checks).
-        select: publish whichever of the trained and the adapted posterior predicted
-            better recently (item 3 of the module docstring); False always publishes
-            the adapted one.
-        select_half_life_s: half-life of the recent errors that choice compares.
+        select: publish the trained posterior until a test on the recent checks says the
+            adapted one predicts better, and back (item 3 of the module docstring,
+            :class:`PosteriorChoice`); False always publishes the adapted one.
+        select_half_life_s: half-life of the weights of the checks that test compares.
         update_steps: absorb settled steps in blocks of this many (one posterior published
             per block, i.e. once a second at 5 Hz by default: an update costs O(M^3), a
             step's statistics O(M^2)); 1 absorbs every step as it settles.
