@@ -398,8 +398,8 @@ def _overlapping_losses(rng: np.random.Generator, n: int, k: int, offset: float,
 def test_the_choice_does_not_flap_between_equal_experts() -> None:
     """Two experts equally good (differentials of zero mean, autocorrelated as
     overlapping k-step errors are): over an hour of checks at 5 Hz the choice changes
-    about as often as a 5 % test errs (4-11 times for seeds 0-4), where following
-    whichever recent mean is lower changes it hundreds of times."""
+    about as often as a 5 % test errs, where following whichever recent mean is lower
+    changes it more than ten times as often."""
     rng = np.random.default_rng(11)
     a = 1.0 + 0.2 * _overlapping_losses(rng, 18000, 10, 0.0)
     b = 1.0 + 0.2 * _overlapping_losses(rng, 18000, 10, 0.0)

@@ -617,6 +617,7 @@ class ModelAdapter:
         bound = cfg.max_rate * self.base.dt
         alpha = 1.0 - 2.0 ** (-self.base.dt / self.settings.select_half_life_s)
         inside = inside1 = math.nan
+        loss = [math.nan, math.nan]  # mean squared k-step position error per posterior
         for e in (TRAINED, ADAPTED):
             scale = math.exp(float(snap.log_scales[e, regime]))
             miss = float(np.mean(d2[e] > CHI2_2DOF_95 * scale))
@@ -625,7 +626,7 @@ class ModelAdapter:
             lowest = math.log(cfg.min_scale if e == ADAPTED else max(cfg.min_scale, 1.0))
             ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound), lowest),
                              math.log(cfg.max_scale))
-            sq = float(np.mean(np.sum(err[e] * err[e], axis=1)))
+            loss[e] = sq = float(np.mean(np.sum(err[e] * err[e], axis=1)))
             self._errors[e] = sq if math.isnan(self._errors[e]) else \
                 (1.0 - alpha) * self._errors[e] + alpha * sq
             if e == snap.published:
@@ -633,7 +634,6 @@ class ModelAdapter:
                 with np.errstate(divide="ignore", invalid="ignore"):
                     inside1 = float(np.mean(e1[e] * e1[e] <= CHI2_1DOF_95 * var1[e] * scale))
         if self.settings.select:
-            loss = [float(np.mean(np.sum(err[e] * err[e], axis=1))) for e in (TRAINED, ADAPTED)]
             self._published = self._choice.update(loss[1 - self._published]
                                                   - loss[self._published])
         a = COVERAGE_EWMA

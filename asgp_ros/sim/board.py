@@ -127,7 +127,8 @@ class SimulatedBoard:
         self.frames_dropped = 0       # frames the pty could not take (nobody reading)
         self.revert_events: list[tuple[int, int]] = []  # (revert ms, last override ms)
         # the status of each revert's tick: WATCHDOG set for a revert by the watchdog, not
-        # for one by a MODE frame (the host handing the chair back, or its link resetting)
+        # for one by a MODE frame (the host handing the chair back, or its link resetting);
+        # HOST_LOST for one by the host timeout
         self.revert_status: list[Status] = []
         # host-loss resets to passthrough, on the board's clock: (reset ms, last host ms)
         self.host_lost_events: list[tuple[int, int]] = []
