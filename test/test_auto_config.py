@@ -231,6 +231,44 @@ def test_calibrated_coverage_on_fresh_data_of_known_noise(auto_model) -> None:  
     assert auto_model.meta["calibration"]["cross_validated"]
 
 
+def test_the_leading_structures_are_scored_again_at_the_largest_m(
+        chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
+    # a held-out landscape where a short past wins at M = 40 by a hair, and a longer past
+    # wins clearly once there are pseudo-inputs to use it
+    from asgp_ros.learning import training
+
+    def fake_fit(cand, *args, **kwargs):  # type: ignore[no-untyped-def]
+        return cand, {}
+
+    def fake_score(cand, held, opts, case_lags):  # type: ignore[no-untyped-def]
+        s, m = cand.lags, cand.inducing[0]
+        score = 0.80 + (0.01 if cand.coupled else 0.0) + (0.001 if s == 2 else 1e-5 * s)
+        score += 0.0002 * s * (m - 40) / 40 + 0.0001 * (m - 40) / 40
+        return {"score": score, "mean_median_error_m": 0.05, "horizons": {}}
+
+    monkeypatch.setattr(training, "_fit_candidate", fake_fit)
+    monkeypatch.setattr(training, "_score", fake_score)
+    opts = AutoOptions(seed=0, budget_s=180.0)
+    search = training._Search(chair, chair, opts, None, lambda *a: None, 12)
+    chosen = search.run(training._structures(opts))
+    largest = opts.affordable_inducing()[-1]
+    assert largest > training.AUTO_STRUCTURE_INDUCING
+    by_stage: dict[str, list[dict[str, object]]] = {}
+    for row in search.table:
+        by_stage.setdefault(row["stage"], []).append(row["candidate"])
+    # the capacity stage grows the structure stage's winner (s = 2) ...
+    assert {c["lags"] for c in by_stage["capacity"]} == {2}
+    # ... and its runners-up (s = 12 and 10, coupled) are scored at the largest M
+    assert [(c["lags"], c["coupled"], c["inducing"]) for c in by_stage["refine"]] == [
+        (12, True, [largest, largest]), (10, True, [largest, largest])]
+    assert chosen == training.Candidate(12, True, (largest, largest))
+    # pinned pseudo-inputs: no capacity stage, and nothing to score again
+    pinned = training._Search(chair, chair, AutoOptions(seed=0, inducing_v=40, inducing_w=40),
+                              None, lambda *a: None, 12)
+    pinned.run(training._structures(pinned.opts))
+    assert {row["stage"] for row in pinned.table} == {"structure"}
+
+
 def test_held_out_rows_never_reach_a_fit(monkeypatch: pytest.MonkeyPatch) -> None:
     # the held-out ends drive with |joystick| >= 2; the training parts within 1
     series = []

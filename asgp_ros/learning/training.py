@@ -231,6 +231,11 @@ AUTO_LAGS: tuple[int, ...] = (2, 4, 6, 8, 10, 12)
 AUTO_INDUCING: tuple[int, ...] = (20, 40, 80, 120, 160, 200, 300)
 #: M while the structure (s, coupling) is chosen.
 AUTO_STRUCTURE_INDUCING = 40
+#: Structures scored again at the capacity stage's largest M: the best of the structure
+#: stage and its runners-up, this many in all. At M = 40 the structures' held-out scores
+#: are often within a few tenths of a point (a longer past needs pseudo-inputs to use it),
+#: so the structure stage alone can pick a short s that a larger M does not favour.
+REFINE_STRUCTURES = 3
 #: Fraction of each training recording held out (its end) for selection and calibration.
 HOLDOUT_FRACTION = 0.2
 #: L-BFGS-B iterations of a candidate's fit during the selection: at most
@@ -465,7 +470,9 @@ def train_auto(
        candidates are scored on the same cases (those with the largest s of the past
        samples).
     3. Capacity: M of :data:`AUTO_INDUCING` for the best structure, as far as the budget
-       affords (:meth:`AutoOptions.affordable_inducing`).
+       affords (:meth:`AutoOptions.affordable_inducing`); then the runners-up of step 2
+       (:data:`REFINE_STRUCTURES` structures in all) at the largest of those M. The best
+       held-out score of all the candidates wins.
     4. The chosen configuration is fitted again on more rows of the training part
        (:attr:`AutoOptions.final_rows`, ``opts.max_iter`` iterations), the variance
        calibration fitted on the held-out part (:mod:`asgp_ros.core.calibration`), and
@@ -575,8 +582,9 @@ class _Search:
 
     def run(self, structures: Sequence[tuple[int, bool]]) -> Candidate | None:
         """The paper's configuration (unless a pin excludes it), every structure at
-        M = AUTO_STRUCTURE_INDUCING, then the affordable M for the best structure; the
-        chosen candidate, or None when none could be scored."""
+        M = AUTO_STRUCTURE_INDUCING, then the affordable M for the best structure and the
+        leading structures at the largest of them; the chosen candidate, or None when none
+        could be scored."""
         opts = self.opts
         paper = Candidate(PAPER_OPTIONS.resolved_lags(), False,
                           (PAPER_OPTIONS.inducing_v, PAPER_OPTIONS.inducing_w))
@@ -591,9 +599,18 @@ class _Search:
             return None
         if opts.inducing_v is None or opts.inducing_w is None:
             s, coupled = self.best_cand.lags, self.best_cand.coupled
-            for m in opts.affordable_inducing():
+            capacity = opts.affordable_inducing()
+            for m in capacity:
                 self.consider(Candidate(s, coupled, _inducing(opts, m)), "capacity")
+            for s, coupled in self.leading_structures(REFINE_STRUCTURES):
+                self.consider(Candidate(s, coupled, _inducing(opts, capacity[-1])), "refine")
         return self.best_cand
+
+    def leading_structures(self, n: int) -> list[tuple[int, bool]]:
+        """The ``n`` best (s, coupled) of the structure stage, best first."""
+        rows = [r for r in self.table if r["stage"] == "structure" and "score" in r]
+        rows.sort(key=lambda r: (-r["score"], r["mean_median_error_m"]))
+        return [(r["candidate"]["lags"], r["candidate"]["coupled"]) for r in rows[:n]]
 
     def consider(self, cand: Candidate, stage: str) -> None:
         """Fit, score and record one candidate (once)."""
