@@ -557,6 +557,7 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
                     "adapt_switches"):
             assert values[key]
         assert values["adapt_published"] in ("trained", "adapted")
+        assert "nan" not in values["adapt_choice_t"]  # before the evidence: said in words
         short = h.node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
         assert not short.successful and "adapting" in short.reason
         client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")

@@ -647,8 +647,10 @@ class PredictorNode(Node):
                 "adapt_variance_scale": "/".join(f"{x:.3g}" for x in adaptation.scales),
                 "adapt_checked": str(adaptation.checked),
                 "adapt_published": adaptation.published,
-                "adapt_choice_t": f"{adaptation.choice_t:.2f} (critical "
-                                  f"{adaptation.choice_critical:.2f})",
+                "adapt_choice_t": (f"{adaptation.choice_t:.2f} (critical "
+                                   f"{adaptation.choice_critical:.2f})"
+                                   if math.isfinite(adaptation.choice_t)
+                                   else "no test yet (too few checks, or no spread)"),
                 "adapt_switches": str(adaptation.switches),
                 "adapt_coverage_95": f"{adaptation.coverage:.3f}",
                 "adapt_coverage_one_step": f"{adaptation.coverage_one_step:.3f}",
