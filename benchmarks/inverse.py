@@ -1,19 +1,21 @@
 """Speed of the inverse model and of the batched rollout it rests on.
 
 Prints, on one core (BLAS limited to one thread):
-* one solve over k = 10 steps, for each method (p50 / p99 ms over varied targets);
+* one solve over k = 10 steps, for each method (p50 / p99 ms over ``--targets`` varied
+  reachable targets, after one solve not timed);
 * the batched rollout of 1,024 candidate joystick sequences over k = 10 ("none" and
   "linear" uncertainty), in candidate-steps per second, beside the machine's
   matrix-multiply rate measured in the same run (GFLOP/s of a 1024 x M x M product, M the
   model's pseudo-inputs), and the rollout's arithmetic in the same unit, so the distance
   to the hardware's limit is visible.
 
-Usage: benchmarks/inverse.py [MODEL]   (default: a tile model trained on 10 simulated
+Usage: benchmarks/inverse.py [MODEL] [--targets N]   (default: a tile model trained on 10 simulated
 minutes, about a minute)
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import tempfile
 import time
@@ -45,7 +47,13 @@ def _pct(ms: list[float]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    model = _model(argv[0] if argv else None)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("model", nargs="?", default=None,
+                    help="model file (default: train a tile model on 10 simulated minutes)")
+    ap.add_argument("--targets", type=int, default=200,
+                    help="reachable targets the solves are timed on (200)")
+    args = ap.parse_args(argv)
+    model = _model(args.model)
     s, k = model.feature_config.lags, 10
     rng = np.random.default_rng(0)
     M = max(int(getattr(ch, "inducing_inputs", np.zeros((40, 1))).shape[0])
@@ -53,7 +61,7 @@ def main(argv: list[str]) -> int:
     with threadpool_limits(limits=1):
         print(f"model: s = {s}, M = {M}, coupled = {model.feature_config.coupled}")
         cases = []
-        for _ in range(40):
+        for _ in range(max(1, args.targets)):
             jp = np.tile(rng.uniform([0.0, -0.5], [0.8, 0.5]), (s, 1))
             vp = np.tile([0.9 * jp[0, 0], 0.6 * jp[0, 1]], (s, 1)) + rng.normal(0, 0.01, (s, 2))
             U = np.clip(jp[-1] + np.cumsum(rng.normal(0, 0.1, (k, 2)), axis=0), -1, 1)
@@ -61,6 +69,7 @@ def main(argv: list[str]) -> int:
             cases.append((jp, vp, target))
         for method in METHODS:
             times, errors = [], []
+            solve(model, *cases[0], method=method)  # warm-up: a node pays it once, at start
             for jp, vp, target in cases:
                 t = time.perf_counter()
                 res = solve(model, jp, vp, target, method=method)
