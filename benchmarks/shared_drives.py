@@ -114,11 +114,12 @@ def main(argv: list[str]) -> int:
         rows = pool.map(_one, tasks)
     print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
           f"memory {args.memory_s:g} s")
-    print("seed | mode            | contacts | interventions | untouched | deepest (m) | "
-          "solve p50 / p99 ms")
+    print("seed | mode            | contacts | interventions | intervening (s) | mean change "
+          "| untouched | deepest (m) | solve p50 / p99 ms")
     for r in rows:
         print(f"{r['seed']:4d} | {r['mode']:15s} | {r['contacts']:8d} | "
-              f"{r['interventions']:13d} | {100 * r['untouched_share']:8.1f}% | "
+              f"{r['interventions']:13d} | {r['intervention_s']:15.1f} | "
+              f"{r['mean_change']:11.2f} | {100 * r['untouched_share']:8.1f}% | "
               f"{r['min_clearance_m']:11.3f} | {r['solve_p50_ms']:.1f} / {r['solve_p99_ms']:.0f}")
     if args.contacts:
         print("contacts: seed | mode | t (s) | decision | p of the command | nearest known "
