@@ -19,7 +19,7 @@ points, not the prediction, made it so; and the share of those obstacle points t
 short of the furniture (the scanner's range noise).
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
-[--fov DEG] [--modes none,memory] [--contacts] [--audit] (the README's figures: the
+[--fov DEG] [--modes none,memory] [--contacts] [--audit] [--vo-noise X] (the README's figures: the
 reproduction's tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also
 sees behind the chair; about 6 minutes on 2 cores for three modes).
 """
@@ -40,7 +40,7 @@ from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.obstacle_memory import MemoryConfig
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
-from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, SHORT_OF_FURNITURE_M, drive
+from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, SHORT_OF_FURNITURE_M, VO_NOISE, drive
 
 #: the committed reproduction's tile model
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
@@ -56,8 +56,8 @@ MARGIN = 0.05
 P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float, bool]) -> dict[str, Any]:
-    path, seed, mode, minutes, fov, memory_s, audit = task
+def _one(task: tuple[str, int, str, float, float, float, bool, float]) -> dict[str, Any]:
+    path, seed, mode, minutes, fov, memory_s, audit, vo_scale = task
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -68,7 +68,8 @@ def _one(task: tuple[str, int, str, float, float, float, bool]) -> dict[str, Any
                        memory=MemoryConfig(max_age_s=memory_s) if mode.endswith("memory")
                        else None,
                        memory_odometry="scan_matching" if mode == "scan memory"
-                       else "dead_reckoning", margin=MARGIN, audit=audit)
+                       else "dead_reckoning", margin=MARGIN, audit=audit,
+                       vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]))
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
                                           r.p_map) for r in result.audit],
@@ -107,13 +108,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--audit", action="store_true",
                     help="check every decision against the plant: interventions needed, "
                          "touching commands let pass, probabilities against outcomes")
+    ap.add_argument("--vo-noise", type=float, default=1.0,
+                    help="the VO's noise as a multiple of the offline drive's "
+                         f"({VO_NOISE[0]:g} m/s, {VO_NOISE[1]:g} rad/s per twist)")
     args = ap.parse_args(argv)
-    tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit)
-             for seed in args.seeds for mode in args.modes]
+    if not (np.isfinite(args.vo_noise) and 0.0 <= args.vo_noise <= 100.0):
+        ap.error(f"--vo-noise must be in [0, 100], got {args.vo_noise}")
+    tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit,
+              args.vo_noise) for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
     print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
-          f"memory {args.memory_s:g} s")
+          f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}")
     print("seed | mode            | contacts | interventions | intervening (s) | mean change "
           "| untouched | deepest (m) | solve p50 / p99 ms")
     for r in rows:

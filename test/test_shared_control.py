@@ -225,6 +225,28 @@ def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
             "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed
 
 
+@pytest.mark.parametrize("bad", [(math.nan, 0.01), (0.01, math.inf), (-0.01, 0.01),
+                                 (1e30, 0.01), (0.01,)])
+def test_the_offline_drives_vo_noise_is_checked(chair_model, bad):
+    from asgp_ros.sim.shared_drive import drive
+
+    with pytest.raises(ValueError, match="vo_noise"):
+        drive(chair_model, 1.0, 4, layer=False, vo_noise=bad)
+
+
+def test_the_offline_drives_vo_noise_reaches_the_layers_input(chair_model):
+    """A noisier VO changes what the layer sees (and so the drive); none changes nothing."""
+    from asgp_ros.sim.shared_drive import drive
+
+    base = drive(chair_model, 40.0, 4, layer=True, inattention=0.5)
+    same = drive(chair_model, 40.0, 4, layer=True, inattention=0.5, vo_noise=(0.01, 0.01))
+    noisy = drive(chair_model, 40.0, 4, layer=True, inattention=0.5, vo_noise=(0.3, 0.3))
+    strip = {"solve_p50_ms": 0, "solve_p99_ms": 0}
+    assert base.interventions >= 1  # the layer acted, on what the VO told it
+    assert base.summary() | strip == same.summary() | strip
+    assert noisy.summary() | strip != base.summary() | strip
+
+
 def test_a_held_command_is_replayed_on_a_copy_of_the_chair():
     """The audit's plant: a copy of the chair drives a command held for the horizon and
     reports the closest approach; the chair itself does not move."""

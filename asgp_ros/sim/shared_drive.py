@@ -286,13 +286,18 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           config: SharedControlConfig | None = None, horizon_s: float = 2.0,
           lidar: LidarConfig | None = None, margin: float = 0.05,
           memory: MemoryConfig | None = DEFAULT_MEMORY,
-          memory_odometry: str = "scan_matching", audit: bool = False) -> DriveResult:
+          memory_odometry: str = "scan_matching", audit: bool = False,
+          vo_noise: tuple[float, float] = VO_NOISE) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
     ``memory_odometry`` "scan_matching", the node's default) or by dead reckoning of the VO's
     twists ("dead_reckoning"). ``audit``: check the decisions against the plant (module
-    docstring; slower)."""
+    docstring; slower). ``vo_noise``: the frame-to-frame VO's noise (m/s, rad/s, one
+    standard deviation per twist)."""
+    if not (len(vo_noise) == 2 and all(math.isfinite(x) and 0.0 <= x <= 10.0
+                                       for x in vo_noise)):
+        raise ValueError(f"vo_noise must be two numbers in [0, 10], got {vo_noise!r}")
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
@@ -401,7 +406,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             predictor.feed_joy(t, fed)
         if n % VO_EVERY == 3:
             if vo_frame is not None:
-                v, w = frame_twist(vo_frame, state, t, vo_rng)
+                v, w = frame_twist(vo_frame, state, t, vo_rng, vo_noise)
                 predictor.feed_vo(t, (v, w))
                 if odometer is not None:
                     odometer.feed(t, v, w)
