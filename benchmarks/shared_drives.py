@@ -19,7 +19,8 @@ points, not the prediction, made it so; and the share of those obstacle points t
 short of the furniture (the scanner's range noise).
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
-[--fov DEG] [--modes none,memory] [--contacts] [--audit] [--vo-noise X] (the README's figures: the
+[--fov DEG] [--modes none,memory] [--contacts] [--audit] [--vo-noise X]
+[--velocity-source vo|scan_matching] (the README's figures: the
 reproduction's tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also
 sees behind the chair; about 6 minutes on 2 cores for three modes).
 """
@@ -56,8 +57,9 @@ MARGIN = 0.05
 P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float, bool, float]) -> dict[str, Any]:
-    path, seed, mode, minutes, fov, memory_s, audit, vo_scale = task
+def _one(task: tuple[str, int, str, float, float, float, bool, float, str]
+         ) -> dict[str, Any]:
+    path, seed, mode, minutes, fov, memory_s, audit, vo_scale, velocity_source = task
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -69,7 +71,8 @@ def _one(task: tuple[str, int, str, float, float, float, bool, float]) -> dict[s
                        else None,
                        memory_odometry="scan_matching" if mode == "scan memory"
                        else "dead_reckoning", margin=MARGIN, audit=audit,
-                       vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]))
+                       vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]),
+                       velocity_source=velocity_source if mode != "none" else "vo")
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
                                           r.p_map) for r in result.audit],
@@ -111,15 +114,18 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--vo-noise", type=float, default=1.0,
                     help="the VO's noise as a multiple of the offline drive's "
                          f"({VO_NOISE[0]:g} m/s, {VO_NOISE[1]:g} rad/s per twist)")
+    ap.add_argument("--velocity-source", choices=("vo", "scan_matching"), default="vo",
+                    help="where the layer's predictor takes the velocity from (vo)")
     args = ap.parse_args(argv)
     if not (np.isfinite(args.vo_noise) and 0.0 <= args.vo_noise <= 100.0):
         ap.error(f"--vo-noise must be in [0, 100], got {args.vo_noise}")
     tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit,
-              args.vo_noise) for seed in args.seeds for mode in args.modes]
+              args.vo_noise, args.velocity_source) for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
     print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
-          f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}")
+          f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}, the layer's velocity "
+          f"from {args.velocity_source}")
     print("seed | mode            | contacts | interventions | intervening (s) | mean change "
           "| untouched | deepest (m) | solve p50 / p99 ms")
     for r in rows:

@@ -89,16 +89,20 @@ def test_the_odometer_follows_a_drive_and_breaks_on_gaps(lidar: Lidar) -> None:
     for i in range(150):  # 15 s of driving and turning at 10 scans a second
         t += 0.1
         v, w = 0.4 + 0.2 * math.sin(i / 7.0), 0.6 * math.sin(i / 11.0)
+        before = pose
         pose = compose(pose, (v * 0.1 * math.cos(0.05 * w), v * 0.1 * math.sin(0.05 * w),
                               0.1 * w))
         est = odo.add(scan_at(lidar, pose, t))
         truth = _between(start, pose)
         errors.append(math.hypot(est[0] - truth[0], est[1] - truth[1]))
+        # the matched interval's motion, in the base frame at the previous scan
+        assert odo.last_step is not None and odo.last_step[0] == pytest.approx(0.1)
+        np.testing.assert_allclose(odo.last_step[1:], _between(before, pose), atol=0.01)
     assert odo.epoch == 0, odo.refused
     assert max(errors) < 0.03  # 15 s and about 6 m
-    # a gap, then a stamp going back: new epochs, poses restart at the origin
+    # a gap, then a stamp going back: new epochs, poses restart at the origin, no step
     assert odo.add(scan_at(lidar, pose, t + 2.0)) == (0.0, 0.0, 0.0)
-    assert odo.epoch == 1
+    assert odo.epoch == 1 and odo.last_step is None
     assert odo.add(scan_at(lidar, pose, t)) == (0.0, 0.0, 0.0)
     assert odo.epoch == 2 and odo.breaks == 2
     # a scan of garbage: refused, a new epoch, never a pose far from the last

@@ -247,6 +247,20 @@ def test_the_offline_drives_vo_noise_reaches_the_layers_input(chair_model):
     assert noisy.summary() | strip != base.summary() | strip
 
 
+def test_the_offline_layer_can_take_its_velocity_from_scan_matching(chair_model):
+    """velocity_source 'scan_matching', as the node's: the layer predicts from the matched
+    scans' twists and still prevents the inattentive driver's contacts."""
+    from asgp_ros.sim.shared_drive import drive
+
+    without = drive(chair_model, 60.0, 4, layer=False, inattention=0.5)
+    scans = drive(chair_model, 60.0, 4, layer=True, inattention=0.5,
+                  velocity_source="scan_matching")
+    assert scans.contacts < without.contacts and scans.interventions >= 1
+    assert scans.decisions.get("stale_input", 0) <= 2  # the scans keep its input fresh
+    with pytest.raises(ValueError, match="velocity_source"):
+        drive(chair_model, 1.0, 4, layer=True, velocity_source="wheels")
+
+
 def test_a_held_command_is_replayed_on_a_copy_of_the_chair():
     """The audit's plant: a copy of the chair drives a command held for the horizon and
     reports the closest approach; the chair itself does not move."""

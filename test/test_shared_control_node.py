@@ -183,6 +183,70 @@ def test_stale_scan_or_vo_means_no_intervention_with_a_diagnostic(harness):
     assert len(h.overrides) == n
 
 
+def corridor_scan_msg(t: float, ahead: float, half_width: float = 1.0,
+                      beams: int = 541) -> LaserScan:
+    """A corridor of side walls ``half_width`` either side, closed by a wall ``ahead`` of
+    the scanner: geometry a scan matcher can fix in x, y and heading."""
+    a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
+    ang = a0 + inc * np.arange(beams)
+    c, s = np.cos(ang), np.sin(ang)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        front = np.where(c > 1e-9, ahead / c, np.inf)
+        side = np.where(np.abs(s) > 1e-9, half_width / np.abs(s), np.inf)
+    r = np.minimum(front, side)
+    r = np.where(r > 8.0, np.inf, r)
+    return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, "laser")
+
+
+def _drive_down_a_corridor(h, t_from: float, t_to: float, wall_at: float, speed: float,
+                           vo: bool) -> None:
+    """Joystick 0.8 at 20 Hz; the chair moving at ``speed`` towards a wall ``wall_at``
+    metres ahead at ``t_from``; scans at 10 Hz that show it; VO at 5 Hz only if ``vo``."""
+    stats = h.node.predictor.stats
+    for i in range(round((t_to - t_from) / 0.05)):
+        t = t_from + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if vo and i % 4 == 3:
+            n = stats.vo_samples
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, speed, 0.0))
+            h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+        if i % 2 == 1:
+            arrived = h.node._scan
+            h.scan_pub.publish(corridor_scan_msg(t, wall_at - speed * (t - t_from)))
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+
+
+@pytest.mark.parametrize("memory_s", [0.0, 10.0])  # its own scan odometer, the memory's
+def test_scan_matching_as_the_velocity_source_keeps_the_layer_acting_without_vo(
+        harness, memory_s):
+    """The camera loses its features as the chair heads for a wall: with velocity_source
+    'vo' the layer's input goes stale and it lets go; with 'scan_matching' it keeps
+    predicting from the matched scans and intervenes."""
+    vo = harness(memory_s=memory_s)
+    _drive_down_a_corridor(vo, 100.0, 102.0, wall_at=6.0, speed=0.72, vo=False)
+    assert vo.last()["why"] == "stale_input" and vo.overrides == []
+    scans = harness(velocity_source="scan_matching", memory_s=memory_s)
+    _drive_down_a_corridor(scans, 100.0, 103.0, wall_at=3.2, speed=0.72, vo=False)
+    assert scans.overrides, scans.last()
+    assert scans.node.predictor.stats.vo_samples >= 20  # from the scans, none from a VO
+    diag = conv.diagnostic_values(scans.node.diagnostic_status())
+    assert diag["velocity_source"].startswith("scan_matching")
+    # the velocities it took are the chair's: 0.72 m/s ahead, no turn
+    last = scans.node._decision
+    assert last is not None and last.prediction is not None
+    assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
+
+
+def test_a_velocity_source_that_cannot_work_is_refused(harness):
+    with pytest.raises(StartupError, match="velocity_source"):
+        harness(velocity_source="wheels")
+    with pytest.raises(StartupError, match="velocity_source"):
+        harness(velocity_source="scan_matching", obstacles="grid", vo_type="odometry")
+
+
 def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noqa: F811
     with pytest.raises(StartupError, match="obstacles"):
         SharedControlNode(context=rclpy_context, parameter_overrides=[

@@ -51,6 +51,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="probability that a bout of the simulated driver is inattentive "
                         "(heads for the furniture, reacts late); default 0.1 with "
                         "--shared-control, else 0")
+    p.add_argument("--velocity-source", choices=("vo", "scan_matching"), default="vo",
+                   help="with --shared-control: where the layer takes the chair's velocity "
+                        "from (shared_control_node's velocity_source; %(default)s)")
     p.add_argument("--force", action="store_true",
                    help="replace the output of an earlier demo in --out (a directory the "
                         "demo wrote; anything else there is refused)")
@@ -73,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         plan=not args.no_plan, startup_timeout_s=args.startup_timeout, surface=args.surface,
         force=args.force, shared_control=args.shared_control,
         inattention=args.inattention if args.inattention is not None
-        else (0.1 if args.shared_control else 0.0))
+        else (0.1 if args.shared_control else 0.0),
+        velocity_source=args.velocity_source)
     try:
         return run_demo(opts, say=lambda line: print(line, flush=True))
     except DemoError as exc:

@@ -275,6 +275,10 @@ class ScanOdometer:
         self._pose: Pose = (0.0, 0.0, 0.0)
         self._stamp = -math.inf
         self._velocity: Pose = (0.0, 0.0, 0.0)  # per second, in the base frame
+        #: (interval s, dx, dy, dtheta) of the newest :meth:`add` that matched, the motion in
+        #: the base frame at the previous scan; None when it did not (a new epoch, a
+        #: repeated stamp)
+        self.last_step: tuple[float, float, float, float] | None = None
 
     def _base_points(self, scan: Scan) -> FloatArray:
         pts = scan_points(scan)
@@ -304,6 +308,7 @@ class ScanOdometer:
         """
         t = float(scan.stamp)
         pts = self._base_points(scan)
+        self.last_step = None
         if self._key is None or not math.isfinite(t):
             return self._restart(pts, t, "no stamp")
         gap = t - self._stamp
@@ -324,6 +329,7 @@ class ScanOdometer:
         self._pose = compose(key_pose, result.pose)
         step = _between(previous, self._pose)
         self._velocity = (step[0] / gap, step[1] / gap, step[2] / gap)
+        self.last_step = (gap, step[0], step[1], step[2])
         self._stamp = t
         if math.hypot(result.pose[0], result.pose[1]) >= self.keyframe_m or \
                 abs(result.pose[2]) >= self.keyframe_rad:

@@ -95,6 +95,7 @@ class DemoOptions:
             demo's marker file); anything else at ``out`` is refused.
         shared_control: also run ``shared_control_node`` on the simulated scanner.
         inattention: the simulated driver's inattention (0 = attentive).
+        velocity_source: ``shared_control_node``'s velocity_source.
     """
 
     minutes: float = 2.0
@@ -113,6 +114,7 @@ class DemoOptions:
     force: bool = False
     shared_control: bool = False
     inattention: float = 0.0
+    velocity_source: str = "vo"
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -136,6 +138,9 @@ class DemoOptions:
             raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
         if not (math.isfinite(self.inattention) and 0.0 <= self.inattention <= 1.0):
             raise DemoError(f"--inattention must be in [0, 1], got {self.inattention}")
+        if self.velocity_source not in ("vo", "scan_matching"):
+            raise DemoError(f"--velocity-source must be vo or scan_matching, got "
+                            f"{self.velocity_source!r}")
 
 
 def package_root() -> Path:
@@ -264,7 +269,8 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
         ("predictor", "asgp_ros.nodes.predictor_node:main",
          ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}"]),
     ] + ([("shared_control", "asgp_ros.nodes.shared_control_node:main",
-           ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}"])]
+           ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}",
+            "-p", f"velocity_source:={opts.velocity_source}"])]
          if opts.shared_control else [])
 
 

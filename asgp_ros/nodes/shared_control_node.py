@@ -67,7 +67,7 @@ from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import memory_odometers
+from asgp_ros.core.scan_match import ScanOdometer, memory_odometers
 from asgp_ros.core.shared_control import (
     CollisionCheck,
     Decision,
@@ -147,12 +147,21 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("memory_odom_topic", "", "with memory_odometry 'dead_reckoning': odometry that "
           "carries the memory (nav_msgs/Odometry: its twist; wheel odometry or a filter "
           "fusing it, say); empty: the VO's twists"),
+    _spec("velocity_source", "vo", "what the layer's predictor takes the chair's velocity "
+          "from: 'vo' (vo_topic) or 'scan_matching' (the laser's scans matched to each other, "
+          "as for the memory: the twist of each matched interval; it keeps predicting when "
+          "the camera loses its features, and a refused match is a lost sample, never a "
+          "made-up one)"),
     _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
           "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
 )
+
+
+#: Where the layer's predictor takes the chair's velocity from.
+VELOCITY_SOURCES = ("vo", "scan_matching")
 
 
 @dataclass(frozen=True)
@@ -189,6 +198,7 @@ class SharedControlParams:
     memory_odometry: str
     memory_odom_topic: str
     memory_radius_m: float
+    velocity_source: str
     heading_uncertainty: bool
     diagnostics_period_s: float
 
@@ -203,6 +213,12 @@ class SharedControlParams:
         if self.memory_odometry not in MEMORY_ODOMETRY:
             raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
                              f"{self.memory_odometry!r}")
+        if self.velocity_source not in VELOCITY_SOURCES:
+            raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
+                             f"{self.velocity_source!r}")
+        if self.velocity_source == "scan_matching" and self.obstacles == "grid":
+            raise ValueError("velocity_source 'scan_matching' needs the laser: set obstacles "
+                             "to 'laser' or 'both'")
         if self.obstacles != "laser" and self.vo_type != "odometry":
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
         parse_joy_axes(self.joy_axes)
@@ -257,6 +273,12 @@ class SharedControlNode(Node):
         mount = (p.laser_x, p.laser_y, p.laser_yaw)
         self.odometer, self.scan_odometer = memory_odometers(memory, p.memory_odometry, mount)
         self.memory = ScanMemory(mount, memory) if memory is not None else None
+        # the scan odometer that gives the predictor its velocity (the memory's, if it has
+        # one: each scan is matched once)
+        self.velocity_odometer: ScanOdometer | None = None
+        if p.velocity_source == "scan_matching":
+            self.velocity_odometer = self.scan_odometer or ScanOdometer(
+                mount, max_gap_s=p.vo_timeout_s)
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
         # (arrival, scan with its stamp, remembered points outside its view)
@@ -352,7 +374,7 @@ class SharedControlNode(Node):
         t = self._stamp(t, now)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
-        if self.predictor.feed_vo(t, vel):
+        if self.velocity_odometer is None and self.predictor.feed_vo(t, vel):
             self._maybe_decide(now)
 
     def _on_odometry(self, msg: Odometry) -> None:
@@ -365,7 +387,7 @@ class SharedControlNode(Node):
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
-        if self.predictor.feed_vo(t, vel, ok=ok):
+        if self.velocity_odometer is None and self.predictor.feed_vo(t, vel, ok=ok):
             self._maybe_decide(now)
 
     def _on_memory_odom(self, msg: Odometry) -> None:
@@ -396,15 +418,36 @@ class SharedControlNode(Node):
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
         extra = None
+        scan_pose = None
+        if self.scan_odometer is not None or self.velocity_odometer is not None:
+            odometer = self.scan_odometer or self.velocity_odometer
+            assert odometer is not None
+            scan_pose = odometer.add(scan)
         if self.memory is not None and self.odometer is not None:
             extra = self.memory.add(scan, self.odometer.pose_at(scan.stamp),
                                     self.odometer.epoch)
         elif self.memory is not None and self.scan_odometer is not None:
-            extra = self.memory.add(scan, self.scan_odometer.add(scan),
-                                    self.scan_odometer.epoch)
+            assert scan_pose is not None
+            extra = self.memory.add(scan, scan_pose, self.scan_odometer.epoch)
         self._scan = (now, scan, extra)
+        if self.velocity_odometer is not None:
+            self._feed_scan_velocity(scan.stamp, now)
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # while intervening, every scan is judged at once
+
+    def _feed_scan_velocity(self, stamp: float, now: float) -> None:
+        """The predictor's velocity sample from the newest scan match (velocity_source
+        'scan_matching'): the forward and turn rates of the matched interval, stamped with
+        the newer scan (a frame-to-frame odometry, as a VO's twist); a scan that did not
+        match gives a lost sample."""
+        assert self.velocity_odometer is not None
+        step = self.velocity_odometer.last_step
+        if step is None:
+            self.predictor.feed_vo(stamp, (math.nan, math.nan), ok=False)
+            return
+        gap, dx, _, dtheta = step
+        if self.predictor.feed_vo(stamp, (dx / gap, dtheta / gap)):
+            self._maybe_decide(now)
 
     def _on_map(self, msg: OccupancyGrid) -> None:
         if msg.header.frame_id and msg.header.frame_id != self.params.odom_frame:
@@ -554,6 +597,9 @@ class SharedControlNode(Node):
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
+            "velocity_source": self.params.velocity_source + (
+                f" ({self.velocity_odometer.breaks} breaks)"
+                if self.velocity_odometer is not None else ""),
             "bad_messages": str(self._bad_messages),
         }
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,

@@ -51,7 +51,7 @@ from asgp_ros.core.obstacle_memory import (
     compose,
 )
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import memory_odometers
+from asgp_ros.core.scan_match import ScanOdometer, memory_odometers
 from asgp_ros.core.shared_control import (
     Decision,
     SharedControlConfig,
@@ -287,14 +287,20 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           lidar: LidarConfig | None = None, margin: float = 0.05,
           memory: MemoryConfig | None = DEFAULT_MEMORY,
           memory_odometry: str = "scan_matching", audit: bool = False,
-          vo_noise: tuple[float, float] = VO_NOISE) -> DriveResult:
+          vo_noise: tuple[float, float] = VO_NOISE,
+          velocity_source: str = "vo") -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
     ``memory_odometry`` "scan_matching", the node's default) or by dead reckoning of the VO's
     twists ("dead_reckoning"). ``audit``: check the decisions against the plant (module
     docstring; slower). ``vo_noise``: the frame-to-frame VO's noise (m/s, rad/s, one
-    standard deviation per twist)."""
+    standard deviation per twist). ``velocity_source``: where the layer's predictor takes the
+    velocity from, "vo" (the frame-to-frame VO) or "scan_matching" (each matched scan
+    interval's twist, as ``shared_control_node``'s ``velocity_source``)."""
+    if velocity_source not in ("vo", "scan_matching"):
+        raise ValueError(f"velocity_source must be 'vo' or 'scan_matching', got "
+                         f"{velocity_source!r}")
     if not (len(vo_noise) == 2 and all(math.isfinite(x) and 0.0 <= x <= 10.0
                                        for x in vo_noise)):
         raise ValueError(f"vo_noise must be two numbers in [0, 10], got {vo_noise!r}")
@@ -316,6 +322,9 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
     odometer, scan_odometer = memory_odometers(memory, memory_odometry, mount)
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
+    velocity_odometer: ScanOdometer | None = None
+    if velocity_source == "scan_matching":
+        velocity_odometer = scan_odometer or ScanOdometer(mount)
     extra: np.ndarray | None = None
     known: np.ndarray | None = None  # what the layer's newest check knows, in the room
     true_map: collision.DistanceField | None = None
@@ -338,6 +347,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     n_steps = round(seconds / STEP_S)
     for n in range(n_steps):
         t = n * STEP_S
+        scan_fed = False
         now_ms = round(t * 1000)
         if n % JOY_EVERY == 0:
             stick = driver.command(t, state)
@@ -353,10 +363,21 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 r = scanner.scan(state.x, state.y, state.theta)
                 scan = collision.Scan(r.ranges, r.angle_min, r.angle_increment, r.range_min,
                                       r.range_max, stamp=t)
+                scan_pose = None
+                matcher = scan_odometer or velocity_odometer  # each scan matched once
+                if matcher is not None:
+                    scan_pose = matcher.add(scan)
                 if scan_memory is not None and odometer is not None:
                     extra = scan_memory.add(scan, odometer.pose_at(t), odometer.epoch)
                 elif scan_memory is not None and scan_odometer is not None:
-                    extra = scan_memory.add(scan, scan_odometer.add(scan), scan_odometer.epoch)
+                    extra = scan_memory.add(scan, scan_pose, scan_odometer.epoch)
+                if velocity_odometer is not None:  # as the node: the matched interval's twist
+                    m = velocity_odometer.last_step
+                    if m is None:
+                        predictor.feed_vo(t, (math.nan, math.nan), ok=False)
+                    else:
+                        predictor.feed_vo(t, (m[1] / m[0], m[3] / m[0]))
+                    scan_fed = True
                 known = _known_points(scan, extra, state, mount)
                 if audit:
                     short = short_of_furniture(known, room)
@@ -404,13 +425,17 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
         if n % JOY_EVERY == 0:
             fed = sent if (sent is not None and active) else user
             predictor.feed_joy(t, fed)
+        vel_fed = scan_fed
         if n % VO_EVERY == 3:
             if vo_frame is not None:
                 v, w = frame_twist(vo_frame, state, t, vo_rng, vo_noise)
-                predictor.feed_vo(t, (v, w))
+                if velocity_odometer is None:
+                    predictor.feed_vo(t, (v, w))
                 if odometer is not None:
                     odometer.feed(t, v, w)
             vo_frame = (state.x, state.y, state.theta, t)
+            vel_fed = vel_fed or velocity_odometer is None
+        if vel_fed:
             step = predictor.ready_step()
             if step is not None and (last_step is None or step > last_step):
                 last_step = step
