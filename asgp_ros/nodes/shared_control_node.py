@@ -28,7 +28,10 @@ what was done and why, probability before and after, change, solve time) and
 
 The predictor is fed the command the chair actually received: the override while one is
 being sent and the user's stick is out of neutral (what the firmware applies), else the
-user's stick.
+user's stick. Its velocity comes from the VO (``velocity_source: vo``, the default) or from
+the scans matched to each other (``scan_matching``: each matched interval's twist, stamped
+with the newer scan; a refused match is a lost sample), which keeps the layer's input fresh
+where a camera loses its features, in front of a wall.
 
 Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
 map, or an override older than ``hold_s`` (the node stalled) means no override.
