@@ -98,11 +98,14 @@ def test_the_odometer_follows_a_drive_and_breaks_on_gaps(lidar: Lidar) -> None:
         # the matched interval's motion, in the base frame at the previous scan
         assert odo.last_step is not None and odo.last_step[0] == pytest.approx(0.1)
         np.testing.assert_allclose(odo.last_step[1:], _between(before, pose), atol=0.01)
+        truth_step = _between(before, pose)
+        assert odo.last_twist == pytest.approx((truth_step[0] / 0.1, truth_step[2] / 0.1),
+                                               abs=0.1)
     assert odo.epoch == 0, odo.refused
     assert max(errors) < 0.03  # 15 s and about 6 m
     # a gap, then a stamp going back: new epochs, poses restart at the origin, no step
     assert odo.add(scan_at(lidar, pose, t + 2.0)) == (0.0, 0.0, 0.0)
-    assert odo.epoch == 1 and odo.last_step is None
+    assert odo.epoch == 1 and odo.last_step is None and odo.last_twist is None
     assert odo.add(scan_at(lidar, pose, t)) == (0.0, 0.0, 0.0)
     assert odo.epoch == 2 and odo.breaks == 2
     # a scan of garbage: refused, a new epoch, never a pose far from the last

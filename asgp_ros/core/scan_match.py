@@ -280,6 +280,15 @@ class ScanOdometer:
         #: repeated stamp)
         self.last_step: tuple[float, float, float, float] | None = None
 
+    @property
+    def last_twist(self) -> tuple[float, float] | None:
+        """(forward m/s, turn rad/s) of the newest matched interval (:attr:`last_step`), as a
+        frame-to-frame odometry reports it; None when the newest scan did not match."""
+        if self.last_step is None:
+            return None
+        gap, dx, _, dtheta = self.last_step
+        return dx / gap, dtheta / gap
+
     def _base_points(self, scan: Scan) -> FloatArray:
         pts = scan_points(scan)
         c, s = math.cos(self.mount[2]), math.sin(self.mount[2])

@@ -421,11 +421,8 @@ class SharedControlNode(Node):
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
         extra = None
-        scan_pose = None
-        if self.scan_odometer is not None or self.velocity_odometer is not None:
-            odometer = self.scan_odometer or self.velocity_odometer
-            assert odometer is not None
-            scan_pose = odometer.add(scan)
+        matcher = self.scan_odometer or self.velocity_odometer  # each scan matched once
+        scan_pose = matcher.add(scan) if matcher is not None else None
         if self.memory is not None and self.odometer is not None:
             extra = self.memory.add(scan, self.odometer.pose_at(scan.stamp),
                                     self.odometer.epoch)
@@ -444,12 +441,10 @@ class SharedControlNode(Node):
         the newer scan (a frame-to-frame odometry, as a VO's twist); a scan that did not
         match gives a lost sample."""
         assert self.velocity_odometer is not None
-        step = self.velocity_odometer.last_step
-        if step is None:
+        twist = self.velocity_odometer.last_twist
+        if twist is None:
             self.predictor.feed_vo(stamp, (math.nan, math.nan), ok=False)
-            return
-        gap, dx, _, dtheta = step
-        if self.predictor.feed_vo(stamp, (dx / gap, dtheta / gap)):
+        elif self.predictor.feed_vo(stamp, twist):
             self._maybe_decide(now)
 
     def _on_map(self, msg: OccupancyGrid) -> None:

@@ -372,11 +372,11 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 elif scan_memory is not None and scan_odometer is not None:
                     extra = scan_memory.add(scan, scan_pose, scan_odometer.epoch)
                 if velocity_odometer is not None:  # as the node: the matched interval's twist
-                    m = velocity_odometer.last_step
-                    if m is None:
+                    twist = velocity_odometer.last_twist
+                    if twist is None:
                         predictor.feed_vo(t, (math.nan, math.nan), ok=False)
                     else:
-                        predictor.feed_vo(t, (m[1] / m[0], m[3] / m[0]))
+                        predictor.feed_vo(t, twist)
                     scan_fed = True
                 known = _known_points(scan, extra, state, mount)
                 if audit:
