@@ -39,6 +39,7 @@ from threadpoolctl import threadpool_limits
 
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.obstacle_memory import MemoryConfig
+from asgp_ros.core.scan_match import VELOCITY_SOURCES
 from asgp_ros.core.shared_control import SharedControlConfig
 from asgp_ros.sim.lidar import LidarConfig
 from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, SHORT_OF_FURNITURE_M, VO_NOISE, drive
@@ -57,9 +58,10 @@ MARGIN = 0.05
 P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float, bool, float, str]
+def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool]
          ) -> dict[str, Any]:
-    path, seed, mode, minutes, fov, memory_s, audit, vo_scale, velocity_source = task
+    (path, seed, mode, minutes, fov, memory_s, audit, vo_scale, velocity_source,
+     vo_losses) = task
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -72,7 +74,8 @@ def _one(task: tuple[str, int, str, float, float, float, bool, float, str]
                        memory_odometry="scan_matching" if mode == "scan memory"
                        else "dead_reckoning", margin=MARGIN, audit=audit,
                        vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]),
-                       velocity_source=velocity_source if mode != "none" else "vo")
+                       velocity_source=velocity_source if mode != "none" else "vo",
+                       vo_losses=vo_losses)
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
                                           r.p_map) for r in result.audit],
@@ -114,18 +117,25 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--vo-noise", type=float, default=1.0,
                     help="the VO's noise as a multiple of the offline drive's "
                          f"({VO_NOISE[0]:g} m/s, {VO_NOISE[1]:g} rad/s per twist)")
-    ap.add_argument("--velocity-source", choices=("vo", "scan_matching"), default="vo",
-                    help="where the layer's predictor takes the velocity from (vo)")
+    ap.add_argument("--velocity-source", choices=VELOCITY_SOURCES, default="auto",
+                    help="where the layer's predictor takes the velocity from (auto: the "
+                         "matched scans', the VO's while they do not match)")
+    ap.add_argument("--no-vo-losses", action="store_true",
+                    help="the VO never loses tracking (by default it does, in episodes at "
+                         "the floor's rate and when the camera faces something nearer than "
+                         "its minimum depth)")
     args = ap.parse_args(argv)
     if not (np.isfinite(args.vo_noise) and 0.0 <= args.vo_noise <= 100.0):
         ap.error(f"--vo-noise must be in [0, 100], got {args.vo_noise}")
     tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit,
-              args.vo_noise, args.velocity_source) for seed in args.seeds for mode in args.modes]
+              args.vo_noise, args.velocity_source, not args.no_vo_losses)
+             for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
     print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
           f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}, the layer's velocity "
-          f"from {args.velocity_source}")
+          f"from {args.velocity_source}, VO losses "
+          f"{'off' if args.no_vo_losses else 'on'}")
     print("seed | mode            | contacts | interventions | intervening (s) | mean change "
           "| untouched | deepest (m) | solve p50 / p99 ms")
     for r in rows:

@@ -127,3 +127,49 @@ def test_memory_odometers_pick_what_carries_the_memory():
     assert memory_odometers(None, "scan_matching", mount) == (None, None)
     with pytest.raises(ValueError, match="memory_odometry must be one of"):
         memory_odometers(None, "gps", mount)
+
+
+def test_a_scan_repeating_the_previous_ones_ranges_is_a_stuck_driver(lidar: Lidar) -> None:
+    """A driver that re-stamps its last scan would read as a standstill: the exact repeat
+    starts a new epoch with no twist; the scanner's next real scan matches again."""
+    odo = ScanOdometer(lidar.config.mount)
+    pose = (-2.0, 0.0, 0.0)
+    odo.add(scan_at(lidar, pose, 0.0))
+    moved = compose(pose, (0.05, 0.0, 0.0))
+    stuck = scan_at(lidar, moved, 0.1)
+    odo.add(stuck)
+    assert odo.last_twist is not None and odo.epoch == 0
+    again = Scan(stuck.ranges.copy(), stuck.angle_min, stuck.angle_increment,
+                 stuck.range_min, stuck.range_max, stamp=0.2)
+    assert odo.add(again) == (0.0, 0.0, 0.0)
+    assert odo.last_twist is None and odo.epoch == 1
+    assert odo.refused == {"repeated ranges": 1}
+    # the scanner's own noise, standing still: never bit-identical, a twist of about zero
+    odo.add(scan_at(lidar, moved, 0.3))
+    assert odo.epoch == 1 and odo.last_twist == pytest.approx((0.0, 0.0), abs=0.05)
+
+
+def test_the_velocity_selector_takes_the_scans_while_they_match_and_the_vo_else() -> None:
+    from asgp_ros.core.scan_match import VelocitySelector
+
+    vo = VelocitySelector("vo")
+    assert not vo.uses_scans and vo.scan(0.0, (1.0, 0.0)) == (False, None) and vo.vo(0.0)
+    scans = VelocitySelector("scan_matching")
+    assert scans.scan(0.0, (1.0, 0.1)) == (True, (1.0, 0.1))
+    assert scans.scan(0.1, None) == (True, None)  # a refused match: a tracking loss
+    assert not scans.vo(0.2) and not scans.vo(5.0)  # the VO never, however long
+    auto = VelocitySelector("auto", fallback_s=0.3)
+    assert auto.vo(0.0) and auto.current == "vo"  # no scan yet: the VO
+    assert auto.scan(0.1, (1.0, 0.0)) == (True, (1.0, 0.0)) and auto.current == "scans"
+    assert not auto.vo(0.2) and not auto.vo(0.35)  # the scans match: no VO
+    assert auto.scan(0.5, None) == (False, None)  # a refused match gives nothing...
+    assert auto.vo(0.55) and auto.current == "vo"  # ...and the VO's next twist is taken
+    assert auto.scan(0.6, (0.9, 0.0)) == (True, (0.9, 0.0)) and not auto.vo(0.65)
+    assert auto.vo(0.95)  # the laser went silent for more than fallback_s
+    assert auto.switches == 4 and auto.describe() == "auto (vo; 4 switches)"
+    assert scans.describe() == "scan_matching"
+    with pytest.raises(ValueError, match="velocity_source"):
+        VelocitySelector("wheels")
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="fallback_s"):
+            VelocitySelector("auto", fallback_s=bad)

@@ -3,6 +3,7 @@ wall given as an analytic collision check."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -235,16 +236,84 @@ def test_the_offline_drives_vo_noise_is_checked(chair_model, bad):
 
 
 def test_the_offline_drives_vo_noise_reaches_the_layers_input(chair_model):
-    """A noisier VO changes what the layer sees (and so the drive); none changes nothing."""
+    """A noisier VO changes what the layer sees (and so the drive) when the layer takes its
+    velocity from the VO; none changes nothing; with 'auto' the matched scans give it."""
     from asgp_ros.sim.shared_drive import drive
 
-    base = drive(chair_model, 40.0, 4, layer=True, inattention=0.5)
-    same = drive(chair_model, 40.0, 4, layer=True, inattention=0.5, vo_noise=(0.01, 0.01))
-    noisy = drive(chair_model, 40.0, 4, layer=True, inattention=0.5, vo_noise=(0.3, 0.3))
+    def run(**kw):
+        return drive(chair_model, 40.0, 4, layer=True, inattention=0.5, **kw)
+
+    base = run(velocity_source="vo")
+    same = run(velocity_source="vo", vo_noise=(0.01, 0.01))
+    noisy = run(velocity_source="vo", vo_noise=(0.3, 0.3))
     strip = {"solve_p50_ms": 0, "solve_p99_ms": 0}
     assert base.interventions >= 1  # the layer acted, on what the VO told it
     assert base.summary() | strip == same.summary() | strip
     assert noisy.summary() | strip != base.summary() | strip
+    auto = run()
+    assert auto.summary() | strip == run(vo_noise=(0.3, 0.3)).summary() | strip
+    assert auto.velocity_switches == 0 and auto.interventions >= 1
+
+
+def test_the_offline_vo_loses_tracking_as_a_camera_does():
+    """Episodes at the floor's rate of the recordings, 0.5-3 s each, none when off; and no
+    VO while the camera faces something nearer than its minimum depth."""
+    from asgp_ros.core.collision import Scan
+    from asgp_ros.sim.sensors import SensorParams
+    from asgp_ros.sim.shared_drive import (
+        VO_MIN_DEPTH_M,
+        _camera_blind,
+        _lost_at,
+        _vo_loss_episodes,
+    )
+
+    episodes = _vo_loss_episodes(np.random.default_rng(3), "hybrid", 3600.0, True)
+    rate = SensorParams().failure_rate("hybrid")  # per minute
+    assert 0.7 * rate * 60 <= len(episodes) <= 1.3 * rate * 60
+    durations = episodes[:, 1] - episodes[:, 0]
+    assert durations.min() >= 0.5 and durations.max() <= 3.0
+    assert np.all(episodes[1:, 0] >= episodes[:-1, 1])  # sorted, one at a time
+    np.testing.assert_array_equal(
+        episodes, _vo_loss_episodes(np.random.default_rng(3), "hybrid", 3600.0, True))
+    lost = _lost_at(episodes)
+    assert all(lost(0.5 * (a + b)) for a, b in episodes)
+    gaps = [(b, c) for (_, b), (c, _) in itertools.pairwise(episodes)
+            if c - b > 1e-3]
+    assert gaps and not any(lost(0.5 * (b + c)) for b, c in gaps)
+    assert not lost(float(episodes[0, 0]) - 1e-6) and not lost(-1.0)
+    assert _vo_loss_episodes(np.random.default_rng(3), "hybrid", 3600.0, False).shape == (0, 2)
+    assert not _lost_at(np.zeros((0, 2)))(5.0)
+
+    angles = np.linspace(-0.75 * np.pi, 0.75 * np.pi, 541)
+
+    def scan(ahead: float, side: float = 5.0) -> Scan:
+        r = np.where(np.abs(angles) < 0.6, ahead, side)
+        return Scan(r, float(angles[0]), float(angles[1] - angles[0]), 0.05, 8.0)
+
+    mount = (0.3, 0.0, 0.0)
+    assert _camera_blind(scan(0.8 * VO_MIN_DEPTH_M), mount)
+    assert not _camera_blind(scan(2.0 * VO_MIN_DEPTH_M), mount)
+    assert not _camera_blind(scan(np.inf), mount)  # no returns: open space, not a wall
+    assert not _camera_blind(scan(2.0, side=0.1), mount)  # a wall beside, none ahead
+    assert _camera_blind(scan(2.0, side=0.1), (0.3, 0.0, np.pi / 2))  # a camera facing it
+
+
+def test_with_the_vo_lost_auto_keeps_the_layers_input_fresh(chair_model):
+    """The same drive with the VO losing tracking (a feature-poor floor): from the VO alone
+    the layer's input goes stale; 'auto' takes the scans and decides throughout."""
+    from asgp_ros.sim.shared_drive import drive
+
+    def run(source):
+        return drive(chair_model, 90.0, 6, layer=True, inattention=0.5, surface="hybrid",
+                     velocity_source=source)
+
+    vo, auto = run("vo"), run("auto")
+    assert vo.vo_lost_s > 0.0 and auto.vo_lost_s > 0.0
+    assert vo.decisions.get("stale_input", 0) >= 3
+    assert auto.decisions.get("stale_input", 0) <= 1
+    free = drive(chair_model, 90.0, 6, layer=True, inattention=0.5, surface="hybrid",
+                 velocity_source="vo", vo_losses=False)
+    assert free.vo_lost_s == 0.0 and free.decisions.get("stale_input", 0) <= 1
 
 
 def test_the_offline_layer_can_take_its_velocity_from_scan_matching(chair_model):

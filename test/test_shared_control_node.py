@@ -219,25 +219,52 @@ def _drive_down_a_corridor(h, t_from: float, t_to: float, wall_at: float, speed:
             h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
 
 
+@pytest.mark.parametrize("source", ["scan_matching", "auto"])
 @pytest.mark.parametrize("memory_s", [0.0, 10.0])  # its own scan odometer, the memory's
-def test_scan_matching_as_the_velocity_source_keeps_the_layer_acting_without_vo(
-        harness, memory_s):
+def test_the_scans_as_the_velocity_source_keep_the_layer_acting_without_vo(
+        harness, memory_s, source):
     """The camera loses its features as the chair heads for a wall: with velocity_source
-    'vo' the layer's input goes stale and it lets go; with 'scan_matching' it keeps
-    predicting from the matched scans and intervenes."""
-    vo = harness(memory_s=memory_s)
+    'vo' the layer's input goes stale and it lets go; with 'scan_matching' or 'auto' (the
+    default) it keeps predicting from the matched scans and intervenes."""
+    vo = harness(memory_s=memory_s, velocity_source="vo")
     _drive_down_a_corridor(vo, 100.0, 102.0, wall_at=6.0, speed=0.72, vo=False)
     assert vo.last()["why"] == "stale_input" and vo.overrides == []
-    scans = harness(velocity_source="scan_matching", memory_s=memory_s)
+    scans = harness(velocity_source=source, memory_s=memory_s)
     _drive_down_a_corridor(scans, 100.0, 103.0, wall_at=3.2, speed=0.72, vo=False)
     assert scans.overrides, scans.last()
     assert scans.node.predictor.stats.vo_samples >= 20  # from the scans, none from a VO
     diag = conv.diagnostic_values(scans.node.diagnostic_status())
-    assert diag["velocity_source"].startswith("scan_matching")
+    assert diag["velocity_source"].startswith(
+        "scan_matching" if source == "scan_matching" else "auto (scans; 0 switches)")
     # the velocities it took are the chair's: 0.72 m/s ahead, no turn
     last = scans.node._decision
     assert last is not None and last.prediction is not None
     assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
+
+
+def test_auto_takes_the_vo_while_the_scans_do_not_match(harness, rclpy_context,
+                                                        model_file):  # noqa: F811
+    """'auto', the default: a scanner that repeats its last scan (a stuck driver; the wall
+    scans here are exact copies) or sees nothing to match gives no velocity, and the VO's
+    twists are the predictor's; the layer acts on them."""
+    h = harness()
+    h.drive(100.0, 103.0, wall=1.6)
+    assert h.last()["why"] == "intervening" and h.overrides
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert diag["velocity_source"].startswith("auto (vo; 0 switches)"), diag
+    last = h.node._decision
+    assert last is not None and last.prediction is not None
+    assert last.prediction.vel_past[-1][0] == pytest.approx(0.72, abs=0.02)  # the VO's
+    assert h.node.velocity_odometer is not None
+    assert h.node.velocity_odometer.refused.get("repeated ranges", 0) >= 20
+    # with the laser only for a map ('grid'), 'auto' is the VO without a scan odometer
+    grid = SharedControlNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("obstacles", value="grid"),
+        Parameter("vo_type", value="odometry"), Parameter("vo_topic", value="vo/odometry")])
+    try:
+        assert grid.velocity_odometer is None and grid.velocity.describe() == "vo"
+    finally:
+        grid.destroy_node()
 
 
 def test_a_velocity_source_that_cannot_work_is_refused(harness):
@@ -481,7 +508,7 @@ def test_scan_matching_carries_the_memory_whatever_the_vo_says(harness):
     room = room_for_surface("tile")
     lidar = Lidar(room, None, seed=7)
     assert lidar.config.mount[0] == LASER_X
-    h = harness(memory_s=10.0)
+    h = harness(memory_s=10.0, velocity_source="vo")  # the predictor takes the VO's twists
     assert h.node.odometer is None and h.node.scan_odometer is not None
     stats = h.node.predictor.stats
     x0, y0 = room.free_box[0] + 1.0, room.free_box[2] + 0.9  # a wall behind, one right

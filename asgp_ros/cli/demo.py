@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from asgp_ros.cli import CommandError
+from asgp_ros.core.scan_match import VELOCITY_SOURCES
 from asgp_ros.demo.orchestrator import DemoError, DemoOptions, run_demo
 
 
@@ -51,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="probability that a bout of the simulated driver is inattentive "
                         "(heads for the furniture, reacts late); default 0.1 with "
                         "--shared-control, else 0")
-    p.add_argument("--velocity-source", choices=("vo", "scan_matching"), default="vo",
+    p.add_argument("--velocity-source", choices=VELOCITY_SOURCES, default="auto",
                    help="with --shared-control: where the layer takes the chair's velocity "
                         "from (shared_control_node's velocity_source; %(default)s)")
     p.add_argument("--force", action="store_true",

@@ -26,7 +26,9 @@ per pair (the rotation in metres at the points' RMS radius) must be at least
 a keyframe scan that is replaced once the chair has moved ``keyframe_m`` or turned
 ``keyframe_rad`` (matching every scan to its predecessor would add their errors).  The
 twist odometry (VO, wheel odometry), when given, seeds each match; a refused match, a
-stamp going back or a gap longer than ``max_gap_s`` starts a new epoch (the memory then
+stamp going back, a gap longer than ``max_gap_s`` or a scan whose ranges repeat the previous
+one's exactly (a stuck driver re-stamping its last scan: a real scanner's noise never
+repeats) starts a new epoch (the memory then
 forgets what it held), as :class:`~asgp_ros.core.obstacle_memory.Odometer` does.
 """
 
@@ -45,7 +47,8 @@ from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, Odomete
 FloatArray = NDArray[np.float64]
 Pose = tuple[float, float, float]
 
-__all__ = ["Match", "MatchConfig", "Reference", "ScanOdometer", "match", "normals"]
+__all__ = ["VELOCITY_SOURCES", "Match", "MatchConfig", "Reference", "ScanOdometer",
+           "VelocitySelector", "match", "normals"]
 
 
 @dataclass(frozen=True)
@@ -275,6 +278,7 @@ class ScanOdometer:
         self._pose: Pose = (0.0, 0.0, 0.0)
         self._stamp = -math.inf
         self._velocity: Pose = (0.0, 0.0, 0.0)  # per second, in the base frame
+        self._ranges: FloatArray | None = None  # the previous scan's ranges
         #: (interval s, dx, dy, dtheta) of the newest :meth:`add` that matched, the motion in
         #: the base frame at the previous scan; None when it did not (a new epoch, a
         #: repeated stamp)
@@ -318,6 +322,7 @@ class ScanOdometer:
         t = float(scan.stamp)
         pts = self._base_points(scan)
         self.last_step = None
+        previous_ranges, self._ranges = self._ranges, scan.ranges
         if self._key is None or not math.isfinite(t):
             return self._restart(pts, t, "no stamp")
         gap = t - self._stamp
@@ -325,6 +330,11 @@ class ScanOdometer:
             return self._restart(pts, t, "stamp went back") if gap < 0.0 else self._pose
         if gap > self.max_gap_s:
             return self._restart(pts, t, "gap")
+        if previous_ranges is not None and np.array_equal(previous_ranges, scan.ranges,
+                                                          equal_nan=True):
+            # a real scanner's ranges are never bit-identical twice, even standing still: a
+            # driver repeating its last scan with new stamps would read as a standstill
+            return self._restart(pts, t, "repeated ranges")
         if motion is None or not all(math.isfinite(m) for m in motion):
             motion = (self._velocity[0] * gap, self._velocity[1] * gap,
                       self._velocity[2] * gap)
@@ -363,3 +373,85 @@ def memory_odometers(memory: MemoryConfig | None, kind: str,
     if kind == "dead_reckoning":
         return Odometer(memory.max_gap_s), None
     return None, ScanOdometer(mount, max_gap_s=memory.max_gap_s)
+
+
+#: Where a predictor takes the chair's velocity from: the VO's twists, the scans' matched
+#: intervals, or the scans while they match and the VO while they do not.
+VELOCITY_SOURCES = ("auto", "vo", "scan_matching")
+
+
+class VelocitySelector:
+    """Which velocity samples go to a predictor (``VELOCITY_SOURCES``).
+
+    - ``vo``: every VO twist, no scan twist.
+    - ``scan_matching``: every scan's matched-interval twist, and a tracking loss for a scan
+      that did not match; no VO twist.
+    - ``auto``: the scans' twists while they match; a scan that does not match gives
+      nothing, and the VO's twists are taken from then on, and whenever no matched scan
+      has come for ``fallback_s`` (a laser that stops, or none fitted). Both streams
+      measure the same motion, so the predictor's buffer takes them in one sequence; a
+      sample is never held back for the other stream, so one lost sensor does not make
+      the predictor's input stale while the other one sees.
+
+    Attributes:
+        current: "scans" or "vo", the stream the newest sample given came from ("none"
+            before any).
+        switches: how many times ``current`` changed.
+    """
+
+    def __init__(self, mode: str, fallback_s: float = 0.3) -> None:
+        if mode not in VELOCITY_SOURCES:
+            raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
+                             f"{mode!r}")
+        if not (math.isfinite(fallback_s) and fallback_s > 0.0):
+            raise ValueError(f"fallback_s must be a positive number, got {fallback_s!r}")
+        self.mode = mode
+        self.fallback_s = float(fallback_s)
+        self.current = "none"
+        self.switches = 0
+        self._matched_t = -math.inf  # stamp of the newest matched scan twist given
+
+    @property
+    def uses_scans(self) -> bool:
+        """Whether scans are matched for their twist at all."""
+        return self.mode != "vo"
+
+    def _took(self, stream: str) -> None:
+        if self.current not in ("none", stream):
+            self.switches += 1
+        self.current = stream
+
+    def scan(self, t: float, twist: tuple[float, float] | None
+             ) -> tuple[bool, tuple[float, float] | None]:
+        """A scan stamped ``t`` with its matched twist (None: it did not match).
+
+        Returns:
+            (give, twist): whether the predictor is given a sample, and the twist to give
+            it (None: a tracking loss).
+        """
+        if self.mode == "vo":
+            return False, None
+        if twist is None:
+            self._matched_t = -math.inf
+            if self.mode == "auto":
+                return False, None
+            self._took("scans")
+            return True, None
+        self._matched_t = float(t)
+        self._took("scans")
+        return True, twist
+
+    def vo(self, t: float) -> bool:
+        """Whether the VO's sample stamped ``t`` goes to the predictor."""
+        if self.mode == "scan_matching":
+            return False
+        if self.mode == "auto" and float(t) - self._matched_t <= self.fallback_s:
+            return False
+        self._took("vo")
+        return True
+
+    def describe(self) -> str:
+        """The mode, and in ``auto`` the stream in use and the switches so far."""
+        if self.mode != "auto":
+            return self.mode
+        return f"auto ({self.current}; {self.switches} switches)"

@@ -42,6 +42,7 @@ from asgp_ros.common import topics
 from asgp_ros.common.fileio import DEMO_DIR, OutputError, check_output, write_marker
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.models import MotionModel
+from asgp_ros.core.scan_match import VELOCITY_SOURCES
 from asgp_ros.demo.common import DemoError, RunState
 from asgp_ros.demo.monitor import format_status
 from asgp_ros.demo.processes import ProcessGroup
@@ -114,7 +115,7 @@ class DemoOptions:
     force: bool = False
     shared_control: bool = False
     inattention: float = 0.0
-    velocity_source: str = "vo"
+    velocity_source: str = "auto"
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -138,9 +139,9 @@ class DemoOptions:
             raise DemoError(f"--surface must be tile, carpet or hybrid, got {self.surface!r}")
         if not (math.isfinite(self.inattention) and 0.0 <= self.inattention <= 1.0):
             raise DemoError(f"--inattention must be in [0, 1], got {self.inattention}")
-        if self.velocity_source not in ("vo", "scan_matching"):
-            raise DemoError(f"--velocity-source must be vo or scan_matching, got "
-                            f"{self.velocity_source!r}")
+        if self.velocity_source not in VELOCITY_SOURCES:
+            raise DemoError(f"--velocity-source must be one of "
+                            f"{', '.join(VELOCITY_SOURCES)}, got {self.velocity_source!r}")
 
 
 def package_root() -> Path:

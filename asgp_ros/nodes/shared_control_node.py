@@ -28,10 +28,11 @@ what was done and why, probability before and after, change, solve time) and
 
 The predictor is fed the command the chair actually received: the override while one is
 being sent and the user's stick is out of neutral (what the firmware applies), else the
-user's stick. Its velocity comes from the VO (``velocity_source: vo``, the default) or from
-the scans matched to each other (``scan_matching``: each matched interval's twist, stamped
-with the newer scan; a refused match is a lost sample), which keeps the layer's input fresh
-where a camera loses its features, in front of a wall.
+user's stick. Its velocity comes from the scans matched to each other while they match and
+from the VO while they do not (``velocity_source: auto``, the default: a camera loses its
+features in front of a wall, where a laser sees best), from the VO alone (``vo``), or from
+the scans alone (``scan_matching``: each matched interval's twist, stamped with the newer
+scan; a refused match is a lost sample).
 
 Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
 map, or an override older than ``hold_s`` (the node stalled) means no override.
@@ -70,7 +71,12 @@ from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, ScanMemory
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import ScanOdometer, memory_odometers
+from asgp_ros.core.scan_match import (
+    VELOCITY_SOURCES,
+    ScanOdometer,
+    VelocitySelector,
+    memory_odometers,
+)
 from asgp_ros.core.shared_control import (
     CollisionCheck,
     Decision,
@@ -150,21 +156,18 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("memory_odom_topic", "", "with memory_odometry 'dead_reckoning': odometry that "
           "carries the memory (nav_msgs/Odometry: its twist; wheel odometry or a filter "
           "fusing it, say); empty: the VO's twists"),
-    _spec("velocity_source", "vo", "what the layer's predictor takes the chair's velocity "
-          "from: 'vo' (vo_topic) or 'scan_matching' (the laser's scans matched to each other, "
-          "as for the memory: the twist of each matched interval; it keeps predicting when "
-          "the camera loses its features, and a refused match is a lost sample, never a "
-          "made-up one)"),
+    _spec("velocity_source", "auto", "what the layer's predictor takes the chair's velocity "
+          "from: 'auto' (the scans matched to each other while they match, the VO while they "
+          "do not or no scan comes: it keeps predicting when the camera loses its features "
+          "in front of a wall; with obstacles 'grid', the VO), 'vo' (vo_topic alone) or "
+          "'scan_matching' (the laser's scans alone, as for the memory: the twist of each "
+          "matched interval, and a refused match is a lost sample, never a made-up one)"),
     _spec("memory_radius_m", 3.0, "remembered obstacles farther than this from the chair are "
           "forgotten", 0.1, 100.0),
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
 )
-
-
-#: Where the layer's predictor takes the chair's velocity from.
-VELOCITY_SOURCES = ("vo", "scan_matching")
 
 
 @dataclass(frozen=True)
@@ -278,8 +281,12 @@ class SharedControlNode(Node):
         self.memory = ScanMemory(mount, memory) if memory is not None else None
         # the scan odometer that gives the predictor its velocity (the memory's, if it has
         # one: each scan is matched once)
+        # 'auto' without a laser is the VO
+        source = "vo" if p.velocity_source == "auto" and p.obstacles == "grid" \
+            else p.velocity_source
+        self.velocity = VelocitySelector(source, fallback_s=p.scan_timeout_s)
         self.velocity_odometer: ScanOdometer | None = None
-        if p.velocity_source == "scan_matching":
+        if self.velocity.uses_scans:
             self.velocity_odometer = self.scan_odometer or ScanOdometer(
                 mount, max_gap_s=p.vo_timeout_s)
 
@@ -377,7 +384,7 @@ class SharedControlNode(Node):
         t = self._stamp(t, now)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
-        if self.velocity_odometer is None and self.predictor.feed_vo(t, vel):
+        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel):
             self._maybe_decide(now)
 
     def _on_odometry(self, msg: Odometry) -> None:
@@ -390,7 +397,7 @@ class SharedControlNode(Node):
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
-        if self.velocity_odometer is None and self.predictor.feed_vo(t, vel, ok=ok):
+        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok):
             self._maybe_decide(now)
 
     def _on_memory_odom(self, msg: Odometry) -> None:
@@ -437,11 +444,14 @@ class SharedControlNode(Node):
 
     def _feed_scan_velocity(self, stamp: float, now: float) -> None:
         """The predictor's velocity sample from the newest scan match (velocity_source
-        'scan_matching'): the forward and turn rates of the matched interval, stamped with
-        the newer scan (a frame-to-frame odometry, as a VO's twist); a scan that did not
-        match gives a lost sample."""
+        'scan_matching' or 'auto'): the forward and turn rates of the matched interval,
+        stamped with the newer scan (a frame-to-frame odometry, as a VO's twist); a scan
+        that did not match gives a lost sample ('scan_matching') or nothing ('auto': the
+        VO's twists are taken)."""
         assert self.velocity_odometer is not None
-        twist = self.velocity_odometer.last_twist
+        give, twist = self.velocity.scan(stamp, self.velocity_odometer.last_twist)
+        if not give:
+            return
         if twist is None:
             self.predictor.feed_vo(stamp, (math.nan, math.nan), ok=False)
         elif self.predictor.feed_vo(stamp, twist):
@@ -595,7 +605,7 @@ class SharedControlNode(Node):
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
-            "velocity_source": self.params.velocity_source + (
+            "velocity_source": self.velocity.describe() + (
                 f" ({self.velocity_odometer.breaks} breaks)"
                 if self.velocity_odometer is not None else ""),
             "bad_messages": str(self._bad_messages),

@@ -11,7 +11,11 @@ same seed with the layer on and off:
 * the layer sees what the nodes see: the stick as the bridge reports it (50 Hz), the
   velocity as a frame-to-frame VO reports it (5 Hz: the body-frame displacement since the
   previous frame over the interval, stamped with the newer frame, with noise), the scanner
-  (:class:`~asgp_ros.sim.lidar.Lidar`, 10 Hz); it decides at every model grid step
+  (:class:`~asgp_ros.sim.lidar.Lidar`, 10 Hz); the VO loses tracking as a camera does
+  (with ``vo_losses``): in episodes of 0.5-3 s at the recordings' rate for the floor
+  (:class:`~asgp_ros.sim.sensors.SensorParams`), and whenever the camera faces something
+  nearer than an RGB-D camera's minimum depth (``VO_MIN_DEPTH_M`` over the central
+  ``VO_VIEW_RAD`` of the scan), and then reports nothing; it decides at every model grid step
   (:func:`asgp_ros.core.shared_control.decide`), and while it intervenes its override is
   written to the board every 50 ms, as the bridge does.
 
@@ -42,6 +46,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 from asgp_ros.core import collision
 from asgp_ros.core.models import MotionModel
@@ -51,7 +56,12 @@ from asgp_ros.core.obstacle_memory import (
     compose,
 )
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
-from asgp_ros.core.scan_match import ScanOdometer, memory_odometers
+from asgp_ros.core.scan_match import (
+    VELOCITY_SOURCES,
+    ScanOdometer,
+    VelocitySelector,
+    memory_odometers,
+)
 from asgp_ros.core.shared_control import (
     Decision,
     SharedControlConfig,
@@ -64,11 +74,19 @@ from asgp_ros.serial.protocol import Mode
 from asgp_ros.sim.chair import Chair, ChairState
 from asgp_ros.sim.driver import Driver, DriverParams
 from asgp_ros.sim.lidar import Lidar, LidarConfig, room_grid
+from asgp_ros.sim.sensors import SensorParams
 from asgp_ros.sim.world import Room, room_for_surface
+
+FloatArray = NDArray[np.float64]
 
 STEP_S = 0.01
 JOY_EVERY, VO_EVERY, SCAN_EVERY, OVERRIDE_EVERY = 2, 20, 10, 5  # 50, 5, 10, 20 Hz
 VO_NOISE = (0.01, 0.01)  # (m/s, rad/s), one standard deviation
+#: The camera sees no depth nearer than this (m; structured-light and stereo RGB-D cameras
+#: start at 0.3-0.6 m): with the scan's central ``VO_VIEW_RAD`` (the camera's field of view,
+#: about the scanner's) mostly nearer, the VO has no features and reports nothing.
+VO_MIN_DEPTH_M = 0.5
+VO_VIEW_RAD = math.radians(58.0)
 AUDIT_MAP_RESOLUTION = 0.02
 """Cell (m) of the room's map the audit checks the layer's predictions against: its cells
 make that check conservative by at most half a cell (the rectangle is grown by it)."""
@@ -132,6 +150,10 @@ class DriveResult:
     scan), and how many of them lay short of the furniture by more than each distance of
     ``SHORT_OF_FURNITURE_M`` (``points_short``)."""
     points_short: list[int] = field(default_factory=lambda: [0] * len(SHORT_OF_FURNITURE_M))
+    vo_lost_s: float = 0.0
+    """With the layer: the time the VO reported nothing (tracking lost)."""
+    velocity_switches: int = 0
+    """With the layer: how often its velocity changed stream (``velocity_source`` auto)."""
 
     def summary(self) -> dict[str, float | int | bool]:
         def solve_ms(q: float) -> float:  # NaN for a drive without the layer's decisions
@@ -145,6 +167,8 @@ class DriveResult:
             "intervention_s": round(self.intervention_s, 1),
             "mean_change": round(float(np.mean(self.changes)), 3) if self.changes else 0.0,
             "untouched_share": round(self.untouched_share, 4),
+            "vo_lost_s": round(self.vo_lost_s, 1),
+            "velocity_switches": self.velocity_switches,
             "solve_p50_ms": solve_ms(50),
             "solve_p99_ms": solve_ms(99),
         } | self._audit_summary()
@@ -218,6 +242,46 @@ def frame_twist(frame: tuple[float, float, float, float], state: ChairState, t: 
     return v, w
 
 
+def _vo_loss_episodes(rng: np.random.Generator, surface: str, seconds: float,
+                      enabled: bool) -> FloatArray:
+    """The VO's tracking-loss episodes [n, 2] (start, end s) over a drive: lasting
+    ``SensorParams.failure_duration_s``, at the floor's rate of the recordings (a Poisson
+    process on the drive's time, restarting when tracking recovers); none when not
+    ``enabled``."""
+    params = SensorParams()
+    rate_s = params.failure_rate(surface) / 60.0 if enabled else 0.0
+    episodes: list[tuple[float, float]] = []
+    t = 0.0
+    while rate_s > 0.0:
+        t += float(rng.exponential(1.0 / rate_s))
+        if t >= seconds:
+            break
+        end = t + float(rng.uniform(*params.failure_duration_s))
+        episodes.append((t, end))
+        t = end
+    return np.array(episodes, dtype=np.float64).reshape(-1, 2)
+
+
+def _lost_at(episodes: FloatArray) -> Callable[[float], bool]:
+    """Whether a time falls in one of the (sorted, disjoint) ``episodes``."""
+    starts, ends = episodes[:, 0].copy(), episodes[:, 1].copy()
+
+    def lost(when: float) -> bool:
+        i = int(np.searchsorted(starts, when, side="right")) - 1
+        return i >= 0 and when < ends[i]
+    return lost
+
+
+def _camera_blind(scan: collision.Scan, mount: tuple[float, float, float]) -> bool:
+    """Whether the camera (looking forward, about at the scanner) sees mostly nearer than
+    ``VO_MIN_DEPTH_M`` across ``VO_VIEW_RAD``: no depth, no features, no VO."""
+    angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.size) + mount[2]
+    view = np.abs(np.remainder(angles + math.pi, 2.0 * math.pi) - math.pi) <= VO_VIEW_RAD / 2
+    near = scan.ranges[view]
+    near = np.where(np.isfinite(near), near, np.inf)  # dropouts: no return, far
+    return near.size > 0 and float(np.median(near)) < VO_MIN_DEPTH_M
+
+
 def _scan_check_for(scan: collision.Scan | None, extra: np.ndarray | None, now: float,
                     footprint: collision.Footprint, mount: tuple[float, float, float]
                     ) -> Callable[[Prediction], collision.CollisionCheck | None]:
@@ -288,7 +352,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           memory: MemoryConfig | None = DEFAULT_MEMORY,
           memory_odometry: str = "scan_matching", audit: bool = False,
           vo_noise: tuple[float, float] = VO_NOISE,
-          velocity_source: str = "vo") -> DriveResult:
+          velocity_source: str = "auto", vo_losses: bool = True) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
@@ -296,10 +360,12 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     twists ("dead_reckoning"). ``audit``: check the decisions against the plant (module
     docstring; slower). ``vo_noise``: the frame-to-frame VO's noise (m/s, rad/s, one
     standard deviation per twist). ``velocity_source``: where the layer's predictor takes the
-    velocity from, "vo" (the frame-to-frame VO) or "scan_matching" (each matched scan
-    interval's twist, as ``shared_control_node``'s ``velocity_source``)."""
-    if velocity_source not in ("vo", "scan_matching"):
-        raise ValueError(f"velocity_source must be 'vo' or 'scan_matching', got "
+    velocity from, as ``shared_control_node``'s ``velocity_source``
+    (:class:`~asgp_ros.core.scan_match.VelocitySelector`): "auto" (the matched scans'
+    twists, the VO's while they do not match), "vo" or "scan_matching". ``vo_losses``: the
+    VO loses tracking (module docstring); False: never."""
+    if velocity_source not in VELOCITY_SOURCES:
+        raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
                          f"{velocity_source!r}")
     if not (len(vo_noise) == 2 and all(math.isfinite(x) and 0.0 <= x <= 10.0
                                        for x in vo_noise)):
@@ -307,7 +373,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
-    s_chair, s_driver, s_scan, s_vo = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
+    s_chair, s_driver, s_scan, s_vo, s_loss = (int(s.generate_state(1)[0])
+                                               for s in ss.spawn(5))
     chair = Chair.for_room(room, seed=s_chair, blocked=room.overlap)
     state = chair.reset((0.0, 0.0, 0.0))
     driver = Driver(s_driver, room, params=DriverParams(inattention=inattention))
@@ -322,9 +389,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
     odometer, scan_odometer = memory_odometers(memory, memory_odometry, mount)
     scan_memory = ScanMemory(mount, memory) if memory is not None else None
+    velocity = VelocitySelector(velocity_source)
     velocity_odometer: ScanOdometer | None = None
-    if velocity_source == "scan_matching":
+    if velocity.uses_scans:
         velocity_odometer = scan_odometer or ScanOdometer(mount)
+    vo_lost_at = _lost_at(_vo_loss_episodes(np.random.default_rng(s_loss), surface, seconds,
+                                            vo_losses))
+    camera_blind = False
     extra: np.ndarray | None = None
     known: np.ndarray | None = None  # what the layer's newest check knows, in the room
     true_map: collision.DistanceField | None = None
@@ -351,9 +422,10 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
         now_ms = round(t * 1000)
         if n % JOY_EVERY == 0:
             stick = driver.command(t, state)
-        raw = tuple(int(min(1023, max(0, round(c.adc_neutral + min(1.0, max(-1.0, float(d)))
-                                                  * c.adc_span))))
-                    for c, d in zip(cal, stick, strict=True))
+        codes = [int(min(1023, max(0, round(c.adc_neutral + min(1.0, max(-1.0, float(d)))
+                                            * c.adc_span))))
+                 for c, d in zip(cal, stick, strict=True)]
+        raw = (codes[0], codes[1])
         user = np.array([cal[0].adc_to_permille(raw[0]), cal[1].adc_to_permille(raw[1])]) \
             / 1000.0
 
@@ -371,13 +443,15 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                     extra = scan_memory.add(scan, odometer.pose_at(t), odometer.epoch)
                 elif scan_memory is not None and scan_odometer is not None:
                     extra = scan_memory.add(scan, scan_pose, scan_odometer.epoch)
+                if vo_losses:
+                    camera_blind = _camera_blind(scan, mount)
                 if velocity_odometer is not None:  # as the node: the matched interval's twist
-                    twist = velocity_odometer.last_twist
-                    if twist is None:
+                    give, twist = velocity.scan(t, velocity_odometer.last_twist)
+                    if give and twist is None:
                         predictor.feed_vo(t, (math.nan, math.nan), ok=False)
-                    else:
+                    elif give and twist is not None:
                         predictor.feed_vo(t, twist)
-                    scan_fed = True
+                    scan_fed = give
                 known = _known_points(scan, extra, state, mount)
                 if audit:
                     short = short_of_furniture(known, room)
@@ -427,14 +501,17 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             predictor.feed_joy(t, fed)
         vel_fed = scan_fed
         if n % VO_EVERY == 3:
-            if vo_frame is not None:
+            tracking = not (camera_blind or vo_lost_at(t))
+            if not tracking:
+                out.vo_lost_s += VO_EVERY * STEP_S
+            if vo_frame is not None and tracking:  # a lost VO reports nothing
                 v, w = frame_twist(vo_frame, state, t, vo_rng, vo_noise)
-                if velocity_odometer is None:
+                if velocity.vo(t):
                     predictor.feed_vo(t, (v, w))
+                    vel_fed = True
                 if odometer is not None:
                     odometer.feed(t, v, w)
-            vo_frame = (state.x, state.y, state.theta, t)
-            vel_fed = vel_fed or velocity_odometer is None
+            vo_frame = (state.x, state.y, state.theta, t) if tracking else None
         if vel_fed:
             step = predictor.ready_step()
             if step is not None and (last_step is None or step > last_step):
@@ -460,5 +537,6 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                     out.audit.append(AuditRow(t, decision.p_user, decision.command is not None,
                                               closest, touched, ahead, p_map))
     out.contacts = chair.contacts
+    out.velocity_switches = velocity.switches
     out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
     return out
