@@ -89,8 +89,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=777)
     ap.add_argument("--every", type=float, default=2.0)
     ap.add_argument("--surface", default="tile")
-    ap.add_argument("--jerk", type=float, default=0.02, help="the inverse's jerk weight")
-    ap.add_argument("--effort", type=float, default=0.001, help="the inverse's effort weight")
+    ap.add_argument("--jerk", type=float, default=0.005,
+                    help="the inverse's jerk weight (its default)")
+    ap.add_argument("--effort", type=float, default=0.0,
+                    help="the inverse's effort weight (its default)")
     args = ap.parse_args(argv)
     model = load_model(args.model)
     dt = 1.0 / float(model.resample_config.rate_hz)

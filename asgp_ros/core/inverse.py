@@ -146,7 +146,7 @@ def path_jacobian(model: MotionModel, joy_past: FloatArray, vel_past: FloatArray
 
 
 def solve(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike, target_xy: ArrayLike,
-          *, method: str = "gauss_newton", jerk: float = 0.02, effort: float = 0.001,
+          *, method: str = "gauss_newton", jerk: float = 0.005, effort: float = 0.0,
           reference: ArrayLike | None = None, reference_weight: float = 0.0,
           init: ArrayLike | None = None, max_iter: int = 50,
           extra: ExtraCost | None = None, samples: int = 256, elites: int = 24,
