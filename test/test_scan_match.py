@@ -167,6 +167,11 @@ def test_the_velocity_selector_takes_the_scans_while_they_match_and_the_vo_else(
     assert auto.scan(0.6, (0.9, 0.0)) == (True, (0.9, 0.0)) and not auto.vo(0.65)
     assert auto.vo(0.95)  # the laser went silent for more than fallback_s
     assert auto.switches == 4 and auto.describe() == "auto (vo; 4 switches)"
+    # the clock goes back (a bag replayed again): a scan matched "in the future" does not
+    # hold the VO off; a VO stamp a little older than the newest scan is still held off
+    assert auto.scan(100.0, (0.9, 0.0))[0] and not auto.vo(99.9)
+    assert auto.vo(50.0)
+    assert auto.vo(math.nan)  # passed on: the predictor refuses a stamp that is not finite
     assert scans.describe() == "scan_matching"
     with pytest.raises(ValueError, match="velocity_source"):
         VelocitySelector("wheels")

@@ -445,7 +445,9 @@ class VelocitySelector:
         """Whether the VO's sample stamped ``t`` goes to the predictor."""
         if self.mode == "scan_matching":
             return False
-        if self.mode == "auto" and float(t) - self._matched_t <= self.fallback_s:
+        # a matched scan within fallback_s either side (a VO stamp may trail the scans'
+        # a little; a clock that went back by more does not hold the VO off)
+        if self.mode == "auto" and abs(float(t) - self._matched_t) <= self.fallback_s:
             return False
         self._took("vo")
         return True
