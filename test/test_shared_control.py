@@ -311,7 +311,7 @@ def test_with_the_vo_lost_auto_keeps_the_layers_input_fresh(chair_model):
     assert vo.vo_lost_s > 0.0 and auto.vo_lost_s > 0.0
     assert vo.decisions.get("stale_input", 0) >= 5  # 15 when written
     assert auto.decisions.get("stale_input", 0) <= 1
-    free = drive(chair_model, 90.0, 3, layer=True, inattention=0.5, surface="hybrid",
+    free = drive(chair_model, 30.0, 3, layer=True, inattention=0.5, surface="hybrid",
                  velocity_source="vo", vo_losses=False)
     assert free.vo_lost_s == 0.0 and free.decisions.get("stale_input", 0) <= 1
 
