@@ -6,8 +6,8 @@ layer are compared over many seeds. For every seed, drives of an inattentive use
 without the layer and with it as the node runs it by default: the heading sampled, earlier
 scans remembered, carried by scan matching; the velocity from the matched scans while they
 match and from the VO, which loses tracking as a camera does, while they do not). Prints
-each drive and the totals: contacts, interventions, the share of time the user's command passed untouched,
-the deepest overlap with the furniture, the decisions' solve p50 / p99.
+each drive and the totals: contacts, interventions, the share of time the user's command
+passed untouched, the deepest overlap with the furniture, the decisions' solve p50 / p99.
 
 With ``--audit``, every decision of the layer is also checked against the plant
 (:func:`asgp_ros.sim.shared_drive.drive`'s ``audit``): the share of the interventions whose
