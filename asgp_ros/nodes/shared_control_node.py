@@ -279,12 +279,12 @@ class SharedControlNode(Node):
         mount = (p.laser_x, p.laser_y, p.laser_yaw)
         self.odometer, self.scan_odometer = memory_odometers(memory, p.memory_odometry, mount)
         self.memory = ScanMemory(mount, memory) if memory is not None else None
-        # the scan odometer that gives the predictor its velocity (the memory's, if it has
-        # one: each scan is matched once)
-        # 'auto' without a laser is the VO
+        # which stream gives the predictor its velocity ('auto' without a laser is the VO)
         source = "vo" if p.velocity_source == "auto" and p.obstacles == "grid" \
             else p.velocity_source
         self.velocity = VelocitySelector(source, fallback_s=p.scan_timeout_s)
+        # the scan odometer that gives it the scans' twists (the memory's, if it has one:
+        # each scan is matched once)
         self.velocity_odometer: ScanOdometer | None = None
         if self.velocity.uses_scans:
             self.velocity_odometer = self.scan_odometer or ScanOdometer(
