@@ -63,18 +63,19 @@ def residuals(model, res) -> np.ndarray:
     return out
 
 
-def cases(model, series: list[Series], k: int, window: int
+def cases(model, series: list[tuple[Series, np.ndarray]], k: int, window: int
           ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """(d2 [N]: squared Mahalanobis distance of the k-step error under the stored
-    calibration; the statistics [N] per name) of every case with a full window before it."""
+    calibration; the statistics [N] per name) of every case with a full window before it;
+    ``series`` with their :func:`residuals`."""
     d2_l: list[np.ndarray] = []
     stats_l: dict[str, list[np.ndarray]] = {"surprise": [], "bias": []}
-    for se in series:
+    for se, resid in series:
         res = se.res
         idx = metrics.case_indices(res.segment, max(model.lags, window + 1), k)
         if idx.size == 0:
             continue
-        r = metrics.windows(residuals(model, res), idx, -window, window)  # [N, W, 2]
+        r = metrics.windows(resid, idx, -window, window)  # [N, W, 2]
         pose, cov, _ = rollout_cases(model, res, idx, k, uncertainty="linear")
         assert cov is not None
         ref = reference_path(metrics.windows(res.vel, idx, -1, k + 1), 1.0 / model.rate_hz)
@@ -105,8 +106,11 @@ def main(argv: list[str]) -> int:
     model = load_model(args.model)
     rc = model.resample_config
     train = read_series([str(args.data / p) for p in TRAIN_BAGS], resample_config=rc)
-    _, held = split_holdout(train, 0.2)
-    tests = {floor: read_series([str(args.data / p) for p in paths], resample_config=rc)
+    _, held_series = split_holdout(train, 0.2)
+    held = [(se, residuals(model, se.res)) for se in held_series]
+    tests = {floor: [(se, residuals(model, se.res))
+                     for se in read_series([str(args.data / p) for p in paths],
+                                           resample_config=rc)]
              for floor, paths in TEST_BAGS.items()}
     print(f"model {args.model.name}; held out: the last 20 % of {', '.join(TRAIN_BAGS)}")
     print("coverage of the 95 % ellipse (%): stored calibration -> with the statistic's "

@@ -322,7 +322,8 @@ class ScanOdometer:
         t = float(scan.stamp)
         pts = self._base_points(scan)
         self.last_step = None
-        previous_ranges, self._ranges = self._ranges, scan.ranges
+        # a copy: a caller may fill one buffer in place for every scan
+        previous_ranges, self._ranges = self._ranges, scan.ranges.copy()
         if self._key is None or not math.isfinite(t):
             return self._restart(pts, t, "no stamp")
         gap = t - self._stamp
