@@ -372,6 +372,7 @@ class SoakMonitor(Node):
         self.acks: dict[int, dict[str, Any]] = {}
         self.max_hw_lag_s = 0.0
         self.reasons: dict[str, int] = {}
+        self.reason_changes: list[tuple[float, str]] = []  # (soak time, predictor reason)
         self._last_paths = -1
         self._last_joy = -1.0
         self._next_id = 0
@@ -436,6 +437,8 @@ class SoakMonitor(Node):
             if "predictor_node" in st.name:
                 reason = values.get("reason", "?")
                 self.reasons[reason] = self.reasons.get(reason, 0) + 1
+                if not self.reason_changes or self.reason_changes[-1][1] != reason:
+                    self.reason_changes.append((t, reason))
                 try:
                     paths = int(values.get("paths_published", "-1"))
                     lat = float(values.get("last_latency_ms", "nan"))
@@ -987,18 +990,23 @@ class Soak:
                 moved = (max(math.hypot(p[1] - inside[0][1], p[2] - inside[0][2])
                               for p in inside) if inside else math.nan)
                 whys = sorted({w for t, w in mon.layer_why if a_t - 5.0 <= t <= b_t})
+                # why the predictor published nothing: its reason as it changed
+                states = [(t, r) for t, r in mon.reason_changes if a_t <= t <= b_t]
                 stalls.append({"start": a_t, "end": b_t, "pose_start": inside[0][1:]
-                               if inside else None, "moved_m": moved, "layer": whys})
+                               if inside else None, "moved_m": moved, "layer": whys,
+                               "predictor": states})
         if stalls:
             print()
             print("Stalls: no path for 10 s or more (the chair's pose from ground truth; the "
-                  "layer's decisions around it)")
+                  "layer's decisions around it; the predictor's reasons as they changed)")
             for st in stalls:
                 pose = st["pose_start"]
                 where = (f"at ({pose[0]:.2f}, {pose[1]:.2f}) heading "
                          f"{math.degrees(pose[2]):.0f} deg" if pose else "pose unknown")
                 print(f"  {st['start']:7.1f}-{st['end']:7.1f} s  {where}, moved at most "
                       f"{st['moved_m']:.2f} m; layer: {', '.join(st['layer']) or '-'}")
+                print("    predictor: " + (", ".join(f"{t:.1f} s {r}" for t, r in
+                                                     st["predictor"]) or "no report"))
 
         # -- restarts
         restarts = []

@@ -25,6 +25,7 @@ from asgp_ros.core.online import (
     Predictor,
     PredictorConfig,
     Reason,
+    RejectedInputError,
     confidence_ellipses,
     to_frame,
 )
@@ -349,6 +350,28 @@ def test_plan_drives_the_future_joystick_and_changes_the_path():
         pred.set_plan(np.zeros((3, 3)), stamp=now)
     with pytest.raises(ValueError, match="finite"):
         pred.set_plan(np.full((3, 2), np.nan), stamp=now)
+
+
+def test_a_plan_starting_far_ahead_of_the_clock_is_refused():
+    """A plan stamped by a clock that jumped 3 s ahead (then back) would drive the future
+    joystick once the clock reached its stamp; given ``now``, it is refused as a sample
+    stamped that far ahead is."""
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=5, plan_timeout_s=5.0)
+    now = max(jt[-1], vt[-1])
+    held = pred.predict(now)
+    plan = np.column_stack([np.full(8, 0.9), np.full(8, -0.5)])
+    with pytest.raises(RejectedInputError, match="ahead of the clock"):
+        pred.set_plan(plan, stamp=now + 3.0, now=now)
+    assert pred.stats.rejected[Reason.REJECT_TIME] == 1
+    # the clock reaches the refused plan's start: it drives nothing
+    later = pred.predict(now, joy_future=None)
+    assert not later.from_plan
+    assert pred.plan_future(now + 3.0, now + 3.0, 5) is None
+    # within reset_jump_s (a planner starting a little ahead) it is taken
+    pred.set_plan(plan, stamp=held.t0 + 0.2, now=now)
+    assert pred.predict(now).from_plan
+    with pytest.raises(ValueError, match="now must be"):
+        pred.set_plan(plan, stamp=now, now=float("nan"))
 
 
 def test_plans_starting_on_grid_times_map_row_by_row_at_epoch_stamps():

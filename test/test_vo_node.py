@@ -358,6 +358,49 @@ def test_newest_pair_is_processed_and_older_frames_dropped(rclpy_context):
         node.destroy_node()
 
 
+@pytest.mark.ros
+def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_context):
+    """A colour image waiting for its depth partner when the stamps went back 3 s (a bag
+    restarted, the camera's clock stepped) is never paired with an image of the new
+    timeline that carries the same stamp 3 s later."""
+    from sensor_msgs.msg import Image
+
+    from asgp_ros.nodes.vo_node import VONode
+
+    def image(t):
+        msg = Image()
+        msg.header.stamp = conv.seconds_to_stamp(t)
+        return msg
+
+    node = VONode(context=rclpy_context)
+    try:
+        stale = image(12.9)
+        node._on_color(image(12.8))
+        node._on_depth(image(12.8))
+        node._on_color(stale)  # its depth never comes (dropped by the camera)
+        assert node._take_pair()[0] == 12.8 and [t for t, _ in node._color] == [12.9]
+        dropped = node.stats["dropped"]
+        node._on_depth(image(10.0))  # the stamps go back: the old colour image goes
+        assert not node._color and [t for t, _ in node._depth] == [10.0]
+        assert node.stats["dropped"] == dropped + 1
+        for t in (10.0, 11.0, 12.0):
+            if t > 10.0:
+                node._on_depth(image(t))
+            node._on_color(image(t))
+            assert node._take_pair()[0] == t
+        fresh = image(12.9)
+        node._on_depth(image(12.9))
+        node._on_color(fresh)
+        stamp, cmsg, _ = node._take_pair()
+        assert stamp == 12.9 and cmsg is fresh
+        # an image a little older than the buffered ones (out of order) drops nothing
+        node._on_color(image(13.0))
+        node._on_depth(image(12.5))
+        assert len(node._color) == 1 and len(node._depth) == 1
+    finally:
+        node.destroy_node()
+
+
 @pytest.mark.e2e
 @pytest.mark.slow
 def test_vo_node_process_starts_with_the_shipped_config(repo_root, tmp_path):

@@ -529,14 +529,20 @@ class Predictor:
             raise RejectedInputError(Reason.REJECT_PLAN if finite else Reason.REJECT_NONFINITE,
                                      f"{what} {where}: {problem}")
 
-    def set_plan(self, plan: FloatArray, stamp: float) -> None:
+    def set_plan(self, plan: FloatArray, stamp: float, now: float | None = None) -> None:
         """A planner's future joystick commands: [m, 2] rows from ``stamp`` on, dt apart.
+
+        ``now``: the clock when the plan arrived. A plan starting more than
+        ``reset_jump_s`` after it is refused, as a sample stamped that far ahead of the
+        clock is (its stamps are of another timeline: a clock that jumped ahead, then
+        back, would otherwise leave it to drive the future joystick once the clock
+        reached it).
 
         Raises:
             ValueError: wrong shape or empty; :class:`RejectedInputError` (a ValueError,
                 counted in ``stats.rejected``) for more than ``MAX_PLAN_STEPS`` rows, a
-                value not finite or outside the joystick range, or a stamp that is not a
-                valid time.
+                value not finite or outside the joystick range, a stamp that is not a
+                valid time, or one more than ``reset_jump_s`` ahead of ``now``.
         """
         arr = np.asarray(plan, dtype=np.float64)
         if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] == 0:
@@ -546,6 +552,12 @@ class Predictor:
             if problem is not None:
                 reason = Reason.REJECT_TIME if math.isfinite(stamp) else Reason.REJECT_NONFINITE
                 raise RejectedInputError(reason, f"plan: {problem}")
+            if now is not None and not math.isfinite(now):
+                raise ValueError(f"now must be a finite time, got {now}")
+            if now is not None and float(stamp) > now + self.config.reset_jump_s:
+                raise RejectedInputError(
+                    Reason.REJECT_TIME, f"plan starts {float(stamp) - now:.3f} s ahead of "
+                    f"the clock (limit reset_jump_s = {self.config.reset_jump_s} s)")
             self._check_commands(arr, "plan")
         except RejectedInputError as exc:
             self._reject(exc.reason, exc.detail)

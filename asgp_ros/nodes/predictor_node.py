@@ -499,7 +499,7 @@ class PredictorNode(Node):
                                       throttle_duration_sec=5.0)
             return
         try:
-            self.predictor.set_plan(plan, start)
+            self.predictor.set_plan(plan, start, now=now)
         except online.RejectedInputError:  # counted with its reason by the predictor
             self._warn_rejected()
         except ValueError as exc:

@@ -22,6 +22,7 @@ frame never builds a backlog. Parameters are read once at start-up and validated
 from __future__ import annotations
 
 import collections
+import math
 import sys
 import time
 from typing import Any
@@ -111,12 +112,30 @@ class VONode(Node):
     # -- input ---------------------------------------------------------------------------
 
     def _on_color(self, msg: Image) -> None:
-        self._color.append((conv.stamp_to_seconds(msg.header.stamp), msg))
+        t = conv.stamp_to_seconds(msg.header.stamp)
+        self._drop_old_timeline(t)
+        self._color.append((t, msg))
         self._wake.trigger()
 
     def _on_depth(self, msg: Image) -> None:
-        self._depth.append((conv.stamp_to_seconds(msg.header.stamp), msg))
+        t = conv.stamp_to_seconds(msg.header.stamp)
+        self._drop_old_timeline(t)
+        self._depth.append((t, msg))
         self._wake.trigger()
+
+    def _drop_old_timeline(self, t: float) -> None:
+        """An image stamped more than ``_JUMP_BACK_S`` before a buffered one: the stamps
+        went back (a bag restarted, the camera's clock stepped). The buffered images
+        stamped after it belong to the old timeline; kept, one waiting for its partner
+        would be paired, once the new stamps reach its own, with an image of another
+        moment."""
+        newest = max((s for s, _ in (*self._color, *self._depth)), default=-math.inf)
+        if not t < newest - _JUMP_BACK_S:
+            return
+        n = len(self._color) + len(self._depth)
+        self._color = collections.deque((c for c in self._color if c[0] <= t), maxlen=_BUFFER)
+        self._depth = collections.deque((d for d in self._depth if d[0] <= t), maxlen=_BUFFER)
+        self.stats["dropped"] += n - len(self._color) - len(self._depth)
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
