@@ -17,9 +17,10 @@ import pytest
 pytest.importorskip("rclpy")
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Joy, LaserScan
 from test_predictor_node import model_file  # noqa: F401 (a fixture)
@@ -65,14 +66,24 @@ class Harness:
 
         self.vo_pub = t.create_publisher(TwistStamped, "vo/twist", qos_profile_sensor_data)
         self.scan_pub = t.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+        self.odom_pub = t.create_publisher(Odometry, "vo/odom", qos_profile_sensor_data)
+        self.map_pub = t.create_publisher(OccupancyGrid, "map", QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.overrides: list[Joy] = []
         self.status: list[DiagnosticStatus] = []
         t.create_subscription(Joy, "joy_override", self.overrides.append, QoSProfile(depth=100))
         t.create_subscription(DiagnosticStatus, "shared_control/status", self.status.append,
                               QoSProfile(depth=100))
-        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in (
-            self.clock_pub, self.joy_pub, self.vo_pub, self.scan_pub))
-            and t.count_publishers("joy_override") > 0, what="discovery")
+        # the publishers of the node's inputs (with obstacles 'grid' it has no laser, with
+        # vo_type 'odometry' its VO is vo/odom)
+        np_ = self.node.params
+        inputs = [self.clock_pub, self.joy_pub,
+                  self.odom_pub if np_.vo_type == "odometry" else self.vo_pub]
+        inputs += [self.scan_pub] if np_.obstacles in ("laser", "both") else []
+        inputs += [self.map_pub] if np_.obstacles in ("grid", "both") else []
+        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in inputs)
+                        and t.count_publishers("joy_override") > 0, what="discovery")
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -265,6 +276,119 @@ def test_auto_takes_the_vo_while_the_scans_do_not_match(harness, rclpy_context,
         assert grid.velocity_odometer is None and grid.velocity.describe() == "vo"
     finally:
         grid.destroy_node()
+
+
+def wall_map_msg(wall_x: float | None, frame: str = "odom") -> OccupancyGrid:
+    """A 5 cm map of 24 m x 8 m around the odometry origin, free, with a wall across the
+    way at x = ``wall_x`` (none when None)."""
+    res = 0.05
+    data = np.zeros((160, 480), dtype=np.int8)  # y from -4 m, x from -4 m
+    if wall_x is not None:
+        col = round((wall_x + 4.0) / res)
+        data[:, col:col + 3] = 100
+    return conv.grid_to_msg(data, res, (-4.0, -4.0, 0.0), 0.0, frame)
+
+
+def _drive_on_a_map(h, t_from: float, t_to: float, speed: float = 0.72,
+                    fwd: float = 0.8) -> None:
+    """Joystick ``fwd`` at 20 Hz; the chair moving along x at ``speed`` from x = 0 at
+    t = 100 s, its odometry (pose and twist, vo_type 'odometry') at 5 Hz (the twist with
+    a VO's noise: an exact repeat is a frozen VO)."""
+    stats = h.node.predictor.stats
+    rng = np.random.default_rng(int(t_from * 10))
+    for i in range(round((t_to - t_from) / 0.05)):
+        t = t_from + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if round(t / 0.05) % 4 == 0:
+            n = stats.vo_samples
+            h.odom_pub.publish(conv.odometry_from_pose(
+                t, speed * (t - 100.0), 0.0, 0.0, speed + rng.normal(0.0, 0.003), 0.0))
+            h.spin_until(lambda n=n: stats.vo_samples > n, what="odometry")
+
+
+def _publish_map(h, msg: OccupancyGrid) -> None:
+    grid, problem, bad = h.node._grid, h.node._grid_problem, h.node._bad_messages
+    h.map_pub.publish(msg)
+    h.spin_until(lambda: h.node._grid is not grid or h.node._grid_problem != problem
+                 or h.node._bad_messages != bad, what="map")
+
+
+def test_a_map_as_the_obstacle_source(harness):
+    """obstacles 'grid': the map, in the odometry frame, placed with the odometry pose at
+    each prediction's t0; clear, then a wall ahead (an intervention), then a map in another
+    frame or a malformed one (no obstacle source: the user drives, and the diagnostics
+    say why)."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    assert h.node.velocity.describe() == "vo"
+    _publish_map(h, wall_map_msg(None))
+    _drive_on_a_map(h, 100.0, 103.0)
+    assert h.last()["why"] == "clear" and h.overrides == []
+    assert conv.diagnostic_values(h.node.diagnostic_status())["map"] == "received"
+    # a wall 1.2 m ahead of the chair's front (x = 2.16 m at 103 s): the chair's path
+    # runs into it within 2 s
+    _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))
+    _drive_on_a_map(h, 103.0, 103.6)
+    last = h.last()
+    assert last["why"] == "intervening", last
+    assert float(last["p_before"]) > 0.05 >= float(last["p_after"])
+    assert h.overrides and 0.0 <= conv.joy_to_override(h.overrides[-1])[0] < 0.8
+    # the same wall in the frame of the map server's 'map': not the chair's poses' frame
+    n = len(h.overrides)
+    _publish_map(h, wall_map_msg(3.6, frame="map"))
+    assert "frame 'map'" in h.node._grid_problem
+    _drive_on_a_map(h, 103.6, 104.2, speed=0.0, fwd=0.3)
+    assert h.last()["why"] == "no_obstacle_source"
+    diag = h.node.diagnostic_status()
+    assert "frame 'map'" in conv.diagnostic_values(diag)["map"]
+    sent = len(h.overrides)
+    _drive_on_a_map(h, 104.2, 104.8, speed=0.0, fwd=0.3)
+    assert len(h.overrides) == sent >= n  # none sent while there is no obstacle source
+    # a map whose data do not fill its size: refused and counted
+    bad = wall_map_msg(3.6)
+    bad.info.width = 481
+    _publish_map(h, bad)
+    assert h.node._grid is None and h.node._bad_messages == 1
+    assert "bad map" in conv.diagnostic_values(h.node.diagnostic_status())["map"]
+
+
+def test_laser_and_map_together_take_the_nearer_obstacle(harness):
+    """obstacles 'both': a clear scan does not hide the map's wall, nor a clear map the
+    scan's."""
+    h = harness(obstacles="both", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    stats = h.node.predictor.stats
+    rng = np.random.default_rng(3)
+
+    def drive(t_from, t_to, scan_wall):
+        for i in range(round((t_to - t_from) / 0.05)):
+            t = t_from + 0.05 * (i + 1)
+            h.clock(t)
+            n = stats.joy_samples
+            h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+            h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+            if round(t / 0.05) % 4 == 0:
+                n = stats.vo_samples
+                h.odom_pub.publish(conv.odometry_from_pose(
+                    t, 0.72 * (t - 100.0), 0.0, 0.0, 0.72 + rng.normal(0.0, 0.003), 0.0))
+                h.spin_until(lambda n=n: stats.vo_samples > n, what="odometry")
+            if i % 2 == 1:
+                arrived = h.node._scan
+                h.scan_pub.publish(wall_scan_msg(t, scan_wall))
+                h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+
+    drive(100.0, 103.0, scan_wall=20.0)
+    assert h.last()["why"] == "clear" and h.overrides == []
+    _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))  # the map's wall, the scan clear
+    drive(103.0, 103.6, scan_wall=20.0)
+    assert h.last()["why"] == "intervening", h.last()
+    _publish_map(h, wall_map_msg(None))  # the map clear, the scan's wall
+    h.overrides.clear()
+    drive(103.6, 104.0, scan_wall=1.2)
+    assert h.last()["why"] == "intervening", h.last()
+    assert h.overrides
 
 
 def test_a_velocity_source_that_cannot_work_is_refused(harness):
