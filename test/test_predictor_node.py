@@ -214,6 +214,26 @@ def test_bad_parameters_refuse_to_start(rclpy_context, model_file):
             Parameter("model_path", value=model_file), Parameter("rate_hz", value=3.0)])
 
 
+@pytest.mark.parametrize(("field", "value", "why"), [
+    ("horizon_steps", 201, "horizon_steps"), ("horizon_steps", -1, "horizon_steps"),
+    ("horizon_s", 0.0, "horizon_s"), ("horizon_s", math.nan, "horizon_s"),
+    ("horizon_s", 1e30, "horizon_s"), ("rate_hz", -1.0, "rate_hz"),
+    ("rate_hz", math.inf, "rate_hz"), ("joy_topic", " ", "joy_topic must not be empty"),
+    ("odom_frame", "", "odom_frame must not be empty"), ("path_frame", "map", "path_frame"),
+    ("joy_axes", "0", "axes"), ("diagnostics_period_s", 0.01, "diagnostics_period_s"),
+    ("diagnostics_period_s", math.nan, "diagnostics_period_s"),
+    ("joy_timeout_s", math.nan, "joy_timeout_s"), ("reset_jump_s", -1.0, "reset_jump_s"),
+    ("uncertainty", "exact", "uncertainty"), ("adapt_half_life_s", -5.0, "adapt"),
+    ("adapt_max_rate", math.nan, "adapt"),
+])
+def test_every_bad_parameter_is_named(field, value, why):
+    """Each parameter out of its range (NaN, inf, 1e30, empty names) refuses with its name,
+    whether or not adaptation is on."""
+    PredictorNodeParams(model_path="m.npz")  # the defaults are valid
+    with pytest.raises(ValueError, match=why):
+        PredictorNodeParams(model_path="m.npz", **{field: value})
+
+
 def test_node_process_exits_nonzero_with_a_clear_message(repo_root):
     proc = subprocess.run(
         [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
