@@ -321,6 +321,54 @@ def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, fram
 
 
 @pytest.mark.ros
+def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
+        rclpy_context, frames):
+    """A bag played again (stamps 3 s back): the odometry restarts from the next pair (a
+    reference, no twist), then tracks again; a pair stamped at or before the last one but
+    within ``_JUMP_BACK_S`` (a repeat, a late pair) publishes nothing."""
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+
+    def msgs(k):
+        img, depth = images[k]
+        return (camera.image_from_array(0.0, img, "camera"),
+                camera.image_from_array(0.0, depth, "camera"))
+
+    try:
+        h.connect(K)
+        t0 = 100.0
+        for k in range(4):
+            h.send(t0 + drive.t[k], *msgs(k))
+        assert len(h.twists) == 3 and h.node.stats["resets"] == 0
+        # the last pair again, and one half a frame older: nothing processed
+        frames_before = h.node.stats["frames"]
+        for dt in (0.0, -0.03):
+            c, d = msgs(3)
+            stamp = conv.seconds_to_stamp(t0 + drive.t[3] + dt)
+            c.header.stamp = d.header.stamp = stamp
+            h.color.publish(c)
+            h.depth.publish(d)
+            h.spin_until(lambda: False, 0.3)
+        assert h.node.stats["frames"] == frames_before and len(h.twists) == 3
+        # 3 s back: the odometry restarts at the origin
+        t1 = t0 + drive.t[3] - 3.0
+        h.send(t1, *msgs(0))
+        assert h.node.stats["resets"] == 1 and len(h.twists) == 3  # a reference, no twist
+        for k in range(1, 4):
+            h.send(t1 + drive.t[k], *msgs(k))
+        assert len(h.twists) == 6
+        assert h.twists[-1].twist.linear.x == pytest.approx(0.4, abs=0.04)
+        assert conv.stamp_to_seconds(h.twists[-1].header.stamp) == pytest.approx(
+            t1 + drive.t[3], abs=1e-6)
+        _, _, ok, (x, y, yaw) = conv.odometry_to_sample(h.odoms[-1])
+        dist = math.hypot(drive.x[3] - drive.x[0], drive.y[3] - drive.y[0])
+        assert ok and math.hypot(x, y) == pytest.approx(dist, abs=0.03)  # from the restart
+        assert yaw == pytest.approx(drive.theta[3] - drive.theta[0], abs=0.02)
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
 def test_node_refuses_runtime_changes_and_bad_start_values(rclpy_context):
     from rclpy.parameter import Parameter
 
