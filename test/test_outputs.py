@@ -283,6 +283,30 @@ def test_atomic_path_never_removes_another_kind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "f"]
 
 
+def test_a_directory_whose_replacement_fails_comes_back(tmp_path, monkeypatch):
+    """--force on a bag directory: if moving the new directory in fails after the old one
+    was moved aside, the old one is moved back, whole, and the error is raised."""
+    import os
+
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "x").write_text("keep")
+    real_rename = os.rename
+
+    def rename(src, dst):
+        if Path(dst) == d and Path(src).name == "d":  # the new directory moving in
+            raise OSError(28, "No space left on device")
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(OSError, match="No space"), \
+            atomic_path(d, directory=True, replace=True) as tmp:
+        tmp.mkdir()
+        (tmp / "y").write_text("new")
+    assert sorted(p.name for p in d.iterdir()) == ["x"] and (d / "x").read_text() == "keep"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # no temporary left
+
+
 def test_check_output_resolves_symlinked_parents(tmp_path):
     real = tmp_path / "real"
     real.mkdir()
