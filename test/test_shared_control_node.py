@@ -194,6 +194,42 @@ def test_stale_scan_or_vo_means_no_intervention_with_a_diagnostic(harness):
     assert len(h.overrides) == n
 
 
+def test_scans_stamped_ahead_of_the_clock_are_refused(harness):
+    """A laser whose clock runs 5 s ahead: its scans would look fresh for 5 s after the
+    laser stopped, placed with motion that has not happened. They are refused (counted,
+    and the diagnostics say why); the layer has no obstacle source and the user drives.
+    Scans on time again: the layer judges them at once."""
+    from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
+
+    h = harness()
+    stats = h.node.predictor.stats
+    for i in range(60):  # 3 s: the joystick, the VO, scans of a wall 1.6 m ahead, 5 s early
+        t = 100.0 + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 == 3:
+            n = stats.vo_samples
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, 0.72 + 0.003 * (i % 3), 0.0))
+            h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+        if i % 2 == 1:
+            n = h.node._scans_ahead
+            h.scan_pub.publish(wall_scan_msg(t + 5.0, 1.6))
+            h.spin_until(lambda n=n: h.node._scans_ahead > n, what="scan refused")
+    assert h.node._scan is None and h.node._scans_ahead == 30
+    assert h.overrides == [] and h.last()["why"] == "no_obstacle_source"
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert "after the node's clock" in diag["scan"] and diag["scans_ahead_of_clock"] == "30"
+    # a lead within SCAN_LEAD_S (clocks synchronised to a few ms) is accepted
+    h.clock(103.05)
+    h.scan_pub.publish(wall_scan_msg(103.05 + 0.5 * SCAN_LEAD_S, 1.6))
+    h.spin_until(lambda: h.node._scan is not None, what="scan on time")
+    h.drive(103.05, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening" and h.overrides
+    assert conv.diagnostic_values(h.node.diagnostic_status())["scan"] == "received"
+
+
 def corridor_scan_msg(t: float, ahead: float, half_width: float = 1.0,
                       beams: int = 541) -> LaserScan:
     """A corridor of side walls ``half_width`` either side, closed by a wall ``ahead`` of

@@ -95,6 +95,12 @@ NODE_NAME = "shared_control_node"
 #: The board's override watchdog (s): an override older than this no longer drives.
 BOARD_WATCHDOG_S = 0.2
 
+#: A scan stamped more than this (s) after the node's clock is refused: a laser whose
+#: clock runs ahead would otherwise look fresh long after it stopped, and be placed with
+#: the chair's motion of a time that has not come (a clock synchronised by NTP or PTP is
+#: within milliseconds).
+SCAN_LEAD_S = 0.1
+
 
 class StartupError(Exception):
     """The node cannot start (bad model file, inconsistent parameters)."""
@@ -307,6 +313,8 @@ class SharedControlNode(Node):
         self._solve_ms: deque[float] = deque(maxlen=1000)
         self._changes: list[float] = []  # of the decisions that changed the command
         self._bad_messages = 0
+        self._scans_ahead = 0  # scans refused: stamped more than SCAN_LEAD_S ahead
+        self._scan_problem = ""
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -427,6 +435,16 @@ class SharedControlNode(Node):
             return
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
+        lead = scan.stamp - now
+        if lead > SCAN_LEAD_S:
+            self._scans_ahead += 1
+            self._scan_problem = (f"scans stamped {lead:.3f} s after the node's clock "
+                                  f"(limit {SCAN_LEAD_S} s): is the laser's clock "
+                                  "synchronised?")
+            self.get_logger().warning(f"ignoring {self.params.scan_topic}: "
+                                      f"{self._scan_problem}", throttle_duration_sec=5.0)
+            return
+        self._scan_problem = ""
         extra = None
         matcher = self.scan_odometer or self.velocity_odometer  # each scan matched once
         scan_pose = matcher.add(scan) if matcher is not None else None
@@ -487,7 +505,7 @@ class SharedControlNode(Node):
             checks: list[CollisionCheck] = []
             if self._scan is not None:
                 _, scan, extra = self._scan
-                if now - scan.stamp <= p.scan_timeout_s:
+                if -SCAN_LEAD_S <= now - scan.stamp <= p.scan_timeout_s:  # fresh
                     v, w = (float(x) for x in pred.vel_past[-1])
                     motion = collision.constant_twist_motion(v, w, pred.t0 - scan.stamp)
                     checks.append(collision.scan_check(
@@ -599,7 +617,8 @@ class SharedControlNode(Node):
             "mean_change": f"{np.mean(self._changes):.3f}" if self._changes else "0",
             "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
-            "scan": "none" if self._scan is None else "received",
+            "scan": self._scan_problem or ("none" if self._scan is None else "received"),
+            "scans_ahead_of_clock": str(self._scans_ahead),
             "memory_points": "off" if self.memory is None else str(self.memory.size),
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
