@@ -350,6 +350,11 @@ def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
             h.depth.publish(d)
             h.spin_until(lambda: False, 0.3)
         assert h.node.stats["frames"] == frames_before and len(h.twists) == 3
+        assert h.node.stats["not_newer"] == 2
+        # the diagnostics say that pairs come but their stamps do not advance
+        assert h.spin_until(lambda: any(
+            level == 2 and "none stamped after the last one processed" in msg
+            for level, msg, _ in _levels(h.diags)), 3.0)
         # 3 s back: the odometry restarts at the origin
         t1 = t0 + drive.t[3] - 3.0
         h.send(t1, *msgs(0))

@@ -93,7 +93,8 @@ class VONode(Node):
         self._last_problem = ""  # conversion error of the last pair, if any
         self._elapsed: collections.deque[float] = collections.deque(maxlen=100)
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
-                      "twists": 0, "resets": 0, "camera_info_errors": 0}
+                      "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0}
+        self._not_newer_since_processed = 0  # pairs not newer than the last processed one
         self.get_logger().info(
             f"VO on {p.color_topic} + {p.depth_topic} ({p.camera_info_topic}); camera at "
             f"({p.extrinsic.x:.2f}, {p.extrinsic.y:.2f}, {p.extrinsic.z:.2f}) m, yaw "
@@ -193,9 +194,12 @@ class VONode(Node):
                 self.vo.reset()
                 self.planar.reset()
                 self.stats["resets"] += 1
-            else:
-                return  # an old or repeated pair
+            else:  # an old or repeated pair: counted, the diagnostics say so if it lasts
+                self.stats["not_newer"] += 1
+                self._not_newer_since_processed += 1
+                return
         self._last_stamp = stamp
+        self._not_newer_since_processed = 0
         self._last_processed_wall = time.monotonic()
         self.stats["frames"] += 1
         try:
@@ -261,6 +265,11 @@ class VONode(Node):
         elif r is None or age is None:
             level, msg = "WARN", f"waiting for colour/depth pairs on {p.color_topic}, " \
                                  f"{p.depth_topic}"
+        elif age > p.stale_timeout_s and self._not_newer_since_processed:
+            level, msg = "ERROR", (
+                f"{self._not_newer_since_processed} colour/depth pairs in {age:.2f} s, none "
+                "stamped after the last one processed (is the camera driver stamping its "
+                "images?): no twist published")
         elif age > p.stale_timeout_s:
             level, msg = "ERROR", f"no colour/depth pair for {age:.2f} s: no twist published"
         elif r.ok:
