@@ -103,8 +103,12 @@ class Harness:
         self.spin_until(lambda: self.node.get_clock().now().nanoseconds == ns, what="clock")
 
     def drive(self, t_from: float, t_to: float, fwd: float = 0.8, wall: float | None = None,
-              vo: bool = True, scan: bool = True) -> None:
-        """Joystick at 20 Hz, VO at 5 Hz at the model's steady speed, scans at 10 Hz."""
+              vo: bool = True, scan: bool = True, scan_lead: float = 0.0) -> None:
+        """Joystick at 20 Hz, VO at 5 Hz at the model's steady speed, scans at 10 Hz
+        (stamped ``scan_lead`` seconds after the clock; beyond the node's limit they are
+        refused, and each is awaited as counted)."""
+        from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
+
         stats = self.node.predictor.stats
         rng = np.random.default_rng(int(t_from * 10))
         for i in range(round((t_to - t_from) / 0.05)):
@@ -119,9 +123,13 @@ class Harness:
                 self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
                 self.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
             if scan and wall is not None and i % 2 == 1:
-                arrived = self.node._scan
-                self.scan_pub.publish(wall_scan_msg(t, wall))
-                self.spin_until(lambda a=arrived: self.node._scan is not a, what="scan")
+                arrived, ahead = self.node._scan, self.node._scans_ahead
+                self.scan_pub.publish(wall_scan_msg(t + scan_lead, wall))
+                if scan_lead > SCAN_LEAD_S:
+                    self.spin_until(lambda n=ahead: self.node._scans_ahead > n,
+                                    what="scan refused")
+                else:
+                    self.spin_until(lambda a=arrived: self.node._scan is not a, what="scan")
 
     def last(self) -> dict[str, str]:
         return conv.diagnostic_values(self.status[-1]) if self.status else {}
@@ -202,21 +210,7 @@ def test_scans_stamped_ahead_of_the_clock_are_refused(harness):
     from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
 
     h = harness()
-    stats = h.node.predictor.stats
-    for i in range(60):  # 3 s: the joystick, the VO, scans of a wall 1.6 m ahead, 5 s early
-        t = 100.0 + 0.05 * (i + 1)
-        h.clock(t)
-        n = stats.joy_samples
-        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
-        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
-        if i % 4 == 3:
-            n = stats.vo_samples
-            h.vo_pub.publish(conv.twist_stamped_from_sample(t, 0.72 + 0.003 * (i % 3), 0.0))
-            h.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
-        if i % 2 == 1:
-            n = h.node._scans_ahead
-            h.scan_pub.publish(wall_scan_msg(t + 5.0, 1.6))
-            h.spin_until(lambda n=n: h.node._scans_ahead > n, what="scan refused")
+    h.drive(100.0, 103.0, wall=1.6, scan_lead=5.0)  # a wall 1.6 m ahead, scans 5 s early
     assert h.node._scan is None and h.node._scans_ahead == 30
     assert h.overrides == [] and h.last()["why"] == "no_obstacle_source"
     diag = conv.diagnostic_values(h.node.diagnostic_status())
@@ -326,10 +320,11 @@ def wall_map_msg(wall_x: float | None, frame: str = "odom") -> OccupancyGrid:
 
 
 def _drive_on_a_map(h, t_from: float, t_to: float, speed: float = 0.72,
-                    fwd: float = 0.8) -> None:
+                    fwd: float = 0.8, scan_wall: float | None = None) -> None:
     """Joystick ``fwd`` at 20 Hz; the chair moving along x at ``speed`` from x = 0 at
     t = 100 s, its odometry (pose and twist, vo_type 'odometry') at 5 Hz (the twist with
-    a VO's noise: an exact repeat is a frozen VO)."""
+    a VO's noise: an exact repeat is a frozen VO); with ``scan_wall``, scans at 10 Hz of
+    a wall that far ahead of the scanner."""
     stats = h.node.predictor.stats
     rng = np.random.default_rng(int(t_from * 10))
     for i in range(round((t_to - t_from) / 0.05)):
@@ -343,6 +338,10 @@ def _drive_on_a_map(h, t_from: float, t_to: float, speed: float = 0.72,
             h.odom_pub.publish(conv.odometry_from_pose(
                 t, speed * (t - 100.0), 0.0, 0.0, speed + rng.normal(0.0, 0.003), 0.0))
             h.spin_until(lambda n=n: stats.vo_samples > n, what="odometry")
+        if scan_wall is not None and i % 2 == 1:
+            arrived = h.node._scan
+            h.scan_pub.publish(wall_scan_msg(t, scan_wall))
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
 
 
 def _publish_map(h, msg: OccupancyGrid) -> None:
@@ -395,34 +394,14 @@ def test_laser_and_map_together_take_the_nearer_obstacle(harness):
     scan's."""
     h = harness(obstacles="both", vo_type="odometry", vo_topic="vo/odom")
     _publish_map(h, wall_map_msg(None))
-    stats = h.node.predictor.stats
-    rng = np.random.default_rng(3)
-
-    def drive(t_from, t_to, scan_wall):
-        for i in range(round((t_to - t_from) / 0.05)):
-            t = t_from + 0.05 * (i + 1)
-            h.clock(t)
-            n = stats.joy_samples
-            h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
-            h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
-            if round(t / 0.05) % 4 == 0:
-                n = stats.vo_samples
-                h.odom_pub.publish(conv.odometry_from_pose(
-                    t, 0.72 * (t - 100.0), 0.0, 0.0, 0.72 + rng.normal(0.0, 0.003), 0.0))
-                h.spin_until(lambda n=n: stats.vo_samples > n, what="odometry")
-            if i % 2 == 1:
-                arrived = h.node._scan
-                h.scan_pub.publish(wall_scan_msg(t, scan_wall))
-                h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
-
-    drive(100.0, 103.0, scan_wall=20.0)
+    _drive_on_a_map(h, 100.0, 103.0, scan_wall=20.0)
     assert h.last()["why"] == "clear" and h.overrides == []
     _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))  # the map's wall, the scan clear
-    drive(103.0, 103.6, scan_wall=20.0)
+    _drive_on_a_map(h, 103.0, 103.6, scan_wall=20.0)
     assert h.last()["why"] == "intervening", h.last()
     _publish_map(h, wall_map_msg(None))  # the map clear, the scan's wall
     h.overrides.clear()
-    drive(103.6, 104.0, scan_wall=1.2)
+    _drive_on_a_map(h, 103.6, 104.0, scan_wall=1.2)
     assert h.last()["why"] == "intervening", h.last()
     assert h.overrides
 
