@@ -72,6 +72,7 @@ class Harness:
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.overrides: list[Joy] = []
         self.status: list[DiagnosticStatus] = []
+        self.x = 0.0  # the chair's odometry x (m), integrated by drive()
         t.create_subscription(Joy, "joy_override", self.overrides.append, QoSProfile(depth=100))
         t.create_subscription(DiagnosticStatus, "shared_control/status", self.status.append,
                               QoSProfile(depth=100))
@@ -103,24 +104,34 @@ class Harness:
         self.spin_until(lambda: self.node.get_clock().now().nanoseconds == ns, what="clock")
 
     def drive(self, t_from: float, t_to: float, fwd: float = 0.8, wall: float | None = None,
-              vo: bool = True, scan: bool = True, scan_lead: float = 0.0) -> None:
-        """Joystick at 20 Hz, VO at 5 Hz at the model's steady speed, scans at 10 Hz
-        (stamped ``scan_lead`` seconds after the clock; beyond the node's limit they are
-        refused, and each is awaited as counted)."""
+              vo: bool = True, scan: bool = True, scan_lead: float = 0.0,
+              speed: float | None = None) -> None:
+        """Joystick ``fwd`` at 20 Hz; the chair moving along x at ``speed`` (default the
+        model's steady speed, 0.9 ``fwd``); VO at 5 Hz with a VO's noise (an exact repeat
+        is a frozen VO): twists, or with vo_type 'odometry' the pose integrated from x = 0
+        and the twist; scans of a wall ``wall`` ahead at 10 Hz (stamped ``scan_lead``
+        seconds after the clock; beyond the node's limit they are refused, and each is
+        awaited as counted)."""
         from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
 
         stats = self.node.predictor.stats
         rng = np.random.default_rng(int(t_from * 10))
+        speed = 0.9 * fwd if speed is None else speed
+        odometry = self.node.params.vo_type == "odometry"
         for i in range(round((t_to - t_from) / 0.05)):
             t = t_from + 0.05 * (i + 1)
+            self.x += 0.05 * speed
             self.clock(t)
             n = stats.joy_samples
             self.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
             self.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
             if vo and i % 4 == 3:
                 n = stats.vo_samples
-                v = 0.9 * fwd + rng.normal(0.0, 0.003)
-                self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
+                v = speed + rng.normal(0.0, 0.003)
+                if odometry:
+                    self.odom_pub.publish(conv.odometry_from_pose(t, self.x, 0.0, 0.0, v, 0.0))
+                else:
+                    self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
                 self.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
             if scan and wall is not None and i % 2 == 1:
                 arrived, ahead = self.node._scan, self.node._scans_ahead
@@ -319,31 +330,6 @@ def wall_map_msg(wall_x: float | None, frame: str = "odom") -> OccupancyGrid:
     return conv.grid_to_msg(data, res, (-4.0, -4.0, 0.0), 0.0, frame)
 
 
-def _drive_on_a_map(h, t_from: float, t_to: float, speed: float = 0.72,
-                    fwd: float = 0.8, scan_wall: float | None = None) -> None:
-    """Joystick ``fwd`` at 20 Hz; the chair moving along x at ``speed`` from x = 0 at
-    t = 100 s, its odometry (pose and twist, vo_type 'odometry') at 5 Hz (the twist with
-    a VO's noise: an exact repeat is a frozen VO); with ``scan_wall``, scans at 10 Hz of
-    a wall that far ahead of the scanner."""
-    stats = h.node.predictor.stats
-    rng = np.random.default_rng(int(t_from * 10))
-    for i in range(round((t_to - t_from) / 0.05)):
-        t = t_from + 0.05 * (i + 1)
-        h.clock(t)
-        n = stats.joy_samples
-        h.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
-        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
-        if round(t / 0.05) % 4 == 0:
-            n = stats.vo_samples
-            h.odom_pub.publish(conv.odometry_from_pose(
-                t, speed * (t - 100.0), 0.0, 0.0, speed + rng.normal(0.0, 0.003), 0.0))
-            h.spin_until(lambda n=n: stats.vo_samples > n, what="odometry")
-        if scan_wall is not None and i % 2 == 1:
-            arrived = h.node._scan
-            h.scan_pub.publish(wall_scan_msg(t, scan_wall))
-            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
-
-
 def _publish_map(h, msg: OccupancyGrid) -> None:
     grid, problem, bad = h.node._grid, h.node._grid_problem, h.node._bad_messages
     h.map_pub.publish(msg)
@@ -359,13 +345,13 @@ def test_a_map_as_the_obstacle_source(harness):
     h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
     assert h.node.velocity.describe() == "vo"
     _publish_map(h, wall_map_msg(None))
-    _drive_on_a_map(h, 100.0, 103.0)
+    h.drive(100.0, 103.0)
     assert h.last()["why"] == "clear" and h.overrides == []
     assert conv.diagnostic_values(h.node.diagnostic_status())["map"] == "received"
     # a wall 1.2 m ahead of the chair's front (x = 2.16 m at 103 s): the chair's path
     # runs into it within 2 s
     _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))
-    _drive_on_a_map(h, 103.0, 103.6)
+    h.drive(103.0, 103.6)
     last = h.last()
     assert last["why"] == "intervening", last
     assert float(last["p_before"]) > 0.05 >= float(last["p_after"])
@@ -374,12 +360,12 @@ def test_a_map_as_the_obstacle_source(harness):
     n = len(h.overrides)
     _publish_map(h, wall_map_msg(3.6, frame="map"))
     assert "frame 'map'" in h.node._grid_problem
-    _drive_on_a_map(h, 103.6, 104.2, speed=0.0, fwd=0.3)
+    h.drive(103.6, 104.2, fwd=0.3, speed=0.0)
     assert h.last()["why"] == "no_obstacle_source"
     diag = h.node.diagnostic_status()
     assert "frame 'map'" in conv.diagnostic_values(diag)["map"]
     sent = len(h.overrides)
-    _drive_on_a_map(h, 104.2, 104.8, speed=0.0, fwd=0.3)
+    h.drive(104.2, 104.8, fwd=0.3, speed=0.0)
     assert len(h.overrides) == sent >= n  # none sent while there is no obstacle source
     # a map whose data do not fill its size: refused and counted
     bad = wall_map_msg(3.6)
@@ -394,14 +380,14 @@ def test_laser_and_map_together_take_the_nearer_obstacle(harness):
     scan's."""
     h = harness(obstacles="both", vo_type="odometry", vo_topic="vo/odom")
     _publish_map(h, wall_map_msg(None))
-    _drive_on_a_map(h, 100.0, 103.0, scan_wall=20.0)
+    h.drive(100.0, 103.0, wall=20.0)
     assert h.last()["why"] == "clear" and h.overrides == []
     _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))  # the map's wall, the scan clear
-    _drive_on_a_map(h, 103.0, 103.6, scan_wall=20.0)
+    h.drive(103.0, 103.6, wall=20.0)
     assert h.last()["why"] == "intervening", h.last()
     _publish_map(h, wall_map_msg(None))  # the map clear, the scan's wall
     h.overrides.clear()
-    _drive_on_a_map(h, 103.6, 104.0, scan_wall=1.2)
+    h.drive(103.6, 104.0, wall=1.2)
     assert h.last()["why"] == "intervening", h.last()
     assert h.overrides
 
