@@ -340,8 +340,8 @@ class HardwareNode(Node):
         return conv.plan_to_trajectory(plan, stamp, grid)
 
     def _on_camera(self) -> None:
-        if self._t_start is None:
-            return
+        if self._t_start is None or self.hw.step_index == 0:
+            return  # not before the drive's first step: its stamp would lead the clock
         state = self.hw.state
         if state.t <= self._last_frame_t:
             return
@@ -361,8 +361,8 @@ class HardwareNode(Node):
         self.frames += 1
 
     def _on_scan(self) -> None:
-        if self._t_start is None:
-            return
+        if self._t_start is None or self.hw.step_index == 0:
+            return  # not before the drive's first step: its stamp would lead the clock
         state = self.hw.state
         scan = self.hw.lidar.scan(state.x, state.y, state.theta)
         t = self._stamp(round(state.t / STEP_S) * STEP_S)
