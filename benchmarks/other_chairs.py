@@ -130,7 +130,7 @@ def run_chair(i: int, chair: ChairParams, args: argparse.Namespace, work: Path
               ) -> dict[str, Any]:
     seed = SEED_BASE + 10 * i
     d = work / f"chair_{i}"
-    d.mkdir(parents=True, exist_ok=True)
+    d.mkdir(parents=True)
     train, test = [], []
     for j in range(3):
         path = d / f"train_{j}"
@@ -145,10 +145,9 @@ def run_chair(i: int, chair: ChairParams, args: argparse.Namespace, work: Path
         write_recording(path, rec)
         test.append(str(path))
     t = time.monotonic()
-    _cli("train", *train, "--out", str(d / "asgp.npz"), "--budget-s", str(args.budget_s),
-         "--force")
+    _cli("train", *train, "--out", str(d / "asgp.npz"), "--budget-s", str(args.budget_s))
     asgp_s = time.monotonic() - t
-    _cli("train", *train, "--model", "mlp", "--out", str(d / "mlp.npz"), "--force")
+    _cli("train", *train, "--model", "mlp", "--out", str(d / "mlp.npz"))
     asgp = load_model(d / "asgp.npz")
     mlp = load_model(d / "mlp.npz")
     series = read_series(test, resample_config=asgp.resample_config)
@@ -170,11 +169,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-minutes", type=float, default=30.0)
     ap.add_argument("--test-minutes", type=float, default=10.0)
     ap.add_argument("--budget-s", type=float, default=180.0)
-    ap.add_argument("--out", help="keep the bags and models here (default: a temporary "
-                                  "directory, removed)")
+    ap.add_argument("--out", help="keep the bags and models in this new directory "
+                                  "(default: a temporary directory, removed)")
     args = ap.parse_args(argv)
     if not 1 <= args.chairs <= 50:
         ap.error("--chairs must be in [1, 50]")
+    if args.out and os.path.lexists(args.out):
+        ap.error(f"--out {args.out} exists: give a new directory (nothing in it is replaced)")
     rng = np.random.default_rng(args.seed)
     chairs = [sample_chair(rng, args.surface) for _ in range(args.chairs)]
     with tempfile.TemporaryDirectory(prefix="asgp-chairs-") as tmp:

@@ -26,7 +26,7 @@ from sensor_msgs.msg import Joy, LaserScan
 from test_predictor_node import model_file  # noqa: F401 (a fixture)
 
 from asgp_ros.nodes import conversions as conv
-from asgp_ros.nodes.shared_control_node import SharedControlNode, StartupError
+from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S, SharedControlNode, StartupError
 from asgp_ros.serial.protocol import Mode, Status
 
 pytestmark = pytest.mark.ros
@@ -112,8 +112,6 @@ class Harness:
         and the twist; scans of a wall ``wall`` ahead at 10 Hz (stamped ``scan_lead``
         seconds after the clock; beyond the node's limit they are refused, and each is
         awaited as counted)."""
-        from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
-
         stats = self.node.predictor.stats
         rng = np.random.default_rng(int(t_from * 10))
         speed = 0.9 * fwd if speed is None else speed
@@ -218,8 +216,6 @@ def test_scans_stamped_ahead_of_the_clock_are_refused(harness):
     laser stopped, placed with motion that has not happened. They are refused (counted,
     and the diagnostics say why); the layer has no obstacle source and the user drives.
     Scans on time again: the layer judges them at once."""
-    from asgp_ros.nodes.shared_control_node import SCAN_LEAD_S
-
     h = harness()
     h.drive(100.0, 103.0, wall=1.6, scan_lead=5.0)  # a wall 1.6 m ahead, scans 5 s early
     assert h.node._scan is None and h.node._scans_ahead == 30
@@ -233,6 +229,12 @@ def test_scans_stamped_ahead_of_the_clock_are_refused(harness):
     h.drive(103.05, 104.0, wall=1.6)
     assert h.last()["why"] == "intervening" and h.overrides
     assert conv.diagnostic_values(h.node.diagnostic_status())["scan"] == "received"
+    # the clock steps back 0.5 s (less than the predictor's reset_jump_s): the scan it
+    # holds now leads the clock and is no obstacle source, rather than one placed with
+    # motion that has not happened
+    h.clock(103.5)
+    h.node._decide(103.5)
+    assert h.node._decision.why.value == "no_obstacle_source", h.node._decision
 
 
 def corridor_scan_msg(t: float, ahead: float, half_width: float = 1.0,
