@@ -296,6 +296,47 @@ def test_the_scans_as_the_velocity_source_keep_the_layer_acting_without_vo(
     assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
 
 
+@pytest.mark.parametrize("source", ["scan_matching", "auto"])
+def test_a_scan_delivered_twice_is_taken_once(harness, source):
+    """A scan that comes again with the same stamp (a relay or a second recorder on the
+    topic, a replay overlapping a live laser) is the same scan. Matched again it read as a
+    lost match: 'scan_matching' gave the predictor a tracking loss beside the twist, and
+    'auto' (the default) took the VO's next twist instead of the scans'."""
+    h = harness(velocity_source=source, memory_s=10.0)
+    stats = h.node.predictor.stats
+    t_from, speed, scans = 100.0, 0.72, 0
+    for i in range(60):
+        t = t_from + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if source == "auto" and i % 4 == 2 and i > 4:  # the VO too, once scans match
+            n = h.node._vo_messages
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, speed, 0.0))
+            h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+        if i % 2 == 1:
+            msg = corridor_scan_msg(t, 3.2 - speed * (t - t_from))
+            arrived = h.node._scan
+            h.scan_pub.publish(msg)
+            h.spin_until(lambda a=arrived: h.node._scan is not a, what="scan")
+            scans += 1
+            assert h.node.memory is not None
+            size, repeated = h.node.memory.size, h.node._scans_repeated
+            h.scan_pub.publish(msg)
+            h.spin_until(lambda r=repeated: h.node._scans_repeated > r, what="repeat")
+            assert h.node.memory.size == size
+    assert h.node._scans_repeated == scans
+    assert h.node.velocity_odometer is not None and h.node.velocity_odometer.breaks == 0
+    assert h.node.velocity.switches == 0 and h.node.velocity.current == "scans"
+    if source == "scan_matching":
+        # the first scan's sample (nothing to match yet: a loss), then one twist per
+        # matched interval; nothing for a repeat
+        assert stats.vo_samples == scans
+    assert conv.diagnostic_values(h.node.diagnostic_status())["scans_repeated"] == str(scans)
+    assert h.overrides, h.last()  # and the layer acts on the scans' velocities
+
+
 def test_auto_takes_the_vo_while_the_scans_do_not_match(harness, rclpy_context,
                                                         model_file):  # noqa: F811
     """'auto', the default: a scanner that repeats its last scan (a stuck driver; the wall

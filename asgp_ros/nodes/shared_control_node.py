@@ -314,6 +314,8 @@ class SharedControlNode(Node):
         self._changes: list[float] = []  # of the decisions that changed the command
         self._bad_messages = 0
         self._scans_ahead = 0  # scans refused: stamped more than SCAN_LEAD_S ahead
+        self._scans_repeated = 0  # scans that came again with the newest one's stamp
+        self._vo_messages = 0  # VO twists or odometry received (on the clock)
         self._scan_problem = ""
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -390,6 +392,7 @@ class SharedControlNode(Node):
             return
         t, vel = conv.twist_stamped_to_sample(msg)
         t = self._stamp(t, now)
+        self._vo_messages += 1
         if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
         if self.velocity.vo(t) and self.predictor.feed_vo(t, vel):
@@ -401,6 +404,7 @@ class SharedControlNode(Node):
             return
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
+        self._vo_messages += 1
         if ok:
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
@@ -445,6 +449,12 @@ class SharedControlNode(Node):
                                       f"{self._scan_problem}", throttle_duration_sec=5.0)
             return
         self._scan_problem = ""
+        if self._scan is not None and scan.stamp == self._scan[1].stamp:
+            # The same scan again (a relay or a second recorder on the topic, a replay
+            # overlapping the live laser): matched again it would read as a lost match,
+            # a tracking loss for the predictor, and the memory would take it twice.
+            self._scans_repeated += 1
+            return
         extra = None
         matcher = self.scan_odometer or self.velocity_odometer  # each scan matched once
         scan_pose = matcher.add(scan) if matcher is not None else None
@@ -619,11 +629,13 @@ class SharedControlNode(Node):
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
             "scan": self._scan_problem or ("none" if self._scan is None else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
+            "scans_repeated": str(self._scans_repeated),
             "memory_points": "off" if self.memory is None else str(self.memory.size),
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
+            "vo_messages": str(self._vo_messages),
             "velocity_source": self.velocity.describe() + (
                 f" ({self.velocity_odometer.breaks} breaks)"
                 if self.velocity_odometer is not None else ""),
