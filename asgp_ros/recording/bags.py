@@ -44,6 +44,7 @@ so a reader never blocks on it.
 
 from __future__ import annotations
 
+import bisect
 import bz2
 import contextlib
 import logging
@@ -1004,7 +1005,7 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
         if len(v) >= 4 and all(isinstance(x, str) for x in v[1:4]):
             text, enc = defs.get(v[2], ("", ""))
             scan.conns[rowid] = (v[1], v[2], text, enc)
-    found = db.message_rows(claimed)
+    found = db.message_rows(roots["messages"], claimed)
     for rowid in sorted(found):
         kept = found[rowid]
         if kept is None or kept[0] not in scan.conns:
@@ -1012,7 +1013,7 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
             continue
         scan.add(*kept)
     if found:  # ids are 1, 2, 3, ...: a gap below the largest found is a lost row
-        scan.dropped += max(found) - len(found)
+        scan.dropped += max(0, max(found) - len(found))
     ps, npages = db.page_size, db.npages
     scan.complete = min(len(buf) // ps, npages) * ps
     if len(buf) % ps and len(buf) // ps < npages:
@@ -1022,6 +1023,22 @@ def _scan_sqlite(path: Path, buf: Any, name: str, keep: Callable[[str], bool]) -
                              f"of {scan.expected_bytes // ps} pages missing at the end")
     scan.ended = not scan.problems and not scan.dropped
     return scan
+
+
+_ROWIDS = (-(1 << 63) - 1, (1 << 63) - 1)  # (lo, hi]: every rowid
+
+
+def _merged(ranges: list[tuple[int, int]]) -> tuple[list[int], list[int]]:
+    """Key ranges (lo, hi] merged where they overlap: their starts and ends, in order."""
+    starts: list[int] = []
+    ends: list[int] = []
+    for lo, hi in sorted(ranges):
+        if starts and lo <= ends[-1]:
+            ends[-1] = max(ends[-1], hi)
+        else:
+            starts.append(lo)
+            ends.append(hi)
+    return starts, ends
 
 
 class _SqlitePages:
@@ -1052,12 +1069,23 @@ class _SqlitePages:
             self.overlay, problem = _wal_pages(wal_path.read_bytes(), ps)
             if problem:
                 scan.problems.append(problem)
+            if self.overlay.pop(0, None) is not None:
+                scan.problems.append("a write-ahead log frame for page 0 (ignored)")
             if self.overlay:
                 self.npages = max(self.npages, max(self.overlay))
                 scan.expected_bytes = None  # the log holds the newest size
         if regular_file_problem(path.with_name(path.name + "-journal")) is None:
             scan.problems.append("a rollback journal was left (the last transaction did not "
                                  "finish); the database is read as it was written")
+        # overflow pages read, in all: each is read once in a sound file; chains that share
+        # pages would read the file again for each cell
+        self.overflow_budget = 4 * self.npages + 64
+        self.free_whole = True  # the free list was read to its end
+
+    def report(self, problem: str) -> None:
+        """Add ``problem`` to the scan's problems once."""
+        if problem not in self.scan.problems:
+            self.scan.problems.append(problem)
 
     def page(self, p: int) -> bytes | None:
         """Page ``p`` (1-based), None where it is missing."""
@@ -1068,115 +1096,239 @@ class _SqlitePages:
             return bytes(self.buf[(p - 1) * ps:p * ps])
         return None
 
+    def present(self) -> list[int]:
+        """The numbers of the pages that are present, in order (not 1..npages: a log
+        frame may name a page far beyond the file)."""
+        in_file = range(1, min(self.npages, len(self.buf) // self.page_size) + 1)
+        return sorted(set(in_file) | {p for p in self.overlay if p <= self.npages})
+
     def kind(self, p: int) -> int:
         """The b-tree page type of page ``p`` (0x0D table leaf, 0x05 table interior), -1
         where the page is missing."""
         pg = self.page(p)
         return -1 if pg is None else pg[100 if p == 1 else 0]
 
-    def cells(self, p: int) -> list[tuple[int, bytes | None]]:
-        """(rowid, payload or None if an overflow page is missing) of a table leaf."""
+    def cells(self, p: int) -> tuple[list[tuple[int, bytes | None]], int]:
+        """(rowid, payload or None if its overflow pages are missing or broken) of each
+        readable cell of a table leaf, and the number of cells that cannot be read (a
+        pointer, size or rowid that runs past the page)."""
         pg = self.page(p)
         assert pg is not None
-        usable = self.usable
         h = 100 if p == 1 else 0
         out: list[tuple[int, bytes | None]] = []
-        x = usable - 35
+        bad = 0
         for i in range(_u(pg, h + 3, 2, "big")):
-            c = _u(pg, h + 8 + 2 * i, 2, "big")
-            size, c = _varint(pg, c)
-            rowid, c = _varint(pg, c)
-            if size <= x:
-                if c + size > usable:
-                    raise _StopError("cell past its page")
-                out.append((rowid, pg[c:c + size]))
-                continue
-            m = ((usable - 12) * 32 // 255) - 23
-            local = m + (size - m) % (usable - 4)
-            local = local if local <= x else m
-            data = [pg[c:c + local]]
-            have, nxt, hops = local, _u(pg, c + local, 4, "big"), 0
-            while have < size and nxt and hops <= self.npages:
-                ov = self.page(nxt)
-                if ov is None:
+            try:
+                out.append(self._cell(pg, _u(pg, h + 8 + 2 * i, 2, "big")))
+            except _StopError:
+                bad += 1
+                if h + 10 + 2 * i > self.usable:  # the pointer array itself runs out
+                    bad += _u(pg, h + 3, 2, "big") - i - 1
                     break
-                take = min(size - have, usable - 4)
-                data.append(ov[4:4 + take])
-                have, nxt, hops = have + take, _u(ov, 0, 4, "big"), hops + 1
-            out.append((rowid, b"".join(data) if have == size else None))
-        return out
+        return out, bad
+
+    def _cell(self, pg: bytes, c: int) -> tuple[int, bytes | None]:
+        """(rowid, payload) of the table leaf cell at offset ``c`` of page ``pg``."""
+        usable = self.usable
+        if not 0 < c < usable:
+            raise _StopError("cell outside its page")
+        size, c = _varint(pg, c)
+        rowid, c = _varint(pg, c)
+        x = usable - 35
+        if size < 0 or c > usable:
+            raise _StopError("cell past its page")
+        if size <= x:
+            if c + size > usable:
+                raise _StopError("cell past its page")
+            return rowid, pg[c:c + size]
+        m = ((usable - 12) * 32 // 255) - 23
+        local = m + (size - m) % (usable - 4)
+        local = local if local <= x else m
+        if c + local + 4 > usable:
+            raise _StopError("cell past its page")
+        if size > local + self.npages * (usable - 4):
+            return rowid, None  # more overflow pages than the file has
+        data = [pg[c:c + local]]
+        have, nxt, chain = local, _u(pg, c + local, 4, "big"), set()
+        while have < size and nxt and nxt not in chain and self.overflow_budget > 0:
+            ov = self.page(nxt)
+            if ov is None:
+                break
+            chain.add(nxt)
+            self.overflow_budget -= 1
+            take = min(size - have, usable - 4)
+            data.append(ov[4:4 + take])
+            have, nxt = have + take, _u(ov, 0, 4, "big")
+        if have < size and self.overflow_budget <= 0:
+            self.report("overflow pages read more than four times over (shared overflow "
+                        "chains); the rest dropped")
+        if have == size and nxt == 0:
+            return rowid, b"".join(data)
+        if nxt in chain or have == size:  # a loop, or a chain that goes on: wrong bytes
+            self.report("an overflow chain that loops or runs past its payload")
+        return rowid, None
+
+    def interior(self, p: int, lo: int, hi: int) -> tuple[list[tuple[int, int, int]],
+                                                          list[tuple[int, int]]]:
+        """The children of table interior page ``p`` whose keys are in (lo, hi]: (child,
+        lo, hi) each, and the key ranges whose child pointer cannot be read."""
+        pg = self.page(p)
+        assert pg is not None
+        h = 100 if p == 1 else 0
+        children: list[tuple[int, int, int]] = []
+        lost: list[tuple[int, int]] = []
+        prev, broken = lo, False
+        try:
+            n = _u(pg, h + 3, 2, "big")
+        except _StopError:
+            return [], [(lo, hi)]
+        for i in range(n):
+            try:
+                c = _u(pg, h + 12 + 2 * i, 2, "big")
+                if not 0 < c <= self.usable - 5:
+                    raise _StopError("cell outside its page")
+                child = _u(pg, c, 4, "big")
+                key, end = _varint(pg, c + 4)
+                if end > self.usable:
+                    raise _StopError("cell past its page")
+            except _StopError:
+                broken = True
+                continue
+            key = min(max(key, prev), hi)
+            if broken:
+                lost.append((prev, key))
+                broken = False
+            children.append((child, prev, key))
+            prev = key
+        if broken:
+            lost.append((prev, hi))
+        if lost:
+            self.report(f"unreadable cells on interior page {p}")
+        children.append((_u(pg, h + 8, 4, "big"), prev, hi))
+        return children, lost
+
+    def tree(self, root: int, seen: set[int]) -> tuple[list[int], list[tuple[int, int]]]:
+        """The table leaf pages reached from ``root`` and the key ranges (lo, hi] of the
+        subtrees that cannot be reached (a missing page, a pointer to a page seen before
+        or to a page that is not a table page); the pages walked are added to ``seen``."""
+        found: list[int] = []
+        lost: list[tuple[int, int]] = []
+        stack = [(root, *_ROWIDS)]
+        while stack:
+            p, lo, hi = stack.pop()
+            k = self.kind(p) if p not in seen else -1
+            if k not in (0x05, 0x0D):
+                if lo < hi:
+                    lost.append((lo, hi))
+                if self.page(p) is not None or not 0 < p <= self.npages:  # not a cut page
+                    self.report("a b-tree pointer to a page that is not one of its table's")
+                continue
+            seen.add(p)
+            if k == 0x0D:
+                found.append(p)
+                continue
+            children, broken = self.interior(p, lo, hi)
+            lost.extend(broken)
+            stack.extend(reversed(children))
+        return found, lost
 
     def leaves(self, root: int, seen: set[int]) -> list[int]:
         """Table leaf pages reached from ``root`` (missing pages are skipped)."""
-        found, stack = [], [root]
-        while stack:
-            p = stack.pop()
-            if p in seen:
-                continue
-            seen.add(p)
-            k = self.kind(p)
-            if k == 0x0D:
-                found.append(p)
-            elif k == 0x05:
-                pg = self.page(p)
-                assert pg is not None
-                h = 100 if p == 1 else 0
-                stack.append(_u(pg, h + 8, 4, "big"))
-                for i in range(_u(pg, h + 3, 2, "big")):
-                    stack.append(_u(pg, _u(pg, h + 12 + 2 * i, 2, "big"), 4, "big"))
-        return found
+        return self.tree(root, seen)[0]
 
     def rows(self, root: int, seen: set[int]) -> list[tuple[int, list[Any]]]:
         """(rowid, values) of the table whose b-tree starts at page ``root``; its pages are
-        added to ``seen``, an unreadable page is reported and skipped."""
+        added to ``seen``, an unreadable cell is reported and skipped."""
         out: list[tuple[int, list[Any]]] = []
         for p in self.leaves(root, seen):
+            for r, d in self.leaf_rows(p):
+                if d is not None:
+                    out.append((r, d))
+        return out
+
+    def leaf_rows(self, p: int) -> list[tuple[int, list[Any] | None]]:
+        """(rowid, values, or None where its overflow pages are missing or broken) of the
+        readable cells of table leaf ``p``; what cannot be read is reported."""
+        cells, bad = self.cells(p)
+        out: list[tuple[int, list[Any] | None]] = []
+        for r, d in cells:
             try:
-                out.extend((r, _sqlite_record(d)) for r, d in self.cells(p) if d is not None)
+                out.append((r, None if d is None else _sqlite_record(d)))
             except _StopError:
-                self.scan.problems.append(f"unreadable page {p}")
+                bad += 1
+        if bad:
+            self.scan.problems.append(f"{bad} unreadable cell{'s' * (bad > 1)} on page {p}")
         return out
 
     def free_pages(self) -> set[int]:
-        """The pages of the free list (trunk and leaf pages), as far as they can be read."""
-        buf, usable = self.buf, self.usable
-        free = set()
-        trunk, hops = _u(buf, 32, 4, "big"), 0
-        while trunk and hops <= self.npages and (pg := self.page(trunk)) is not None:
+        """The pages of the free list (trunk and leaf pages), as far as they can be read;
+        the list starts in page 1's header, which a write-ahead log may hold newer."""
+        first = self.page(1)
+        if first is None:
+            return set()
+        usable = self.usable
+        free: set[int] = set()
+        trunks: set[int] = set()
+        trunk = _u(first, 32, 4, "big")
+        broken = False
+        while trunk and trunk not in trunks and (pg := self.page(trunk)) is not None:
+            trunks.add(trunk)
             free.add(trunk)
-            free.update(_u(pg, 8 + 4 * i, 4, "big") for i in range(min(_u(pg, 4, 4, "big"),
-                                                                       usable // 4 - 2)))
-            trunk, hops = _u(pg, 0, 4, "big"), hops + 1
+            n = _u(pg, 4, 4, "big")
+            broken |= n > usable // 4 - 2  # more leaves than a trunk page holds
+            free.update(_u(pg, 8 + 4 * i, 4, "big") for i in range(min(n, usable // 4 - 2)))
+            trunk = _u(pg, 0, 4, "big")
+        if trunk or broken or len(free) < _u(first, 36, 4, "big"):
+            self.free_whole = False
+            self.report("the free list is cut off or broken: pages outside the messages "
+                        "table's b-tree are not read (they may hold deleted rows)")
         return free
 
-    def message_rows(self, claimed: set[int]) -> dict[int, tuple[int, int, bytes] | None]:
+    def message_rows(self, root: int, claimed: set[int]
+                     ) -> dict[int, tuple[int, int, bytes] | None]:
         """The rows of the messages table by rowid: (topic id, time, data), or None where
         two different versions of a row were found or its overflow pages are missing.
 
-        Every table leaf not claimed by another table is read (a cut file may have lost the
-        interior pages that lead to them) when all its rows have the messages table's
-        shape."""
+        The leaves of the table's b-tree are read; then, if the free list was read whole,
+        every other table leaf not claimed by another table or the free list (a cut file
+        may have lost the interior pages that lead to them) when all its rows have the
+        messages table's shape, for the rows whose ids lie where the b-tree has lost a
+        subtree: a stale page (rows deleted) or a stray page of another table gives none of
+        its rows where the b-tree is whole. Rows on free pages never come back: they were
+        deleted, or are older versions of rows."""
+        leaves, lost = self.tree(root, set(claimed))
         found: dict[int, tuple[int, int, bytes] | None] = {}
-        for p in range(1, self.npages + 1):
-            if p in claimed or self.kind(p) != 0x0D:
+        in_tree = set(leaves)
+        for p in leaves:
+            for r, w in self.leaf_rows(p):
+                self._put(found, r, w)
+        tree_rows = set(found)
+        starts, ends = _merged(lost)
+        for p in self.present() if self.free_whole else ():
+            if p in claimed or p in in_tree or self.kind(p) != 0x0D:
                 continue
-            try:
-                page_rows = [(r, _sqlite_record(d) if d is not None else None)
-                             for r, d in self.cells(p)]
-            except _StopError:
-                self.scan.problems.append(f"unreadable page {p}")
-                continue
+            page_rows = self.leaf_rows(p)
             if not all(w is None or (len(w) == 4 and w[0] is None and isinstance(w[1], int)
                                      and isinstance(w[2], int) and isinstance(w[3], bytes))
                        for _r, w in page_rows):
                 continue  # another table's page
             for r, w in page_rows:
-                row = None if w is None else (w[1], w[2], w[3])
-                if r in found and found[r] != row:
-                    found[r] = None  # two different versions of one row: trust neither
-                else:
-                    found[r] = row
+                i = bisect.bisect_left(starts, r) - 1
+                if r not in tree_rows and i >= 0 and r <= ends[i]:
+                    self._put(found, r, w)
         return found
+
+    @staticmethod
+    def _put(found: dict[int, tuple[int, int, bytes] | None], r: int,
+             w: list[Any] | None) -> None:
+        if w is not None and not (len(w) == 4 and isinstance(w[1], int)
+                                  and isinstance(w[2], int) and isinstance(w[3], bytes)):
+            w = None  # not a message row
+        row = None if w is None else (w[1], w[2], w[3])
+        if r in found and found[r] != row:
+            found[r] = None  # two different versions of one row: trust neither
+        else:
+            found[r] = row
 
 
 # --- ROS 1: records (header, data) from the version line on; chunks hold the messages.
