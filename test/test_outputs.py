@@ -307,6 +307,72 @@ def test_a_directory_whose_replacement_fails_comes_back(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]  # no temporary left
 
 
+@pytest.fixture
+def stop_signals():
+    """raise_on_termination() for one test, the process's handlers restored after it."""
+    from asgp_ros.common import fileio
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
+    fileio.raise_on_termination()
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        fileio._received.clear()
+
+
+def test_a_signal_between_the_renames_of_a_replacement_loses_nothing(tmp_path, monkeypatch,
+                                                                      stop_signals):
+    """--force on a directory: a Ctrl-C landing just after the old directory was moved
+    aside (into the temporary that the clean-up removes) must not lose it. The
+    replacement completes, then the signal is raised: the new directory is in place and
+    nothing else is left."""
+    import os
+
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "x").write_text("old")
+    real_rename = os.rename
+
+    def rename(src, dst):
+        real_rename(src, dst)
+        if Path(src) == d:  # the old directory moved aside: the signal lands now
+            signal.raise_signal(signal.SIGINT)
+
+    monkeypatch.setattr(os, "rename", rename)
+    with pytest.raises(KeyboardInterrupt), atomic_path(d, directory=True) as tmp:
+        tmp.mkdir()
+        (tmp / "y").write_text("new")
+    assert sorted(p.name for p in d.iterdir()) == ["y"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
+
+
+@pytest.mark.parametrize("directory", [False, True])
+def test_a_signal_during_the_clean_up_leaves_no_temporary(tmp_path, monkeypatch,
+                                                          stop_signals, directory):
+    """A signal that lands while the temporary is being removed (after the output was
+    written and moved into place) waits until it is removed: seen once in CI as a
+    ``..asgp-output.*.tmp`` left in a dataset directory after Ctrl-C."""
+    import shutil
+
+    real_rmtree = shutil.rmtree
+
+    def rmtree(path, *args, **kwargs):
+        signal.raise_signal(signal.SIGINT)
+        return real_rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(shutil, "rmtree", rmtree)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt), atomic_path(out, directory=directory) as tmp:
+        if directory:
+            tmp.mkdir()
+            (tmp / "y").write_text("new")
+        else:
+            tmp.write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
 def test_check_output_resolves_symlinked_parents(tmp_path):
     real = tmp_path / "real"
     real.mkdir()

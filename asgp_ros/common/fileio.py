@@ -349,7 +349,8 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     POSIX) and does not exist yet when yielded: the caller creates the file (or, with
     ``directory=True``, the directory, e.g. a ROS 2 bag) there. On an exception, or on a
     signal turned into one (:func:`raise_on_termination`), the temporary is removed and
-    ``final`` is left untouched.
+    ``final`` is left untouched; a signal during the final rename(s), or while the
+    temporary is removed, is raised once they are done.
 
     What may be replaced: with ``directory=False``, an existing regular file (unless
     ``replace=False``). With ``directory=True``, an existing directory only when
@@ -379,20 +380,24 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         if not directory:
             with open(tmp, "rb+") as fh:
                 os.fsync(fh.fileno())
-        _refuse_other_kind(final, directory=directory, replace=replace)
-        if directory and os.path.lexists(final):
-            old = tmpdir / ".replaced"
-            os.rename(final, old)
-            try:
-                os.rename(tmp, final)
-            except BaseException:
-                os.rename(old, final)
-                raise
-        else:
-            os.replace(tmp, final)
+        # The commit, whole or not at all: a signal between the two renames of a
+        # replacement would leave the old directory in the temporary removed below.
+        with signals_deferred():
+            _refuse_other_kind(final, directory=directory, replace=replace)
+            if directory and os.path.lexists(final):
+                old = tmpdir / ".replaced"
+                os.rename(final, old)
+                try:
+                    os.rename(tmp, final)
+                except BaseException:
+                    os.rename(old, final)
+                    raise
+            else:
+                os.replace(tmp, final)
     finally:
         if tmpdir is not None:
-            shutil.rmtree(tmpdir, ignore_errors=True)
+            with signals_deferred():  # raised once the temporary is gone
+                shutil.rmtree(tmpdir, ignore_errors=True)
 
 
 def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
