@@ -1,16 +1,19 @@
-"""The adaptation's two half-lives, scored on recordings of another floor.
+"""The adaptation's two half-lives and its rows' noise, scored on recordings of another floor.
 
 Usage::
 
     python benchmarks/adapt_half_life.py [MODEL] [--bags BAG ...]
-        [--trained-half-lives 1 3 10 30 120] [--half-lives 300 900 1800] [--skip 60]
+        [--trained-half-lives 1 3 10 30 120] [--half-lives 300 900 1800]
+        [--row-noises 0 0.1 0.3 1 3] [--skip 60]
 
 Each recording is replayed through the online predictor from MODEL, adapting
 (``asgp_ros.learning.evaluation.evaluate_adaptive``, the default settings but for the one
 half-life varied), causally; printed: success (%) and 95 % ellipse coverage (%) at 1.0, 1.4
 and 2.0 s of the cases from ``--skip`` seconds into each recording, adapting and as
 trained. First the trained data's half-life is varied (the rows' at its default), then the
-rows' (the trained data's at its default).
+rows', then the noise added to each absorbed row (``AdaptConfig.row_noise``, A10 of
+``asgp_ros.core.adapt``), each with the others at their defaults; an empty list skips one
+(``--half-lives`` with no value).
 
 The defaults of ``asgp_ros.core.adaptive`` were chosen this way on the other floor's
 *training* bags of the reproduction's dataset (not its test bags)::
@@ -53,6 +56,13 @@ def _positive(text: str) -> float:
     return value
 
 
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not (np.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"a row noise must be a number >= 0, got {text}")
+    return value
+
+
 def score(model: object, tests: list[TestSeries], settings: AdaptSettings, skip_s: float
           ) -> str:
     """Success / coverage adapting (and success as trained) from ``skip_s`` s in."""
@@ -79,16 +89,24 @@ def run(args: argparse.Namespace) -> int:
     print("success / 95% coverage adapting (success as trained), % at "
           f"{' / '.join(f'{h:g}' for h in HORIZONS_S)} s")
     with threadpool_limits(limits=1):
-        print(f"trained data's half-life (rows' {base.posterior.half_life_s:g} s):")
+        if args.trained_half_lives:
+            print(f"trained data's half-life (rows' {base.posterior.half_life_s:g} s):")
         for h in args.trained_half_lives:
             st = dataclasses.replace(
                 base, posterior=dataclasses.replace(base.posterior, trained_half_life=h))
             print(f"  {h:7g} s   {score(model, tests, st, args.skip)}", flush=True)
-        print(f"rows' half-life (trained data's {base.posterior.trained_half_life:g} s):")
+        if args.half_lives:
+            print(f"rows' half-life (trained data's {base.posterior.trained_half_life:g} s):")
         for h in args.half_lives:
             st = dataclasses.replace(
                 base, posterior=dataclasses.replace(base.posterior, half_life_s=h))
             print(f"  {h:7g} s   {score(model, tests, st, args.skip)}", flush=True)
+        if args.row_noises:
+            print(f"rows' noise / sf2 (default {base.posterior.row_noise:g}):")
+        for nu in args.row_noises:
+            st = dataclasses.replace(
+                base, posterior=dataclasses.replace(base.posterior, row_noise=nu))
+            print(f"  {nu:7g}     {score(model, tests, st, args.skip)}", flush=True)
     return 0
 
 
@@ -98,10 +116,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="the trained ASGP (default the committed carpet model)")
     ap.add_argument("--bags", nargs="+", help="recordings of another floor (default: one "
                     "simulated 20-minute tile recording)")
-    ap.add_argument("--trained-half-lives", nargs="+", type=_positive,
+    ap.add_argument("--trained-half-lives", nargs="*", type=_positive,
                     default=[1.0, 3.0, DEFAULT_TRAINED_HALF_LIFE_S, 30.0, 120.0])
-    ap.add_argument("--half-lives", nargs="+", type=_positive,
+    ap.add_argument("--half-lives", nargs="*", type=_positive,
                     default=[DEFAULT_HALF_LIFE_S, 900.0, 1800.0])
+    ap.add_argument("--row-noises", nargs="*", type=_non_negative,
+                    default=[0.0, 0.1, 0.3, 1.0, 3.0])
     ap.add_argument("--skip", type=float, default=60.0, help="score cases from this many "
                     "seconds into each recording (60)")
     args = ap.parse_args(argv)

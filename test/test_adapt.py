@@ -326,10 +326,11 @@ def test_trained_mean_has_the_same_variance_and_without_fading_the_same_mean(
 
 
 def _trained_mean_reference(gp: SparseGP, X_new: np.ndarray, y_new: np.ndarray,
-                            Xq: np.ndarray) -> np.ndarray:
+                            Xq: np.ndarray, extra_noise: float = 0.0) -> np.ndarray:
     """A9 with the trained data forgotten (w_T = 0), from the dense FITC formulas: the
     trained mean plus the FITC posterior mean of the residuals y - m_T(x) under the
-    zero-mean prior of the same kernel (standardised units, S&G eq. 5)."""
+    zero-mean prior of the same kernel (standardised units, S&G eq. 5); ``extra_noise``
+    (standardised) is added to each new row's lambda (A10)."""
     post = gp.posterior
     m_T = gp.predict(X_new)[0]
     r = (y_new - m_T) / post.y_scale
@@ -338,7 +339,7 @@ def _trained_mean_reference(gp: SparseGP, X_new: np.ndarray, y_new: np.ndarray,
     Kuu = kernel.se_ard_jittered(post.Z, post.lengthscales, post.signal_variance, post.jitter)
     Kuf = kernel.se_ard(post.Z, Xs, post.lengthscales, post.signal_variance)
     Q_diag = np.einsum("mn,mn->n", Kuf, np.linalg.solve(Kuu, Kuf))
-    lam = post.signal_variance + post.noise_variance - Q_diag
+    lam = post.signal_variance + post.noise_variance - Q_diag + extra_noise
     Sigma = Kuu + (Kuf / lam) @ Kuf.T
     ks = kernel.se_ard(post.Z, Xqs, post.lengthscales, post.signal_variance)
     correction = ks.T @ np.linalg.solve(Sigma, Kuf @ (r / lam))
@@ -370,6 +371,30 @@ def test_trained_mean_is_the_trained_function_plus_a_residual_posterior() -> Non
     far = np.column_stack([rng.uniform(-2.0, -1.5, 200), rng.uniform(-2.0, 2.0, (200, 2))])
     assert rmse(gp9, near, gain=0.5) < 0.05 and rmse(gp6, near, gain=0.5) < 0.05
     assert rmse(gp9, far) < 0.5 * rmse(gp6, far)
+
+
+def test_row_noise_weights_the_new_rows_as_rows_of_that_noise() -> None:
+    """A10: with row_noise the new rows count as if their lambda were larger by row_noise
+    sf2 (dense reference); the mean then moves less on the same rows, and with a very
+    large row_noise hardly at all. row_noise 0 is the default and FITC's weighting."""
+    rng = np.random.default_rng(41)
+    X2 = rng.uniform(-2.0, 2.0, size=(200, D))
+    y2 = f(X2, gain=0.5) + SN * rng.standard_normal(200)
+    config = dict(half_life_rows=1e12, trained_half_life=1e-6, trained_floor=0.0)
+    Xq = np.random.default_rng(42).uniform(-2.0, 2.0, size=(300, D))
+    moved = []
+    for nu in (0.0, 0.3, 1e6):
+        gp = trained()
+        online = OnlinePosterior.from_sparse_gp(gp, AdaptConfig(row_noise=nu, **config))
+        assert online.absorb_rows(X2, y2) == 200
+        reference = trained()
+        expected = _trained_mean_reference(
+            reference, X2, y2, Xq, extra_noise=nu * reference.posterior.signal_variance)
+        np.testing.assert_allclose(gp.predict(Xq)[0], expected, rtol=0.0,
+                                   atol=1e-6 * np.abs(expected).max())
+        moved.append(float(np.abs(gp.predict(Xq)[0] - reference.predict(Xq)[0]).mean()))
+    assert moved[0] > moved[1] > 1e3 * moved[2], moved
+    assert AdaptConfig().row_noise == 0.0
 
 
 # --------------------------------------------------------------- refused and failed
@@ -560,7 +585,8 @@ def test_config_is_validated() -> None:
     for bad in (dict(half_life_s=1.0, half_life_rows=1.0), dict(half_life_s=0.0),
                 dict(half_life_rows=-1.0), dict(half_life_s=math.inf),
                 dict(trained_floor=1.5), dict(trained_floor=-0.1), dict(max_distance=0.0),
-                dict(trained_mean=1)):
+                dict(trained_mean=1), dict(row_noise=-0.1), dict(row_noise=math.nan),
+                dict(row_noise=math.inf), dict(row_noise=True), dict(row_noise=1e7)):
         with pytest.raises(AdaptError):
             AdaptConfig(**bad)  # type: ignore[arg-type]
     with pytest.raises(AdaptError):

@@ -102,6 +102,23 @@ the trained floor's function is a far better starting point than a constant (mea
 ``benchmarks/adapt_data.py``: the carpet model on 5 minutes of tile, 2.0 s success 93.8 %
 with the trained mean against 90.2 % without; the tile model 98.0 %).
 
+Noise of the absorbed rows (``AdaptConfig.row_noise``).  FITC fits the trained data with a
+noise variance sn2 near zero and explains their scatter by its diagonal (A1), which is
+small near the pseudo-inputs: a few hundred rows of a new floor, weighted by 1 / lambda,
+are then taken as nearly exact, and the correction follows their noise.  ``row_noise``
+adds a variance nu = row_noise * sf2 to the lambda of each absorbed row (not to the
+trained data's)::
+
+    (A10) lambda_i <- lambda(x_i) + nu   in the weights of A7 and A9
+
+so a row teaches in proportion to how far its residual stands out of nu: with the prior
+Kuu of amplitude sf2, nu / sf2 is the correction's noise-to-signal ratio.  The mean moves
+more slowly on the first rows and smooths their noise; A stays >= I, so A8 and the safety
+rule hold as before.  ``row_noise = 0`` is FITC's own weighting (and with w_T = 1 the
+batch posterior exactly), and the default: on the reproduction's validation bags a row
+noise of 0.1 - 1 sf2 lowered the adapting predictor's k-step success (README, "The rows'
+noise"; ``benchmarks/adapt_half_life.py --row-noises``).
+
 A row with NaN or inf, a stamp older than the last absorbed one, a non-positive lambda,
 a failed factorisation or non-finite cached terms leave the published posterior and the
 statistics exactly as they were; :attr:`AdaptStats.rejected` counts each reason.
@@ -205,6 +222,8 @@ class AdaptConfig:
             are not absorbed (safety rule); None absorbs everywhere.
         trained_mean: the rows teach a correction to the trained posterior's mean (A9);
             False: they teach the function against the constant prior mean (A6).
+        row_noise: nu / sf2 of A10, the noise added to each absorbed row's lambda as a
+            fraction of the trained signal variance; 0 weights the rows as FITC does.
     """
 
     half_life_s: float | None = None
@@ -213,6 +232,7 @@ class AdaptConfig:
     trained_half_life: float | None = None
     max_distance: float | None = 3.0
     trained_mean: bool = True
+    row_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if self.half_life_s is not None and self.half_life_rows is not None:
@@ -221,6 +241,9 @@ class AdaptConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0.0):
                 raise AdaptError(f"{name} must be a finite number > 0 or None, got {value!r}")
+        if isinstance(self.row_noise, bool) or not isinstance(self.row_noise, int | float) \
+                or not (math.isfinite(self.row_noise) and 0.0 <= self.row_noise <= 1e6):
+            raise AdaptError(f"row_noise must be a number in [0, 1e6], got {self.row_noise!r}")
         if not 0.0 <= self.trained_floor <= 1.0:
             raise AdaptError(f"trained_floor must be in [0, 1], got {self.trained_floor!r}")
         if self.trained_half_life is not None and not self.forgets:
@@ -437,7 +460,7 @@ class OnlinePosterior:
         # weight of kept row i at the end of the block: the decays of the rows after it
         after = np.concatenate([np.cumprod(g[:0:-1])[::-1], [1.0]])  # [n_keep]
         Vk = V[:, idx]  # [M, n_keep]
-        wk = after / lam[idx]
+        wk = after / (lam[idx] + self.config.row_noise * post.signal_variance)  # A10
         with np.errstate(over="ignore", invalid="ignore"):  # checked in _posterior_of
             P_D = total * s.P_D + (Vk * wk) @ Vk.T  # A7, rank n_keep
             b_D = total * s.b_data + Vk @ (wk * ys[idx])
