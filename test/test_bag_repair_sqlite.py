@@ -217,6 +217,19 @@ def test_a_stray_page_of_another_table_shaped_like_messages_never_comes_back(tmp
     assert any("pointer" in p for p in r.damage.problems)
 
 
+def test_a_cut_file_is_reported_as_cut_not_as_a_bad_pointer(tmp_path, deep):
+    """A file cut at a page boundary: the interior pages' pointers to pages past the cut,
+    within the header's size, are the cut (reported as such), not pointers to pages of
+    another table (reported before for every page past the cut)."""
+    path, original = deep
+    data = path.read_bytes()
+    r = _scan(tmp_path, data[:_off(len(data) // PS // 2)])
+    assert 0 < len(r.messages) < len(original)
+    assert any("the file is cut" in p for p in r.damage.problems), r.damage.problems
+    assert not any("not one of its table's" in p for p in r.damage.problems), \
+        r.damage.problems
+
+
 def test_interior_pointers_to_itself_an_ancestor_page_0_or_beyond_the_file(tmp_path, deep):
     """The messages root's child pointers turned to the root itself, page 1, page 0 and a
     page past the file: no loop, no crash; the subtrees they lost are read from their

@@ -1213,6 +1213,11 @@ class _SqlitePages:
         or to a page that is not a table page); the pages walked are added to ``seen``."""
         found: list[int] = []
         lost: list[tuple[int, int]] = []
+        # pages past the file's end but within the header's size are the cut's, not bad
+        # pointers (the cut itself is reported once, by _scan_sqlite)
+        limit = self.npages
+        if self.scan.expected_bytes is not None:
+            limit = max(limit, self.scan.expected_bytes // self.page_size)
         stack = [(root, *_ROWIDS)]
         while stack:
             p, lo, hi = stack.pop()
@@ -1220,7 +1225,7 @@ class _SqlitePages:
             if k not in (0x05, 0x0D):
                 if lo < hi:
                     lost.append((lo, hi))
-                if self.page(p) is not None or not 0 < p <= self.npages:  # not a cut page
+                if self.page(p) is not None or not 0 < p <= limit:  # not a cut page
                     self.report("a b-tree pointer to a page that is not one of its table's")
                 continue
             seen.add(p)
