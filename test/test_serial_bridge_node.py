@@ -16,7 +16,7 @@ rclpy = pytest.importorskip("rclpy")
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
+from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import Joy  # noqa: E402
 
 from asgp_ros.nodes import conversions as conv  # noqa: E402
@@ -37,9 +37,13 @@ class Harness:
         self.probe = rclpy.create_node("probe", context=context)
         self.joy: list[tuple[float, Joy]] = []
         self.diag: list[DiagnosticArray] = []
+        # the bridge's sensor-data QoS, with a queue deep enough that a loaded machine's
+        # slow spinning of this probe drops nothing (depth 5 did, under a loaded CI: the
+        # test then measured the probe's queue, not the bridge)
         self.probe.create_subscription(
             Joy, "joy", lambda m: self.joy.append((time.monotonic(), m)),
-            qos_profile_sensor_data)
+            QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
+                       durability=qos_profile_sensor_data.durability))
         self.probe.create_subscription(DiagnosticArray, "diagnostics", self.diag.append, 10)
         self.override_pub = self.probe.create_publisher(Joy, "joy_override", 10)
         self.executor = SingleThreadedExecutor(context=context)
