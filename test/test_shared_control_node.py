@@ -326,6 +326,8 @@ def test_a_scan_delivered_twice_is_taken_once(harness, source):
             h.scan_pub.publish(msg)
             h.spin_until(lambda r=repeated: h.node._scans_repeated > r, what="repeat")
             assert h.node.memory.size == size
+            scan = conv.diagnostic_values(h.node.diagnostic_status())["scan"]
+            assert scan.startswith("a scan came again with the newest one's stamp"), scan
     assert h.node._scans_repeated == scans
     assert h.node.velocity_odometer is not None and h.node.velocity_odometer.breaks == 0
     assert h.node.velocity.switches == 0 and h.node.velocity.current == "scans"

@@ -454,6 +454,9 @@ class SharedControlNode(Node):
             # overlapping the live laser): matched again it would read as a lost match,
             # a tracking loss for the predictor, and the memory would take it twice.
             self._scans_repeated += 1
+            self._scan_problem = (f"a scan came again with the newest one's stamp "
+                                  f"({self._scans_repeated} so far): a second publisher on "
+                                  f"{self.params.scan_topic}, or stamps that do not advance?")
             return
         extra = None
         matcher = self.scan_odometer or self.velocity_odometer  # each scan matched once
