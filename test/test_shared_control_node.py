@@ -34,14 +34,15 @@ pytestmark = pytest.mark.ros
 LASER_X = 0.3
 
 
-def wall_scan_msg(t: float, distance: float, beams: int = 541) -> LaserScan:
+def wall_scan_msg(t: float, distance: float, beams: int = 541,
+                  frame: str = "laser") -> LaserScan:
     """A wall across the way, ``distance`` ahead of the scanner (inf beyond 8 m)."""
     a0, inc = -0.75 * math.pi, 1.5 * math.pi / (beams - 1)
     ang = a0 + inc * np.arange(beams)
     with np.errstate(divide="ignore"):
         r = np.where(np.cos(ang) > 1e-9, distance / np.cos(ang), np.inf)
     r = np.where(r > 8.0, np.inf, r)
-    return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, "laser")
+    return conv.scan_to_msg(r, a0, inc, 0.05, 8.0, t, frame)
 
 
 class Harness:
@@ -105,13 +106,13 @@ class Harness:
 
     def drive(self, t_from: float, t_to: float, fwd: float = 0.8, wall: float | None = None,
               vo: bool = True, scan: bool = True, scan_lead: float = 0.0,
-              speed: float | None = None) -> None:
+              speed: float | None = None, scan_frame: str = "laser") -> None:
         """Joystick ``fwd`` at 20 Hz; the chair moving along x at ``speed`` (default the
         model's steady speed, 0.9 ``fwd``); VO at 5 Hz with a VO's noise (an exact repeat
         is a frozen VO): twists, or with vo_type 'odometry' the pose integrated from x = 0
         and the twist; scans of a wall ``wall`` ahead at 10 Hz (stamped ``scan_lead``
-        seconds after the clock; beyond the node's limit they are refused, and each is
-        awaited as counted)."""
+        seconds after the clock, in ``scan_frame``; each is awaited as taken or as
+        refused)."""
         stats = self.node.predictor.stats
         rng = np.random.default_rng(int(t_from * 10))
         speed = 0.9 * fwd if speed is None else speed
@@ -132,13 +133,14 @@ class Harness:
                     self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
                 self.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
             if scan and wall is not None and i % 2 == 1:
-                arrived, ahead = self.node._scan, self.node._scans_ahead
-                self.scan_pub.publish(wall_scan_msg(t + scan_lead, wall))
-                if scan_lead > SCAN_LEAD_S:
-                    self.spin_until(lambda n=ahead: self.node._scans_ahead > n,
-                                    what="scan refused")
-                else:
-                    self.spin_until(lambda a=arrived: self.node._scan is not a, what="scan")
+                seen = self._scan_state()
+                self.scan_pub.publish(wall_scan_msg(t + scan_lead, wall, frame=scan_frame))
+                self.spin_until(lambda s=seen: self._scan_state() != s, what="scan")
+
+    def _scan_state(self) -> tuple[object, int, int]:
+        """What a scan changes in the node: the stored scan, or a refusal's count."""
+        n = self.node
+        return n._scan, n._scans_ahead, n._scans_other_frame
 
     def last(self) -> dict[str, str]:
         return conv.diagnostic_values(self.status[-1]) if self.status else {}
@@ -294,6 +296,30 @@ def test_the_scans_as_the_velocity_source_keep_the_layer_acting_without_vo(
     last = scans.node._decision
     assert last is not None and last.prediction is not None
     assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
+
+
+def test_scans_of_a_second_laser_on_the_topic_are_refused(harness):
+    """laser_x/y/yaw describe one laser: scans in another frame on the same topic (a rear
+    laser, a merger's output) would be placed with its mount, moving the rear laser's
+    obstacles ahead of the chair. The first scan's frame is the laser's unless
+    ``laser_frame`` names it; others are refused, counted and named."""
+    h = harness()
+    h.drive(100.0, 101.0, wall=3.0)
+    assert h.node._laser_frame == "laser" and not h.overrides
+    # the rear laser sees a wall 1.6 m behind; with the front laser's mount it is ahead
+    h.drive(101.0, 102.0, wall=1.6, scan_frame="rear_laser")
+    assert h.overrides == []
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert diag["scans_other_frame"] == "10" and diag["laser_frame"] == "laser"
+    assert diag["scan"].startswith("scans in frame 'rear_laser' refused"), diag["scan"]
+    h.drive(102.0, 103.0, wall=1.6)  # the front laser's wall is acted on
+    assert h.overrides and h.last()["why"] == "intervening"
+    # named by the parameter: the front laser's scans are the refused ones, and with no
+    # scan of its own the layer has no obstacle source and lets the user drive
+    rear = harness(laser_frame="rear_laser")
+    rear.drive(100.0, 102.0, wall=1.6)
+    assert rear.node._scans_other_frame == 20 and rear.overrides == []
+    assert rear.last()["why"] == "no_obstacle_source"
 
 
 @pytest.mark.parametrize("source", ["scan_matching", "auto"])

@@ -139,6 +139,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           0.01, 5.0),
     _spec("vo_timeout_s", 0.5, "no intervention when the VO is older than this", 0.01, 5.0),
     _spec("scan_timeout_s", 0.3, "a scan older than this is no obstacle source", 0.01, 5.0),
+    _spec("laser_frame", "", "frame_id of the scans that laser_x/y/yaw describe; scans in "
+          "another frame (a second laser on scan_topic) are refused ('': the first scan's)"),
     _spec("laser_x", 0.3, "laser position in the base frame, x (m)", -5.0, 5.0),
     _spec("laser_y", 0.0, "laser position in the base frame, y (m)", -5.0, 5.0),
     _spec("laser_yaw", 0.0, "laser yaw in the base frame (rad)", -math.pi, math.pi),
@@ -199,6 +201,7 @@ class SharedControlParams:
     joy_timeout_s: float
     vo_timeout_s: float
     scan_timeout_s: float
+    laser_frame: str
     laser_x: float
     laser_y: float
     laser_yaw: float
@@ -316,6 +319,9 @@ class SharedControlNode(Node):
         self._scans_ahead = 0  # scans refused: stamped more than SCAN_LEAD_S ahead
         self._scans_repeated = 0  # scans that came again with the newest one's stamp
         self._vo_messages = 0  # VO twists or odometry received (on the clock)
+        self._scans_other_frame = 0  # scans refused: another frame than the laser's
+        # the laser's frame: the parameter, else the first scan's (None until one comes)
+        self._laser_frame: str | None = p.laser_frame or None
         self._scan_problem = ""
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -436,6 +442,19 @@ class SharedControlNode(Node):
             self._bad_messages += 1
             self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
+            return
+        frame = msg.header.frame_id
+        if frame and self._laser_frame is None:
+            self._laser_frame = frame
+        elif frame and frame != self._laser_frame:
+            # another laser on the topic: its points placed with this laser's mount would
+            # move obstacles (or hide them)
+            self._scans_other_frame += 1
+            self._scan_problem = (f"scans in frame {frame!r} refused: laser_x/y/yaw describe "
+                                  f"{self._laser_frame!r} (one laser per scan_topic, or set "
+                                  "laser_frame)")
+            self.get_logger().warning(f"ignoring {self.params.scan_topic}: "
+                                      f"{self._scan_problem}", throttle_duration_sec=5.0)
             return
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
@@ -633,6 +652,8 @@ class SharedControlNode(Node):
             "scan": self._scan_problem or ("none" if self._scan is None else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
+            "laser_frame": self._laser_frame or "none yet",
+            "scans_other_frame": str(self._scans_other_frame),
             "memory_points": "off" if self.memory is None else str(self.memory.size),
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
