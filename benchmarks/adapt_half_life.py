@@ -88,25 +88,23 @@ def run(args: argparse.Namespace) -> int:
     print(f"model {args.model}; {len(tests)} recording(s), cases from {args.skip:g} s in")
     print("success / 95% coverage adapting (success as trained), % at "
           f"{' / '.join(f'{h:g}' for h in HORIZONS_S)} s")
+    sweeps = (
+        ("trained_half_life", args.trained_half_lives, " s",
+         f"trained data's half-life (rows' {base.posterior.half_life_s:g} s):"),
+        ("half_life_s", args.half_lives, " s",
+         f"rows' half-life (trained data's {base.posterior.trained_half_life:g} s):"),
+        ("row_noise", args.row_noises, "  ",
+         f"rows' noise / sf2 (default {base.posterior.row_noise:g}):"),
+    )
     with threadpool_limits(limits=1):
-        if args.trained_half_lives:
-            print(f"trained data's half-life (rows' {base.posterior.half_life_s:g} s):")
-        for h in args.trained_half_lives:
-            st = dataclasses.replace(
-                base, posterior=dataclasses.replace(base.posterior, trained_half_life=h))
-            print(f"  {h:7g} s   {score(model, tests, st, args.skip)}", flush=True)
-        if args.half_lives:
-            print(f"rows' half-life (trained data's {base.posterior.trained_half_life:g} s):")
-        for h in args.half_lives:
-            st = dataclasses.replace(
-                base, posterior=dataclasses.replace(base.posterior, half_life_s=h))
-            print(f"  {h:7g} s   {score(model, tests, st, args.skip)}", flush=True)
-        if args.row_noises:
-            print(f"rows' noise / sf2 (default {base.posterior.row_noise:g}):")
-        for nu in args.row_noises:
-            st = dataclasses.replace(
-                base, posterior=dataclasses.replace(base.posterior, row_noise=nu))
-            print(f"  {nu:7g}     {score(model, tests, st, args.skip)}", flush=True)
+        for field, values, unit, title in sweeps:
+            if values:
+                print(title)
+            for value in values:
+                st = dataclasses.replace(base, posterior=dataclasses.replace(
+                    base.posterior, **{field: value}))
+                print(f"  {value:7g}{unit}   {score(model, tests, st, args.skip)}",
+                      flush=True)
     return 0
 
 

@@ -450,22 +450,17 @@ class SharedControlNode(Node):
             # another laser on the topic: its points placed with this laser's mount would
             # move obstacles (or hide them)
             self._scans_other_frame += 1
-            self._scan_problem = (f"scans in frame {frame!r} refused: laser_x/y/yaw describe "
-                                  f"{self._laser_frame!r} (one laser per scan_topic, or set "
-                                  "laser_frame)")
-            self.get_logger().warning(f"ignoring {self.params.scan_topic}: "
-                                      f"{self._scan_problem}", throttle_duration_sec=5.0)
+            self._refuse_scan(f"scans in frame {frame!r} refused: laser_x/y/yaw describe "
+                              f"{self._laser_frame!r} (one laser per scan_topic, or set "
+                              "laser_frame)")
             return
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
         lead = scan.stamp - now
         if lead > SCAN_LEAD_S:
             self._scans_ahead += 1
-            self._scan_problem = (f"scans stamped {lead:.3f} s after the node's clock "
-                                  f"(limit {SCAN_LEAD_S} s): is the laser's clock "
-                                  "synchronised?")
-            self.get_logger().warning(f"ignoring {self.params.scan_topic}: "
-                                      f"{self._scan_problem}", throttle_duration_sec=5.0)
+            self._refuse_scan(f"scans stamped {lead:.3f} s after the node's clock (limit "
+                              f"{SCAN_LEAD_S} s): is the laser's clock synchronised?")
             return
         self._scan_problem = ""
         if self._scan is not None and scan.stamp == self._scan[1].stamp:
@@ -491,6 +486,12 @@ class SharedControlNode(Node):
             self._feed_scan_velocity(scan.stamp, now)
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # while intervening, every scan is judged at once
+
+    def _refuse_scan(self, problem: str) -> None:
+        """A scan not taken: the diagnostics' ``scan`` value and the log say why."""
+        self._scan_problem = problem
+        self.get_logger().warning(f"ignoring {self.params.scan_topic}: {problem}",
+                                  throttle_duration_sec=5.0)
 
     def _feed_scan_velocity(self, stamp: float, now: float) -> None:
         """The predictor's velocity sample from the newest scan match (velocity_source
