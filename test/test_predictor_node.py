@@ -98,6 +98,7 @@ class Harness:
         if odometry:
             params = {"vo_type": "odometry", "path_frame": "odom", **params}
         self.odometry = odometry
+        self.vo_frame = "base_link"  # the frame of the VO's twists
         overrides = [Parameter("model_path", value=model_path),
                      Parameter("use_sim_time", value=True),
                      Parameter("horizon_steps", value=K),
@@ -158,14 +159,16 @@ class Harness:
         self.spin_until(lambda: self._seen("joy") > n, what="joy")
 
     def vo(self, t: float, v: float, w: float, lost: bool = False) -> None:
-        n = self._seen("vo")
+        seen = (self._seen("vo"), self.node._vo_other_frame)
         if self.odometry:  # the chair drives along x at 0.5 m/s in the odom frame
-            msg = conv.odometry_from_pose(t, 0.5 * (t - 100.0), 2.0, 0.0, v, w)
+            msg = conv.odometry_from_pose(t, 0.5 * (t - 100.0), 2.0, 0.0, v, w,
+                                          child_frame_id=self.vo_frame)
             msg.twist.covariance[0] = -1.0 if lost else 1e-4
             self.vo_pub.publish(msg)
         else:
-            self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, w))
-        self.spin_until(lambda: self._seen("vo") > n, what="vo")
+            self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, w, self.vo_frame))
+        self.spin_until(lambda: (self._seen("vo"), self.node._vo_other_frame) != seen,
+                        what="vo")
 
     def drive(self, t_from: float, t_to: float, vo: bool = True, joy=None, vel=None,
               joy_nan: bool = False) -> None:
@@ -305,6 +308,39 @@ def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
         assert _reason(h) == Reason.OK
     finally:
         h.close()
+
+
+@pytest.mark.parametrize("odometry", [False, True], ids=["twist", "odometry"])
+def test_vo_in_another_frame_than_the_base_is_refused(rclpy_context, model_file, odometry):
+    """A VO publishing its twist in the camera's frame (whose x is not the chair's forward
+    direction) would feed the model wrong rates: refused, counted and named, and the
+    paths stop as on stale VO; with base_frame naming that frame the twists are taken."""
+    h = Harness(rclpy_context, model_file, odometry=odometry, vo_timeout_s=0.5)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= 3, what="first paths")
+        h.vo_frame = "camera_link"
+        h.drive(102.0, 104.0)
+        n = len(h.paths)
+        h.drive(104.0, 105.0)
+        assert len(h.paths) == n and _reason(h) == Reason.STALE_VO
+        values = conv.diagnostic_values(h.node.diagnostic_status())
+        assert values["vo_other_frame"] == "15"
+        assert values["vo_frame"].startswith("VO twists in frame 'camera_link' refused")
+        h.vo_frame = ""  # a publisher that leaves the frame empty: taken as the base's
+        h.drive(105.0, 107.0)
+        h.spin_until(lambda: len(h.paths) > n, what="paths again")
+        assert conv.diagnostic_values(h.node.diagnostic_status())["vo_frame"] == "ok"
+    finally:
+        h.close()
+    named = Harness(rclpy_context, model_file, odometry=odometry, base_frame="camera_link")
+    try:
+        named.vo_frame = "camera_link"
+        named.drive(100.0, 102.0)
+        named.spin_until(lambda: len(named.paths) >= 3, what="paths")
+        assert named.node._vo_other_frame == 0
+    finally:
+        named.close()
 
 
 def test_nan_inputs_are_dropped_and_prediction_continues(rclpy_context, model_file):

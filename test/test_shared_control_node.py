@@ -298,6 +298,22 @@ def test_the_scans_as_the_velocity_source_keep_the_layer_acting_without_vo(
     assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
 
 
+def test_vo_in_another_frame_than_the_base_is_refused(harness):
+    """The layer's predictor takes the VO's linear.x and angular.z as the chair's forward
+    and turn rates: a twist in another frame (a camera's) is refused and named; the layer
+    then has stale input and lets the user drive."""
+    h = harness()
+    h.drive(100.0, 101.0, wall=3.0)
+    n = h.node.predictor.stats.vo_samples
+    h.vo_pub.publish(conv.twist_stamped_from_sample(101.0, 0.72, 0.0, "camera_link"))
+    h.spin_until(lambda: h.node._vo_other_frame == 1, what="refused twist")
+    assert h.node.predictor.stats.vo_samples == n
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["vo_frame"].startswith("VO twists in frame 'camera_link' refused")
+    h.drive(101.0, 102.0, wall=1.6, vo=False)
+    assert h.last()["why"] == "stale_input" and not h.overrides
+
+
 def test_scans_of_a_second_laser_on_the_topic_are_refused(harness):
     """laser_x/y/yaw describe one laser: scans in another frame on the same topic (a rear
     laser, a merger's output) would be placed with its mount, moving the rear laser's

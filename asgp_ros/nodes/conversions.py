@@ -94,6 +94,23 @@ def twist_stamped_from_sample(t: float, v: float, omega: float,
     return msg
 
 
+def velocity_frame(msg: TwistStamped | Odometry) -> str:
+    """The frame a VO message's twist is in: a TwistStamped's header frame, an Odometry's
+    child frame ('' when the publisher left it empty)."""
+    return str(msg.child_frame_id if isinstance(msg, Odometry) else msg.header.frame_id)
+
+
+def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
+    """Why a twist in ``frame`` cannot be read as the chair's forward and turn rates
+    (linear.x, angular.z of ``base_frame``), or None: an empty frame is taken as the base's,
+    another frame (a camera's, whose x is not forward) is refused."""
+    if not frame or frame == base_frame:
+        return None
+    return (f"VO twists in frame {frame!r} refused: their linear.x and angular.z are the "
+            f"chair's forward and turn rates only in base_frame {base_frame!r} (set "
+            "base_frame if that is the chair's frame)")
+
+
 #: Odometry twist variance at or above which a velocity is taken as a tracking failure.
 ODOM_LOST_VARIANCE = 1e6
 

@@ -233,7 +233,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("buffer_s", "history kept for resampling", 1.0, 600.0, runtime=True),
     _spec("reset_jump_s", "a clock or stamp going back by more than this resets the buffers",
           0.01, 60.0, runtime=True),
-    _spec("base_frame", "frame of the chair (paths in it are relative to the pose at t0)"),
+    _spec("base_frame", "frame of the chair (paths in it are relative to the pose at t0); "
+          "VO twists in another frame are refused (an empty frame is taken as this one)"),
     _spec("odom_frame", "odometry frame"),
     _spec("path_frame", "'base' (base_frame at the prediction time) or 'odom' (needs odometry)"),
     _spec("uncertainty", "'linear', 'mc' or 'none' uncertainty propagation", runtime=True),
@@ -323,6 +324,8 @@ class PredictorNode(Node):
         self._vo_rate = _RateMeter()
         self._paths_published = 0
         self._bad_messages = 0
+        self._vo_other_frame = 0  # VO messages refused: a twist in another frame than base
+        self._vo_frame_problem = ""
         self._resets_seen = 0
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -464,8 +467,22 @@ class PredictorNode(Node):
             return
         self._maybe_predict(now, time.perf_counter())
 
+    def _vo_frame_ok(self, msg: TwistStamped | Odometry) -> bool:
+        """Whether the message's twist is in the base frame; if not, it is counted and the
+        diagnostics and the log say so."""
+        problem = conv.velocity_frame_problem(conv.velocity_frame(msg), self.params.base_frame)
+        if problem is None:
+            self._vo_frame_problem = ""
+            return True
+        self._vo_other_frame += 1
+        self._vo_frame_problem = problem
+        self.get_logger().warning(problem, throttle_duration_sec=5.0)
+        return False
+
     def _on_twist(self, msg: TwistStamped) -> None:
         arrival = time.perf_counter()
+        if not self._vo_frame_ok(msg):
+            return
         now = self._now()
         t, vel = conv.twist_stamped_to_sample(msg)
         self._vo_rate.tick(time.monotonic())
@@ -476,6 +493,8 @@ class PredictorNode(Node):
 
     def _on_odometry(self, msg: Odometry) -> None:
         arrival = time.perf_counter()
+        if not self._vo_frame_ok(msg):
+            return
         now = self._now()
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
@@ -630,6 +649,8 @@ class PredictorNode(Node):
             "last_rejected": stats.last_rejected,
             "out_of_order": str(stats.out_of_order),
             "bad_messages": str(self._bad_messages),
+            "vo_frame": self._vo_frame_problem or "ok",
+            "vo_other_frame": str(self._vo_other_frame),
             "buffer_resets": str(stats.resets),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
