@@ -298,6 +298,25 @@ def test_the_scans_as_the_velocity_source_keep_the_layer_acting_without_vo(
     assert last.prediction.vel_past[-1] == pytest.approx((0.72, 0.0), abs=0.03)
 
 
+def test_a_joystick_stamped_ahead_of_the_clock_is_not_a_fresh_user(harness):
+    """The layer re-sends its override only while the user's joystick is fresh. A stick
+    sample stamped 0.8 s ahead of the clock (a bridge whose clock runs ahead) looked fresh
+    for 0.8 s more after the stick's messages stopped: the chair kept being driven by an
+    override of a command the user may no longer give. Such a sample is not fresh."""
+    h = harness()
+    h.drive(100.0, 102.0, wall=1.6)
+    assert h.overrides and h.last()["why"] == "intervening"
+    stats = h.node.predictor.stats
+    n = stats.joy_samples + sum(stats.rejected.values())
+    h.joy_pub.publish(conv.joy_from_sample(102.8, 0.8, 0.0))  # 0.8 s ahead
+    h.spin_until(lambda: stats.joy_samples + sum(stats.rejected.values()) > n, what="joy")
+    sent = h.node._overrides_sent
+    for i in range(1, 5):  # the clock goes on; no joystick comes
+        h.clock(102.0 + 0.05 * i)
+        h.node._send_override()
+    assert h.node._overrides_sent == sent, "overrides re-sent on a stick stamped ahead"
+
+
 def test_vo_in_another_frame_than_the_base_is_refused(harness):
     """The layer's predictor takes the VO's linear.x and angular.z as the chair's forward
     and turn rates: a twist in another frame (a camera's) is refused and named; the layer

@@ -100,6 +100,10 @@ BOARD_WATCHDOG_S = 0.2
 #: the chair's motion of a time that has not come (a clock synchronised by NTP or PTP is
 #: within milliseconds).
 SCAN_LEAD_S = 0.1
+#: The user's stick sample is fresh, for re-sending an override, from this far (s) ahead
+#: of the node's clock to ``joy_timeout_s`` behind it: one stamped further ahead (a bridge
+#: whose clock runs ahead) would look fresh after the stick's messages stopped.
+JOY_LEAD_S = 0.1
 
 
 class StartupError(Exception):
@@ -631,7 +635,7 @@ class SharedControlNode(Node):
         if now is None or d is None or d.command is None:
             return
         user = self._user
-        if (user is None or now - user[0] > self.params.joy_timeout_s
+        if (user is None or not -JOY_LEAD_S <= now - user[0] <= self.params.joy_timeout_s
                 or is_neutral(user[1], self.config.neutral_deadband)
                 or now - self._decision_t > self.params.hold_s):
             self._stop_overriding()
