@@ -159,7 +159,7 @@ class Harness:
         self.spin_until(lambda: self._seen("joy") > n, what="joy")
 
     def vo(self, t: float, v: float, w: float, lost: bool = False) -> None:
-        seen = (self._seen("vo"), self.node._vo_other_frame)
+        seen = (self._seen("vo"), self.node._vo_frame.refused)
         if self.odometry:  # the chair drives along x at 0.5 m/s in the odom frame
             msg = conv.odometry_from_pose(t, 0.5 * (t - 100.0), 2.0, 0.0, v, w,
                                           child_frame_id=self.vo_frame)
@@ -167,7 +167,7 @@ class Harness:
             self.vo_pub.publish(msg)
         else:
             self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, w, self.vo_frame))
-        self.spin_until(lambda: (self._seen("vo"), self.node._vo_other_frame) != seen,
+        self.spin_until(lambda: (self._seen("vo"), self.node._vo_frame.refused) != seen,
                         what="vo")
 
     def drive(self, t_from: float, t_to: float, vo: bool = True, joy=None, vel=None,
@@ -338,7 +338,7 @@ def test_vo_in_another_frame_than_the_base_is_refused(rclpy_context, model_file,
         named.vo_frame = "camera_link"
         named.drive(100.0, 102.0)
         named.spin_until(lambda: len(named.paths) >= 3, what="paths")
-        assert named.node._vo_other_frame == 0
+        assert named.node._vo_frame.refused == 0
     finally:
         named.close()
 

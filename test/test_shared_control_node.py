@@ -325,7 +325,7 @@ def test_vo_in_another_frame_than_the_base_is_refused(harness):
     h.drive(100.0, 101.0, wall=3.0)
     n = h.node.predictor.stats.vo_samples
     h.vo_pub.publish(conv.twist_stamped_from_sample(101.0, 0.72, 0.0, "camera_link"))
-    h.spin_until(lambda: h.node._vo_other_frame == 1, what="refused twist")
+    h.spin_until(lambda: h.node._vo_frame.refused == 1, what="refused twist")
     assert h.node.predictor.stats.vo_samples == n
     values = conv.diagnostic_values(h.node.diagnostic_status())
     assert values["vo_frame"].startswith("VO twists in frame 'camera_link' refused")

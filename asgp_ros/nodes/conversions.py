@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
+from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
@@ -109,6 +110,32 @@ def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
     return (f"VO twists in frame {frame!r} refused: their linear.x and angular.z are the "
             f"chair's forward and turn rates only in base_frame {base_frame!r} (set "
             "base_frame if that is the chair's frame)")
+
+
+class VelocityFrameCheck:
+    """A node's check of its VO messages' frame (:func:`velocity_frame_problem`): how many
+    were refused, and why the newest was (cleared by one in the base frame)."""
+
+    def __init__(self, base_frame: str) -> None:
+        self.base_frame = base_frame
+        self.refused = 0
+        self.problem = ""
+
+    def ok(self, msg: TwistStamped | Odometry, logger: Any) -> bool:
+        """Whether ``msg``'s twist is in the base frame; if not, it is counted, and the
+        reason kept and logged (throttled)."""
+        problem = velocity_frame_problem(velocity_frame(msg), self.base_frame)
+        if problem is None:
+            self.problem = ""
+            return True
+        self.refused += 1
+        self.problem = problem
+        logger.warning(problem, throttle_duration_sec=5.0)
+        return False
+
+    def values(self) -> dict[str, str]:
+        """The diagnostics' values: ``vo_frame`` (the reason, or "ok") and ``vo_other_frame``."""
+        return {"vo_frame": self.problem or "ok", "vo_other_frame": str(self.refused)}
 
 
 #: Odometry twist variance at or above which a velocity is taken as a tracking failure.

@@ -324,8 +324,7 @@ class PredictorNode(Node):
         self._vo_rate = _RateMeter()
         self._paths_published = 0
         self._bad_messages = 0
-        self._vo_other_frame = 0  # VO messages refused: a twist in another frame than base
-        self._vo_frame_problem = ""
+        self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._resets_seen = 0
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -467,21 +466,9 @@ class PredictorNode(Node):
             return
         self._maybe_predict(now, time.perf_counter())
 
-    def _vo_frame_ok(self, msg: TwistStamped | Odometry) -> bool:
-        """Whether the message's twist is in the base frame; if not, it is counted and the
-        diagnostics and the log say so."""
-        problem = conv.velocity_frame_problem(conv.velocity_frame(msg), self.params.base_frame)
-        if problem is None:
-            self._vo_frame_problem = ""
-            return True
-        self._vo_other_frame += 1
-        self._vo_frame_problem = problem
-        self.get_logger().warning(problem, throttle_duration_sec=5.0)
-        return False
-
     def _on_twist(self, msg: TwistStamped) -> None:
         arrival = time.perf_counter()
-        if not self._vo_frame_ok(msg):
+        if not self._vo_frame.ok(msg, self.get_logger()):
             return
         now = self._now()
         t, vel = conv.twist_stamped_to_sample(msg)
@@ -493,7 +480,7 @@ class PredictorNode(Node):
 
     def _on_odometry(self, msg: Odometry) -> None:
         arrival = time.perf_counter()
-        if not self._vo_frame_ok(msg):
+        if not self._vo_frame.ok(msg, self.get_logger()):
             return
         now = self._now()
         t, vel, ok, pose = conv.odometry_to_sample(msg)
@@ -649,8 +636,7 @@ class PredictorNode(Node):
             "last_rejected": stats.last_rejected,
             "out_of_order": str(stats.out_of_order),
             "bad_messages": str(self._bad_messages),
-            "vo_frame": self._vo_frame_problem or "ok",
-            "vo_other_frame": str(self._vo_other_frame),
+            **self._vo_frame.values(),
             "buffer_resets": str(stats.resets),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),

@@ -326,8 +326,7 @@ class SharedControlNode(Node):
         self._scans_ahead = 0  # scans refused: stamped more than SCAN_LEAD_S ahead
         self._scans_repeated = 0  # scans that came again with the newest one's stamp
         self._vo_messages = 0  # VO twists or odometry received (on the clock)
-        self._vo_other_frame = 0  # of them refused: a twist in another frame than base
-        self._vo_frame_problem = ""
+        self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
         # the laser's frame: the parameter, else the first scan's (None until one comes)
         self._laser_frame: str | None = p.laser_frame or None
@@ -401,24 +400,12 @@ class SharedControlNode(Node):
             self._stop_overriding()  # at once, not at the next decision
         self.predictor.feed_joy(t, self._applied(user, now))
 
-    def _vo_frame_ok(self, msg: TwistStamped | Odometry) -> bool:
-        """Whether the message's twist is in the base frame; if not, it is counted and the
-        diagnostics and the log say so."""
-        problem = conv.velocity_frame_problem(conv.velocity_frame(msg), self.params.base_frame)
-        if problem is None:
-            self._vo_frame_problem = ""
-            return True
-        self._vo_other_frame += 1
-        self._vo_frame_problem = problem
-        self.get_logger().warning(problem, throttle_duration_sec=5.0)
-        return False
-
     def _on_twist(self, msg: TwistStamped) -> None:
         now = self._now()
         if now is None:
             return
         self._vo_messages += 1
-        if not self._vo_frame_ok(msg):
+        if not self._vo_frame.ok(msg, self.get_logger()):
             return
         t, vel = conv.twist_stamped_to_sample(msg)
         t = self._stamp(t, now)
@@ -432,7 +419,7 @@ class SharedControlNode(Node):
         if now is None:
             return
         self._vo_messages += 1
-        if not self._vo_frame_ok(msg):
+        if not self._vo_frame.ok(msg, self.get_logger()):
             return
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
@@ -445,7 +432,7 @@ class SharedControlNode(Node):
 
     def _on_memory_odom(self, msg: Odometry) -> None:
         now = self._now()
-        if now is None or not self._vo_frame_ok(msg):
+        if now is None or not self._vo_frame.ok(msg, self.get_logger()):
             return
         t, vel, ok, _ = conv.odometry_to_sample(msg)
         self._feed_odometer(self._stamp(t, now), vel, ok)
@@ -686,8 +673,7 @@ class SharedControlNode(Node):
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
             "vo_messages": str(self._vo_messages),
-            "vo_frame": self._vo_frame_problem or "ok",
-            "vo_other_frame": str(self._vo_other_frame),
+            **self._vo_frame.values(),
             "velocity_source": self.velocity.describe() + (
                 f" ({self.velocity_odometer.breaks} breaks)"
                 if self.velocity_odometer is not None else ""),
