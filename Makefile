@@ -9,7 +9,7 @@ SYSSTAMP := $(VENV)/.system-deps
 
 setup: $(STAMP) $(SYSSTAMP)
 
-# Debian packages: the AVR toolchain for the firmware, and simavr to run it.
+# Debian packages: the AVR toolchain for the firmware, simavr to run it, libfaketime (tests).
 $(SYSSTAMP): scripts/install-system-deps.sh | $(STAMP)
 	bash scripts/install-system-deps.sh
 	touch $@

@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# Installs the Debian packages the project needs (AVR firmware toolchain, simavr).
+# Installs the Debian packages the project needs (AVR firmware toolchain, simavr; libfaketime
+# for the tests that set a node's system clock back).
 # Idempotent: does nothing when every package is already installed.
 set -euo pipefail
-pkgs=(gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev)
+pkgs=(gcc-avr avr-libc binutils-avr arduino-core-avr simavr libsimavr-dev libfaketime)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

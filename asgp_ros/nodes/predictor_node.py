@@ -340,8 +340,10 @@ class PredictorNode(Node):
             self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
                                      qos_profile_sensor_data)
         self.create_subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
-        self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog)
-        self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        pacing = runtime.pacing_clock(self)
+        self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
+        self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
+                                            clock=pacing)
         self.create_service(Trigger, "~/reset_adaptation", self._on_reset_adaptation)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)

@@ -41,12 +41,14 @@ import types
 from collections.abc import Callable
 
 import rclpy
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
 
-__all__ = ["StopSignals", "init", "run", "stop_requested"]
+__all__ = ["StopSignals", "init", "pacing_clock", "run", "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -135,6 +137,24 @@ class StopSignals:
             with contextlib.suppress(OSError):
                 write.send(b"\0")  # ends the waker's recv
             waker.join()
+
+
+def pacing_clock(node: Node) -> Clock:
+    """The clock of a node's own timers (its watchdog, overrides and diagnostics): the
+    steady clock, or the node's ROS clock with ``use_sim_time`` (read at the call).
+
+    A timer on the ROS clock backed by the system clock stops when the system clock is set
+    back (NTP stepping a laptop whose clock ran ahead, a user setting the time): rcl
+    schedules its next call by the system clock and sees no jump, so the timer waits until
+    the clock has caught up again, an hour for an hour's step. The shared-control layer
+    and the bridge's overrides stopped for that long, and every node's diagnostics. On
+    the steady clock they keep their period whatever the system clock does. With
+    ``use_sim_time`` (a bag replayed) the timers follow /clock as before: they pause with
+    it, and rcl moves them on when /clock jumps (a bag played again).
+    """
+    if node.get_parameter("use_sim_time").value:
+        return node.get_clock()
+    return Clock(clock_type=ClockType.STEADY_TIME)
 
 
 def _nothing() -> None:

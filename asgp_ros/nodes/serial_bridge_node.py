@@ -87,8 +87,10 @@ class SerialBridgeNode(Node):
 
         self.link = LinkManager(self.params.link_config(), on_sample=self._on_sample,
                                 on_state=self._on_state)
-        self.create_timer(1.0 / self.params.override_rate, self._send_override)
-        self.create_timer(self.params.diagnostics_period, self._publish_diagnostics)
+        pacing = runtime.pacing_clock(self)
+        self.create_timer(1.0 / self.params.override_rate, self._send_override, clock=pacing)
+        self.create_timer(self.params.diagnostics_period, self._publish_diagnostics,
+                          clock=pacing)
         self.link.start()
         self.get_logger().info(f"serial bridge on {self.params.port}")
 

@@ -354,9 +354,10 @@ class SharedControlNode(Node):
                                      qos_profile_sensor_data)
         if p.obstacles in ("grid", "both"):
             self.create_subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
-        self.create_timer(1.0 / p.override_rate_hz, self._send_override)
-        self.create_timer(1.0 / rate, self._on_watchdog)
-        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        pacing = runtime.pacing_clock(self)
+        self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
+        self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, clock=pacing)
         self.get_logger().info(
             f"model {p.model_path}; horizon {self.predictor.config.horizon_steps} steps; "
             f"threshold {p.threshold}; obstacles from {p.obstacles}; overrides on "

@@ -81,7 +81,8 @@ class VONode(Node):
         self.create_subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
         self.create_subscription(CameraInfo, p.camera_info_topic, self._on_info,
                                  qos_profile_sensor_data)
-        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
+                          clock=runtime.pacing_clock(self))
 
         self.vo: VisualOdometry | None = None
         self.planar = PlanarOdometry(p.extrinsic)

@@ -1,0 +1,216 @@
+"""The nodes keep working when the system clock is set back (NTP stepping a laptop whose
+clock ran ahead, a user setting the time).
+
+Each node runs as its own process under libfaketime (the Debian package; LD_PRELOAD),
+which moves the process's system clock, and only that (``FAKETIME_DONT_FAKE_MONOTONIC``),
+by the offset written in a file, read at every call. The test sets it back an hour in the
+middle of the run. A timer on the ROS clock (system time) stopped at such a step until the
+clock had caught up: an hour of no overrides from the bridge, no shared control, no
+watchdog and no diagnostics (``runtime.pacing_clock``).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+rclpy = pytest.importorskip("rclpy")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from sensor_msgs.msg import Joy  # noqa: E402
+
+from asgp_ros.nodes import conversions as conv  # noqa: E402
+from asgp_ros.sim.board import SimulatedBoard  # noqa: E402
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
+
+LIBS = sorted(glob.glob("/usr/lib/*/faketime/libfaketimeMT.so.1"))
+STEP_S = 3600.0
+HANG_S = 30.0  # deadlines tell a stop from a slow machine; nothing here is a timing target
+
+needs_faketime = pytest.mark.skipif(
+    not LIBS, reason="libfaketime not installed (scripts/install-system-deps.sh installs it)")
+
+
+class Clock:
+    """The faked process's clock offset, in the file libfaketime reads."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.set(0.0)
+
+    def set(self, offset_s: float) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(f"{offset_s:+.0f}\n")
+        os.replace(tmp, self.path)  # never a half-written offset
+
+    def env(self) -> dict[str, str]:
+        return {"LD_PRELOAD": LIBS[0], "FAKETIME_TIMESTAMP_FILE": str(self.path),
+                "FAKETIME_NO_CACHE": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1"}
+
+
+class Probe:
+    """Diagnostics received in this process (its clock is not faked), and a publisher."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self.context = rclpy.context.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("clock_step_probe", context=self.context)
+        self.stamps: list[float] = []  # the header stamps of the node's diagnostics
+        self.node.create_subscription(DiagnosticArray, "diagnostics", self._on_diag, 100)
+        self.override_pub = self.node.create_publisher(Joy, "joy_override", 10)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        if any(st.name.startswith(self.prefix) for st in msg.status):
+            self.stamps.append(conv.stamp_to_seconds(msg.header.stamp))
+
+    def spin_until(self, cond, timeout: float, proc: subprocess.Popen, each=None) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert proc.poll() is None, "the node exited"
+            if each is not None:
+                each()
+            if cond():
+                return True
+            self.executor.spin_once(timeout_sec=0.05)
+        return cond()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def _start(repo_root: Path, tmp_path: Path, clock: Clock, module: str,
+           params: dict[str, str]) -> tuple[subprocess.Popen, Path]:
+    log_path = tmp_path / "node.log"
+    args = [a for k, v in params.items() for a in ("-p", f"{k}:={v}")]
+    with open(log_path, "w") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", f"asgp_ros.nodes.{module}", "--ros-args", *args],
+            cwd=repo_root, stdout=log, stderr=subprocess.STDOUT,
+            env=dict(os.environ, PYTHONPATH=str(repo_root), **clock.env()))
+    return proc, log_path
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=HANG_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _diagnostics_survive_the_step(probe: Probe, proc: subprocess.Popen, clock: Clock,
+                                  log_path: Path, each=None) -> None:
+    assert probe.spin_until(lambda: len(probe.stamps) >= 3, HANG_S, proc, each), \
+        log_path.read_text()
+    before = probe.stamps[-1]
+    assert abs(before - time.time()) < 60.0  # the fake clock starts at the real one
+    clock.set(-STEP_S)
+    stepped = len(probe.stamps)
+
+    def after_the_step() -> list[float]:
+        return [t for t in probe.stamps[stepped:] if t < before - STEP_S / 2]
+
+    # the node's diagnostics go on, stamped an hour back (so the step did happen)
+    assert probe.spin_until(lambda: len(after_the_step()) >= 5, HANG_S, proc, each), (
+        f"{len(probe.stamps) - stepped} diagnostics after the step, none set back\n"
+        + log_path.read_text())
+    assert abs(after_the_step()[-1] - (time.time() - STEP_S)) < 60.0
+
+
+MODEL = "docs/reproduction/models/tile_asgp.npz"
+
+NODES = {
+    "predictor_node": ("predictor_node:", {"model_path": MODEL,
+                                           "diagnostics_period_s": "0.2"}),
+    "shared_control_node": ("shared_control_node:", {"model_path": MODEL,
+                                                     "diagnostics_period_s": "0.2"}),
+    "vo_node": ("vo_node:", {"diagnostics_period_s": "0.2"}),
+}
+
+
+@needs_faketime
+@pytest.mark.parametrize("module", list(NODES))
+def test_diagnostics_go_on_after_the_clock_is_set_back(repo_root, tmp_path, module):
+    prefix, params = NODES[module]
+    clock = Clock(tmp_path / "faketime")
+    probe = Probe(prefix)
+    proc, log_path = _start(repo_root, tmp_path, clock, module, params)
+    try:
+        _diagnostics_survive_the_step(probe, proc, clock, log_path)
+    finally:
+        _stop(proc)
+        probe.close()
+
+
+@needs_faketime
+def test_bridge_overrides_go_on_after_the_clock_is_set_back(repo_root, tmp_path):
+    """The bridge keeps writing a fresh override to the board across the step: the board
+    never falls back to the user's stick (its 200 ms watchdog) while overrides arrive."""
+    clock = Clock(tmp_path / "faketime")
+    probe = Probe("serial_bridge:")
+    # the user holds the stick (the firmware overrides only a held stick: NEUTRAL_STOP)
+    with SimulatedBoard(lambda t: (0.3, 0.0), link_path=tmp_path / "joy") as board:
+        proc, log_path = _start(repo_root, tmp_path, clock, "serial_bridge_node",
+                                {"port": board.port, "diagnostics_period": "0.2"})
+        # unstamped overrides: this process's clock is an hour off the node's
+        drive = lambda: probe.override_pub.publish(Joy(axes=[0.3, 0.0]))  # noqa: E731
+        try:
+            assert probe.spin_until(lambda: board.output.override_active, HANG_S, proc,
+                                    drive), log_path.read_text()
+            reverts = len(board.revert_events)
+            _diagnostics_survive_the_step(probe, proc, clock, log_path, drive)
+            # still overriding, with no fall-back to the user since before the step
+            assert probe.spin_until(lambda: False, 1.0, proc, drive) is False
+            assert board.output.override_active, log_path.read_text()
+            assert len(board.revert_events) == reverts, board.revert_events[reverts:]
+        finally:
+            _stop(proc)
+            probe.close()
+
+
+def _build(module: str, context, tmp_path: Path, sim_time: bool):
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes import predictor_node, serial_bridge_node, shared_control_node, vo_node
+    base = [Parameter("use_sim_time", value=sim_time)]
+    if module == "serial_bridge_node":  # a port that never opens: the node still runs
+        return serial_bridge_node.SerialBridgeNode(context=context, parameter_overrides=[
+            *base, Parameter("port", value=str(tmp_path / "no_such_port"))])
+    if module == "vo_node":
+        return vo_node.VONode(context=context, parameter_overrides=base)
+    cls = (predictor_node.PredictorNode if module == "predictor_node"
+           else shared_control_node.SharedControlNode)
+    return cls(context=context, parameter_overrides=[
+        *base, Parameter("model_path", value=str(Path(__file__).parents[1] / MODEL))])
+
+
+@pytest.mark.parametrize("sim_time", [False, True], ids=["system_time", "sim_time"])
+@pytest.mark.parametrize("module", [*NODES, "serial_bridge_node"])
+def test_every_timer_runs_on_the_pacing_clock(rclpy_context, tmp_path, module, sim_time):
+    """Each timer of each node: the steady clock, or the ROS clock with use_sim_time (so a
+    replayed bag paces it). The process test above steps the clock for one timer of each
+    node; this one covers them all (the shared-control layer's overrides and watchdog)."""
+    from rclpy.clock import ClockType
+
+    node = _build(module, rclpy_context, tmp_path, sim_time)
+    try:
+        timers = list(node.timers)
+        assert len(timers) >= 1
+        want = ClockType.ROS_TIME if sim_time else ClockType.STEADY_TIME
+        assert [t.clock.clock_type for t in timers] == [want] * len(timers)
+    finally:
+        node.destroy_node()
