@@ -32,7 +32,12 @@ from visualization_msgs.msg import Marker, MarkerArray
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.online import Reason
 from asgp_ros.nodes import conversions as conv
-from asgp_ros.nodes.predictor_node import PredictorNode, PredictorNodeParams, StartupError
+from asgp_ros.nodes.predictor_node import (
+    LEARN_DELAY_S,
+    PredictorNode,
+    PredictorNodeParams,
+    StartupError,
+)
 
 pytestmark = pytest.mark.ros
 
@@ -624,6 +629,45 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
         assert h.node.predictor.adaptation.rows_absorbed == 0
     finally:
         h.close()
+
+
+def test_adaptation_learns_after_the_path_is_out(rclpy_context, model_file):
+    """Learning waits a moment (LEARN_DELAY_S on the node's clock) after each path, so the
+    path's subscribers are not kept from a core by it; it still comes once per path, before
+    the next step's path, and none of the settled steps is lost."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": True})
+    events: list[tuple[str, float]] = []
+    node = h.node
+    now = lambda: node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
+    publish, learn = node.path_pub.publish, node.predictor.learn
+
+    def on_publish(msg):
+        events.append(("path", now()))
+        publish(msg)
+
+    def on_learn():
+        events.append(("learn", now()))
+        learn()
+
+    node.path_pub.publish, node.predictor.learn = on_publish, on_learn
+    try:
+        h.drive(100.0, 106.0)
+        h.clock(h.now + 0.1)
+        h.spin_until(lambda: events and events[-1][0] == "learn", what="the last learning")
+    finally:
+        h.close()
+    paths = [t for kind, t in events if kind == "path"]
+    assert len(paths) >= 20
+    # (a step without a path, while the buffers fill, learns at once)
+    events = events[[kind for kind, _ in events].index("path"):]
+    # after each path, one learning, at least LEARN_DELAY_S later on the clock, before the
+    # next path
+    kinds = [kind for kind, _ in events]
+    assert kinds == ["path", "learn"] * len(paths), kinds
+    for (_, t_path), (_, t_learn) in zip(events[::2], events[1::2], strict=True):
+        assert t_learn - t_path >= LEARN_DELAY_S - 1e-9
+    # every step absorbed but the last horizon's, as when learning follows at once
+    assert node.predictor.adaptation.rows_absorbed >= len(paths) - K
 
 
 def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context, tmp_path):

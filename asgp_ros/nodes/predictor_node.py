@@ -91,6 +91,10 @@ class StartupInterruptedError(Exception):
 
 #: How often the main thread checks for a shutdown while the model loads (s).
 _LOAD_POLL_S = 0.05
+#: How long after a path adaptation's learning waits (at most a quarter of a model step):
+#: learning right after the publication took a core from the path's subscribers on a
+#: two-core laptop and added to their latency (``benchmarks/predictor_latency.py``).
+LEARN_DELAY_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -344,6 +348,10 @@ class PredictorNode(Node):
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
                                             clock=pacing)
+        # adaptation's learning, a moment after each path (see _maybe_predict); one-shot
+        self._learn_timer = self.create_timer(min(LEARN_DELAY_S, 0.25 / rate),
+                                              self._on_learn_timer, clock=pacing,
+                                              autostart=False)
         self.create_service(Trigger, "~/reset_adaptation", self._on_reset_adaptation)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -550,10 +558,19 @@ class PredictorNode(Node):
             self._latency_ms.append(1e3 * (path_out - arrival))
             self._predict_ms.append(1e3 * (predicted - started))
             self._path_ms.append(1e3 * (path_out - predicted))
+        # learning (a few ms with adaptation) waits a moment: the path's subscribers, woken
+        # by it, get the CPU first. It still comes before the next step's path at the
+        # model's rate; steps closer together (a replay catching up) learn together.
+        if self._learn_timer.is_canceled():
+            self._learn_timer.reset()
+
+    def _on_learn_timer(self) -> None:
+        self._learn_timer.cancel()
         self._learn()
 
     def _learn(self) -> None:
-        """Adaptation's work for the step, after the path is out (not in its latency)."""
+        """Adaptation's work for the steps so far (absorbing the settled ones, checking the
+        predictions whose outcomes arrived); never in a path's latency."""
         try:
             self.predictor.learn()
         except (ValueError, np.linalg.LinAlgError) as exc:  # never let learning stop paths
