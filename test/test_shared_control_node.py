@@ -137,10 +137,10 @@ class Harness:
                 self.scan_pub.publish(wall_scan_msg(t + scan_lead, wall, frame=scan_frame))
                 self.spin_until(lambda s=seen: self._scan_state() != s, what="scan")
 
-    def _scan_state(self) -> tuple[object, int, int]:
+    def _scan_state(self) -> tuple[object, int, int, int]:
         """What a scan changes in the node: the stored scan, or a refusal's count."""
         n = self.node
-        return n._scan, n._scans_ahead, n._scans_other_frame
+        return n._scan, n._scans_ahead, n._scans_other_frame, n._scans_two_frames
 
     def last(self) -> dict[str, str]:
         return conv.diagnostic_values(self.status[-1]) if self.status else {}
@@ -336,25 +336,52 @@ def test_vo_in_another_frame_than_the_base_is_refused(harness):
 def test_scans_of_a_second_laser_on_the_topic_are_refused(harness):
     """laser_x/y/yaw describe one laser: scans in another frame on the same topic (a rear
     laser, a merger's output) would be placed with its mount, moving the rear laser's
-    obstacles ahead of the chair. The first scan's frame is the laser's unless
-    ``laser_frame`` names it; others are refused, counted and named."""
-    h = harness()
-    h.drive(100.0, 101.0, wall=3.0)
-    assert h.node._laser_frame == "laser" and not h.overrides
+    obstacles ahead of the chair. ``laser_frame`` names the laser's frame, and scans in
+    others are refused, counted and named. Unset, the first scan's frame is taken only
+    until scans in a second frame come: which of the two is the laser's is then unknown
+    (the first may have been the rear one), so no scan is taken until a restart."""
+    front = harness(laser_frame="laser")
+    front.drive(100.0, 101.0, wall=3.0)
+    assert front.node._laser_frame == "laser" and not front.overrides
     # the rear laser sees a wall 1.6 m behind; with the front laser's mount it is ahead
-    h.drive(101.0, 102.0, wall=1.6, scan_frame="rear_laser")
-    assert h.overrides == []
-    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    front.drive(101.0, 102.0, wall=1.6, scan_frame="rear_laser")
+    assert front.overrides == []
+    diag = conv.diagnostic_values(front.node.diagnostic_status())
     assert diag["scans_other_frame"] == "10" and diag["laser_frame"] == "laser"
     assert diag["scan"].startswith("scans in frame 'rear_laser' refused"), diag["scan"]
-    h.drive(102.0, 103.0, wall=1.6)  # the front laser's wall is acted on
-    assert h.overrides and h.last()["why"] == "intervening"
+    front.drive(102.0, 103.0, wall=1.6)  # the front laser's wall is acted on
+    assert front.overrides and front.last()["why"] == "intervening"
     # named by the parameter: the front laser's scans are the refused ones, and with no
     # scan of its own the layer has no obstacle source and lets the user drive
     rear = harness(laser_frame="rear_laser")
     rear.drive(100.0, 102.0, wall=1.6)
     assert rear.node._scans_other_frame == 20 and rear.overrides == []
     assert rear.last()["why"] == "no_obstacle_source"
+
+
+def test_scans_in_two_frames_with_laser_frame_unset_are_all_refused(harness):
+    """laser_frame unset and the rear laser's scans first (its wall 1.6 m behind, placed
+    ahead): the layer intervened on them, and kept doing so once the front laser's scans
+    came, refusing those instead. Now the second frame ends the guess: the scans taken are
+    forgotten, the override stops at once, nothing is taken any more, and the diagnostics
+    say ERROR and why."""
+    h = harness()
+    h.drive(100.0, 101.0, wall=1.6, scan_frame="rear_laser")
+    assert h.node._laser_frame == "rear_laser" and h.overrides  # the guess: wrong here
+    h.drive(101.0, 101.1, wall=3.0)  # the front laser's first scan, at 101.1 s
+    assert h.node._scan is None
+    h.drive(101.1, 103.0, wall=1.6, scan_frame="rear_laser")
+    h.drive(103.0, 104.0, wall=3.0)
+    for _ in range(20):  # the overrides in flight arrive
+        h.executor.spin_once(timeout_sec=0.01)
+    last = max(conv.stamp_to_seconds(j.header.stamp) for j in h.overrides)
+    assert last <= 101.1 + 1e-6, f"overrides until {last} s, after the second frame"
+    assert h.last()["why"] == "no_obstacle_source"
+    diag = h.node.diagnostic_status()
+    values = conv.diagnostic_values(diag)
+    assert diag.level == DiagnosticStatus.ERROR and "set laser_frame" in diag.message
+    assert values["scan"].startswith("scans in two frames on scan ('rear_laser', 'laser')")
+    assert values["scans_other_frame"] == "11" and values["scans_two_frames"] == "19"
 
 
 @pytest.mark.parametrize("source", ["scan_matching", "auto"])

@@ -146,7 +146,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("vo_timeout_s", 0.5, "no intervention when the VO is older than this", 0.01, 5.0),
     _spec("scan_timeout_s", 0.3, "a scan older than this is no obstacle source", 0.01, 5.0),
     _spec("laser_frame", "", "frame_id of the scans that laser_x/y/yaw describe; scans in "
-          "another frame (a second laser on scan_topic) are refused ('': the first scan's)"),
+          "another frame (a second laser on scan_topic) are refused ('': the first scan's, "
+          "until scans in a second frame come: then none is taken)"),
     _spec("laser_x", 0.3, "laser position in the base frame, x (m)", -5.0, 5.0),
     _spec("laser_y", 0.0, "laser position in the base frame, y (m)", -5.0, 5.0),
     _spec("laser_yaw", 0.0, "laser yaw in the base frame (rad)", -math.pi, math.pi),
@@ -330,6 +331,10 @@ class SharedControlNode(Node):
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
         # the laser's frame: the parameter, else the first scan's (None until one comes)
         self._laser_frame: str | None = p.laser_frame or None
+        # laser_frame unset and scans in a second frame: which laser laser_x/y/yaw describe
+        # is unknown, so no scan is taken until a restart (None: one frame so far)
+        self._second_frame: str | None = None
+        self._scans_two_frames = 0  # scans of the first frame refused since then
         self._scan_problem = ""
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -463,9 +468,22 @@ class SharedControlNode(Node):
             # another laser on the topic: its points placed with this laser's mount would
             # move obstacles (or hide them)
             self._scans_other_frame += 1
-            self._refuse_scan(f"scans in frame {frame!r} refused: laser_x/y/yaw describe "
-                              f"{self._laser_frame!r} (one laser per scan_topic, or set "
-                              "laser_frame)")
+            if self.params.laser_frame:
+                self._refuse_scan(f"scans in frame {frame!r} refused: laser_x/y/yaw "
+                                  f"describe {self._laser_frame!r} (laser_frame)")
+                return
+            if self._second_frame is None:
+                self._second_frame = frame
+                self._forget_scans(now)
+        if self._second_frame is not None:
+            # laser_frame unset: the first frame seen was a guess, and the scans taken so
+            # far may have been the other laser's (a rear laser's wall ahead of the chair)
+            if frame == self._laser_frame:
+                self._scans_two_frames += 1
+            self._refuse_scan(f"scans in two frames on {self.params.scan_topic} "
+                              f"({self._laser_frame!r}, {self._second_frame!r}) and "
+                              "laser_frame unset: laser_x/y/yaw describe one laser, which "
+                              "is unknown, so none is used; set laser_frame")
             return
         if scan.stamp <= 0.0:
             scan = dataclasses.replace(scan, stamp=now)
@@ -499,6 +517,14 @@ class SharedControlNode(Node):
             self._feed_scan_velocity(scan.stamp, now)
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # while intervening, every scan is judged at once
+
+    def _forget_scans(self, now: float) -> None:
+        """No scan taken so far is an obstacle source any more (the memory included)."""
+        self._scan = None
+        if self.memory is not None:
+            self.memory.reset()
+        if self._decision is not None and self._decision.intervening:
+            self._decide(now)  # no obstacle source: the override stops now
 
     def _refuse_scan(self, problem: str) -> None:
         """A scan not taken: the diagnostics' ``scan`` value and the log say why."""
@@ -668,6 +694,7 @@ class SharedControlNode(Node):
             "scans_repeated": str(self._scans_repeated),
             "laser_frame": self._laser_frame or "none yet",
             "scans_other_frame": str(self._scans_other_frame),
+            "scans_two_frames": str(self._scans_two_frames),
             "memory_points": "off" if self.memory is None else str(self.memory.size),
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
@@ -683,8 +710,10 @@ class SharedControlNode(Node):
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
                                             Why.CHECK_FAILED)
         message = "no decision yet" if d is None else f"{d.why.value}: {d.detail}"
-        return conv.diagnostic_status(f"{self.get_name()}: shared control",
-                                      "WARN" if stale or d is None else "OK", message,
+        level = "WARN" if stale or d is None else "OK"
+        if self._second_frame is not None:  # no laser until a restart: set laser_frame
+            level, message = "ERROR", self._scan_problem
+        return conv.diagnostic_status(f"{self.get_name()}: shared control", level, message,
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:
