@@ -18,10 +18,10 @@ process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) an
    process's user + system time from /proc/<pid>/stat divided by the wall time. The
    latency of these steps is printed too: in 1. a step follows the previous path at once,
    so whatever the node does after publishing can delay it (adaptation's learning waits
-   20 ms after a path and then does the steps since in one go); at the real rate that work
-   ends before the next step (the joystick samples are sent at their own times, 30 Hz,
-   and the VO message just after the step's end). The node's own p99
-   over its last 1,000 paths, two of its parts (the prediction; the path's message made
+   20 ms after a path, or until the next step's data if they come first); at the real rate
+   that work ends before the next step (the joystick samples are sent at their own times,
+   30 Hz, and the VO message just after the step's end). The node's own p99 over its last
+   1,000 paths, two of its parts (the prediction; the path's message made
    and published) and the ellipses' message that follows the path, are read from its
    diagnostics after these steps: with a small ``--steps`` they are mostly real-rate paths.
 

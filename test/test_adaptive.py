@@ -336,6 +336,43 @@ def test_reset_gives_the_trained_predictions_and_a_clock_jump_keeps_learning(
     assert again.rows_rejected["time_order"] == 0
 
 
+def test_a_window_not_learnt_yet_is_dropped_by_a_reset(model: MotionModel) -> None:
+    """``predict(..., learn=False)`` leaves its window for ``learn``, which a node calls a
+    moment later. A reset in between (a clock jump; the reset service) drops it: learnt
+    after a reset, the rows of the forgotten samples counted twice (the stream the
+    adaptation follows restarts at a reset), and a prediction made before
+    ``reset_adaptation`` was checked after it."""
+    s = drive(40.0, seed=7, gain=(0.6, 0.7))
+    at_once = Predictor(model, adapt=AdaptSettings())
+    last = max(replay(at_once, s))  # the stream's last predicted step
+    late = Predictor(model, adapt=AdaptSettings())  # the same, the last step not learnt
+
+    def feed(pred: Predictor) -> None:
+        for t, kind, j in events(s):
+            if kind == 0:
+                pred.feed_joy(t, s.joy[j])
+            else:
+                pred.feed_vo(t, s.vel[j], bool(s.vel_ok[j]))
+            if pred.ready_step() == last:
+                assert pred.predict(t, learn=False).ok
+                return
+            pred.predict(t)
+
+    feed(late)
+    assert late.adaptation.rows_absorbed <= at_once.adaptation.rows_absorbed
+    for pred in (at_once, late):
+        pred.reset("a clock jump")
+    late.learn()
+    assert late.adaptation.rows_absorbed <= at_once.adaptation.rows_absorbed
+    # the reset service: nothing from before it is absorbed or checked after it
+    service = Predictor(model, adapt=AdaptSettings())
+    feed(service)
+    service.reset_adaptation()
+    service.learn()
+    assert service.adaptation.rows_absorbed == 0
+    assert not service._adapter._snapshots  # no prediction of before the reset to check
+
+
 def test_settle_steps_follow_the_stale_rule(model: MotionModel) -> None:
     adapter = ModelAdapter(model, AdaptSettings())
     assert adapter.settle_steps == math.ceil(

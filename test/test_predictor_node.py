@@ -670,6 +670,59 @@ def test_adaptation_learns_after_the_path_is_out(rclpy_context, model_file):
     assert node.predictor.adaptation.rows_absorbed >= len(paths) - K
 
 
+class _LearnAtOnce:
+    """In place of the node's one-shot learn timer: learning right after each path."""
+
+    def __init__(self, node: PredictorNode) -> None:
+        self.node = node
+
+    def is_canceled(self) -> bool:
+        return True
+
+    def reset(self) -> None:
+        self.node._learn()
+
+    def cancel(self) -> None:
+        pass
+
+
+def _drive_in_bursts(context, model_file: str, at_once: bool) -> tuple[int, int, int]:
+    """40 s of driving whose samples arrive a second's worth at a time (a replay catching
+    up, or /clock published coarsely): (paths, rows absorbed, predictions checked)."""
+    h = Harness(context, model_file, **{"adapt.enabled": True, "joy_timeout_s": 3.0,
+                                        "vo_timeout_s": 3.0})
+    if at_once:
+        h.node._learn_timer.cancel()
+        h.node._learn_timer = _LearnAtOnce(h.node)
+    try:
+        for second in range(40):
+            end = 101.0 + second
+            h.clock(end)
+            for i in range(10):
+                t = end - 1.0 + 0.1 * (i + 1)
+                h.joy(t, 0.5 + 0.3 * math.sin(t), 0.4 * math.cos(0.5 * t))
+                if i % 2 == 1:
+                    u = t - 0.07
+                    h.vo(u, 0.45 + 0.25 * math.sin(u - 0.3), 0.3 * math.cos(0.5 * u))
+        h.clock(end + 0.05)
+        h.spin_until(lambda: h.node._learn_timer.is_canceled(), what="the last learning")
+        stats = h.node.predictor.adaptation
+        return h.node._paths_published, stats.rows_absorbed, stats.checked
+    finally:
+        h.close()
+
+
+def test_paths_closer_than_the_learning_delay_learn_as_at_once(rclpy_context, model_file):
+    """Paths less than LEARN_DELAY_S apart on the node's clock: each one's learning comes
+    before the next prediction, so every prediction is checked against its outcome (the
+    online calibration) and every step absorbed, as when learning followed each path at
+    once. (Learning only the newest of several paths checked 2 of about 190.)"""
+    at_once = _drive_in_bursts(rclpy_context, model_file, at_once=True)
+    deferred = _drive_in_bursts(rclpy_context, model_file, at_once=False)
+    assert at_once[0] >= 150 and at_once[2] >= 100
+    assert deferred == at_once
+
+
 def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context, tmp_path):
     from asgp_ros.core.baselines import ConstantVelocityChannel, probe_columns
     from asgp_ros.core.features import FeatureConfig

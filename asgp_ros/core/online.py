@@ -400,7 +400,9 @@ class Predictor:
         return None if self._adapter is None else self._adapter.stats
 
     def reset_adaptation(self) -> None:
-        """Back to the trained posterior and calibration (no-op when not adapting)."""
+        """Back to the trained posterior and calibration (no-op when not adapting). A window
+        not learnt yet (``predict(..., learn=False)``) predates the reset: it is dropped."""
+        self._to_learn = None
         if self._adapter is not None:
             self._adapter.reset()
 
@@ -409,8 +411,11 @@ class Predictor:
     def reset(self, detail: str = "") -> None:
         """Forget all samples and the plan (a clock jump; a restart of the inputs).
 
-        What an adapting predictor learnt is kept (see :meth:`reset_adaptation`).
+        What an adapting predictor learnt is kept (see :meth:`reset_adaptation`); a window
+        not learnt yet is dropped (its rows were of the forgotten samples, and the stream
+        the adaptation follows restarts: learnt after the reset they would count twice).
         """
+        self._to_learn = None
         self._joy.clear()
         self._vo.clear()
         self._pose.clear()

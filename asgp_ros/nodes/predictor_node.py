@@ -539,6 +539,11 @@ class PredictorNode(Node):
         self._last_step = step
         if step % self.every_n:
             return
+        if not self._learn_timer.is_canceled():
+            # the last path's learning is still to come (a step closer than LEARN_DELAY_S
+            # after it: a replay catching up): it comes first, as each prediction is
+            # checked against its outcome only if learnt before the next one
+            self._on_learn_timer()
         started = time.perf_counter()
         try:
             result = self.predictor.predict(now, learn=False)
@@ -559,10 +564,8 @@ class PredictorNode(Node):
             self._predict_ms.append(1e3 * (predicted - started))
             self._path_ms.append(1e3 * (path_out - predicted))
         # learning (a few ms with adaptation) waits a moment: the path's subscribers, woken
-        # by it, get the CPU first. It still comes before the next step's path at the
-        # model's rate; steps closer together (a replay catching up) learn together.
-        if self._learn_timer.is_canceled():
-            self._learn_timer.reset()
+        # by it, get the CPU first; it always comes before the next step's prediction
+        self._learn_timer.reset()
 
     def _on_learn_timer(self) -> None:
         self._learn_timer.cancel()
