@@ -357,6 +357,14 @@ def test_scans_of_a_second_laser_on_the_topic_are_refused(harness):
     rear.drive(100.0, 102.0, wall=1.6)
     assert rear.node._scans_other_frame == 20 and rear.overrides == []
     assert rear.last()["why"] == "no_obstacle_source"
+    # '/laser' is 'laser' (as tf2 reads it); a scan without a frame_id is another laser's
+    # as far as the node can tell
+    slash = harness(laser_frame="/laser")
+    slash.drive(100.0, 100.5, wall=3.0)
+    slash.drive(100.5, 101.0, wall=3.0, scan_frame="/laser")
+    slash.drive(101.0, 101.5, wall=1.6, scan_frame="")
+    assert slash.node._scans_other_frame == 5 and slash.overrides == []
+    assert "frame '' refused" in conv.diagnostic_values(slash.node.diagnostic_status())["scan"]
 
 
 def test_scans_in_two_frames_with_laser_frame_unset_are_all_refused(harness):

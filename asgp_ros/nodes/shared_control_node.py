@@ -330,7 +330,7 @@ class SharedControlNode(Node):
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
         # the laser's frame: the parameter, else the first scan's (None until one comes)
-        self._laser_frame: str | None = p.laser_frame or None
+        self._laser_frame: str | None = _frame(p.laser_frame) or None
         # laser_frame unset and scans in a second frame: which laser laser_x/y/yaw describe
         # is unknown, so no scan is taken until a restart (None: one frame so far)
         self._second_frame: str | None = None
@@ -461,10 +461,10 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
-        frame = msg.header.frame_id
-        if frame and self._laser_frame is None:
+        frame = _frame(msg.header.frame_id)  # an empty one is a frame of its own
+        if self._laser_frame is None:
             self._laser_frame = frame
-        elif frame and frame != self._laser_frame:
+        elif frame != self._laser_frame:
             # another laser on the topic: its points placed with this laser's mount would
             # move obstacles (or hide them)
             self._scans_other_frame += 1
@@ -692,7 +692,8 @@ class SharedControlNode(Node):
             "scan": self._scan_problem or ("none" if self._scan is None else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
-            "laser_frame": self._laser_frame or "none yet",
+            "laser_frame": "none yet" if self._laser_frame is None
+            else self._laser_frame or "(empty frame_id)",
             "scans_other_frame": str(self._scans_other_frame),
             "scans_two_frames": str(self._scans_two_frames),
             "memory_points": "off" if self.memory is None else str(self.memory.size),
@@ -721,6 +722,11 @@ class SharedControlNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self.diag_pub.publish(msg)
+
+
+def _frame(frame_id: str) -> str:
+    """A frame_id as tf2 reads it: without a leading slash ('/laser' is 'laser')."""
+    return frame_id.lstrip("/")
 
 
 def main(args: list[str] | None = None) -> int:
