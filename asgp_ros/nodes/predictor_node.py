@@ -563,6 +563,9 @@ class PredictorNode(Node):
             self._latency_ms.append(1e3 * (path_out - arrival))
             self._predict_ms.append(1e3 * (predicted - started))
             self._path_ms.append(1e3 * (path_out - predicted))
+        if self.predictor.adaptation is None:
+            self._learn()  # nothing to learn: no timer wakes the node for it
+            return
         # learning (a few ms with adaptation) waits a moment: the path's subscribers, woken
         # by it, get the CPU first; it always comes before the next step's prediction
         self._learn_timer.reset()

@@ -330,6 +330,7 @@ class SharedControlNode(Node):
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
         # the laser's frame: the parameter, else the first scan's (None until one comes)
+        self._laser_frame_set = bool(_frame(p.laser_frame))  # else guessed from the scans
         self._laser_frame: str | None = _frame(p.laser_frame) or None
         # laser_frame unset and scans in a second frame: which laser laser_x/y/yaw describe
         # is unknown, so no scan is taken until a restart (None: one frame so far)
@@ -468,7 +469,7 @@ class SharedControlNode(Node):
             # another laser on the topic: its points placed with this laser's mount would
             # move obstacles (or hide them)
             self._scans_other_frame += 1
-            if self.params.laser_frame:
+            if self._laser_frame_set:
                 self._refuse_scan(f"scans in frame {frame!r} refused: laser_x/y/yaw "
                                   f"describe {self._laser_frame!r} (laser_frame)")
                 return
