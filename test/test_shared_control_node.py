@@ -392,6 +392,24 @@ def test_scans_in_two_frames_with_laser_frame_unset_are_all_refused(harness):
     assert values["scans_other_frame"] == "11" and values["scans_two_frames"] == "19"
 
 
+def test_decisions_follow_each_step_after_the_clock_goes_back(harness):
+    """The clock goes back 90 s (a bag played again; the system clock set back): the
+    predictor restarts its buffers and the layer decides at each new step again. It kept
+    the newest step of the old timeline and decided only when its watchdog found the last
+    decision 1.5 steps old (17 decisions in the 4 s after the jump, 30 now)."""
+    h = harness()
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening"
+    n = len(h.status)
+    h.drive(10.0, 13.0, wall=20.0)
+    h.drive(13.0, 14.0, wall=1.6)
+    whys = [conv.diagnostic_values(st)["why"] for st in h.status[n:]]
+    assert h.node.predictor.stats.resets >= 1
+    assert len(whys) >= 22, whys  # 20 steps, and the scans judged at once while intervening
+    assert whys[-1] == "intervening"
+
+
 @pytest.mark.parametrize("source", ["scan_matching", "auto"])
 def test_a_scan_delivered_twice_is_taken_once(harness, source):
     """A scan that comes again with the same stamp (a relay or a second recorder on the

@@ -315,6 +315,7 @@ class SharedControlNode(Node):
         self._decision: Decision | None = None
         self._decision_t = -math.inf  # node clock of the decision
         self._last_step: int | None = None
+        self._resets_seen = 0  # the predictor's buffer resets, as last seen
         self._sent_t = -math.inf  # node clock of the newest override sent
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
@@ -382,7 +383,7 @@ class SharedControlNode(Node):
     def _applied(self, user: np.ndarray, now: float) -> np.ndarray:
         """What the firmware drives with: the override while fresh and the stick is out of
         neutral, else the stick."""
-        if (self._sent is not None and now - self._sent_t <= BOARD_WATCHDOG_S
+        if (self._sent is not None and 0.0 <= now - self._sent_t <= BOARD_WATCHDOG_S
                 and not is_neutral(user, self.config.neutral_deadband)):
             return self._sent
         return user
@@ -600,6 +601,11 @@ class SharedControlNode(Node):
         return build
 
     def _maybe_decide(self, now: float) -> None:
+        if self.predictor.stats.resets != self._resets_seen:
+            # the predictor restarted its buffers (its clock went back: a bag played again,
+            # the system clock set back): the steps count from the new samples
+            self._resets_seen = self.predictor.stats.resets
+            self._last_step = None
         step = self.predictor.ready_step()
         if step is None or (self._last_step is not None and step <= self._last_step):
             return
@@ -631,10 +637,10 @@ class SharedControlNode(Node):
         if now is None:
             return
         period = self.predictor.dt
-        late = now - self._decision_t > 1.5 * period
+        late = not now - self._decision_t <= 1.5 * period  # (or the clock went back)
         intervening = self._decision is not None and self._decision.intervening
         if late or (intervening and (self.predictor.status(now) is not None
-                                     or now - self._decision_t > self.params.hold_s)):
+                                     or not now - self._decision_t <= self.params.hold_s)):
             self._decide(now)
 
     # ---- output -------------------------------------------------------------------------
@@ -652,8 +658,8 @@ class SharedControlNode(Node):
         user = self._user
         if (user is None or not -JOY_LEAD_S <= now - user[0] <= self.params.joy_timeout_s
                 or is_neutral(user[1], self.config.neutral_deadband)
-                or now - self._decision_t > self.params.hold_s):
-            self._stop_overriding()
+                or not 0.0 <= now - self._decision_t <= self.params.hold_s):
+            self._stop_overriding()  # (a decision "ahead" of the clock: it went back)
             return
         self.override_pub.publish(conv.joy_from_sample(now, float(d.command[0]),
                                                        float(d.command[1])))
