@@ -12,6 +12,7 @@ watchdog and no diagnostics (``runtime.pacing_clock``).
 from __future__ import annotations
 
 import glob
+import math
 import os
 import subprocess
 import sys
@@ -192,6 +193,54 @@ def test_bridge_overrides_go_on_after_the_clock_is_set_back(repo_root, tmp_path)
         finally:
             _stop(proc)
             probe.close()
+
+
+@needs_faketime
+def test_paths_come_again_after_the_clock_is_set_back(repo_root, tmp_path):
+    """Inputs stamped with the node's clock, which steps back an hour: the predictor
+    restarts its buffers at the jump and publishes paths again, stamped on the new clock."""
+    from geometry_msgs.msg import TwistStamped
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.qos import QoSProfile, qos_profile_sensor_data
+
+    clock = Clock(tmp_path / "faketime")
+    probe = Probe("predictor_node:")
+    t0s: list[float] = []
+    probe.node.create_subscription(PathMsg, "predicted_path",
+                                   lambda m: t0s.append(conv.stamp_to_seconds(m.header.stamp)),
+                                   QoSProfile(depth=100))
+    joy_pub = probe.node.create_publisher(Joy, "joy", qos_profile_sensor_data)
+    vo_pub = probe.node.create_publisher(TwistStamped, "vo/twist", qos_profile_sensor_data)
+    offset = [0.0]  # the node's clock minus this process's
+    due = {"joy": 0.0, "vo": 0.0}
+
+    def drive() -> None:  # joystick at 20 Hz, VO at 5 Hz, stamped with the node's clock
+        mono, t = time.monotonic(), time.time() + offset[0]
+        if mono >= due["joy"]:
+            due["joy"] = mono + 0.05
+            joy_pub.publish(conv.joy_from_sample(t, 0.5 + 0.3 * math.sin(t), 0.2))
+        if mono >= due["vo"]:
+            due["vo"] = mono + 0.2
+            vo_pub.publish(conv.twist_stamped_from_sample(t, 0.45 + 0.2 * math.sin(t), 0.1))
+
+    proc, log_path = _start(repo_root, tmp_path, clock, "predictor_node",
+                            {"model_path": MODEL, "diagnostics_period_s": "0.2"})
+    try:
+        assert probe.spin_until(lambda: len(t0s) >= 5, HANG_S, proc, drive), \
+            log_path.read_text()
+        before = t0s[-1]
+        clock.set(-STEP_S)
+        offset[0] = -STEP_S
+
+        def after() -> list[float]:
+            return [t for t in t0s if t < before - STEP_S / 2]
+
+        assert probe.spin_until(lambda: len(after()) >= 5, HANG_S, proc, drive), (
+            f"{len(after())} paths after the step\n" + log_path.read_text())
+        assert abs(after()[-1] - (time.time() - STEP_S)) < 60.0
+    finally:
+        _stop(proc)
+        probe.close()
 
 
 def _build(module: str, context, tmp_path: Path, sim_time: bool):

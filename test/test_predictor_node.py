@@ -336,6 +336,9 @@ def test_vo_in_another_frame_than_the_base_is_refused(rclpy_context, model_file,
         h.drive(105.0, 107.0)
         h.spin_until(lambda: len(h.paths) > n, what="paths again")
         assert conv.diagnostic_values(h.node.diagnostic_status())["vo_frame"] == "ok"
+        h.vo_frame = "/base_link"  # the base as tf2 reads it
+        h.drive(107.0, 108.0)
+        assert h.node._vo_frame.refused == 15
     finally:
         h.close()
     named = Harness(rclpy_context, model_file, odometry=odometry, base_frame="camera_link")

@@ -95,6 +95,11 @@ def twist_stamped_from_sample(t: float, v: float, omega: float,
     return msg
 
 
+def frame_name(frame_id: str) -> str:
+    """A frame_id as tf2 reads it: without a leading slash ('/base_link' is 'base_link')."""
+    return frame_id.lstrip("/")
+
+
 def velocity_frame(msg: TwistStamped | Odometry) -> str:
     """The frame a VO message's twist is in: a TwistStamped's header frame, an Odometry's
     child frame ('' when the publisher left it empty)."""
@@ -105,7 +110,7 @@ def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
     """Why a twist in ``frame`` cannot be read as the chair's forward and turn rates
     (linear.x, angular.z of ``base_frame``), or None: an empty frame is taken as the base's,
     another frame (a camera's, whose x is not forward) is refused."""
-    if not frame or frame == base_frame:
+    if not frame_name(frame) or frame_name(frame) == frame_name(base_frame):
         return None
     return (f"VO twists in frame {frame!r} refused: their linear.x and angular.z are the "
             f"chair's forward and turn rates only in base_frame {base_frame!r} (set "

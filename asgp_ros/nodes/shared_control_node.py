@@ -331,8 +331,8 @@ class SharedControlNode(Node):
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
         # the laser's frame: the parameter, else the first scan's (None until one comes)
-        self._laser_frame_set = bool(_frame(p.laser_frame))  # else guessed from the scans
-        self._laser_frame: str | None = _frame(p.laser_frame) or None
+        self._laser_frame_set = bool(conv.frame_name(p.laser_frame))  # else guessed from the scans
+        self._laser_frame: str | None = conv.frame_name(p.laser_frame) or None
         # laser_frame unset and scans in a second frame: which laser laser_x/y/yaw describe
         # is unknown, so no scan is taken until a restart (None: one frame so far)
         self._second_frame: str | None = None
@@ -463,7 +463,7 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
-        frame = _frame(msg.header.frame_id)  # an empty one is a frame of its own
+        frame = conv.frame_name(msg.header.frame_id)  # an empty one is a frame of its own
         if self._laser_frame is None:
             self._laser_frame = frame
         elif frame != self._laser_frame:
@@ -729,11 +729,6 @@ class SharedControlNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self.diag_pub.publish(msg)
-
-
-def _frame(frame_id: str) -> str:
-    """A frame_id as tf2 reads it: without a leading slash ('/laser' is 'laser')."""
-    return frame_id.lstrip("/")
 
 
 def main(args: list[str] | None = None) -> int:
