@@ -149,8 +149,12 @@ def test_same_seed_gives_byte_identical_bags(tmp_path, storage):
 
 # ----------------------------------------------------------------------------- other types
 def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | str = False,
-                  joy_axes=(0.25, -0.5, 0.75), ros1: bool = False) -> None:
-    """A hand-made bag: /joy + /twist of ``twist_type``, header stamps 20 ms before bag time."""
+                  joy_axes=(0.25, -0.5, 0.75), ros1: bool = False,
+                  overrides: tuple[int, ...] = (),
+                  override_type: str = "sensor_msgs/msg/Joy") -> None:
+    """A hand-made bag: /joy + /twist of ``twist_type``, header stamps 20 ms before bag time;
+    with ``overrides``, a /joy_override of ``override_type`` 5 ms after the joystick sample
+    of each of those indices."""
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
     T = store.types
     ser = store.serialize_ros1 if ros1 else store.serialize_cdr
@@ -187,6 +191,8 @@ def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | 
     with w:
         cj = w.add_connection("/joy", "sensor_msgs/msg/Joy", typestore=store)
         ct = w.add_connection("/twist", twist_type, typestore=store)
+        co = (w.add_connection("/joy_override", override_type, typestore=store)
+              if overrides else None)
         for i in range(n):
             t_ns = base + i * 100_000_000
             joy = T["sensor_msgs/msg/Joy"](header=header(t_ns, ""),
@@ -194,6 +200,13 @@ def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | 
                                           buttons=np.zeros(0, dtype=np.int32))
             w.write(cj, t_ns + 20_000_000, ser(joy, "sensor_msgs/msg/Joy"))
             w.write(ct, t_ns + 20_000_000, ser(twist_msg(i, t_ns), twist_type))
+            if co is not None and i in overrides:
+                t_o = t_ns + 5_000_000
+                over = (T["sensor_msgs/msg/Joy"](header=header(t_o, ""),
+                                                 axes=np.array([0.1, 0.0], dtype=np.float32),
+                                                 buttons=np.zeros(0, dtype=np.int32))
+                        if override_type == "sensor_msgs/msg/Joy" else twist_msg(0, t_o))
+                w.write(co, t_o + 20_000_000, ser(over, override_type))
 
 
 @pytest.mark.parametrize("twist_type", bags.TWIST_TYPES)
@@ -208,6 +221,40 @@ def test_twist_types(tmp_path, twist_type):
     expect = t0 + 0.1 * i + (0.02 if twist_type == "geometry_msgs/msg/Twist" else 0.0)
     np.testing.assert_allclose(s.vel_t, expect, atol=1e-6)
     np.testing.assert_allclose(s.joy_t, t0 + 0.1 * i, atol=1e-6)  # header stamps
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_overrides_in_a_bag_invalidate_what_they_drove(tmp_path, ros1):
+    """A bag recorded while the shared-control layer overrode the user: the override times
+    are read (header stamps), and training takes no row from the points they may have
+    driven; '' reads none; an override topic of another type is named."""
+    from asgp_ros.learning.training import data_summary, read_series
+
+    path = tmp_path / ("b.bag" if ros1 else "b")
+    _write_custom(path, "geometry_msgs/msg/TwistStamped", n=60, ros1=ros1,
+                  overrides=(30, 31, 32))
+    t0 = 1_600_000_000.0
+    s = read_streams(path, twist_topic="/twist")
+    np.testing.assert_allclose(s.override_t, t0 + 0.1 * np.array([30, 31, 32]) + 0.005,
+                               atol=1e-6)
+    assert read_streams(path, twist_topic="/twist", override_topic="").override_t.size == 0
+    assert read_streams(path, twist_topic="/twist",
+                        override_topic="/absent").override_t.size == 0
+    series = read_series([str(path)], twist_topic="/twist")
+    res = series[0].res
+    over = res.t[res.overridden] - t0
+    # overrides at 3.005 .. 3.205 s drive the points in [o - 0.2, o + 0.6)
+    np.testing.assert_allclose(over, [3.0, 3.2, 3.4, 3.6, 3.8], atol=1e-6)
+    assert not res.valid[res.overridden].any() and res.valid[~res.overridden][1:-1].all()
+    assert data_summary(series)["overridden_samples"] == 5
+    blind = read_series([str(path)], twist_topic="/twist", override_topic="")[0].res
+    assert not blind.overridden.any() and blind.valid.sum() == res.valid.sum() + 5
+    bad = tmp_path / ("c.bag" if ros1 else "c")
+    _write_custom(bad, "geometry_msgs/msg/TwistStamped", ros1=ros1, overrides=(3,),
+                  override_type="geometry_msgs/msg/TwistStamped")
+    with pytest.raises(BagError, match="override topic '/joy_override' has unsupported type"):
+        read_streams(bad, twist_topic="/twist")
+    assert read_streams(bad, twist_topic="/twist", override_topic=None).override_t.size == 0
 
 
 def test_ros1_custom_bag(tmp_path):

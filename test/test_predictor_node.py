@@ -634,6 +634,57 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
         h.close()
 
 
+def _drive_with_overrides(h: Harness, t_from: float, t_to: float) -> None:
+    """h.drive's inputs, with an override published at every joystick sample (a planner or
+    the shared-control layer overriding the user the whole time)."""
+    pub = h.test.create_publisher(Joy, "joy_override", QoSProfile(depth=10))
+    for i in range(round((t_to - t_from) / 0.1)):
+        t = t_from + 0.1 * (i + 1)
+        h.clock(t)
+        h.joy(t, 0.5 + 0.3 * math.sin(t), 0.4 * math.cos(0.5 * t))
+        if pub.get_subscription_count():
+            n = h.node.predictor.stats.overrides + sum(h.node.predictor.stats.rejected.values())
+            pub.publish(conv.joy_from_sample(t, 0.1, 0.0))
+            h.spin_until(lambda n=n: h.node.predictor.stats.overrides
+                         + sum(h.node.predictor.stats.rejected.values()) > n, what="override")
+        if i % 2 == 1:
+            h.clock(t + 0.03)
+            h.vo(t + 0.03, 0.45 + 0.25 * math.sin(t - 0.27), 0.3 * math.cos(0.5 * t + 0.015))
+
+
+@pytest.mark.parametrize("override_topic", ["joy_override", ""])
+def test_adaptation_learns_nothing_an_override_drove(rclpy_context, model_file,
+                                                      override_topic):
+    """Overrides on joy_override (the shared-control layer overriding the user): the
+    predictor keeps publishing paths but learns none of the steps they may have driven,
+    and its diagnostics count them; with override_topic '' it does not listen."""
+    h = Harness(rclpy_context, model_file, override_topic=override_topic,
+                **{"adapt.enabled": True})
+    try:
+        h.drive(100.0, 106.0)
+        stats = h.node.predictor.adaptation
+        assert stats is not None and stats.rows_absorbed >= 15
+        refused, paths = stats.steps_refused, len(h.paths)
+        if override_topic:
+            h.spin_until(lambda: h.node.count_subscribers("joy_override") > 0,
+                         what="override discovery")
+        _drive_with_overrides(h, 106.0, 112.0)
+        h.drive(112.0, 118.0)
+        stats = h.node.predictor.adaptation
+        assert len(h.paths) - paths >= 50  # paths all along
+        h.spin_until(lambda: h.diags and "overrides_seen" in {
+            kv.key for kv in h.diags[-1].status[0].values}, what="diagnostics")
+        seen = {kv.key: kv.value for kv in h.diags[-1].status[0].values}["overrides_seen"]
+        if override_topic:
+            assert h.node.predictor.stats.overrides == 60 and seen == "60"
+            assert stats.steps_refused - refused >= 6 * 5  # the 6 s of overrides, + lags
+        else:
+            assert h.node.predictor.stats.overrides == 0 and seen == "0"
+            assert stats.steps_refused == refused
+    finally:
+        h.close()
+
+
 def test_adaptation_learns_after_the_path_is_out(rclpy_context, model_file):
     """Learning waits a moment (LEARN_DELAY_S on the node's clock) after each path, so the
     path's subscribers are not kept from a core by it; it still comes once per path, before

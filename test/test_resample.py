@@ -9,9 +9,11 @@ import sys
 import numpy as np
 import pytest
 
+from asgp_ros.core.features import FeatureConfig, design_matrix
 from asgp_ros.core.resample import (
     RESAMPLE_RANGES,
     ResampleConfig,
+    exclude_overridden,
     grid_indices,
     midpoint_stamps,
     resample,
@@ -248,6 +250,43 @@ def test_tracking_failures_are_invalid() -> None:
     assert not lost[(res.t < 7.7) | (res.t > 9.3)].any()
     assert not res.valid[lost].any()
     assert not res.stale.any()
+
+
+def test_overrides_invalidate_the_points_they_may_have_driven() -> None:
+    """An override sent at o may drive the chair until o + override_hold_s; a grid point t
+    answers the commands of (t - dt, t] (and up to a period later, read at a frame's
+    middle): t is overridden when some o lies in (t - dt - hold, t + dt]."""
+    s = recording(seed=6, duration=20.0, t0=0.0)
+    over = np.array([8.05, 8.09, 8.13, 12.5])  # a burst (the layer's 25 Hz) and a lone one
+    cfg = ResampleConfig(override_hold_s=0.4)
+    res = resample(RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=s.vel,
+                              override_t=over), cfg)
+    plain = resample(s, cfg)
+    t = res.t
+    expect = np.zeros(t.shape[0], dtype=bool)
+    for o in over:
+        expect |= (o > t - 0.2 - 0.4) & (o <= t + 0.2)
+    np.testing.assert_array_equal(res.overridden, expect)
+    # by hand: t in [o - 0.2, o + 0.6) for each o
+    assert np.round(t[res.overridden], 6).tolist() == [8.0, 8.2, 8.4, 8.6,
+                                                       12.4, 12.6, 12.8, 13.0]
+    assert not res.valid[res.overridden].any()
+    np.testing.assert_array_equal(res.valid, plain.valid & ~expect)
+    # nothing else changes, and no training row spans an overridden point
+    np.testing.assert_array_equal(res.vel, plain.vel)
+    np.testing.assert_array_equal(res.joy, plain.joy)
+    fc = FeatureConfig(lags=3)
+    _, _, index = design_matrix(res, 0, fc)
+    _, _, index_plain = design_matrix(plain, 0, fc)
+    spans = np.stack([index - i for i in range(4)], axis=1)  # the points of each row
+    assert not res.overridden[spans].any()
+    assert set(index) < set(index_plain)
+    assert len(index_plain) - len(index) >= 3 + 4 + 3 + 4  # both holes and their lags
+    # a sliding buffer learns from the same points: the grid first, the overrides after
+    np.testing.assert_array_equal(exclude_overridden(plain, over, cfg).valid, res.valid)
+    np.testing.assert_array_equal(exclude_overridden(plain, over, cfg).segment, res.segment)
+    assert exclude_overridden(plain, np.zeros(0), cfg) is plain
+    assert exclude_overridden(res, over, cfg) is res
 
 
 def test_non_finite_samples_are_dropped_and_counted() -> None:

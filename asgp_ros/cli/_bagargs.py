@@ -6,7 +6,7 @@ import argparse
 from collections.abc import Sequence
 
 from asgp_ros.cli import CommandError
-from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core.resample import ResampleConfig
 from asgp_ros.learning.training import Series, read_series
 from asgp_ros.recording.bags import BagError
@@ -20,6 +20,10 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
     parser.add_argument("--joy-axes", default=None, metavar="FWD,TURN",
                         help="Joy.axes indices of the forward and turn deflection, '-' flips a "
                              "sign: '0,1' (default), '1,-0', ...")
+    parser.add_argument("--override-topic", default=BAG_JOY_OVERRIDE,
+                        help="sensor_msgs/Joy overrides sent to the chair (%(default)s): where "
+                             "a bag has them, the grid points they may have driven are not "
+                             "used (the joystick is not what drove the chair); '' reads none")
     if truth:
         parser.add_argument("--truth-topic", default=BAG_GROUND_TRUTH,
                             help="ground-truth nav_msgs/Odometry topic for --truth "
@@ -41,7 +45,7 @@ def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
                 [path], resample_config=resample_config, joy_topic=args.joy_topic,
                 twist_topic=args.twist_topic,
                 truth_topic=getattr(args, "truth_topic", None) if truth else None,
-                joy_axes=args.joy_axes))
+                joy_axes=args.joy_axes, override_topic=args.override_topic))
         except (BagError, ValueError, OSError, KeyError) as exc:
             msg = str(exc)
             raise CommandError(msg if str(path) in msg else f"{path}: {msg}") from exc

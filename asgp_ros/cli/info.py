@@ -90,10 +90,14 @@ def _channel_lines(training: dict[str, Any]) -> list[str]:
 def _data_lines(data: dict[str, Any]) -> list[str]:
     if not data:
         return []
+    overridden = data.get("overridden_samples")
+    extra = (f", {overridden} grid points overridden (not used)"
+             if isinstance(overridden, int) and not isinstance(overridden, bool)
+             and overridden > 0 else "")
     return [f"training data: {len(data.get('bags', []))} bag(s), "
             f"{data.get('duration_s', 0.0) / 60:.1f} min, "
             f"{data.get('training_rows', '?')} rows, {data.get('segments', '?')} "
-            f"segments, stale {100 * data.get('stale_fraction', 0.0):.1f}%"]
+            f"segments, stale {100 * data.get('stale_fraction', 0.0):.1f}%{extra}"]
 
 
 def _selection_lines(model: MotionModel) -> list[str]:

@@ -50,3 +50,4 @@ def in_bag(name: str) -> str:
 BAG_JOY = in_bag(JOY)
 BAG_VO_TWIST = in_bag(VO_TWIST)
 BAG_GROUND_TRUTH = in_bag(GROUND_TRUTH)
+BAG_JOY_OVERRIDE = in_bag(JOY_OVERRIDE)

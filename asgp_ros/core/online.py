@@ -59,7 +59,7 @@ from asgp_ros.core.adaptive import AdapterStats, AdaptSettings, ModelAdapter
 from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.resample import resample
+from asgp_ros.core.resample import exclude_overridden, resample
 from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
 from asgp_ros.core.streams import (
     RawStreams,
@@ -126,6 +126,8 @@ PLAN_TOLERANCE_STEPS = 1e-3
 MAX_PLANS = 16  # plans kept: only those issued within about one step before now matter
 #: Most rows of a plan or of a future joystick sequence (200 s at 5 Hz).
 MAX_PLAN_STEPS = 1000
+#: Most override times kept (``feed_override``): 25 Hz for the longest buffer, 600 s.
+MAX_OVERRIDES = 15_000
 
 
 class RejectedInputError(ValueError):
@@ -196,6 +198,7 @@ class PredictorStats:
     out_of_order: int = 0
     resets: int = 0
     predictions: int = 0
+    overrides: int = 0
     rejected: dict[Reason, int] = field(default_factory=dict)
     last_rejected: str = ""
 
@@ -378,6 +381,8 @@ class Predictor:
         self._vo = _Buffer(3)  # v, omega, tracking ok (1.0 / 0.0)
         self._pose = _Buffer(3)
         self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
+        # times overrides were sent (feed_override), bounded in number as well as in time
+        self._overrides: deque[float] = deque(maxlen=MAX_OVERRIDES)
         self._to_learn: tuple[Any, int] | None = None  # the last window, for ``learn``
         self._last_now = -math.inf
         self.last_reset_detail = ""
@@ -420,6 +425,7 @@ class Predictor:
         self._vo.clear()
         self._pose.clear()
         self._plans = []
+        self._overrides.clear()
         self._last_now = -math.inf
         self.stats.resets += 1
         self.last_reset_detail = detail
@@ -495,6 +501,34 @@ class Predictor:
         self.stats.vo_samples += 1
         self.stats.out_of_order += self._vo.add(t, (v, w, 1.0 if ok else 0.0))
         self._vo.prune(self.config.buffer_s)
+        return True
+
+    def feed_override(self, t: float) -> bool:
+        """Note that an override command was sent to the chair at time t (the shared-control
+        layer's or a planner's ``joy_override``): around it the joystick fed here is not
+        what drove the chair, so an adapting predictor learns nothing from the grid steps
+        it may have driven (:func:`asgp_ros.core.resample.exclude_overridden`, the rule
+        training applies to a bag's overrides), nor checks a prediction against them.
+        Predictions themselves are made as before.
+
+        Returns:
+            False if refused (a stamp that is not a valid time, or one more than
+            ``reset_jump_s`` ahead of the newest sample).
+        """
+        t = float(t)
+        if not self._time_ok(t, "override"):
+            return False
+        newest = self._newest()
+        if math.isfinite(newest) and t > newest + self.config.reset_jump_s:  # another
+            # timeline's, as a plan stamped that far ahead (below)
+            self._reject(Reason.REJECT_TIME, f"override stamped {t - newest:.3f} s ahead of "
+                         "the newest sample")
+            return False
+        self.stats.overrides += 1
+        self._overrides.append(t)
+        cutoff = self._newest() - self.config.buffer_s
+        while self._overrides and self._overrides[0] < cutoff:
+            self._overrides.popleft()
         return True
 
     def feed_pose(self, t: float, x: float, y: float, yaw: float) -> bool:
@@ -685,7 +719,11 @@ class Predictor:
         t_ready = min(self._joy.newest, self._vo_covers())
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
         if self._adapter is not None:
-            self._to_learn = (res, n)
+            learn_from = res
+            if self._overrides:
+                learn_from = exclude_overridden(res, np.sort(np.fromiter(self._overrides, float)),
+                                                self.resample_config)
+            self._to_learn = (learn_from, n)
         if n < s:
             return Prediction(False, Reason.NOT_ENOUGH_HISTORY,
                               f"{n} grid steps buffered, the model needs {s}")

@@ -47,7 +47,17 @@ Validity of a grid point (``Resampled.valid``):
     not change).
 
   The first sample of a run (the last genuine measurement) is kept; the flagged grid
-  points are in ``Resampled.stale``.
+  points are in ``Resampled.stale``;
+* no override may have driven the chair around it (``Resampled.overridden``, from
+  ``RawStreams.override_t``): while the shared-control layer or a planner overrides the
+  user through the board, the recorded joystick is not what drove the chair, and a row
+  that pairs them would teach the model, or score it on, a response the chair never had.
+  An override sent at time o may drive the chair until o + ``override_hold_s``; the
+  velocity at grid point t answers the commands of the period before it (and, read at the
+  middle of a frame interval, of up to a period after it), so t is overridden when some o
+  lies in (t - dt - ``override_hold_s``, t + dt].  Every override sent counts, whether or
+  not the board applied it (the firmware ignores one while the stick is neutral; the
+  bridge may have been down): a row is refused when in doubt.
 
 Raw samples that are not finite or lie outside the physical ranges of
 :mod:`asgp_ros.core.streams` (``MAX_ABS_JOY``, ``MAX_ABS_SPEED_M_S``,
@@ -63,6 +73,7 @@ handle): the grid rate is 0.5-100 Hz; grid indices stay within ``MAX_GRID_INDEX`
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import asdict, dataclass, field
@@ -93,6 +104,7 @@ RESAMPLE_RANGES: dict[str, tuple[float, float]] = {
     "stale_joy_threshold": (0.0, 1.0),
     "stale_still_speed": (0.0, 1.0),
     "stale_still_after_s": (1e-3, 3600.0),
+    "override_hold_s": (0.0, 3600.0),
 }
 RESAMPLE_MAY_BE_INF = ("stale_after_s", "stale_still_after_s")
 #: What an odometry sample's stamp is taken to mean (``ResampleConfig.vel_stamp``).
@@ -128,6 +140,9 @@ class ResampleConfig:
         vel_stamp: the time an odometry velocity describes (see "Odometry stamps" in the
             module docstring): ``"midpoint"`` (default), the middle of the interval from
             the previous sample; ``"frame"``, its own stamp, as recorded.
+        override_hold_s: how long an override command may drive the chair after it was
+            sent (``RawStreams.override_t``): the bridge re-sends one while it is fresh
+            (0.15 s) and the board's watchdog holds the last one sent for 0.2 s.
     """
 
     rate_hz: float = 5.0
@@ -139,6 +154,7 @@ class ResampleConfig:
     stale_still_speed: float = 1e-3
     stale_still_after_s: float = 0.6
     vel_stamp: str = "midpoint"
+    override_hold_s: float = 0.4
 
     def __post_init__(self) -> None:
         if self.vel_stamp not in VEL_STAMPS:
@@ -207,6 +223,9 @@ class Resampled:
         rate_hz: grid rate.
         dropped_joy: number of joystick samples dropped (non-finite or out of range).
         dropped_vel: number of odometry samples dropped (non-finite or out of range).
+        source: where the streams came from (for messages).
+        overridden: [T] an override may have driven the chair around this point (see
+            "Validity" in the module docstring); all False when built without it.
     """
 
     t: FloatArray
@@ -224,6 +243,14 @@ class Resampled:
     dropped_joy: int = 0
     dropped_vel: int = 0
     source: str = field(default="")
+    overridden: BoolArray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def __post_init__(self) -> None:
+        if self.overridden.shape[0] != self.t.shape[0]:
+            if self.overridden.shape[0]:
+                raise ValueError(f"{self.overridden.shape[0]} overridden flags for "
+                                 f"{self.t.shape[0]} grid points")
+            object.__setattr__(self, "overridden", np.zeros(self.t.shape[0], dtype=bool))
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -425,11 +452,9 @@ def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resam
     gap = ~(bj.within(cfg.max_gap_joy_s) & bv.within(cfg.max_gap_vel_s))
     tracking_lost = bv.uses(~vel_ok)
     stale = bv.uses(stale_samples(vel_t, vel, joy_t, joy, cfg))
-    valid = ~(gap | tracking_lost | stale)
-
-    segment = -np.ones(T, dtype=np.int64)
-    starts = valid & np.r_[True, ~valid[:-1]]
-    segment[valid] = (np.cumsum(starts) - 1)[valid]
+    overridden = overridden_points(t, streams.override_t, cfg)
+    valid = ~(gap | tracking_lost | stale | overridden)
+    segment = segment_ids(valid)
 
     truth = np.full((T, 5), np.nan)
     truth_valid = np.zeros(T, dtype=bool)
@@ -447,5 +472,44 @@ def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resam
         t=t, k=k, joy=joy_g, vel=vel_g, valid=valid, stale=stale,
         tracking_lost=tracking_lost, gap=gap, segment=segment, truth=truth,
         truth_valid=truth_valid, rate_hz=cfg.rate_hz, dropped_joy=dropped_joy,
-        dropped_vel=dropped_vel, source=streams.source,
+        dropped_vel=dropped_vel, source=streams.source, overridden=overridden,
     )
+
+
+def segment_ids(valid: BoolArray) -> IntArray:
+    """``Resampled.segment`` of a validity mask: the id of each point's maximal run of
+    valid points (0, 1, ...), -1 where invalid."""
+    valid = np.asarray(valid, dtype=bool)
+    segment = -np.ones(valid.shape[0], dtype=np.int64)
+    starts = valid & np.r_[True, ~valid[:-1]]
+    segment[valid] = (np.cumsum(starts) - 1)[valid]
+    return segment
+
+
+def overridden_points(t: FloatArray, override_t: FloatArray, config: ResampleConfig
+                      ) -> BoolArray:
+    """The grid points ``t`` [T] an override sent at one of ``override_t`` (sorted) may have
+    driven: some o in (t - dt - ``override_hold_s``, t + dt] (see "Validity" in the module
+    docstring)."""
+    t = np.asarray(t, dtype=np.float64)
+    o = np.asarray(override_t, dtype=np.float64)
+    if o.size == 0 or t.size == 0:
+        return np.zeros(t.shape[0], dtype=bool)
+    dt = config.dt
+    lo = np.searchsorted(o, t - dt - config.override_hold_s, side="right")
+    hi = np.searchsorted(o, t + dt, side="right")
+    return np.asarray(hi > lo, dtype=bool)
+
+
+def exclude_overridden(res: Resampled, override_t: FloatArray, config: ResampleConfig
+                       ) -> Resampled:
+    """``res`` with the points overrides sent at ``override_t`` may have driven marked
+    overridden and invalid, as :func:`resample` marks them when its streams carry the
+    overrides (an online buffer predicts from the unmarked grid and learns from this one);
+    ``res`` itself when none is."""
+    mark = overridden_points(res.t, override_t, config) & ~res.overridden
+    if not np.any(mark):
+        return res
+    valid = res.valid & ~mark
+    return dataclasses.replace(res, valid=valid, segment=segment_ids(valid),
+                               overridden=res.overridden | mark)

@@ -148,6 +148,9 @@ class RawStreams:
         truth_t: [Nt] ground-truth times, or empty.
         truth: [Nt, 5] (x, y, theta, v, omega) ground truth, or empty.
         source: where the data came from (a bag path, "live", ...), for messages.
+        override_t: [No] times at which an override command (``joy_override``) was sent
+            to the chair, or empty: around them the joystick is not what drove the chair
+            (:mod:`asgp_ros.core.resample`, "Validity").
     """
 
     joy_t: FloatArray
@@ -158,6 +161,7 @@ class RawStreams:
     truth_t: FloatArray = field(default_factory=lambda: np.zeros(0))
     truth: FloatArray = field(default_factory=lambda: np.zeros((0, 5)))
     source: str = ""
+    override_t: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         joy_t, joy = _as_series("joystick", self.joy_t, self.joy, 2)
@@ -170,6 +174,9 @@ class RawStreams:
                 f"velocity: {vel_ok.shape[0]} tracking flags for {vel_t.shape[0]} samples"
             )
         truth_t, truth = _as_series("ground truth", self.truth_t, self.truth, 5)
+        override_t, _ = _as_series("override", self.override_t,
+                                   np.zeros((np.size(self.override_t), 0)), 0)
+        override_t = np.unique(override_t)
         joy_t, joy = _sorted_unique(joy_t, joy)
         vel_t, vel, vel_ok = _sorted_unique(vel_t, vel, vel_ok)
         truth_t, truth = _sorted_unique(truth_t, truth)
@@ -180,6 +187,7 @@ class RawStreams:
         object.__setattr__(self, "vel_ok", vel_ok)
         object.__setattr__(self, "truth_t", truth_t)
         object.__setattr__(self, "truth", truth)
+        object.__setattr__(self, "override_t", override_t)
 
     @property
     def has_truth(self) -> bool:

@@ -344,9 +344,10 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
                    config: Any) -> dict[str, Any]:
     """Replay one recording's raw samples through an adapting online Predictor.
 
-    Samples are fed in stamp order; whenever a new grid step L completes and L + 1 starts
-    an evaluation case, the predictor is asked, at the stamp of the sample that completed
-    L, for the path under the recorded future joystick.  It therefore sees only samples
+    Samples (and the overrides sent, ``RawStreams.override_t``) are fed in stamp order;
+    whenever a new grid step L completes and L + 1 starts an evaluation case, the
+    predictor is asked, at the stamp of the sample that completed L, for the path under
+    the recorded future joystick.  It therefore sees only samples
     stamped at or before that moment: the replay cannot peek.
     """
     # imported when an adaptive evaluation runs (the online predictor and the adapter add
@@ -361,9 +362,11 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
     k0 = int(res.k[0])
     starts = set(metrics.case_indices(res.segment, need, 1).tolist())
     joy_future_all = np.asarray(res.joy, dtype=np.float64)
+    over_t = np.asarray(raw.override_t, dtype=np.float64)
     events = np.concatenate([
         np.stack([raw.joy_t, np.zeros_like(raw.joy_t), np.arange(raw.joy_t.size)], axis=1),
-        np.stack([raw.vel_t, np.ones_like(raw.vel_t), np.arange(raw.vel_t.size)], axis=1)])
+        np.stack([raw.vel_t, np.ones_like(raw.vel_t), np.arange(raw.vel_t.size)], axis=1),
+        np.stack([over_t, np.full_like(over_t, 2.0), np.arange(over_t.size)], axis=1)])
     events = events[np.lexsort((events[:, 2], events[:, 1], events[:, 0]))]
     vel_ok = np.asarray(raw.vel_ok, dtype=bool) if raw.vel_ok.size else \
         np.ones(raw.vel_t.size, dtype=bool)
@@ -373,8 +376,11 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
         j = int(j)
         if kind == 0.0:
             pred.feed_joy(t, raw.joy[j])
-        else:
+        elif kind == 1.0:
             pred.feed_vo(t, raw.vel[j], bool(vel_ok[j]))
+        else:
+            pred.feed_override(t)
+            continue
         step = pred.ready_step()
         if step is None or step == last_step:
             continue

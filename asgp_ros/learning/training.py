@@ -26,7 +26,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
@@ -108,12 +108,18 @@ def read_series(
     twist_topic: str = BAG_VO_TWIST,
     truth_topic: str | None = None,
     joy_axes: Any = None,
+    override_topic: str | None = BAG_JOY_OVERRIDE,
 ) -> list[Series]:
-    """Read bags and resample them onto the grid (raises the bag reader's errors)."""
+    """Read bags and resample them onto the grid (raises the bag reader's errors).
+
+    The overrides on ``override_topic`` (when a bag has it; None or '' for none) make the
+    grid points they may have driven invalid (:mod:`asgp_ros.core.resample`, "Validity").
+    """
     config = resample_config if resample_config is not None else ResampleConfig()
     out = []
     for path in paths:
-        kwargs: dict[str, Any] = {"joy_topic": joy_topic, "twist_topic": twist_topic}
+        kwargs: dict[str, Any] = {"joy_topic": joy_topic, "twist_topic": twist_topic,
+                                  "override_topic": override_topic}
         if truth_topic is not None:
             kwargs["truth_topic"] = truth_topic
         if joy_axes is not None:
@@ -129,6 +135,7 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
     grid = sum(int(s.res.t.shape[0]) for s in series)
     valid = sum(int(np.sum(s.res.valid)) for s in series)
     stale = sum(int(np.sum(s.res.stale)) for s in series)
+    overridden = sum(int(np.sum(s.res.overridden)) for s in series)
     segments = sum(len(s.res.segments()) for s in series)
     out: dict[str, Any] = {
         "bags": [s.name for s in series],
@@ -136,6 +143,7 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
         "valid_samples": valid,
         "segments": segments,
         "stale_fraction": float(stale / grid) if grid else 0.0,
+        "overridden_samples": overridden,
         "duration_s": float(sum(s.res.t[-1] - s.res.t[0] for s in series if s.res.t.size)),
     }
     if rows is not None:
@@ -354,7 +362,7 @@ def slice_resampled(res: Resampled, start: int, stop: int) -> Resampled:
         res, t=res.t[cut], k=res.k[cut], joy=res.joy[cut], vel=res.vel[cut],
         valid=res.valid[cut], stale=res.stale[cut], tracking_lost=res.tracking_lost[cut],
         gap=res.gap[cut], segment=res.segment[cut], truth=res.truth[cut],
-        truth_valid=res.truth_valid[cut])
+        truth_valid=res.truth_valid[cut], overridden=res.overridden[cut])
 
 
 def split_holdout(series: Sequence[Series], fraction: float

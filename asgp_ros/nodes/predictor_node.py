@@ -109,6 +109,7 @@ class PredictorNodeParams:
     vo_topic: str = topics.VO_TWIST
     vo_type: str = "twist"
     plan_topic: str = topics.JOY_PLAN
+    override_topic: str = topics.JOY_OVERRIDE
     path_topic: str = topics.PREDICTED_PATH
     joy_axes: str = "0,1"
     joy_timeout_s: float = 0.5
@@ -226,6 +227,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("vo_type", "'twist' (geometry_msgs/TwistStamped) or 'odometry' (nav_msgs/Odometry)"),
     _spec("plan_topic", "planned future joystick (trajectory_msgs/JointTrajectory, joints "
           "forward and turn)"),
+    _spec("override_topic", "overrides sent to the chair (sensor_msgs/Joy, the shared-control "
+          "layer's or a planner's): adaptation learns nothing from the steps they may have "
+          "driven; '' for none"),
     _spec("path_topic", "predicted path output; ellipses on <path_topic>/uncertainty"),
     _spec("joy_axes", "Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
           "flips a sign (as `asgp train --joy-axes`)"),
@@ -344,6 +348,9 @@ class PredictorNode(Node):
             self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
                                      qos_profile_sensor_data)
         self.create_subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
+        if p.override_topic.strip():
+            self.create_subscription(Joy, p.override_topic, self._on_override,
+                                     qos_profile_sensor_data)
         pacing = runtime.pacing_clock(self)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
@@ -475,6 +482,13 @@ class PredictorNode(Node):
             self._warn_rejected()
             return
         self._maybe_predict(now, time.perf_counter())
+
+    def _on_override(self, msg: Joy) -> None:
+        """An override sent to the chair: when adapting, the steps it may have driven are
+        not learnt from (the joystick here is the user's, not what drove the chair)."""
+        t = self._stamp(conv.stamp_to_seconds(msg.header.stamp), self._now())
+        if not self.predictor.feed_override(t):
+            self._warn_rejected()
 
     def _on_twist(self, msg: TwistStamped) -> None:
         arrival = time.perf_counter()
@@ -663,6 +677,7 @@ class PredictorNode(Node):
             "bad_messages": str(self._bad_messages),
             **self._vo_frame.values(),
             "buffer_resets": str(stats.resets),
+            "overrides_seen": str(stats.overrides),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
         }

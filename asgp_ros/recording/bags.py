@@ -64,7 +64,7 @@ import yaml
 from numpy.typing import NDArray
 
 from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
@@ -379,13 +379,18 @@ def _unfinished_ros2_bag(path: str | os.PathLike[str]) -> bool:
 
 
 def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
-                 truth_topic: str | None, axes: JoyAxes) -> tuple[Any, ...]:
-    """The raw rows of the joystick, velocity and ground-truth topics (closes ``reader``)."""
+                 truth_topic: str | None, axes: JoyAxes, override_topic: str | None = None
+                 ) -> tuple[Any, ...]:
+    """The raw rows of the joystick, velocity, ground-truth and (when the bag has it)
+    override topics (closes ``reader``)."""
     try:
         joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
         tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
         tr_conns = (_connections(reader, truth_topic, TRUTH_TYPES, "ground truth", source)
                     if truth_topic else [])
+        ov_conns = (_connections(reader, override_topic, JOY_TYPES, "override", source)
+                    if override_topic and any(c.topic == override_topic
+                                              for c in reader.connections) else [])
         need = max(axes.forward, axes.turn) + 1
 
         def joy_row(msg: Any, _t: str) -> tuple[Any, ...]:
@@ -413,7 +418,9 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
         jb, jr = _collect(reader, joy_conns, joy_row, source)
         vb, vr = _collect(reader, tw_conns, twist_row, source)
         tb, tr = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [])
-        return jb, jr, vb, vr, tb, tr, tw_conns
+        ob, orows = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),), source)
+                     if ov_conns else ([], []))
+        return jb, jr, vb, vr, tb, tr, tw_conns, ob, orows
     finally:
         reader.close()
 
@@ -425,6 +432,7 @@ def read_streams(
     truth_topic: str | None = None,
     joy_axes: JoyAxes | str | None = None,
     max_stamp_skew: float = 10.0,
+    override_topic: str | None = BAG_JOY_OVERRIDE,
 ) -> RawStreams:
     """Read the joystick, velocity (and optional ground-truth) streams of a bag.
 
@@ -436,6 +444,10 @@ def read_streams(
         truth_topic: ``nav_msgs/Odometry`` ground truth, or None to skip it.
         joy_axes: axis mapping (or its ``--joy-axes`` string).
         max_stamp_skew: a header stamp further than this (s) from the bag time is invalid.
+        override_topic: ``sensor_msgs/Joy`` overrides sent to the chair (the shared-control
+            layer's, a planner's), if the bag has the topic: their times become
+            ``RawStreams.override_t``, around which the resampler refuses the joystick (it
+            is not what drove the chair); None or '' to read none.
 
     Returns:
         RawStreams with times in seconds on the bag's clock (header stamps where valid).
@@ -446,18 +458,20 @@ def read_streams(
     if joy_axes is None:
         joy_axes = JoyAxes()
     axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
-    wanted = [t for t in (joy_topic, twist_topic, truth_topic) if t]
+    wanted = [t for t in (joy_topic, twist_topic, truth_topic, override_topic) if t]
     reader = _open_reader(path, wanted)
     recovered = getattr(reader, "recovered", None)
     source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
     try:
-        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes)
+        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
+                                 override_topic)
     except _DamagedDataError as exc:  # the index opened, the data behind it are damaged
         if recovered is not None:
             raise
         reader = _open_recovered(path, exc, wanted)
-        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes)
-    jb, jr, vb, vr, tb, tr, tw_conns = collected
+        collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
+                                 override_topic)
+    jb, jr, vb, vr, tb, tr, tw_conns, ob, orows = collected
 
     for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
         if not rows:
@@ -477,6 +491,11 @@ def read_streams(
         truth_t = _choose_times(truth_topic or "", np.asarray([r[0] for r in tr], np.int64),
                                 np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
         truth = ta[:, 1:]
+    override_t = np.zeros(0)
+    if orows:
+        override_t = _choose_times(override_topic or "", np.asarray([r[0] for r in orows],
+                                                                   np.int64),
+                                   np.asarray(ob, dtype=np.int64), max_stamp_skew, source)
     for name, topic, bad, n in (
             ("joystick", joy_topic, int(np.count_nonzero(~joy_in_range(j[:, 1:]))), j.shape[0]),
             ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:]))),
@@ -487,7 +506,7 @@ def read_streams(
                         bad, n, name, topic)
     try:
         return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:],
-                          truth_t=truth_t, truth=truth, source=source)
+                          truth_t=truth_t, truth=truth, source=source, override_t=override_t)
     except ValueError as exc:
         raise BagError(f"{source}: {exc}") from exc
 
