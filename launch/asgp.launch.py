@@ -49,8 +49,8 @@ def generate_launch_description() -> LaunchDescription:
             executable="serial_bridge_node",
             name="serial_bridge_node",
             namespace=namespace,
-            parameters=[_config("bridge.yaml"), common,
-                        {"port": LaunchConfiguration("port")}],
+            # never use_sim_time: the bridge drives a real board in real time (it refuses it)
+            parameters=[_config("bridge.yaml"), {"port": LaunchConfiguration("port")}],
             condition=IfCondition(LaunchConfiguration("use_bridge")),
             output="screen",
         ),

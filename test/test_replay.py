@@ -359,6 +359,46 @@ def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
         node.destroy_node()
 
 
+def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_path):
+    """A bag recorded with the shared-control layer holds joy_override: replayed, a running
+    bridge would write it to the board. It is played only with commands=True (--commands),
+    when named in topics, or remapped to a name no bridge listens to."""
+    import rclpy
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from asgp_ros.recording.replay import BagReplayer, ReplayConfig, ReplayError, is_command
+
+    store = _typestore(False)
+    T = store.types
+    path = tmp_path / "layer_bag"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        for topic in ("/joy", "/joy_override", "/chair/joy_override"):
+            c = w.add_connection(topic, "sensor_msgs/msg/Joy", typestore=store)
+            msg = T["sensor_msgs/msg/Joy"](
+                header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                    sec=1, nanosec=0), frame_id=""),
+                axes=np.array([0.1, 0.0], dtype=np.float32), buttons=np.zeros(0, np.int32))
+            w.write(c, T0_NS, store.serialize_cdr(msg, "sensor_msgs/msg/Joy"))
+    node = rclpy.create_node("replay_commands", context=rclpy_context)
+    try:
+        def played(**kw) -> tuple[set[str], list[str]]:
+            with BagReplayer(path, ReplayConfig(**kw), node) as r:
+                return {t.out_name for t in r.topics.values()}, r.skipped_commands
+
+        assert played() == ({"/joy"}, ["/chair/joy_override", "/joy_override"])
+        assert played(commands=True)[0] == {"/joy", "/joy_override", "/chair/joy_override"}
+        assert played(topics=("/joy", "/joy_override"))[0] == {"/joy", "/joy_override"}
+        assert played(remap=(("/joy_override", "/replayed/override"),))[0] == {
+            "/joy", "/replayed/override"}
+        # a topic remapped onto a command's name is a command
+        with pytest.raises(ReplayError, match="not a command to the chair"):
+            played(remap=(("/joy", "/x/joy_override"),))
+    finally:
+        node.destroy_node()
+    assert is_command("joy_override") and is_command("/a/b/joy_override/")
+    assert not is_command("/joy_override_replayed") and not is_command("/joy")
+
+
 # ---- damaged and special files: one clear error, never a traceback or a hang (issue 16) ---
 
 def _corrupt_first_joy(path: Path) -> None:

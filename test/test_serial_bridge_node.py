@@ -238,6 +238,19 @@ def test_bad_startup_parameters_raise(rclpy_context):
             Parameter("reconnect_max", value=0.5)])
 
 
+def test_the_bridge_refuses_a_replayed_clock(rclpy_context, harness):
+    """use_sim_time would let a replayed /clock make replayed overrides fresh: refused at
+    start-up and at runtime."""
+    with pytest.raises(ValueError, match="use_sim_time must be false"):
+        SerialBridgeNode(context=rclpy_context, parameter_overrides=[
+            Parameter("port", value="/nonexistent"), Parameter("use_sim_time", value=True)])
+    node = harness(lambda t: (0.5, 0.0)).node
+    result = node.set_parameters([Parameter("use_sim_time", value=True)])[0]
+    assert not result.successful and "use_sim_time must be false" in result.reason
+    assert node.get_parameter("use_sim_time").value is False
+    assert node.set_parameters([Parameter("use_sim_time", value=False)])[0].successful
+
+
 def test_params_file_loads_into_the_node(repo_root, tmp_path):
     """config/bridge.yaml as a --params-file: every value has the declared type."""
     board = SimulatedBoard(lambda t: (0.2, 0.0), link_path=tmp_path / "joy").start()

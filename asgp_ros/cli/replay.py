@@ -41,6 +41,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    default=100.0, metavar="HZ",
                    help="/clock updates per second between messages (default 100)")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
+    p.add_argument("--commands", action="store_true",
+                   help="also play the commands to the chair the bag holds (joy_override), "
+                        "which a running serial bridge would write to the board; by default "
+                        "they are not played")
     p.add_argument("--remap", nargs="+", default=[], metavar="FROM:=TO",
                    help="publish bag topic FROM on topic TO")
     p.add_argument("--wait-subscribers",
@@ -68,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
             publish_clock=not args.no_clock,
             wait_subscribers_s=args.wait_subscribers,
             remap=tuple(remap),
+            commands=args.commands,
         )
     except ValueError as exc:
         raise CommandError(str(exc)) from exc

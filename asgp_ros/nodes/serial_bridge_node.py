@@ -59,12 +59,23 @@ _LEVEL = {
 }
 
 
+#: Why the bridge never follows /clock: it drives a real board in real time, and an override
+#: is written to the chair only while fresh by its stamp; on a replay's clock, the overrides
+#: of a replayed bag (or of a layer judging replayed scans) would be fresh.
+SIM_TIME_REFUSED = ("use_sim_time must be false: the bridge drives a real board in real time, "
+                    "and on a replayed /clock a replayed or replay-driven joy_override would "
+                    "look fresh (replaying a bag into the other nodes: leave the bridge out, "
+                    "launch use_bridge:=false)")
+
+
 class SerialBridgeNode(Node):
     """See the module docstring."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("serial_bridge_node", **kwargs)
         self.params: BridgeParams = bridge_params(declare(self, PARAMS))
+        if self.get_parameter("use_sim_time").value:
+            raise ValueError(SIM_TIME_REFUSED)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._joy_pub = self.create_publisher(Joy, topics.JOY, qos_profile_sensor_data)
@@ -99,6 +110,8 @@ class SerialBridgeNode(Node):
     def _on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
         values = {spec.name: self.get_parameter(spec.name).value for spec in PARAMS}
         for p in changes:
+            if p.name == "use_sim_time" and p.value:
+                return SetParametersResult(successful=False, reason=SIM_TIME_REFUSED)
             if p.name in SPECS and not SPECS[p.name].runtime:
                 return SetParametersResult(
                     successful=False,

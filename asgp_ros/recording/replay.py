@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from asgp_ros.common.topics import JOY_OVERRIDE
 from asgp_ros.recording.bags import BagError, resolve_bag
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
@@ -81,6 +82,10 @@ class ReplayConfig:
         wait_subscribers_s: before playing, wait up to this long until every played topic
             has a subscriber (0 = do not wait).
         remap: (bag topic, published topic) pairs.
+        commands: also play the commands to the chair a bag holds (topics published as
+            ``joy_override``, in any namespace), which a running bridge would write to the
+            board; off by default, so a replay never drives a chair. Topics named in
+            ``topics`` are played whatever this says.
     """
 
     rate: float = 1.0
@@ -91,6 +96,7 @@ class ReplayConfig:
     publish_clock: bool = True
     wait_subscribers_s: float = 0.5
     remap: tuple[tuple[str, str], ...] = ()
+    commands: bool = False
 
     def __post_init__(self) -> None:
         for name, (low, high) in REPLAY_RANGES.items():
@@ -281,6 +287,7 @@ class BagReplayer:
         self.reader: AnyReader = reader
         self.published = 0
         self.skipped_types: dict[str, str] = {}
+        self.skipped_commands: list[str] = []  # commands to the chair, not played
         self.topics: dict[str, _Topic] = {}
         try:
             self._select_topics()
@@ -320,6 +327,10 @@ class BagReplayer:
         for topic, conns in sorted(by_topic.items()):
             if wanted and topic not in wanted:
                 continue
+            if (is_command(remap.get(topic, topic)) and not self.config.commands
+                    and topic not in wanted):
+                self.skipped_commands.append(topic)
+                continue
             msgtype = conns[0].msgtype
             try:
                 cls = message_class(msgtype)
@@ -336,8 +347,16 @@ class BagReplayer:
                 "skipping topics whose message types are not installed: %s",
                 "; ".join(f"{t}: {why}" for t, why in self.skipped_types.items()),
             )
+        if self.skipped_commands:
+            LOG.warning(
+                "not playing %s: commands to the chair, which a running serial bridge would "
+                "write to the board (--commands plays them; --remap %s:=<other name> plays "
+                "them where no bridge listens, e.g. for predictor_node's override_topic)",
+                ", ".join(self.skipped_commands), self.skipped_commands[0])
         if not self.topics:
-            raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type)")
+            but = " that is not a command to the chair" if self.skipped_commands else ""
+            raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type"
+                              f"{but})")
 
     def create_publishers(self) -> None:
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -460,6 +479,11 @@ class BagReplayer:
                 return
             if topic.publisher is not None:
                 topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
+
+
+def is_command(topic: str) -> bool:
+    """A topic that commands the chair (``joy_override``, in any namespace)."""
+    return topic.rstrip("/").rsplit("/", 1)[-1] == JOY_OVERRIDE
 
 
 def summary(replayer: BagReplayer) -> Sequence[str]:
