@@ -455,6 +455,81 @@ def test_what_an_override_drove_is_never_learnt(model: MotionModel) -> None:
     assert blind.adaptation.rows_absorbed - stats.rows_absorbed >= 15 * RC.rate_hz
 
 
+def _learn_with_late_overrides(model: MotionModel, s: RawStreams, delay: float,
+                               settings: AdaptSettings) -> Predictor:
+    """Replay ``s`` predicting at every step, its overrides arriving ``delay`` late."""
+    pred = Predictor(model, adapt=settings)
+    ev = [(t, 0, j) for j, t in enumerate(s.joy_t)] + \
+        [(t, 1, j) for j, t in enumerate(s.vel_t)] + \
+        [(t + delay, 2, j) for j, t in enumerate(s.override_t)]
+    last = None
+    for t, kind, j in sorted(ev, key=lambda e: (e[0], e[1])):
+        if kind == 0:
+            pred.feed_joy(t, s.joy[j])
+        elif kind == 1:
+            pred.feed_vo(t, s.vel[j])
+        else:
+            assert pred.feed_override(s.override_t[j], now=t)
+            continue
+        step = pred.ready_step()
+        if step is not None and step != last:
+            last = step
+            pred.predict(t)
+    return pred
+
+
+def _learnt_as_training(model: MotionModel, pred: Predictor, s: RawStreams,
+                        settings: AdaptSettings) -> bool:
+    res = resample(s, model.resample_config)
+    adapter = pred._adapter
+    assert adapter is not None and adapter.absorbed_to is not None
+    for c in (0, 1):
+        reference = OnlinePosterior.from_sparse_gp(model.channels[c], settings.posterior,
+                                                   bind=False)
+        X, y, idx = design_matrix(res, c, model.feature_config)
+        take = res.k[idx] <= adapter.absorbed_to
+        reference.absorb_rows(X[take], y[take], res.t[idx[take]])
+        if not np.allclose(pred.model.channels[c].posterior.alpha,
+                           reference.posterior.alpha, rtol=1e-9, atol=1e-12):
+            return False
+    return True
+
+
+def test_an_override_up_to_half_a_second_late_is_never_learnt(model: MotionModel) -> None:
+    """Steps are absorbed at least OVERRIDE_DELAY_S after them, whatever the stale-VO rule
+    (here off, which alone would absorb a step one period after it): overrides arriving
+    0.4 s late keep every step they drove out; 1.5 s late they cannot, and say so."""
+    rc = ResampleConfig(vel_stamp="frame", stale_after_s=math.inf,
+                        stale_still_after_s=math.inf)
+    m = MotionModel(kind="asgp", feature_config=FC, resample_config=rc,
+                    channels=model.channels)
+    settings = AdaptSettings(AdaptConfig(max_distance=None), coverage=None)
+    assert ModelAdapter(m, settings).settle_steps == 4  # 0.5 s at 5 Hz, plus one
+    s, _, _ = overridden_drive(seed=23)
+    on_time = _learn_with_late_overrides(m, s, 0.4, settings)
+    assert _learnt_as_training(m, on_time, s, settings)
+    assert on_time.stats.overrides_late == 0
+    late = _learn_with_late_overrides(m, s, 1.5, settings)
+    assert not _learnt_as_training(m, late, s, settings)
+    assert late.stats.overrides_late >= 1
+
+
+def test_overrides_through_a_sensor_outage_are_kept(model: MotionModel) -> None:
+    """The joystick and the VO fall silent for 2 s while the layer goes on overriding: the
+    overrides, stamped ahead of the newest sample but not of the clock, are all taken, and
+    the steps around the outage are learnt as training would."""
+    s, over_t, span = overridden_drive(seed=24)
+    out = (span[0] + 5.0, span[0] + 7.0)
+    keep_j = (s.joy_t < out[0]) | (s.joy_t > out[1])
+    keep_v = (s.vel_t < out[0]) | (s.vel_t > out[1])
+    s = RawStreams(joy_t=s.joy_t[keep_j], joy=s.joy[keep_j], vel_t=s.vel_t[keep_v],
+                   vel=s.vel[keep_v], vel_ok=s.vel_ok[keep_v], override_t=over_t)
+    settings = AdaptSettings(AdaptConfig(max_distance=None), coverage=None)
+    pred = _learn_with_late_overrides(model, s, 0.0, settings)
+    assert pred.stats.overrides == over_t.size
+    assert _learnt_as_training(model, pred, s, settings)
+
+
 def test_the_adaptive_replay_feeds_the_overrides(model: MotionModel) -> None:
     """`asgp evaluate --adapt` replays a recording's overrides with its samples: the
     overridden stretch is neither learnt nor scored."""

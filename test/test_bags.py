@@ -257,6 +257,50 @@ def test_overrides_in_a_bag_invalidate_what_they_drove(tmp_path, ros1):
     assert read_streams(bad, twist_topic="/twist", override_topic=None).override_t.size == 0
 
 
+def test_damaged_overrides_are_named_and_a_missing_topic_is_said(tmp_path, caplog):
+    """A /joy_override message that does not decode: one error naming the overrides and the
+    way out, not a bare 'corrupt bag'. An override topic asked for and not in the bag is
+    said when the bag has another one (a namespace) or when it was not the default."""
+    path = tmp_path / "b"
+    _write_custom(path, "geometry_msgs/msg/TwistStamped")
+    store = get_typestore(Stores.ROS2_JAZZY)
+    damaged = tmp_path / "damaged"
+    with Writer(damaged, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        with AnyReader([path], default_typestore=store) as r:
+            conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=store)
+                     for c in r.connections}
+            for c, t, raw in r.messages():
+                w.write(conns[c.topic], t, raw)
+        bad = w.add_connection("/joy_override", "sensor_msgs/msg/Joy", typestore=store)
+        w.write(bad, 1_600_000_000 * 10**9 + 10**8, b"\x00\x01\x00")
+    with pytest.raises(BagError, match=r"in the overrides, /joy_override.*--override-topic ''"):
+        read_streams(damaged, twist_topic="/twist")
+    assert read_streams(damaged, twist_topic="/twist", override_topic="").joy.shape[0] == 20
+    caplog.clear()
+    read_streams(path, twist_topic="/twist", override_topic="/joy_overide")
+    assert "override topic /joy_overide not found" in caplog.text
+    caplog.clear()
+    spaced = tmp_path / "spaced"
+    _write_custom(spaced, "geometry_msgs/msg/TwistStamped", overrides=(3,))
+    renamed = tmp_path / "renamed"
+    with (Writer(renamed, version=9, storage_plugin=StoragePlugin.MCAP) as w,
+          AnyReader([spaced], default_typestore=store) as r):
+        conns = {c.topic: w.add_connection(c.topic.replace("/joy_override",
+                                                           "/chair/joy_override"),
+                                           c.msgtype, typestore=store)
+                 for c in r.connections}
+        for c, t, raw in r.messages():
+            w.write(conns[c.topic], t, raw)
+    assert read_streams(renamed, twist_topic="/twist").override_t.size == 0
+    assert "the bag has /chair/joy_override: --override-topic /chair/joy_override" \
+        in caplog.text
+    assert read_streams(renamed, twist_topic="/twist",
+                        override_topic="/chair/joy_override").override_t.size == 1
+    caplog.clear()
+    read_streams(path, twist_topic="/twist")  # the default, absent: nothing to say
+    assert "override" not in caplog.text
+
+
 def test_ros1_custom_bag(tmp_path):
     path = tmp_path / "old.bag"
     _write_custom(path, "geometry_msgs/msg/TwistStamped", ros1=True)

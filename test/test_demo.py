@@ -264,6 +264,11 @@ def test_child_environment_isolates_the_demo():
     assert str(REPO) in env["PYTHONPATH"].split(os.pathsep)
     names = [name for name, _, _ in node_commands(DemoOptions(), Path("m.npz"), "/tmp/p")]
     assert names == ["hardware", "serial_bridge", "vo", "predictor"]
+    args = {name: a for name, _, a in node_commands(DemoOptions(), Path("m.npz"), "/tmp/p")}
+    assert "adapt.enabled:=true" not in args["predictor"]
+    args = {name: a for name, _, a in node_commands(DemoOptions(adapt=True), Path("m.npz"),
+                                                    "/tmp/p")}
+    assert args["predictor"][-2:] == ["-p", "adapt.enabled:=true"]
 
 
 def test_silent_components_are_named():

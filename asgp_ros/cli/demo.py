@@ -58,6 +58,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the output of an earlier demo in --out (a directory the "
                         "demo wrote; anything else there is refused)")
+    p.add_argument("--adapt", action="store_true",
+                   help="the predictor adapts its model online (adapt.enabled); the report "
+                        "shows what it learnt and what it refused (with --shared-control: "
+                        "the steps the layer's overrides drove)")
     p.add_argument("--startup-timeout", type=float, default=120.0,
                    help="seconds the nodes have to come up (%(default)s)")
     p.set_defaults(func=run)
@@ -78,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         force=args.force, shared_control=args.shared_control,
         inattention=args.inattention if args.inattention is not None
         else (0.1 if args.shared_control else 0.0),
-        velocity_source=args.velocity_source)
+        velocity_source=args.velocity_source, adapt=args.adapt)
     try:
         return run_demo(opts, say=lambda line: print(line, flush=True))
     except DemoError as exc:

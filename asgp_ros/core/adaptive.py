@@ -128,6 +128,11 @@ COVERAGE_EWMA = 0.01
 #: 300 / 900 / 1800 s gave 95.2 / 95.1 / 95.0 % and 89.2 / 89.4 / 89.5 %; 300 s follows the
 #: next change of floor sooner. ``benchmarks/adapt_half_life.py`` prints these figures.
 DEFAULT_HALF_LIFE_S = 300.0
+#: How late an override may reach the predictor (``Predictor.feed_override``) and still keep
+#: the steps it drove from being learnt: a step is absorbed at least this long after it
+#: (``settle_steps``).  Overrides come from a node on the same machine in milliseconds; a
+#: later one is counted (``PredictorStats.overrides_late``).
+OVERRIDE_DELAY_S = 0.5
 DEFAULT_TRAINED_HALF_LIFE_S = 10.0
 DEFAULT_TRAINED_FLOOR = 0.0
 #: The published posterior changes when a test of equal recent k-step error rejects at
@@ -396,12 +401,18 @@ class ModelAdapter:
 
     @staticmethod
     def default_settle_steps(model: MotionModel) -> int:
-        """Steps after which a grid step's stale-VO flag no longer changes (plus one)."""
+        """Steps after which a grid step's stale-VO flag no longer changes (plus one), and
+        at least ``OVERRIDE_DELAY_S`` (plus one): an override that arrives that late still
+        keeps the steps it drove from being learnt."""
         rc = model.resample_config
         windows = [w for w in (rc.stale_after_s, rc.stale_still_after_s) if math.isfinite(w)]
-        if not windows:
-            return 1
+        windows.append(OVERRIDE_DELAY_S)
         return min(math.ceil(max(windows) * rc.rate_hz - 1e-9) + 1, 50)
+
+    @property
+    def absorbed_to(self) -> int | None:
+        """The newest grid index absorbed or judged (None before the first)."""
+        return self._absorbed_to
 
     def history_steps(self) -> int:
         """Grid steps of history the adapter needs in each resampled window."""

@@ -199,6 +199,7 @@ class PredictorStats:
     resets: int = 0
     predictions: int = 0
     overrides: int = 0
+    overrides_late: int = 0
     rejected: dict[Reason, int] = field(default_factory=dict)
     last_rejected: str = ""
 
@@ -503,7 +504,7 @@ class Predictor:
         self._vo.prune(self.config.buffer_s)
         return True
 
-    def feed_override(self, t: float) -> bool:
+    def feed_override(self, t: float, now: float | None = None) -> bool:
         """Note that an override command was sent to the chair at time t (the shared-control
         layer's or a planner's ``joy_override``): around it the joystick fed here is not
         what drove the chair, so an adapting predictor learns nothing from the grid steps
@@ -511,20 +512,32 @@ class Predictor:
         training applies to a bag's overrides), nor checks a prediction against them.
         Predictions themselves are made as before.
 
+        An override that arrives after a step it drove was learnt (later than
+        ``adaptive.OVERRIDE_DELAY_S``) cannot undo it: it is counted in
+        ``stats.overrides_late``.
+
+        Args:
+            t: when it was sent, on the samples' clock.
+            now: the clock when it arrived: one stamped more than ``reset_jump_s`` ahead
+                is of another timeline and refused (as a plan's start); default: the
+                newest sample's stamp.
+
         Returns:
-            False if refused (a stamp that is not a valid time, or one more than
-            ``reset_jump_s`` ahead of the newest sample).
+            False if refused (a stamp that is not a valid time, or one too far ahead).
         """
         t = float(t)
         if not self._time_ok(t, "override"):
             return False
-        newest = self._newest()
-        if math.isfinite(newest) and t > newest + self.config.reset_jump_s:  # another
-            # timeline's, as a plan stamped that far ahead (below)
-            self._reject(Reason.REJECT_TIME, f"override stamped {t - newest:.3f} s ahead of "
-                         "the newest sample")
+        ref = self._newest() if now is None else float(now)
+        if math.isfinite(ref) and t > ref + self.config.reset_jump_s:  # another timeline's
+            self._reject(Reason.REJECT_TIME, f"override stamped {t - ref:.3f} s ahead of "
+                         f"{'the newest sample' if now is None else 'the clock'}")
             return False
         self.stats.overrides += 1
+        if self._adapter is not None and self._adapter.absorbed_to is not None:
+            first = math.ceil(t * self._model.resample_config.rate_hz - 1.0 - 1e-9)
+            if first <= self._adapter.absorbed_to:  # the first step it drove, learnt
+                self.stats.overrides_late += 1
         self._overrides.append(t)
         cutoff = self._newest() - self.config.buffer_s
         while self._overrides and self._overrides[0] < cutoff:

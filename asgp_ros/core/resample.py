@@ -488,9 +488,9 @@ def segment_ids(valid: BoolArray) -> IntArray:
 
 def overridden_points(t: FloatArray, override_t: FloatArray, config: ResampleConfig
                       ) -> BoolArray:
-    """The grid points ``t`` [T] an override sent at one of ``override_t`` (sorted) may have
-    driven: some o in (t - dt - ``override_hold_s``, t + dt] (see "Validity" in the module
-    docstring)."""
+    """The grid points ``t`` [T] an override sent at one of ``override_t`` may have driven:
+    some o in (t - dt - ``override_hold_s``, t + dt] (see "Validity" in the module
+    docstring).  ``override_t`` must be sorted (``RawStreams.override_t`` is)."""
     t = np.asarray(t, dtype=np.float64)
     o = np.asarray(override_t, dtype=np.float64)
     if o.size == 0 or t.size == 0:
@@ -503,8 +503,8 @@ def overridden_points(t: FloatArray, override_t: FloatArray, config: ResampleCon
 
 def exclude_overridden(res: Resampled, override_t: FloatArray, config: ResampleConfig
                        ) -> Resampled:
-    """``res`` with the points overrides sent at ``override_t`` may have driven marked
-    overridden and invalid, as :func:`resample` marks them when its streams carry the
+    """``res`` with the points overrides sent at ``override_t`` (sorted) may have driven
+    marked overridden and invalid, as :func:`resample` marks them when its streams carry the
     overrides (an online buffer predicts from the unmarked grid and learns from this one);
     ``res`` itself when none is."""
     mark = overridden_points(res.t, override_t, config) & ~res.overridden

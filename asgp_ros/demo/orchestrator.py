@@ -97,6 +97,7 @@ class DemoOptions:
         shared_control: also run ``shared_control_node`` on the simulated scanner.
         inattention: the simulated driver's inattention (0 = attentive).
         velocity_source: ``shared_control_node``'s velocity_source.
+        adapt: the predictor adapts its model online (``adapt.enabled``).
     """
 
     minutes: float = 2.0
@@ -116,6 +117,7 @@ class DemoOptions:
     shared_control: bool = False
     inattention: float = 0.0
     velocity_source: str = "auto"
+    adapt: bool = False
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -268,7 +270,8 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
          ["--ros-args", *params("bridge.yaml"), "-p", f"port:={port}"]),
         ("vo", "asgp_ros.nodes.vo_node:main", ["--ros-args", *params("vo.yaml")]),
         ("predictor", "asgp_ros.nodes.predictor_node:main",
-         ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}"]),
+         ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}",
+          *(["-p", "adapt.enabled:=true"] if opts.adapt else [])]),
     ] + ([("shared_control", "asgp_ros.nodes.shared_control_node:main",
            ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}",
             "-p", f"velocity_source:={opts.velocity_source}"])]

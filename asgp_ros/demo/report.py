@@ -147,7 +147,7 @@ def _cm(x: float | None) -> str:
 
 def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
              latencies: list[dict[str, Any]], extras: dict[str, Any],
-             shared: list[str] | None = None) -> str:
+             shared: list[str] | None = None, adaptation: list[str] | None = None) -> str:
     lines = ["# asgp demo report", ""]
     o = state.options
     lines.append(
@@ -206,6 +206,8 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
             lines.append(f"- {k}: {v}")
     if shared:
         lines += ["", "## Shared control", "", *shared]
+    if adaptation:
+        lines += ["", "## Adaptation", "", *adaptation]
     lines += ["", "![demo](demo.png)", ""]
     return "\n".join(lines)
 
@@ -258,6 +260,32 @@ def shared_control_summary(state: RunState, monitor: MonitorNode
         f"| decision time p50 / p99 | - | {data['solve_p50_ms']} / {data['solve_p99_ms']} ms |",
         f"| minimum clearance (with the layer) | - | {data['min_clearance_m']} m |",
     ]
+    return lines, data
+
+
+#: The predictor's adaptation diagnostics the report shows: (key, what it is).
+ADAPT_KEYS = (
+    ("adapt_rows_absorbed", "steps learnt from"),
+    ("adapt_steps_refused", "steps refused (not valid training rows: VO lost or stuck, "
+                            "a gap, an override)"),
+    ("overrides_seen", "overrides seen on joy_override"),
+    ("adapt_published", "posterior published at the end"),
+    ("adapt_variance_scale", "variance scale per speed regime"),
+    ("adapt_coverage_95", "95 % ellipse coverage of the checked predictions"),
+    ("adapt_switches", "switches between the trained and the adapted posterior"),
+)
+
+
+def adaptation_summary(state: RunState, monitor: MonitorNode
+                       ) -> tuple[list[str], dict[str, str]]:
+    """The report's adaptation section (empty unless the predictor adapted), from the
+    predictor's last diagnostics."""
+    if not state.options.get("adapt"):
+        return [], {}
+    data = {key: monitor.diag_value("predictor_node", key) or "n/a" for key, _ in ADAPT_KEYS}
+    lines = ["The predictor adapted its model online (`adapt.enabled`); from its last "
+             "diagnostics:", "", "| | |", "|---|---|"]
+    lines += [f"| {what} | {data[key]} |" for key, what in ADAPT_KEYS]
     return lines, data
 
 
@@ -450,7 +478,12 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
         data["shared_control"] = shared_data
         atomic_write_text(out / "report.json",
                           json.dumps(_clean(data), indent=2, default=str) + "\n")
-    text = markdown(state, rows, cpu, lat, extras, shared)
+    adaptation, adaptation_data = adaptation_summary(state, monitor)
+    if adaptation_data:
+        data["adaptation"] = adaptation_data
+        atomic_write_text(out / "report.json",
+                          json.dumps(_clean(data), indent=2, default=str) + "\n")
+    text = markdown(state, rows, cpu, lat, extras, shared, adaptation)
     atomic_write_text(out / "report.md", text)
     written["report"] = out / "report.md"
     say("")

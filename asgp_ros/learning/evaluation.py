@@ -379,7 +379,7 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
         elif kind == 1.0:
             pred.feed_vo(t, raw.vel[j], bool(vel_ok[j]))
         else:
-            pred.feed_override(t)
+            pred.feed_override(t, now=t)
             continue
         step = pred.ready_step()
         if step is None or step == last_step:

@@ -486,8 +486,9 @@ class PredictorNode(Node):
     def _on_override(self, msg: Joy) -> None:
         """An override sent to the chair: when adapting, the steps it may have driven are
         not learnt from (the joystick here is the user's, not what drove the chair)."""
-        t = self._stamp(conv.stamp_to_seconds(msg.header.stamp), self._now())
-        if not self.predictor.feed_override(t):
+        now = self._now()
+        t = self._stamp(conv.stamp_to_seconds(msg.header.stamp), now)
+        if not self.predictor.feed_override(t, now=now):
             self._warn_rejected()
 
     def _on_twist(self, msg: TwistStamped) -> None:
@@ -678,6 +679,7 @@ class PredictorNode(Node):
             **self._vo_frame.values(),
             "buffer_resets": str(stats.resets),
             "overrides_seen": str(stats.overrides),
+            "overrides_late": str(stats.overrides_late),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
         }

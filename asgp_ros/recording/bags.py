@@ -332,6 +332,21 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     return bag_ns, rows
 
 
+def _warn_no_override_topic(reader: Any, topic: str, source: str) -> None:
+    """Say so when the override topic asked for is not in the bag but another one may be
+    (a namespaced recording), or when it was not the default (a typo)."""
+    others = sorted({c.topic for c in reader.connections
+                     if isinstance(c.topic, str) and c.topic != topic
+                     and c.topic.rstrip("/").rsplit("/", 1)[-1] == "joy_override"})
+    if others:
+        log.warning("%s: no override topic %s, but the bag has %s: --override-topic %s "
+                    "reads it (its steps are then not trained on)", source, topic,
+                    ", ".join(others), others[0])
+    elif topic != BAG_JOY_OVERRIDE:
+        log.warning("%s: override topic %s not found; the bag has: %s", source, topic,
+                    _topics_listing(reader))
+
+
 def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = None) -> Any:
     """An open rosbags reader of the bag, or a reader over a scan of it (keeping the data
     of ``topics``) when the recording was killed (no metadata.yaml) or its storage does
@@ -418,8 +433,16 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
         jb, jr = _collect(reader, joy_conns, joy_row, source)
         vb, vr = _collect(reader, tw_conns, twist_row, source)
         tb, tr = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [])
-        ob, orows = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),), source)
-                     if ov_conns else ([], []))
+        try:
+            ob, orows = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),), source)
+                         if ov_conns else ([], []))
+        except (BagError, _DamagedDataError) as exc:
+            raise type(exc)(
+                f"{exc} (in the overrides, {override_topic}: without them the steps they "
+                f"drove cannot be told apart; --override-topic '' reads the bag as if it had "
+                f"none)") from exc
+        if override_topic and not ov_conns:
+            _warn_no_override_topic(reader, override_topic, source)
         return jb, jr, vb, vr, tb, tr, tw_conns, ob, orows
     finally:
         reader.close()
