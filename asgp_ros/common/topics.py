@@ -41,6 +41,11 @@ CAMERA_INFO = "camera/color/camera_info"
 GROUND_TRUTH = "ground_truth/odom"
 
 
+def is_override(name: str) -> bool:
+    """A topic of commands to the chair: ``joy_override``, in any namespace."""
+    return name.rstrip("/").rsplit("/", 1)[-1] == JOY_OVERRIDE
+
+
 def in_bag(name: str) -> str:
     """The absolute name under which a topic is recorded from the root namespace."""
     return name if name.startswith("/") else "/" + name

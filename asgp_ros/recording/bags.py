@@ -64,7 +64,7 @@ import yaml
 from numpy.typing import NDArray
 
 from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST, is_override
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
@@ -337,7 +337,7 @@ def _warn_no_override_topic(reader: Any, topic: str, source: str) -> None:
     (a namespaced recording), or when it was not the default (a typo)."""
     others = sorted({c.topic for c in reader.connections
                      if isinstance(c.topic, str) and c.topic != topic
-                     and c.topic.rstrip("/").rsplit("/", 1)[-1] == "joy_override"})
+                     and is_override(c.topic)})
     if others:
         log.warning("%s: no override topic %s, but the bag has %s: --override-topic %s "
                     "reads it (its steps are then not trained on)", source, topic,

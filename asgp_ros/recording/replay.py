@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from asgp_ros.common.topics import JOY_OVERRIDE
+from asgp_ros.common.topics import is_override as is_command
 from asgp_ros.recording.bags import BagError, resolve_bag
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
@@ -479,11 +479,6 @@ class BagReplayer:
                 return
             if topic.publisher is not None:
                 topic.publisher.wait_for_all_acked(Duration(seconds=1.0))
-
-
-def is_command(topic: str) -> bool:
-    """A topic that commands the chair (``joy_override``, in any namespace)."""
-    return topic.rstrip("/").rsplit("/", 1)[-1] == JOY_OVERRIDE
 
 
 def summary(replayer: BagReplayer) -> Sequence[str]:
