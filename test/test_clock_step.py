@@ -262,12 +262,13 @@ def _build(module: str, context, tmp_path: Path, sim_time: bool):
 @pytest.mark.parametrize("sim_time", [False, True], ids=["system_time", "sim_time"])
 @pytest.mark.parametrize("module", [*NODES, "serial_bridge_node"])
 def test_every_timer_runs_on_the_pacing_clock(rclpy_context, tmp_path, module, sim_time):
-    if module == "serial_bridge_node" and sim_time:
-        pytest.skip("the bridge refuses use_sim_time (test_serial_bridge_node)")
     """Each timer of each node: the steady clock, or the ROS clock with use_sim_time (so a
     replayed bag paces it). The process test above steps the clock for one timer of each
     node; this one covers them all (the shared-control layer's overrides and watchdog)."""
     from rclpy.clock import ClockType
+
+    if module == "serial_bridge_node" and sim_time:
+        pytest.skip("the bridge refuses use_sim_time (test_serial_bridge_node)")
 
     node = _build(module, rclpy_context, tmp_path, sim_time)
     try:
@@ -275,5 +276,36 @@ def test_every_timer_runs_on_the_pacing_clock(rclpy_context, tmp_path, module, s
         assert len(timers) >= 1
         want = ClockType.ROS_TIME if sim_time else ClockType.STEADY_TIME
         assert [t.clock.clock_type for t in timers] == [want] * len(timers)
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize("sim_time", [False, True], ids=["system_time", "sim_time"])
+@pytest.mark.parametrize("module", list(NODES))
+def test_the_clock_is_not_switched_while_a_node_runs(rclpy_context, tmp_path, module,
+                                                     sim_time):
+    """use_sim_time switched at runtime left the timers on the clock chosen at start-up:
+    refused with the reason, and the clock stays as it was; setting the value it has is
+    fine. The layer and the VO refuse their start-up parameters too (the layer accepted
+    them without a word and went on with the old values)."""
+    from rclpy.clock import ClockType
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes.parameters import SIM_TIME_AT_START
+
+    node = _build(module, rclpy_context, tmp_path, sim_time)
+    try:
+        result = node.set_parameters([Parameter("use_sim_time", value=not sim_time)])[0]
+        assert not result.successful and result.reason == SIM_TIME_AT_START
+        assert node.get_parameter("use_sim_time").value is sim_time
+        want = ClockType.ROS_TIME if sim_time else ClockType.STEADY_TIME
+        assert [t.clock.clock_type for t in node.timers] == [want] * len(list(node.timers))
+        assert node.get_clock().ros_time_is_active is sim_time
+        assert node.set_parameters([Parameter("use_sim_time", value=sim_time)])[0].successful
+        if module != "predictor_node":  # its runtime parameters: test_predictor_node
+            name = "threshold" if module == "shared_control_node" else "sync_tolerance_s"
+            result = node.set_parameters([Parameter(name, value=0.07)])[0]
+            assert not result.successful and "read at start-up" in result.reason
+            assert node.get_parameter(name).value != 0.07
     finally:
         node.destroy_node()

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Container, Iterable
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from asgp_ros.common.paramspec import ParamSpec
 
@@ -35,3 +41,31 @@ def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, object]:
         node.declare_parameter(spec.name, spec.default, descriptor(spec))
         values[spec.name] = node.get_parameter(spec.name).value
     return values
+
+
+#: Why a node refuses to switch ``use_sim_time`` while it runs.
+SIM_TIME_AT_START = ("use_sim_time is read at start-up (the node's timers run on the clock it "
+                     "chose then): restart the node to change it")
+
+
+def sim_time_change(node: Node, params: Iterable[Parameter]) -> str | None:
+    """Why ``params`` may not be applied to ``node``, if they switch its ``use_sim_time``
+    (a change to the value it has is no switch); else None."""
+    for prm in params:
+        if prm.name == "use_sim_time" and prm.value != node.get_parameter(prm.name).value:
+            return SIM_TIME_AT_START
+    return None
+
+
+def refuse_at_runtime(node: Node, names: Container[str], who: str
+                      ) -> Callable[[list[Parameter]], SetParametersResult]:
+    """An on-set-parameters callback for a node whose parameters ``names`` are all read at
+    start-up: a change of one of them, or of ``use_sim_time``, is refused with the reason
+    (without a callback rclpy would accept it and nothing would change)."""
+    def callback(params: list[Parameter]) -> SetParametersResult:
+        why = sim_time_change(node, params)
+        for prm in params:
+            if why is None and prm.name in names:
+                why = f"{prm.name} is read at start-up: restart {who} to change it"
+        return SetParametersResult(successful=why is None, reason=why or "")
+    return callback

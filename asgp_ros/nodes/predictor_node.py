@@ -75,7 +75,7 @@ from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.parameters import declare, sim_time_change
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "predictor_node"
@@ -422,6 +422,9 @@ class PredictorNode(Node):
     # ---- parameters ------------------------------------------------------------------
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        why = sim_time_change(self, params)
+        if why is not None:
+            return SetParametersResult(successful=False, reason=why)
         changes = {prm.name: prm.value for prm in params if prm.name in SPECS}
         if not changes:
             return SetParametersResult(successful=True)

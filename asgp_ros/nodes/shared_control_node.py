@@ -87,7 +87,7 @@ from asgp_ros.core.shared_control import (
 )
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.parameters import declare, refuse_at_runtime
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
@@ -279,6 +279,8 @@ class SharedControlNode(Node):
         except (ValueError, TypeError) as exc:
             self.destroy_node()
             raise StartupError(f"invalid parameters: {exc}") from exc
+        self.add_on_set_parameters_callback(
+            refuse_at_runtime(self, {spec.name for spec in PARAMS}, NODE_NAME))
         p = self.params
         try:
             self.model = load_model(p.model_path)

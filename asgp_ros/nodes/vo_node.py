@@ -31,16 +31,14 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
 
 from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.parameters import declare, refuse_at_runtime
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
 from asgp_ros.vo.planar import PlanarOdometry
@@ -67,7 +65,7 @@ class VONode(Node):
         super().__init__("vo_node", **kwargs)
         # raises ValueError naming the parameter: the node does not start with bad values
         self.params: VONodeParams = vo_node_params(declare(self, PARAMS))
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_on_set_parameters_callback(refuse_at_runtime(self, SPECS, "vo_node"))
         p = self.params
         reliable = QoSProfile(depth=10)
         self._twist_pub = self.create_publisher(TwistStamped, topics.VO_TWIST, reliable)
@@ -102,14 +100,6 @@ class VONode(Node):
             f"{p.extrinsic.yaw:.2f} rad, pitch {p.extrinsic.pitch:.2f} rad in {p.base_frame}")
 
     # -- parameters ----------------------------------------------------------------------
-
-    def _on_set_parameters(self, changes: list[Parameter]) -> SetParametersResult:
-        for change in changes:
-            if change.name in SPECS:
-                return SetParametersResult(
-                    successful=False,
-                    reason=f"{change.name} is read at start-up: restart vo_node to change it")
-        return SetParametersResult(successful=True)
 
     # -- input ---------------------------------------------------------------------------
 
