@@ -124,8 +124,10 @@ def run(args: argparse.Namespace) -> int:
     except EvaluationError as exc:
         raise CommandError(str(exc)) from exc
     result = ev.to_json()
+    overridden = sum(int(t.res.overridden.sum()) for t in tests)
     print(f"{args.model} ({ev.kind}, s={ev.lags}) on {len(tests)} bag(s), threshold "
-          f"{100 * args.threshold:.0f} cm")
+          f"{100 * args.threshold:.0f} cm"
+          + (f"; {overridden} grid points overridden (not scored)" if overridden else ""))
     print(format_table(result))
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")

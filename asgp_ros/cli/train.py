@@ -163,7 +163,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {args.out}: {model.kind}, s={fc.lags}"
           f"{', coupled' if fc.coupled else ''}, {summary['training_rows']} rows from "
           f"{len(summary['bags'])} bag(s), {summary['segments']} segments, stale "
-          f"{100 * summary['stale_fraction']:.1f}%")
+          f"{100 * summary['stale_fraction']:.1f}%"
+          + (f", {summary['overridden_samples']} grid points overridden (not trained on)"
+             if summary.get("overridden_samples") else ""))
     cal = model.meta.get("calibration", {})
     if cal.get("fitted") and not cal.get("applied", True):
         print(f"calibration {cal['reason']}")
