@@ -691,7 +691,8 @@ class Soak:
         opts = DemoOptions(minutes=args.minutes, seed=args.seed, domain_id=domain,
                            out=self.out, model=model, train=False,
                            shared_control=args.shared_control,
-                           inattention=args.inattention if args.shared_control else 0.0)
+                           inattention=args.inattention if args.shared_control else 0.0,
+                           adapt=args.adapt)
         self.commands = {name: (entry, argv) for name, entry, argv
                          in node_commands(opts, model, port)}
         self.commands[HARNESS] = ("soak:hardware_main", self.commands[HARNESS][1])
@@ -1065,6 +1066,17 @@ class Soak:
         for e in self.soak_errors:
             print("  soak: " + e)
 
+        # -- the predictor's adaptation at the end (its last diagnostics)
+        pred = mon.diag.get("predictor_node: prediction", {})
+        adaptation = {k: v for k, v in pred.items()
+                      if k.startswith("adapt") or k.startswith("overrides_")}
+        if a.adapt:
+            print("adaptation at the end: " + ", ".join(
+                f"{k} {adaptation.get(k, 'n/a')}" for k in (
+                    "adapt_rows_absorbed", "adapt_steps_refused", "overrides_seen",
+                    "overrides_late", "adapt_published", "adapt_variance_scale",
+                    "adapt_coverage_95")))
+
         # -- verdict
         judged = [r for r in growth_rows if r["growth"] is not None and r["role"] != HARNESS]
         rss_ok = bool(judged) and all(abs(r["growth"][2]) <= TARGET_RSS_PCT for r in judged)
@@ -1083,6 +1095,7 @@ class Soak:
             "paths": mon.paths, "poses": mon.poses, "layer_why": mon.layer_why,
             "stalls": stalls, "targets": {"rss": rss_ok, "exceptions": exc_ok,
                                             "shutdowns": shut_ok},
+            "adaptation": adaptation,
         }
         (self.out / "soak.json").write_text(json.dumps(result, indent=1, default=str))
         worst_text = (f"worst {worst[1]:+.2f} % ({worst[0]})" if worst
@@ -1124,6 +1137,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--inattention", type=float, default=0.1,
                     help="with --shared-control: the simulated driver's inattention, so "
                          "that the layer intervenes (0.1)")
+    ap.add_argument("--adapt", action="store_true",
+                    help="the predictor adapts online (adapt.enabled); its adaptation state "
+                         "at the end is in the report")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.minutes) and 1.0 <= args.minutes <= 600.0):
         ap.error("--minutes must be in [1, 600]")
