@@ -362,7 +362,8 @@ def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
 def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_path):
     """A bag recorded with the shared-control layer holds joy_override: replayed, a running
     bridge would write it to the board. It is played only with commands=True (--commands),
-    when named in topics, or remapped to a name no bridge listens to."""
+    when named in topics, or remapped to a name no bridge listens to; a name rcl resolves
+    to an override ({ns}joy_override) is one."""
     import rclpy
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -372,7 +373,7 @@ def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_pa
     T = store.types
     path = tmp_path / "layer_bag"
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        for topic in ("/joy", "/joy_override", "/chair/joy_override"):
+        for topic in ("/joy", "/joy_override", "/chair/joy_override", "{ns}joy_override"):
             c = w.add_connection(topic, "sensor_msgs/msg/Joy", typestore=store)
             msg = T["sensor_msgs/msg/Joy"](
                 header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
@@ -385,14 +386,23 @@ def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_pa
             with BagReplayer(path, ReplayConfig(**kw), node) as r:
                 return {t.out_name for t in r.topics.values()}, r.skipped_commands
 
-        assert played() == ({"/joy"}, ["/chair/joy_override", "/joy_override"])
-        assert played(commands=True)[0] == {"/joy", "/joy_override", "/chair/joy_override"}
+        assert played() == ({"/joy"}, ["/chair/joy_override", "/joy_override",
+                                       "{ns}joy_override"])
+        assert played(commands=True)[0] == {"/joy", "/joy_override", "/chair/joy_override",
+                                            "{ns}joy_override"}
         assert played(topics=("/joy", "/joy_override"))[0] == {"/joy", "/joy_override"}
         assert played(remap=(("/joy_override", "/replayed/override"),))[0] == {
             "/joy", "/replayed/override"}
-        # a topic remapped onto a command's name is a command
+        # a topic remapped onto a command's name is a command, named as such, even when
+        # named in topics; a name rcl resolves to one (a substitution) is one
         with pytest.raises(ReplayError, match="not a command to the chair"):
             played(remap=(("/joy", "/x/joy_override"),))
+        with pytest.raises(ReplayError, match="not a command to the chair"):
+            played(topics=("/joy",), remap=(("/joy", "/joy_override"),))
+        assert played(topics=("/joy",), remap=(("/joy", "/joy_override"),),
+                      commands=True)[0] == {"/joy_override"}
+        with pytest.raises(ReplayError, match="not a command to the chair"):
+            played(remap=(("/joy", "{ns}joy_override"),))
     finally:
         node.destroy_node()
     assert is_command("joy_override") and is_command("/a/b/joy_override/")

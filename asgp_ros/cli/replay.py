@@ -42,9 +42,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="/clock updates per second between messages (default 100)")
     p.add_argument("--no-clock", action="store_true", help="do not publish /clock")
     p.add_argument("--commands", action="store_true",
-                   help="also play the commands to the chair the bag holds (joy_override), "
-                        "which a running serial bridge would write to the board; by default "
-                        "they are not played")
+                   help="also play the commands to the chair the bag holds (joy_override, "
+                        "in any namespace), which a running serial bridge would write to the "
+                        "board; by default they are not played, unless named in --topics or "
+                        "remapped to another name")
     p.add_argument("--remap", nargs="+", default=[], metavar="FROM:=TO",
                    help="publish bag topic FROM on topic TO")
     p.add_argument("--wait-subscribers",

@@ -327,9 +327,12 @@ class BagReplayer:
         for topic, conns in sorted(by_topic.items()):
             if wanted and topic not in wanted:
                 continue
-            if (is_command(remap.get(topic, topic)) and not self.config.commands
-                    and topic not in wanted):
-                self.skipped_commands.append(topic)
+            out = remap.get(topic, topic)
+            # a command asked for by its own name (--topics) is played; one that becomes a
+            # command by a remap needs --commands
+            asked = topic in wanted and out == topic
+            if self._commands_the_chair(out) and not (self.config.commands or asked):
+                self.skipped_commands.append(topic if out == topic else f"{topic} (as {out})")
                 continue
             msgtype = conns[0].msgtype
             try:
@@ -357,6 +360,16 @@ class BagReplayer:
             but = " that is not a command to the chair" if self.skipped_commands else ""
             raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type"
                               f"{but})")
+
+    def _commands_the_chair(self, name: str) -> bool:
+        """Whether publishing on ``name`` reaches the chair: ``joy_override`` in any
+        namespace, judged on the name rcl would publish on (substitutions such as ``{ns}``
+        expanded); a name rcl cannot resolve is judged as written."""
+        try:
+            resolved = self.node.resolve_topic_name(name)
+        except Exception:  # an invalid name: the publisher will refuse it too
+            resolved = name
+        return is_command(resolved) or is_command(name)
 
     def create_publishers(self) -> None:
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
