@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from asgp_ros.serial.override_gate import OverrideGate
+from asgp_ros.serial.override_gate import MAX_AHEAD_S, OverrideGate
 
 T = 0.15  # override_timeout
 
@@ -44,9 +44,21 @@ def test_a_late_command_stops_counting_timeout_after_its_stamp():
 
 def test_a_stamp_ahead_of_the_clock_is_still_bounded_by_arrival():
     g = OverrideGate()
-    assert g.offer((0.4, 0.0), 130.0, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.offer((0.4, 0.0), 100.9, arrival=10.0, clock_now=100.0, timeout=T)
     assert g.fresh(10.1, 100.1, T) == (0.4, 0.0)
     assert g.fresh(10.2, 100.2, T) is None
+
+
+@pytest.mark.parametrize("ahead", [MAX_AHEAD_S + 0.01, 30.0, 86400.0])
+def test_a_stamp_of_another_timeline_ahead_is_refused(ahead):
+    """A layer on a replayed /clock a day ahead judges data that are not the chair's: its
+    overrides are refused, counted, and said to be ahead."""
+    g = OverrideGate()
+    assert not g.offer((0.4, 0.0), 100.0 + ahead, arrival=10.0, clock_now=100.0, timeout=T)
+    assert g.fresh(10.01, 100.01, T) is None and g.refused_stale == 1
+    assert g.refusing(10.5) and f"{ahead:.3f} s ahead" in g.refusal(T)
+    assert not g.offer((0.4, 0.0), 99.0, arrival=11.0, clock_now=100.0, timeout=T)
+    assert "1.000 s before this node's clock" in g.refusal(T)
 
 
 @pytest.mark.parametrize("bad", [math.nan, -math.inf])

@@ -186,9 +186,7 @@ class SerialBridgeNode(Node):
         if not self._gate.offer(command, stamp, time.monotonic(), self._clock_s(),
                                 self.params.override_timeout):
             self.get_logger().warn(
-                f"joy_override refused: stamped {self._gate.last_refused_age:.3f} s before "
-                f"this node's clock, older than override_timeout "
-                f"{self.params.override_timeout} s (delivered late, or the clocks differ)",
+                f"joy_override refused: {self._gate.refusal(self.params.override_timeout)}",
                 throttle_duration_sec=1.0)
 
     def _clock_s(self) -> float:
@@ -297,9 +295,8 @@ class SerialBridgeNode(Node):
             flags = board_status.flag_names(s.status)
         if not fresh and gate.refusing(now):
             verdict = board_status.Verdict(
-                "WARN", f"refused: joy_override arrives stamped {gate.last_refused_age:.3f} s "
-                        f"old, past override_timeout (delivered late, or the publisher's "
-                        f"clock is behind this node's); the user drives")
+                "WARN", f"refused: joy_override arrives "
+                        f"{gate.refusal(self.params.override_timeout)}; the user drives")
         return conv.diagnostic_status(
             "serial_bridge: override", verdict.level,
             f"{verdict.message} (board mode {board_mode})", st.port, {

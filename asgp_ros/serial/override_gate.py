@@ -14,15 +14,21 @@ clocks:
   command stops counting as fresh ``timeout`` after its stamp even if it arrived late.
 
 An unstamped command (``header.stamp`` zero, as ``ros2 topic pub`` sends by default) is
-judged by arrival alone. A stamp ahead of the bridge's clock is accepted (arrival still
-bounds it). A publisher whose clock runs behind the bridge's by more than ``timeout`` has
-every override refused: the user keeps the chair, and the bridge's diagnostics say why.
+judged by arrival alone. A stamp up to ``MAX_AHEAD_S`` ahead of the bridge's clock is
+accepted (clocks of two machines differ a little; arrival still bounds it); one further
+ahead is of another timeline (a node on a replayed or simulated ``/clock``, judging data
+that are not the chair's) and is refused. A publisher whose clock runs behind the
+bridge's by more than ``timeout``, or ahead by more than ``MAX_AHEAD_S``, has every
+override refused: the user keeps the chair, and the bridge's diagnostics say why.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+#: A stamp further ahead of the bridge's clock than this (s) is of another timeline.
+MAX_AHEAD_S = 1.0
 
 
 @dataclass
@@ -40,11 +46,11 @@ class OverrideGate:
               clock_now: float, timeout: float) -> bool:
         """Takes ``command`` received at ``arrival`` (monotonic) with header ``stamp``
         (ROS seconds, None if unstamped) when the ROS clock reads ``clock_now``; returns
-        False, counting it, if its stamp is already more than ``timeout`` old (or the age
-        is not a finite number)."""
+        False, counting it, if its stamp is already more than ``timeout`` old, more than
+        ``MAX_AHEAD_S`` ahead, or the age is not a finite number."""
         if stamp is not None:
             age = clock_now - stamp
-            if not (math.isfinite(age) and age <= timeout):
+            if not (math.isfinite(age) and -MAX_AHEAD_S <= age <= timeout):
                 self.refused_stale += 1
                 self.last_refusal = arrival
                 self.last_refused_age = age
@@ -60,6 +66,16 @@ class OverrideGate:
         if self.stamp is not None and not clock_now - self.stamp <= timeout:
             return None
         return self.command
+
+    def refusal(self, timeout: float) -> str:
+        """Why the last refused command was refused, in words."""
+        age = self.last_refused_age
+        if math.isfinite(age) and age < 0.0:
+            return (f"stamped {-age:.3f} s ahead of this node's clock, more than "
+                    f"{MAX_AHEAD_S:g} s (another timeline: a publisher on a replayed or "
+                    f"simulated /clock?)")
+        return (f"stamped {age:.3f} s before this node's clock, older than override_timeout "
+                f"{timeout} s (delivered late, or the publisher's clock is behind)")
 
     def age(self, mono_now: float) -> float:
         """Seconds since the last accepted command arrived (inf: none yet)."""
