@@ -547,6 +547,27 @@ def test_the_adaptive_replay_feeds_the_overrides(model: MotionModel) -> None:
     assert blind["adaptation"]["rows_absorbed"] - absorbed >= 15 * RC.rate_hz
 
 
+def test_the_adaptive_replay_learns_at_every_step_as_the_node(model: MotionModel) -> None:
+    """`asgp evaluate --adapt` learns what the node learns: at every step, not only where a
+    case starts. Around a 12 s VO loss (longer than the buffer) no case starts in the last
+    k steps before it, and a replay asked only at case starts never learnt them."""
+    s = drive(90.0, seed=25)
+    ok = s.vel_ok.copy()
+    ok[(s.vel_t > T0 + 40.0) & (s.vel_t < T0 + 52.0)] = False
+    s = RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=s.vel, vel_ok=ok)
+    res = resample(s, RC)
+    settings = AdaptSettings(AdaptConfig(max_distance=None))
+    got = _replay_series(model, TestSeries("loss", res, s), 10, FC.lags, settings,
+                         PredictorConfig(horizon_steps=10))
+    node = Predictor(model, PredictorConfig(horizon_steps=10), adapt=settings)
+    replay(node, s)  # a prediction at every completed step, as predictor_node makes
+    want = node.adaptation
+    assert want is not None
+    state = got["adaptation"]
+    assert (state["rows_absorbed"], state["steps_refused"], state["checked"]) == (
+        want.rows_absorbed, want.steps_refused, want.checked)
+
+
 def test_the_adaptive_replay_never_peeks(model: MotionModel) -> None:
     """Predictions made before T are bit-identical whether what follows T is the real
     drive or garbage (other velocities, another joystick)."""

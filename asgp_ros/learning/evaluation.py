@@ -345,9 +345,10 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
     """Replay one recording's raw samples through an adapting online Predictor.
 
     Samples (and the overrides sent, ``RawStreams.override_t``) are fed in stamp order;
-    whenever a new grid step L completes and L + 1 starts an evaluation case, the
-    predictor is asked, at the stamp of the sample that completed L, for the path under
-    the recorded future joystick.  It therefore sees only samples
+    whenever a new grid step L completes, the predictor is asked, at the stamp of the
+    sample that completed L, for the path under the recorded future joystick (at every
+    step, as the node predicts and learns at every step; the paths of the steps where an
+    evaluation case starts, L + 1, are kept).  It therefore sees only samples
     stamped at or before that moment: the replay cannot peek.
     """
     # imported when an adaptive evaluation runs (the online predictor and the adapter add
@@ -386,16 +387,22 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
             continue
         last_step = step
         i = step - k0  # grid index of L in res
-        if i + 1 not in starts:
+        if not 0 <= i < joy_future_all.shape[0]:
             continue
         future = joy_future_all[i + 1:i + 1 + k_max]
+        if future.shape[0] == 0:
+            future = joy_future_all[i:i + 1]
         if future.shape[0] < k_max:
             future = np.concatenate([future, np.repeat(future[-1:], k_max - future.shape[0], 0)])
         bad = ~np.all(np.isfinite(future), axis=1)
         for r in np.flatnonzero(bad):
             future[r] = future[r - 1] if r > 0 else joy_future_all[i]
+        if i + 1 not in starts:  # not scored: any finite future serves the learning
+            future = np.nan_to_num(future, nan=0.0, posinf=0.0, neginf=0.0)
+        # at every step, as the node does (it learns from each window it predicts from,
+        # and checks each prediction), though only the cases are scored
         p = pred.predict(float(t), future)
-        if not p.ok or p.step != step:
+        if i + 1 not in starts or not p.ok or p.step != step:
             continue
         regime = int(model.calibration.regime(p.vel_past[-1, 0]))
         out["idx"].append(i + 1)
