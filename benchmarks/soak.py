@@ -101,6 +101,7 @@ from asgp_ros.demo.orchestrator import (  # noqa: E402
     train_model,
 )
 from asgp_ros.demo.processes import Child, ProcessGroup, proc_cpu_seconds  # noqa: E402
+from asgp_ros.demo.report import ADAPT_KEYS  # noqa: E402
 from asgp_ros.demo.simhw import STEP_S  # noqa: E402
 from asgp_ros.nodes import conversions as conv  # noqa: E402
 
@@ -1072,10 +1073,7 @@ class Soak:
                       if k.startswith("adapt") or k.startswith("overrides_")}
         if a.adapt:
             print("adaptation at the end: " + ", ".join(
-                f"{k} {adaptation.get(k, 'n/a')}" for k in (
-                    "adapt_rows_absorbed", "adapt_steps_refused", "overrides_seen",
-                    "overrides_late", "adapt_published", "adapt_variance_scale",
-                    "adapt_coverage_95")))
+                f"{k} {adaptation.get(k, 'n/a')}" for k, _ in ADAPT_KEYS))
 
         # -- verdict
         judged = [r for r in growth_rows if r["growth"] is not None and r["role"] != HARNESS]

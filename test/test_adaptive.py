@@ -498,7 +498,8 @@ def _learnt_as_training(model: MotionModel, pred: Predictor, s: RawStreams,
 def test_an_override_up_to_half_a_second_late_is_never_learnt(model: MotionModel) -> None:
     """Steps are absorbed at least OVERRIDE_DELAY_S after them, whatever the stale-VO rule
     (here off, which alone would absorb a step one period after it): overrides arriving
-    0.4 s late keep every step they drove out; 1.5 s late they cannot, and say so."""
+    0.4 s late keep every step they drove out; 1.5 s late they cannot, and say so; 0.9 s
+    late, each is kept out by the one before it, and none is counted late."""
     rc = ResampleConfig(vel_stamp="frame", stale_after_s=math.inf,
                         stale_still_after_s=math.inf)
     m = MotionModel(kind="asgp", feature_config=FC, resample_config=rc,
@@ -512,6 +513,10 @@ def test_an_override_up_to_half_a_second_late_is_never_learnt(model: MotionModel
     late = _learn_with_late_overrides(m, s, 1.5, settings)
     assert not _learnt_as_training(m, late, s, settings)
     assert late.stats.overrides_late >= 1
+    # later than the settle time but kept out by the overrides before it: not counted
+    kept = _learn_with_late_overrides(m, s, 0.9, settings)
+    assert _learnt_as_training(m, kept, s, settings)
+    assert kept.stats.overrides_late == 0
 
 
 def test_overrides_through_a_sensor_outage_are_kept(model: MotionModel) -> None:

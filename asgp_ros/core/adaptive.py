@@ -16,7 +16,9 @@ calibration's shape stay as trained):
    forgetting.  A step is absorbed only once it is ``settle_steps`` behind the newest
    complete step: the stale-VO rule judges a run of repeated readings by its length, so
    a step at the live edge may still turn out stale; after the settle time its flag is
-   what the whole recording would give.  Settled steps are absorbed in blocks of
+   what the whole recording would give.  The settle time is also at least
+   ``OVERRIDE_DELAY_S``: an override that arrives that late still keeps the steps it may
+   have driven out (``Predictor.feed_override``).  Settled steps are absorbed in blocks of
    ``update_steps`` (a second at 5 Hz by default): a step's statistics cost O(M^2), a
    published posterior O(M^3).
 
@@ -355,7 +357,8 @@ class ModelAdapter:
         settings: forgetting, safety and online calibration.
         horizon_steps: k of the checked predictions (the predictor's horizon).
         settle_steps: how far behind the newest complete step a step is absorbed and a
-            prediction checked; default from the model's stale-VO rule.
+            prediction checked; default from the model's stale-VO rule and
+            ``OVERRIDE_DELAY_S`` (:meth:`default_settle_steps`).
 
     Raises:
         AdaptError: a model that cannot adapt (not two SparseGP channels, no LA factor).
@@ -406,8 +409,8 @@ class ModelAdapter:
         keeps the steps it drove from being learnt."""
         rc = model.resample_config
         windows = [w for w in (rc.stale_after_s, rc.stale_still_after_s) if math.isfinite(w)]
-        windows.append(OVERRIDE_DELAY_S)
-        return min(math.ceil(max(windows) * rc.rate_hz - 1e-9) + 1, 50)
+        stale = min(math.ceil(max(windows) * rc.rate_hz - 1e-9) + 1, 50) if windows else 1
+        return max(stale, math.ceil(OVERRIDE_DELAY_S * rc.rate_hz - 1e-9) + 1)
 
     @property
     def absorbed_to(self) -> int | None:

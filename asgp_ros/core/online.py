@@ -535,8 +535,14 @@ class Predictor:
             return False
         self.stats.overrides += 1
         if self._adapter is not None and self._adapter.absorbed_to is not None:
-            first = math.ceil(t * self._model.resample_config.rate_hz - 1.0 - 1e-9)
-            if first <= self._adapter.absorbed_to:  # the first step it drove, learnt
+            rc = self._model.resample_config
+            first = math.ceil(t * rc.rate_hz - 1.0 - 1e-9)  # the first step it may drive
+            # learnt, unless the override before it (in arrival order, mostly the nearest)
+            # already kept that step out
+            prev = self._overrides[-1] if self._overrides else -math.inf
+            kept = first / rc.rate_hz - rc.dt - rc.override_hold_s < prev <= first / rc.rate_hz \
+                + rc.dt
+            if first <= self._adapter.absorbed_to and not kept:
                 self.stats.overrides_late += 1
         self._overrides.append(t)
         cutoff = self._newest() - self.config.buffer_s

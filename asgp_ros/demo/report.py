@@ -269,6 +269,7 @@ ADAPT_KEYS = (
     ("adapt_steps_refused", "steps refused (not valid training rows: VO lost or stuck, "
                             "a gap, an override)"),
     ("overrides_seen", "overrides seen on joy_override"),
+    ("overrides_late", "overrides that came after a step they may have driven was learnt"),
     ("adapt_published", "posterior published at the end"),
     ("adapt_variance_scale", "variance scale per speed regime"),
     ("adapt_coverage_95", "95 % ellipse coverage of the checked predictions"),
@@ -473,14 +474,14 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
             "threshold_m": THRESHOLD_M}
     atomic_write_text(out / "report.json",
                       json.dumps(_clean(data), indent=2, default=str) + "\n")
+    # (written first without them: the layer's comparison simulates the drive again)
     shared, shared_data = shared_control_summary(state, monitor)
-    if shared_data:
-        data["shared_control"] = shared_data
-        atomic_write_text(out / "report.json",
-                          json.dumps(_clean(data), indent=2, default=str) + "\n")
     adaptation, adaptation_data = adaptation_summary(state, monitor)
-    if adaptation_data:
-        data["adaptation"] = adaptation_data
+    if shared_data or adaptation_data:
+        if shared_data:
+            data["shared_control"] = shared_data
+        if adaptation_data:
+            data["adaptation"] = adaptation_data
         atomic_write_text(out / "report.json",
                           json.dumps(_clean(data), indent=2, default=str) + "\n")
     text = markdown(state, rows, cpu, lat, extras, shared, adaptation)

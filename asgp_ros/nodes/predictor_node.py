@@ -3,7 +3,8 @@
 Subscribes ``joy`` (sensor_msgs/Joy), ``vo/twist`` (geometry_msgs/TwistStamped, or
 nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (trajectory_msgs/JointTrajectory,
 joints ``forward`` and ``turn``: a planner's future joystick commands, stamped with when
-they start); publishes ``predicted_path``
+they start) and ``joy_override`` (``override_topic``: the overrides sent to the chair, whose
+steps an adapting predictor does not learn from); publishes ``predicted_path``
 (nav_msgs/Path), ``predicted_path/uncertainty`` (visualization_msgs/MarkerArray, a 95%
 position ellipse per step) and ``diagnostics``.
 

@@ -147,7 +147,6 @@ class SerialBridgeNode(Node):
         stamp_ns = self.get_clock().now().nanoseconds - max(0, age_ns)
         # never backwards by jitter (the clock and time.monotonic() are read a few us apart;
         # a jump of more than 1 s is a clock reset and is followed), never negative
-        # (use_sim_time before the first /clock reads 0)
         if 0 < self._last_stamp_ns - stamp_ns < 1_000_000_000:
             stamp_ns = self._last_stamp_ns
         stamp_ns = max(0, stamp_ns)

@@ -403,9 +403,13 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
         tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
         tr_conns = (_connections(reader, truth_topic, TRUTH_TYPES, "ground truth", source)
                     if truth_topic else [])
-        ov_conns = (_connections(reader, override_topic, JOY_TYPES, "override", source)
-                    if override_topic and any(c.topic == override_topic
-                                              for c in reader.connections) else [])
+        try:
+            ov_conns = (_connections(reader, override_topic, JOY_TYPES, "override", source)
+                        if override_topic and any(c.topic == override_topic
+                                                  for c in reader.connections) else [])
+        except BagError as exc:
+            raise BagError(f"{exc}; --override-topic names the overrides' topic, '' reads "
+                           f"the bag as if it had none") from exc
         need = max(axes.forward, axes.turn) + 1
 
         def joy_row(msg: Any, _t: str) -> tuple[Any, ...]:

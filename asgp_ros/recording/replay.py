@@ -84,8 +84,8 @@ class ReplayConfig:
         remap: (bag topic, published topic) pairs.
         commands: also play the commands to the chair a bag holds (topics published as
             ``joy_override``, in any namespace), which a running bridge would write to the
-            board; off by default, so a replay never drives a chair. Topics named in
-            ``topics`` are played whatever this says.
+            board; off by default, so a replay never drives a chair. A command topic named
+            in ``topics`` is played whatever this says (not one a remap makes a command).
     """
 
     rate: float = 1.0
