@@ -535,6 +535,20 @@ def test_overrides_through_a_sensor_outage_are_kept(model: MotionModel) -> None:
     assert _learnt_as_training(model, pred, s, settings)
 
 
+def test_overrides_are_kept_only_while_they_matter(model: MotionModel) -> None:
+    """The times of the overrides are forgotten with the buffer even when no new one comes
+    (they were sorted and applied at every prediction since), and a predictor that does
+    not adapt counts them without keeping them."""
+    s, over_t, _ = overridden_drive(seed=26)
+    settings = AdaptSettings(AdaptConfig(max_distance=None), coverage=None)
+    pred = _learn_with_late_overrides(model, s, 0.0, settings)
+    assert pred.stats.overrides == over_t.size
+    assert len(pred._overrides) == 0  # the last one is 45 s old, the buffer 10 s
+    plain = Predictor(model)
+    assert plain.feed_override(float(over_t[0]))
+    assert plain.stats.overrides == 1 and len(plain._overrides) == 0
+
+
 def test_the_adaptive_replay_feeds_the_overrides(model: MotionModel) -> None:
     """`asgp evaluate --adapt` replays a recording's overrides with its samples: the
     overridden stretch is neither learnt nor scored."""

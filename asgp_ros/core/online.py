@@ -59,7 +59,7 @@ from asgp_ros.core.adaptive import AdapterStats, AdaptSettings, ModelAdapter
 from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.resample import exclude_overridden, resample
+from asgp_ros.core.resample import exclude_overridden, overridden_points, resample
 from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
 from asgp_ros.core.streams import (
     RawStreams,
@@ -534,21 +534,26 @@ class Predictor:
                          f"{'the newest sample' if now is None else 'the clock'}")
             return False
         self.stats.overrides += 1
-        if self._adapter is not None and self._adapter.absorbed_to is not None:
-            rc = self._model.resample_config
+        if self._adapter is None:
+            return True  # nothing learnt: nothing to keep out
+        rc = self._model.resample_config
+        if self._adapter.absorbed_to is not None:
             first = math.ceil(t * rc.rate_hz - 1.0 - 1e-9)  # the first step it may drive
             # learnt, unless the override before it (in arrival order, mostly the nearest)
             # already kept that step out
-            prev = self._overrides[-1] if self._overrides else -math.inf
-            kept = first / rc.rate_hz - rc.dt - rc.override_hold_s < prev <= first / rc.rate_hz \
-                + rc.dt
+            prev = np.array([self._overrides[-1]] if self._overrides else [])
+            kept = overridden_points(np.array([first / rc.rate_hz]), prev, rc)[0]
             if first <= self._adapter.absorbed_to and not kept:
                 self.stats.overrides_late += 1
         self._overrides.append(t)
+        self._prune_overrides()
+        return True
+
+    def _prune_overrides(self) -> None:
+        """Forget the overrides older than the buffer (their steps are no longer in it)."""
         cutoff = self._newest() - self.config.buffer_s
         while self._overrides and self._overrides[0] < cutoff:
             self._overrides.popleft()
-        return True
 
     def feed_pose(self, t: float, x: float, y: float, yaw: float) -> bool:
         """Add an odometry pose of the base in the odom frame (for paths in that frame).
@@ -739,6 +744,7 @@ class Predictor:
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
         if self._adapter is not None:
             learn_from = res
+            self._prune_overrides()
             if self._overrides:
                 learn_from = exclude_overridden(res, np.sort(np.fromiter(self._overrides, float)),
                                                 self.resample_config)

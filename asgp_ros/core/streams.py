@@ -118,6 +118,15 @@ def _sorted_unique(t: FloatArray, *values: FloatArray) -> tuple[FloatArray, ...]
     return (t[keep], *(v[order][keep] for v in values))
 
 
+def _as_times(name: str, t: object) -> FloatArray:
+    t_arr = np.asarray(t, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(t_arr)):
+        raise ValueError(f"{name}: time stamps contain NaN or inf")
+    if t_arr.size and float(np.max(np.abs(t_arr))) > MAX_ABS_TIME_S:
+        raise ValueError(f"{name}: time stamps beyond +-{MAX_ABS_TIME_S:g} s")
+    return t_arr
+
+
 def _as_series(name: str, t: object, x: object, width: int) -> tuple[FloatArray, FloatArray]:
     t_arr = np.asarray(t, dtype=np.float64).reshape(-1)
     x_arr = np.asarray(x, dtype=np.float64)
@@ -128,11 +137,7 @@ def _as_series(name: str, t: object, x: object, width: int) -> tuple[FloatArray,
             f"{name}: expected values of shape [{t_arr.shape[0]}, {width}] to match "
             f"{t_arr.shape[0]} time stamps, got {x_arr.shape}"
         )
-    if not np.all(np.isfinite(t_arr)):
-        raise ValueError(f"{name}: time stamps contain NaN or inf")
-    if t_arr.size and float(np.max(np.abs(t_arr))) > MAX_ABS_TIME_S:
-        raise ValueError(f"{name}: time stamps beyond +-{MAX_ABS_TIME_S:g} s")
-    return t_arr, x_arr
+    return _as_times(name, t_arr), x_arr
 
 
 @dataclass(frozen=True)
@@ -174,9 +179,7 @@ class RawStreams:
                 f"velocity: {vel_ok.shape[0]} tracking flags for {vel_t.shape[0]} samples"
             )
         truth_t, truth = _as_series("ground truth", self.truth_t, self.truth, 5)
-        override_t, _ = _as_series("override", self.override_t,
-                                   np.zeros((np.size(self.override_t), 0)), 0)
-        override_t = np.unique(override_t)
+        override_t = np.unique(_as_times("override", self.override_t))
         joy_t, joy = _sorted_unique(joy_t, joy)
         vel_t, vel, vel_ok = _sorted_unique(vel_t, vel, vel_ok)
         truth_t, truth = _sorted_unique(truth_t, truth)

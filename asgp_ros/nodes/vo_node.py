@@ -99,8 +99,6 @@ class VONode(Node):
             f"({p.extrinsic.x:.2f}, {p.extrinsic.y:.2f}, {p.extrinsic.z:.2f}) m, yaw "
             f"{p.extrinsic.yaw:.2f} rad, pitch {p.extrinsic.pitch:.2f} rad in {p.base_frame}")
 
-    # -- parameters ----------------------------------------------------------------------
-
     # -- input ---------------------------------------------------------------------------
 
     def _on_color(self, msg: Image) -> None:
