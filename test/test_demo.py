@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from asgp_ros.core.modelfile import load_model
 from asgp_ros.demo.monitor import (
     OnlineScore,
     PathRecord,
@@ -28,6 +29,7 @@ from asgp_ros.demo.monitor import (
     TruthTrack,
     format_status,
     horizon_key,
+    in_ellipse,
 )
 from asgp_ros.demo.orchestrator import (
     DemoError,
@@ -219,6 +221,42 @@ def test_online_score_uses_the_body_frame_at_t0():
     assert rec.errors["1.0"] == pytest.approx(0.0, abs=1e-9)
 
 
+def test_in_ellipse_by_hand():
+    # semi-axes 0.2 (major, along 30 degrees) and 0.05, around (1, 1)
+    ell = np.array([0.2, 0.05, math.radians(30.0)])
+    c = np.array([1.0, 1.0])
+    along = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0))])
+    across = np.array([-along[1], along[0]])
+    assert in_ellipse(c + 0.19 * along, c, ell) and not in_ellipse(c + 0.21 * along, c, ell)
+    assert in_ellipse(c + 0.049 * across, c, ell)
+    assert not in_ellipse(c + 0.051 * across, c, ell)
+    # along x (not the major axis) 0.1 is outside: the ellipse is turned
+    assert not in_ellipse(c + np.array([0.0, 0.1]), c, ell)
+    # a degenerate ellipse (a chair at rest cannot move sideways) is its segment
+    flat = np.array([0.1, 0.0, 0.0])
+    assert in_ellipse(np.array([0.05, 0.0]), np.zeros(2), flat)
+    assert not in_ellipse(np.array([0.05, 1e-6]), np.zeros(2), flat)
+
+
+def test_online_coverage_of_the_published_ellipses():
+    score = OnlineScore()
+    hit = _path(1.0, offset=0.03)  # 3 cm ahead of the truth at every horizon
+    miss = _path(1.2, offset=0.03)
+    none = _path(1.4, offset=0.03)  # its ellipses never arrived
+    hit.ellipses = np.tile([0.05, 0.01, 0.0], (10, 1))  # 5 cm along x: holds the truth
+    miss.ellipses = np.tile([0.05, 0.01, math.pi / 2], (10, 1))  # turned: 1 cm along x
+    for rec in (hit, miss, none):
+        score.add(rec)
+    score.update(_straight_truth())
+    for h in (1.0, 1.4, 2.0):
+        assert score.coverage(h) == (0.5, 2)
+        assert score.success(h) == (1.0, 3)
+    assert score.coverage(1.0, t0_filter={5}, dt=0.2) == (1.0, 1)
+    assert score.coverage(1.0, t0_filter={6}, dt=0.2) == (0.0, 1)
+    assert score.coverage(1.0, t0_filter={7}, dt=0.2)[1] == 0
+    assert math.isnan(OnlineScore().coverage(1.0)[0])
+
+
 def test_truth_track_unwraps_and_interpolates():
     tr = TruthTrack()
     tr.add(0.0, 0.0, 0.0, math.pi - 0.1)
@@ -387,6 +425,13 @@ def test_demo_runs_end_to_end(demo_run):
     # like with like: the same cases online and offline (same model, same run)
     assert abs(row["online_cases_success"] - row["offline_truth_success"]) <= 0.10
     assert "| 1 s |" in (out / "report.md").read_text()
+    # the model is what `asgp train` makes: configuration chosen, variance calibrated; the
+    # report says how often the published ellipses held the true position
+    assert report["run"]["train_info"]["configuration"].startswith("s = ")
+    assert "selection" in load_model(out / "model.npz").meta
+    assert row["online_coverage_n"] > 40 and 0.0 <= row["online_coverage"] <= 1.0
+    assert row["offline_truth_coverage"] is not None
+    assert "## 95 % position ellipses" in (out / "report.md").read_text()
 
 
 @pytest.mark.e2e

@@ -123,6 +123,8 @@ class PathRecord:
             None until they arrive.
         arrival: wall-clock seconds of arrival (same clock as the stamps).
         errors: horizon key -> position error against ground truth (m), when scored.
+        inside: horizon key -> the true position lies in the 95% ellipse, when scored and
+            the ellipses had arrived.
     """
 
     t0: float
@@ -131,6 +133,17 @@ class PathRecord:
     arrival: float
     ellipses: FloatArray | None = None
     errors: dict[str, float] = field(default_factory=dict)
+    inside: dict[str, bool] = field(default_factory=dict)
+
+
+def in_ellipse(point: FloatArray, centre: FloatArray, ellipse: FloatArray) -> bool:
+    """Whether ``point`` [2] lies in the ellipse (semi-major a, semi-minor b, angle of the
+    major axis from x) around ``centre`` [2]; a degenerate ellipse (b = 0) is its segment."""
+    a, b, angle = (float(x) for x in ellipse)
+    dx, dy = float(point[0] - centre[0]), float(point[1] - centre[1])
+    c, s = math.cos(angle), math.sin(angle)
+    u, v = c * dx + s * dy, -s * dx + c * dy  # along the major and the minor axis
+    return u * u * b * b + v * v * a * a <= a * a * b * b
 
 
 class OnlineScore:
@@ -181,7 +194,12 @@ class OnlineScore:
                 if i is None or p1 is None:
                     continue
                 disp = relative_displacement(p0[None, :], p1[None, :])[0]
-                rec.errors[horizon_key(h)] = float(np.hypot(*(rec.pose[i, :2] - disp)))
+                key = horizon_key(h)
+                rec.errors[key] = float(np.hypot(*(rec.pose[i, :2] - disp)))
+                ell = rec.ellipses
+                if ell is not None and ell.shape == (rec.times.shape[0], 3) \
+                        and np.all(np.isfinite(ell[i])):
+                    rec.inside[key] = in_ellipse(disp, rec.pose[i, :2], ell[i])
         return done
 
     def errors(self, h: float, t0_filter: set[int] | None = None,
@@ -199,6 +217,22 @@ class OnlineScore:
                     continue
             out.append(rec.errors[key])
         return np.asarray(out, dtype=np.float64)
+
+    def coverage(self, h: float, t0_filter: set[int] | None = None,
+                 dt: float | None = None) -> tuple[float, int]:
+        """(share of the scored paths whose 95% ellipse at ``h`` holds the true position,
+        or nan; the number of those paths with ellipses), filtered as :meth:`errors`."""
+        key = horizon_key(h)
+        hits = []
+        for rec in self.paths:
+            if key not in rec.inside:
+                continue
+            if t0_filter is not None:
+                assert dt is not None
+                if round(rec.t0 / dt) not in t0_filter:
+                    continue
+            hits.append(rec.inside[key])
+        return (float(np.mean(hits)) if hits else float("nan")), len(hits)
 
     def success(self, h: float, **kwargs) -> tuple[float, int]:
         """(success rate in [0, 1] or nan, number of scored paths) at horizon ``h``."""

@@ -4,8 +4,9 @@ Sequence:
 
 1. **Model**: unless one is given, simulate ``train_minutes`` of driving on tile in the demo
    room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live drive's),
-   write it as a bag, and train the ASGP on it (:func:`asgp_ros.learning.training.train`), as
-   ``asgp simulate`` + ``asgp train --model asgp`` would.
+   write it as a bag, and train the ASGP on it as ``asgp simulate`` + ``asgp train`` would
+   (:func:`asgp_ros.learning.training.train_auto`: the configuration chosen, and the
+   variance calibrated, on the last part of the drive, held out).
 2. **Nodes**, each its own process on a demo-only ROS domain (localhost, UDPv4): the
    simulated hardware (:mod:`asgp_ros.demo.hardware`), ``serial_bridge_node`` on the
    board's pty, ``vo_node`` and ``predictor_node`` with the model; the monitor
@@ -47,7 +48,13 @@ from asgp_ros.demo.common import DemoError, RunState
 from asgp_ros.demo.monitor import format_status
 from asgp_ros.demo.processes import ProcessGroup
 from asgp_ros.demo.report import write_report
-from asgp_ros.learning.training import TrainOptions, read_series, train
+from asgp_ros.learning.training import (
+    HOLDOUT_FRACTION,
+    AutoOptions,
+    TrainingError,
+    read_series,
+    train_auto,
+)
 from asgp_ros.recording.bags import write_bag
 from asgp_ros.sim.simulate import simulate
 
@@ -206,17 +213,32 @@ def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
     rec = simulate(surface, minutes, seed + 1000)
     write_bag(bag, rec)
     series = read_series([str(bag)])
-    say(f"training: ASGP (M = 20 / 40 pseudo-inputs, s = 4) on {bag}")
-    model = train(series, TrainOptions(kind="asgp", seed=seed),
-                  progress=lambda ch, msg: log.debug("train %s: %s", ch, msg))
+    say(f"training: ASGP, configuration chosen and variance calibrated on the last "
+        f"{HOLDOUT_FRACTION:.0%} of the drive (as `asgp train` does), on {bag}")
+    try:
+        model = train_auto(series, AutoOptions(seed=seed),
+                           progress=lambda ch, msg: log.debug("train %s: %s", ch, msg))
+    except TrainingError as exc:
+        raise DemoError(f"training on {bag} failed: {exc} (a longer --train-minutes gives "
+                        "more data)") from exc
     path = out / "model.npz"
     save_model(path, model)
+    chosen = model.meta["selection"]["chosen"]
     info = {"bag": str(bag), "minutes": minutes, "seed": seed + 1000,
             "rows": model.meta["training_data"].get("training_rows"),
+            "configuration": describe_configuration(chosen),
             "seconds": round(time.perf_counter() - start, 2),
             "cpu_s": round(_self_cpu() - cpu0, 2)}
-    say(f"training: wrote {path} ({info['rows']} rows, {info['seconds']:.1f} s)")
+    say(f"training: wrote {path}: {info['configuration']} ({info['rows']} rows, "
+        f"{info['seconds']:.1f} s)")
     return path, info
+
+
+def describe_configuration(chosen: dict[str, Any]) -> str:
+    """'s = 4, coupled, M = 80 / 80' from a model's ``meta['selection']['chosen']``."""
+    m_v, m_w = chosen["inducing"]
+    return (f"s = {chosen['lags']}, {'coupled' if chosen['coupled'] else 'per-axis'}, "
+            f"M = {m_v} / {m_w}")
 
 
 def _self_cpu() -> float:

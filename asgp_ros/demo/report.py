@@ -122,17 +122,23 @@ def success_table(score: OnlineScore, evaluation: dict[str, Any] | None,
             row.update(offline_held_success=held[key]["success_rate"],
                        offline_held_n=held[key]["cases"],
                        offline_held_median_error_m=held[key]["median_error_m"])
+        cov, cov_n = score.coverage(h)
+        row.update(online_coverage=cov, online_coverage_n=cov_n)
         if cases is not None:
             r2, n2 = score.success(h, t0_filter=cases[key], dt=dt)
             row.update(online_cases_success=r2, online_cases_n=n2)
+            c2, cn2 = score.coverage(h, t0_filter=cases[key], dt=dt)
+            row.update(online_cases_coverage=c2, online_cases_coverage_n=cn2)
         if evaluation is not None and key in evaluation.get("horizons", {}):
             e = evaluation["horizons"][key]
             row.update(offline_vo_success=e["success_rate"], offline_cases=e["cases"],
-                       offline_vo_median_error_m=e["median_error_m"])
+                       offline_vo_median_error_m=e["median_error_m"],
+                       offline_vo_coverage=e.get("coverage_95"))
             if "truth" in e:
                 row.update(offline_truth_success=e["truth"]["success_rate"],
                            offline_truth_n=e["truth"]["cases"],
-                           offline_truth_median_error_m=e["truth"]["median_error_m"])
+                           offline_truth_median_error_m=e["truth"]["median_error_m"],
+                           offline_truth_coverage=e["truth"].get("coverage_95"))
         rows.append(row)
     return rows
 
@@ -155,7 +161,10 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
         f"camera {o['width']}x{o['height']} at {o['camera_rate_hz']:g} Hz, future joystick "
         + ("from the driver's look-ahead on `joy_plan`" if o["plan"]
            else "held (no plan)")
-        + f", ROS_DOMAIN_ID {state.domain_id}. Model: `{state.model_path}`.")
+        + f", ROS_DOMAIN_ID {state.domain_id}. Model: `{state.model_path}`"
+        + (f" ({state.train_info['configuration']}, trained on a simulated "
+           f"{state.train_info['minutes']:g}-minute drive, seed {state.train_info['seed']})"
+           if state.train_info.get("configuration") else "") + ".")
     if state.stopped_by:
         lines.append(f"Stopped early by {state.stopped_by}.")
     plan = bool(o["plan"])
@@ -190,6 +199,21 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
         lines.append("For comparison, holding the command instead: "
                      + ", ".join(f"{r['horizon_s']:g} s {_pct(r.get('offline_held_success'))}"
                                  for r in rows) + " (offline, truth).")
+    lines += ["", "## 95 % position ellipses: how often they hold the position", "",
+              "| horizon | online vs truth | online, offline cases | offline `--truth` | "
+              "offline vs VO (paper) |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['horizon_s']:g} s | {_pct(r.get('online_coverage'))} "
+            f"(n={r.get('online_coverage_n', 0)}) | {_pct(r.get('online_cases_coverage'))} "
+            f"(n={r.get('online_cases_coverage_n', 0)}) | "
+            f"{_pct(r.get('offline_truth_coverage'))} | {_pct(r.get('offline_vo_coverage'))} |")
+    lines += ["", "Online: the ellipses the predictor published (`predicted_path/uncertainty` "
+              "markers) with each path, against the true position; offline: `asgp evaluate` "
+              "on the recorded bag. 95 % is what they promise; the model's calibration was "
+              "fitted on its own training drive's held-out end (`asgp info MODEL`), whose "
+              "velocities come from the simulator's VO model, not from `vo_node` on the "
+              "rendered camera."]
     lines.append("")
     lines += ["## Where the time went", "", "| process | CPU s | alive s | CPU % of a core |",
               "|---|---|---|---|"]
