@@ -257,6 +257,40 @@ def test_online_coverage_of_the_published_ellipses():
     assert math.isnan(OnlineScore().coverage(1.0)[0])
 
 
+def test_report_gives_the_model_and_the_ellipses_coverage():
+    from asgp_ros.demo.common import RunState
+    from asgp_ros.demo.report import markdown, success_table
+
+    score = OnlineScore()
+    for i, rot in enumerate((0.0, math.pi / 2)):  # the first ellipse holds the truth
+        rec = _path(1.0 + 0.2 * i, offset=0.03)
+        rec.ellipses = np.tile([0.05, 0.01, rot], (10, 1))
+        score.add(rec)
+    score.update(_straight_truth())
+    horizons = {horizon_key(h): {"success_rate": 1.0, "cases": 2, "median_error_m": 0.03,
+                                 "coverage_95": 0.25,
+                                 "truth": {"success_rate": 1.0, "cases": 2,
+                                           "median_error_m": 0.03, "coverage_95": 0.75}}
+                for h in (1.0, 1.4, 2.0)}
+    rows = success_table(score, {"horizons": horizons}, {k: {5, 6} for k in horizons}, 0.2)
+    assert rows[0]["online_coverage"] == 0.5 and rows[0]["online_coverage_n"] == 2
+    assert rows[0]["online_cases_coverage"] == 0.5
+    assert (rows[0]["offline_truth_coverage"], rows[0]["offline_vo_coverage"]) == (0.75, 0.25)
+    options = {"surface": "tile", "seed": 0, "width": 320, "height": 240,
+               "camera_rate_hz": 15.0, "plan": True, "adapt": False}
+    state = RunState(options=options, domain_id=7, model_path="/m.npz",
+                     train_info={"configuration": "s = 4, coupled, M = 160 / 160",
+                                 "minutes": 10.0, "seed": 1000})
+    text = markdown(state, rows, [], [], {})
+    assert "(s = 4, coupled, M = 160 / 160, trained on a simulated 10-minute drive" in text
+    assert "| 1 s | 50.0% (n=2) | 50.0% (n=2) | 75.0% | 25.0% |" in text
+    assert "adapted online" not in text
+    state.options = dict(options, adapt=True)
+    state.train_info = {}  # a model given with --model: no training line
+    text = markdown(state, rows, [], [], {})
+    assert "adapted online" in text and "trained on a simulated" not in text
+
+
 def test_truth_track_unwraps_and_interpolates():
     tr = TruthTrack()
     tr.add(0.0, 0.0, 0.0, math.pi - 0.1)

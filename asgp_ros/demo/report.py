@@ -9,8 +9,9 @@ Written to the output directory (every file atomically):
 * ``report.md`` and ``report.json``: the success rates online (each published path scored
   against the simulator's ground truth, :mod:`asgp_ros.demo.monitor`) next to the offline
   evaluation of the same run (against VO as in the paper, and against ground truth), on
-  all paths and on exactly the offline evaluation's cases; CPU seconds per process;
-  per-message latencies.
+  all paths and on exactly the offline evaluation's cases; how often the published 95%
+  position ellipses held the true position (online, from the uncertainty markers, and
+  offline); CPU seconds per process; per-message latencies.
 
 Like with like: online and ``--truth`` offline both compare the predicted (x, y) at the
 horizon with the true displacement expressed in base_link at t0. The case sets differ
@@ -210,10 +211,13 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
             f"{_pct(r.get('offline_truth_coverage'))} | {_pct(r.get('offline_vo_coverage'))} |")
     lines += ["", "Online: the ellipses the predictor published (`predicted_path/uncertainty` "
               "markers) with each path, against the true position; offline: `asgp evaluate` "
-              "on the recorded bag. 95 % is what they promise; the model's calibration was "
-              "fitted on its own training drive's held-out end (`asgp info MODEL`), whose "
-              "velocities come from the simulator's VO model, not from `vo_node` on the "
-              "rendered camera."]
+              "on the recorded bag, the model as trained. 95 % is what they promise. A "
+              "trained model's calibration was fitted on the held-out end of its training "
+              "drive (`asgp info MODEL`), whose velocities came from the simulator's VO "
+              "model, not from `vo_node` on the rendered camera."
+              + (" The predictor adapted online (see 'Adaptation'), its variance scale "
+                 "included: the online columns are the adapting predictor's, the offline "
+                 "ones the model's as trained." if o.get("adapt") else "")]
     lines.append("")
     lines += ["## Where the time went", "", "| process | CPU s | alive s | CPU % of a core |",
               "|---|---|---|---|"]
