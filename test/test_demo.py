@@ -320,6 +320,25 @@ def test_status_line_and_keys():
 # ------------------------------------------------------------------ orchestration
 
 
+def test_the_demo_trains_what_asgp_train_trains(tmp_path, monkeypatch):
+    from asgp_ros.demo import orchestrator
+    from asgp_ros.learning.training import TrainingError
+
+    said: list[str] = []
+    path, info = orchestrator.train_model(tmp_path, 0, 0.5, "tile", said.append)
+    chosen = load_model(path).meta["selection"]["chosen"]
+    assert info["configuration"] == orchestrator.describe_configuration(chosen)
+    assert info["configuration"] in said[-1] and info["rows"] > 100
+
+    def refuse(*args, **kwargs):
+        raise TrainingError("the held-out data are too short")
+
+    monkeypatch.setattr(orchestrator, "train_auto", refuse)
+    with pytest.raises(DemoError, match=r"failed: the held-out data are too short .*"
+                                        r"--train-minutes"):
+        orchestrator.train_model(tmp_path / "again", 0, 0.5, "tile", said.append)
+
+
 def test_options_are_validated():
     with pytest.raises(DemoError, match="minutes"):
         DemoOptions(minutes=0.0).validate()
