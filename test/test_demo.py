@@ -284,11 +284,12 @@ def test_report_gives_the_model_and_the_ellipses_coverage():
     text = markdown(state, rows, [], [], {})
     assert "(s = 4, coupled, M = 160 / 160, trained on a simulated 10-minute drive" in text
     assert "| 1 s | 50.0% (n=2) | 50.0% (n=2) | 75.0% | 25.0% |" in text
-    assert "adapted online" not in text
+    assert "adapted online" not in text and "simulator's VO model" in text
     state.options = dict(options, adapt=True)
     state.train_info = {}  # a model given with --model: no training line
     text = markdown(state, rows, [], [], {})
     assert "adapted online" in text and "trained on a simulated" not in text
+    assert "simulator's VO model" not in text  # a model given: its calibration is its own
 
 
 def test_truth_track_unwraps_and_interpolates():

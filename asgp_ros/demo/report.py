@@ -211,10 +211,13 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
             f"{_pct(r.get('offline_truth_coverage'))} | {_pct(r.get('offline_vo_coverage'))} |")
     lines += ["", "Online: the ellipses the predictor published (`predicted_path/uncertainty` "
               "markers) with each path, against the true position; offline: `asgp evaluate` "
-              "on the recorded bag, the model as trained. 95 % is what they promise. A "
-              "trained model's calibration was fitted on the held-out end of its training "
-              "drive (`asgp info MODEL`), whose velocities came from the simulator's VO "
-              "model, not from `vo_node` on the rendered camera."
+              "on the recorded bag, the model as trained. 95 % is what they promise. "
+              + ("The model's calibration was fitted on the held-out end of its training "
+                 "drive (`asgp info MODEL`), whose velocities came from the simulator's VO "
+                 "model, not from `vo_node` on the rendered camera."
+                 if state.train_info.get("configuration") else
+                 "A calibrated model's calibration was fitted on the held-out end of its "
+                 "training bags (`asgp info MODEL`).")
               + (" The predictor adapted online (see 'Adaptation'), its variance scale "
                  "included: the online columns are the adapting predictor's, the offline "
                  "ones the model's as trained." if o.get("adapt") else "")]
