@@ -231,6 +231,17 @@ def test_calibrated_coverage_on_fresh_data_of_known_noise(auto_model) -> None:  
     assert auto_model.meta["calibration"]["cross_validated"]
 
 
+def test_too_few_held_out_cases_leave_the_model_uncalibrated() -> None:
+    # 9 held-out cases of a chair at rest once gave a scale of 1e-5: the ellipses vanished
+    from asgp_ros.learning.training import MIN_CALIBRATION_CASES
+
+    short = [Series("short", synthetic_chair(200, 7))]  # 200 s: 40 s held out, 200 steps
+    model = train_auto(short, AutoOptions(seed=3, **SMALL))  # type: ignore[arg-type]
+    cal = model.meta["calibration"]
+    assert not cal["fitted"] and model.calibration.is_identity
+    assert f"fewer than the {MIN_CALIBRATION_CASES} a calibration needs" in cal["reason"]
+
+
 def test_the_leading_structures_are_scored_again_at_the_largest_m(
         chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
     # a held-out landscape where a short past wins at M = 40 by a hair, and a longer past

@@ -232,10 +232,22 @@ def test_in_ellipse_by_hand():
     assert not in_ellipse(c + 0.051 * across, c, ell)
     # along x (not the major axis) 0.1 is outside: the ellipse is turned
     assert not in_ellipse(c + np.array([0.0, 0.1]), c, ell)
-    # a degenerate ellipse (a chair at rest cannot move sideways) is its segment
+    # a degenerate ellipse (a chair at rest cannot move sideways) is its segment, and
+    # no ellipse at all (a model without uncertainty) is its centre
     flat = np.array([0.1, 0.0, 0.0])
     assert in_ellipse(np.array([0.05, 0.0]), np.zeros(2), flat)
     assert not in_ellipse(np.array([0.05, 1e-6]), np.zeros(2), flat)
+    assert not in_ellipse(np.array([5.0, 0.0]), np.zeros(2), flat)  # a segment, not a line
+    assert in_ellipse(np.zeros(2), np.zeros(2), np.zeros(3))
+    assert not in_ellipse(np.array([5.0, 5.0]), np.zeros(2), np.zeros(3))
+    assert not in_ellipse([1e-150, 0.0], [0.0, 0.0], [1e-200, 1e-200, 0.0])  # no underflow
+    assert in_ellipse([1e30, 0.0], [0.0, 0.0], [2e30, 1e30, 0.0])
+    for bad in ([-0.1, 0.05, 0.0], [0.05, 0.1, 0.0], [np.nan, 0.0, 0.0],
+                [np.inf, 1.0, 0.0], [0.1, 0.05, np.inf]):
+        with pytest.raises(ValueError, match="axes"):
+            in_ellipse(c, c, bad)
+    with pytest.raises(ValueError, match="finite"):
+        in_ellipse([np.nan, 0.0], c, ell)
 
 
 def test_online_coverage_of_the_published_ellipses():
@@ -255,6 +267,15 @@ def test_online_coverage_of_the_published_ellipses():
     assert score.coverage(1.0, t0_filter={6}, dt=0.2) == (0.0, 1)
     assert score.coverage(1.0, t0_filter={7}, dt=0.2)[1] == 0
     assert math.isnan(OnlineScore().coverage(1.0)[0])
+    # no uncertainty (axes 0) holds nothing 3 cm off; a NaN ellipse is not counted at all
+    score = OnlineScore(horizons_s=(1.0,))
+    zero, broken = _path(1.0, offset=0.03), _path(1.2, offset=0.03)
+    zero.ellipses = np.zeros((10, 3))
+    broken.ellipses = np.full((10, 3), np.nan)
+    score.add(zero)
+    score.add(broken)
+    score.update(_straight_truth())
+    assert score.coverage(1.0) == (0.0, 1) and score.bad_ellipses == 1
 
 
 def test_report_gives_the_model_and_the_ellipses_coverage():
@@ -290,6 +311,15 @@ def test_report_gives_the_model_and_the_ellipses_coverage():
     text = markdown(state, rows, [], [], {})
     assert "adapted online" in text and "trained on a simulated" not in text
     assert "simulator's VO model" not in text  # a model given: its calibration is its own
+    assert "not like with like" not in text
+    state.options = dict(options, plan=False)
+    assert "No plan: online, the ellipses are those of the held command" in markdown(
+        state, rows, [], [], {})
+    # a baseline without uncertainty publishes zero ellipses: no online coverage either
+    rows = success_table(score, {"horizons": horizons}, {k: {5, 6} for k in horizons}, 0.2,
+                         uncertainty=False)
+    assert math.isnan(rows[0]["online_coverage"]) and rows[0]["online_coverage_n"] == 0
+    assert math.isnan(rows[0]["online_cases_coverage"])
 
 
 def test_truth_track_unwraps_and_interpolates():
@@ -327,9 +357,20 @@ def test_the_demo_trains_what_asgp_train_trains(tmp_path, monkeypatch):
 
     said: list[str] = []
     path, info = orchestrator.train_model(tmp_path, 0, 0.5, "tile", said.append)
-    chosen = load_model(path).meta["selection"]["chosen"]
-    assert info["configuration"] == orchestrator.describe_configuration(chosen)
+    model = load_model(path)
+    chosen = model.meta["selection"]["chosen"]
+    assert info["configuration"].startswith(
+        f"s = {chosen['lags']}, {'coupled' if chosen['coupled'] else 'per-axis'}, "
+        f"M = {chosen['inducing'][0]} / {chosen['inducing'][1]}")
     assert info["configuration"] in said[-1] and info["rows"] > 100
+    # half a minute is too little held out to calibrate: said
+    assert info["configuration"].endswith(", uncalibrated")
+    # nor, on the hybrid floor with this seed, to choose: the automatic configuration falls
+    # back to the paper's (it once crashed the demo with a KeyError)
+    path, info = orchestrator.train_model(tmp_path / "hybrid", 3, 0.5, "hybrid", said.append)
+    assert "fallback" in load_model(path).meta["selection"]
+    assert info["configuration"] == ("s = 4, per-axis, M = 20 / 40, the paper's configuration, "
+                                     "uncalibrated: too little held-out data to choose")
 
     def refuse(*args, **kwargs):
         raise TrainingError("the held-out data are too short")

@@ -173,4 +173,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"calibrated on {cal['cases']} held-out cases: 95% ellipse coverage "
               f"{100 * cal['raw_coverage']:.1f}% raw -> {100 * cal['coverage']:.1f}% "
               "(asgp info MODEL shows it per horizon, regime and bag)")
+    elif cal.get("reason"):
+        print(f"not calibrated: {cal['reason']}")
     return 0

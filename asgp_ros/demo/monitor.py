@@ -18,7 +18,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key, relative_displacement
 
@@ -136,14 +136,31 @@ class PathRecord:
     inside: dict[str, bool] = field(default_factory=dict)
 
 
-def in_ellipse(point: FloatArray, centre: FloatArray, ellipse: FloatArray) -> bool:
-    """Whether ``point`` [2] lies in the ellipse (semi-major a, semi-minor b, angle of the
-    major axis from x) around ``centre`` [2]; a degenerate ellipse (b = 0) is its segment."""
-    a, b, angle = (float(x) for x in ellipse)
-    dx, dy = float(point[0] - centre[0]), float(point[1] - centre[1])
+def in_ellipse(point: ArrayLike, centre: ArrayLike, ellipse: ArrayLike) -> bool:
+    """Whether ``point`` [2] lies in the closed ellipse (semi-major a, semi-minor b, angle
+    of the major axis from x) around ``centre`` [2].
+
+    A degenerate ellipse is what it is: with b = 0 the segment of half-length a along the
+    angle, with a = b = 0 the centre alone (a singular covariance, as ``asgp evaluate``
+    counts it).
+
+    Raises:
+        ValueError: axes not finite, negative or b > a; a non-finite point or centre.
+    """
+    a, b, angle = (float(x) for x in np.asarray(ellipse, dtype=np.float64).reshape(3))
+    p = np.asarray(point, dtype=np.float64).reshape(2)
+    c0 = np.asarray(centre, dtype=np.float64).reshape(2)
+    if not (math.isfinite(a) and math.isfinite(b) and math.isfinite(angle)
+            and 0.0 <= b <= a):
+        raise ValueError(f"an ellipse needs finite axes a >= b >= 0, got {a}, {b}, {angle}")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(c0))):
+        raise ValueError("the point and the centre must be finite")
+    dx, dy = float(p[0] - c0[0]), float(p[1] - c0[1])
     c, s = math.cos(angle), math.sin(angle)
     u, v = c * dx + s * dy, -s * dx + c * dy  # along the major and the minor axis
-    return u * u * b * b + v * v * a * a <= a * a * b * b
+    if b == 0.0:
+        return v == 0.0 and abs(u) <= a
+    return (u / a) ** 2 + (v / b) ** 2 <= 1.0
 
 
 class OnlineScore:
@@ -160,6 +177,7 @@ class OnlineScore:
         self.paths: list[PathRecord] = []
         self._pending: deque[PathRecord] = deque()
         self.unscorable = 0  # paths whose t0 precedes the ground truth, or too short
+        self.bad_ellipses = 0  # ellipses that are not ones (NaN, negative axes)
 
     def add(self, rec: PathRecord) -> None:
         if rec.pose.shape != (rec.times.shape[0], 3) or not np.all(np.isfinite(rec.pose)):
@@ -197,9 +215,11 @@ class OnlineScore:
                 key = horizon_key(h)
                 rec.errors[key] = float(np.hypot(*(rec.pose[i, :2] - disp)))
                 ell = rec.ellipses
-                if ell is not None and ell.shape == (rec.times.shape[0], 3) \
-                        and np.all(np.isfinite(ell[i])):
-                    rec.inside[key] = in_ellipse(disp, rec.pose[i, :2], ell[i])
+                if ell is not None and ell.shape == (rec.times.shape[0], 3):
+                    try:
+                        rec.inside[key] = in_ellipse(disp, rec.pose[i, :2], ell[i])
+                    except ValueError:
+                        self.bad_ellipses += 1  # not counted either way
         return done
 
     def errors(self, h: float, t0_filter: set[int] | None = None,

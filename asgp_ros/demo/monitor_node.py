@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
@@ -36,7 +35,6 @@ from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
 from asgp_ros.common import topics
-from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.demo.monitor import (
     LatencyStats,
     OnlineScore,
@@ -200,12 +198,7 @@ class MonitorNode(Node):
         rec = self._by_t0.get(round(conv.stamp_to_seconds(cyl[0].header.stamp) * 1e6))
         if rec is None:
             return
-        cyl.sort(key=lambda m: m.id)
-        rec.ellipses = np.array([
-            (0.5 * m.scale.x, 0.5 * m.scale.y,
-             quaternion_to_yaw(m.pose.orientation.x, m.pose.orientation.y,
-                               m.pose.orientation.z, m.pose.orientation.w))
-            for m in cyl])
+        rec.ellipses = conv.ellipses_from_markers(msg)
 
     def _on_joy_override(self, msg: Joy, now: float) -> None:
         self.overrides.append(conv.stamp_to_seconds(msg.header.stamp))

@@ -2,9 +2,10 @@
 
 Sequence:
 
-1. **Model**: unless one is given, simulate ``train_minutes`` of driving on tile in the demo
-   room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live drive's),
-   write it as a bag, and train the ASGP on it as ``asgp simulate`` + ``asgp train`` would
+1. **Model**: unless one is given, simulate ``train_minutes`` of driving on ``surface`` in
+   the demo room (:func:`asgp_ros.sim.simulate.simulate`, a seed different from the live
+   drive's), write it as a bag, and train the ASGP on it as ``asgp simulate`` +
+   ``asgp train`` would
    (:func:`asgp_ros.learning.training.train_auto`: the configuration chosen, and the
    variance calibrated, on the last part of the drive, held out).
 2. **Nodes**, each its own process on a demo-only ROS domain (localhost, UDPv4): the
@@ -223,10 +224,9 @@ def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
                         "more data)") from exc
     path = out / "model.npz"
     save_model(path, model)
-    chosen = model.meta["selection"]["chosen"]
     info = {"bag": str(bag), "minutes": minutes, "seed": seed + 1000,
             "rows": model.meta["training_data"].get("training_rows"),
-            "configuration": describe_configuration(chosen),
+            "configuration": describe_configuration(model),
             "seconds": round(time.perf_counter() - start, 2),
             "cpu_s": round(_self_cpu() - cpu0, 2)}
     say(f"training: wrote {path}: {info['configuration']} ({info['rows']} rows, "
@@ -234,11 +234,19 @@ def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
     return path, info
 
 
-def describe_configuration(chosen: dict[str, Any]) -> str:
-    """'s = 4, coupled, M = 80 / 80' from a model's ``meta['selection']['chosen']``."""
-    m_v, m_w = chosen["inducing"]
-    return (f"s = {chosen['lags']}, {'coupled' if chosen['coupled'] else 'per-axis'}, "
-            f"M = {m_v} / {m_w}")
+def describe_configuration(model: MotionModel) -> str:
+    """'s = 4, coupled, M = 160 / 160' of an ASGP, and whether it is the fallback of the
+    automatic configuration (too little held-out data to choose: the paper's, uncalibrated).
+    """
+    fc = model.feature_config
+    m_v, m_w = (getattr(ch, "num_inducing", "?") for ch in model.channels)
+    text = f"s = {fc.lags}, {'coupled' if fc.coupled else 'per-axis'}, M = {m_v} / {m_w}"
+    if "fallback" in model.meta.get("selection", {}):
+        text += (", the paper's configuration, uncalibrated: too little held-out data to "
+                 "choose")
+    elif not model.meta.get("calibration", {}).get("applied", False):
+        text += ", uncalibrated"
+    return text
 
 
 def _self_cpu() -> float:

@@ -36,7 +36,7 @@ from asgp_ros.common import topics
 from asgp_ros.common.fileio import atomic_path, atomic_write_text
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
-from asgp_ros.core.models import MotionModel
+from asgp_ros.core.models import MotionModel, get_kind
 from asgp_ros.core.rollout import rollout
 from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
@@ -107,7 +107,8 @@ def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
 
 def success_table(score: OnlineScore, evaluation: dict[str, Any] | None,
                   cases: dict[str, set[int]] | None, dt: float,
-                  held: dict[str, dict[str, float]] | None = None) -> list[dict[str, Any]]:
+                  held: dict[str, dict[str, float]] | None = None, *,
+                  uncertainty: bool = True) -> list[dict[str, Any]]:
     """One row per horizon: online (all, on offline cases) and offline (truth, VO, and
     truth with the held command)."""
     rows = []
@@ -123,12 +124,14 @@ def success_table(score: OnlineScore, evaluation: dict[str, Any] | None,
             row.update(offline_held_success=held[key]["success_rate"],
                        offline_held_n=held[key]["cases"],
                        offline_held_median_error_m=held[key]["median_error_m"])
-        cov, cov_n = score.coverage(h)
+        # a model without uncertainty (a baseline) publishes zero ellipses: no coverage
+        cov, cov_n = score.coverage(h) if uncertainty else (math.nan, 0)
         row.update(online_coverage=cov, online_coverage_n=cov_n)
         if cases is not None:
             r2, n2 = score.success(h, t0_filter=cases[key], dt=dt)
             row.update(online_cases_success=r2, online_cases_n=n2)
-            c2, cn2 = score.coverage(h, t0_filter=cases[key], dt=dt)
+            c2, cn2 = (score.coverage(h, t0_filter=cases[key], dt=dt) if uncertainty
+                       else (math.nan, 0))
             row.update(online_cases_coverage=c2, online_cases_coverage_n=cn2)
         if evaluation is not None and key in evaluation.get("horizons", {}):
             e = evaluation["horizons"][key]
@@ -220,7 +223,10 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
                  "training bags (`asgp info MODEL`).")
               + (" The predictor adapted online (see 'Adaptation'), its variance scale "
                  "included: the online columns are the adapting predictor's, the offline "
-                 "ones the model's as trained." if o.get("adapt") else "")]
+                 "ones the model's as trained." if o.get("adapt") else "")
+              + ("" if plan else " No plan: online, the ellipses are those of the held "
+                 "command, offline those of the recorded future commands; not like with "
+                 "like (the held-command figure of the success table has no ellipses).")]
     lines.append("")
     lines += ["## Where the time went", "", "| process | CPU s | alive s | CPU % of a core |",
               "|---|---|---|---|"]
@@ -491,7 +497,8 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
                 say(f"note: {problem}")
             else:
                 state.errors.append(problem)
-    rows = success_table(monitor.score, evaluation, cases, dt, held)
+    rows = success_table(monitor.score, evaluation, cases, dt, held,
+                         uncertainty=get_kind(model.kind).probabilistic)
     cpu = cpu_rows(state)
     lat = latency_rows(monitor)
     extras = diagnostic_timings(monitor)

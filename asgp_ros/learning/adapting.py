@@ -52,7 +52,6 @@ from typing import Any
 import numpy as np
 
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
-from asgp_ros.core.calibration import MIN_REGIME_CASES
 from asgp_ros.core.features import CHANNELS
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import MotionModel
@@ -84,10 +83,6 @@ _AT_ONCE_ROWS = 1e-9
 #: Rows absorbed per block (one posterior each): the block's kernel rows take
 #: 2 x BLOCK_ROWS x M floats (32 MB at M = 200), whatever the length of the recordings.
 BLOCK_ROWS = 10_000
-#: The fewest held-out cases the calibration is fitted again on (a speed regime's own
-#: minimum, :data:`asgp_ros.core.calibration.MIN_REGIME_CASES`): fewer (a recording of a
-#: few minutes) keep the trained calibration rather than trust a map fitted on a handful.
-MIN_CALIBRATION_CASES = MIN_REGIME_CASES
 
 
 class AdaptingError(TrainingError):
@@ -265,11 +260,7 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
                                threshold_m=opts.threshold_m)
             calibration, cal_meta = _calibrate_step(adapted_fit, held, auto, model.lags,
                                                     report)
-            if cal_meta.get("fitted") and cal_meta["cases"] < MIN_CALIBRATION_CASES:
-                cal_meta = {"fitted": False, "reason": (
-                    f"{cal_meta['cases']} held-out cases, fewer than the "
-                    f"{MIN_CALIBRATION_CASES} a calibration needs (record longer)")}
-                report("calibrate", cal_meta["reason"])
+            # fewer held-out cases than training.MIN_CALIBRATION_CASES: not fitted
             if not cal_meta.get("fitted"):
                 calibration = model.calibration
                 cal_meta["reason"] = (f"{cal_meta.get('reason', 'not fitted')}; the trained "

@@ -30,6 +30,7 @@ from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
+    MIN_REGIME_CASES,
     TARGET_COVERAGE,
     CalibrationError,
     CalibrationFit,
@@ -246,6 +247,12 @@ AUTO_STRUCTURE_INDUCING = 40
 REFINE_STRUCTURES = 3
 #: Fraction of each training recording held out (its end) for selection and calibration.
 HOLDOUT_FRACTION = 0.2
+#: The fewest held-out cases (k-step rollouts) a variance calibration is fitted on: one
+#: speed regime's minimum (:data:`asgp_ros.core.calibration.MIN_REGIME_CASES`). With
+#: fewer (a recording of a few minutes: consecutive cases overlap, and a short held-out
+#: end may hold nothing but the chair at rest) the map is noise, and the model is left
+#: uncalibrated, saying so; ``asgp adapt`` keeps the trained calibration by the same rule.
+MIN_CALIBRATION_CASES = MIN_REGIME_CASES
 #: L-BFGS-B iterations of a candidate's fit during the selection: at most
 #: SELECTION_MAX_ITER, fewer for a small budget (SELECTION_ITER_PER_BUDGET_S per second).
 SELECTION_MAX_ITER = 100
@@ -732,6 +739,9 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     steps = metrics.horizon_steps(list(opts.horizons_s), model.rate_hz)
     cases = _held_out_cases(model, held, case_lags, max(steps))
     N = cases.err.shape[0]
+    if N < MIN_CALIBRATION_CASES:
+        raise CalibrationError(f"{N} held-out cases, fewer than the {MIN_CALIBRATION_CASES} "
+                               "a calibration needs (record longer)")
     fit = cases.fit(np.ones(N, dtype=bool))
     cal = fit.calibration
     cov_raw = cases.parts[0] + cases.parts[1]

@@ -283,6 +283,11 @@ def path_to_poses(msg: Path) -> tuple[FloatArray, FloatArray]:
     return times, arr
 
 
+#: Smallest diameter (m) an ellipse marker is drawn with: RViz shows nothing of a flat
+#: cylinder. A marker at this size stands for an axis of 0 (see ``ellipses_from_markers``).
+MIN_MARKER_DIAMETER_M = 1e-3
+
+
 def ellipse_markers(centers: ArrayLike, ellipses: ArrayLike, frame_id: str, stamp: float,
                     ns: str = "prediction_95", height: float = 0.02,
                     rgba: tuple[float, float, float, float] = (0.1, 0.5, 1.0, 0.35)
@@ -319,12 +324,27 @@ def ellipse_markers(centers: ArrayLike, ellipses: ArrayLike, frame_id: str, stam
         m.pose.position.y = float(y)
         q = _quaternion(float(angle))
         m.pose.orientation.z, m.pose.orientation.w = q[2], q[3]
-        m.scale.x = max(2.0 * float(major), 1e-3)
-        m.scale.y = max(2.0 * float(minor), 1e-3)
+        m.scale.x = max(2.0 * float(major), MIN_MARKER_DIAMETER_M)
+        m.scale.y = max(2.0 * float(minor), MIN_MARKER_DIAMETER_M)
         m.scale.z = height
         m.color.r, m.color.g, m.color.b, m.color.a = (float(v) for v in rgba)
         markers.append(m)
     return MarkerArray(markers=markers)
+
+
+def ellipses_from_markers(msg: MarkerArray) -> FloatArray:
+    """[k, 3] (semi-major, semi-minor, angle) from ``ellipse_markers``' message, in the
+    order of the marker ids (the path's steps). An axis drawn at the smallest size,
+    :data:`MIN_MARKER_DIAMETER_M`, is read as 0: what the predictor computed (a chair at
+    rest cannot move sideways; a model without uncertainty has none), not the drawing."""
+    cyl = sorted((m for m in msg.markers if m.action == Marker.ADD), key=lambda m: m.id)
+    out = np.empty((len(cyl), 3))
+    for row, m in zip(out, cyl, strict=True):
+        q = m.pose.orientation
+        row[:] = [0.0 if d <= MIN_MARKER_DIAMETER_M else 0.5 * d
+                  for d in (float(m.scale.x), float(m.scale.y))] + [
+            quaternion_to_yaw(q.x, q.y, q.z, q.w)]
+    return out
 
 
 # --------------------------------------------------------------------------------------
