@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -222,36 +223,34 @@ class OnlineScore:
                         self.bad_ellipses += 1  # not counted either way
         return done
 
-    def errors(self, h: float, t0_filter: set[int] | None = None,
-               dt: float | None = None) -> FloatArray:
-        """Scored errors at ``h`` (m); with ``t0_filter`` only paths whose grid index
-        round(t0 / dt) is in the set (to compare on the offline evaluation's cases)."""
+    def _scored(self, table: str, h: float, t0_filter: set[int] | None,
+                dt: float | None) -> list[Any]:
+        """The values of ``rec.<table>`` at ``h`` of the scored paths, in order; with
+        ``t0_filter`` only those whose grid index round(t0 / dt) is in the set."""
         key = horizon_key(h)
         out = []
         for rec in self.paths:
-            if key not in rec.errors:
+            scored = getattr(rec, table)
+            if key not in scored:
                 continue
             if t0_filter is not None:
                 assert dt is not None
                 if round(rec.t0 / dt) not in t0_filter:
                     continue
-            out.append(rec.errors[key])
-        return np.asarray(out, dtype=np.float64)
+            out.append(scored[key])
+        return out
+
+    def errors(self, h: float, t0_filter: set[int] | None = None,
+               dt: float | None = None) -> FloatArray:
+        """Scored errors at ``h`` (m); with ``t0_filter`` only paths whose grid index
+        round(t0 / dt) is in the set (to compare on the offline evaluation's cases)."""
+        return np.asarray(self._scored("errors", h, t0_filter, dt), dtype=np.float64)
 
     def coverage(self, h: float, t0_filter: set[int] | None = None,
                  dt: float | None = None) -> tuple[float, int]:
         """(share of the scored paths whose 95% ellipse at ``h`` holds the true position,
         or nan; the number of those paths with ellipses), filtered as :meth:`errors`."""
-        key = horizon_key(h)
-        hits = []
-        for rec in self.paths:
-            if key not in rec.inside:
-                continue
-            if t0_filter is not None:
-                assert dt is not None
-                if round(rec.t0 / dt) not in t0_filter:
-                    continue
-            hits.append(rec.inside[key])
+        hits = self._scored("inside", h, t0_filter, dt)
         return (float(np.mean(hits)) if hits else float("nan")), len(hits)
 
     def success(self, h: float, **kwargs) -> tuple[float, int]:
