@@ -301,8 +301,11 @@ def test_report_gives_the_model_and_the_ellipses_coverage():
                "camera_rate_hz": 15.0, "plan": True, "adapt": False}
     state = RunState(options=options, domain_id=7, model_path="/m.npz",
                      train_info={"configuration": "s = 4, coupled, M = 160 / 160",
-                                 "minutes": 10.0, "seed": 1000})
+                                 "minutes": 10.0, "seed": 1000, "calibrated": False})
+    assert "The model is not calibrated" in markdown(state, rows, [], [], {})
+    state.train_info["calibrated"] = True
     text = markdown(state, rows, [], [], {})
+    assert "The model is not calibrated" not in text
     assert "(s = 4, coupled, M = 160 / 160, trained on a simulated 10-minute drive" in text
     assert "| 1 s | 50.0% (n=2) | 50.0% (n=2) | 75.0% | 25.0% |" in text
     assert "adapted online" not in text and "simulator's VO model" in text
@@ -364,7 +367,7 @@ def test_the_demo_trains_what_asgp_train_trains(tmp_path, monkeypatch):
         f"M = {chosen['inducing'][0]} / {chosen['inducing'][1]}")
     assert info["configuration"] in said[-1] and info["rows"] > 100
     # half a minute is too little held out to calibrate: said
-    assert info["configuration"].endswith(", uncalibrated")
+    assert info["configuration"].endswith(", uncalibrated") and not info["calibrated"]
     # nor, on the hybrid floor with this seed, to choose: the automatic configuration falls
     # back to the paper's (it once crashed the demo with a KeyError)
     path, info = orchestrator.train_model(tmp_path / "hybrid", 3, 0.5, "hybrid", said.append)

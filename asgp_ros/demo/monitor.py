@@ -142,8 +142,9 @@ def in_ellipse(point: ArrayLike, centre: ArrayLike, ellipse: ArrayLike) -> bool:
     of the major axis from x) around ``centre`` [2].
 
     A degenerate ellipse is what it is: with b = 0 the segment of half-length a along the
-    angle, with a = b = 0 the centre alone (a singular covariance, as ``asgp evaluate``
-    counts it).
+    angle, with a = b = 0 the centre alone (in floating point, few points lie on either).
+    Ellipses read from the predictor's markers are never degenerate
+    (:func:`asgp_ros.nodes.conversions.ellipses_from_markers`).
 
     Raises:
         ValueError: axes not finite, negative or b > a; a non-finite point or centre.

@@ -227,6 +227,7 @@ def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
     info = {"bag": str(bag), "minutes": minutes, "seed": seed + 1000,
             "rows": model.meta["training_data"].get("training_rows"),
             "configuration": describe_configuration(model),
+            "calibrated": not model.calibration.is_identity,
             "seconds": round(time.perf_counter() - start, 2),
             "cpu_s": round(_self_cpu() - cpu0, 2)}
     say(f"training: wrote {path}: {info['configuration']} ({info['rows']} rows, "

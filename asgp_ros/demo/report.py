@@ -215,9 +215,12 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
     lines += ["", "Online: the ellipses the predictor published (`predicted_path/uncertainty` "
               "markers) with each path, against the true position; offline: `asgp evaluate` "
               "on the recorded bag, the model as trained. 95 % is what they promise. "
-              + ("The model's calibration was fitted on the held-out end of its training "
-                 "drive (`asgp info MODEL`), whose velocities came from the simulator's VO "
-                 "model, not from `vo_node` on the rendered camera."
+              + (("The model's calibration was fitted on the held-out end of its training "
+                  "drive (`asgp info MODEL`), whose velocities came from the simulator's VO "
+                  "model, not from `vo_node` on the rendered camera."
+                  if state.train_info.get("calibrated") else
+                  "The model is not calibrated (`asgp info MODEL` says why): its ellipses "
+                  "are the GP's own variance.")
                  if state.train_info.get("configuration") else
                  "A calibrated model's calibration was fitted on the held-out end of its "
                  "training bags (`asgp info MODEL`).")

@@ -284,7 +284,8 @@ def path_to_poses(msg: Path) -> tuple[FloatArray, FloatArray]:
 
 
 #: Smallest diameter (m) an ellipse marker is drawn with: RViz shows nothing of a flat
-#: cylinder. A marker at this size stands for an axis of 0 (see ``ellipses_from_markers``).
+#: cylinder. A smaller axis (a chair at rest: a fraction of a millimetre ahead, microns
+#: sideways) is drawn, and read back by ``ellipses_from_markers``, at this size.
 MIN_MARKER_DIAMETER_M = 1e-3
 
 
@@ -334,16 +335,16 @@ def ellipse_markers(centers: ArrayLike, ellipses: ArrayLike, frame_id: str, stam
 
 def ellipses_from_markers(msg: MarkerArray) -> FloatArray:
     """[k, 3] (semi-major, semi-minor, angle) from ``ellipse_markers``' message, in the
-    order of the marker ids (the path's steps). An axis drawn at the smallest size,
-    :data:`MIN_MARKER_DIAMETER_M`, is read as 0: what the predictor computed (a chair at
-    rest cannot move sideways; a model without uncertainty has none), not the drawing."""
+    order of the marker ids (the path's steps). The ellipses as drawn: an axis under half
+    of :data:`MIN_MARKER_DIAMETER_M` reads as that (0.5 mm), so a read ellipse holds the
+    computed one and exceeds it by at most 0.5 mm per axis. A model without uncertainty
+    publishes all its ellipses at that size: its markers say nothing of coverage."""
     cyl = sorted((m for m in msg.markers if m.action == Marker.ADD), key=lambda m: m.id)
     out = np.empty((len(cyl), 3))
     for row, m in zip(out, cyl, strict=True):
         q = m.pose.orientation
-        row[:] = [0.0 if d <= MIN_MARKER_DIAMETER_M else 0.5 * d
-                  for d in (float(m.scale.x), float(m.scale.y))] + [
-            quaternion_to_yaw(q.x, q.y, q.z, q.w)]
+        row[:] = [0.5 * float(m.scale.x), 0.5 * float(m.scale.y),
+                  quaternion_to_yaw(q.x, q.y, q.z, q.w)]
     return out
 
 
