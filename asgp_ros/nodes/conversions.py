@@ -341,10 +341,11 @@ def ellipses_from_markers(msg: MarkerArray) -> FloatArray:
     publishes all its ellipses at that size: its markers say nothing of coverage."""
     cyl = sorted((m for m in msg.markers if m.action == Marker.ADD), key=lambda m: m.id)
     out = np.empty((len(cyl), 3))
-    for row, m in zip(out, cyl, strict=True):
+    for n, m in enumerate(cyl):
         q = m.pose.orientation
-        row[:] = [0.5 * float(m.scale.x), 0.5 * float(m.scale.y),
-                  quaternion_to_yaw(q.x, q.y, q.z, q.w)]
+        out[n, 0] = 0.5 * float(m.scale.x)
+        out[n, 1] = 0.5 * float(m.scale.y)
+        out[n, 2] = float(quaternion_to_yaw(q.x, q.y, q.z, q.w))
     return out
 
 
