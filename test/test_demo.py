@@ -483,7 +483,7 @@ def _demo_children(demo_pid: int | None = None) -> list[str]:
 def demo_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     proc = subprocess.run(_demo_argv(out, "--minutes", "0.4", "--train-minutes", "2",
-                                     "--seed", "3", "--shared-control"),
+                                     "--seed", "3", "--shared-control", "--adapt"),
                           env=_env(), capture_output=True, text=True, timeout=170)
     return proc, out
 
@@ -530,6 +530,10 @@ def test_demo_runs_end_to_end(demo_run):
     assert row["online_coverage_n"] > 40 and 0.0 <= row["online_coverage"] <= 1.0
     assert row["offline_truth_coverage"] is not None
     assert "## 95 % position ellipses" in (out / "report.md").read_text()
+    # what make demo runs: the predictor adapted, and the report says so
+    text = (out / "report.md").read_text()
+    assert "## Adaptation" in text and "The predictor adapted online" in text
+    assert report["run"]["options"]["adapt"] is True
 
 
 @pytest.mark.e2e
