@@ -245,7 +245,7 @@ def describe_configuration(model: MotionModel) -> str:
     if "fallback" in model.meta.get("selection", {}):
         text += (", the paper's configuration, uncalibrated: too little held-out data to "
                  "choose")
-    elif not model.meta.get("calibration", {}).get("applied", False):
+    elif model.calibration.is_identity:
         text += ", uncalibrated"
     return text
 
