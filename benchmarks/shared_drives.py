@@ -21,7 +21,8 @@ short of the furniture (the scanner's range noise).
 
 Usage: benchmarks/shared_drives.py [MODEL] [--seeds 1-13] [--minutes 10] [--jobs 2]
 [--fov DEG] [--modes none,memory] [--contacts] [--audit] [--vo-noise X]
-[--velocity-source auto|vo|scan_matching] [--no-vo-losses] (the README's figures: the
+[--velocity-source auto|vo|scan_matching] [--no-vo-losses] [--surface tile|carpet|hybrid]
+(the README's figures: the
 reproduction's tile model, seeds 1-13, 10 minutes; ``--fov 360`` for a scanner that also
 sees behind the chair; about 5 minutes on 2 cores for the two default modes).
 """
@@ -38,6 +39,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from asgp_ros.core.adaptive import AdaptSettings
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.obstacle_memory import MemoryConfig
 from asgp_ros.core.scan_match import VELOCITY_SOURCES
@@ -48,11 +50,12 @@ from asgp_ros.sim.shared_drive import DEFAULT_MEMORY, SHORT_OF_FURNITURE_M, VO_N
 #: the committed reproduction's tile model
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "docs/reproduction/models/tile_asgp.npz"
 
-MODES = ("none", "mean heading", "heading sampled", "memory", "scan memory")
+MODES = ("none", "mean heading", "heading sampled", "memory", "scan memory", "adapting")
 """Without the layer; with it checking the mean heading or sampling it (as the node does by
 default), against the newest scan alone; sampling it against the scan and the memory of
 earlier scans (``memory_s`` > 0), carried by the VO's twists ("memory") or by matching
-the scans ("scan memory", :mod:`asgp_ros.core.scan_match`)."""
+the scans ("scan memory", :mod:`asgp_ros.core.scan_match`); "scan memory" with the layer's
+predictor adapting online ("adapting": ``adapt.enabled``, the default settings)."""
 DEFAULT_MODES = ("none", "scan memory")
 """Without the layer, and with it as the node runs it by default."""
 MARGIN = 0.05
@@ -60,10 +63,11 @@ MARGIN = 0.05
 P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool]
+def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool, str]
          ) -> dict[str, Any]:
     (path, seed, mode, minutes, fov, memory_s, audit, vo_scale, velocity_source,
-     vo_losses) = task
+     vo_losses, surface) = task
+    memory_mode = mode in ("memory", "scan memory", "adapting")
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
                                                                   beams=round(4 * fov))
@@ -71,13 +75,13 @@ def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool]
         result = drive(load_model(path), 60.0 * minutes, seed, layer=mode != "none",
                        config=SharedControlConfig(heading_uncertainty=mode != "mean heading"),
                        lidar=lidar,
-                       memory=MemoryConfig(max_age_s=memory_s) if mode.endswith("memory")
-                       else None,
-                       memory_odometry="scan_matching" if mode == "scan memory"
-                       else "dead_reckoning", margin=MARGIN, audit=audit,
+                       memory=MemoryConfig(max_age_s=memory_s) if memory_mode else None,
+                       memory_odometry="dead_reckoning" if mode == "memory"
+                       else "scan_matching", margin=MARGIN, audit=audit,
                        vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]),
                        velocity_source=velocity_source if mode != "none" else "vo",
-                       vo_losses=vo_losses)
+                       vo_losses=vo_losses, surface=surface,
+                       adapt=AdaptSettings() if mode == "adapting" else None)
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
                                           r.p_map) for r in result.audit],
@@ -126,15 +130,19 @@ def main(argv: list[str]) -> int:
                     help="the VO never loses tracking (by default it does, in episodes at "
                          "the floor's rate and when the camera faces something nearer than "
                          "its minimum depth)")
+    ap.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile",
+                    help="the floor driven on (its room, chair and VO losses): a model "
+                         "trained on another floor shows what adapting does")
     args = ap.parse_args(argv)
     if not (np.isfinite(args.vo_noise) and 0.0 <= args.vo_noise <= 100.0):
         ap.error(f"--vo-noise must be in [0, 100], got {args.vo_noise}")
     tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit,
-              args.vo_noise, args.velocity_source, not args.no_vo_losses)
+              args.vo_noise, args.velocity_source, not args.no_vo_losses, args.surface)
              for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
-    print(f"{len(args.seeds)} seeds x {args.minutes:g} min, scanner {args.fov:g} deg, "
+    print(f"{len(args.seeds)} seeds x {args.minutes:g} min on {args.surface}, scanner "
+          f"{args.fov:g} deg, "
           f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}, the layer's velocity "
           f"from {args.velocity_source}, VO losses "
           f"{'off' if args.no_vo_losses else 'on'}")
@@ -161,6 +169,14 @@ def main(argv: list[str]) -> int:
               f"{sum(r['interventions'] for r in mine)} interventions, untouched "
               f"{100 * untouched.mean():.1f} % on average ({100 * untouched.min():.1f}-"
               f"{100 * untouched.max():.1f} % per drive)")
+        adapting = [r for r in mine if "adapt_rows_absorbed" in r]
+        if adapting:
+            print(f"  {'':15s}  the layer's predictor at the end: "
+                  + "; ".join(f"seed {r['seed']}: {r['adapt_rows_absorbed']} steps learnt, "
+                              f"{r['adapt_steps_refused']} refused, "
+                              f"{'adapted' if r['adapt_adapted_published'] else 'trained'}, "
+                              f"scale <= {r['adapt_scale_max']:.2f}, coverage "
+                              f"{100 * r['adapt_coverage_95']:.1f} %" for r in adapting))
     if args.audit:
         _print_audit(rows, args.modes)
     return 0

@@ -405,6 +405,13 @@ def test_child_environment_isolates_the_demo():
     args = {name: a for name, _, a in node_commands(DemoOptions(adapt=True), Path("m.npz"),
                                                     "/tmp/p")}
     assert args["predictor"][-2:] == ["-p", "adapt.enabled:=true"]
+    # the shared-control layer's own predictor adapts with it
+    args = {name: a for name, _, a in node_commands(
+        DemoOptions(shared_control=True), Path("m.npz"), "/tmp/p")}
+    assert "adapt.enabled:=true" not in args["shared_control"]
+    args = {name: a for name, _, a in node_commands(
+        DemoOptions(shared_control=True, adapt=True), Path("m.npz"), "/tmp/p")}
+    assert args["shared_control"][-2:] == ["-p", "adapt.enabled:=true"]
 
 
 def test_silent_components_are_named():

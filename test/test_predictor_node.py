@@ -815,3 +815,15 @@ def test_adapt_parameters_reach_the_adaptation_settings():
     assert off is not None and not off.posterior.trained_mean
     assert off.posterior.half_life_s == 60.0
     assert PredictorNodeParams(model_path="chair.npz").adapt_settings() is None
+
+
+def test_the_adapt_parameters_defaults_are_the_dataclass_defaults():
+    """The node declares adapt.* from the shared table (asgp_ros.nodes.adaptation), which
+    the shared-control layer declares too; its dataclass must default alike."""
+    from asgp_ros.nodes.adaptation import ADAPT_PARAMS
+    from asgp_ros.nodes.predictor_node import PARAMS
+
+    fields = PredictorNodeParams.__dataclass_fields__
+    for spec in ADAPT_PARAMS:
+        assert spec in PARAMS
+        assert fields[spec.name.replace(".", "_")].default == spec.default, spec.name

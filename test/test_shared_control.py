@@ -226,6 +226,24 @@ def test_the_layer_prevents_contacts_of_an_inattentive_driver(chair_model):
             "solve_p50_ms": 0, "solve_p99_ms": 0}  # deterministic for a seed
 
 
+def test_the_offline_layer_can_adapt_and_learns_nothing_its_overrides_drove(chair_model):
+    """drive(adapt=...): the layer's predictor adapts as the node's does (adapt.enabled),
+    learning after each decision; the steps its overrides drove are refused."""
+    from asgp_ros.core.adaptive import AdaptSettings
+    from asgp_ros.sim.shared_drive import drive
+
+    plain = drive(chair_model, 60.0, 4, layer=True, inattention=0.5)
+    assert plain.adaptation == {} and not any(k.startswith("adapt_") for k in plain.summary())
+    adapting = drive(chair_model, 60.0, 4, layer=True, inattention=0.5,
+                     adapt=AdaptSettings())
+    a = adapting.summary()
+    assert adapting.interventions >= 1
+    assert a["adapt_rows_absorbed"] >= 100
+    # every override keeps its steps out: at least the steps of the time spent overriding
+    assert a["adapt_steps_refused"] >= round(adapting.intervention_s * 5.0)
+    assert 0.0 <= a["adapt_coverage_95"] <= 1.0 and a["adapt_scale_max"] > 0.0
+
+
 @pytest.mark.parametrize("bad", [(math.nan, 0.01), (0.01, math.inf), (-0.01, 0.01),
                                  (1e30, 0.01), (0.01,)])
 def test_the_offline_drives_vo_noise_is_checked(chair_model, bad):

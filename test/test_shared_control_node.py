@@ -843,12 +843,12 @@ def test_the_memory_is_on_by_default_and_carried_by_scan_matching(harness):
     """The default since the offline drives measured it (README): remembered for 10 s,
     carried by the scans themselves, not by the VO; a map (obstacles 'grid') has no scan to
     remember and starts without it instead of refusing."""
-    from asgp_ros.nodes.shared_control_node import PARAMS, SharedControlParams
+    from asgp_ros.nodes.shared_control_node import LAYER_PARAMS, SharedControlParams
 
     h = harness()
     assert h.node.memory is not None and h.node.scan_odometer is not None
     assert h.node.odometer is None and h.node.params.memory_s == 10.0
-    defaults = {spec.name: spec.default for spec in PARAMS} | {"model_path": "chair.npz"}
+    defaults = {spec.name: spec.default for spec in LAYER_PARAMS} | {"model_path": "chair.npz"}
     grid = SharedControlParams(**(defaults | {"obstacles": "grid", "vo_type": "odometry"}))
     assert grid.memory() is None
     assert SharedControlParams(**(defaults | {"memory_s": 0.0})).memory() is None
@@ -859,3 +859,61 @@ def test_the_memory_can_be_turned_off(harness):
     h.drive(100.0, 101.0, wall=3.0)
     assert h.node.memory is None and h.node._scan[2] is None
     assert conv.diagnostic_values(h.node.diagnostic_status())["memory_points"] == "off"
+
+
+def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(harness):
+    """adapt.enabled: the layer's own predictor adapts online (a chair slower than the
+    model was trained for), its diagnostics say so, it learns after the override is out
+    (never before it), nothing its overrides drove is learnt, and the service returns it
+    to the trained model. Off by default."""
+    from std_srvs.srv import Trigger
+
+    off = harness()
+    assert off.node.predictor.adaptation is None
+    assert conv.diagnostic_values(off.node.diagnostic_status())["adapt"] == "off"
+
+    h = harness(**{"adapt.enabled": True, "adapt.half_life_s": 10.0})
+    node = h.node
+    events: list[str] = []
+    publish, learn, status = node.override_pub.publish, node.predictor.learn, \
+        node.status_pub.publish
+    check_for = node._check_for
+
+    def record(what, call):
+        def recorded(*args):
+            events.append(what)
+            return call(*args)
+        return recorded
+
+    node.override_pub.publish = record("override", publish)
+    node.predictor.learn = record("learn", learn)
+    node.status_pub.publish = record("status", status)
+    node._check_for = record("decide", check_for)  # made as a decision starts
+    h.drive(100.0, 110.0, wall=20.0, speed=0.4)  # the model expects 0.72 m/s at 0.8
+    stats = node.predictor.adaptation
+    assert stats is not None and stats.rows_absorbed >= 30
+    values = conv.diagnostic_values(node.diagnostic_status())
+    assert values["adapt"] == "on" and int(values["adapt_rows_absorbed"]) >= 30
+    assert values["adapt_published"] in ("trained", "adapted")
+    assert node.predictor.stats.overrides == 0
+
+    absorbed, refused = stats.rows_absorbed, stats.steps_refused
+    events.clear()
+    h.drive(110.0, 111.5, wall=1.2, speed=0.4)  # the user's path runs into it
+    assert h.overrides and node.predictor.stats.overrides == node._overrides_sent > 0
+    # each decision: nothing learnt until it is out (its override sent, its status
+    # published), then learning
+    decisions = [events[i:events.index("status", i) + 2]
+                 for i, e in enumerate(events) if e == "decide" and "status" in events[i:]]
+    assert decisions and any("override" in d for d in decisions)
+    assert all("learn" not in d[:-1] and d[-1] == "learn" for d in decisions), decisions
+    h.drive(111.5, 114.0, wall=20.0, speed=0.4)  # overrides stop; the steps settle
+    stats = node.predictor.adaptation
+    assert stats.steps_refused - refused >= 3  # the overridden steps were not learnt
+    assert stats.rows_absorbed > absorbed  # the others were
+
+    client = h.test.create_client(Trigger, "/shared_control_node/reset_adaptation")
+    h.spin_until(client.service_is_ready, what="reset service")
+    future = client.call_async(Trigger.Request())
+    h.spin_until(future.done, what="reset reply")
+    assert future.result().success and node.predictor.adaptation.rows_absorbed == 0

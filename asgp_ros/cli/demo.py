@@ -59,9 +59,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="replace the output of an earlier demo in --out (a directory the "
                         "demo wrote; anything else there is refused)")
     p.add_argument("--adapt", action="store_true",
-                   help="the predictor adapts its model online (adapt.enabled); the report "
-                        "shows what it learnt and what it refused (with --shared-control: "
-                        "the steps the layer's overrides drove)")
+                   help="the predictor adapts its model online (adapt.enabled), and so "
+                        "does the shared-control layer's own predictor with --shared-control; "
+                        "the report shows what the predictor learnt and what it refused "
+                        "(the steps the layer's overrides drove)")
     p.add_argument("--startup-timeout", type=float, default=120.0,
                    help="seconds the nodes have to come up (%(default)s)")
     p.set_defaults(func=run)

@@ -186,8 +186,8 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
 
 def decide(predictor: Predictor, now: float, user: FloatArray,
            check: CollisionCheck | None, config: SharedControlConfig, *,
-           check_for: Callable[[Prediction], CollisionCheck | None] | None = None
-           ) -> Decision:
+           check_for: Callable[[Prediction], CollisionCheck | None] | None = None,
+           learn: bool = True) -> Decision:
     """One step of the layer (module docstring).
 
     Args:
@@ -198,6 +198,9 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         config: the settings.
         check_for: instead of ``check``, builds it from the user's prediction (its t0,
             origin and velocities place the paths relative to the obstacles' data).
+        learn: an adapting predictor learns before returning (``Predictor.predict``); a
+            node that acts on the decision first passes False and calls
+            ``predictor.learn()`` afterwards.
     """
     user = np.asarray(user, dtype=np.float64).reshape(2)
     if not np.all(np.isfinite(user)):
@@ -208,7 +211,7 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
     k = predictor.config.horizon_steps
     held = np.repeat(user[None, :], k, axis=0)
     try:
-        pred = predictor.predict(now, joy_future=held)
+        pred = predictor.predict(now, joy_future=held, learn=learn)
     except ValueError as exc:
         return Decision(Why.CHECK_FAILED, f"prediction failed: {exc}", user,
                         solve_s=time.perf_counter() - start)
@@ -238,7 +241,7 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
     commands = candidate_commands(user, config)  # [C, 2]
     futures = np.repeat(commands[:, None, :], k, axis=1)  # [C, k, 2]
     try:
-        batch = predictor.predict_batch(futures, now)
+        batch = predictor.predict_batch(futures, now, learn=learn)
         if not batch.ok:
             raise ValueError(f"{batch.reason}: {batch.detail}")
         _, p_all = check(batch.pose, check_covariance(batch, config))

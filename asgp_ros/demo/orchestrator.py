@@ -105,7 +105,8 @@ class DemoOptions:
         shared_control: also run ``shared_control_node`` on the simulated scanner.
         inattention: the simulated driver's inattention (0 = attentive).
         velocity_source: ``shared_control_node``'s velocity_source.
-        adapt: the predictor adapts its model online (``adapt.enabled``).
+        adapt: the predictor adapts its model online (``adapt.enabled``), and so does the
+            shared-control layer's own predictor.
     """
 
     minutes: float = 2.0
@@ -305,7 +306,8 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
           *(["-p", "adapt.enabled:=true"] if opts.adapt else [])]),
     ] + ([("shared_control", "asgp_ros.nodes.shared_control_node:main",
            ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}",
-            "-p", f"velocity_source:={opts.velocity_source}"])]
+            "-p", f"velocity_source:={opts.velocity_source}",
+            *(["-p", "adapt.enabled:=true"] if opts.adapt else [])])]
          if opts.shared_control else [])
 
 

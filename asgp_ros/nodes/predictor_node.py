@@ -55,7 +55,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Joy
-from std_srvs.srv import Trigger
 from threadpoolctl import threadpool_limits
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import MarkerArray
@@ -63,17 +62,16 @@ from visualization_msgs.msg import MarkerArray
 from asgp_ros.common import topics
 from asgp_ros.common.paramspec import ParamSpec, check_value, check_values
 from asgp_ros.core import online
-from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
     DEFAULT_HALF_LIFE_S,
     DEFAULT_TRAINED_FLOOR,
     DEFAULT_TRAINED_HALF_LIFE_S,
     AdaptSettings,
-    CoverageConfig,
 )
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
+from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare, sim_time_change
@@ -124,6 +122,7 @@ class PredictorNodeParams:
     uncertainty: str = "linear"
     publish_uncertainty: bool = True
     diagnostics_period_s: float = 1.0
+    # adapt.* (asgp_ros.nodes.adaptation.ADAPT_PARAMS; the same defaults)
     adapt_enabled: bool = False
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
     adapt_trained_floor: float = DEFAULT_TRAINED_FLOOR
@@ -161,18 +160,14 @@ class PredictorNodeParams:
         self.predictor_config(5.0)
         self.adapt_settings()
 
+    def adapt_values(self) -> dict[str, Any]:
+        """The adapt.* parameters by their ROS names."""
+        return {spec.name: getattr(self, _field(spec.name))
+                for spec in adapt_params.ADAPT_PARAMS}
+
     def adapt_settings(self) -> AdaptSettings | None:
         """The online adaptation's settings, or None when ``adapt.enabled`` is false."""
-        try:
-            settings = AdaptSettings(
-                AdaptConfig(half_life_s=self.adapt_half_life_s,
-                            trained_floor=self.adapt_trained_floor,
-                            trained_half_life=self.adapt_trained_half_life_s,
-                            trained_mean=self.adapt_trained_mean),
-                CoverageConfig(max_rate=self.adapt_max_rate) if self.adapt_calibrate else None)
-        except AdaptError as exc:
-            raise ValueError(f"adapt: {exc}") from exc
-        return settings if self.adapt_enabled else None
+        return adapt_params.adapt_settings(self.adapt_values())
 
     def steps(self, model_rate_hz: float) -> int:
         """k: horizon_steps, or horizon_s at the model's rate."""
@@ -249,18 +244,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("uncertainty", "'linear', 'mc' or 'none' uncertainty propagation", runtime=True),
     _spec("publish_uncertainty", "publish the 95% ellipses", runtime=True),
     _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
-    _spec("adapt.enabled", "adapt an ASGP online: absorb each valid completed step into its "
-          "posterior and keep its 95% ellipses covering (asgp_ros.core.adaptive)"),
-    _spec("adapt.half_life_s", "forgetting half-life of the rows the adapted posterior "
-          "absorbs, seconds of driving", 1.0, 86400.0),
-    _spec("adapt.trained_half_life_s", "half-life of the trained data's weight in the adapted "
-          "posterior, seconds of driving", 1.0, 86400.0),
-    _spec("adapt.trained_floor", "weight the trained data decay to (0 = forget them, 1 = keep "
-          "them whole)", 0.0, 1.0),
-    _spec("adapt.trained_mean", "the rows teach a correction to the trained function (its "
-          "mean is the prior mean); false: the function itself, against a constant mean"),
-    _spec("adapt.calibrate", "adjust the variance scale from the outcomes of the predictions"),
-    _spec("adapt.max_rate", "largest change of the log variance scale per second", 0.001, 100.0),
+    *adapt_params.ADAPT_PARAMS,
 )
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}
 
@@ -360,16 +344,12 @@ class PredictorNode(Node):
         self._learn_timer = self.create_timer(min(LEARN_DELAY_S, 0.25 / rate),
                                               self._on_learn_timer, clock=pacing,
                                               autostart=False)
-        self.create_service(Trigger, "~/reset_adaptation", self._on_reset_adaptation)
+        adapt_params.reset_service(self, self.predictor)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
-        adapt = p.adapt_settings()
-        if adapt is not None:
-            self.get_logger().info(
-                f"adapting online: half-life {p.adapt_half_life_s:g} s (trained data "
-                f"{p.adapt_trained_half_life_s:g} s), trained floor "
-                f"{p.adapt_trained_floor:g}, calibration "
-                f"{'on' if adapt.coverage is not None else 'off'}")
+        adapting = adapt_params.describe(p.adapt_values(), p.adapt_settings())
+        if adapting:
+            self.get_logger().info(adapting)
         self.get_logger().info(
             f"model {p.model_path} ({self.model.kind}, lags {self.model.feature_config.lags}, "
             f"{rate:g} Hz); horizon {self.predictor.config.horizon_steps} steps; "
@@ -408,17 +388,6 @@ class PredictorNode(Node):
                 raise StartupError(f"cannot load the model: {error}") from error
             raise error
         return loaded[0]
-
-    def _on_reset_adaptation(self, request: Trigger.Request, response: Trigger.Response
-                             ) -> Trigger.Response:
-        del request
-        if self.predictor.adaptation is None:
-            response.success, response.message = False, "adaptation is off (adapt.enabled)"
-        else:
-            self.predictor.reset_adaptation()
-            response.success, response.message = True, "back to the trained model"
-            self.get_logger().info("adaptation reset to the trained model")
-        return response
 
     # ---- parameters ------------------------------------------------------------------
 
@@ -687,29 +656,7 @@ class PredictorNode(Node):
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
         }
-        adaptation = self.predictor.adaptation
-        values["adapt"] = "on" if adaptation is not None else "off"
-        if adaptation is not None:
-            values.update({
-                "adapt_rows_absorbed": str(adaptation.rows_absorbed),
-                "adapt_steps_refused": str(adaptation.steps_refused),
-                "adapt_rows_rejected": ", ".join(
-                    f"{k}={n}" for k, n in sorted(adaptation.rows_rejected.items()) if n)
-                or "none",
-                "adapt_effective_size": "/".join(f"{x:.0f}" for x in adaptation.effective_size),
-                "adapt_variance_scale": "/".join(f"{x:.3g}" for x in adaptation.scales),
-                "adapt_checked": str(adaptation.checked),
-                "adapt_published": adaptation.published,
-                "adapt_choice_t": (f"{adaptation.choice_t:.2f} (critical "
-                                   f"{adaptation.choice_critical:.2f})"
-                                   if math.isfinite(adaptation.choice_t)
-                                   else "no test yet (too few checks, or no spread)"),
-                "adapt_switches": str(adaptation.switches),
-                "adapt_coverage_95": f"{adaptation.coverage:.3f}",
-                "adapt_coverage_one_step": f"{adaptation.coverage_one_step:.3f}",
-                "adapt_last_update_ms": f"{1e3 * adaptation.last_update_s:.3f}",
-                "adapt_last_check_ms": f"{1e3 * adaptation.last_check_s:.3f}",
-            })
+        values.update(adapt_params.diagnostic_values(self.predictor.adaptation))
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
         return conv.diagnostic_status(f"{self.get_name()}: prediction",

@@ -37,6 +37,13 @@ scan; a refused match is a lost sample).
 Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
 map, or an override older than ``hold_s`` (the node stalled) means no override.
 
+With ``adapt.enabled`` (the ``adapt.*`` parameters of ``predictor_node``,
+:mod:`asgp_ros.nodes.adaptation`) the predictor adapts online
+(:mod:`asgp_ros.core.adaptive`): it learns after each decision has been acted on, nothing
+from the steps the layer's overrides may have driven (the command applied is modelled, not
+measured: training's rule for a bag's overrides), and ``~/reset_adaptation``
+(std_srvs/Trigger) returns it to the trained model.
+
 Run: ``shared_control_node --ros-args --params-file config/shared_control.yaml
 -p model_path:=M.npz``
 """
@@ -85,6 +92,7 @@ from asgp_ros.core.shared_control import (
     decide,
     is_neutral,
 )
+from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
@@ -115,7 +123,8 @@ def _spec(name: str, default: Any, text: str, low: float | None = None,
     return ParamSpec(name, default, text, low, high)
 
 
-PARAMS: tuple[ParamSpec, ...] = (
+#: The layer's own parameters (SharedControlParams); the node also takes adapt.*.
+LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("model_path", "", "model file from `asgp train` (required)"),
     _spec("horizon_s", 2.0, "prediction horizon (s)", 0.2, 10.0),
     _spec("threshold", 0.05, "probability of contact within the horizon above which the "
@@ -183,6 +192,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
 )
+#: Every parameter the node declares: its own and the online adaptation's (adapt.*).
+PARAMS: tuple[ParamSpec, ...] = (*LAYER_PARAMS, *adapt_params.ADAPT_PARAMS)
 
 
 @dataclass(frozen=True)
@@ -275,7 +286,10 @@ class SharedControlNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         try:
-            self.params = SharedControlParams(**check_values(PARAMS, declare(self, PARAMS)))
+            values = check_values(PARAMS, declare(self, PARAMS))
+            adapt_values = {name: values.pop(name) for name in adapt_params.ADAPT_NAMES}
+            self.params = SharedControlParams(**values)
+            adapt = adapt_params.adapt_settings(adapt_values)
         except (ValueError, TypeError) as exc:
             self.destroy_node()
             raise StartupError(f"invalid parameters: {exc}") from exc
@@ -289,9 +303,13 @@ class SharedControlNode(Node):
             raise StartupError(f"cannot load the model: {exc}") from exc
         rate = float(self.model.resample_config.rate_hz)
         self.joy_axes = parse_joy_axes(p.joy_axes)
-        self.predictor = Predictor(self.model, PredictorConfig(
-            horizon_steps=max(1, round(p.horizon_s * rate)), joy_timeout_s=p.joy_timeout_s,
-            vo_timeout_s=p.vo_timeout_s))
+        try:
+            self.predictor = Predictor(self.model, PredictorConfig(
+                horizon_steps=max(1, round(p.horizon_s * rate)), joy_timeout_s=p.joy_timeout_s,
+                vo_timeout_s=p.vo_timeout_s), adapt=adapt)
+        except ValueError as exc:  # AdaptError included: a model that cannot adapt
+            self.destroy_node()
+            raise StartupError(str(exc)) from exc
         self.config = p.config()
         self.footprint = p.footprint()
         memory = p.memory()
@@ -367,6 +385,10 @@ class SharedControlNode(Node):
         self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
         self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, clock=pacing)
+        adapt_params.reset_service(self, self.predictor)
+        adapting = adapt_params.describe(adapt_values, adapt)
+        if adapting:
+            self.get_logger().info(adapting)
         self.get_logger().info(
             f"model {p.model_path}; horizon {self.predictor.config.horizon_steps} steps; "
             f"threshold {p.threshold}; obstacles from {p.obstacles}; overrides on "
@@ -617,7 +639,7 @@ class SharedControlNode(Node):
     def _decide(self, now: float) -> None:
         user = self._user[1] if self._user is not None else np.full(2, np.nan)
         decision = decide(self.predictor, now, user, None, self.config,
-                          check_for=self._check_for(now))
+                          check_for=self._check_for(now), learn=False)
         self._decision, self._decision_t = decision, now
         self._decisions += 1
         if decision.solve_s > 0.0:
@@ -631,6 +653,16 @@ class SharedControlNode(Node):
             self._stop_overriding()
         self._was_intervening = decision.intervening
         self.status_pub.publish(self._status(decision))
+        self._learn()
+
+    def _learn(self) -> None:
+        """An adapting predictor's work for the steps so far, after the decision has been
+        acted on (absorbing the settled steps, checking predictions against outcomes)."""
+        try:
+            self.predictor.learn()
+        except (ValueError, np.linalg.LinAlgError) as exc:  # never let learning stop the layer
+            self.get_logger().error(f"adaptation failed: {type(exc).__name__}: {exc}",
+                                    throttle_duration_sec=5.0)
 
     def _on_watchdog(self) -> None:
         """At the model rate: stale inputs end an intervention even when no new step
@@ -667,6 +699,9 @@ class SharedControlNode(Node):
                                                        float(d.command[1])))
         self._sent, self._sent_t = d.command, now
         self._overrides_sent += 1
+        # an adapting predictor learns nothing from the steps an override may have driven
+        # (training's rule for a bag's overrides): what the board applied is only modelled
+        self.predictor.feed_override(now, now)
 
     def _status(self, d: Decision) -> DiagnosticStatus:
         values = {
@@ -716,6 +751,7 @@ class SharedControlNode(Node):
                 f" ({self.velocity_odometer.breaks} breaks)"
                 if self.velocity_odometer is not None else ""),
             "bad_messages": str(self._bad_messages),
+            **adapt_params.diagnostic_values(self.predictor.adaptation),
         }
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
                                             Why.CHECK_FAILED)

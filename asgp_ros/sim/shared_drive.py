@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core import collision
+from asgp_ros.core.adaptive import AdaptSettings
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.obstacle_memory import (
     MemoryConfig,
@@ -154,6 +155,10 @@ class DriveResult:
     """With the layer: the time the VO reported nothing (tracking lost)."""
     velocity_switches: int = 0
     """With the layer: how often its velocity changed stream (``velocity_source`` auto)."""
+    adaptation: dict[str, float | int] = field(default_factory=dict)
+    """With the layer adapting: its predictor's steps learnt and refused, whether the
+    adapted posterior is published (1) or the trained one (0), the largest variance scale
+    of the speed regimes and the ellipses' recent coverage."""
 
     def summary(self) -> dict[str, float | int | bool]:
         def solve_ms(q: float) -> float:  # NaN for a drive without the layer's decisions
@@ -171,7 +176,7 @@ class DriveResult:
             "velocity_switches": self.velocity_switches,
             "solve_p50_ms": solve_ms(50),
             "solve_p99_ms": solve_ms(99),
-        } | self._audit_summary()
+        } | self._audit_summary() | {f"adapt_{k}": v for k, v in self.adaptation.items()}
 
     def _audit_summary(self) -> dict[str, float | int | bool]:
         """Of the interventions, the share whose held user command would have touched; the
@@ -352,7 +357,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           memory: MemoryConfig | None = DEFAULT_MEMORY,
           memory_odometry: str = "scan_matching", audit: bool = False,
           vo_noise: tuple[float, float] = VO_NOISE,
-          velocity_source: str = "auto", vo_losses: bool = True) -> DriveResult:
+          velocity_source: str = "auto", vo_losses: bool = True,
+          adapt: AdaptSettings | None = None) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
@@ -363,7 +369,9 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     velocity from, as ``shared_control_node``'s ``velocity_source``
     (:class:`~asgp_ros.core.scan_match.VelocitySelector`): "auto" (the matched scans'
     twists, the VO's while they do not match), "vo" or "scan_matching". ``vo_losses``: the
-    VO loses tracking (module docstring); False: never."""
+    VO loses tracking (module docstring); False: never. ``adapt``: the layer's predictor
+    adapts online (``shared_control_node``'s ``adapt.*``): it learns after each decision,
+    nothing from the steps the layer's overrides drove."""
     if velocity_source not in VELOCITY_SOURCES:
         raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
                          f"{velocity_source!r}")
@@ -384,7 +392,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     board = fw.Safety()
     board.set_mode(Mode.OVERRIDE if layer else Mode.PASSTHROUGH, 0)
     rate = float(model.resample_config.rate_hz)
-    predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))))
+    predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))),
+                          adapt=adapt)
     mount = scanner.config.mount
     footprint = collision.DEFAULT_FOOTPRINT.grown(margin)
     odometer, scan_odometer = memory_odometers(memory, memory_odometry, mount)
@@ -465,6 +474,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                     board.set_override(round(1000 * c[0]), round(1000 * c[1]),
                                        now_ms)
                     sent = c
+                    predictor.feed_override(t, t)
             else:
                 sent = None
         output = board.step(cal, raw, now_ms)
@@ -519,8 +529,10 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
 
                 start = time.perf_counter()
                 decision = decide(predictor, t, user, None, config,
-                                  check_for=_scan_check_for(scan, extra, t, footprint, mount))
+                                  check_for=_scan_check_for(scan, extra, t, footprint, mount),
+                                  learn=False)
                 out.solve_ms.append(1e3 * (time.perf_counter() - start))
+                predictor.learn()  # as the node: after the decision
                 decision_t = t
                 out.decisions[decision.why.value] = out.decisions.get(decision.why.value, 0) + 1
                 if decision.command is not None:
@@ -538,5 +550,11 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                                               closest, touched, ahead, p_map))
     out.contacts = chair.contacts
     out.velocity_switches = velocity.switches
+    if (stats := predictor.adaptation) is not None:
+        out.adaptation = {"rows_absorbed": stats.rows_absorbed,
+                          "steps_refused": stats.steps_refused,
+                          "adapted_published": int(stats.published == "adapted"),
+                          "scale_max": round(max(stats.scales), 3),
+                          "coverage_95": round(stats.coverage, 4)}
     out.untouched_share = 1.0 - overriding_steps / max(n_steps, 1)
     return out
