@@ -541,6 +541,11 @@ def test_demo_runs_end_to_end(demo_run):
     text = (out / "report.md").read_text()
     assert "## Adaptation" in text and "The predictor adapted online" in text
     assert report["run"]["options"]["adapt"] is True
+    # the layer's own predictor adapted with it (--shared-control --adapt), and learnt
+    layer = report["adaptation"]["shared_control_node"]
+    assert int(layer["adapt_rows_absorbed"]) > 0 and layer["adapt_published"] in (
+        "trained", "adapted")
+    assert "| shared-control layer |" in text
 
 
 @pytest.mark.e2e

@@ -318,15 +318,27 @@ ADAPT_KEYS = (
 
 
 def adaptation_summary(state: RunState, monitor: MonitorNode
-                       ) -> tuple[list[str], dict[str, str]]:
+                       ) -> tuple[list[str], dict[str, Any]]:
     """The report's adaptation section (empty unless the predictor adapted), from the
-    predictor's last diagnostics."""
+    predictor's last diagnostics, and the shared-control layer's (its own predictor adapts
+    with it) when the layer ran."""
     if not state.options.get("adapt"):
         return [], {}
-    data = {key: monitor.diag_value("predictor_node", key) or "n/a" for key, _ in ADAPT_KEYS}
-    lines = ["The predictor adapted its model online (`adapt.enabled`); from its last "
-             "diagnostics:", "", "| | |", "|---|---|"]
-    lines += [f"| {what} | {data[key]} |" for key, what in ADAPT_KEYS]
+    data: dict[str, Any] = {key: monitor.diag_value("predictor_node", key) or "n/a"
+                            for key, _ in ADAPT_KEYS}
+    if not state.options.get("shared_control"):
+        lines = ["The predictor adapted its model online (`adapt.enabled`); from its last "
+                 "diagnostics:", "", "| | |", "|---|---|"]
+        lines += [f"| {what} | {data[key]} |" for key, what in ADAPT_KEYS]
+        return lines, data
+    # the layer sees no overrides on a topic: it knows its own (counted as steps refused)
+    layer = {key: monitor.diag_value("shared_control_node", key) or "n/a"
+             for key, _ in ADAPT_KEYS if key.startswith("adapt_")}
+    data["shared_control_node"] = layer
+    lines = ["The predictor and the shared-control layer's own predictor adapted their models "
+             "online (`adapt.enabled`); from their last diagnostics:", "",
+             "| | predictor | shared-control layer |", "|---|---|---|"]
+    lines += [f"| {what} | {data[key]} | {layer.get(key, '-')} |" for key, what in ADAPT_KEYS]
     return lines, data
 
 
