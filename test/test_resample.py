@@ -217,6 +217,44 @@ def test_stale_zero_velocity_only_while_driven() -> None:
     assert not late.stale.any()
 
 
+def test_still_odometry_with_jitter_while_driven_is_stale() -> None:
+    """A chair held (against an obstacle) while the stick pushes, or an odometry stuck
+    near zero with a little jitter: the readings never repeat, but they read still
+    (within stale_still_speed) while the chair is driven. Flagged as the exact zeros are;
+    at rest, or a chair that starts, is not; a model file's older 1e-3 keeps its rule."""
+    rng = np.random.default_rng(3)
+    s = driven_stale_recording((0.0, 0.0), joy_fwd=0.8)
+    vel = s.vel.copy()
+    held = (s.vel_t >= 20.0) & (s.vel_t <= 22.0)
+    vel[held] = rng.normal(0.0, 0.008, (int(held.sum()), 2))  # noise at rest, never repeated
+    jitter = RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t, vel=vel)
+    first = s.vel_t[held][0]
+    res = resample(jitter)
+    assert res.stale[(res.t > first + 0.85) & (res.t < 21.9)].all()
+    assert not res.stale[res.t < first + 0.6 - 0.25].any()
+    assert not res.valid[(res.t > first + 0.85) & (res.t < 21.9)].any()
+    # the same readings with the stick released: a chair at rest
+    joy = s.joy.copy()
+    joy[(s.joy_t > 19.0) & (s.joy_t < 23.0)] = 0.0
+    assert not resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel)).stale.any()
+    # a chair that starts: still for 0.4 s after the push, then moving (and noisy)
+    start = vel.copy()
+    moving = held & (s.vel_t > first + 0.4)
+    start[moving, 0] = 0.3 + rng.normal(0.0, 0.02, int(moving.sum()))
+    assert not resample(RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t,
+                                   vel=start)).stale.any()
+    # held, released (at rest, still reading still), pushed again: the new push has its
+    # start-up lag again, counted from when it began, not from the run's start
+    joy = s.joy.copy()
+    joy[(s.joy_t >= 20.9) & (s.joy_t < 21.3)] = 0.0
+    again = resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel))
+    assert again.stale[(again.t > first + 0.85) & (again.t < 20.6)].all()
+    assert not again.stale[(again.t > 21.2) & (again.t < 21.3 + 0.6 - 0.25)].any()
+    assert again.stale[(again.t > 21.3 + 0.85) & (again.t < 21.9)].all()
+    # a model trained with the earlier rule (exact zeros only) resamples as it was trained
+    assert not resample(jitter, ResampleConfig(stale_still_speed=1e-3)).stale.any()
+
+
 def test_short_repeats_and_tolerance() -> None:
     short = resample(driven_stale_recording((0.8, 0.1), 0.6, repeat=(20.0, 20.3)))
     assert not short.stale.any()

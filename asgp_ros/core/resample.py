@@ -35,16 +35,20 @@ Validity of a grid point (``Resampled.valid``):
   apart than ``max_gap_joy_s`` / ``max_gap_vel_s`` (no interpolation across a gap);
 * no odometry sample it uses reported a tracking failure (``RawStreams.vel_ok``);
 * no odometry sample it uses is stale: visual odometry that loses its features keeps
-  reporting the last velocity (as Fovis does). Within a run of samples repeating the same
-  velocity (within ``stale_tolerance`` of the previous sample), the repeats are stale
+  reporting the last velocity (as Fovis does). A run is a sequence of samples each
+  repeating the previous one (within ``stale_tolerance``) or, when it reads still (|v| and
+  |omega| at most ``stale_still_speed``), following a still one. Of a run, the samples
+  after its first are stale
 
-  - all of them, if the repeated velocity is not zero (beyond ``stale_still_speed``; real
-    odometry never repeats a non-zero reading exactly) and the run lasts at least
-    ``stale_after_s``;
-  - for a repeated zero (a chair at rest legitimately reads zero), those from the moment
-    the joystick has been deflected beyond ``stale_joy_threshold`` for
-    ``stale_still_after_s`` since the run began (the chair is driven, the odometry does
-    not change).
+  - all of them, if the repeated velocity is not still (real odometry never repeats a
+    moving reading exactly) and the run lasts at least ``stale_after_s``;
+  - for a still run (a chair at rest legitimately reads still, with its odometry's noise),
+    those from the moment the joystick has been deflected beyond ``stale_joy_threshold``
+    for ``stale_still_after_s`` since the run began: the chair is driven and the odometry
+    says it does not move. Either the odometry is stuck (at zero, or near it with a little
+    jitter) or the chair is held (against an obstacle, brakes on, drive inhibited); in
+    neither case is it the chair's response to the stick, and a row that taught it would
+    make a model, or an adapting predictor, expect a chair that does not start.
 
   The first sample of a run (the last genuine measurement) is kept; the flagged grid
   points are in ``Resampled.stale``;
@@ -133,9 +137,12 @@ class ResampleConfig:
             one count as repeated.
         stale_joy_threshold: the joystick counts as moving while max(|fwd|, |turn|) exceeds
             this deflection.
-        stale_still_speed: a repeated reading with |v| and |omega| below this is "zero".
-        stale_still_after_s: a repeated zero is stale once the joystick has been deflected
-            this long since the repeats began (longer than the chair's start-up lag, so a
+        stale_still_speed: a reading with |v| (m/s) and |omega| (rad/s) at most this is
+            still: a run of still readings is one run whatever their noise (3 cm/s and
+            0.03 rad/s: an odometry's noise at rest lies below, a chair that moves above).
+            Model files record it (earlier ones 1e-3: only exact repeats of a zero).
+        stale_still_after_s: a still run is stale once the joystick has been deflected
+            this long since the run began (longer than the chair's start-up lag, so a
             chair that has not started moving yet is not flagged; ``math.inf`` disables).
         vel_stamp: the time an odometry velocity describes (see "Odometry stamps" in the
             module docstring): ``"midpoint"`` (default), the middle of the interval from
@@ -151,7 +158,7 @@ class ResampleConfig:
     stale_after_s: float = 0.5
     stale_tolerance: float = 1e-9
     stale_joy_threshold: float = 0.2
-    stale_still_speed: float = 1e-3
+    stale_still_speed: float = 0.03
     stale_still_after_s: float = 0.6
     vel_stamp: str = "midpoint"
     override_hold_s: float = 0.4
@@ -369,7 +376,8 @@ def midpoint_stamps(vel_t: FloatArray, max_interval_s: float) -> tuple[FloatArra
 
 def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: FloatArray,
                   config: ResampleConfig) -> BoolArray:
-    """Odometry samples that repeat a frozen reading (see the module docstring).
+    """Odometry samples that repeat a frozen reading, or read still while the chair is
+    driven (see the module docstring).
 
     Args:
         vel_t: [Nv] sorted odometry times; vel: [Nv, 2] finite readings.
@@ -382,27 +390,33 @@ def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: Fl
     stale = np.zeros(n, dtype=bool)
     if n < 2 or math.isinf(config.stale_after_s):
         return stale
+    still = np.all(np.abs(vel) <= config.stale_still_speed, axis=1)  # [Nv]
     same = np.all(np.abs(np.diff(vel, axis=0)) <= config.stale_tolerance, axis=1)  # [Nv-1]
-    # runs of repeated readings: a run starts where a sample differs from its predecessor
+    same |= still[1:] & still[:-1]  # still readings: one run whatever their noise
+    # a run starts where a sample neither repeats its predecessor nor is still after it
     is_start = np.r_[True, ~same]
     run = np.cumsum(is_start) - 1  # [Nv] run id of each sample
     starts = np.flatnonzero(is_start)
     ends = np.r_[starts[1:], n] - 1  # inclusive
     repeat = ~is_start  # the first sample of a run is a genuine measurement
 
-    # a repeated non-zero reading: the whole run once it lasts stale_after_s
-    moving = np.any(np.abs(vel[starts]) > config.stale_still_speed, axis=1)
+    # a repeated moving reading: the whole run once it lasts stale_after_s
+    moving = ~still[starts]
     long_run = (vel_t[ends] - vel_t[starts]) >= config.stale_after_s
     stale |= repeat & (moving & long_run)[run]
 
-    # a repeated zero while the chair is driven: from the moment the joystick has been
-    # deflected for stale_still_after_s since the run began (zero-order hold)
+    # a still run while the chair is driven: from the moment the joystick has been
+    # deflected, without a pause, for stale_still_after_s within the run (zero-order
+    # hold). A pause counts from zero again: a chair held while the user pushed, then at
+    # rest, must have its start-up lag again when the stick is pushed once more
     if joy_t.shape[0] > 0 and not math.isinf(config.stale_still_after_s):
         active = np.max(np.abs(joy), axis=1) > config.stale_joy_threshold
-        cum = np.zeros(joy_t.shape[0])
-        cum[1:] = np.cumsum(active[:-1] * np.diff(joy_t))
-        cum_v = np.interp(vel_t, joy_t, cum)  # [Nv] active time up to each sample
-        driven = (cum_v - cum_v[starts][run]) >= config.stale_still_after_s
+        # the time each joystick sample's stretch of deflection began (inf: not deflected)
+        began = np.where(active & ~np.r_[False, active[:-1]], joy_t, -np.inf)
+        began = np.where(active, np.maximum.accumulate(began), np.inf)
+        j = np.searchsorted(joy_t, vel_t, side="right") - 1  # [Nv] the sample held then
+        since = np.where(j >= 0, began[np.maximum(j, 0)], np.inf)
+        driven = vel_t - np.maximum(since, vel_t[starts][run]) >= config.stale_still_after_s
         stale |= repeat & ~moving[run] & driven
     return stale
 
