@@ -8,6 +8,7 @@ input sample, so the test is deterministic and takes no wall time beyond the spi
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
 import time
@@ -827,3 +828,17 @@ def test_the_adapt_parameters_defaults_are_the_dataclass_defaults():
     for spec in ADAPT_PARAMS:
         assert spec in PARAMS
         assert fields[spec.name.replace(".", "_")].default == spec.default, spec.name
+
+
+@pytest.mark.parametrize("name, value", [("adapt.half_life_s", math.nan),
+                                         ("adapt.trained_floor", -0.5),
+                                         ("horizon_s", 1e30)])
+def test_a_value_rclpy_refuses_is_one_line_naming_the_parameter(rclpy_context, model_file,
+                                                               name, value):
+    """Out of the declared range, or not finite: rclpy refuses it at the declaration; the
+    node refuses to start with one line naming the parameter, not a traceback."""
+    from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
+
+    with pytest.raises(StartupError, match=re.escape(f"parameter {name}: ")):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter(name, value=value)])

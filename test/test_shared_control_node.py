@@ -868,8 +868,23 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     to the trained model. Off by default."""
     from std_srvs.srv import Trigger
 
+    # a value rclpy refuses (out of the declared range, NaN): one line naming it
+    for bad in (0.0, math.nan):
+        with pytest.raises(StartupError, match=r"parameter adapt\.max_rate: "):
+            harness(**{"adapt.max_rate": bad})
+    # a horizon whose adaptation needs more history than the default buffer: the layer
+    # (which has no buffer_s) sizes its predictor's buffer for it
+    long = harness(**{"adapt.enabled": True, "horizon_s": 10.0})
+    assert long.node.predictor.config.buffer_s >= long.node.predictor.min_buffer_s > 10.0
+    # a misspelt key is not silently a default: the node names it (and logs it)
+    from asgp_ros.nodes.parameters import unknown_overrides
+
+    typo = harness(**{"adapt.enable": True, "adapt.halflife_s": 3.0})
+    assert typo.node.predictor.adaptation is None
+    assert unknown_overrides(typo.node) == ["adapt.enable", "adapt.halflife_s"]
     off = harness()
     assert off.node.predictor.adaptation is None
+    assert unknown_overrides(off.node) == []
     assert conv.diagnostic_values(off.node.diagnostic_status())["adapt"] == "off"
 
     h = harness(**{"adapt.enabled": True, "adapt.half_life_s": 10.0})

@@ -422,6 +422,14 @@ class ModelAdapter:
         return (self.base.lags + self.horizon_steps + self.settle_steps
                 + self.settings.update_steps + 1)
 
+    @staticmethod
+    def history_steps_for(model: MotionModel, settings: AdaptSettings,
+                          horizon_steps: int) -> int:
+        """:meth:`history_steps` of an adapter of ``model`` with the default settle time,
+        before one is made (to size a buffer)."""
+        return (int(model.feature_config.lags) + int(horizon_steps)
+                + ModelAdapter.default_settle_steps(model) + settings.update_steps + 1)
+
     # ------------------------------------------------------------------ state
 
     def _publish(self) -> MotionModel:

@@ -393,6 +393,17 @@ class Predictor:
         """The model predictions use: the adapted one when adapting (see ``adapt``)."""
         return self._model if self._adapter is None else self._adapter.model
 
+    @staticmethod
+    def buffer_for(model: MotionModel, horizon_steps: int, adapt: AdaptSettings | None,
+                   buffer_s: float = 10.0) -> float:
+        """``buffer_s``, or the longer history adaptation with these settings needs (see
+        :attr:`min_buffer_s`): the buffer of a predictor that has no ``buffer_s`` of its own
+        to set, such as the shared-control layer's."""
+        if adapt is None:
+            return float(buffer_s)
+        steps = ModelAdapter.history_steps_for(model, adapt, horizon_steps)
+        return max(float(buffer_s), (steps + 2) / float(model.resample_config.rate_hz))
+
     @property
     def min_buffer_s(self) -> float:
         """The shortest ``config.buffer_s`` this predictor works with (longer to adapt)."""
@@ -758,7 +769,7 @@ class Predictor:
             return Prediction(False, Reason.VO_TRACKING_LOST, "VO reported tracking loss")
         if bool(res.stale[last]):
             return Prediction(False, Reason.VO_STALE_REPEAT,
-                              "VO repeats the same velocity while the chair is driven")
+                              "VO repeats itself, or reads still, while the chair is driven")
         valid = np.asarray(res.valid[window], dtype=bool)
         segment = np.asarray(res.segment[window])
         if not (np.all(valid) and np.all(segment == segment[-1])):

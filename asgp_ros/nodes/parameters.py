@@ -10,6 +10,7 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
@@ -35,12 +36,32 @@ def descriptor(spec: ParamSpec) -> ParameterDescriptor:
 
 
 def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, object]:
-    """Declare every parameter of ``specs`` on ``node``; return the values it received."""
+    """Declare every parameter of ``specs`` on ``node``; return the values it received.
+
+    Raises:
+        ValueError: rclpy refused a value given for one (out of its range, not finite, of
+            another type), naming the parameter; a node refuses to start with it.
+    """
     values: dict[str, object] = {}
     for spec in specs:
-        node.declare_parameter(spec.name, spec.default, descriptor(spec))
+        try:
+            node.declare_parameter(spec.name, spec.default, descriptor(spec))
+        except ParameterException as exc:
+            raise ValueError(f"parameter {spec.name}: {' '.join(str(exc).split())}") from None
         values[spec.name] = node.get_parameter(spec.name).value
+    unknown = unknown_overrides(node)
+    if unknown:
+        node.get_logger().warning(
+            f"ignoring parameters this node does not have (misspelt?): {', '.join(unknown)}")
     return values
+
+
+def unknown_overrides(node: Node) -> list[str]:
+    """Parameters given to ``node`` (a params file, ``-p``, ``parameter_overrides``) that it
+    has not declared: rclpy ignores them silently, and a misspelt one (``adapt.enable``)
+    would leave its setting at the default."""
+    given = getattr(node, "_parameter_overrides", None) or {}  # rclpy keeps no public copy
+    return sorted(name for name in given if not node.has_parameter(name))
 
 
 #: Why a node refuses to switch ``use_sim_time`` while it runs.

@@ -285,8 +285,8 @@ class PredictorNode(Node):
             raise
 
     def _setup(self) -> None:
-        values = declare(self, PARAMS)
         try:
+            values = declare(self, PARAMS)
             self.params = PredictorNodeParams(
                 **{_field(k): v for k, v in check_values(PARAMS, values).items()})
         except (ValueError, TypeError) as exc:

@@ -304,9 +304,10 @@ class SharedControlNode(Node):
         rate = float(self.model.resample_config.rate_hz)
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
+            k = max(1, round(p.horizon_s * rate))
             self.predictor = Predictor(self.model, PredictorConfig(
-                horizon_steps=max(1, round(p.horizon_s * rate)), joy_timeout_s=p.joy_timeout_s,
-                vo_timeout_s=p.vo_timeout_s), adapt=adapt)
+                horizon_steps=k, joy_timeout_s=p.joy_timeout_s, vo_timeout_s=p.vo_timeout_s,
+                buffer_s=Predictor.buffer_for(self.model, k, adapt)), adapt=adapt)
         except ValueError as exc:  # AdaptError included: a model that cannot adapt
             self.destroy_node()
             raise StartupError(str(exc)) from exc
