@@ -95,6 +95,31 @@ def test_fast_unplug_cycles_do_not_crash(board):
         assert link._thread is not None and link._thread.is_alive()
 
 
+def test_a_port_gone_as_it_opens_is_reopened(board, monkeypatch):
+    """A port unplugged just after it opened: pyserial's reset_input_buffer raises
+    termios.error (EIO), which is neither a SerialException nor an OSError. The link
+    thread died of it (a bridge deaf until restarted); now the port is reopened."""
+    import termios
+
+    import serial
+
+    calls = []
+    reset = serial.Serial.reset_input_buffer
+
+    def failing_once(self):
+        calls.append(1)
+        if len(calls) == 1:
+            raise termios.error(5, "Input/output error")
+        return reset(self)
+
+    monkeypatch.setattr(serial.Serial, "reset_input_buffer", failing_once)
+    board.start()
+    with LinkManager(LinkConfig(board.port)) as link:
+        assert link.wait_for_state(LinkState.CONNECTED, 5.0)
+        assert len(calls) >= 2 and link._thread is not None and link._thread.is_alive()
+        assert "port lost" in link.stats().last_error
+
+
 def test_silent_board_goes_stale_then_recovers_or_is_reopened(board):
     board.start()
     rec = Recorder()

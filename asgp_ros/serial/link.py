@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import termios
 import threading
 import time
 from collections.abc import Callable
@@ -22,6 +23,13 @@ import serial
 from asgp_ros.common.fileio import join_if_started, signals_deferred
 from asgp_ros.serial import protocol as proto
 from asgp_ros.serial.calibration import JoystickCalibration
+
+#: What a port that has gone (unplugged, reset, its driver gone) raises: pyserial's own
+#: error, an OSError from a read, write or ioctl, and ``termios.error``, which is neither
+#: (``reset_input_buffer`` on a port unplugged just after it opened raises EIO as one).
+PORT_ERRORS: tuple[type[Exception], ...] = (serial.SerialException, OSError, termios.error)
+#: What opening a port raises besides (a path pyserial cannot take).
+OPEN_ERRORS: tuple[type[Exception], ...] = (*PORT_ERRORS, ValueError)
 
 log = logging.getLogger(__name__)
 
@@ -319,7 +327,7 @@ class LinkManager:
             self._tx_seq = (self._tx_seq + 1) & 0xFF
             try:
                 ser.write(frame)
-            except (serial.SerialException, OSError) as exc:
+            except PORT_ERRORS as exc:
                 # the reader thread notices the dead port on its next read and reopens it
                 log.debug("write to %s failed: %s", self.config.port, exc)
                 return False
@@ -331,7 +339,7 @@ class LinkManager:
             try:
                 ser = serial.Serial(self.config.port, self.config.baud,
                                     timeout=self.config.read_timeout, write_timeout=0.2)
-            except (serial.SerialException, OSError, ValueError) as exc:
+            except OPEN_ERRORS as exc:
                 with self._lock:
                     self._open_failures += 1
                     self._last_error = f"open failed: {exc}"
@@ -342,7 +350,7 @@ class LinkManager:
             delay = self.config.reconnect_min
             try:
                 self._serve(ser)
-            except (serial.SerialException, OSError) as exc:
+            except PORT_ERRORS as exc:
                 with self._lock:
                     self._last_error = f"port lost: {exc}"
                 log.warning("serial port %s lost: %s", self.config.port, exc)
@@ -352,7 +360,7 @@ class LinkManager:
                     self._ser = None
                 try:
                     ser.close()
-                except (serial.SerialException, OSError) as exc:
+                except PORT_ERRORS as exc:
                     log.debug("closing %s: %s", self.config.port, exc)
 
     def _serve(self, ser: serial.Serial) -> None:
