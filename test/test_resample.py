@@ -213,15 +213,17 @@ def test_stale_zero_velocity_only_while_driven() -> None:
     # (a grid point is flagged when the next odometry sample, <= 0.25 s later, is stale)
     assert not driven.stale[driven.t < first_zero + 0.6 - 0.25].any()
     # a chair that starts late (start-up lag shorter than the limit) is not flagged
-    late = resample(s, ResampleConfig(stale_still_after_s=3.0))
+    late = resample(s, ResampleConfig(stale_still_after_s=3.0, held_after_s=3.0))
     assert not late.stale.any()
 
 
-def test_still_odometry_with_jitter_while_driven_is_stale() -> None:
-    """A chair held (against an obstacle) while the stick pushes, or an odometry stuck
-    near zero with a little jitter: the readings never repeat, but they read still
-    (within stale_still_speed) while the chair is driven. Flagged as the exact zeros are;
-    at rest, or a chair that starts, is not; a model file's older 1e-3 keeps its rule."""
+def test_a_chair_held_while_pushed_is_stale() -> None:
+    """A chair held (against an obstacle) while the stick pushes, or an odometry stuck near
+    zero with a little jitter: the readings never repeat, but they read still (within
+    held_speed) while the stick is pushed beyond held_joy_threshold. Flagged after
+    held_after_s; at rest, at a small deflection (a chair that creeps), or a chair that
+    starts, not; a pause of the stick starts the count again; a model file from before the
+    rule (no held_after_s) resamples without it."""
     rng = np.random.default_rng(3)
     s = driven_stale_recording((0.0, 0.0), joy_fwd=0.8)
     vel = s.vel.copy()
@@ -233,26 +235,42 @@ def test_still_odometry_with_jitter_while_driven_is_stale() -> None:
     assert res.stale[(res.t > first + 0.85) & (res.t < 21.9)].all()
     assert not res.stale[res.t < first + 0.6 - 0.25].any()
     assert not res.valid[(res.t > first + 0.85) & (res.t < 21.9)].any()
-    # the same readings with the stick released: a chair at rest
-    joy = s.joy.copy()
-    joy[(s.joy_t > 19.0) & (s.joy_t < 23.0)] = 0.0
-    assert not resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel)).stale.any()
+
+    def with_joy(fwd: float, when: tuple[float, float] = (19.0, 23.0)) -> RawStreams:
+        joy = s.joy.copy()
+        joy[(s.joy_t >= when[0]) & (s.joy_t < when[1])] = (fwd, 0.0)
+        return RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel)
+
+    assert not resample(with_joy(0.0)).stale.any()  # at rest
+    assert not resample(with_joy(0.3)).stale.any()  # a small push: a chair may creep
     # a chair that starts: still for 0.4 s after the push, then moving (and noisy)
     start = vel.copy()
     moving = held & (s.vel_t > first + 0.4)
     start[moving, 0] = 0.3 + rng.normal(0.0, 0.02, int(moving.sum()))
     assert not resample(RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t,
                                    vel=start)).stale.any()
-    # held, released (at rest, still reading still), pushed again: the new push has its
-    # start-up lag again, counted from when it began, not from the run's start
+    # held, released (still reading still), pushed again: the new push has its start-up
+    # lag again, counted from when it began
     joy = s.joy.copy()
     joy[(s.joy_t >= 20.9) & (s.joy_t < 21.3)] = 0.0
     again = resample(RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel))
     assert again.stale[(again.t > first + 0.85) & (again.t < 20.6)].all()
     assert not again.stale[(again.t > 21.2) & (again.t < 21.3 + 0.6 - 0.25)].any()
     assert again.stale[(again.t > 21.3 + 0.85) & (again.t < 21.9)].all()
-    # a model trained with the earlier rule (exact zeros only) resamples as it was trained
-    assert not resample(jitter, ResampleConfig(stale_still_speed=1e-3)).stale.any()
+    # a model file from before the rule: resampled as it was trained
+    old = ResampleConfig.from_dict({k: v for k, v in ResampleConfig().to_dict().items()
+                                    if not k.startswith("held_")})
+    assert math.isinf(old.held_after_s) and not resample(jitter, old).stale.any()
+    assert ResampleConfig.from_dict(ResampleConfig().to_dict()) == ResampleConfig()
+
+
+def test_a_small_frozen_reading_is_still_a_frozen_reading() -> None:
+    """Odometry frozen at a small non-zero reading (2 cm/s, within held_speed) is caught
+    by the repeat rule whatever the stick does, as before the held rule."""
+    s = driven_stale_recording((0.02, 0.01), joy_fwd=0.0)
+    res = resample(s)
+    frozen_t = s.vel_t[(s.vel_t >= 20.0) & (s.vel_t <= 22.0)]
+    assert res.stale[(res.t > frozen_t[0] + 0.1) & (res.t <= frozen_t[-1])].all()
 
 
 def test_short_repeats_and_tolerance() -> None:

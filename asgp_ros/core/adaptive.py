@@ -408,7 +408,8 @@ class ModelAdapter:
         at least ``OVERRIDE_DELAY_S`` (plus one): an override that arrives that late still
         keeps the steps it drove from being learnt."""
         rc = model.resample_config
-        windows = [w for w in (rc.stale_after_s, rc.stale_still_after_s) if math.isfinite(w)]
+        windows = [w for w in (rc.stale_after_s, rc.stale_still_after_s, rc.held_after_s)
+                   if math.isfinite(w)]
         stale = min(math.ceil(max(windows) * rc.rate_hz - 1e-9) + 1, 50) if windows else 1
         return max(stale, math.ceil(OVERRIDE_DELAY_S * rc.rate_hz - 1e-9) + 1)
 

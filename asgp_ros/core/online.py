@@ -769,7 +769,7 @@ class Predictor:
             return Prediction(False, Reason.VO_TRACKING_LOST, "VO reported tracking loss")
         if bool(res.stale[last]):
             return Prediction(False, Reason.VO_STALE_REPEAT,
-                              "VO repeats itself, or reads still, while the chair is driven")
+                              "VO repeats itself, or reads the chair held while it is pushed")
         valid = np.asarray(res.valid[window], dtype=bool)
         segment = np.asarray(res.segment[window])
         if not (np.all(valid) and np.all(segment == segment[-1])):

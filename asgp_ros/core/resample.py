@@ -10,9 +10,10 @@ the two raw samples that bracket it in each stream (``x_i + w (x_{i+1} - x_i)`` 
 ``w = (t - t_i) / (t_{i+1} - t_i)``; exactly ``x_i`` when ``t == t_i``). Calling
 :func:`resample` on any window of raw samples therefore gives bit-identical ``t``, ``joy``
 and ``vel`` at every grid point the window covers, and identical gap and tracking flags.
-Stale-odometry flags depend on the run of repeated values a point belongs to; they agree
-wherever that run lies inside the window (a run cut by the window's edge can only be
-judged by what the window holds, as an online buffer must).
+Stale-odometry flags depend on the run of repeated (or still) values a point belongs to
+and on the joystick since the run began; they agree wherever that run, and the joystick
+from its start, lie inside the window (a run cut by the window's edge can only be judged by
+what the window holds, as an online buffer must).
 
 Odometry stamps (``ResampleConfig.vel_stamp``): a frame-to-frame visual odometry (Fovis,
 :mod:`asgp_ros.vo`) reports the displacement between the previous frame and this one
@@ -35,23 +36,30 @@ Validity of a grid point (``Resampled.valid``):
   apart than ``max_gap_joy_s`` / ``max_gap_vel_s`` (no interpolation across a gap);
 * no odometry sample it uses reported a tracking failure (``RawStreams.vel_ok``);
 * no odometry sample it uses is stale: visual odometry that loses its features keeps
-  reporting the last velocity (as Fovis does). A run is a sequence of samples each
-  repeating the previous one (within ``stale_tolerance``) or, when it reads still (|v| and
-  |omega| at most ``stale_still_speed``), following a still one. Of a run, the samples
-  after its first are stale
+  reporting the last velocity (as Fovis does). Within a run of samples repeating the same
+  velocity (within ``stale_tolerance`` of the previous sample), the repeats are stale
 
-  - all of them, if the repeated velocity is not still (real odometry never repeats a
-    moving reading exactly) and the run lasts at least ``stale_after_s``;
-  - for a still run (a chair at rest legitimately reads still, with its odometry's noise),
-    those from the moment the joystick has been deflected beyond ``stale_joy_threshold``
-    for ``stale_still_after_s`` since the run began: the chair is driven and the odometry
-    says it does not move. Either the odometry is stuck (at zero, or near it with a little
-    jitter) or the chair is held (against an obstacle, brakes on, drive inhibited); in
-    neither case is it the chair's response to the stick, and a row that taught it would
-    make a model, or an adapting predictor, expect a chair that does not start.
+  - all of them, if the repeated velocity is not zero (beyond ``stale_still_speed``; real
+    odometry never repeats a non-zero reading exactly) and the run lasts at least
+    ``stale_after_s``;
+  - for a repeated zero (a chair at rest legitimately reads zero), those from the moment
+    the joystick has been deflected beyond ``stale_joy_threshold`` for
+    ``stale_still_after_s`` since the run began (the chair is driven, the odometry does
+    not change).
 
-  The first sample of a run (the last genuine measurement) is kept; the flagged grid
-  points are in ``Resampled.stale``;
+  The first sample of a run (the last genuine measurement) is kept;
+* no odometry sample it uses reads the chair held while it is pushed: within ``held_speed``
+  (|v| and |omega|, whatever the odometry's noise) while the joystick has been deflected
+  beyond ``held_joy_threshold`` for ``held_after_s`` without a pause, counted from the later
+  of the deflection's start and the first still reading. Either the odometry is stuck near
+  zero with a little jitter, which the repeat rules above cannot see, or the chair is held
+  (against an obstacle, brakes on, drive inhibited); in neither case is it the chair's
+  response to the stick, and a row that taught it would make a model, or an adapting
+  predictor, expect a chair that does not start. The deflection is large (0.5 by default)
+  because at a small one a chair may really creep at a few cm/s. Model files made before
+  this rule keep it off (``held_after_s`` inf), so they resample as they were trained.
+
+  The flagged grid points of both rules are in ``Resampled.stale``;
 * no override may have driven the chair around it (``Resampled.overridden``, from
   ``RawStreams.override_t``): while the shared-control layer or a planner overrides the
   user through the board, the recorded joystick is not what drove the chair, and a row
@@ -109,8 +117,11 @@ RESAMPLE_RANGES: dict[str, tuple[float, float]] = {
     "stale_still_speed": (0.0, 1.0),
     "stale_still_after_s": (1e-3, 3600.0),
     "override_hold_s": (0.0, 3600.0),
+    "held_speed": (0.0, 1.0),
+    "held_joy_threshold": (0.0, 1.0),
+    "held_after_s": (1e-3, 3600.0),
 }
-RESAMPLE_MAY_BE_INF = ("stale_after_s", "stale_still_after_s")
+RESAMPLE_MAY_BE_INF = ("stale_after_s", "stale_still_after_s", "held_after_s")
 #: What an odometry sample's stamp is taken to mean (``ResampleConfig.vel_stamp``).
 VEL_STAMPS = ("midpoint", "frame")
 
@@ -137,12 +148,9 @@ class ResampleConfig:
             one count as repeated.
         stale_joy_threshold: the joystick counts as moving while max(|fwd|, |turn|) exceeds
             this deflection.
-        stale_still_speed: a reading with |v| (m/s) and |omega| (rad/s) at most this is
-            still: a run of still readings is one run whatever their noise (3 cm/s and
-            0.03 rad/s: an odometry's noise at rest lies below, a chair that moves above).
-            Model files record it (earlier ones 1e-3: only exact repeats of a zero).
-        stale_still_after_s: a still run is stale once the joystick has been deflected
-            this long since the run began (longer than the chair's start-up lag, so a
+        stale_still_speed: a repeated reading with |v| and |omega| below this is "zero".
+        stale_still_after_s: a repeated zero is stale once the joystick has been deflected
+            this long since the repeats began (longer than the chair's start-up lag, so a
             chair that has not started moving yet is not flagged; ``math.inf`` disables).
         vel_stamp: the time an odometry velocity describes (see "Odometry stamps" in the
             module docstring): ``"midpoint"`` (default), the middle of the interval from
@@ -150,6 +158,14 @@ class ResampleConfig:
         override_hold_s: how long an override command may drive the chair after it was
             sent (``RawStreams.override_t``): the bridge re-sends one while it is fresh
             (0.15 s) and the board's watchdog holds the last one sent for 0.2 s.
+        held_speed: a reading with |v| (m/s) and |omega| (rad/s) at most this reads the
+            chair still, noise included (3 cm/s and 0.03 rad/s: an odometry's noise at
+            rest lies below, a chair pushed with ``held_joy_threshold`` moves above).
+        held_joy_threshold: the joystick pushes the chair while max(|fwd|, |turn|) exceeds
+            this deflection (for the held rule only).
+        held_after_s: readings are stale once they have read still this long while the
+            joystick was pushed without a pause (``math.inf`` disables; model files from
+            before the rule).
     """
 
     rate_hz: float = 5.0
@@ -158,10 +174,13 @@ class ResampleConfig:
     stale_after_s: float = 0.5
     stale_tolerance: float = 1e-9
     stale_joy_threshold: float = 0.2
-    stale_still_speed: float = 0.03
+    stale_still_speed: float = 1e-3
     stale_still_after_s: float = 0.6
     vel_stamp: str = "midpoint"
     override_hold_s: float = 0.4
+    held_speed: float = 0.03
+    held_joy_threshold: float = 0.5
+    held_after_s: float = 0.6
 
     def __post_init__(self) -> None:
         if self.vel_stamp not in VEL_STAMPS:
@@ -189,7 +208,7 @@ class ResampleConfig:
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dict (an infinite duration, i.e. disabled, is stored as None)."""
         d = asdict(self)
-        for name in ("stale_after_s", "stale_still_after_s"):
+        for name in RESAMPLE_MAY_BE_INF:
             if math.isinf(d[name]):
                 d[name] = None
         return d
@@ -203,7 +222,9 @@ class ResampleConfig:
         d = dict(d)
         # settings stored before odometry stamps were a setting were resampled as recorded
         d.setdefault("vel_stamp", "frame")
-        for name in ("stale_after_s", "stale_still_after_s"):
+        # settings stored before the held-chair rule resample without it, as trained
+        d.setdefault("held_after_s", None)
+        for name in RESAMPLE_MAY_BE_INF:
             if name in d and d[name] is None:
                 d[name] = math.inf
         return cls(**d)
@@ -376,8 +397,7 @@ def midpoint_stamps(vel_t: FloatArray, max_interval_s: float) -> tuple[FloatArra
 
 def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: FloatArray,
                   config: ResampleConfig) -> BoolArray:
-    """Odometry samples that repeat a frozen reading, or read still while the chair is
-    driven (see the module docstring).
+    """Odometry samples that repeat a frozen reading (see the module docstring).
 
     Args:
         vel_t: [Nv] sorted odometry times; vel: [Nv, 2] finite readings.
@@ -390,35 +410,57 @@ def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: Fl
     stale = np.zeros(n, dtype=bool)
     if n < 2 or math.isinf(config.stale_after_s):
         return stale
-    still = np.all(np.abs(vel) <= config.stale_still_speed, axis=1)  # [Nv]
     same = np.all(np.abs(np.diff(vel, axis=0)) <= config.stale_tolerance, axis=1)  # [Nv-1]
-    same |= still[1:] & still[:-1]  # still readings: one run whatever their noise
-    # a run starts where a sample neither repeats its predecessor nor is still after it
+    # runs of repeated readings: a run starts where a sample differs from its predecessor
     is_start = np.r_[True, ~same]
     run = np.cumsum(is_start) - 1  # [Nv] run id of each sample
     starts = np.flatnonzero(is_start)
     ends = np.r_[starts[1:], n] - 1  # inclusive
     repeat = ~is_start  # the first sample of a run is a genuine measurement
 
-    # a repeated moving reading: the whole run once it lasts stale_after_s
-    moving = ~still[starts]
+    # a repeated non-zero reading: the whole run once it lasts stale_after_s
+    moving = np.any(np.abs(vel[starts]) > config.stale_still_speed, axis=1)
     long_run = (vel_t[ends] - vel_t[starts]) >= config.stale_after_s
     stale |= repeat & (moving & long_run)[run]
 
-    # a still run while the chair is driven: from the moment the joystick has been
-    # deflected, without a pause, for stale_still_after_s within the run (zero-order
-    # hold). A pause counts from zero again: a chair held while the user pushed, then at
-    # rest, must have its start-up lag again when the stick is pushed once more
+    # a repeated zero while the chair is driven: from the moment the joystick has been
+    # deflected for stale_still_after_s since the run began (zero-order hold)
     if joy_t.shape[0] > 0 and not math.isinf(config.stale_still_after_s):
         active = np.max(np.abs(joy), axis=1) > config.stale_joy_threshold
-        # the time each joystick sample's stretch of deflection began (inf: not deflected)
-        began = np.where(active & ~np.r_[False, active[:-1]], joy_t, -np.inf)
-        began = np.where(active, np.maximum.accumulate(began), np.inf)
-        j = np.searchsorted(joy_t, vel_t, side="right") - 1  # [Nv] the sample held then
-        since = np.where(j >= 0, began[np.maximum(j, 0)], np.inf)
-        driven = vel_t - np.maximum(since, vel_t[starts][run]) >= config.stale_still_after_s
+        cum = np.zeros(joy_t.shape[0])
+        cum[1:] = np.cumsum(active[:-1] * np.diff(joy_t))
+        cum_v = np.interp(vel_t, joy_t, cum)  # [Nv] active time up to each sample
+        driven = (cum_v - cum_v[starts][run]) >= config.stale_still_after_s
         stale |= repeat & ~moving[run] & driven
+    if joy_t.shape[0] > 0 and not math.isinf(config.held_after_s):
+        stale |= held_samples(vel_t, vel, joy_t, joy, config)
     return stale
+
+
+def held_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: FloatArray,
+                 config: ResampleConfig) -> BoolArray:
+    """Odometry samples that read the chair held while it is pushed (module docstring):
+    still (within ``held_speed``) since at least ``held_after_s`` ago, while the joystick
+    (zero-order hold) has been deflected beyond ``held_joy_threshold`` without a pause for
+    as long. A pause of the stick starts the count again: a chair released and pushed once
+    more has its start-up lag again.
+
+    Args / Returns: as :func:`stale_samples` (joy_t non-empty).
+    """
+    still = np.all(np.abs(vel) <= config.held_speed, axis=1)  # [Nv]
+    # the time each still sample's stretch of still readings began
+    first = still & ~np.r_[False, still[:-1]]
+    still_since = np.where(still, np.maximum.accumulate(np.where(first, vel_t, -np.inf)),
+                           np.inf)
+    pushed = np.max(np.abs(joy), axis=1) > config.held_joy_threshold  # [Nj]
+    # the time each joystick sample's stretch of deflection began (inf: not deflected)
+    began = np.where(pushed & ~np.r_[False, pushed[:-1]], joy_t, -np.inf)
+    began = np.where(pushed, np.maximum.accumulate(began), np.inf)
+    j = np.searchsorted(joy_t, vel_t, side="right") - 1  # [Nv] the joystick sample held then
+    pushed_since = np.where(j >= 0, began[np.maximum(j, 0)], np.inf)
+    held: BoolArray = still & (vel_t - np.maximum(still_since, pushed_since)
+                               >= config.held_after_s)
+    return held
 
 
 def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resampled:

@@ -371,7 +371,9 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     twists, the VO's while they do not match), "vo" or "scan_matching". ``vo_losses``: the
     VO loses tracking (module docstring); False: never. ``adapt``: the layer's predictor
     adapts online (``shared_control_node``'s ``adapt.*``): it learns after each decision,
-    nothing from the steps the layer's overrides drove."""
+    nothing from the steps the layer's overrides drove (each is fed to it as it goes to the
+    board, at the next step; the node feeds it before learning, and learning takes only
+    steps 0.8 s old or more, so the two learn the same)."""
     if velocity_source not in VELOCITY_SOURCES:
         raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
                          f"{velocity_source!r}")
