@@ -241,6 +241,9 @@ def test_a_chair_held_while_pushed_is_stale() -> None:
         joy[(s.joy_t >= when[0]) & (s.joy_t < when[1])] = (fwd, 0.0)
         return RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel)
 
+    # its own setting: switching the repeat rules off leaves it on
+    norepeat = resample(jitter, ResampleConfig(stale_after_s=math.inf))
+    assert norepeat.stale[(norepeat.t > first + 0.85) & (norepeat.t < 21.9)].all()
     assert not resample(with_joy(0.0)).stale.any()  # at rest
     assert not resample(with_joy(0.3)).stale.any()  # a small push: a chair may creep
     # a chair that starts: still for 0.4 s after the push, then moving (and noisy)

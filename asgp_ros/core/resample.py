@@ -408,6 +408,9 @@ def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: Fl
     """
     n = vel_t.shape[0]
     stale = np.zeros(n, dtype=bool)
+    if joy_t.shape[0] > 0 and not math.isinf(config.held_after_s):
+        # its own setting: the repeat rules switched off (stale_after_s inf) leave it on
+        stale |= held_samples(vel_t, vel, joy_t, joy, config)
     if n < 2 or math.isinf(config.stale_after_s):
         return stale
     same = np.all(np.abs(np.diff(vel, axis=0)) <= config.stale_tolerance, axis=1)  # [Nv-1]
@@ -432,8 +435,6 @@ def stale_samples(vel_t: FloatArray, vel: FloatArray, joy_t: FloatArray, joy: Fl
         cum_v = np.interp(vel_t, joy_t, cum)  # [Nv] active time up to each sample
         driven = (cum_v - cum_v[starts][run]) >= config.stale_still_after_s
         stale |= repeat & ~moving[run] & driven
-    if joy_t.shape[0] > 0 and not math.isinf(config.held_after_s):
-        stale |= held_samples(vel_t, vel, joy_t, joy, config)
     return stale
 
 
