@@ -664,6 +664,70 @@ def _drive_with_overrides(h: Harness, t_from: float, t_to: float) -> None:
             h.vo(t + 0.03, 0.45 + 0.25 * math.sin(t - 0.27), 0.3 * math.cos(0.5 * t + 0.015))
 
 
+def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
+                                                                   model_file):
+    """While an override may drive the chair (override_applied_s after it arrives, the
+    stick out of neutral: the board's rules), the joystick samples the predictor gets are
+    the override, not the user's stick; not after it, not with a neutral stick, not from
+    an override stamped too long ago or one the bridge would refuse, not with
+    override_applied_s 0, and not after the clock went back."""
+    h = Harness(rclpy_context, model_file)
+    pub = h.test.create_publisher(Joy, "joy_override", QoSProfile(depth=10))
+
+    def override(stamp: float, *axes: float) -> None:
+        stats = h.node.predictor.stats
+        n = stats.overrides + sum(stats.rejected.values())
+        msg = conv.joy_from_sample(stamp, 0.0, 0.0)
+        msg.axes = [float(a) for a in axes]
+        pub.publish(msg)
+        h.spin_until(lambda: stats.overrides + sum(stats.rejected.values()) > n,
+                     what="override")
+
+    def fed(t: float, fwd: float, turn: float) -> list[float]:
+        h.clock(t)
+        h.joy(t, fwd, turn)
+        stamps, joy = h.node.predictor._joy.arrays()
+        assert stamps[-1] == pytest.approx(t)
+        return [round(float(x), 6) for x in joy[-1]]
+
+    try:
+        h.drive(100.0, 103.0)
+        h.spin_until(lambda: h.node.count_subscribers("joy_override") > 0, what="discovery")
+        paths = len(h.paths)
+        h.clock(103.0)
+        override(103.0, 0.1, -0.2)
+        assert fed(103.1, 0.8, 0.3) == [0.1, -0.2]
+        assert fed(103.2, 0.0, 0.0) == [0.0, 0.0]  # the stick let go: the board stops
+        assert fed(103.3, 0.8, 0.3) == [0.1, -0.2]
+        assert fed(103.4, 0.8, 0.3) == [0.8, 0.3]  # 0.4 s after it: the user drives again
+        h.vo(103.43, 0.5, 0.1)
+        h.spin_until(lambda: len(h.paths) > paths, what="a path")
+
+        h.clock(103.5)
+        override(103.5, 0.2, 0.0)
+        assert fed(103.6, 0.8, 0.3) == [0.2, 0.0]
+        override(102.9, 0.3, 0.0)  # stamped 0.7 s ago: the bridge does not write it
+        assert fed(103.7, 0.8, 0.3) == [0.2, 0.0]
+        override(103.7, 0.3)  # one axis: refused by the bridge
+        override(103.7, 1.5, 0.0)  # out of range: refused by the bridge
+        assert fed(103.8, 0.8, 0.3) == [0.2, 0.0]
+        assert h.node._bad_messages == 2
+
+        override(103.8, 0.4, 0.0)  # arrives at 103.8
+        h.node.set_parameters([Parameter("override_applied_s", value=0.0)])
+        assert fed(103.9, 0.8, 0.3) == [0.8, 0.3]
+        h.node.set_parameters([Parameter("override_applied_s", value=0.35)])
+        assert fed(104.0, 0.8, 0.3) == [0.4, 0.0]
+        assert fed(102.5, 0.8, 0.3) == [0.8, 0.3]  # the clock went back
+        assert fed(103.9, 0.8, 0.3) == [0.8, 0.3]  # and that override was forgotten
+        h.clock(104.5)
+        h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]
+                                          .values}.get("joy_overridden") == "6",
+                     what="the count of overridden samples")
+    finally:
+        h.close()
+
+
 @pytest.mark.parametrize("override_topic", ["joy_override", ""])
 def test_adaptation_learns_nothing_an_override_drove(rclpy_context, model_file,
                                                       override_topic):

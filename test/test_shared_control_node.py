@@ -926,6 +926,9 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     stats = node.predictor.adaptation
     assert stats.steps_refused - refused >= 3  # the overridden steps were not learnt
     assert stats.rows_absorbed > absorbed  # the others were
+    values = conv.diagnostic_values(node.diagnostic_status())
+    assert values["overrides_seen"] == str(node._overrides_sent)
+    assert values["overrides_late"] == "0"
 
     client = h.test.create_client(Trigger, "/shared_control_node/reset_adaptation")
     h.spin_until(client.service_is_ready, what="reset service")

@@ -160,6 +160,26 @@ def is_neutral(command: FloatArray, deadband: float) -> bool:
     return bool(np.all(np.abs(command) <= deadband))
 
 
+#: The board's neutral rule, in deflection units: its joystick reading is 0 per mille within
+#: the ADC deadband (firmware/asgp_bridge/safety.h, rule 2), and an override never drives
+#: the chair then. Half a per mille: the smallest reading the board reports is 1.
+BOARD_NEUTRAL = 0.5e-3
+
+
+def applied_command(user: FloatArray, override: FloatArray | None, age_s: float,
+                    hold_s: float, deadband: float = BOARD_NEUTRAL) -> FloatArray | None:
+    """The command the board drives the chair with, as far as the host can tell: the
+    override when it is between 0 and ``hold_s`` old and the user's stick is out of the
+    ``deadband`` (the firmware's rules 2 and 3), else None (the user's stick drives).
+
+    The host cannot see the board's output; this models it from what was sent (an override
+    the board refused, or one lost on the way, is modelled as applied).
+    """
+    if override is None or not 0.0 <= age_s <= hold_s or is_neutral(user, deadband):
+        return None
+    return override
+
+
 def check_covariance(pred: Prediction, config: SharedControlConfig) -> FloatArray:
     """The covariance a check gets for ``pred`` (single or batch): the pose covariance
     with ``heading_uncertainty`` when the prediction has one, else the position's."""

@@ -89,6 +89,7 @@ from asgp_ros.core.shared_control import (
     Decision,
     SharedControlConfig,
     Why,
+    applied_command,
     decide,
     is_neutral,
 )
@@ -408,10 +409,9 @@ class SharedControlNode(Node):
     def _applied(self, user: np.ndarray, now: float) -> np.ndarray:
         """What the firmware drives with: the override while fresh and the stick is out of
         neutral, else the stick."""
-        if (self._sent is not None and 0.0 <= now - self._sent_t <= BOARD_WATCHDOG_S
-                and not is_neutral(user, self.config.neutral_deadband)):
-            return self._sent
-        return user
+        applied = applied_command(user, self._sent, now - self._sent_t, BOARD_WATCHDOG_S,
+                                  self.config.neutral_deadband)
+        return user if applied is None else applied
 
     def _on_joy(self, msg: Joy) -> None:
         now = self._now()
@@ -752,6 +752,9 @@ class SharedControlNode(Node):
                 f" ({self.velocity_odometer.breaks} breaks)"
                 if self.velocity_odometer is not None else ""),
             "bad_messages": str(self._bad_messages),
+            # its own overrides, given to its predictor (see predictor_node's)
+            "overrides_seen": str(self.predictor.stats.overrides),
+            "overrides_late": str(self.predictor.stats.overrides_late),
             **adapt_params.diagnostic_values(self.predictor.adaptation),
         }
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
