@@ -186,7 +186,17 @@ def test_an_intervention_slows_the_chair_before_a_wall(harness):
     # first scan that shows it (at 104.1 s), not at the next grid step
     h.drive(104.0, 105.0, wall=20.0)
     assert h.last()["why"] == "clear"
-    assert max(conv.stamp_to_seconds(m.header.stamp) for m in h.overrides) < 104.1 + 1e-6
+    last_sent = max(conv.stamp_to_seconds(m.header.stamp) for m in h.overrides)
+    assert last_sent < 104.1 + 1e-6
+    # its predictor is fed what the board drives with: the last override while the bridge
+    # re-sends it and the board holds it (0.35 s after it), the user's stick after
+    command = conv.joy_to_override(h.overrides[-1])
+    stamps, joy = h.node.predictor._joy.arrays()
+    held = (stamps > last_sent) & (stamps <= last_sent + 0.35 - 1e-6)
+    after = stamps > last_sent + 0.35 + 1e-6
+    assert held.sum() >= 6 and after.sum() >= 6
+    assert np.allclose(joy[held], command, atol=1e-6)
+    assert np.allclose(joy[after], (0.8, 0.0))
 
 
 def test_neutral_stick_never_commands_motion(harness):

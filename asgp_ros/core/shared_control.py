@@ -165,6 +165,11 @@ def is_neutral(command: FloatArray, deadband: float) -> bool:
 #: the chair then. Half a per mille: the smallest reading the board reports is 1.
 BOARD_NEUTRAL = 0.5e-3
 
+#: How long after the last ``joy_override`` message the board may still drive with it (s):
+#: the serial bridge re-sends an override while it is fresh (``override_timeout``, 0.15 s)
+#: and the board applies each frame for its watchdog (``ASGP_WATCHDOG_MS``, 0.2 s).
+OVERRIDE_APPLIED_S = 0.35
+
 
 def applied_command(user: FloatArray, override: FloatArray | None, age_s: float,
                     hold_s: float, deadband: float = BOARD_NEUTRAL) -> FloatArray | None:

@@ -73,7 +73,7 @@ from asgp_ros.core.adaptive import (
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
-from asgp_ros.core.shared_control import applied_command
+from asgp_ros.core.shared_control import OVERRIDE_APPLIED_S, applied_command
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
@@ -112,7 +112,7 @@ class PredictorNodeParams:
     vo_type: str = "twist"
     plan_topic: str = topics.JOY_PLAN
     override_topic: str = topics.JOY_OVERRIDE
-    override_applied_s: float = 0.35
+    override_applied_s: float = OVERRIDE_APPLIED_S
     path_topic: str = topics.PREDICTED_PATH
     joy_axes: str = "0,1"
     joy_timeout_s: float = 0.5

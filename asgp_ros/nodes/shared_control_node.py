@@ -26,9 +26,11 @@ Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per d
 what was done and why, probability before and after, change, solve time) and
 ``diagnostics``.
 
-The predictor is fed the command the chair actually received: the override while one is
-being sent and the user's stick is out of neutral (what the firmware applies), else the
-user's stick. Its velocity comes from the scans matched to each other while they match and
+The predictor is fed the command the chair actually received, as far as the layer can
+tell (:func:`~asgp_ros.core.shared_control.applied_command`): its last override, until
+``OVERRIDE_APPLIED_S`` after it (the bridge re-sends it and the board holds it that long,
+also after the layer has stopped) while the user's stick is out of the board's neutral, else
+the user's stick. Its velocity comes from the scans matched to each other while they match and
 from the VO while they do not (``velocity_source: auto``, the default: a camera loses its
 features in front of a wall, where a laser sees best), from the VO alone (``vo``), or from
 the scans alone (``scan_matching``: each matched interval's twist, stamped with the newer
@@ -85,6 +87,7 @@ from asgp_ros.core.scan_match import (
     memory_odometers,
 )
 from asgp_ros.core.shared_control import (
+    OVERRIDE_APPLIED_S,
     CollisionCheck,
     Decision,
     SharedControlConfig,
@@ -100,9 +103,6 @@ from asgp_ros.nodes.parameters import declare, refuse_at_runtime
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
-
-#: The board's override watchdog (s): an override older than this no longer drives.
-BOARD_WATCHDOG_S = 0.2
 
 #: A scan stamped more than this (s) after the node's clock is refused: a laser whose
 #: clock runs ahead would otherwise look fresh long after it stopped, and be placed with
@@ -338,7 +338,8 @@ class SharedControlNode(Node):
         self._decision_t = -math.inf  # node clock of the decision
         self._last_step: int | None = None
         self._resets_seen = 0  # the predictor's buffer resets, as last seen
-        self._sent_t = -math.inf  # node clock of the newest override sent
+        # the newest override sent and when (node clock), for what the board applies
+        self._sent_t = -math.inf
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
         self._interventions = 0  # interventions (runs of decisions that changed the command)
@@ -407,10 +408,10 @@ class SharedControlNode(Node):
         return t if t > 0.0 else now
 
     def _applied(self, user: np.ndarray, now: float) -> np.ndarray:
-        """What the firmware drives with: the override while fresh and the stick is out of
-        neutral, else the stick."""
-        applied = applied_command(user, self._sent, now - self._sent_t, BOARD_WATCHDOG_S,
-                                  self.config.neutral_deadband)
+        """What the firmware drives with: the last override sent, for OVERRIDE_APPLIED_S
+        after it (also when the layer has stopped: the bridge and the board keep it that
+        long) while the stick is out of the board's neutral, else the stick."""
+        applied = applied_command(user, self._sent, now - self._sent_t, OVERRIDE_APPLIED_S)
         return user if applied is None else applied
 
     def _on_joy(self, msg: Joy) -> None:
@@ -683,7 +684,6 @@ class SharedControlNode(Node):
     def _stop_overriding(self) -> None:
         if self._decision is not None and self._decision.intervening:
             self._decision = None
-        self._sent = None
 
     def _send_override(self) -> None:
         now = self._now()
