@@ -545,6 +545,7 @@ def test_demo_runs_end_to_end(demo_run):
     layer = report["adaptation"]["shared_control_node"]
     assert int(layer["adapt_rows_absorbed"]) > 0 and layer["adapt_published"] in (
         "trained", "adapted")
+    assert layer["overrides_seen"].isdigit() and layer["overrides_late"].isdigit()
     assert "| shared-control layer |" in text
 
 

@@ -666,25 +666,30 @@ def _drive_with_overrides(h: Harness, t_from: float, t_to: float) -> None:
 
 def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
                                                                    model_file):
-    """While an override may drive the chair (override_applied_s after it arrives, the
-    stick out of neutral: the board's rules), the joystick samples the predictor gets are
-    the override, not the user's stick; not after it, not with a neutral stick, not from
-    an override stamped too long ago or one the bridge would refuse, not with
-    override_applied_s 0, and not after the clock went back."""
+    """While an override drives the chair as the serial bridge and the board would apply it
+    (written until override_timeout_s after the earlier of its stamp and its arrival, each
+    frame held for the board's 0.2 s watchdog; the stick out of neutral), the joystick
+    samples the predictor gets are the override, not the user's stick. Not after it, not
+    with a neutral stick, not for a sample read before it arrived, not from an override the
+    bridge refuses (stamped too long ago, too far ahead or negative, out of range), not
+    with override_paths false, and not after the clock went back."""
     h = Harness(rclpy_context, model_file)
     pub = h.test.create_publisher(Joy, "joy_override", QoSProfile(depth=10))
+    user = [0.8, 0.3]
 
-    def override(stamp: float, *axes: float) -> None:
+    def override(stamp: float | None, *axes: float, sec: int | None = None) -> None:
         stats = h.node.predictor.stats
         n = stats.overrides + sum(stats.rejected.values())
-        msg = conv.joy_from_sample(stamp, 0.0, 0.0)
+        msg = conv.joy_from_sample(stamp or 0.0, 0.0, 0.0)
+        if sec is not None:
+            msg.header.stamp.sec = sec
         msg.axes = [float(a) for a in axes]
         pub.publish(msg)
         h.spin_until(lambda: stats.overrides + sum(stats.rejected.values()) > n,
                      what="override")
 
-    def fed(t: float, fwd: float, turn: float) -> list[float]:
-        h.clock(t)
+    def fed(t: float, fwd: float, turn: float, clock: float | None = None) -> list[float]:
+        h.clock(t if clock is None else clock)
         h.joy(t, fwd, turn)
         stamps, joy = h.node.predictor._joy.arrays()
         assert stamps[-1] == pytest.approx(t)
@@ -695,34 +700,45 @@ def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
         h.spin_until(lambda: h.node.count_subscribers("joy_override") > 0, what="discovery")
         paths = len(h.paths)
         h.clock(103.0)
-        override(103.0, 0.1, -0.2)
-        assert fed(103.1, 0.8, 0.3) == [0.1, -0.2]
+        override(103.0, 0.1, -0.2)  # written until 103.15, held by the board until 103.35
+        assert fed(103.1, *user) == [0.1, -0.2]
         assert fed(103.2, 0.0, 0.0) == [0.0, 0.0]  # the stick let go: the board stops
-        assert fed(103.3, 0.8, 0.3) == [0.1, -0.2]
-        assert fed(103.4, 0.8, 0.3) == [0.8, 0.3]  # 0.4 s after it: the user drives again
+        assert fed(103.3, *user) == [0.1, -0.2]
+        assert fed(103.4, *user) == user  # the user drives again
         h.vo(103.43, 0.5, 0.1)
         h.spin_until(lambda: len(h.paths) > paths, what="a path")
 
         h.clock(103.5)
-        override(103.5, 0.2, 0.0)
-        assert fed(103.6, 0.8, 0.3) == [0.2, 0.0]
-        override(102.9, 0.3, 0.0)  # stamped 0.7 s ago: the bridge does not write it
-        assert fed(103.7, 0.8, 0.3) == [0.2, 0.0]
-        override(103.7, 0.3)  # one axis: refused by the bridge
-        override(103.7, 1.5, 0.0)  # out of range: refused by the bridge
-        assert fed(103.8, 0.8, 0.3) == [0.2, 0.0]
+        override(None, 0.2, 0.0)  # unstamped: by its arrival, until 103.85
+        assert fed(103.6, *user) == [0.2, 0.0]
+        override(103.4, 0.3, 0.0)  # stamped 0.2 s before it arrives: the bridge refuses it
+        override(104.8, 0.3, 0.0)  # stamped 1.2 s ahead: refused
+        override(None, 0.3, 0.0, sec=-5)  # a negative stamp: refused
+        override(None, 0.3)  # one axis: refused
+        override(None, 1.5, 0.0)  # out of range: refused
+        assert fed(103.7, *user) == [0.2, 0.0]
         assert h.node._bad_messages == 2
 
-        override(103.8, 0.4, 0.0)  # arrives at 103.8
-        h.node.set_parameters([Parameter("override_applied_s", value=0.0)])
-        assert fed(103.9, 0.8, 0.3) == [0.8, 0.3]
-        h.node.set_parameters([Parameter("override_applied_s", value=0.35)])
-        assert fed(104.0, 0.8, 0.3) == [0.4, 0.0]
-        assert fed(102.5, 0.8, 0.3) == [0.8, 0.3]  # the clock went back
-        assert fed(103.9, 0.8, 0.3) == [0.8, 0.3]  # and that override was forgotten
-        h.clock(104.5)
+        h.clock(103.9)
+        override(103.8, 0.4, 0.0)  # stamped 0.1 s ago: written until 103.95, held to 104.15
+        assert fed(104.1, *user) == [0.4, 0.0]
+        assert fed(104.2, *user) == user
+        h.clock(104.3)
+        override(104.3, 0.5, 0.0)
+        h.node.set_parameters([Parameter("override_paths", value=False)])
+        assert fed(104.4, *user) == user
+        h.node.set_parameters([Parameter("override_paths", value=True)])
+        assert fed(104.5, *user) == [0.5, 0.0]
+
+        h.clock(104.9)
+        override(104.9, 0.1, 0.0)
+        assert fed(104.85, *user, clock=105.0) == user  # read before the override came
+        assert fed(105.0, *user) == [0.1, 0.0]
+        assert fed(103.2, *user) == user  # the clock went back
+        assert fed(104.95, *user) == user  # and that override was forgotten
+        h.clock(105.5)
         h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]
-                                          .values}.get("joy_overridden") == "6",
+                                          .values}.get("joy_overridden") == "7",
                      what="the count of overridden samples")
     finally:
         h.close()

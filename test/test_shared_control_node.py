@@ -197,6 +197,11 @@ def test_an_intervention_slows_the_chair_before_a_wall(harness):
     assert held.sum() >= 6 and after.sum() >= 6
     assert np.allclose(joy[held], command, atol=1e-6)
     assert np.allclose(joy[after], (0.8, 0.0))
+    # a clock gone back forgets that override: it is not of the new time line
+    stick = np.array([0.8, 0.0])
+    assert np.allclose(h.node._applied(stick, last_sent + 0.1), command)
+    assert np.allclose(h.node._applied(stick, last_sent - 2.0), stick)
+    assert np.allclose(h.node._applied(stick, last_sent + 0.1), stick)
 
 
 def test_neutral_stick_never_commands_motion(harness):

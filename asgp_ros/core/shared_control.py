@@ -48,6 +48,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.core.online import Prediction, Predictor
+from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S
+from asgp_ros.serial.safety import WATCHDOG_MS
 
 FloatArray = NDArray[np.float64]
 
@@ -165,22 +167,25 @@ def is_neutral(command: FloatArray, deadband: float) -> bool:
 #: the chair then. Half a per mille: the smallest reading the board reports is 1.
 BOARD_NEUTRAL = 0.5e-3
 
-#: How long after the last ``joy_override`` message the board may still drive with it (s):
-#: the serial bridge re-sends an override while it is fresh (``override_timeout``, 0.15 s)
-#: and the board applies each frame for its watchdog (``ASGP_WATCHDOG_MS``, 0.2 s).
-OVERRIDE_APPLIED_S = 0.35
+#: How long the board drives with an override frame after it (s): its watchdog
+#: (``ASGP_WATCHDOG_MS``, firmware/asgp_bridge/config.h).
+BOARD_WATCHDOG_S = WATCHDOG_MS / 1000.0
+#: How long after a ``joy_override`` message stamped on arrival the board may still drive
+#: with it (s): the serial bridge re-sends it while fresh (``override_timeout``, default
+#: 0.15 s), and the board applies each frame for its watchdog (0.2 s).
+OVERRIDE_APPLIED_S = DEFAULT_TIMEOUT_S + BOARD_WATCHDOG_S
 
 
 def applied_command(user: FloatArray, override: FloatArray | None, age_s: float,
                     hold_s: float, deadband: float = BOARD_NEUTRAL) -> FloatArray | None:
-    """The command the board drives the chair with, as far as the host can tell: the
-    override when it is between 0 and ``hold_s`` old and the user's stick is out of the
-    ``deadband`` (the firmware's rules 2 and 3), else None (the user's stick drives).
+    """The command the board drives the chair with, modelled from what was sent: the
+    override when it is at least 0 and less than ``hold_s`` old and the user's stick is out
+    of the ``deadband`` (the firmware's rules 2 and 3), else None (the user's stick drives).
 
-    The host cannot see the board's output; this models it from what was sent (an override
-    the board refused, or one lost on the way, is modelled as applied).
+    A model, not a measurement: an override lost on the way, or one the board refused, is
+    taken as applied.
     """
-    if override is None or not 0.0 <= age_s <= hold_s or is_neutral(user, deadband):
+    if override is None or not 0.0 <= age_s < hold_s or is_neutral(user, deadband):
         return None
     return override
 

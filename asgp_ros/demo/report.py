@@ -308,7 +308,7 @@ ADAPT_KEYS = (
     ("adapt_rows_absorbed", "steps learnt from"),
     ("adapt_steps_refused", "steps refused (not valid training rows: VO lost or stuck, "
                             "a gap, an override)"),
-    ("overrides_seen", "overrides seen on joy_override"),
+    ("overrides_seen", "overrides seen on joy_override (the layer: its own)"),
     ("overrides_late", "overrides that came after a step they may have driven was learnt"),
     ("adapt_published", "posterior published at the end"),
     ("adapt_variance_scale", "variance scale per speed regime"),
@@ -331,9 +331,9 @@ def adaptation_summary(state: RunState, monitor: MonitorNode
                  "diagnostics:", "", "| | |", "|---|---|"]
         lines += [f"| {what} | {data[key]} |" for key, what in ADAPT_KEYS]
         return lines, data
-    # the layer sees no overrides on a topic: it knows its own (counted as steps refused)
+    # the layer's overrides_seen/late count its own overrides (it does not listen for others)
     layer = {key: monitor.diag_value("shared_control_node", key) or "n/a"
-             for key, _ in ADAPT_KEYS if key.startswith("adapt_")}
+             for key, _ in ADAPT_KEYS}
     data["shared_control_node"] = layer
     lines = ["The predictor and the shared-control layer's own predictor adapted their models "
              "online (`adapt.enabled`); from their last diagnostics:", "",

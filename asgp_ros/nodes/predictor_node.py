@@ -3,10 +3,11 @@
 Subscribes ``joy`` (sensor_msgs/Joy), ``vo/twist`` (geometry_msgs/TwistStamped, or
 nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (trajectory_msgs/JointTrajectory,
 joints ``forward`` and ``turn``: a planner's future joystick commands, stamped with when
-they start) and ``joy_override`` (``override_topic``: the overrides sent to the chair; the
-paths are predicted from the command the board applies, the override for
-``override_applied_s`` after it while the user's stick is out of neutral, and an adapting
-predictor learns nothing from the steps they may have driven); publishes ``predicted_path``
+they start) and ``joy_override`` (``override_topic``: the overrides sent to the chair; with
+``override_paths`` the paths are predicted from the command the board applies, an override
+as long as the serial bridge writes it (``override_timeout_s``) and the board's watchdog holds
+it, while the user's stick is out of neutral; an adapting predictor learns nothing from the
+steps they may have driven); publishes ``predicted_path``
 (nav_msgs/Path), ``predicted_path/uncertainty`` (visualization_msgs/MarkerArray, a 95%
 position ellipse per step) and ``diagnostics``.
 
@@ -73,12 +74,13 @@ from asgp_ros.core.adaptive import (
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
-from asgp_ros.core.shared_control import OVERRIDE_APPLIED_S, applied_command
+from asgp_ros.core.shared_control import BOARD_WATCHDOG_S, applied_command
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare, sim_time_change
 from asgp_ros.recording.bags import parse_joy_axes
+from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
 
 NODE_NAME = "predictor_node"
 
@@ -112,7 +114,8 @@ class PredictorNodeParams:
     vo_type: str = "twist"
     plan_topic: str = topics.JOY_PLAN
     override_topic: str = topics.JOY_OVERRIDE
-    override_applied_s: float = OVERRIDE_APPLIED_S
+    override_paths: bool = True
+    override_timeout_s: float = DEFAULT_TIMEOUT_S
     path_topic: str = topics.PREDICTED_PATH
     joy_axes: str = "0,1"
     joy_timeout_s: float = 0.5
@@ -230,10 +233,12 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("override_topic", "overrides sent to the chair (sensor_msgs/Joy, the shared-control "
           "layer's or a planner's): adaptation learns nothing from the steps they may have "
           "driven; '' for none"),
-    _spec("override_applied_s", "paths are predicted from an override (not the user's stick) "
-          "for this long after it arrives, while the stick is out of neutral, as the board "
-          "applies it (the bridge re-sends it for 0.15 s, the board holds it 0.2 s); 0 = from "
-          "the user's stick always", 0.0, 5.0, runtime=True),
+    _spec("override_paths", "predict from the override while the board applies it (as the "
+          "serial bridge and the board's watchdog would), not from the user's stick",
+          runtime=True),
+    _spec("override_timeout_s", "the serial bridge's override_timeout: it writes an override "
+          "to the board until this long after the earlier of its stamp and its arrival",
+          0.02, 1.0, runtime=True),
     _spec("path_topic", "predicted path output; ellipses on <path_topic>/uncertainty"),
     _spec("joy_axes", "Joy axes of the forward and turn (+ left) deflections, 'FWD,TURN', '-' "
           "flips a sign (as `asgp train --joy-axes`)"),
@@ -327,8 +332,8 @@ class PredictorNode(Node):
         self._bad_messages = 0
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._resets_seen = 0
-        # the newest override the board may be applying: (node clock at arrival, command)
-        self._override: tuple[float, np.ndarray] | None = None
+        # the overrides as the serial bridge takes them (on this node's clock)
+        self._gate = OverrideGate()
         self._joy_overridden = 0  # joystick samples replaced by an override
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -463,7 +468,7 @@ class PredictorNode(Node):
         t = self._stamp(t, now)
         self._joy_rate.tick(time.monotonic())
         command = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
-        applied = self._applied(command, now)
+        applied = self._applied(command, t, now)
         if applied is not None and np.all(np.isfinite(command)):
             command = applied
             self._joy_overridden += 1
@@ -472,36 +477,40 @@ class PredictorNode(Node):
             return
         self._maybe_predict(now, time.perf_counter())
 
-    def _applied(self, user: np.ndarray, now: float | None) -> np.ndarray | None:
-        """The override the board drives with instead of ``user``, or None."""
-        if self._override is None or now is None:
+    def _applied(self, user: np.ndarray, t: float, now: float | None) -> np.ndarray | None:
+        """The override the board drives with instead of ``user`` read at ``t``, or None:
+        the bridge writes it while fresh, the board applies each frame for its watchdog."""
+        gate = self._gate
+        if not self.params.override_paths or gate.command is None or now is None:
             return None
-        arrival, command = self._override
-        if now < arrival:  # the clock went back: that override is no longer known to drive
-            self._override = None
+        if now < gate.arrival:  # the clock went back: that override is of another time
+            self._gate = OverrideGate()
             return None
-        return applied_command(user, command, now - arrival, self.params.override_applied_s)
+        until = gate.fresh_until(self.params.override_timeout_s) + BOARD_WATCHDOG_S
+        return applied_command(user, np.array(gate.command), t - gate.arrival,
+                               until - gate.arrival)
 
     def _on_override(self, msg: Joy) -> None:
         """An override sent to the chair. Paths are predicted from it while the board may
-        apply it (``override_applied_s``); when adapting, the steps it may have driven are
+        apply it (``override_paths``); when adapting, the steps it may have driven are
         not learnt from (what drove the chair is modelled, not measured)."""
         now = self._now()
-        t = self._stamp(conv.stamp_to_seconds(msg.header.stamp), now)
-        if not self.predictor.feed_override(t, now=now):
+        stamp = conv.stamp_to_seconds(msg.header.stamp)
+        if not self.predictor.feed_override(self._stamp(stamp, now), now=now):
             self._warn_rejected()
+            return  # not kept out of learning, so not predicted from either
         if now is None:
             return
-        try:  # what the bridge would write to the board (it refuses the same messages)
-            command = np.array(conv.joy_to_override(msg))
+        try:  # what the bridge writes to the board: it refuses the same messages
+            command = conv.joy_to_override(msg)
         except ValueError as exc:
             self._bad_messages += 1
             self.get_logger().warning(f"ignoring {self.params.override_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
-        if now - t > self.params.override_applied_s:
-            return  # stamped too long ago to drive the chair (the bridge refuses it too)
-        self._override = (now, command)
+        # as the bridge: stamped too long ago or too far ahead, it is never written
+        self._gate.offer(command, stamp if stamp != 0.0 else None, now, now,
+                         self.params.override_timeout_s)
 
     def _on_twist(self, msg: TwistStamped) -> None:
         arrival = time.perf_counter()

@@ -411,6 +411,8 @@ class SharedControlNode(Node):
         """What the firmware drives with: the last override sent, for OVERRIDE_APPLIED_S
         after it (also when the layer has stopped: the bridge and the board keep it that
         long) while the stick is out of the board's neutral, else the stick."""
+        if now < self._sent_t:  # the clock went back: that override is of another time
+            self._sent, self._sent_t = None, -math.inf
         applied = applied_command(user, self._sent, now - self._sent_t, OVERRIDE_APPLIED_S)
         return user if applied is None else applied
 

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 
 #: A stamp further ahead of the bridge's clock than this (s) is of another timeline.
 MAX_AHEAD_S = 1.0
+#: The bridge's default ``override_timeout`` (s): how long a command stays fresh.
+DEFAULT_TIMEOUT_S = 0.15
 
 
 @dataclass
@@ -66,6 +68,15 @@ class OverrideGate:
         if self.stamp is not None and not clock_now - self.stamp <= timeout:
             return None
         return self.command
+
+    def fresh_until(self, timeout: float) -> float:
+        """The time (the clock of ``arrival``, which the stamp shares when the caller
+        judges both on one clock) after which the command is no longer fresh: ``timeout``
+        after the earlier of its arrival and its stamp; -inf without a command."""
+        if self.command is None:
+            return -math.inf
+        start = self.arrival if self.stamp is None else min(self.arrival, self.stamp)
+        return start + timeout
 
     def refusal(self, timeout: float) -> str:
         """Why the last refused command was refused, in words."""

@@ -9,13 +9,14 @@ from dataclasses import dataclass
 from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.serial.calibration import AxisCalibration, JoystickCalibration
 from asgp_ros.serial.link import LinkConfig
+from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("port", "/dev/asgp_joystick",
               "serial device of the joystick interface board (a stable udev symlink)"),
     ParamSpec("baud", 115200, "UART speed (ignored by USB CDC and ptys)", 1200, 2_000_000),
     ParamSpec("frame_id", "", "header.frame_id of published Joy messages"),
-    ParamSpec("override_timeout", 0.15,
+    ParamSpec("override_timeout", DEFAULT_TIMEOUT_S,
               "s: a joy_override older than this is stale and no longer sent", 0.02, 1.0,
               runtime=True),
     ParamSpec("override_rate", 25.0,
