@@ -44,6 +44,11 @@ class Harness:
             Joy, "joy", lambda m: self.joy.append((time.monotonic(), m)),
             QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
                        durability=qos_profile_sensor_data.durability))
+        self.applied: list[Joy] = []
+        self.probe.create_subscription(
+            Joy, "joy_applied", self.applied.append,
+            QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability,
+                       durability=qos_profile_sensor_data.durability))
         self.probe.create_subscription(DiagnosticArray, "diagnostics", self.diag.append, 10)
         self.override_pub = self.probe.create_publisher(Joy, "joy_override", 10)
         self.executor = SingleThreadedExecutor(context=context)
@@ -134,6 +139,17 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     out = h.board.output
     assert out.override_active
     assert (out.forward, out.turn) == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    # joy_applied: the board's output while the override drives, the stick (joy) before;
+    # each with its joy message's stamp
+    assert h.spin_until(lambda: len(h.applied) > 20 and h.applied[-1].axes[0] < 0.0, 5.0)
+    applied = [(conv.stamp_to_seconds(m.header.stamp), m.axes[0], m.axes[1])
+               for m in h.applied]
+    joy = {conv.stamp_to_seconds(m.header.stamp): tuple(m.axes) for _, m in h.joy}
+    assert {t for t, _, _ in applied} <= set(joy)
+    user = tuple(h.joy[0][1].axes)  # the stick as calibrated on the host
+    assert user[0] > 0.4 and applied[0][1:] == user
+    assert applied[-1][1:] == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    assert joy[applied[-1][0]] == user  # joy: the user's stick all along
     sent = h.node.link.stats().overrides_sent
     assert sent >= 5
     # stop publishing: the node stops sending once stale, the board reverts by itself (by
@@ -148,6 +164,9 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     assert h.node.link.stats().overrides_sent == sent_after  # nothing sent while stale
     assert sent_after - sent <= 5  # at most override_timeout's worth after the last msg
     assert h.board.output.forward == pytest.approx(h.board.output.user_forward, abs=2e-3)
+    n = len(h.applied)
+    assert h.spin_until(lambda: len(h.applied) > n + 5, 5.0)
+    assert tuple(h.applied[-1].axes) == user  # the user's again
     # and the node releases override mode after mode_release_after
     assert h.spin_until(lambda: h.board.mode == 0, 2.0)
 

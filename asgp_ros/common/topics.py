@@ -12,6 +12,9 @@ from __future__ import annotations
 JOY = "joy"
 #: sensor_msgs/Joy: the same axes, written to the chair while fresh (-> bridge).
 JOY_OVERRIDE = "joy_override"
+#: sensor_msgs/Joy: the same axes, what the board drives the chair with, sample by sample:
+#: its output while an override is applied, else the user's stick as on ``joy`` (bridge ->).
+JOY_APPLIED = "joy_applied"
 #: trajectory_msgs/JointTrajectory: future joystick commands, joints forward and turn,
 #: header.stamp = when the plan starts (planner -> predictor).
 JOY_PLAN = "joy_plan"

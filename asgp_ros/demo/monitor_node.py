@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 #: topic -> (message class, ROS 2 type name, recorded in the bag)
 TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.JOY: (Joy, "sensor_msgs/msg/Joy", True),
+    topics.JOY_APPLIED: (Joy, "sensor_msgs/msg/Joy", True),
     topics.VO_TWIST: (TwistStamped, "geometry_msgs/msg/TwistStamped", True),
     topics.VO_ODOM: (Odometry, "nav_msgs/msg/Odometry", True),
     topics.GROUND_TRUTH: (Odometry, "nav_msgs/msg/Odometry", True),
@@ -163,6 +164,9 @@ class MonitorNode(Node):
 
     def _on_joy(self, msg: Joy, now: float) -> None:
         self.latency[topics.JOY].add(now - conv.stamp_to_seconds(msg.header.stamp))
+
+    def _on_joy_applied(self, msg: Joy, now: float) -> None:
+        pass  # recorded and counted only
 
     def _on_vo_twist(self, msg: TwistStamped, now: float) -> None:
         self.latency[topics.VO_TWIST].add(now - conv.stamp_to_seconds(msg.header.stamp))

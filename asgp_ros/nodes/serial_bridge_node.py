@@ -3,7 +3,10 @@
 Publishes ``joy`` (sensor_msgs/Joy, axes [forward, turn], + forward / + left, sensor-data
 QoS) for every joystick sample the board sends that carries a reading, stamped at
 reception (a sample with ADC_FAULT carries none: it is withheld, never published as a
-deflection); subscribes ``joy_override`` (best effort: a lost message is replaced by the
+deflection), and with each the same sample's ``joy_applied``: what the board drives the
+chair with, its output while an override is applied (OVERRIDE_ACTIVE; its DAC codes read
+with the firmware's own calibration), else the same axes as ``joy``; subscribes
+``joy_override`` (best effort: a lost message is replaced by the
 next, and none holds later ones back) and forwards it to the board while it is fresh, by
 arrival and, when stamped, by its stamp (:mod:`asgp_ros.serial.override_gate`), then
 simply stops, so the firmware's 200 ms watchdog returns the chair to the user;
@@ -48,6 +51,7 @@ from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkSta
 from asgp_ros.serial.override_gate import OverrideGate
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode, Status
+from asgp_ros.serial.safety import default_calibration
 
 _LEVEL = {
     LinkState.CONNECTED: "OK",
@@ -79,6 +83,9 @@ class SerialBridgeNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self._joy_pub = self.create_publisher(Joy, topics.JOY, qos_profile_sensor_data)
+        self._applied_pub = self.create_publisher(Joy, topics.JOY_APPLIED,
+                                                  qos_profile_sensor_data)
+        self._dac = default_calibration()  # the firmware's own, to read its output codes
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                                QoSProfile(depth=10))
         self.create_subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
@@ -152,8 +159,14 @@ class SerialBridgeNode(Node):
         stamp_ns = max(0, stamp_ns)
         self._last_stamp_ns = stamp_ns
         msg = conv.joy_from_sample(stamp_ns * 1e-9, s.forward, s.turn, self.params.frame_id)
+        applied = msg
+        if Status.OVERRIDE_ACTIVE in s.status:  # the board's output drives, not the stick
+            applied = conv.joy_from_sample(
+                stamp_ns * 1e-9, self._dac[0].dac_to_deflection(s.out_forward),
+                self._dac[1].dac_to_deflection(s.out_turn), self.params.frame_id)
         with self._shutdown_guard():
             self._joy_pub.publish(msg)
+            self._applied_pub.publish(applied)
             self._published += 1
 
     def _on_state(self, state: LinkState, reason: str) -> None:  # reader thread
