@@ -47,9 +47,8 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
+from asgp_ros.common.board import OVERRIDE_TIMEOUT_S, WATCHDOG_MS
 from asgp_ros.core.online import Prediction, Predictor
-from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S
-from asgp_ros.serial.safety import WATCHDOG_MS
 
 FloatArray = NDArray[np.float64]
 
@@ -173,7 +172,7 @@ BOARD_WATCHDOG_S = WATCHDOG_MS / 1000.0
 #: How long after a ``joy_override`` message stamped on arrival the board may still drive
 #: with it (s): the serial bridge re-sends it while fresh (``override_timeout``, default
 #: 0.15 s), and the board applies each frame for its watchdog (0.2 s).
-OVERRIDE_APPLIED_S = DEFAULT_TIMEOUT_S + BOARD_WATCHDOG_S
+OVERRIDE_APPLIED_S = OVERRIDE_TIMEOUT_S + BOARD_WATCHDOG_S
 
 
 def applied_command(user: FloatArray, override: FloatArray | None, age_s: float,

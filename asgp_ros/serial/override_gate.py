@@ -27,10 +27,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from asgp_ros.common import board
+
 #: A stamp further ahead of the bridge's clock than this (s) is of another timeline.
 MAX_AHEAD_S = 1.0
 #: The bridge's default ``override_timeout`` (s): how long a command stays fresh.
-DEFAULT_TIMEOUT_S = 0.15
+DEFAULT_TIMEOUT_S = board.OVERRIDE_TIMEOUT_S
 
 
 @dataclass

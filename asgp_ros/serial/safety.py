@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from asgp_ros.common import board
 from asgp_ros.serial import protocol as proto
 from asgp_ros.serial.protocol import ErrorCode, Mode, MsgType, Status
 
@@ -28,7 +29,7 @@ FW_VERSION = (1, 0, 0)
 BAUD = 115200
 SAMPLE_RATE_HZ = 100
 HEARTBEAT_EVERY = 20
-WATCHDOG_MS = 200
+WATCHDOG_MS = board.WATCHDOG_MS
 HOST_TIMEOUT_MS = 1000
 ADC_NEUTRAL = 512
 ADC_SPAN = 205

@@ -1,0 +1,15 @@
+"""Timing of the joystick interface board and the serial bridge that the host side models
+(ROS-free; the serial layer and the core both read it from here).
+
+``WATCHDOG_MS`` is the firmware's ``ASGP_WATCHDOG_MS`` (firmware/asgp_bridge/config.h; a test
+checks the two agree through :mod:`asgp_ros.serial.safety`), ``OVERRIDE_TIMEOUT_S`` the serial
+bridge's default ``override_timeout`` (:mod:`asgp_ros.serial.params`).
+"""
+
+from __future__ import annotations
+
+#: An override frame drives the chair for this long after the board received it (ms).
+WATCHDOG_MS = 200
+#: The serial bridge writes a ``joy_override`` to the board until this long (s) after the
+#: earlier of its stamp and its arrival (the default of its ``override_timeout``).
+OVERRIDE_TIMEOUT_S = 0.15
