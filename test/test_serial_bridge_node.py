@@ -138,7 +138,9 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     h.spin_for(0.5, each=publish)
     out = h.board.output
     assert out.override_active
-    assert (out.forward, out.turn) == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    # (what the stick the host reads as (-0.25, 0.6) makes the board write: the host's
+    # dead zone and the board's differ by a fraction of a count)
+    assert (out.forward, out.turn) == pytest.approx((-0.25, 0.6), abs=0.005)
     # joy_applied: the board's output while the override drives, the stick (joy) before;
     # each with its joy message's stamp
     assert h.spin_until(lambda: len(h.applied) > 20 and h.applied[-1].axes[0] < 0.0, 5.0)
@@ -148,7 +150,7 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     assert {t for t, _, _ in applied} <= set(joy)
     user = tuple(h.joy[0][1].axes)  # the stick as calibrated on the host
     assert user[0] > 0.4 and applied[0][1:] == user
-    assert applied[-1][1:] == pytest.approx((-0.25, 0.6), abs=1.0 / fw.DAC_SPAN)
+    assert applied[-1][1:] == pytest.approx((-0.25, 0.6), abs=2.0 / fw.DAC_SPAN)
     assert joy[applied[-1][0]] == user  # joy: the user's stick all along
     sent = h.node.link.stats().overrides_sent
     assert sent >= 5
@@ -169,6 +171,35 @@ def test_override_sent_while_fresh_then_board_falls_back(harness):
     assert tuple(h.applied[-1].axes) == user  # the user's again
     # and the node releases override mode after mode_release_after
     assert h.spin_until(lambda: h.board.mode == 0, 2.0)
+
+
+def test_an_override_drives_the_chair_as_the_stick_at_that_reading(harness):
+    """A joystick wired the other way round on the turn axis, and one that does not reach
+    the board's full scale forward (the host calibration says both): an override of what
+    joy reads makes the board write what the stick itself writes there (it was mirrored on
+    the turn axis, and forward the stick at 0.40 of the board's scale read 0.615 on the
+    host, which the override wrote as 0.615: half again as fast), and joy_applied reads it
+    back."""
+    stick = [(0.4, 0.5)]
+    h = harness(lambda t: stick[0], **{"calibration.turn.invert": True,
+                                       "calibration.forward.maximum": 650.0})
+    assert h.spin_until(lambda: len(h.joy) > 10, 10.0)
+    user = tuple(h.joy[-1][1].axes)
+    passthrough = (h.board.output.code_forward, h.board.output.code_turn)
+    assert user[0] > 0.55 and user[1] < -0.4  # the inverted turn: + on the board is right
+    stick[0] = (0.2, -0.3)  # the user moves; the override asks for the old reading
+
+    def publish():
+        h.override_pub.publish(Joy(axes=[float(a) for a in user]))
+
+    h.spin_for(0.5, each=publish)
+    out = h.board.output
+    assert out.override_active
+    assert abs(out.code_forward - passthrough[0]) <= 5
+    assert abs(out.code_turn - passthrough[1]) <= 5
+    assert h.spin_until(lambda: h.applied and tuple(h.applied[-1].axes) != tuple(
+        h.joy[-1][1].axes), 5.0)
+    assert tuple(h.applied[-1].axes) == pytest.approx(user, abs=0.01)
 
 
 def test_invalid_overrides_are_refused(harness):

@@ -5,9 +5,10 @@ QoS) for every joystick sample the board sends that carries a reading, stamped a
 reception (a sample with ADC_FAULT carries none: it is withheld, never published as a
 deflection), and with each the same sample's ``joy_applied``: what the board drives the
 chair with, its output while an override is applied (OVERRIDE_ACTIVE; its DAC codes read
-with the firmware's own calibration), else the same axes as ``joy``; subscribes
-``joy_override`` (best effort: a lost message is replaced by the
-next, and none holds later ones back) and forwards it to the board while it is fresh, by
+back into the units of ``joy``), else the same axes as ``joy``; subscribes ``joy_override``
+(best effort: a lost message is replaced by the next, and none holds later ones back) and
+forwards it to the board while it is fresh, in the board's units (the output the board
+gives for the stick the host reads as the command: :mod:`asgp_ros.serial.calibration`), by
 arrival and, when stamped, by its stamp (:mod:`asgp_ros.serial.override_gate`), then
 simply stops, so the firmware's 200 ms watchdog returns the chair to the user;
 publishes the link state, the joystick reading's and the override's fate on
@@ -47,6 +48,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
 from asgp_ros.serial import status as board_status
+from asgp_ros.serial.calibration import board_permille, host_deflection
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
 from asgp_ros.serial.override_gate import OverrideGate
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
@@ -85,7 +87,7 @@ class SerialBridgeNode(Node):
         self._joy_pub = self.create_publisher(Joy, topics.JOY, qos_profile_sensor_data)
         self._applied_pub = self.create_publisher(Joy, topics.JOY_APPLIED,
                                                   qos_profile_sensor_data)
-        self._dac = default_calibration()  # the firmware's own, to read its output codes
+        self._board = default_calibration()  # the firmware's own (config.h)
         self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                                QoSProfile(depth=10))
         self.create_subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
@@ -161,9 +163,10 @@ class SerialBridgeNode(Node):
         msg = conv.joy_from_sample(stamp_ns * 1e-9, s.forward, s.turn, self.params.frame_id)
         applied = msg
         if Status.OVERRIDE_ACTIVE in s.status:  # the board's output drives, not the stick
+            cal = self.params.calibration
             applied = conv.joy_from_sample(
-                stamp_ns * 1e-9, self._dac[0].dac_to_deflection(s.out_forward),
-                self._dac[1].dac_to_deflection(s.out_turn), self.params.frame_id)
+                stamp_ns * 1e-9, host_deflection(s.out_forward, cal.forward, self._board[0]),
+                host_deflection(s.out_turn, cal.turn, self._board[1]), self.params.frame_id)
         with self._shutdown_guard():
             self._joy_pub.publish(msg)
             self._applied_pub.publish(applied)
@@ -214,7 +217,10 @@ class SerialBridgeNode(Node):
         if command is not None:
             if board_mode != Mode.OVERRIDE:
                 self.link.set_mode(Mode.OVERRIDE)
-            self.link.send_override(*command)
+            # in the board's units: what it outputs for the stick the host reads as command
+            cal, (fwd, turn) = self.params.calibration, command
+            self.link.send_override(board_permille(fwd, cal.forward, self._board[0]) / 1000.0,
+                                    board_permille(turn, cal.turn, self._board[1]) / 1000.0)
         elif board_mode == Mode.OVERRIDE and age > self.params.mode_release_after:
             # the firmware already fell back to the user after 200 ms; tidy the mode up
             self.link.set_mode(Mode.PASSTHROUGH)

@@ -1,9 +1,12 @@
 """Raw 10-bit joystick ADC readings -> deflections in [-1, 1], with a dead zone.
 
 The host-side calibration, configured per chair (``config/bridge.yaml``). It is separate
-from the firmware's own fixed calibration (``config.h``), which only decides the safety
-rules; the defaults of both describe the same joystick (2.5 V +- 1.0 V on a 5 V, 10-bit
-ADC: 512 +- 205 counts).
+from the firmware's own fixed calibration (``config.h``), which decides the safety rules
+and what the board writes to the chair; the defaults of both describe the same joystick
+(2.5 V +- 1.0 V on a 5 V, 10-bit ADC: 512 +- 205 counts). :func:`board_permille` and
+:func:`host_deflection` translate between the two: an override in the units of ``joy`` is
+sent as the board's output for the stick position the host reads as it, and the board's
+output is read back in the units of ``joy``.
 """
 
 from __future__ import annotations
@@ -12,6 +15,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from asgp_ros.serial.safety import AxisCal
 
 ADC_MAX = 1023
 
@@ -57,6 +62,19 @@ class AxisCalibration:
         d = math.copysign(mag, x)
         return -d if self.invert else d
 
+    def raw_for(self, deflection: float) -> float:
+        """The ADC reading (counts, unrounded) this calibration reads as ``deflection``: the
+        inverse of ``deflection``, the dead zone's edge for the smallest non-zero values and
+        the neutral reading for 0."""
+        if not (math.isfinite(deflection) and -1.0 <= deflection <= 1.0):
+            raise ValueError(f"deflection must be in [-1, 1], got {deflection}")
+        s = -deflection if self.invert else deflection
+        if s == 0.0:
+            return self.neutral
+        x = math.copysign(self.dead_zone + abs(s) * (1.0 - self.dead_zone), s)
+        span = self.maximum - self.neutral if x > 0.0 else self.neutral - self.minimum
+        return self.neutral + x * span
+
     def deflection_array(self, raw: np.ndarray) -> np.ndarray:
         """Vectorised ``deflection``: raw [N] counts -> [N] deflections in [-1, 1]."""
         raw = np.asarray(raw, dtype=float)
@@ -80,3 +98,26 @@ class JoystickCalibration:
 
     def __call__(self, raw_forward: float, raw_turn: float) -> tuple[float, float]:
         return self.forward.deflection(raw_forward), self.turn.deflection(raw_turn)
+
+
+def board_permille(deflection: float, host: AxisCalibration, board: AxisCal) -> int:
+    """What to send the board (per mille) for a command of ``deflection`` in the units of
+    ``joy`` (this host calibration, + forward, + left): the output the board gives in
+    passthrough for the stick position the host reads as that deflection. An override then
+    drives the chair as the user's stick at the same reading does, whatever the two
+    calibrations (a joystick wired the other way round, ``invert``, or one that does not
+    reach the board's full span)."""
+    raw = round(min(float(ADC_MAX), max(0.0, host.raw_for(deflection))))
+    return board.adc_to_permille(raw)
+
+
+def host_deflection(code: int, host: AxisCalibration, board: AxisCal) -> float:
+    """The board's output DAC ``code`` in the units of ``joy``: the deflection this host
+    calibration reads for a stick position the board passes through as that code (the
+    inverse of :func:`board_permille`, to the board's resolution)."""
+    pm = max(-1000, min(1000, round((code - board.dac_neutral) * 1000 / board.dac_span)))
+    if pm == 0:
+        return host.deflection(board.adc_neutral)
+    usable = board.adc_span - board.adc_deadband
+    return host.deflection(board.adc_neutral + math.copysign(
+        board.adc_deadband + abs(pm) * usable / 1000.0, pm))

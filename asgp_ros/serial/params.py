@@ -45,7 +45,8 @@ PARAMS: tuple[ParamSpec, ...] = (
           ("maximum", 717.0, "ADC counts at full " + ("forward" if axis == "forward"
                                                        else "left"), 0.0, 1023.0),
           ("dead_zone", 0.04, "fraction of full deflection read as 0", 0.0, 0.49),
-          ("invert", False, "flip the sign of this axis", None, None),
+          ("invert", False, "flip the sign of this axis (a stick wired the other way round)",
+           None, None),
       )),
 )
 
