@@ -744,6 +744,51 @@ def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
         h.close()
 
 
+def test_the_boards_measured_output_feeds_while_it_arrives(rclpy_context, model_file):
+    """joy_applied (the serial bridge's measurement of what the board drives with) feeds the
+    predictor while it arrives; joy's samples are dropped then, the one of the same stamp
+    included; 0.1 s after the last one, joy feeds again."""
+    h = Harness(rclpy_context, model_file)
+    pub = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    node = h.node
+
+    def applied(t: float, fwd: float, turn: float) -> None:
+        h.clock(t)
+        pub.publish(conv.joy_from_sample(t, fwd, turn))
+        h.spin_until(lambda: node._joy_source.measured_arrival == pytest.approx(t),
+                     what="joy_applied")
+
+    def joy(t: float, fwd: float, turn: float) -> None:
+        h.clock(t)
+        n = len(node._joy_rate.times)
+        h.joy_pub.publish(conv.joy_from_sample(t, fwd, turn))
+        h.spin_until(lambda: len(node._joy_rate.times) > n, what="joy")
+
+    def newest() -> tuple[float, list[float]]:
+        stamps, values = node.predictor._joy.arrays()
+        return round(float(stamps[-1]), 6), [round(float(x), 6) for x in values[-1]]
+
+    try:
+        h.drive(100.0, 103.0)
+        h.spin_until(lambda: node.count_subscribers("joy_applied") > 0, what="discovery")
+        applied(103.1, 0.2, 0.1)
+        assert newest() == (103.1, [0.2, 0.1])
+        joy(103.1, 0.8, 0.3)  # the user's stick of the same sample: not fed
+        joy(103.15, 0.8, 0.3)  # joy_applied is arriving: not fed
+        assert newest() == (103.1, [0.2, 0.1])
+        applied(103.2, 0.25, 0.1)
+        assert newest() == (103.2, [0.25, 0.1])
+        joy(103.4, 0.8, 0.3)  # no joy_applied for 0.2 s: joy feeds again
+        assert newest() == (103.4, [0.8, 0.3])
+        assert node._joy_source.measured_samples == 2
+        h.clock(104.0)
+        h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]
+                                          .values}.get("joy_measured") == "2",
+                     what="diagnostics")
+    finally:
+        h.close()
+
+
 @pytest.mark.parametrize("override_topic", ["joy_override", ""])
 def test_adaptation_learns_nothing_an_override_drove(rclpy_context, model_file,
                                                       override_topic):

@@ -204,6 +204,33 @@ def test_an_intervention_slows_the_chair_before_a_wall(harness):
     assert np.allclose(h.node._applied(stick, last_sent + 0.1), stick)
 
 
+def test_joy_axes_signs_and_the_boards_measured_output(harness):
+    """joy_axes '0,-1' flips the turn (it was ignored: the layer read the user's turn, and
+    built its overrides, mirrored); joy_applied, the board's output as the bridge measures
+    it, feeds the layer's predictor while it arrives, the user's stick still deciding."""
+    h = harness(joy_axes="0,-1")
+    h.drive(100.0, 101.0, wall=20.0)
+    node = h.node
+    pub = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    h.spin_until(lambda: pub.get_subscription_count() > 0, what="discovery")
+
+    def newest() -> list[float]:
+        return [round(float(x), 6) for x in node.predictor._joy.arrays()[1][-1]]
+
+    h.clock(101.1)
+    h.joy_pub.publish(conv.joy_from_sample(101.1, 0.5, 0.3))
+    h.spin_until(lambda: node._user[0] == pytest.approx(101.1), what="joy")
+    assert [round(float(x), 6) for x in node._user[1]] == [0.5, -0.3]
+    assert newest() == [0.5, -0.3]
+    h.clock(101.15)
+    pub.publish(conv.joy_from_sample(101.15, 0.4, 0.3))  # as on joy: '-' applies
+    h.spin_until(lambda: node._joy_source.measured_samples == 1, what="joy_applied")
+    assert newest() == [0.4, -0.3]
+    h.joy_pub.publish(conv.joy_from_sample(101.15, 0.5, 0.3))
+    h.spin_until(lambda: node._user[0] == pytest.approx(101.15), what="joy")
+    assert newest() == [0.4, -0.3]  # the user's stick decides, the measurement feeds
+
+
 def test_neutral_stick_never_commands_motion(harness):
     h = harness()
     h.drive(100.0, 103.0, fwd=0.0, wall=0.9)  # a wall right ahead, stick released

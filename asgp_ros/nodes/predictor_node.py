@@ -3,7 +3,10 @@
 Subscribes ``joy`` (sensor_msgs/Joy), ``vo/twist`` (geometry_msgs/TwistStamped, or
 nav_msgs/Odometry with ``vo_type: odometry``) and ``joy_plan`` (trajectory_msgs/JointTrajectory,
 joints ``forward`` and ``turn``: a planner's future joystick commands, stamped with when
-they start) and ``joy_override`` (``override_topic``: the overrides sent to the chair; with
+they start), ``joy_applied`` (``applied_topic``: the board's output as the serial bridge
+measures it, which feeds the predictor instead of ``joy`` while it arrives,
+:mod:`asgp_ros.nodes.joy_source`) and ``joy_override`` (``override_topic``: the overrides sent
+to the chair; without the measurement and with
 ``override_paths`` the paths are predicted from the command the board applies, an override
 as long as the serial bridge writes it (``override_timeout_s``) and the board's watchdog holds
 it, while the user's stick is out of neutral; an adapting predictor learns nothing from the
@@ -78,6 +81,7 @@ from asgp_ros.core.shared_control import BOARD_WATCHDOG_S, applied_command
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
+from asgp_ros.nodes.joy_source import JoySource
 from asgp_ros.nodes.parameters import declare, sim_time_change
 from asgp_ros.recording.bags import parse_joy_axes
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
@@ -114,6 +118,7 @@ class PredictorNodeParams:
     vo_type: str = "twist"
     plan_topic: str = topics.JOY_PLAN
     override_topic: str = topics.JOY_OVERRIDE
+    applied_topic: str = topics.JOY_APPLIED
     override_paths: bool = True
     override_timeout_s: float = DEFAULT_TIMEOUT_S
     path_topic: str = topics.PREDICTED_PATH
@@ -233,6 +238,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("override_topic", "overrides sent to the chair (sensor_msgs/Joy, the shared-control "
           "layer's or a planner's): adaptation learns nothing from the steps they may have "
           "driven; '' for none"),
+    _spec("applied_topic", "the board's output as the serial bridge measures it "
+          "(sensor_msgs/Joy): while it arrives it feeds the predictor instead of joy_topic "
+          "and the modelled override; '' for none"),
     _spec("override_paths", "predict from the override while the board applies it (as the "
           "serial bridge and the board's watchdog would), not from the user's stick",
           runtime=True),
@@ -335,6 +343,7 @@ class PredictorNode(Node):
         # the overrides as the serial bridge takes them (on this node's clock)
         self._gate = OverrideGate()
         self._joy_overridden = 0  # joystick samples replaced by an override
+        self._joy_source = JoySource(p.reset_jump_s)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.path_pub = self.create_publisher(Path, p.path_topic, reliable)
@@ -342,6 +351,9 @@ class PredictorNode(Node):
             MarkerArray, f"{p.path_topic}/uncertainty", reliable)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        if p.applied_topic.strip():
+            self.create_subscription(Joy, p.applied_topic, self._on_joy_applied,
+                                     qos_profile_sensor_data)
         if p.vo_type == "twist":
             self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
                                      qos_profile_sensor_data)
@@ -467,14 +479,37 @@ class PredictorNode(Node):
             return
         t = self._stamp(t, now)
         self._joy_rate.tick(time.monotonic())
+        if self._joy_source.measured(now):
+            return  # the board's measured output feeds (_on_joy_applied)
         command = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
         applied = self._applied(command, t, now)
         if applied is not None and np.all(np.isfinite(command)):
             command = applied
             self._joy_overridden += 1
+        self._feed_joy(t, command, now, measured=False)
+
+    def _on_joy_applied(self, msg: Joy) -> None:
+        """What the board drives the chair with, measured: it feeds while it arrives."""
+        now = self._now()
+        ax = self.joy_axes
+        try:
+            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(f"{self.params.applied_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        t = self._stamp(t, now)
+        if self._joy_source.take_measured(t, now):
+            self._feed_joy(t, np.array([ax.forward_sign * fwd, ax.turn_sign * turn]), now,
+                           measured=True)
+
+    def _feed_joy(self, t: float, command: np.ndarray, now: float | None,
+                  measured: bool) -> None:
         if not self.predictor.feed_joy(t, command):
             self._warn_rejected()
             return
+        self._joy_source.fed(t, measured)
         self._maybe_predict(now, time.perf_counter())
 
     def _applied(self, user: np.ndarray, t: float, now: float | None) -> np.ndarray | None:
@@ -701,6 +736,7 @@ class PredictorNode(Node):
             "buffer_resets": str(stats.resets),
             "overrides_seen": str(stats.overrides),
             "joy_overridden": str(self._joy_overridden),
+            "joy_measured": str(self._joy_source.measured_samples),
             "overrides_late": str(stats.overrides_late),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),

@@ -26,8 +26,10 @@ Publishes ``shared_control/status`` (diagnostic_msgs/DiagnosticStatus, one per d
 what was done and why, probability before and after, change, solve time) and
 ``diagnostics``.
 
-The predictor is fed the command the chair actually received, as far as the layer can
-tell (:func:`~asgp_ros.core.shared_control.applied_command`): its last override, until
+The predictor is fed the command the chair actually received: measured, from
+``applied_topic`` (``joy_applied``, the serial bridge's reading of the board's output) while it
+arrives (:mod:`asgp_ros.nodes.joy_source`); else as far as the layer can tell
+(:func:`~asgp_ros.core.shared_control.applied_command`): its last override, until
 ``OVERRIDE_APPLIED_S`` after it (the bridge re-sends it and the board holds it that long,
 also after the layer has stopped) while the user's stick is out of the board's neutral, else
 the user's stick. Its velocity comes from the scans matched to each other while they match and
@@ -99,6 +101,7 @@ from asgp_ros.core.shared_control import (
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
+from asgp_ros.nodes.joy_source import JoySource
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
 from asgp_ros.recording.bags import parse_joy_axes
 
@@ -136,7 +139,8 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("obstacles", "laser", "obstacle source: 'laser' (scan_topic), 'grid' (map_topic) "
           "or 'both'"),
     _spec("joy_topic", topics.JOY, "the user's joystick (sensor_msgs/Joy)"),
-    _spec("joy_axes", "0,1", "Joy axes of the forward and turn deflections, 'FWD,TURN'"),
+    _spec("joy_axes", "0,1", "Joy axes of the forward and turn (+ left) deflections, "
+          "'FWD,TURN', '-' flips a sign"),
     _spec("vo_topic", topics.VO_TWIST, "VO input (TwistStamped, or Odometry with vo_type "
           "odometry)"),
     _spec("vo_type", "twist", "'twist' or 'odometry' (needed with a map)"),
@@ -147,6 +151,9 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("base_frame", "base_link", "frame of the chair; VO twists (an odometry's child "
           "frame) in another frame are refused (an empty frame is taken as this one)"),
     _spec("override_topic", topics.JOY_OVERRIDE, "override output (sensor_msgs/Joy)"),
+    _spec("applied_topic", topics.JOY_APPLIED, "the board's output as the serial bridge "
+          "measures it (sensor_msgs/Joy): while it arrives it feeds the predictor instead of "
+          "the user's stick with the modelled override; '' for none"),
     _spec("override_rate_hz", 20.0, "rate at which an override is re-sent while needed",
           5.0, 100.0),
     _spec("hold_s", 0.35, "an override is re-sent at most this long after its decision",
@@ -216,6 +223,7 @@ class SharedControlParams:
     odom_frame: str
     base_frame: str
     override_topic: str
+    applied_topic: str
     override_rate_hz: float
     hold_s: float
     joy_timeout_s: float
@@ -340,6 +348,7 @@ class SharedControlNode(Node):
         self._resets_seen = 0  # the predictor's buffer resets, as last seen
         # the newest override sent and when (node clock), for what the board applies
         self._sent_t = -math.inf
+        self._joy_source = JoySource(self.predictor.config.reset_jump_s)
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
         self._interventions = 0  # interventions (runs of decisions that changed the command)
@@ -370,6 +379,9 @@ class SharedControlNode(Node):
                                                 reliable)
         self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        if p.applied_topic.strip():
+            self.create_subscription(Joy, p.applied_topic, self._on_joy_applied,
+                                     qos_profile_sensor_data)
         if p.vo_type == "twist":
             self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
                                      qos_profile_sensor_data)
@@ -427,14 +439,38 @@ class SharedControlNode(Node):
             self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
             return
         t = self._stamp(t, now)
-        user = np.array([fwd, turn])
+        ax = self.joy_axes
+        user = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
         if not np.all(np.isfinite(user)):
             self._bad_messages += 1
             return
         self._user = (t, user)
         if is_neutral(user, self.config.neutral_deadband):
             self._stop_overriding()  # at once, not at the next decision
-        self.predictor.feed_joy(t, self._applied(user, now))
+        if not self._joy_source.measured(now):  # else the board's output feeds
+            self._feed_joy(t, self._applied(user, now), measured=False)
+
+    def _on_joy_applied(self, msg: Joy) -> None:
+        """What the board drives the chair with, measured: it feeds while it arrives."""
+        now = self._now()
+        if now is None:
+            return
+        ax = self.joy_axes
+        try:
+            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(f"{self.params.applied_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
+        t = self._stamp(t, now)
+        command = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
+        if np.all(np.isfinite(command)) and self._joy_source.take_measured(t, now):
+            self._feed_joy(t, command, measured=True)
+
+    def _feed_joy(self, t: float, command: np.ndarray, measured: bool) -> None:
+        if self.predictor.feed_joy(t, command):
+            self._joy_source.fed(t, measured)
 
     def _on_twist(self, msg: TwistStamped) -> None:
         now = self._now()
@@ -755,6 +791,7 @@ class SharedControlNode(Node):
                 if self.velocity_odometer is not None else ""),
             "bad_messages": str(self._bad_messages),
             # its own overrides, given to its predictor (see predictor_node's)
+            "joy_measured": str(self._joy_source.measured_samples),
             "overrides_seen": str(self.predictor.stats.overrides),
             "overrides_late": str(self.predictor.stats.overrides_late),
             **adapt_params.diagnostic_values(self.predictor.adaptation),

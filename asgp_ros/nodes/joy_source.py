@@ -1,0 +1,43 @@
+"""Which joystick stream feeds a node's predictor (ROS-free): the board's output as the
+serial bridge measures it (``joy_applied``) while it arrives, else ``joy``, the user's
+stick, with the override the board applies modelled on it
+(:func:`asgp_ros.core.shared_control.applied_command`).
+
+The bridge publishes both for every sample, with one stamp, ``joy`` first; whichever of the
+two a sample's stamp comes in first feeds the predictor, the other is a repeat and is
+dropped. A recording without ``joy_applied``, or another joystick driver, leaves ``joy``
+feeding.
+"""
+
+from __future__ import annotations
+
+import math
+
+#: ``joy_applied`` feeds while its newest message is at most this old (s, the node's clock):
+#: ten of the bridge's 100 Hz samples.
+MEASURED_FRESH_S = 0.1
+
+
+class JoySource:
+    """The bookkeeping of the two streams; times in seconds."""
+
+    def __init__(self, reset_jump_s: float) -> None:
+        self.reset_jump_s = reset_jump_s
+        self.measured_arrival = -math.inf  # node clock of the newest joy_applied
+        self.last_fed = -math.inf          # stamp of the newest sample fed
+        self.measured_samples = 0          # samples fed from joy_applied
+
+    def measured(self, now: float | None) -> bool:
+        """``joy_applied`` is arriving: ``joy`` does not feed."""
+        return now is not None and 0.0 <= now - self.measured_arrival <= MEASURED_FRESH_S
+
+    def take_measured(self, t: float, now: float | None) -> bool:
+        """A ``joy_applied`` sample stamped ``t`` arrived: whether to feed it (not when
+        ``joy`` already fed that stamp; a stamp far back is a clock jump, and is fed)."""
+        if now is not None:
+            self.measured_arrival = now
+        return not self.last_fed - self.reset_jump_s < t <= self.last_fed
+
+    def fed(self, t: float, measured: bool) -> None:
+        self.last_fed = t
+        self.measured_samples += measured
