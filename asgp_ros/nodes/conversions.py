@@ -24,6 +24,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from asgp_ros.core import collision
 from asgp_ros.core.online import MAX_PLAN_STEPS
 from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
+from asgp_ros.recording.bags import JoyAxes
 
 FloatArray = NDArray[np.float64]
 
@@ -66,6 +67,13 @@ def joy_to_sample(msg: Joy, forward_axis: int = 0, turn_axis: int = 1
         )
     return (stamp_to_seconds(msg.header.stamp),
             (float(axes[forward_axis]), float(axes[turn_axis])))
+
+
+def joy_command(msg: Joy, axes: JoyAxes) -> tuple[float, NDArray[np.float64]]:
+    """sensor_msgs/Joy -> (stamp s, [forward, turn]) read with ``axes`` (the indices and the
+    signs of ``--joy-axes`` / ``joy_axes``: + forward, + left); raises as ``joy_to_sample``."""
+    t, (fwd, turn) = joy_to_sample(msg, axes.forward, axes.turn)
+    return t, np.array([axes.forward_sign * fwd, axes.turn_sign * turn])
 
 
 def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -> Joy:

@@ -468,20 +468,26 @@ class PredictorNode(Node):
             return t
         return now
 
-    def _on_joy(self, msg: Joy) -> None:
-        now = self._now()
-        ax = self.joy_axes
+    def _read_joy(self, msg: Joy, topic: str, now: float | None
+                  ) -> tuple[float, np.ndarray] | None:
+        """(stamp, [forward, turn]) of a Joy message with ``joy_axes``, or None (counted)."""
         try:
-            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
+            t, command = conv.joy_command(msg, self.joy_axes)
         except ValueError as exc:
             self._bad_messages += 1
-            self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
+            self.get_logger().warning(f"{topic}: {exc}", throttle_duration_sec=5.0)
+            return None
+        return self._stamp(t, now), command
+
+    def _on_joy(self, msg: Joy) -> None:
+        now = self._now()
+        read = self._read_joy(msg, self.params.joy_topic, now)
+        if read is None:
             return
-        t = self._stamp(t, now)
+        t, command = read
         self._joy_rate.tick(time.monotonic())
         if self._joy_source.measured(now):
             return  # the board's measured output feeds (_on_joy_applied)
-        command = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
         applied = self._applied(command, t, now)
         if applied is not None and np.all(np.isfinite(command)):
             command = applied
@@ -491,18 +497,9 @@ class PredictorNode(Node):
     def _on_joy_applied(self, msg: Joy) -> None:
         """What the board drives the chair with, measured: it feeds while it arrives."""
         now = self._now()
-        ax = self.joy_axes
-        try:
-            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
-        except ValueError as exc:
-            self._bad_messages += 1
-            self.get_logger().warning(f"{self.params.applied_topic}: {exc}",
-                                      throttle_duration_sec=5.0)
-            return
-        t = self._stamp(t, now)
-        if self._joy_source.take_measured(t, now):
-            self._feed_joy(t, np.array([ax.forward_sign * fwd, ax.turn_sign * turn]), now,
-                           measured=True)
+        read = self._read_joy(msg, self.params.applied_topic, now)
+        if read is not None and self._joy_source.take_measured(read[0], now):
+            self._feed_joy(*read, now, measured=True)
 
     def _feed_joy(self, t: float, command: np.ndarray, now: float | None,
                   measured: bool) -> None:

@@ -432,18 +432,10 @@ class SharedControlNode(Node):
         now = self._now()
         if now is None:
             return
-        try:
-            t, (fwd, turn) = conv.joy_to_sample(msg, self.joy_axes.forward, self.joy_axes.turn)
-        except ValueError as exc:
-            self._bad_messages += 1
-            self.get_logger().warning(str(exc), throttle_duration_sec=5.0)
+        read = self._read_joy(msg, self.params.joy_topic, now)
+        if read is None:
             return
-        t = self._stamp(t, now)
-        ax = self.joy_axes
-        user = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
-        if not np.all(np.isfinite(user)):
-            self._bad_messages += 1
-            return
+        t, user = read
         self._user = (t, user)
         if is_neutral(user, self.config.neutral_deadband):
             self._stop_overriding()  # at once, not at the next decision
@@ -455,18 +447,23 @@ class SharedControlNode(Node):
         now = self._now()
         if now is None:
             return
-        ax = self.joy_axes
+        read = self._read_joy(msg, self.params.applied_topic, now)
+        if read is not None and self._joy_source.take_measured(read[0], now):
+            self._feed_joy(*read, measured=True)
+
+    def _read_joy(self, msg: Joy, topic: str, now: float) -> tuple[float, np.ndarray] | None:
+        """(stamp, [forward, turn]) of a Joy message with ``joy_axes``, or None (counted:
+        too few axes, a value that is not finite)."""
         try:
-            t, (fwd, turn) = conv.joy_to_sample(msg, ax.forward, ax.turn)
+            t, command = conv.joy_command(msg, self.joy_axes)
         except ValueError as exc:
             self._bad_messages += 1
-            self.get_logger().warning(f"{self.params.applied_topic}: {exc}",
-                                      throttle_duration_sec=5.0)
-            return
-        t = self._stamp(t, now)
-        command = np.array([ax.forward_sign * fwd, ax.turn_sign * turn])
-        if np.all(np.isfinite(command)) and self._joy_source.take_measured(t, now):
-            self._feed_joy(t, command, measured=True)
+            self.get_logger().warning(f"{topic}: {exc}", throttle_duration_sec=5.0)
+            return None
+        if not np.all(np.isfinite(command)):
+            self._bad_messages += 1
+            return None
+        return self._stamp(t, now), command
 
     def _feed_joy(self, t: float, command: np.ndarray, measured: bool) -> None:
         if self.predictor.feed_joy(t, command):
