@@ -793,3 +793,30 @@ def test_a_pool_whose_teardown_fails_still_has_its_workers_killed(monkeypatch):
         if worker.is_alive():
             worker.kill()
             worker.join()
+
+
+def _deferred_worker(path: str) -> None:
+    from asgp_ros.common import fileio
+
+    fileio.quiet_worker_exit()
+    with fileio.signals_deferred():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)  # the handler runs here
+        Path(path + ".inside").write_text("the block ran to its end")
+    Path(path + ".after").write_text("not reached")
+
+
+def test_a_pool_worker_defers_a_stop_signal_as_the_parent_does(tmp_path):
+    """A worker's stop signal inside signals_deferred() ends it at the block's end, through
+    SystemExit (no traceback): it ended the worker at once, and a worker stopped between
+    mkdtemp and the assignment of its result left an empty temporary (seen in CI as
+    test_signal_during_dataset_removes_temporaries[SIGTERM])."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    proc = ctx.Process(target=_deferred_worker, args=(str(tmp_path / "w"),))
+    proc.start()
+    proc.join(10.0)
+    assert proc.exitcode == 128 + signal.SIGTERM
+    assert (tmp_path / "w.inside").exists()
+    assert not (tmp_path / "w.after").exists()

@@ -57,6 +57,7 @@ class Terminated(KeyboardInterrupt):
 
 _received: list[int] = []  # the stop signals this process has received, oldest first
 _deferring: list[int] = [0]  # depth of signals_deferred() blocks
+_worker: list[bool] = [False]  # a pool worker: a stop signal ends it through SystemExit
 
 
 def raise_on_termination() -> None:
@@ -109,6 +110,8 @@ def check_signals() -> None:
     """Raise for a stop signal received earlier whose exception was lost (see
     :func:`raise_on_termination`); do nothing if none was received."""
     if _received:
+        if _worker[0]:
+            sys.exit(128 + _received[0])
         if _received[0] == signal.SIGINT:
             raise KeyboardInterrupt
         raise Terminated(_received[0])
@@ -143,6 +146,11 @@ def quiet_worker_exit() -> None:
     unblocked last (:func:`worker_pool` forks its workers with them blocked): one sent to
     the worker while it started is delivered here, to this handler.
 
+    Inside a :func:`signals_deferred` block (creating a temporary and taking ownership of
+    it, committing it, removing it) the exit waits for the block's end, as in the parent:
+    a worker stopped between ``mkdtemp`` and the assignment of its result left an empty
+    temporary behind.
+
     A handler runs wherever the main thread is, and an exception raised inside a weakref
     callback or a ``__del__`` (an import's module-lock callback, say) is not propagated:
     Python prints it as "Exception ignored" and goes on. Such a swallowed exit still ends
@@ -155,6 +163,9 @@ def quiet_worker_exit() -> None:
         for sig in _STOP_SIGNALS:
             signal.signal(sig, signal.SIG_IGN)
         exiting.append(128 + signum)
+        _received.append(signum)
+        if _deferring[0]:
+            return  # raised when the signals_deferred() block ends (check_signals)
         sys.exit(128 + signum)
 
     def unraisable(info: Any) -> None:
@@ -163,6 +174,7 @@ def quiet_worker_exit() -> None:
         previous_hook(info)
 
     sys.unraisablehook = unraisable
+    _worker[0] = True
     for sig in _STOP_SIGNALS:
         signal.signal(sig, handler)
     # A worker is forked inside the parent's signals_deferred() block, with the parent's
