@@ -506,8 +506,12 @@ def test_demo_runs_end_to_end(demo_run):
     assert (out / "demo.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     report = json.loads((out / "report.json").read_text())
     msgs = report["messages"]
-    for topic in ("joy", "vo/twist", "predicted_path", "ground_truth/odom", "joy_plan"):
+    for topic in ("joy", "joy_applied", "vo/twist", "predicted_path", "ground_truth/odom",
+                  "joy_plan"):
         assert msgs[topic] > 0, f"no {topic}"
+    # the predictor took its joystick from the board's measured output (joy_applied)
+    predictor = report["diagnostics"]["predictor_node: prediction"]["values"]
+    assert int(predictor["joy_measured"]) > 0.5 * msgs["joy_applied"]
     # the shared-control layer ran on the simulated scanner; the report compares the drive
     # with the same drive without it
     shared = report["shared_control"]

@@ -780,6 +780,13 @@ def test_the_boards_measured_output_feeds_while_it_arrives(rclpy_context, model_
         assert newest() == (103.2, [0.25, 0.1])
         joy(103.4, 0.8, 0.3)  # no joy_applied for 0.2 s: joy feeds again
         assert newest() == (103.4, [0.8, 0.3])
+        # a joy_applied that is no measurement (NaN) is refused and does not silence joy
+        n = node.predictor.stats.dropped_nonfinite
+        h.clock(103.5)
+        pub.publish(conv.joy_from_sample(103.5, math.nan, 0.1))
+        h.spin_until(lambda: node.predictor.stats.dropped_nonfinite > n, what="NaN refused")
+        joy(103.55, 0.7, 0.3)
+        assert newest() == (103.55, [0.7, 0.3])
         assert node._joy_source.measured_samples == 2
         h.clock(104.0)
         h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]

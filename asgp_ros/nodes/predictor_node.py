@@ -498,7 +498,11 @@ class PredictorNode(Node):
         """What the board drives the chair with, measured: it feeds while it arrives."""
         now = self._now()
         read = self._read_joy(msg, self.params.applied_topic, now)
-        if read is not None and self._joy_source.take_measured(read[0], now):
+        if read is None:
+            return
+        if not np.all(np.isfinite(read[1])):  # no measurement: refused and counted, and
+            self._feed_joy(*read, now, measured=True)  # joy goes on feeding
+        elif self._joy_source.take_measured(read[0], now):
             self._feed_joy(*read, now, measured=True)
 
     def _feed_joy(self, t: float, command: np.ndarray, now: float | None,
