@@ -223,6 +223,31 @@ def test_bad_parameters_refuse_to_start(rclpy_context, model_file):
             Parameter("model_path", value=model_file), Parameter("rate_hz", value=3.0)])
 
 
+@pytest.mark.parametrize("names", [
+    {"applied_topic": "joy"},                       # the stick taken for the board's output
+    {"applied_topic": "/joy"},                      # the same topic, fully qualified
+    {"override_topic": "joy"},                      # the stick taken for an override
+    {"override_topic": "joy_applied"},
+    {"joy_topic": "stick", "applied_topic": "/stick"},
+])
+def test_one_topic_named_twice_refuses_to_start(rclpy_context, model_file, names):
+    """The user's stick, the board's output and the overrides are three streams: naming one
+    topic twice (after expansion) would feed the stick as the board's output or as an
+    override, and paths would never follow an intervention."""
+    with pytest.raises(StartupError, match="name one topic"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file),
+            *(Parameter(k, value=v) for k, v in names.items())])
+    with pytest.raises(StartupError, match="not a valid topic name"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("joy_topic", value="j oy")])
+    # an input switched off (empty) is not a name
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("applied_topic", value=""),
+        Parameter("override_topic", value="")])
+    node.destroy_node()
+
+
 @pytest.mark.parametrize(("field", "value", "why"), [
     ("horizon_steps", 201, "horizon_steps"), ("horizon_steps", -1, "horizon_steps"),
     ("horizon_s", 0.0, "horizon_s"), ("horizon_s", math.nan, "horizon_s"),

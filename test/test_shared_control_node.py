@@ -614,6 +614,10 @@ def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noq
         SharedControlNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=model_file),
             Parameter("memory_odometry", value="scan")])
+    for name, topic in (("applied_topic", "/joy"), ("override_topic", "joy_applied")):
+        with pytest.raises(StartupError, match="name one topic"):
+            SharedControlNode(context=rclpy_context, parameter_overrides=[
+                Parameter("model_path", value=model_file), Parameter(name, value=topic)])
     h = harness()
     h.clock(100.0)
     bad = wall_scan_msg(100.0, 2.0)

@@ -12,10 +12,40 @@ feeding.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 #: ``joy_applied`` feeds while its newest message is at most this old (s, the node's clock):
 #: ten of the bridge's 100 Hz samples.
 MEASURED_FRESH_S = 0.1
+
+
+def check_topics(resolve: Callable[[str], str], **names: str) -> None:
+    """Refuse a configuration that names one topic twice among a node's joystick inputs.
+
+    ``joy_applied`` set to the user's own ``joy`` would feed the stick as the board's
+    output, so an override would never show in a path; ``joy_override`` set to either would
+    take the user's stick for an override. Empty names (the input switched off) are skipped.
+
+    Args:
+        resolve: the node's ``resolve_topic_name`` (expansion and remapping).
+        names: parameter name -> topic name.
+
+    Raises:
+        ValueError: a name that does not resolve, or two that resolve to one topic.
+    """
+    seen: dict[str, str] = {}
+    for param, name in names.items():
+        if not name.strip():
+            continue
+        try:
+            full = resolve(name)
+        except RuntimeError as exc:  # rclpy's RCLError: not a valid topic name
+            raise ValueError(f"{param}: {name!r} is not a valid topic name ({exc})") from None
+        if full in seen:
+            raise ValueError(f"{seen[full]} and {param} name one topic, {full}: they must "
+                             "differ (the user's stick, the board's output and the "
+                             "overrides sent are three streams)")
+        seen[full] = param
 
 
 class JoySource:

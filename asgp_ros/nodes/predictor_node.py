@@ -81,7 +81,7 @@ from asgp_ros.core.shared_control import BOARD_WATCHDOG_S, applied_command
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.joy_source import JoySource
+from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, sim_time_change
 from asgp_ros.recording.bags import parse_joy_axes
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
@@ -310,6 +310,9 @@ class PredictorNode(Node):
             values = declare(self, PARAMS)
             self.params = PredictorNodeParams(
                 **{_field(k): v for k, v in check_values(PARAMS, values).items()})
+            check_topics(self.resolve_topic_name, joy_topic=self.params.joy_topic,
+                         applied_topic=self.params.applied_topic,
+                         override_topic=self.params.override_topic)
         except (ValueError, TypeError) as exc:
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params

@@ -101,7 +101,7 @@ from asgp_ros.core.shared_control import (
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.joy_source import JoySource
+from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
 from asgp_ros.recording.bags import parse_joy_axes
 
@@ -299,6 +299,9 @@ class SharedControlNode(Node):
             adapt_values = {name: values.pop(name) for name in adapt_params.ADAPT_NAMES}
             self.params = SharedControlParams(**values)
             adapt = adapt_params.adapt_settings(adapt_values)
+            check_topics(self.resolve_topic_name, joy_topic=self.params.joy_topic,
+                         applied_topic=self.params.applied_topic,
+                         override_topic=self.params.override_topic)
         except (ValueError, TypeError) as exc:
             self.destroy_node()
             raise StartupError(f"invalid parameters: {exc}") from exc
