@@ -258,6 +258,45 @@ def test_overrides_in_a_bag_invalidate_what_they_drove(tmp_path, ros1):
     assert read_streams(bad, twist_topic="/twist", override_topic=None).override_t.size == 0
 
 
+def test_a_recording_of_the_boards_output_trains_on_the_overridden_steps(tmp_path):
+    """README: a recording that holds /joy_applied (the serial bridge's reading of the board's
+    output) trains whole with ``--joy-topic /joy_applied --override-topic ''``: the steps an
+    override drove keep their rows, with the command the chair got as their input."""
+    from asgp_ros.learning.training import read_series
+
+    src = tmp_path / "src"
+    _write_custom(src, "geometry_msgs/msg/TwistStamped", n=60, overrides=(30, 31, 32))
+    path = tmp_path / "b"
+    store = get_typestore(Stores.ROS2_JAZZY)
+    Joy = store.types["sensor_msgs/msg/Joy"]
+    with (Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w,
+          AnyReader([src], default_typestore=store) as r):
+        conns = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=store)
+                 for c in r.connections}
+        applied = w.add_connection("/joy_applied", "sensor_msgs/msg/Joy", typestore=store)
+        for c, t, raw in r.messages():
+            w.write(conns[c.topic], t, raw)
+            if c.topic == "/joy":  # the board's output: the override while it applies it
+                msg = r.deserialize(raw, c.msgtype)
+                i = round((t - 1_600_000_000 * 10**9 - 20_000_000) / 1e8)
+                axes = ([0.1, 0.0, 0.75] if 30 <= i <= 34 else list(msg.axes))
+                out = Joy(header=msg.header, axes=np.array(axes, dtype=np.float32),
+                          buttons=msg.buttons)
+                w.write(applied, t, store.serialize_cdr(out, c.msgtype))
+    user = read_series([str(path)], twist_topic="/twist")[0].res
+    whole = read_series([str(path)], twist_topic="/twist", joy_topic="/joy_applied",
+                        override_topic="")[0].res
+    assert user.overridden.sum() == 5 and not whole.overridden.any()
+    np.testing.assert_array_equal(whole.t, user.t)
+    assert whole.valid.sum() == user.valid.sum() + 5
+    t0 = 1_600_000_000.0
+    driven = (whole.t - t0 >= 3.0 - 1e-6) & (whole.t - t0 <= 3.4 + 1e-6)
+    assert driven.sum() == 3
+    np.testing.assert_allclose(whole.joy[driven], [[0.1, 0.0]] * 3, atol=1e-6)
+    np.testing.assert_allclose(whole.joy[~driven & whole.valid & user.valid],
+                               user.joy[~driven & whole.valid & user.valid], atol=1e-6)
+
+
 def test_damaged_overrides_are_named_and_a_missing_topic_is_said(tmp_path, caplog):
     """A /joy_override message that does not decode: one error naming the overrides and the
     way out, not a bare 'corrupt bag'. An override topic asked for and not in the bag is
