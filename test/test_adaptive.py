@@ -176,6 +176,34 @@ def test_rows_absorbed_are_exactly_the_rows_training_takes(model: MotionModel) -
     assert stats.rows_absorbed + stats.steps_refused <= res.t.shape[0]
 
 
+def test_a_model_without_the_held_chair_rule_still_never_learns_a_held_chair(
+        model: MotionModel) -> None:
+    """A model file from before the held-chair rule (or trained with it off) predicts as
+    trained, without the rule, but its adaptation learns under it: the 3 s the chair is held
+    still while the stick pushes are not absorbed, and every other row is."""
+    from dataclasses import replace
+
+    old = replace(model, resample_config=replace(RC, held_after_s=math.inf))
+    s = drive(60.0, seed=8)
+    joy, vel = s.joy.copy(), s.vel.copy()
+    held = (s.vel_t > T0 + 30.0) & (s.vel_t < T0 + 33.0)
+    vel[held] = np.random.default_rng(3).normal(0.0, 0.003, size=(int(held.sum()), 2))
+    joy[(s.joy_t > T0 + 29.5) & (s.joy_t < T0 + 33.0)] = (0.8, 0.0)
+    s = RawStreams(joy_t=s.joy_t, joy=joy, vel_t=s.vel_t, vel=vel, vel_ok=s.vel_ok)
+    assert not resample(s, old.resample_config).stale.any()   # the old rules see nothing
+    assert resample(s, RC).stale.sum() >= 10                  # the held rule does
+    settings = AdaptSettings(AdaptConfig(max_distance=None), coverage=None)
+    pred = Predictor(old, adapt=settings)
+    plain = Predictor(old)
+    preds, plain_preds = replay(pred, s), replay(plain, s)
+    # predictions resample as the model was trained: the held stretch is predicted from
+    assert preds.keys() == plain_preds.keys()
+    assert any(T0 + 31.0 < p.t0 < T0 + 33.0 for p in preds.values())
+    # learning: exactly the rows training takes under the held rule
+    assert _learnt_as_training(old, pred, s, settings, RC)
+    assert not _learnt_as_training(old, pred, s, settings, old.resample_config)
+
+
 def test_the_trained_model_is_not_modified_and_other_kinds_refuse(model: MotionModel) -> None:
     before = [ch.posterior for ch in model.channels]
     pred = Predictor(model, adapt=AdaptSettings())
@@ -479,8 +507,8 @@ def _learn_with_late_overrides(model: MotionModel, s: RawStreams, delay: float,
 
 
 def _learnt_as_training(model: MotionModel, pred: Predictor, s: RawStreams,
-                        settings: AdaptSettings) -> bool:
-    res = resample(s, model.resample_config)
+                        settings: AdaptSettings, config: ResampleConfig | None = None) -> bool:
+    res = resample(s, model.resample_config if config is None else config)
     adapter = pred._adapter
     assert adapter is not None and adapter.absorbed_to is not None
     for c in (0, 1):

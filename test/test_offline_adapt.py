@@ -141,6 +141,34 @@ def test_invalid_steps_never_teach_the_model(floors: dict[str, Path]) -> None:
         adapt_model(model, [_lost_from(new, -np.inf, 3, rc)], opts)
 
 
+def test_asgp_adapt_learns_under_the_held_chair_rule_from_a_model_without_it(
+        floors: dict[str, Path], tile_model: Path, tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A model file from before the held-chair rule (``held_after_s`` off): `asgp adapt`
+    reads its recordings under the rule, as the online predictor learns; the model it
+    writes still predicts as trained, without it."""
+    import asgp_ros.cli.adapt as cli_adapt
+
+    model = load_model(tile_model)
+    old = dataclasses.replace(model, resample_config=dataclasses.replace(
+        model.resample_config, held_after_s=float("inf")))
+    old_path = tmp_path / "old.npz"
+    save_model(old_path, old)
+    seen: list[ResampleConfig] = []
+    real = cli_adapt.read_series_or_fail
+
+    def spy(bags, args, *, resample_config):  # type: ignore[no-untyped-def]
+        seen.append(resample_config)
+        return real(bags, args, resample_config=resample_config)
+
+    monkeypatch.setattr(cli_adapt, "read_series_or_fail", spy)
+    out = tmp_path / "adapted.npz"
+    assert main(["adapt", str(old_path), str(floors["carpet"]), "--out", str(out)]) == 0
+    assert seen and seen[0].held_after_s == ResampleConfig().held_after_s
+    assert dataclasses.replace(seen[0], held_after_s=float("inf")) == old.resample_config
+    assert load_model(out).resample_config.held_after_s == float("inf")
+
+
 def test_options_are_checked() -> None:
     for bad in (dict(trained_weight=1.5), dict(trained_weight=float("nan")),
                 dict(holdout=0.9), dict(holdout=0.0, calibrate=True),

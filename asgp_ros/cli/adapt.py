@@ -11,6 +11,7 @@ from asgp_ros.cli._argtypes import number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.common.fileio import MODEL_FILE, check_output
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.core.resample import learning_config
 from asgp_ros.learning.adapting import (
     AdaptingError,
     OfflineAdaptOptions,
@@ -113,7 +114,9 @@ def run(args: argparse.Namespace) -> int:
                   "rows are in the posterior already"
                   + (" and count twice with --trained-weight 1"
                      if args.trained_weight > 0.0 else ""), flush=True)
-    series = read_series_or_fail(args.bags, args, resample_config=model.resample_config)
+    # learnt under the held-chair rule even where the model predicts without it
+    series = read_series_or_fail(args.bags, args,
+                                 resample_config=learning_config(model.resample_config))
 
     def progress(stage: str, message: str) -> None:
         print(f"[adapt {stage}] {message}", flush=True)

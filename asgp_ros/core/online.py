@@ -59,7 +59,14 @@ from asgp_ros.core.adaptive import AdapterStats, AdaptSettings, ModelAdapter
 from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.resample import exclude_overridden, overridden_points, resample
+from asgp_ros.core.resample import (
+    ResampleConfig,
+    Resampled,
+    exclude_overridden,
+    learning_config,
+    overridden_points,
+    resample,
+)
 from asgp_ros.core.rollout import Rollout, Uncertainty, rollout
 from asgp_ros.core.streams import (
     RawStreams,
@@ -375,6 +382,14 @@ class Predictor:
                 raise ValueError(f"buffer_s {self.config.buffer_s} s is shorter than the "
                                  f"{self.min_buffer_s:.1f} s of history adaptation needs")
         self.resample_config = model.resample_config
+        # Adaptation learns under the held-chair rule even from a model that predicts
+        # without it (a model file from before the rule, or trained with it off): a chair
+        # held against an obstacle while the stick pushes teaches nothing. Learning only
+        # refuses more steps than prediction does; predictions resample as trained.
+        self._learn_config: ResampleConfig | None = None
+        if self._adapter is not None and \
+                (learning := learning_config(model.resample_config)) != model.resample_config:
+            self._learn_config = learning
         self.dt = 1.0 / float(model.resample_config.rate_hz)
         self.lags = int(model.feature_config.lags)
         self.stats = PredictorStats()
@@ -384,7 +399,9 @@ class Predictor:
         self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
         # times overrides were sent (feed_override), bounded in number as well as in time
         self._overrides: deque[float] = deque(maxlen=MAX_OVERRIDES)
-        self._to_learn: tuple[Any, int] | None = None  # the last window, for ``learn``
+        # the last window, for ``learn``: the grid predicted from (or the streams, to be
+        # resampled under ``_learn_config``), the override times then, the complete steps
+        self._to_learn: tuple[Resampled | RawStreams, FloatArray, int] | None = None
         self._last_now = -math.inf
         self.last_reset_detail = ""
 
@@ -753,13 +770,10 @@ class Predictor:
         s = self.lags
         t_ready = min(self._joy.newest, self._vo_covers())
         n = int(np.searchsorted(res.t, t_ready + _EPS_T, side="right"))
-        if self._adapter is not None:
-            learn_from = res
+        if self._adapter is not None:  # learnt from in ``learn``, after the path is out
             self._prune_overrides()
-            if self._overrides:
-                learn_from = exclude_overridden(res, np.sort(np.fromiter(self._overrides, float)),
-                                                self.resample_config)
-            self._to_learn = (learn_from, n)
+            self._to_learn = (res if self._learn_config is None else streams,
+                              np.sort(np.fromiter(self._overrides, float)), n)
         if n < s:
             return Prediction(False, Reason.NOT_ENOUGH_HISTORY,
                               f"{n} grid steps buffered, the model needs {s}")
@@ -798,8 +812,15 @@ class Predictor:
         afterwards, so that learning is not in the path's latency.
         """
         pending, self._to_learn = self._to_learn, None
-        if pending is not None and self._adapter is not None:
-            self._adapter.observe(*pending)
+        if pending is None or self._adapter is None:
+            return
+        grid, overrides, complete = pending
+        if isinstance(grid, RawStreams):
+            assert self._learn_config is not None
+            grid = resample(grid, self._learn_config)
+        if overrides.size:
+            grid = exclude_overridden(grid, overrides, self.resample_config)
+        self._adapter.observe(grid, complete)
 
     def predict(self, now: float, joy_future: FloatArray | None = None, *,
                 learn: bool = True) -> Prediction:

@@ -230,6 +230,17 @@ class ResampleConfig:
         return cls(**d)
 
 
+def learning_config(config: ResampleConfig) -> ResampleConfig:
+    """The settings adaptation learns under, for a model resampled with ``config``: the
+    same, with the held-chair rule at its default where ``config`` has it off (a model file
+    from before the rule, or trained without it). A chair held against an obstacle while
+    the stick pushes teaches no model; the rule only invalidates more points, so the rows
+    that remain are formed exactly as the model predicts from them."""
+    if math.isinf(config.held_after_s):
+        return dataclasses.replace(config, held_after_s=ResampleConfig().held_after_s)
+    return config
+
+
 @dataclass(frozen=True)
 class Resampled:
     """Streams on the common grid.
