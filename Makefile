@@ -26,9 +26,9 @@ test: setup
 
 # The demo needs the Python environment only (no AVR toolchain). --force: a second
 # `make demo` replaces the first one's demo-output/ (and nothing that is not a demo's).
-# --adapt: the predictor adapts online, its variance scale included (README, the top).
+# The predictor adapts online, its variance scale included (README, the top).
 demo: $(STAMP)
-	$(VENV)/bin/asgp demo --adapt --force
+	$(VENV)/bin/asgp demo --force
 
 firmware: $(SYSSTAMP)
 	$(MAKE) -C firmware

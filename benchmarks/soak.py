@@ -1135,8 +1135,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--inattention", type=float, default=0.1,
                     help="with --shared-control: the simulated driver's inattention, so "
                          "that the layer intervenes (0.1)")
-    ap.add_argument("--adapt", action="store_true",
-                    help="the predictor adapts online (adapt.enabled); its adaptation state "
+    ap.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=True,
+                    help="the predictor adapts online (adapt.enabled, the default; "
+                         "--no-adapt: as trained); its adaptation state "
                          "at the end is in the report")
     args = ap.parse_args(argv)
     if not (math.isfinite(args.minutes) and 1.0 <= args.minutes <= 600.0):

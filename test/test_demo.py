@@ -400,18 +400,19 @@ def test_child_environment_isolates_the_demo():
     assert str(REPO) in env["PYTHONPATH"].split(os.pathsep)
     names = [name for name, _, _ in node_commands(DemoOptions(), Path("m.npz"), "/tmp/p")]
     assert names == ["hardware", "serial_bridge", "vo", "predictor"]
+    # adapting by default (as the nodes do), --no-adapt says so explicitly
     args = {name: a for name, _, a in node_commands(DemoOptions(), Path("m.npz"), "/tmp/p")}
-    assert "adapt.enabled:=true" not in args["predictor"]
-    args = {name: a for name, _, a in node_commands(DemoOptions(adapt=True), Path("m.npz"),
-                                                    "/tmp/p")}
     assert args["predictor"][-2:] == ["-p", "adapt.enabled:=true"]
+    args = {name: a for name, _, a in node_commands(DemoOptions(adapt=False), Path("m.npz"),
+                                                    "/tmp/p")}
+    assert args["predictor"][-2:] == ["-p", "adapt.enabled:=false"]
     # the shared-control layer's own predictor adapts with it
     args = {name: a for name, _, a in node_commands(
         DemoOptions(shared_control=True), Path("m.npz"), "/tmp/p")}
-    assert "adapt.enabled:=true" not in args["shared_control"]
-    args = {name: a for name, _, a in node_commands(
-        DemoOptions(shared_control=True, adapt=True), Path("m.npz"), "/tmp/p")}
     assert args["shared_control"][-2:] == ["-p", "adapt.enabled:=true"]
+    args = {name: a for name, _, a in node_commands(
+        DemoOptions(shared_control=True, adapt=False), Path("m.npz"), "/tmp/p")}
+    assert args["shared_control"][-2:] == ["-p", "adapt.enabled:=false"]
 
 
 def test_silent_components_are_named():
@@ -490,7 +491,7 @@ def _demo_children(demo_pid: int | None = None) -> list[str]:
 def demo_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
     proc = subprocess.run(_demo_argv(out, "--minutes", "0.4", "--train-minutes", "2",
-                                     "--seed", "3", "--shared-control", "--adapt"),
+                                     "--seed", "3", "--shared-control"),
                           env=_env(), capture_output=True, text=True, timeout=170)
     return proc, out
 

@@ -946,7 +946,10 @@ def test_paths_closer_than_the_learning_delay_learn_as_at_once(rclpy_context, mo
     assert deferred == at_once
 
 
-def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context, tmp_path):
+def test_a_model_that_cannot_adapt_predicts_as_trained_and_says_why(rclpy_context, tmp_path):
+    """Adaptation is on by default; a model of another kind (here the constant-velocity
+    baseline) starts, predicts from the model as trained, warns, and its diagnostics say
+    why it does not adapt."""
     from asgp_ros.core.baselines import ConstantVelocityChannel, probe_columns
     from asgp_ros.core.features import FeatureConfig
     from asgp_ros.core.modelfile import save_model
@@ -959,9 +962,33 @@ def test_adaptation_of_a_model_that_cannot_adapt_refuses_to_start(rclpy_context,
     path = tmp_path / "cv.npz"
     save_model(path, MotionModel(kind="constant_velocity", feature_config=fc,
                                  resample_config=ResampleConfig(), channels=channels))
-    with pytest.raises(StartupError, match="only an ASGP adapts"):
-        PredictorNode(context=rclpy_context, parameter_overrides=[
-            Parameter("model_path", value=str(path)), Parameter("adapt.enabled", value=True)])
+    for explicit in ([], [Parameter("adapt.enabled", value=True)]):
+        node = PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=str(path)), *explicit])
+        try:
+            assert node.predictor.adaptation is None
+            values = conv.diagnostic_values(node.diagnostic_status())
+            assert values["adapt"] == "off"
+            assert "only an ASGP adapts" in values["adapt_unavailable"]
+        finally:
+            node.destroy_node()
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=str(path)), Parameter("adapt.enabled", value=False)])
+    try:
+        values = conv.diagnostic_values(node.diagnostic_status())
+        assert values["adapt"] == "off" and "adapt_unavailable" not in values
+    finally:
+        node.destroy_node()
+
+
+def test_an_asgp_adapts_by_default(rclpy_context, model_file):
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file)])
+    try:
+        assert node.predictor.adaptation is not None
+        assert conv.diagnostic_values(node.diagnostic_status())["adapt"] == "on"
+    finally:
+        node.destroy_node()
 
 
 def test_adapt_parameters_reach_the_adaptation_settings():
@@ -972,7 +999,9 @@ def test_adapt_parameters_reach_the_adaptation_settings():
                               adapt_trained_mean=False, adapt_half_life_s=60.0).adapt_settings()
     assert off is not None and not off.posterior.trained_mean
     assert off.posterior.half_life_s == 60.0
-    assert PredictorNodeParams(model_path="chair.npz").adapt_settings() is None
+    assert PredictorNodeParams(model_path="chair.npz").adapt_settings() is not None
+    assert PredictorNodeParams(model_path="chair.npz",
+                               adapt_enabled=False).adapt_settings() is None
 
 
 def test_the_adapt_parameters_defaults_are_the_dataclass_defaults():

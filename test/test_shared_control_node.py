@@ -911,7 +911,7 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     """adapt.enabled: the layer's own predictor adapts online (a chair slower than the
     model was trained for), its diagnostics say so, it learns after the override is out
     (never before it), nothing its overrides drove is learnt, and the service returns it
-    to the trained model. Off by default."""
+    to the trained model. On by default."""
     from std_srvs.srv import Trigger
 
     # a value rclpy refuses (out of the declared range, NaN): one line naming it
@@ -925,12 +925,15 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     # a misspelt key is not silently a default: the node names it (and logs it)
     from asgp_ros.nodes.parameters import unknown_overrides
 
-    typo = harness(**{"adapt.enable": True, "adapt.halflife_s": 3.0})
-    assert typo.node.predictor.adaptation is None
+    typo = harness(**{"adapt.enable": False, "adapt.halflife_s": 3.0})
+    assert typo.node.predictor.adaptation is not None
     assert unknown_overrides(typo.node) == ["adapt.enable", "adapt.halflife_s"]
-    off = harness()
+    on = harness()
+    assert on.node.predictor.adaptation is not None
+    assert unknown_overrides(on.node) == []
+    assert conv.diagnostic_values(on.node.diagnostic_status())["adapt"] == "on"
+    off = harness(**{"adapt.enabled": False})
     assert off.node.predictor.adaptation is None
-    assert unknown_overrides(off.node) == []
     assert conv.diagnostic_values(off.node.diagnostic_status())["adapt"] == "off"
 
     h = harness(**{"adapt.enabled": True, "adapt.half_life_s": 10.0})

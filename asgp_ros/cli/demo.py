@@ -58,11 +58,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace the output of an earlier demo in --out (a directory the "
                         "demo wrote; anything else there is refused)")
-    p.add_argument("--adapt", action="store_true",
-                   help="the predictor adapts its model online (adapt.enabled), and so "
-                        "does the shared-control layer's own predictor with --shared-control; "
-                        "the report shows what the predictor learnt and what it refused "
-                        "(the steps the layer's overrides drove)")
+    p.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=True,
+                   help="the predictor adapts its model online (adapt.enabled, the nodes' "
+                        "default), and so does the shared-control layer's own predictor with "
+                        "--shared-control; the report shows what the predictor learnt and "
+                        "what it refused (the steps the layer's overrides drove); "
+                        "--no-adapt: both predict from the model as trained")
     p.add_argument("--startup-timeout", type=float, default=120.0,
                    help="seconds the nodes have to come up (%(default)s)")
     p.set_defaults(func=run)

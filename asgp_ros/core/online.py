@@ -410,6 +410,11 @@ class Predictor:
         """The model predictions use: the adapted one when adapting (see ``adapt``)."""
         return self._model if self._adapter is None else self._adapter.model
 
+    @property
+    def adapt_settings(self) -> AdaptSettings | None:
+        """The settings this predictor adapts with; None when it does not adapt."""
+        return None if self._adapter is None else self._adapter.settings
+
     @staticmethod
     def buffer_for(model: MotionModel, horizon_steps: int, adapt: AdaptSettings | None,
                    buffer_s: float = 10.0) -> float:

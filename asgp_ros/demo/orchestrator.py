@@ -126,7 +126,7 @@ class DemoOptions:
     shared_control: bool = False
     inattention: float = 0.0
     velocity_source: str = "auto"
-    adapt: bool = False
+    adapt: bool = True
 
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
@@ -303,11 +303,11 @@ def node_commands(opts: DemoOptions, model: Path, port: str) -> list[tuple[str, 
         ("vo", "asgp_ros.nodes.vo_node:main", ["--ros-args", *params("vo.yaml")]),
         ("predictor", "asgp_ros.nodes.predictor_node:main",
          ["--ros-args", *params("predictor.yaml"), "-p", f"model_path:={model}",
-          *(["-p", "adapt.enabled:=true"] if opts.adapt else [])]),
+          "-p", f"adapt.enabled:={str(opts.adapt).lower()}"]),
     ] + ([("shared_control", "asgp_ros.nodes.shared_control_node:main",
            ["--ros-args", *params("shared_control.yaml"), "-p", f"model_path:={model}",
             "-p", f"velocity_source:={opts.velocity_source}",
-            *(["-p", "adapt.enabled:=true"] if opts.adapt else [])])]
+            "-p", f"adapt.enabled:={str(opts.adapt).lower()}"])]
          if opts.shared_control else [])
 
 

@@ -157,7 +157,9 @@ def _cm(x: float | None) -> str:
 
 def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, Any]],
              latencies: list[dict[str, Any]], extras: dict[str, Any],
-             shared: list[str] | None = None, adaptation: list[str] | None = None) -> str:
+             shared: list[str] | None = None, adaptation: list[str] | None = None,
+             adapted: bool | None = None) -> str:
+    """The report's text; ``adapted``: the predictor adapted (default: the run's option)."""
     lines = ["# asgp demo report", ""]
     o = state.options
     lines.append(
@@ -226,7 +228,8 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
                  "training bags (`asgp info MODEL`).")
               + (" The predictor adapted online (see 'Adaptation'), its variance scale "
                  "included: the online columns are the adapting predictor's, the offline "
-                 "ones the model's as trained." if o.get("adapt") else "")
+                 "ones the model's as trained."
+                 if (o.get("adapt") if adapted is None else adapted) else "")
               + ("" if plan else " No plan: online, the ellipses are those of the held "
                  "command, offline those of the recorded future commands; not like with "
                  "like (the held-command figure of the success table has no ellipses).")]
@@ -324,6 +327,10 @@ def adaptation_summary(state: RunState, monitor: MonitorNode
     with it) when the layer ran."""
     if not state.options.get("adapt"):
         return [], {}
+    unavailable = monitor.diag_value("predictor_node", "adapt_unavailable")
+    if unavailable:  # a model that does not adapt (an MLP): the predictor ran as trained
+        return [f"Asked to adapt, the predictor predicted from the model as trained: "
+                f"{unavailable}."], {"unavailable": unavailable}
     data: dict[str, Any] = {key: monitor.diag_value("predictor_node", key) or "n/a"
                             for key, _ in ADAPT_KEYS}
     if not state.options.get("shared_control"):
@@ -537,7 +544,8 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
             data["adaptation"] = adaptation_data
         atomic_write_text(out / "report.json",
                           json.dumps(_clean(data), indent=2, default=str) + "\n")
-    text = markdown(state, rows, cpu, lat, extras, shared, adaptation)
+    text = markdown(state, rows, cpu, lat, extras, shared, adaptation,
+                    adapted=bool(adaptation_data) and "unavailable" not in adaptation_data)
     atomic_write_text(out / "report.md", text)
     written["report"] = out / "report.md"
     say("")

@@ -6,7 +6,7 @@ it; one definition for ``predictor_node`` and ``shared_control_node``.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from rclpy.node import Node
@@ -26,8 +26,9 @@ from asgp_ros.core.online import Predictor
 
 #: The ``adapt.*`` parameters (all read at start-up).
 ADAPT_PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("adapt.enabled", False, "adapt an ASGP online: absorb each valid completed step "
-              "into its posterior and keep its 95% ellipses covering (asgp_ros.core.adaptive)"),
+    ParamSpec("adapt.enabled", True, "adapt an ASGP online: absorb each valid completed step "
+              "into its posterior and keep its 95% ellipses covering (asgp_ros.core.adaptive); "
+              "a model that cannot adapt (not an ASGP) predicts as trained, with a warning"),
     ParamSpec("adapt.half_life_s", DEFAULT_HALF_LIFE_S, "forgetting half-life of the rows the "
               "adapted posterior absorbs, seconds of driving", 1.0, 86400.0),
     ParamSpec("adapt.trained_half_life_s", DEFAULT_TRAINED_HALF_LIFE_S, "half-life of the "
@@ -63,6 +64,22 @@ def adapt_settings(values: Mapping[str, Any]) -> AdaptSettings | None:
     return settings if v["adapt.enabled"] else None
 
 
+def make_predictor(node: Node, build: Callable[[AdaptSettings | None], Predictor],
+                   settings: AdaptSettings | None) -> tuple[Predictor, str]:
+    """``build(settings)``; when the model cannot adapt (an MLP or a baseline, a model file
+    without the posterior's factor: :class:`AdaptError`), ``build(None)``, so that the node
+    predicts from the model as trained, with a warning. Returns the predictor and why it
+    does not adapt although asked to ('' otherwise)."""
+    if settings is None:
+        return build(None), ""
+    try:
+        return build(settings), ""
+    except AdaptError as exc:
+        node.get_logger().warning(f"adapt.enabled, but this model does not adapt ({exc}): "
+                                  "predicting from it as trained")
+        return build(None), str(exc)
+
+
 def describe(values: Mapping[str, Any], settings: AdaptSettings | None) -> str:
     """The start-up log line of an adapting node ('' when not adapting)."""
     if settings is None:
@@ -74,10 +91,12 @@ def describe(values: Mapping[str, Any], settings: AdaptSettings | None) -> str:
             f"{'on' if settings.coverage is not None else 'off'}")
 
 
-def diagnostic_values(adaptation: AdapterStats | None) -> dict[str, str]:
-    """The diagnostics' key-values of a predictor's adaptation ('adapt': on or off)."""
+def diagnostic_values(adaptation: AdapterStats | None, unavailable: str = ""
+                      ) -> dict[str, str]:
+    """The diagnostics' key-values of a predictor's adaptation ('adapt': on or off; with
+    ``unavailable``, why a model asked to adapt does not, see :func:`make_predictor`)."""
     if adaptation is None:
-        return {"adapt": "off"}
+        return {"adapt": "off", **({"adapt_unavailable": unavailable} if unavailable else {})}
     return {
         "adapt": "on",
         "adapt_rows_absorbed": str(adaptation.rows_absorbed),

@@ -25,8 +25,9 @@ its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a 
 code; the diagnostics count the refusals by code (``rejected``) and give the newest one
 (``last_rejected``).
 
-Adaptation (``adapt.enabled``, an ASGP model only): every completed grid step that
-training would accept updates the posterior, with forgetting (``adapt.half_life_s``,
+Adaptation (``adapt.enabled``, on by default; an ASGP model only, another kind predicts as
+trained, with a warning and ``adapt_unavailable`` in the diagnostics): every completed
+grid step that training would accept updates the posterior, with forgetting (``adapt.half_life_s``,
 ``adapt.trained_floor``), as a correction to the trained function (``adapt.trained_mean``),
 and the outcomes of the predictions keep the 95 % ellipses
 covering (``adapt.calibrate``, ``adapt.max_rate``); see :mod:`asgp_ros.core.adaptive`.
@@ -135,7 +136,7 @@ class PredictorNodeParams:
     publish_uncertainty: bool = True
     diagnostics_period_s: float = 1.0
     # adapt.* (asgp_ros.nodes.adaptation.ADAPT_PARAMS; the same defaults)
-    adapt_enabled: bool = False
+    adapt_enabled: bool = True
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
     adapt_trained_floor: float = DEFAULT_TRAINED_FLOOR
     adapt_trained_half_life_s: float = DEFAULT_TRAINED_HALF_LIFE_S
@@ -322,9 +323,11 @@ class PredictorNode(Node):
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
             self.every_n = p.decimation(rate)
-            self.predictor = Predictor(self.model, p.predictor_config(rate),
-                                       adapt=p.adapt_settings())
-        except ValueError as exc:  # AdaptError included: a model that cannot adapt
+            config = p.predictor_config(rate)
+            self.predictor, self._adapt_unavailable = adapt_params.make_predictor(
+                self, lambda adapt: Predictor(self.model, config, adapt=adapt),
+                p.adapt_settings())
+        except ValueError as exc:
             raise StartupError(str(exc)) from exc
 
         self._last_step: int | None = None  # newest grid step a prediction was tried for
@@ -378,7 +381,7 @@ class PredictorNode(Node):
         adapt_params.reset_service(self, self.predictor)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
-        adapting = adapt_params.describe(p.adapt_values(), p.adapt_settings())
+        adapting = adapt_params.describe(p.adapt_values(), self.predictor.adapt_settings)
         if adapting:
             self.get_logger().info(adapting)
         self.get_logger().info(
@@ -745,7 +748,8 @@ class PredictorNode(Node):
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
         }
-        values.update(adapt_params.diagnostic_values(self.predictor.adaptation))
+        values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
+                                                     self._adapt_unavailable))
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
         return conv.diagnostic_status(f"{self.get_name()}: prediction",

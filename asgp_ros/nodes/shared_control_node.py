@@ -317,10 +317,13 @@ class SharedControlNode(Node):
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
             k = max(1, round(p.horizon_s * rate))
-            self.predictor = Predictor(self.model, PredictorConfig(
-                horizon_steps=k, joy_timeout_s=p.joy_timeout_s, vo_timeout_s=p.vo_timeout_s,
-                buffer_s=Predictor.buffer_for(self.model, k, adapt)), adapt=adapt)
-        except ValueError as exc:  # AdaptError included: a model that cannot adapt
+            self.predictor, self._adapt_unavailable = adapt_params.make_predictor(
+                self, lambda settings: Predictor(self.model, PredictorConfig(
+                    horizon_steps=k, joy_timeout_s=p.joy_timeout_s,
+                    vo_timeout_s=p.vo_timeout_s,
+                    buffer_s=Predictor.buffer_for(self.model, k, settings)), adapt=settings),
+                adapt)
+        except ValueError as exc:
             self.destroy_node()
             raise StartupError(str(exc)) from exc
         self.config = p.config()
@@ -404,7 +407,7 @@ class SharedControlNode(Node):
         self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, clock=pacing)
         adapt_params.reset_service(self, self.predictor)
-        adapting = adapt_params.describe(adapt_values, adapt)
+        adapting = adapt_params.describe(adapt_values, self.predictor.adapt_settings)
         if adapting:
             self.get_logger().info(adapting)
         self.get_logger().info(
@@ -794,7 +797,8 @@ class SharedControlNode(Node):
             "joy_measured": str(self._joy_source.measured_samples),
             "overrides_seen": str(self.predictor.stats.overrides),
             "overrides_late": str(self.predictor.stats.overrides_late),
-            **adapt_params.diagnostic_values(self.predictor.adaptation),
+            **adapt_params.diagnostic_values(self.predictor.adaptation,
+                                             self._adapt_unavailable),
         }
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
                                             Why.CHECK_FAILED)
