@@ -147,7 +147,8 @@ class MonitorNode(Node):
                       "reliable" if reliable else "best effort")
 
     def _callback(self, topic: str, cls: type, record: bool) -> Callable[[bytes], None]:
-        handler = getattr(self, "_on_" + topic.replace("/", "_"))
+        # a topic without a handler is recorded and counted only, never deserialised
+        handler = getattr(self, "_on_" + topic.replace("/", "_"), None)
         bag_topic = topics.in_bag(topic)
 
         def on_message(data: bytes) -> None:
@@ -156,7 +157,8 @@ class MonitorNode(Node):
                 self.recorder.write(bag_topic, now_ns, data)
             self.counts[topic] += 1
             self.rates[topic].tick(time.monotonic())
-            handler(deserialize_message(data, cls), now_ns * 1e-9)
+            if handler is not None:
+                handler(deserialize_message(data, cls), now_ns * 1e-9)
 
         return on_message
 
@@ -164,9 +166,6 @@ class MonitorNode(Node):
 
     def _on_joy(self, msg: Joy, now: float) -> None:
         self.latency[topics.JOY].add(now - conv.stamp_to_seconds(msg.header.stamp))
-
-    def _on_joy_applied(self, msg: Joy, now: float) -> None:
-        pass  # recorded and counted only
 
     def _on_vo_twist(self, msg: TwistStamped, now: float) -> None:
         self.latency[topics.VO_TWIST].add(now - conv.stamp_to_seconds(msg.header.stamp))
