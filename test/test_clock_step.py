@@ -52,8 +52,14 @@ class Clock:
         os.replace(tmp, self.path)  # never a half-written offset
 
     def env(self) -> dict[str, str]:
+        # FAKETIME_FORCE_MONOTONIC_FIX=0: libfaketime's fix for waits on a condition variable
+        # of the monotonic clock (on by default for this glibc) made each of them return at
+        # once, so two Python threads contending for the GIL spun: on a busy core the node
+        # crawled (diagnostics seconds apart, overrides not sent). The monotonic clock is
+        # not faked here, so those waits need no fix.
         return {"LD_PRELOAD": LIBS[0], "FAKETIME_TIMESTAMP_FILE": str(self.path),
-                "FAKETIME_NO_CACHE": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1"}
+                "FAKETIME_NO_CACHE": "1", "FAKETIME_DONT_FAKE_MONOTONIC": "1",
+                "FAKETIME_FORCE_MONOTONIC_FIX": "0"}
 
 
 class Probe:
