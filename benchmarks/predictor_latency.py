@@ -159,8 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clock", choices=("sim", "system"), default="sim",
                         help="sim: use_sim_time and /clock from this script (bag replay); "
                              "system: the wall clock, no /clock (on the chair)")
-    parser.add_argument("--adapt", choices=("off", "on", "both"), default="off",
-                        help="online adaptation (adapt.enabled) of the node: off, on, or both "
+    parser.add_argument("--adapt", choices=("off", "on", "both"), default="on",
+                        help="online adaptation (adapt.enabled) of the node: off, on (the "
+                             "node's default), or both "
                              "one after the other (side by side)")
     args = parser.parse_args(argv)
 

@@ -979,6 +979,19 @@ def test_a_model_that_cannot_adapt_predicts_as_trained_and_says_why(rclpy_contex
         assert values["adapt"] == "off" and "adapt_unavailable" not in values
     finally:
         node.destroy_node()
+    # the reset service says why, not that adapt.enabled is off
+    from std_srvs.srv import Trigger
+
+    h = Harness(rclpy_context, str(path))
+    try:
+        client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")
+        h.spin_until(client.service_is_ready, what="reset service")
+        future = client.call_async(Trigger.Request())
+        h.spin_until(future.done, what="reset reply")
+        assert not future.result().success
+        assert "does not adapt: only an ASGP adapts" in future.result().message
+    finally:
+        h.close()
 
 
 def test_an_asgp_adapts_by_default(rclpy_context, model_file):
@@ -987,6 +1000,34 @@ def test_an_asgp_adapts_by_default(rclpy_context, model_file):
     try:
         assert node.predictor.adaptation is not None
         assert conv.diagnostic_values(node.diagnostic_status())["adapt"] == "on"
+    finally:
+        node.destroy_node()
+
+
+def test_a_long_horizon_raises_the_buffer_adaptation_needs(rclpy_context, model_file):
+    """Adapting by default, a horizon whose adaptation needs more history than buffer_s
+    (10 s) starts with the buffer raised to what it needs (it refused to start); a runtime
+    change of another parameter keeps it; buffer_s set below it at runtime is refused."""
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("horizon_s", value=30.0)])
+    try:
+        need = node.predictor.min_buffer_s
+        assert need > 10.0 and node.predictor.config.buffer_s >= need
+        assert node.predictor.config.horizon_steps == 150
+        assert node.set_parameters([Parameter("plan_timeout_s", value=0.4)])[0].successful
+        assert node.predictor.config.buffer_s >= need
+        short = node.set_parameters([Parameter("buffer_s", value=need - 1.0)])[0]
+        assert not short.successful and "adapting" in short.reason
+        assert node.set_parameters([Parameter("buffer_s", value=need + 5.0)])[0].successful
+        assert node.predictor.config.buffer_s == need + 5.0
+    finally:
+        node.destroy_node()
+    # not adapting, buffer_s is what it says
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("horizon_s", value=30.0),
+        Parameter("adapt.enabled", value=False)])
+    try:
+        assert node.predictor.config.buffer_s == 10.0
     finally:
         node.destroy_node()
 

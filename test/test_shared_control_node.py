@@ -614,6 +614,11 @@ def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noq
         SharedControlNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=model_file),
             Parameter("memory_odometry", value="scan")])
+    # the layer's inputs and its output cannot be switched off (a traceback before)
+    for name in ("joy_topic", "vo_topic", "override_topic", "scan_topic", "base_frame"):
+        with pytest.raises(StartupError, match=f"{name} must not be empty"):
+            SharedControlNode(context=rclpy_context, parameter_overrides=[
+                Parameter("model_path", value=model_file), Parameter(name, value=" ")])
     for name, topic in (("applied_topic", "/joy"), ("override_topic", "joy_applied")):
         with pytest.raises(StartupError, match="name one topic"):
             SharedControlNode(context=rclpy_context, parameter_overrides=[

@@ -119,13 +119,16 @@ def diagnostic_values(adaptation: AdapterStats | None, unavailable: str = ""
     }
 
 
-def reset_service(node: Node, predictor: Predictor) -> None:
-    """``~/reset_adaptation`` (std_srvs/Trigger): back to the trained model."""
+def reset_service(node: Node, predictor: Predictor, unavailable: str = "") -> None:
+    """``~/reset_adaptation`` (std_srvs/Trigger): back to the trained model (``unavailable``:
+    why the model does not adapt, see :func:`make_predictor`)."""
 
     def reset(request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         del request
         if predictor.adaptation is None:
-            response.success, response.message = False, "adaptation is off (adapt.enabled)"
+            response.success = False
+            response.message = (f"this model does not adapt: {unavailable}" if unavailable
+                                else "adaptation is off (adapt.enabled)")
         else:
             predictor.reset_adaptation()
             response.success, response.message = True, "back to the trained model"

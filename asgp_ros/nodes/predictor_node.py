@@ -188,13 +188,16 @@ class PredictorNodeParams:
             return self.horizon_steps
         return max(1, round(self.horizon_s * model_rate_hz))
 
-    def predictor_config(self, model_rate_hz: float) -> PredictorConfig:
+    def predictor_config(self, model_rate_hz: float, min_buffer_s: float = 0.0
+                         ) -> PredictorConfig:
+        """The predictor's settings; its buffer at least ``min_buffer_s`` (what adaptation
+        needs, :meth:`Predictor.buffer_for`)."""
         return PredictorConfig(
             horizon_steps=self.steps(model_rate_hz),
             joy_timeout_s=self.joy_timeout_s,
             vo_timeout_s=self.vo_timeout_s,
             plan_timeout_s=self.plan_timeout_s,
-            buffer_s=self.buffer_s,
+            buffer_s=max(self.buffer_s, min_buffer_s),
             reset_jump_s=self.reset_jump_s,
             uncertainty=self.uncertainty,
         )
@@ -323,10 +326,17 @@ class PredictorNode(Node):
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
             self.every_n = p.decimation(rate)
-            config = p.predictor_config(rate)
+            k = p.steps(rate)
+            # adapting, the buffer holds at least the history adaptation needs (a long
+            # horizon needs more than the default buffer_s)
             self.predictor, self._adapt_unavailable = adapt_params.make_predictor(
-                self, lambda adapt: Predictor(self.model, config, adapt=adapt),
+                self, lambda adapt: Predictor(self.model, p.predictor_config(
+                    rate, Predictor.buffer_for(self.model, k, adapt, 0.0)), adapt=adapt),
                 p.adapt_settings())
+            if self.predictor.config.buffer_s > p.buffer_s:
+                self.get_logger().info(
+                    f"buffer_s {p.buffer_s:g} s raised to {self.predictor.config.buffer_s:.1f}"
+                    " s: the history adaptation needs at this horizon")
         except ValueError as exc:
             raise StartupError(str(exc)) from exc
 
@@ -378,7 +388,7 @@ class PredictorNode(Node):
         self._learn_timer = self.create_timer(min(LEARN_DELAY_S, 0.25 / rate),
                                               self._on_learn_timer, clock=pacing,
                                               autostart=False)
-        adapt_params.reset_service(self, self.predictor)
+        adapt_params.reset_service(self, self.predictor, self._adapt_unavailable)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         adapting = adapt_params.describe(p.adapt_values(), self.predictor.adapt_settings)
@@ -438,10 +448,10 @@ class PredictorNode(Node):
                     raise ValueError(f"{name} is read at start-up: restart the node to change it")
                 changes[name] = check_value(SPECS[name], value)
             candidate = replace(self.params, **{_field(k): v for k, v in changes.items()})
-            config = candidate.predictor_config(self.model.resample_config.rate_hz)
-            if config.buffer_s < self.predictor.min_buffer_s:
+            if "buffer_s" in changes and candidate.buffer_s < self.predictor.min_buffer_s:
                 raise ValueError(f"buffer_s must be at least {self.predictor.min_buffer_s:.1f}"
                                  " s while adapting")
+            candidate.predictor_config(self.model.resample_config.rate_hz)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
@@ -452,7 +462,8 @@ class PredictorNode(Node):
         if not changes:
             return
         self.params = replace(self.params, **{_field(k): v for k, v in changes.items()})
-        self.predictor.config = self.params.predictor_config(self.model.resample_config.rate_hz)
+        self.predictor.config = self.params.predictor_config(
+            self.model.resample_config.rate_hz, self.predictor.min_buffer_s)
         self.get_logger().info(f"parameters changed: {changes}")
 
     # ---- input -----------------------------------------------------------------------

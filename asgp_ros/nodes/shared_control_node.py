@@ -251,6 +251,12 @@ class SharedControlParams:
         if self.obstacles not in ("laser", "grid", "both"):
             raise ValueError(f"obstacles must be 'laser', 'grid' or 'both', got "
                              f"{self.obstacles!r}")
+        required = ["joy_topic", "vo_topic", "override_topic", "base_frame", "odom_frame"]
+        required += ["scan_topic"] if self.obstacles != "grid" else []
+        required += ["map_topic"] if self.obstacles != "laser" else []
+        for name in required:
+            if not getattr(self, name).strip():
+                raise ValueError(f"{name} must not be empty")
         if self.vo_type not in ("twist", "odometry"):
             raise ValueError(f"vo_type must be 'twist' or 'odometry', got {self.vo_type!r}")
         if self.memory_odometry not in MEMORY_ODOMETRY:
@@ -406,7 +412,7 @@ class SharedControlNode(Node):
         self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
         self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics, clock=pacing)
-        adapt_params.reset_service(self, self.predictor)
+        adapt_params.reset_service(self, self.predictor, self._adapt_unavailable)
         adapting = adapt_params.describe(adapt_values, self.predictor.adapt_settings)
         if adapting:
             self.get_logger().info(adapting)
