@@ -241,6 +241,14 @@ def test_one_topic_named_twice_refuses_to_start(rclpy_context, model_file, names
     with pytest.raises(StartupError, match="not a valid topic name"):
         PredictorNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=model_file), Parameter("joy_topic", value="j oy")])
+    # in a namespace, a relative name and the fully qualified one are the same topic
+    with pytest.raises(StartupError, match="name one topic, /chair/joy"):
+        PredictorNode(context=rclpy_context, namespace="/chair", parameter_overrides=[
+            Parameter("model_path", value=model_file),
+            Parameter("applied_topic", value="/chair/joy")])
+    node = PredictorNode(context=rclpy_context, namespace="/chair", parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("applied_topic", value="/joy")])
+    node.destroy_node()
     # an input switched off (empty) is not a name
     node = PredictorNode(context=rclpy_context, parameter_overrides=[
         Parameter("model_path", value=model_file), Parameter("applied_topic", value=""),
