@@ -280,7 +280,7 @@ def test_online_coverage_of_the_published_ellipses():
 
 def test_report_gives_the_model_and_the_ellipses_coverage():
     from asgp_ros.demo.common import RunState
-    from asgp_ros.demo.report import markdown, success_table
+    from asgp_ros.demo.report import adaptation_summary, markdown, success_table
 
     score = OnlineScore()
     for i, rot in enumerate((0.0, math.pi / 2)):  # the first ellipse holds the truth
@@ -313,6 +313,25 @@ def test_report_gives_the_model_and_the_ellipses_coverage():
     state.train_info = {}  # a model given with --model: no training line
     text = markdown(state, rows, [], [], {})
     assert "adapted online" in text and "trained on a simulated" not in text
+    # asked to adapt, a model that cannot (an MLP): the report does not say it adapted
+    assert "adapted online" not in markdown(state, rows, [], [], {}, adapted=False)
+
+    class Diagnostics:  # what adaptation_summary reads of the monitor
+        def __init__(self, values: dict[str, str]) -> None:
+            self.values = values
+
+        def diag_value(self, name_part: str, key: str) -> str | None:
+            return self.values.get(key) if name_part == "predictor_node" else None
+
+    lines, data = adaptation_summary(state, Diagnostics(
+        {"adapt": "off", "adapt_unavailable": "only an ASGP adapts online; this model is of "
+                                               "kind 'mlp'"}))
+    assert data == {"unavailable": "only an ASGP adapts online; this model is of kind 'mlp'"}
+    assert lines[0].startswith("Asked to adapt, the predictor predicted from the model as "
+                               "trained: only an ASGP")
+    lines, data = adaptation_summary(state, Diagnostics({"adapt": "on",
+                                                        "adapt_rows_absorbed": "12"}))
+    assert data["adapt_rows_absorbed"] == "12" and "unavailable" not in data
     assert "simulator's VO model" not in text  # a model given: its calibration is its own
     assert "not like with like" not in text
     state.options = dict(options, plan=False)
