@@ -770,9 +770,9 @@ def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
         assert fed(103.2, *user) == user  # the clock went back
         assert fed(104.95, *user) == user  # and that override was forgotten
         h.clock(105.5)
-        h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]
-                                          .values}.get("joy_overridden") == "7",
-                     what="the count of overridden samples")
+        h.spin_until(lambda: h.diags and conv.diagnostic_values(
+            h.diags[-1].status[0]).get("joy_overridden") == "7",
+            what="the count of overridden samples")
     finally:
         h.close()
 
@@ -822,9 +822,9 @@ def test_the_boards_measured_output_feeds_while_it_arrives(rclpy_context, model_
         assert newest() == (103.55, [0.7, 0.3])
         assert node._joy_source.measured_samples == 2
         h.clock(104.0)
-        h.spin_until(lambda: h.diags and {kv.key: kv.value for kv in h.diags[-1].status[0]
-                                          .values}.get("joy_measured") == "2",
-                     what="diagnostics")
+        h.spin_until(lambda: h.diags and conv.diagnostic_values(
+            h.diags[-1].status[0]).get("joy_measured") == "2",
+            what="diagnostics")
     finally:
         h.close()
 

@@ -46,6 +46,10 @@ from asgp_ros.nodes import conversions as conv
 
 log = logging.getLogger(__name__)
 
+#: Topics the monitor records and counts without reading them (the bridge's 100 Hz
+#: ``joy_applied``).
+COUNTED_ONLY = frozenset({topics.JOY_APPLIED})
+
 #: topic -> (message class, ROS 2 type name, recorded in the bag)
 TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.JOY: (Joy, "sensor_msgs/msg/Joy", True),
@@ -147,8 +151,9 @@ class MonitorNode(Node):
                       "reliable" if reliable else "best effort")
 
     def _callback(self, topic: str, cls: type, record: bool) -> Callable[[bytes], None]:
-        # a topic without a handler is recorded and counted only, never deserialised
-        handler = getattr(self, "_on_" + topic.replace("/", "_"), None)
+        # a topic recorded and counted only is never deserialised; every other has a handler
+        handler = (None if topic in COUNTED_ONLY
+                   else getattr(self, "_on_" + topic.replace("/", "_")))
         bag_topic = topics.in_bag(topic)
 
         def on_message(data: bytes) -> None:
