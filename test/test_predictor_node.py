@@ -1077,3 +1077,63 @@ def test_a_value_rclpy_refuses_is_one_line_naming_the_parameter(rclpy_context, m
     with pytest.raises(StartupError, match=re.escape(f"parameter {name}: ")):
         PredictorNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=model_file), Parameter(name, value=value)])
+
+
+def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_context,
+                                                                        model_file):
+    """rclpy's default QoS event handlers are off (they cost CPU at every message); a
+    publisher that cannot be matched is found from the graph, logged, named in the
+    diagnostics while it is there, and forgotten when it goes."""
+    from rclpy.qos import ReliabilityPolicy
+
+    h = Harness(rclpy_context, model_file)
+    try:
+        node = h.node
+        # rclpy's own endpoints keep theirs (/parameter_events; /clock with use_sim_time)
+        mine = [e for e in [*node.subscriptions, *node.publishers]
+                if e.topic_name not in ("/parameter_events", "/rosout", "/clock")]
+        assert len(mine) == 8 and all(not e.event_handlers for e in mine), [
+            e.topic_name for e in mine if e.event_handlers]
+
+        h.spin_until(lambda: bool(node.qos_watch.check() == []), what="no mismatch")
+        assert node.qos_watch.summary() == "none"
+        # a best-effort plan publisher cannot reach the node's reliable subscription
+        bad = h.test.create_publisher(
+            JointTrajectory, "joy_plan",
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+        h.spin_until(lambda: bool(node.qos_watch.check()), what="the mismatch")
+        (problem,) = node.qos_watch.problems
+        assert problem.startswith("/joy_plan: publisher of /predictor_test: incompatible QoS")
+        assert "best effort publisher and reliable subscription" in problem.lower()
+        node._publish_diagnostics()
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert values["qos_mismatch"] == problem
+        # a compatible publisher on the same topic is not reported
+        h.test.create_publisher(JointTrajectory, "joy_plan", QoSProfile(depth=10))
+        h.spin_until(lambda: h.test.count_publishers("joy_plan") == 3, what="discovery")
+        assert node.qos_watch.check() == [problem]
+        h.test.destroy_publisher(bad)
+        h.spin_until(lambda: node.qos_watch.check() == [], what="the mismatch gone")
+        assert node.qos_watch.summary() == "none"
+    finally:
+        h.close()
+
+
+def test_qos_watch_names_a_peer_of_another_type():
+    from rclpy.qos import qos_profile_sensor_data as sensor
+
+    from asgp_ros.nodes.qos_watch import _Endpoint, _mismatch, message_type_name
+
+    assert message_type_name(Joy) == "sensor_msgs/msg/Joy"
+    ep = _Endpoint(True, "/joy", "sensor_msgs/msg/Joy", sensor)
+    assert _mismatch(ep, "std_msgs/msg/String", sensor) == (
+        "type std_msgs/msg/String, not sensor_msgs/msg/Joy")
+    assert _mismatch(ep, "sensor_msgs/msg/Joy", sensor) is None
+    # the node's best-effort subscription takes a reliable publisher
+    assert _mismatch(ep, "sensor_msgs/msg/Joy", QoSProfile(depth=10)) is None
+    # its reliable publisher reaches best-effort subscriptions; not the other way round
+    out = _Endpoint(False, "/predicted_path", "nav_msgs/msg/Path", QoSProfile(depth=10))
+    assert _mismatch(out, "nav_msgs/msg/Path", sensor) is None
+    out = _Endpoint(False, "/joy", "sensor_msgs/msg/Joy", sensor)
+    assert _mismatch(out, "sensor_msgs/msg/Joy", QoSProfile(depth=10)).startswith(
+        "incompatible QoS")

@@ -989,3 +989,17 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     future = client.call_async(Trigger.Request())
     h.spin_until(future.done, what="reset reply")
     assert future.result().success and node.predictor.adaptation.rows_absorbed == 0
+
+
+def test_no_event_handler_per_endpoint_and_the_peers_checked(harness):
+    """As predictor_node's (asgp_ros.nodes.qos_watch): rclpy's per-endpoint QoS event
+    handlers are off, and the graph check finds nothing wrong with the test's peers."""
+    h = harness()
+    node = h.node
+    mine = [e for e in [*node.subscriptions, *node.publishers]
+            if e.topic_name not in ("/parameter_events", "/rosout", "/clock")]
+    assert len(mine) >= 7 and all(not e.event_handlers for e in mine), [
+        e.topic_name for e in mine if e.event_handlers]
+    assert node.qos_watch.check() == []
+    node._publish_diagnostics()
+    assert conv.diagnostic_values(node.diagnostic_status())["qos_mismatch"] == "none"

@@ -84,6 +84,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, sim_time_change
+from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
 
@@ -362,24 +363,26 @@ class PredictorNode(Node):
         self._joy_source = JoySource(p.reset_jump_s)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.path_pub = self.create_publisher(Path, p.path_topic, reliable)
-        self.marker_pub = self.create_publisher(
-            MarkerArray, f"{p.path_topic}/uncertainty", reliable)
-        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
-        self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # endpoints without rclpy's per-endpoint event handlers, their peers checked at the
+        # diagnostics period instead (qos_watch: the handlers cost CPU at every message)
+        self.qos_watch = watch = QosWatch(self)
+        self.path_pub = watch.publisher(Path, p.path_topic, reliable)
+        self.marker_pub = watch.publisher(MarkerArray, f"{p.path_topic}/uncertainty", reliable)
+        self.diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        watch.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         if p.applied_topic.strip():
-            self.create_subscription(Joy, p.applied_topic, self._on_joy_applied,
-                                     qos_profile_sensor_data)
+            watch.subscription(Joy, p.applied_topic, self._on_joy_applied,
+                               qos_profile_sensor_data)
         if p.vo_type == "twist":
-            self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
-                                     qos_profile_sensor_data)
+            watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
+                               qos_profile_sensor_data)
         else:
-            self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
-                                     qos_profile_sensor_data)
-        self.create_subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
+            watch.subscription(Odometry, p.vo_topic, self._on_odometry,
+                               qos_profile_sensor_data)
+        watch.subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
         if p.override_topic.strip():
-            self.create_subscription(Joy, p.override_topic, self._on_override,
-                                     qos_profile_sensor_data)
+            watch.subscription(Joy, p.override_topic, self._on_override,
+                               qos_profile_sensor_data)
         pacing = runtime.pacing_clock(self)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
@@ -758,6 +761,7 @@ class PredictorNode(Node):
             "overrides_late": str(stats.overrides_late),
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
+            "qos_mismatch": self.qos_watch.summary(),
         }
         values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
                                                      self._adapt_unavailable))
@@ -768,6 +772,7 @@ class PredictorNode(Node):
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:
+        self.qos_watch.check()
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]

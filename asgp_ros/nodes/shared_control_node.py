@@ -103,6 +103,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
+from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
@@ -386,28 +387,31 @@ class SharedControlNode(Node):
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.override_pub = self.create_publisher(Joy, p.override_topic, reliable)
-        self.status_pub = self.create_publisher(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
-                                                reliable)
-        self.diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
-        self.create_subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # endpoints without rclpy's per-endpoint event handlers, their peers checked at the
+        # diagnostics period instead (qos_watch: the handlers cost CPU at every message)
+        self.qos_watch = watch = QosWatch(self)
+        self.override_pub = watch.publisher(Joy, p.override_topic, reliable)
+        self.status_pub = watch.publisher(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
+                                          reliable)
+        self.diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        watch.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         if p.applied_topic.strip():
-            self.create_subscription(Joy, p.applied_topic, self._on_joy_applied,
-                                     qos_profile_sensor_data)
+            watch.subscription(Joy, p.applied_topic, self._on_joy_applied,
+                               qos_profile_sensor_data)
         if p.vo_type == "twist":
-            self.create_subscription(TwistStamped, p.vo_topic, self._on_twist,
-                                     qos_profile_sensor_data)
+            watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
+                               qos_profile_sensor_data)
         else:
-            self.create_subscription(Odometry, p.vo_topic, self._on_odometry,
-                                     qos_profile_sensor_data)
+            watch.subscription(Odometry, p.vo_topic, self._on_odometry,
+                               qos_profile_sensor_data)
         if self.odometer is not None and p.memory_odom_topic:
-            self.create_subscription(Odometry, p.memory_odom_topic, self._on_memory_odom,
-                                     qos_profile_sensor_data)
+            watch.subscription(Odometry, p.memory_odom_topic, self._on_memory_odom,
+                               qos_profile_sensor_data)
         if p.obstacles in ("laser", "both"):
-            self.create_subscription(LaserScan, p.scan_topic, self._on_scan,
-                                     qos_profile_sensor_data)
+            watch.subscription(LaserScan, p.scan_topic, self._on_scan,
+                               qos_profile_sensor_data)
         if p.obstacles in ("grid", "both"):
-            self.create_subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
+            watch.subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
         pacing = runtime.pacing_clock(self)
         self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
         self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
@@ -805,6 +809,7 @@ class SharedControlNode(Node):
             "overrides_late": str(self.predictor.stats.overrides_late),
             **adapt_params.diagnostic_values(self.predictor.adaptation,
                                              self._adapt_unavailable),
+            "qos_mismatch": self.qos_watch.summary(),
         }
         stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
                                             Why.CHECK_FAILED)
@@ -816,6 +821,7 @@ class SharedControlNode(Node):
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:
+        self.qos_watch.check()
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
