@@ -4,8 +4,11 @@
 
 Set-up: a model is trained with `asgp train` on a simulated bag (ASGP, s = 4, M = 20/40,
 the paper's configuration) unless ``--model`` is given; the predictor node runs as its own
-process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz) and VO
-(5 Hz) and subscribes to ``predicted_path``.
+process with ``use_sim_time``; this script publishes /clock, joystick (30 Hz; ``--joy-hz``)
+and VO (5 Hz) and subscribes to ``predicted_path``. ``--applied`` also publishes each
+joystick sample on ``joy_applied``, as ``serial_bridge_node`` does (the board's output); the
+bridge publishes both at the board's 100 Hz, so ``--joy-hz 100 --applied`` gives the node the
+messages it gets on the chair.
 
 1. Latency: for each of ``--steps`` grid steps, the joystick samples of the step are sent
    first, then the VO message that completes the step (the next step's VO message when
@@ -69,7 +72,8 @@ def _cpu_seconds(pid: int) -> float:
 class Driver:
     """Publishes the clock and the inputs; receives the paths."""
 
-    def __init__(self, sim_clock: bool = True) -> None:
+    def __init__(self, sim_clock: bool = True, joy_per_step: int = 6,
+                 applied: bool = False) -> None:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import TwistStamped
@@ -91,6 +95,10 @@ class Driver:
         self.executor.add_node(self.node)
         self.clock_pub = self.node.create_publisher(Clock, "/clock", QoSProfile(depth=10))
         self.joy_pub = self.node.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        self.applied_pub = (self.node.create_publisher(Joy, "joy_applied",
+                                                       qos_profile_sensor_data)
+                            if applied else None)
+        self.joy_per_step = joy_per_step
         self.vo_pub = self.node.create_publisher(TwistStamped, "vo/twist",
                                                  qos_profile_sensor_data)
         self.received: dict[int, float] = {}
@@ -117,23 +125,28 @@ class Driver:
         return True
 
     def send_step_inputs(self, n: int, paced_from: float | None = None) -> None:
-        """/clock and the six joystick samples of grid step n (the last one after t_n).
+        """/clock and the joystick samples of grid step n (the last one after t_n).
 
         ``paced_from``: the wall time (time.monotonic) the step's interval starts; each
-        sample is then sent at its own time within the interval (30 Hz), spinning between
-        them, instead of all at once."""
+        sample is then sent at its own time within the interval (30 Hz by default), spinning
+        between them, instead of all at once."""
         t_prev = n * DT - DT
         if not self.sim_clock:
             paced_from = t_prev - self.wall_offset
-        for j in range(6):
-            t = t_prev + 0.04 + j * (DT / 6)
+        m = self.joy_per_step
+        for j in range(m):
+            offset = 0.04 + j * (5 * DT / 6) / (m - 1)  # 0.04 .. 0.207 s into the step
+            t = t_prev + offset
             if paced_from is not None:
-                due = paced_from + 0.04 + j * (DT / 6)
+                due = paced_from + offset
                 self.spin_until(lambda due=due: time.monotonic() >= due, DT)
             if self.sim_clock:
                 self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
-            self.joy_pub.publish(self.conv.joy_from_sample(
-                t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t)))
+            msg = self.conv.joy_from_sample(
+                t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t))
+            self.joy_pub.publish(msg)
+            if self.applied_pub is not None:
+                self.applied_pub.publish(msg)
         if paced_from is not None:
             due = paced_from + DT + 0.01
             self.spin_until(lambda: time.monotonic() >= due, DT)
@@ -159,11 +172,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clock", choices=("sim", "system"), default="sim",
                         help="sim: use_sim_time and /clock from this script (bag replay); "
                              "system: the wall clock, no /clock (on the chair)")
+    parser.add_argument("--joy-hz", type=float, default=30.0,
+                        help="joystick messages per second (30; the bridge publishes 100)")
+    parser.add_argument("--applied", action="store_true",
+                        help="also publish each joystick sample on joy_applied, as the "
+                             "bridge does")
     parser.add_argument("--adapt", choices=("off", "on", "both"), default="on",
                         help="online adaptation (adapt.enabled) of the node: off, on (the "
                              "node's default), or both "
                              "one after the other (side by side)")
     args = parser.parse_args(argv)
+    if not 10.0 <= args.joy_hz <= 1000.0:
+        parser.error("--joy-hz must be in [10, 1000]")
 
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
@@ -241,7 +261,8 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
          "--log-level", "warn"],
         cwd=REPO, env=env)
     rclpy.init()
-    drv = Driver(sim_clock=sim)
+    drv = Driver(sim_clock=sim, joy_per_step=max(2, round(args.joy_hz * DT)),
+                 applied=args.applied)
     lat_ms, missed, node_p99 = np.zeros(0), 0, "nan"
     paced_node: dict[str, str] = {}
     try:
@@ -312,8 +333,10 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
               f"prediction p99 {paced_node.get('predict_p99_ms', 'nan')} ms, the path's "
               f"message p99 {paced_node.get('path_p99_ms', 'nan')} ms; then the ellipses' "
               f"p99 {paced_node.get('ellipses_p99_ms', 'nan')} ms")
-    clock = "/clock 35 Hz, " if sim else ""
-    print(f"  CPU at 5 Hz (joystick 30 Hz, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
+    joy_hz = drv.joy_per_step / DT
+    clock = f"/clock {joy_hz + 1 / DT:g} Hz, " if sim else ""
+    joy = f"joystick {joy_hz:g} Hz" + (" on joy and joy_applied" if args.applied else "")
+    print(f"  CPU at 5 Hz ({joy}, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
           f"(target < 5%)")
     return 0
 
