@@ -1115,8 +1115,39 @@ def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_co
         h.test.destroy_publisher(bad)
         h.spin_until(lambda: node.qos_watch.check() == [], what="the mismatch gone")
         assert node.qos_watch.summary() == "none"
+        assert not node.qos_watch._warned  # a peer that comes back is logged again
     finally:
         h.close()
+
+
+def test_unmatched_peers_are_looked_for_on_the_remapped_topic(rclpy_context, model_file):
+    """The graph queries remap their argument: given the remapped name, a chain of rules
+    (joy_plan -> /planner/plan -> /elsewhere) would send the check to the wrong topic."""
+    import rclpy
+    from rclpy.qos import ReliabilityPolicy
+
+    node = PredictorNode(context=rclpy_context, cli_args=[
+        "--ros-args", "-r", "joy_plan:=/planner/plan", "-r", "/planner/plan:=/elsewhere"],
+        parameter_overrides=[Parameter("model_path", value=model_file)])
+    test = rclpy.create_node("remap_test", context=rclpy_context)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    executor.add_node(test)
+    try:
+        best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        test.create_publisher(JointTrajectory, "/planner/plan", best_effort)
+        test.create_publisher(JointTrajectory, "/elsewhere", best_effort)
+        deadline = time.monotonic() + 5.0
+        while not node.qos_watch.check():
+            assert time.monotonic() < deadline, "the mismatch was not found"
+            executor.spin_once(timeout_sec=0.01)
+        executor.spin_once(timeout_sec=0.05)
+        (problem,) = node.qos_watch.check()
+        assert problem.startswith("/planner/plan: publisher of /remap_test: incompatible QoS")
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        test.destroy_node()
 
 
 def test_qos_watch_names_a_peer_of_another_type():
@@ -1126,14 +1157,17 @@ def test_qos_watch_names_a_peer_of_another_type():
 
     assert message_type_name(Joy) == "sensor_msgs/msg/Joy"
     ep = _Endpoint(True, "/joy", "sensor_msgs/msg/Joy", sensor)
-    assert _mismatch(ep, "std_msgs/msg/String", sensor) == (
+    assert _mismatch(ep, "std_msgs/msg/String", sensor, None) == (
         "type std_msgs/msg/String, not sensor_msgs/msg/Joy")
-    assert _mismatch(ep, "sensor_msgs/msg/Joy", sensor) is None
+    assert _mismatch(ep, "sensor_msgs/msg/Joy", sensor, sensor) is None
     # the node's best-effort subscription takes a reliable publisher
-    assert _mismatch(ep, "sensor_msgs/msg/Joy", QoSProfile(depth=10)) is None
+    assert _mismatch(ep, "sensor_msgs/msg/Joy", QoSProfile(depth=10), sensor) is None
     # its reliable publisher reaches best-effort subscriptions; not the other way round
-    out = _Endpoint(False, "/predicted_path", "nav_msgs/msg/Path", QoSProfile(depth=10))
-    assert _mismatch(out, "nav_msgs/msg/Path", sensor) is None
+    reliable = QoSProfile(depth=10)
+    out = _Endpoint(False, "/predicted_path", "nav_msgs/msg/Path", reliable)
+    assert _mismatch(out, "nav_msgs/msg/Path", sensor, reliable) is None
     out = _Endpoint(False, "/joy", "sensor_msgs/msg/Joy", sensor)
-    assert _mismatch(out, "sensor_msgs/msg/Joy", QoSProfile(depth=10)).startswith(
+    assert _mismatch(out, "sensor_msgs/msg/Joy", reliable, sensor).startswith(
         "incompatible QoS")
+    # without the graph's report of the node's own QoS, only the type is judged
+    assert _mismatch(out, "sensor_msgs/msg/Joy", reliable, None) is None

@@ -18,8 +18,12 @@ node's own QoS as the graph reports it (``rclpy.qos.qos_check_compatible``; the 
 node creates an endpoint with says "default" where the graph says "infinite", which the
 check would take for a mismatch) and message type. A peer that cannot
 be matched is logged once, as rclpy's handlers log it, and named in the diagnostics
-(``qos_mismatch``) for as long as it is there. Only a certain mismatch counts: a QoS that
-may or may not match ("system default" in a peer's profile) is left to DDS.
+(``qos_mismatch``, at most :data:`MAX_SHOWN` of them by name) for as long as it is there;
+one that goes and comes back is logged again, and one whose node the graph has not
+discovered yet is logged once it has. The graph is asked with each topic's name as the node
+created it (the queries expand and remap their argument, as creation did). Only a certain
+mismatch counts: a QoS that may or may not match ("system default" in a peer's profile) is
+left to DDS.
 """
 
 from __future__ import annotations
@@ -42,12 +46,21 @@ def message_type_name(msg_type: Any) -> str:
     return f"{package}/msg/{msg_type.__name__}"
 
 
+#: Peers named in ``qos_mismatch`` at most; the others are counted.
+MAX_SHOWN = 5
+#: What the graph reports for a peer whose node it has not yet discovered.
+_UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+
+
 @dataclass(frozen=True)
 class _Endpoint:
     subscribes: bool  # a subscription (its peers publish) or a publisher
-    topic: str  # fully qualified, as the graph names it
+    topic: str  # fully qualified and remapped, for the messages
     type_name: str
     qos: QoSProfile
+    #: the name as the node created the endpoint with: the graph queries expand and remap
+    #: their argument, so they are given this one (the remapped name would be remapped again)
+    asked: str = ""
 
 
 class QosWatch:
@@ -65,7 +78,7 @@ class QosWatch:
             msg_type, topic, callback, qos,
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
         self._endpoints.append(_Endpoint(True, sub.topic_name, message_type_name(msg_type),
-                                         qos))
+                                         qos, topic))
         return sub
 
     def publisher(self, msg_type: Any, topic: str, qos: QoSProfile) -> Publisher:
@@ -73,7 +86,7 @@ class QosWatch:
             msg_type, topic, qos,
             event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
         self._endpoints.append(_Endpoint(False, pub.topic_name, message_type_name(msg_type),
-                                         qos))
+                                         qos, topic))
         return pub
 
     @property
@@ -83,49 +96,58 @@ class QosWatch:
 
     def summary(self) -> str:
         """``qos_mismatch`` of the diagnostics: "none", or the peers that cannot be matched."""
-        return "; ".join(self._problems) or "none"
+        shown = self._problems[:MAX_SHOWN]
+        more = len(self._problems) - len(shown)
+        return "; ".join(shown + ([f"{more} more"] if more else [])) or "none"
 
     def check(self) -> list[str]:
         """Look at every peer of every endpoint now; log each new mismatch once."""
         node = self._node
         me = (node.get_name(), node.get_namespace())
         problems = []
+        present: set[tuple[str, bytes, str]] = set()
         for ep in self._endpoints:
-            pubs = node.get_publishers_info_by_topic(ep.topic)
-            subs = node.get_subscriptions_info_by_topic(ep.topic)
+            pubs = node.get_publishers_info_by_topic(ep.asked or ep.topic)
+            subs = node.get_subscriptions_info_by_topic(ep.asked or ep.topic)
             ours, peers = (subs, pubs) if ep.subscribes else (pubs, subs)
             own = [i.qos_profile for i in ours if (i.node_name, i.node_namespace) == me]
-            qos = own[0] if own else ep.qos
             for peer in peers:
                 if (peer.node_name, peer.node_namespace) == me:
                     continue
-                why = _mismatch(ep, peer.topic_type, peer.qos_profile, qos)
+                # without the graph's own report of the node's QoS, only the type is judged
+                # (the profile the endpoint was made with says "default" where the graph
+                # says "infinite", which the QoS check takes for a mismatch)
+                why = _mismatch(ep, peer.topic_type, peer.qos_profile,
+                                own[0] if own else None)
                 if why is None:
                     continue
                 who = peer.node_namespace.rstrip("/") + "/" + peer.node_name
                 role = "publisher" if ep.subscribes else "subscription"
                 problems.append(f"{ep.topic}: {role} of {who}: {why}")
                 key = (ep.topic, bytes(peer.endpoint_gid), why)
-                if key not in self._warned:
+                present.add(key)
+                if key not in self._warned and peer.node_name != _UNKNOWN_NODE:
                     self._warned.add(key)
                     flow = ("no messages will be received from it" if ep.subscribes
                             else "it will receive no messages from this node")
                     node.get_logger().warning(
                         f"{ep.topic}: the {role} of {who} cannot be matched ({why}); {flow}")
+        self._warned &= present  # a peer that went and comes back is logged again
         self._problems = problems
         return list(problems)
 
 
 def _mismatch(ep: _Endpoint, peer_type: str, peer_qos: QoSProfile,
-              own_qos: QoSProfile | None = None) -> str | None:
-    """Why a peer cannot be matched with ``ep`` (of QoS ``own_qos``, by default the one it
-    was created with), or None."""
+              own_qos: QoSProfile | None) -> str | None:
+    """Why a peer cannot be matched with ``ep`` (its QoS ``own_qos`` as the graph reports
+    it; None: the type alone is judged), or None."""
     if peer_type != ep.type_name:
         return f"type {peer_type}, not {ep.type_name}"
-    qos = ep.qos if own_qos is None else own_qos
-    pub, sub = (peer_qos, qos) if ep.subscribes else (qos, peer_qos)
+    if own_qos is None:
+        return None
+    pub, sub = (peer_qos, own_qos) if ep.subscribes else (own_qos, peer_qos)
     compatibility, reason = qos_check_compatible(pub, sub)
     if compatibility == QoSCompatibility.ERROR:
-        return "incompatible QoS: " + " ".join(
+        return "incompatible QoS: " + "; ".join(
             part.strip() for part in reason.replace("ERROR:", "").split(";") if part.strip())
     return None
