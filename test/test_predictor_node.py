@@ -1156,7 +1156,7 @@ def test_qos_watch_names_a_peer_of_another_type():
     from asgp_ros.nodes.qos_watch import _Endpoint, _mismatch, message_type_name
 
     assert message_type_name(Joy) == "sensor_msgs/msg/Joy"
-    ep = _Endpoint(True, "/joy", "sensor_msgs/msg/Joy", sensor)
+    ep = _Endpoint(True, "/joy", "sensor_msgs/msg/Joy", "joy")
     assert _mismatch(ep, "std_msgs/msg/String", sensor, None) == (
         "type std_msgs/msg/String, not sensor_msgs/msg/Joy")
     assert _mismatch(ep, "sensor_msgs/msg/Joy", sensor, sensor) is None
@@ -1164,9 +1164,9 @@ def test_qos_watch_names_a_peer_of_another_type():
     assert _mismatch(ep, "sensor_msgs/msg/Joy", QoSProfile(depth=10), sensor) is None
     # its reliable publisher reaches best-effort subscriptions; not the other way round
     reliable = QoSProfile(depth=10)
-    out = _Endpoint(False, "/predicted_path", "nav_msgs/msg/Path", reliable)
+    out = _Endpoint(False, "/predicted_path", "nav_msgs/msg/Path", "predicted_path")
     assert _mismatch(out, "nav_msgs/msg/Path", sensor, reliable) is None
-    out = _Endpoint(False, "/joy", "sensor_msgs/msg/Joy", sensor)
+    out = _Endpoint(False, "/joy", "sensor_msgs/msg/Joy", "joy")
     assert _mismatch(out, "sensor_msgs/msg/Joy", reliable, sensor).startswith(
         "incompatible QoS")
     # without the graph's report of the node's own QoS, only the type is judged

@@ -57,10 +57,9 @@ class _Endpoint:
     subscribes: bool  # a subscription (its peers publish) or a publisher
     topic: str  # fully qualified and remapped, for the messages
     type_name: str
-    qos: QoSProfile
     #: the name as the node created the endpoint with: the graph queries expand and remap
     #: their argument, so they are given this one (the remapped name would be remapped again)
-    asked: str = ""
+    asked: str
 
 
 class QosWatch:
@@ -78,7 +77,7 @@ class QosWatch:
             msg_type, topic, callback, qos,
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
         self._endpoints.append(_Endpoint(True, sub.topic_name, message_type_name(msg_type),
-                                         qos, topic))
+                                         topic))
         return sub
 
     def publisher(self, msg_type: Any, topic: str, qos: QoSProfile) -> Publisher:
@@ -86,7 +85,7 @@ class QosWatch:
             msg_type, topic, qos,
             event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
         self._endpoints.append(_Endpoint(False, pub.topic_name, message_type_name(msg_type),
-                                         qos, topic))
+                                         topic))
         return pub
 
     @property
@@ -107,8 +106,8 @@ class QosWatch:
         problems = []
         present: set[tuple[str, bytes, str]] = set()
         for ep in self._endpoints:
-            pubs = node.get_publishers_info_by_topic(ep.asked or ep.topic)
-            subs = node.get_subscriptions_info_by_topic(ep.asked or ep.topic)
+            pubs = node.get_publishers_info_by_topic(ep.asked)
+            subs = node.get_subscriptions_info_by_topic(ep.asked)
             ours, peers = (subs, pubs) if ep.subscribes else (pubs, subs)
             own = [i.qos_profile for i in ours if (i.node_name, i.node_namespace) == me]
             for peer in peers:
