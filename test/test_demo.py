@@ -38,7 +38,7 @@ from asgp_ros.demo.orchestrator import (
     node_commands,
     silent_components,
 )
-from asgp_ros.demo.processes import proc_cpu_seconds
+from asgp_ros.demo.processes import ProcessGroup, proc_cpu_seconds
 from asgp_ros.demo.simhw import (
     HardwareConfig,
     JoystickPath,
@@ -465,7 +465,45 @@ def test_proc_cpu_seconds():
     assert proc_cpu_seconds(2**22 + 12345) is None
 
 
+_STUCK_NODE = """
+import signal, time
+
+def waiting_for_ever():
+    time.sleep(3600)
+
+def main():
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    print("ready", flush=True)
+    waiting_for_ever()
+"""
+
+
+def test_a_node_that_does_not_stop_writes_its_stacks_before_it_is_killed(tmp_path):
+    (tmp_path / "stuck_node.py").write_text(_STUCK_NODE)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    group = ProcessGroup(env, tmp_path / "logs")
+    child = group.start("stuck", "stuck_node:main", [])
+    deadline = time.monotonic() + 30.0
+    while "ready" not in child.log_tail() and time.monotonic() < deadline:
+        assert not group.reap(child), child.log_tail()
+        time.sleep(0.02)
+    group.stop_all(int_deadline_s=0.2, term_deadline_s=0.2)
+    assert child.returncode == -signal.SIGKILL and child.signal_used == "SIGKILL"
+    log_text = child.log_path.read_text()
+    # faulthandler's dump: the main thread, inside the function it was stuck in
+    assert "Current thread" in log_text or "Thread 0x" in log_text, log_text
+    assert "waiting_for_ever" in log_text, log_text
+
+
 # ------------------------------------------------------------------ end to end
+
+
+def _tail(path: Path, lines: int) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError as exc:
+        return f"({exc})"
 
 
 def _demo_argv(out: Path, *extra: str) -> list[str]:
@@ -547,7 +585,11 @@ def test_demo_runs_end_to_end(demo_run):
     assert int(sim["plans"]) > 0.8 * msgs["joy_plan"] > 0
     run = report["run"]
     assert run["errors"] == []
-    assert set(run["returncodes"].values()) == {0}  # every node stopped cleanly on SIGINT
+    # every node stopped cleanly on SIGINT (a node killed wrote its threads' stacks to its log)
+    assert set(run["returncodes"].values()) == {0}, {
+        name: (code, run["stop_signals"].get(name),
+               _tail(out / "logs" / f"{name}.log", 60))
+        for name, code in run["returncodes"].items() if code != 0}
     assert all(cpu > 0 for cpu in run["cpu"].values())
     row = report["success"][0]
     assert row["horizon_s"] == 1.0 and row["online_n"] > 40

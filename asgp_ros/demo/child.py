@@ -6,11 +6,17 @@ Asks the kernel for SIGTERM when the parent dies (``prctl(PR_SET_PDEATHSIG)``, L
 checks that the parent is still there (it may have died before the request), then calls
 ``FUNCTION()`` with ``sys.argv = [MODULE, *ARGS]`` (how a console script runs) and exits
 with its return value.
+
+SIGUSR1 writes the stack of every thread to stderr (the node's log) and nothing else
+(:mod:`faulthandler`, which needs no lock and works while the main thread is stuck in C
+code): the demo sends it before killing a node that did not stop, so the log says where
+it was.
 """
 
 from __future__ import annotations
 
 import ctypes
+import faulthandler
 import importlib
 import os
 import signal
@@ -33,6 +39,7 @@ def main() -> int:
     if os.getppid() != parent:
         print(f"the demo (pid {parent}) is gone; not starting {module}", file=sys.stderr)
         return 1
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     sys.argv = [module, *sys.argv[3:]]
     entry = getattr(importlib.import_module(module), function)
     rc = entry()

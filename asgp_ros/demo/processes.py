@@ -6,14 +6,16 @@ the kernel to send it SIGTERM when the demo process dies (``PR_SET_PDEATHSIG``):
 the demo is killed outright, no node is left behind.
 
 Stopping: SIGINT to each child's process group (the nodes' normal Ctrl-C path), a
-deadline, then SIGTERM, another deadline, then SIGKILL. Children are reaped with
-``os.wait4`` so their exact CPU time (user + system) is known; while they run it is read
-from ``/proc/<pid>/stat``. Each child keeps when it was first asked to stop, so its
+deadline, then SIGTERM, another deadline, then SIGKILL; before SIGKILL each child still
+running is sent SIGUSR1 and writes the stacks of its threads to its log. Children are
+reaped with ``os.wait4`` so their exact CPU time (user + system) is known; while they run
+it is read from ``/proc/<pid>/stat``. Each child keeps when it was first asked to stop, so its
 shutdown time (first signal to exit, within the 10 ms the stop loop polls at) is known.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -24,6 +26,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+#: Time given to a child to write its stacks (SIGUSR1) before it is killed (s).
+STACK_DUMP_WAIT_S = 0.5
 
 _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
@@ -159,6 +164,16 @@ class ProcessGroup:
         except PermissionError:
             child.proc.send_signal(sig)
 
+    def _dump_stacks(self, children: list[Child]) -> None:
+        """SIGUSR1 to each child (its own pid, not its group): :mod:`asgp_ros.demo.child`
+        writes every thread's stack to the child's log. Then a moment for the writes."""
+        for c in children:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.kill(c.pid, signal.SIGUSR1)
+                log.warning("%s (pid %d): stacks of its threads written to %s before SIGKILL",
+                            c.name, c.pid, c.log_path)
+        time.sleep(STACK_DUMP_WAIT_S)
+
     def stop_all(self, int_deadline_s: float = 6.0, term_deadline_s: float = 3.0,
                  children: list[Child] | None = None) -> None:
         """SIGINT all (or ``children``), wait; SIGTERM the rest, wait; SIGKILL the rest.
@@ -169,6 +184,9 @@ class ProcessGroup:
             alive = [c for c in chosen if not self._reap(c, block=False)]
             if not alive:
                 return
+            if sig == signal.SIGKILL:
+                self._dump_stacks(alive)
+                alive = [c for c in alive if not self._reap(c, block=False)]
             for c in alive:
                 self.send(c, sig)
             end = time.monotonic() + deadline
