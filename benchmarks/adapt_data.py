@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/adapt_data.py [MODEL] [--learn BAG --test BAG [BAG ...]]
-        [--minutes 0.5 1 2 5 10] [--reference MODEL2]
+        [--minutes 0.5 1 2 5 10] [--reference MODEL2] [--parts-from MODEL2]
 
 Without arguments: the carpet model of the committed reproduction
 (``docs/reproduction/models/carpet_asgp.npz``, the tile model as the reference) on tile
@@ -32,7 +32,15 @@ recording of the new floor) in three ways, each scored on ``--test`` (k-step suc
 The adaptation as it runs forgets the new rows too (a half-life of 300 s by default), so
 it holds less than N minutes once N is past a few minutes.
 MODEL as trained and, with ``--reference``, a model trained on the new floor, are scored
-on the same cases beside them. Prints figures only (no assertions).
+on the same cases beside them.
+
+``--parts-from MODEL2`` (a model of the same inputs: s and coupling) asks which of MODEL's
+fixed parts limit it: the whole ``--learn`` recording is conditioned (the FITC posterior,
+constant prior mean, as in column 1) at MODEL's pseudo-inputs and hyperparameters with one
+part, or several, taken from MODEL2 (the noise variance, the signal variance, the
+lengthscales, the pseudo-inputs), and scored. The inputs whose lengthscales differ between
+the two by 10 times or more are listed (ARD: a long lengthscale switches an input off).
+Prints figures only (no assertions).
 """
 
 from __future__ import annotations
@@ -53,8 +61,10 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from asgp_ros.core.features import CHANNELS, FeatureConfig  # noqa: E402
 from asgp_ros.core.modelfile import load_model  # noqa: E402
 from asgp_ros.core.models import MotionModel  # noqa: E402
+from asgp_ros.core.sparse_gp import SparseGP  # noqa: E402
 from asgp_ros.learning.adapting import OfflineAdaptOptions, adapt_model  # noqa: E402
 from asgp_ros.learning.evaluation import TestSeries, evaluate_model  # noqa: E402
 from asgp_ros.learning.training import (  # noqa: E402
@@ -111,6 +121,54 @@ def corrected(model: MotionModel, learn: list[Series]) -> MotionModel:
     return dataclasses.replace(model, channels=(chans[0], chans[1]))
 
 
+#: The parts of a channel --parts-from swaps, and the sets of them tried.
+PARTS = ("noise", "signal", "lengthscales", "pseudo-inputs")
+PART_SETS: tuple[tuple[str, ...], ...] = (
+    (), ("noise",), ("signal",), ("lengthscales",), ("pseudo-inputs",),
+    ("lengthscales", "pseudo-inputs"), PARTS)
+
+
+def with_parts(model: MotionModel, donor: MotionModel, parts: tuple[str, ...],
+               learn: list[Series]) -> MotionModel:
+    """The FITC posterior of ``learn`` (constant prior mean) at MODEL's pseudo-inputs and
+    hyperparameters, with ``parts`` taken from ``donor``."""
+    chans = []
+    for c, (own, other) in enumerate(zip(model.channels, donor.channels, strict=True)):
+        assert isinstance(own, SparseGP) and isinstance(other, SparseGP)
+        X, y = design(learn, c, model.feature_config)
+        pick = {p: (other if p in parts else own) for p in PARTS}
+        chans.append(SparseGP.from_params(
+            X, y, pick["pseudo-inputs"].inducing_inputs, pick["lengthscales"].lengthscales,
+            pick["signal"].signal_variance, pick["noise"].noise_variance, jitter=own.jitter))
+    return dataclasses.replace(model, channels=(chans[0], chans[1]))
+
+
+def input_names(config: FeatureConfig, channel: int) -> list[str]:
+    """The input row's entries (``asgp_ros.core.features.build_inputs``), oldest lag first."""
+    s = config.lags
+    lags = [f"t-{s - i}" for i in range(s)]
+    if config.coupled:
+        return ([f"joy forward {lag}" for lag in lags] + [f"joy turn {lag}" for lag in lags]
+                + [f"v {lag}" for lag in lags] + [f"omega {lag}" for lag in lags]
+                + ["joy forward t", "joy turn t"])
+    axis = ("forward", "turn")[channel]
+    return ([f"joy {axis} {lag}" for lag in lags] + [f"{CHANNELS[channel]} {lag}" for lag in lags]
+            + [f"joy {axis} t"])
+
+
+def lengthscale_differences(model: MotionModel, donor: MotionModel, factor: float = 10.0
+                            ) -> list[str]:
+    """Lines naming the inputs whose lengthscales in the two models differ ``factor``-fold."""
+    lines = []
+    for c, (own, other) in enumerate(zip(model.channels, donor.channels, strict=True)):
+        assert isinstance(own, SparseGP) and isinstance(other, SparseGP)
+        names = input_names(model.feature_config, c)
+        for name, a, b in zip(names, own.lengthscales, other.lengthscales, strict=True):
+            if max(a, b) >= factor * min(a, b):
+                lines.append(f"    {CHANNELS[c]}: {name}: {a:.3g} (MODEL) vs {b:.3g} (MODEL2)")
+    return lines
+
+
 def simulate_tile(out: Path, recordings: tuple[tuple[int, float], ...]) -> list[str]:
     """Tile recordings (seed, minutes) simulated into ``out`` by ``asgp simulate``."""
     bags = []
@@ -142,6 +200,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="learn from the first N minutes (and from the whole recording)")
     ap.add_argument("--reference", help="a model trained on the new floor, scored beside "
                     "(default with simulated recordings: the committed tile model)")
+    ap.add_argument("--parts-from", metavar="MODEL2",
+                    help="also condition the whole --learn recording at MODEL's parameters "
+                         "with parts of MODEL2's (same inputs)")
     args = ap.parse_args(argv)
     if (args.learn is None) != (args.test is None):
         ap.error("give both --learn and --test, or neither (simulated tile recordings)")
@@ -188,6 +249,20 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {minutes:7.3g}   {score(adapted(model, part, False))}    "
                   f"{score(adapted(model, part, True))}    {score(corrected(model, part))}",
                   flush=True)
+        if args.parts_from:
+            donor = load_model(args.parts_from)
+            if donor.feature_config != model.feature_config or donor.kind != "asgp" \
+                    or model.kind != "asgp":
+                print(f"--parts-from: {args.parts_from} is not an ASGP of MODEL's inputs "
+                      f"(s = {donor.lags}, coupled = {donor.feature_config.coupled})")
+                return 2
+            print(f"  the whole recording at MODEL's parameters, parts from {args.parts_from}:")
+            for parts in PART_SETS:
+                label = "all" if parts == PARTS else ", ".join(parts) or "none"
+                print(f"    {label:33s} {score(with_parts(model, donor, parts, [learn]))}",
+                      flush=True)
+            print("  inputs whose lengthscales differ 10-fold or more:")
+            print("\n".join(lengthscale_differences(model, donor)) or "    none")
     return 0
 
 
