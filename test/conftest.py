@@ -8,9 +8,12 @@ started by tests inherit these variables.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -39,6 +42,30 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
+
+
+@pytest.fixture(scope="session")
+def load_benchmark() -> Callable[[str], ModuleType]:
+    """A loader of a script of benchmarks/ as a module (``load_benchmark("rollout")``), for
+    the tests of its parts; skips the test outside a source checkout (an installed or
+    colcon-copied package has no benchmarks/)."""
+    loaded: dict[str, ModuleType] = {}
+
+    def load(name: str) -> ModuleType:
+        if name in loaded:
+            return loaded[name]
+        path = REPO / "benchmarks" / f"{name}.py"
+        if not path.is_file():
+            pytest.skip(f"{path} is not here (not a source checkout)")
+        spec = importlib.util.spec_from_file_location(f"_bench_{name}", path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module  # its dataclasses look their module up
+        spec.loader.exec_module(module)
+        loaded[name] = module
+        return module
+
+    return load
 
 
 @pytest.fixture

@@ -3,9 +3,6 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-
 import numpy as np
 import pytest
 
@@ -16,13 +13,8 @@ from asgp_ros.core.sparse_gp import SparseGP
 
 
 @pytest.fixture(scope="module")
-def bench(repo_root):
-    spec = importlib.util.spec_from_file_location(
-        "adapt_data", repo_root / "benchmarks" / "adapt_data.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["adapt_data"] = module
-    spec.loader.exec_module(module)
-    return module
+def bench(load_benchmark):
+    return load_benchmark("adapt_data")
 
 
 @pytest.mark.parametrize("coupled", [True, False])

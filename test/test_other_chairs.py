@@ -4,21 +4,14 @@ ranges, and it never writes into a directory that exists."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 
 import numpy as np
 import pytest
 
 
 @pytest.fixture(scope="module")
-def bench(repo_root):
-    spec = importlib.util.spec_from_file_location(
-        "other_chairs", repo_root / "benchmarks" / "other_chairs.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["other_chairs"] = module
-    spec.loader.exec_module(module)
-    return module
+def bench(load_benchmark):
+    return load_benchmark("other_chairs")
 
 
 def test_drawn_chairs_are_valid_and_within_the_documented_ranges(bench):

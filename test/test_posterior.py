@@ -4,7 +4,6 @@ the implementation before the posterior and the kernel became shared modules."""
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
@@ -24,18 +23,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def bench() -> ModuleType:
+def bench(load_benchmark) -> ModuleType:
     """benchmarks/rollout.py: its simulated chair and its reference-revision loader (the
     comparison with the previous implementation needs a source checkout with its history;
     an installed or colcon-copied package has neither)."""
-    path = REPO / "benchmarks" / "rollout.py"
-    if not path.is_file():
-        pytest.skip(f"{path} is not here (not a source checkout)")
-    spec = importlib.util.spec_from_file_location("_bench_rollout", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("rollout")
 
 
 def _data(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

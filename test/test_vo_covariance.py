@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import importlib.util
 import itertools
 import math
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -34,17 +32,9 @@ SEED = 7  # neither a calibration (0, 5) nor a held-out (1-4) seed of benchmarks
 
 
 @pytest.fixture(scope="module")
-def bench() -> ModuleType:
+def bench(load_benchmark) -> ModuleType:
     """benchmarks/vo_nees.py: the drives and the NEES (a source checkout only)."""
-    path = REPO / "benchmarks" / "vo_nees.py"
-    if not path.is_file():
-        pytest.skip(f"{path} is not here (not a source checkout)")
-    spec = importlib.util.spec_from_file_location("_bench_vo_nees", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("vo_nees")
 
 
 @pytest.fixture(scope="module")
