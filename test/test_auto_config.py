@@ -220,6 +220,37 @@ def test_selection_is_deterministic_for_a_seed(chair: list[Series], auto_model) 
     assert best["candidate"] == auto_model.meta["selection"]["chosen"]
 
 
+def test_the_final_fit_starts_from_the_chosen_candidates_selection_fit(
+        chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
+    calls: list[tuple[int, int, int, SparseGP | None, SparseGP]] = []
+    real_fit = SparseGP.fit
+
+    def spy(self, X, y, max_iter=200, max_fun=None, callback=None, start=None):  # type: ignore[no-untyped-def]
+        out = real_fit(self, X, y, max_iter, max_fun, callback, start)
+        calls.append((self.num_inducing, X.shape[1], X.shape[0], start, out))
+        return out
+
+    monkeypatch.setattr(SparseGP, "fit", spy)
+    opts = AutoOptions(seed=3, **SMALL)  # type: ignore[arg-type]
+    model = train_auto(chair, opts)
+    chosen = model.meta["selection"]["chosen"]
+    D = FeatureConfig(lags=chosen["lags"], coupled=chosen["coupled"]).input_dim
+    warm = [c for c in calls if c[3] is not None]
+    # only the final fits start warm: one per channel, on the final rows
+    assert [(M, d, n) for M, d, n, _, _ in warm] == [
+        (chosen["inducing"][c], D, opts.final_rows) for c in (0, 1)]
+    # each from its channel's fit of the chosen candidate in the selection
+    selection = [c for c in calls if c[3] is None and c[:3] == (chosen["inducing"][0], D,
+                                                                opts.selection_rows)]
+    assert len(selection) == 2
+    for (_, _, _, start, _), (_, _, _, _, fitted) in zip(warm, selection, strict=True):
+        assert start is not None
+        np.testing.assert_allclose(start.inducing_inputs, fitted.inducing_inputs,
+                                   rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(start.lengthscales, fitted.lengthscales, rtol=1e-12)
+    assert model.meta["selection"]["final_fit_start"] == "the chosen candidate's selection fit"
+
+
 def test_calibrated_coverage_on_fresh_data_of_known_noise(auto_model) -> None:  # type: ignore[no-untyped-def]
     test = [TestSeries(f"fresh_{i}", synthetic_chair(600, 100 + i)) for i in range(2)]
     calibrated = evaluate_model(auto_model, test, (1.0, 1.4, 2.0), case_lags=12)

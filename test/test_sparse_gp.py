@@ -274,6 +274,41 @@ def test_restarts_and_spread_initialisation():
     assert np.min(np.abs(Z[:, None, :] - X[None]).sum(-1), axis=1).max() < 1e-9
 
 
+def test_warm_start_begins_at_the_given_fit_and_continues_it():
+    X, y = _data(600, seed=12)
+    first = SparseGP(num_inducing=10, seed=1).fit(X[:300], y[:300], max_iter=20)
+    # other rows, other standardisation: the start is the fitted model in original units
+    at_start = SparseGP(num_inducing=10, seed=2).fit(X, y, max_iter=0, start=first)
+    np.testing.assert_allclose(at_start.inducing_inputs, first.inducing_inputs, rtol=1e-12,
+                               atol=1e-12)
+    np.testing.assert_allclose(at_start.lengthscales, first.lengthscales, rtol=1e-12)
+    assert at_start.signal_variance == pytest.approx(first.signal_variance, rel=1e-12)
+    assert at_start.noise_variance == pytest.approx(first.noise_variance, rel=1e-12)
+    cold = SparseGP(num_inducing=10, seed=2).fit(X, y, max_iter=0)
+    assert not np.allclose(cold.inducing_inputs, first.inducing_inputs)
+    # continuing from the start improves on it, and on a cold start of as many iterations
+    warm = SparseGP(num_inducing=10, seed=2).fit(X, y, max_iter=20, start=first)
+    cold = SparseGP(num_inducing=10, seed=2).fit(X, y, max_iter=20)
+    assert warm.log_marginal_likelihood() > at_start.log_marginal_likelihood()
+    assert warm.log_marginal_likelihood() > cold.log_marginal_likelihood()
+    again = SparseGP(num_inducing=10, seed=2).fit(X, y, max_iter=20, start=first)
+    np.testing.assert_array_equal(again.inducing_inputs, warm.inducing_inputs)
+
+
+@pytest.mark.parametrize("start, message", [
+    ("unfitted", "must be a fitted SparseGP"),
+    ("other M", "start has 6 pseudo-inputs of 3 inputs; this fit has 10 of 3"),
+    ("other D", "start has 10 pseudo-inputs of 2 inputs; this fit has 10 of 3"),
+])
+def test_a_bad_warm_start_is_refused(start, message):
+    X, y = _data(200, seed=13)
+    gp = {"unfitted": SparseGP(num_inducing=10),
+          "other M": SparseGP(num_inducing=6).fit(X, y, max_iter=0),
+          "other D": SparseGP(num_inducing=10).fit(X[:, :2], y, max_iter=0)}[start]
+    with pytest.raises(SparseGPError, match=message):
+        SparseGP(num_inducing=10).fit(X, y, max_iter=5, start=gp)
+
+
 # ----------------------------------------------------------------- state round trip
 
 

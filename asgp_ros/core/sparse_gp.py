@@ -398,6 +398,7 @@ class SparseGP:
         max_iter: int = 200,
         max_fun: int | None = None,
         callback: ProgressCallback | None = None,
+        start: SparseGP | None = None,
     ) -> SparseGP:
         """Learn Z and the hyperparameters by maximising the FITC evidence; cache the posterior.
 
@@ -408,6 +409,11 @@ class SparseGP:
             max_fun: L-BFGS-B function-evaluation budget per start (default 2 max_iter + 20).
             callback: called as ``callback(iteration, log_marginal_likelihood)`` after each
                 L-BFGS-B iteration (original units), e.g. for a progress display.
+            start: a fitted SparseGP with as many pseudo-inputs and inputs, whose
+                pseudo-inputs and hyperparameters (in original units) are the first start of
+                the optimiser instead of the data-driven one (a warm start: the same model
+                fitted before on other rows, or for fewer iterations). Restarts after the
+                first start as they do without it.
 
         Returns:
             self.
@@ -416,10 +422,13 @@ class SparseGP:
             raise SparseGPError(f"max_iter must be an integer >= 0, got {max_iter}")
         if max_fun is not None and (int(max_fun) != max_fun or max_fun < 1):
             raise SparseGPError(f"max_fun must be None or an integer >= 1, got {max_fun}")
+        if start is not None and not (isinstance(start, SparseGP)
+                                      and start._posterior is not None):
+            raise SparseGPError("start must be a fitted SparseGP")
         if self.blas_threads is None:
-            return self._fit(X, y, int(max_iter), max_fun, callback)
+            return self._fit(X, y, int(max_iter), max_fun, callback, start)
         with threadpool_limits(limits=self.blas_threads, user_api="blas"):
-            return self._fit(X, y, int(max_iter), max_fun, callback)
+            return self._fit(X, y, int(max_iter), max_fun, callback, start)
 
     def _fit(
         self,
@@ -428,17 +437,32 @@ class SparseGP:
         max_iter: int,
         max_fun: int | None,
         callback: ProgressCallback | None,
+        start: SparseGP | None,
     ) -> SparseGP:
         Xa = _validate_inputs(X, "X")
         ya = _validate_y(y, Xa.shape[0])
         self._check_sizes(Xa)
+        if start is not None and start.inducing_inputs.shape != (self.num_inducing,
+                                                                  Xa.shape[1]):
+            raise SparseGPError(
+                f"start has {start.inducing_inputs.shape[0]} pseudo-inputs of "
+                f"{start.inducing_inputs.shape[1]} inputs; this fit has {self.num_inducing} "
+                f"of {Xa.shape[1]}")
         sc = self._standardisation(Xa, ya)
         Xs, ys = self._standardise(Xa, ya, sc)
+        first = None if start is None else self._warm_start(start, sc)
         ws = Workspace(Xs, ys, self.num_inducing, self.threads)
         try:
-            return self._optimise(Xs, ys, sc, ws, max_iter, max_fun, callback)
+            return self._optimise(Xs, ys, sc, ws, max_iter, max_fun, callback, first)
         finally:
             ws.close()
+
+    @staticmethod
+    def _warm_start(start: SparseGP, sc: _Scales) -> Params:
+        """A fitted model's parameters in this fit's standardised units."""
+        y2 = sc.y_scale**2
+        return Params(start.lengthscales / sc.x_scale, start.signal_variance / y2,
+                      start.noise_variance / y2, (start.inducing_inputs - sc.x_mean) / sc.x_scale)
 
     def _optimise(
         self,
@@ -449,6 +473,7 @@ class SparseGP:
         max_iter: int,
         max_fun: int | None,
         callback: ProgressCallback | None,
+        first: Params | None = None,
     ) -> SparseGP:
         N, D = Xs.shape
         M = self.num_inducing
@@ -462,7 +487,8 @@ class SparseGP:
         best: tuple[float, FloatArray, scipy.optimize.OptimizeResult] | None = None
         for restart in range(self.n_restarts + 1):
             track.reset()
-            theta0 = _clip_to(self._start_point(Xs, restart).pack(), bounds)
+            p0 = first if first is not None and restart == 0 else self._start_point(Xs, restart)
+            theta0 = _clip_to(p0.pack(), bounds)
             f0, _ = objective(theta0)
             if not math.isfinite(f0):
                 raise SparseGPError(

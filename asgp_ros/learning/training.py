@@ -398,14 +398,15 @@ def _subsample(X: np.ndarray, y: np.ndarray, n: int, rng: np.random.Generator
 
 
 def _fit_asgp_channel(X: np.ndarray, y: np.ndarray, M: int, rows: int, max_iter: int,
-                      seed: int, X_post: np.ndarray, y_post: np.ndarray
-                      ) -> tuple[SparseGP, dict[str, Any]]:
-    """Fit hyperparameters and pseudo-inputs on a seeded subset of at most ``rows`` rows,
-    then the FITC posterior at those parameters on all of (X_post, y_post)."""
+                      seed: int, X_post: np.ndarray, y_post: np.ndarray,
+                      start: SparseGP | None = None) -> tuple[SparseGP, dict[str, Any]]:
+    """Fit hyperparameters and pseudo-inputs on a seeded subset of at most ``rows`` rows
+    (from ``start``'s, when given), then the FITC posterior at those parameters on all of
+    (X_post, y_post)."""
     Xs, ys = _subsample(X, y, rows, np.random.default_rng(seed))
     if Xs.shape[0] < 2 * M:
         raise TrainingError(f"{Xs.shape[0]} rows are too few for M = {M} pseudo-inputs")
-    fitted = SparseGP(num_inducing=M, seed=seed).fit(Xs, ys, max_iter=max_iter)
+    fitted = SparseGP(num_inducing=M, seed=seed).fit(Xs, ys, max_iter=max_iter, start=start)
     gp = SparseGP.from_params(X_post, y_post, fitted.inducing_inputs, fitted.lengthscales,
                               fitted.signal_variance, fitted.noise_variance,
                               jitter=fitted.jitter)
@@ -419,14 +420,18 @@ def _fit_asgp_channel(X: np.ndarray, y: np.ndarray, M: int, rows: int, max_iter:
 
 
 def _fit_candidate(cand: Candidate, fit_on: Sequence[Series], post_on: Sequence[Series],
-                   rows: int, max_iter: int, seed: int, rc: Any
-                   ) -> tuple[MotionModel, dict[str, Any]]:
+                   rows: int, max_iter: int, seed: int, rc: Any,
+                   start: MotionModel | None = None) -> tuple[MotionModel, dict[str, Any]]:
+    """``cand`` fitted on ``fit_on`` (its channels' optimisers started from ``start``'s
+    parameters when given: the same candidate fitted before), its posterior on ``post_on``."""
     fc = cand.features()
     chans, infos = [], {}
     for c in (0, 1):
         X, y = design(fit_on, c, fc)
         Xp, yp = (X, y) if post_on is fit_on else design(post_on, c, fc)
-        gp, info = _fit_asgp_channel(X, y, cand.inducing[c], rows, max_iter, seed + c, Xp, yp)
+        first = cast(SparseGP, start.channels[c]) if start is not None else None
+        gp, info = _fit_asgp_channel(X, y, cand.inducing[c], rows, max_iter, seed + c, Xp, yp,
+                                     first)
         chans.append(gp)
         infos[CHANNELS[c]] = info
     model = MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
@@ -489,7 +494,9 @@ def train_auto(
        (:data:`REFINE_STRUCTURES` structures in all) at the largest of those M. The best
        held-out score of all the candidates wins.
     4. The chosen configuration is fitted again on more rows of the training part
-       (:attr:`AutoOptions.final_rows`, ``opts.max_iter`` iterations), the variance
+       (:attr:`AutoOptions.final_rows`, ``opts.max_iter`` iterations), its optimiser
+       started from the candidate's selection fit (a warm start: the selection's
+       iterations are not spent again, and cost nothing more), the variance
        calibration fitted on the held-out part (:mod:`asgp_ros.core.calibration`), and
        the shipped posterior formed on all the data at the fitted parameters.
 
@@ -532,10 +539,10 @@ def train_auto(
     # final fit on the training part; calibration on the held-out part
     t0 = time.perf_counter()
     report("fit", f"{chosen.name} on up to {opts.final_rows} rows per channel, "
-                  f"{opts.max_iter} iterations")
+                  f"{opts.max_iter} iterations, from its selection fit")
     try:
         model_tr, infos = _fit_candidate(chosen, fit_on, fit_on, opts.final_rows,
-                                         opts.max_iter, opts.seed, rc)
+                                         opts.max_iter, opts.seed, rc, start=search.best_model)
     except ValueError as exc:
         raise TrainingError(str(exc)) from exc
     t_fit = time.perf_counter() - t0
@@ -572,6 +579,7 @@ def _automatic_meta(series: Sequence[Series], opts: AutoOptions, chosen: Candida
             "selection_rows": opts.selection_rows,
             "selection_max_iter": opts.selection_max_iter,
             "final_rows": opts.final_rows, "budget_s": opts.budget_s,
+            "final_fit_start": "the chosen candidate's selection fit",
             "pinned": {k: v for k, v in (("lags", opts.lags), ("coupled", opts.coupled),
                                          ("inducing_v", opts.inducing_v),
                                          ("inducing_w", opts.inducing_w)) if v is not None},
@@ -594,6 +602,7 @@ class _Search:
         self.table: list[dict[str, Any]] = []
         self.best: dict[str, Any] | None = None
         self.best_cand: Candidate | None = None
+        self.best_model: MotionModel | None = None  # best_cand as fitted for the selection
 
     def run(self, structures: Sequence[tuple[int, bool]]) -> Candidate | None:
         """The paper's configuration (unless a pin excludes it), every structure at
@@ -650,7 +659,7 @@ class _Search:
                                for k, v in result["horizons"].items())
                     + f" ({row['seconds']:.1f} s)")
         if _better(result, self.best):
-            self.best, self.best_cand = result, cand
+            self.best, self.best_cand, self.best_model = result, cand, model
 
 
 def _scorable_horizons(held: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
