@@ -37,8 +37,9 @@ bench: setup
 	for b in benchmarks/*.py; do echo "== $$b"; $(VPY) $$b || exit 1; done
 
 lint: setup
-	$(VPY) -m ruff check asgp_ros test benchmarks
-	$(VPY) -m mypy --strict asgp_ros/core asgp_ros/nodes
+	$(VPY) -m ruff check asgp_ros test benchmarks launch
+	$(VPY) -m mypy --strict asgp_ros/core asgp_ros/nodes asgp_ros/common asgp_ros/recording \
+		asgp_ros/serial asgp_ros/learning
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache

@@ -186,7 +186,7 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
                            time.perf_counter() - start)
     except (RuntimeError, ValueError, OSError, BagError) as exc:
         raise DatasetError(str(exc)) from exc
-    manifest = {
+    manifest: dict[str, Any] = {
         "format": "asgp_ros.dataset",
         "version": MANIFEST_VERSION,
         "description": "Simulated wheelchair recordings in the layout of Fan et al. "

@@ -30,7 +30,7 @@ import numpy as np
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import CHI2_2DOF_95, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import get_kind
-from asgp_ros.core.rollout import rollout
+from asgp_ros.core.rollout import Uncertainty, rollout
 from asgp_ros.core.unicycle import integrate_path
 
 log = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ def reference_path(vel_ref: np.ndarray, dt: float) -> np.ndarray:
     return np.asarray(integrate_path(vel_ref, dt))[:, 1:]
 
 
-def _uncertainty_for(model: Any) -> str:
+def _uncertainty_for(model: Any) -> Uncertainty:
     """Linearised propagation for probabilistic kinds; deterministic kinds need none.
 
     A kind that is not registered is propagated (whatever variance it predicts is kept).
@@ -120,7 +120,7 @@ def _uncertainty_for(model: Any) -> str:
 
 
 def rollout_cases(
-    model: Any, res: Any, idx: np.ndarray, steps: int, *, uncertainty: str
+    model: Any, res: Any, idx: np.ndarray, steps: int, *, uncertainty: Uncertainty
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """Roll the model out from every case t in idx over ``steps`` recorded future commands.
 
@@ -179,7 +179,7 @@ def evaluate_model(
     threshold_m: float = THRESHOLD_M,
     case_lags: int | None = None,
     truth: bool = False,
-    uncertainty: str | None = None,
+    uncertainty: Uncertainty | None = None,
     n_examples: int = 0,
     name: str = "",
 ) -> ModelEvaluation:
@@ -224,7 +224,7 @@ def evaluate_model(
 
 
 def _evaluate_horizon(model: Any, series: Sequence[TestSeries], h: float, k: int, rate: float,
-                      need: int, *, uncertainty: str, threshold_m: float, truth: bool,
+                      need: int, *, uncertainty: Uncertainty, threshold_m: float, truth: bool,
                       n_examples: int, name: str) -> HorizonEvaluation:
     """Every case of every series at the horizon h (k steps): the model rolled out, the
     reference path integrated from the recorded VO, the positions at the horizon scored

@@ -120,6 +120,7 @@ def read_manifest(data: Path) -> dict[str, Any] | None:
     problem = _manifest_problem(manifest)
     if problem:
         raise ReproduceError(f"{path}: unexpected manifest layout: {problem}")
+    assert isinstance(manifest, dict)  # what _manifest_problem checked first
     return manifest
 
 

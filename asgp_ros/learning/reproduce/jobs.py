@@ -20,7 +20,7 @@ import numpy as np
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import CHI2_2DOF_95, horizon_key
 from asgp_ros.core.modelfile import load_model, save_model
-from asgp_ros.core.rollout import rollout
+from asgp_ros.core.rollout import Uncertainty, rollout
 from asgp_ros.learning.evaluation import (
     AdaptiveEvaluation,
     TestSeries,
@@ -227,8 +227,10 @@ def propagation_job(context: JobContext, task: tuple[str, str]) -> dict[str, Any
                                               context.case_lags, k)]
         pick = rng.choice(len(pool), size=min(n_cases, len(pool)), replace=False)
         coverage = {}
-        for label, unc, noise in (("linear", "linear", True), ("mc", "mc", True),
-                                  ("linear_latent_only", "linear", False)):
+        variants: tuple[tuple[str, Uncertainty, bool], ...] = (
+            ("linear", "linear", True), ("mc", "mc", True),
+            ("linear_latent_only", "linear", False))
+        for label, unc, noise in variants:
             hits = []
             for path in sorted({pool[j][0] for j in pick}):
                 res = context.series[path].res
