@@ -560,3 +560,43 @@ def test_reason_codes_are_one_documented_enum():
     assert not pred.feed_joy(1.0, (math.nan, 0.0))
     assert list(pred.stats.rejected) == [Reason.REJECT_NONFINITE]
     assert pred.predict(1.0).reason is Reason.NO_INPUT
+
+
+def test_the_sample_buffer_keeps_what_a_list_would():
+    """The buffers keep their samples in one array that grows by replacement and is pruned
+    from the front: against a plain list, through growth, pruning by the newest stamp (in
+    arrival order, stopping at the first sample inside the window), out-of-order and equal
+    stamps, and clears; arrays handed out earlier never change."""
+    rng = np.random.default_rng(3)
+    buf = online._Buffer(2)
+    ref: list[tuple[float, float, float]] = []
+    newest = -math.inf
+    handed: list[tuple[np.ndarray, np.ndarray]] = []
+    t = 0.0
+    for i in range(5000):
+        if i % 1700 == 1699:
+            buf.clear()
+            ref.clear()
+            newest = -math.inf
+        t += float(rng.choice([0.01, 0.0, -0.05, 0.3, 2.5], p=[0.8, 0.05, 0.1, 0.04, 0.01]))
+        row = (t, float(rng.normal()), float(rng.normal()))
+        assert buf.add(t, row[1:]) == (t < newest)
+        ref.append(row)
+        newest = max(newest, t)
+        horizon = float(rng.choice([1.0, 10.0]))
+        buf.prune(horizon)
+        while ref and ref[0][0] < newest - horizon:
+            ref.pop(0)
+        assert len(buf) == len(ref)
+        if i % 97 == 0:
+            stamps, values = buf.arrays()
+            want = np.array(ref).reshape(-1, 3)
+            np.testing.assert_array_equal(stamps, want[:, 0])
+            np.testing.assert_array_equal(values, want[:, 1:])
+            handed.append((stamps, values, want))
+            if ref:
+                first_newest = max(range(len(ref)), key=lambda k: ref[k][0])
+                np.testing.assert_array_equal(buf.newest_row(), ref[first_newest])
+    for stamps, values, want in handed:
+        np.testing.assert_array_equal(stamps, want[:, 0])
+        np.testing.assert_array_equal(values, want[:, 1:])

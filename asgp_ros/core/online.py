@@ -314,17 +314,35 @@ def interpolate_pose(t: float, stamps: FloatArray, poses: FloatArray) -> FloatAr
 
 
 class _Buffer:
-    """Time-stamped samples, pruned to a window behind the newest stamp."""
+    """Time-stamped samples, pruned to a window behind the newest stamp.
+
+    Kept in one float array (a row per sample: stamp, values; in arrival order) so that a
+    prediction reads the window without converting thousands of tuples. Rows are only ever
+    appended after the live part or dropped before it; the array is replaced, never shifted,
+    when it fills.
+    """
+
+    _MIN_CAPACITY = 64
 
     def __init__(self, width: int) -> None:
         self.width = width
-        self.items: deque[tuple[float, ...]] = deque()
+        self._data = np.empty((self._MIN_CAPACITY, width + 1))
+        self._start = 0  # the live rows are _data[_start:_end]
+        self._end = 0
         self.newest = -math.inf
         self.before_newest = -math.inf  # the newest stamp older than ``newest``
 
     def add(self, t: float, values: tuple[float, ...]) -> bool:
         """Append; True if the stamp was out of order (older than the newest)."""
-        self.items.append((t, *values))
+        if self._end == self._data.shape[0]:
+            live = self._data[self._start:self._end]
+            data = np.empty((max(self._MIN_CAPACITY, 2 * live.shape[0]), self.width + 1))
+            data[:live.shape[0]] = live
+            self._data, self._start, self._end = data, 0, live.shape[0]
+        row = self._data[self._end]
+        row[0] = t
+        row[1:] = values
+        self._end += 1
         late = t < self.newest
         if t > self.newest:
             self.before_newest, self.newest = self.newest, t
@@ -333,23 +351,32 @@ class _Buffer:
         return late
 
     def prune(self, horizon_s: float) -> None:
+        """Drop the oldest rows, in arrival order, up to the first one inside the window."""
         cutoff = self.newest - horizon_s
-        while self.items and self.items[0][0] < cutoff:
-            self.items.popleft()
+        if self._start == self._end or not self._data[self._start, 0] < cutoff:
+            return
+        inside = self._data[self._start:self._end, 0] >= cutoff
+        self._start = self._end if not inside.any() else self._start + int(np.argmax(inside))
 
     def arrays(self) -> tuple[FloatArray, FloatArray]:
-        if not self.items:
-            return np.zeros(0), np.zeros((0, self.width))
-        data = np.array(self.items, dtype=np.float64)
-        return data[:, 0], data[:, 1:]
+        """Stamps [n] and values [n, width], copies, in arrival order."""
+        live = self._data[self._start:self._end].copy()
+        return live[:, 0], live[:, 1:]
+
+    def newest_row(self) -> FloatArray:
+        """(stamp, values...) of the newest stamp (the first to arrive of equal stamps)."""
+        live = self._data[self._start:self._end]
+        row: FloatArray = live[int(np.argmax(live[:, 0]))].copy()
+        return row
 
     def clear(self) -> None:
-        self.items.clear()
+        self._data = np.empty((self._MIN_CAPACITY, self.width + 1))
+        self._start = self._end = 0
         self.newest = -math.inf
         self.before_newest = -math.inf
 
     def __len__(self) -> int:
-        return len(self.items)
+        return self._end - self._start
 
 
 class Predictor:
@@ -758,8 +785,7 @@ class Predictor:
         if vo_age > cfg.vo_timeout_s:
             return Prediction(False, Reason.STALE_VO,
                               f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")
-        newest_vo = max(self._vo.items, key=lambda item: item[0])
-        if newest_vo[3] < 0.5:
+        if self._vo.newest_row()[3] < 0.5:
             return Prediction(False, Reason.VO_TRACKING_LOST, "VO reports tracking loss")
         return None
 
