@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import fnmatch
 import hashlib
+import json
 import os
 import signal
 import subprocess
@@ -610,6 +611,70 @@ def test_a_pool_worker_that_ignores_sigterm_is_killed(monkeypatch):
         assert pool.map(abs, [-1, -2]) == [1, 2]
         raise RuntimeError("stop")
     assert set(multiprocessing.active_children()) <= before
+
+
+def _write_and_hang(final: str) -> None:
+    """A pool task that takes a temporary for ``final`` and never ends (SIGTERM ignored)."""
+    with atomic_path(final, directory=True) as tmp:
+        tmp.mkdir()
+        (tmp / "part").write_bytes(b"x" * 1000)
+        (Path(final).parent / "started").write_text("1")
+        while True:
+            time.sleep(1.0)
+
+
+def test_the_temporaries_of_a_killed_pool_worker_are_removed(monkeypatch, tmp_path):
+    """A worker that does not end on SIGTERM is killed after the grace period, which runs
+    none of its ``finally`` blocks: the pool removes the temporary it noted instead."""
+    from asgp_ros.common import fileio
+
+    monkeypatch.setattr(fileio, "POOL_STOP_GRACE_S", 0.5)
+    final = tmp_path / "out"
+    with (pytest.raises(RuntimeError, match="stop"),
+          fileio.worker_pool(1, initializer=_ignore_sigterm) as pool):
+        pool.apply_async(_write_and_hang, (str(final),))
+        deadline = time.monotonic() + 60.0
+        while not (tmp_path / "started").exists():
+            assert time.monotonic() < deadline, "the worker never started"
+            time.sleep(0.02)
+        assert fnmatch.filter(os.listdir(tmp_path), ".out.*.tmp")
+        raise RuntimeError("stop")
+    assert sorted(os.listdir(tmp_path)) == ["started"]
+
+
+def _ended_pid() -> int:
+    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    return int(proc.stdout)
+
+
+def test_a_kill_between_the_renames_of_a_replacement_gives_the_old_directory_back(tmp_path):
+    """Killed between moving the directory it replaces aside and moving the new one in, a
+    worker leaves the old one inside its temporary: the sweep moves it back. It touches
+    nothing a running process noted, nor a path that is not a temporary of the noted
+    output."""
+    from asgp_ros.common import fileio
+
+    ledger = tmp_path / "ledger"
+    ledger.mkdir()
+    out = tmp_path / "out"
+    tmp = tmp_path / ".out.0123456789ab.tmp"
+    (tmp / ".replaced").mkdir(parents=True)
+    (tmp / ".replaced" / "old.txt").write_text("the user's")
+    (tmp / "out").mkdir()
+    (tmp / "out" / "new.txt").write_text("half of the new one")
+    running = tmp_path / ".kept.abcdefabcdef.tmp"
+    running.mkdir()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (ledger / str(_ended_pid())).write_text(
+        json.dumps([str(tmp), str(out)]) + "\n"
+        + json.dumps([str(mine), str(tmp_path / "x")]) + "\n" + '["cut sh')
+    (ledger / str(os.getpid())).write_text(json.dumps([str(running), str(tmp_path / "kept")]))
+    fileio._sweep_ledger(ledger)
+    assert (out / "old.txt").read_text() == "the user's"
+    assert not tmp.exists()
+    assert running.is_dir() and mine.is_dir()
 
 
 _SIGNAL_TARGET = r"""

@@ -58,6 +58,10 @@ class Terminated(KeyboardInterrupt):
 _received: list[int] = []  # the stop signals this process has received, oldest first
 _deferring: list[int] = [0]  # depth of signals_deferred() blocks
 _worker: list[bool] = [False]  # a pool worker: a stop signal ends it through SystemExit
+# The ledger of the pool this process is a worker of (set in the parent before the fork):
+# a directory where each worker notes the temporaries it creates, one file per process, so
+# that the parent can remove those of a worker it had to kill (SIGKILL runs no ``finally``).
+_ledger: list[Path | None] = [None]
 
 
 def raise_on_termination() -> None:
@@ -240,27 +244,43 @@ def worker_pool(processes: int, initializer: Callable[..., object] | None = None
       ``SystemExit`` so that the workers' ``finally`` blocks run; workers still alive after
       :data:`POOL_STOP_GRACE_S` are killed. A signal that arrives while the pool starts
       is raised once the pool exists, and stops it the same way.
+    - The temporaries a killed worker leaves (:func:`atomic_path`'s, which its workers note
+      in a ledger before creating them) are removed when the block ends
+      (:func:`_sweep_ledger`).
 
     Why not ``with pool:``: its ``__exit__`` terminates the pool also after success.
     """
     ctx = multiprocessing.get_context("fork")
     before = set(multiprocessing.active_children())
     pool: multiprocessing.pool.Pool | None = None
+    outer = _ledger[0]
+    ledger: Path | None = None
     try:
-        with signals_deferred():  # a signal inside fork's hooks would be lost
-            mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
-            try:
-                pool = ctx.Pool(processes, initializer=_start_pool_worker,
-                                initargs=(initializer, initargs))
-            finally:
-                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
-        yield pool
-    except BaseException:
-        if pool is not None:
-            _stop_pool(pool, before)
-        raise
-    pool.close()
-    pool.join()
+        try:
+            with signals_deferred():  # a signal inside fork's hooks would be lost
+                with contextlib.suppress(OSError):  # without one, a kill leaves temporaries
+                    ledger = Path(tempfile.mkdtemp(prefix="asgp-pool-"))
+                # the workers inherit it, also those the pool forks later to replace one;
+                # this process's own notes are never swept (it is running)
+                _ledger[0] = ledger
+                mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+                try:
+                    pool = ctx.Pool(processes, initializer=_start_pool_worker,
+                                    initargs=(initializer, initargs))
+                finally:
+                    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+            yield pool
+        except BaseException:
+            if pool is not None:
+                _stop_pool(pool, before)
+            raise
+        pool.close()
+        pool.join()
+    finally:
+        _ledger[0] = outer
+        if ledger is not None:
+            _sweep_ledger(ledger)
+            shutil.rmtree(ledger, ignore_errors=True)
 
 
 def _stop_pool(pool: multiprocessing.pool.Pool,
@@ -308,6 +328,7 @@ def _stop_pool(pool: multiprocessing.pool.Pool,
             worker.join(max(0.0, deadline - time.monotonic()))  # early), then the kill
             if worker.is_alive():
                 worker.kill()
+                worker.join(_POOL_STOP_AFTER_KILL_S)  # ended before its temporaries go
         # With every worker gone, terminate() either ends at once or never: it can be
         # stuck for good on the task queue that no worker reads any more (its own task
         # handler blocked in a write; seen by benchmarks/fuzz.py, seed 5151, as a
@@ -380,8 +401,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     tmpdir: Path | None = None
     try:
         with signals_deferred():  # no signal between creating and owning tmpdir
-            tmpdir = Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp",
-                                           dir=parent))
+            tmpdir = _temporary_directory(parent, final)
         tmp = tmpdir / final.name
         yield tmp
         if not tmp.exists():
@@ -397,7 +417,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         with signals_deferred():
             _refuse_other_kind(final, directory=directory, replace=replace)
             if directory and os.path.lexists(final):
-                old = tmpdir / ".replaced"
+                old = tmpdir / _REPLACED
                 os.rename(final, old)
                 try:
                     os.rename(tmp, final)
@@ -410,6 +430,85 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         if tmpdir is not None:
             with signals_deferred():  # raised once the temporary is gone
                 shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+#: The name atomic_path gives the aside copy of a directory it replaces, in its temporary.
+_REPLACED = ".replaced"
+
+
+def _temporary_directory(parent: Path, final: Path) -> Path:
+    """``tempfile.mkdtemp`` next to ``final`` (``.<name>.<random>.tmp``), noted first in the
+    pool's ledger when this process is a pool worker (see :func:`_sweep_ledger`)."""
+    ledger = _ledger[0]
+    for _ in range(100):
+        path = parent / f".{final.name}.{os.urandom(6).hex()}.tmp"
+        if ledger is not None:  # noted before it exists: a kill in between leaves nothing
+            # the ledger is a courtesy, never a failure
+            with (contextlib.suppress(OSError),
+                  open(ledger / str(os.getpid()), "a", encoding="utf-8") as fh):
+                fh.write(json.dumps([str(path.absolute()), str(final.absolute())]) + "\n")
+        try:
+            os.mkdir(path, 0o700)
+        except FileExistsError:
+            continue
+        return path
+    raise FileExistsError(f"no free temporary name next to {final}")
+
+
+def _process_ended(pid: int) -> bool:
+    """Process ``pid`` runs no more (gone, or a zombie). A pid in use by another process
+    since reads as running: what its worker left then stays, which is the safe side."""
+    try:
+        stat_line = Path(f"/proc/{pid}/stat").read_text()
+        return stat_line.rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+    except (OSError, IndexError):
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            return False
+        return False
+
+
+def _sweep_ledger(ledger: Path) -> None:
+    """Remove what the ended workers of a pool noted in ``ledger`` and left behind.
+
+    A worker removes its own temporaries on an exception or a stop signal; one killed after
+    the grace period cannot. Each noted temporary still there is removed; a directory it
+    was replacing, moved aside into it when the kill came between the two renames of the
+    commit, is moved back first when nothing has taken its place. Only paths this pool's
+    workers noted, of the form ``.<name>.<random>.tmp``, are touched, and only once the
+    worker that noted them has ended.
+    """
+    try:
+        notes = sorted(ledger.iterdir())
+    except OSError:
+        return
+    for note in notes:
+        if not (note.name.isdigit() and _process_ended(int(note.name))):
+            continue
+        try:
+            lines = note.read_text(encoding="utf-8").splitlines()
+        except (OSError, ValueError):
+            continue
+        for line in lines:
+            try:
+                tmp_name, final_name = json.loads(line)
+                tmp, final = Path(tmp_name), Path(final_name)
+            except (ValueError, TypeError):
+                continue  # a line cut short by the kill
+            if not (tmp.name.startswith(f".{final.name}.") and tmp.name.endswith(".tmp")
+                    and tmp.is_dir() and not tmp.is_symlink()):
+                continue
+            with signals_deferred():
+                aside = tmp / _REPLACED
+                if aside.is_dir() and not aside.is_symlink() and not os.path.lexists(final):
+                    with contextlib.suppress(OSError):
+                        os.rename(aside, final)
+                shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
