@@ -325,3 +325,24 @@ def test_checks_take_the_full_pose_covariance():
     assert within2[0] == within3[0] and per2.shape == per3.shape == (1, 1)
     cov3[..., 2, 2] = 0.3**2  # turning, the front corners reach the wall
     assert within2[0] == 0.0 and check(pose, cov3)[1][0] > 0.3
+
+
+def test_the_support_points_have_the_extent_of_all_points():
+    """The raster's windows are cut by the obstacle points' extent in each heading bin's
+    frame, taken over their convex hull's vertices: in every direction it must be the extent
+    of all the points (a cloud, a wall on a line, duplicates, a few points)."""
+    rng = np.random.default_rng(11)
+    line = np.stack([np.full(200, 2.0), np.linspace(-3, 3, 200)], 1)
+    clouds = [rng.uniform(-4, 4, (3000, 2)), line, np.repeat(line[:7], 5, axis=0),
+              rng.normal(0, 1, (5, 2)), np.stack([3 * np.cos(a := rng.uniform(0, 7, 900)),
+                                                  2 * np.sin(a)], 1) + 1e3]
+    phi = np.linspace(0.0, 2.0 * np.pi, 1441)
+    for pts in clouds:
+        sup = C._support_points(pts)
+        assert {tuple(p) for p in sup} <= {tuple(p) for p in pts}
+        for a, b in ((np.cos(phi), np.sin(phi)), (-np.sin(phi), np.cos(phi))):
+            every = a[:, None] * pts[None, :, 0] + b[:, None] * pts[None, :, 1]
+            some = a[:, None] * sup[None, :, 0] + b[:, None] * sup[None, :, 1]
+            np.testing.assert_allclose(some.min(axis=1), every.min(axis=1), rtol=0, atol=1e-9)
+            np.testing.assert_allclose(some.max(axis=1), every.max(axis=1), rtol=0, atol=1e-9)
+    assert C._support_points(rng.uniform(-4, 4, (3000, 2))).shape[0] < 100

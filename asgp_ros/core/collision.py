@@ -613,12 +613,29 @@ class _Plan(NamedTuple):
         return math.sqrt(2.0) * self.cell + self.sweep
 
 
-def _raster_plan(pts: FloatArray, rect: _Rect, smp: _Samples, cell: float, nb: int
-                 ) -> _Plan:
+def _support_points(pts: FloatArray) -> FloatArray:
+    """The points of ``pts`` [m, 2] that can be extreme in some direction: the vertices of
+    their convex hull (Qhull, in double precision), or all of them when the hull is
+    degenerate (fewer than three points, all on a line). The extent of the points along any
+    direction is the extent of these; :func:`_raster_plan` widens it by _EPS_M for the
+    round-off of a point Qhull took for one on an edge."""
+    if pts.shape[0] <= 8:
+        return pts
+    try:
+        hull = scipy.spatial.ConvexHull(pts)
+    except (scipy.spatial.QhullError, ValueError):
+        return pts
+    out: FloatArray = pts[hull.vertices]
+    return out
+
+
+def _raster_plan(pts: FloatArray, support: FloatArray, rect: _Rect, smp: _Samples,
+                 cell: float, nb: int) -> _Plan:
     """The heading bins reached by the samples (``nb`` around the circle, fewer when the
     (step, bin) pairs would exceed their budget), and for each a window in its frame:
-    where its samples are and a box of an obstacle point in ``pts`` can be. ``cell`` is
-    coarsened when the windows would exceed the cell budget."""
+    where its samples are and a box of an obstacle point in ``pts`` can be (found from
+    ``support``, their :func:`_support_points`). ``cell`` is coarsened when the windows
+    would exceed the cell budget."""
     n = smp.mu.shape[0]
     # bins reached by each step: its headings span theta +- turn (unwrapped bin numbers)
     th_lo, th_hi = smp.theta - smp.turn, smp.theta + smp.turn
@@ -666,13 +683,14 @@ def _raster_plan(pts: FloatArray, rect: _Rect, smp: _Samples, cell: float, nb: i
     np.maximum.at(win[:, 1], pair_bin, cu + hu)
     np.minimum.at(win[:, 2], pair_bin, cv - hv)
     np.maximum.at(win[:, 3], pair_bin, cv + hv)
-    # ... cut to where a box can be
-    for rows in _chunks(nu, pts.shape[0]):
-        u0, u1, v0, v1 = _boxes(pts, cb[rows], sb[rows], box[rows])
-        win[rows, 0] = np.maximum(win[rows, 0], u0.min(axis=1))
-        win[rows, 1] = np.minimum(win[rows, 1], u1.max(axis=1))
-        win[rows, 2] = np.maximum(win[rows, 2], v0.min(axis=1))
-        win[rows, 3] = np.minimum(win[rows, 3], v1.max(axis=1))
+    # ... cut to where a box can be: the points' extent in each bin's frame, less the box
+    for rows in _chunks(nu, support.shape[0]):
+        ou = cb[rows, None] * support[None, :, 0] + sb[rows, None] * support[None, :, 1]
+        ov = cb[rows, None] * support[None, :, 1] - sb[rows, None] * support[None, :, 0]
+        win[rows, 0] = np.maximum(win[rows, 0], ou.min(axis=1) - _EPS_M - box[rows, 1])
+        win[rows, 1] = np.minimum(win[rows, 1], ou.max(axis=1) + _EPS_M - box[rows, 0])
+        win[rows, 2] = np.maximum(win[rows, 2], ov.min(axis=1) - _EPS_M - box[rows, 3])
+        win[rows, 3] = np.minimum(win[rows, 3], ov.max(axis=1) + _EPS_M - box[rows, 2])
     empty = (win[:, 1] < win[:, 0]) | (win[:, 3] < win[:, 2]) | (pts.shape[0] == 0)
 
     # the layout: block b holds rows [row[b], row[b] + H_b + 2) of a [rows, wc] array;
@@ -731,10 +749,11 @@ def _raster_touch(fld: DistanceField, rect: _Rect, smp: _Samples, cell: float,
     ext_hi = (smp.mu + smp.half).max(axis=0) + reach
     pts = fld.points[np.all((fld.points >= ext_lo) & (fld.points <= ext_hi), axis=1)]
     m = pts.shape[0]
-    plan = _raster_plan(pts, rect, smp, cell, max(1, math.ceil(2.0 * math.pi / heading_bin
-                                                                - 1e-9)))
+    support = _support_points(pts)
+    plan = _raster_plan(pts, support, rect, smp, cell,
+                        max(1, math.ceil(2.0 * math.pi / heading_bin - 1e-9)))
     while plan.cell > 1.5 * cell and plan.nb > 2:
-        wider = _raster_plan(pts, rect, smp, cell, plan.nb // 2)
+        wider = _raster_plan(pts, support, rect, smp, cell, plan.nb // 2)
         if wider.tolerance >= plan.tolerance:
             break
         plan = wider
