@@ -444,3 +444,20 @@ def test_asgp_info_shows_the_configuration_and_refuses_what_is_no_model(
         assert main(["info", str(bad)]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and str(bad) in err
+
+
+def test_the_coverage_is_reported_per_speed_regime_and_steadiness_together(auto_model) -> None:  # type: ignore[no-untyped-def]
+    """Slow steady driving can be over-confident where slow driving as a whole is not: the
+    report crosses the speed regimes with the joystick's steadiness, and asgp info shows it."""
+    from asgp_ros.cli.info import coverage_lines
+
+    cal = auto_model.meta["calibration"]
+    cross, speed = cal["by_speed_and_steadiness"], cal["by_speed"]
+    assert list(cross) == [f"{r}, {g}" for r in speed for g in ("steady", "changing")]
+    for regime, t in speed.items():
+        assert cross[f"{regime}, steady"]["cases"] + cross[f"{regime}, changing"]["cases"] == \
+            t["cases"]
+    steady = sum(cross[f"{r}, steady"]["cases"] for r in speed)
+    assert steady == cal["by_steadiness"]["steady joystick"]["cases"]
+    lines = coverage_lines(cal)
+    assert sum(", steady" in ln or ", changing" in ln for ln in lines) == 2 * len(speed)

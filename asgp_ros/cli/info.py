@@ -53,7 +53,7 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
                             for h in hs))
 
     lines.append(row("all", cal["by_horizon"]))
-    for group in ("by_speed", "by_steadiness", "by_recording"):
+    for group in ("by_speed", "by_steadiness", "by_speed_and_steadiness", "by_recording"):
         for name, t in cal.get(group, {}).items():
             lines.append(row(name[-28:], t))
     return lines

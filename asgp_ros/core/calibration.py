@@ -32,7 +32,8 @@ is 95 %: how over-confident the ellipses are depends on the regime (slow driving
 fast), so one global factor would over-cover one regime to under-cover another. The
 regime is known when the prediction is made (the last measured velocity), so the node
 applies the same map. The coverage that results is reported per horizon, per speed
-regime, per steadiness of the joystick and per held-out recording, cross-validated
+regime, per steadiness of the joystick, per regime and steadiness together (slow steady
+driving is where a GP is most over-confident) and per held-out recording, cross-validated
 (:func:`asgp_ros.learning.training.calibrate`), so that what the map does not fit is visible.
 
 What it does not promise: the calibration holds for data like the held-out part of the

@@ -738,7 +738,8 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
               ) -> tuple[VarianceCalibration, dict[str, Any]]:
     """Fit the variance calibration of ``model`` on held-out series; return it with a
     JSON-able report of the held-out coverage of the 95 % ellipse, raw and calibrated,
-    per horizon, per speed regime, per joystick steadiness and per recording.
+    per horizon, per speed regime, per joystick steadiness, per regime and steadiness
+    together, and per recording.
 
     The calibrated figures are cross-validated: the held-out cases are cut in two halves
     in time (the first and second half of each recording's held-out part); each half is
@@ -782,6 +783,8 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
         "by_horizon": table(np.ones(N, dtype=bool)),
         "by_speed": by_speed,
         "by_steadiness": {"steady joystick": table(steady), "changing joystick": table(~steady)},
+        "by_speed_and_steadiness": coverage_table.by_speed_and(
+            cal.speed_edges, {"steady": steady, "changing": ~steady}),
         "by_recording": {name: table(bag == name) for name in dict.fromkeys(cases.names)},
     }
     if not applied:
@@ -889,10 +892,21 @@ class _CoverageTable:
 
     def by_speed(self, speed_edges: Sequence[float]) -> dict[str, Any]:
         """A table per speed regime of the calibration (its ``speed_edges``)."""
+        return {name: self.table(mask) for name, mask in self._regimes(speed_edges)}
+
+    def by_speed_and(self, speed_edges: Sequence[float],
+                     groups: dict[str, np.ndarray]) -> dict[str, Any]:
+        """A table per speed regime and group (``groups``: name -> mask), regime by
+        regime: the regime's over-confidence can depend on the group within it."""
+        return {f"{name}, {group}": self.table(mask & inside)
+                for name, mask in self._regimes(speed_edges)
+                for group, inside in groups.items()}
+
+    def _regimes(self, speed_edges: Sequence[float]) -> list[tuple[str, np.ndarray]]:
         speed = self.cases.speed
         edges = (0.0, *speed_edges, math.inf)
-        return {f"|v| {lo:.2f}-{hi:.2f} m/s" if math.isfinite(hi) else f"|v| >= {lo:.2f} m/s":
-                self.table((speed >= lo) & (speed < hi)) for lo, hi in itertools.pairwise(edges)}
+        return [(f"|v| {lo:.2f}-{hi:.2f} m/s" if math.isfinite(hi) else f"|v| >= {lo:.2f} m/s",
+                 (speed >= lo) & (speed < hi)) for lo, hi in itertools.pairwise(edges)]
 
 
 def _coverage_figure(e: np.ndarray, c: np.ndarray) -> float | None:
