@@ -33,8 +33,25 @@ demo: $(STAMP)
 firmware: $(SYSSTAMP)
 	$(MAKE) -C firmware
 
+# Three benchmarks read a dataset (`asgp dataset --out DIR --scale 1 --seed 0`): given with
+# `make bench DATA=DIR`, else skipped with a line saying so.
+DATA ?=
+DATA_BENCH := benchmarks/adapt_choice.py benchmarks/calibration_covariates.py \
+	benchmarks/calibration_regimes.py
+BENCH_RUN ?= $(VPY)
+
 bench: setup
-	for b in benchmarks/*.py; do echo "== $$b"; $(VPY) $$b || exit 1; done
+	@for b in benchmarks/*.py; do \
+	  args=""; \
+	  case " $(DATA_BENCH) " in *" $$b "*) \
+	    if [ -z "$(DATA)" ]; then echo "== $$b: skipped (needs a dataset: make bench DATA=DIR)"; \
+	      continue; fi; \
+	    if [ "$$b" = benchmarks/calibration_regimes.py ]; then \
+	      args="docs/reproduction/models/tile_asgp.npz $(DATA)/tile/tile_07 $(DATA)/tile/tile_08"; \
+	    else args="$(DATA)"; fi;; \
+	  esac; \
+	  echo "== $$b $$args"; $(BENCH_RUN) $$b $$args || exit 1; \
+	done
 
 lint: setup
 	$(VPY) -m ruff check asgp_ros test benchmarks launch
