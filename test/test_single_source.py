@@ -245,3 +245,14 @@ def test_readme_names_the_defined_topics_horizons_and_threshold():
     assert f"--horizons {' '.join(keys)}" in readme and " / ".join(keys) in readme
     assert f"--threshold {THRESHOLD_M:.2f}" in readme
     assert f"<= {100 * THRESHOLD_M:.0f} cm" in readme
+
+
+def test_readme_links_within_itself_lead_to_its_headings():
+    """The contents and every other in-page link name a heading that exists (GitHub's
+    anchors: lower case, punctuation dropped, spaces as hyphens)."""
+    readme = (REPO / "README.md").read_text()
+    headings = re.findall(r"^#{1,6} (.+)$", readme, flags=re.M)
+    anchors = {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
+    links = re.findall(r"\]\(#([^)]+)\)", readme)
+    assert len(links) >= len(re.findall(r"^## ", readme, flags=re.M))  # the contents
+    assert sorted(set(links) - anchors) == []
