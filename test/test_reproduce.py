@@ -106,10 +106,20 @@ def test_missing_or_incomplete_dataset_is_refused(tmp_path, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # two quick reproductions (about 70 s each on an idle machine)
+@pytest.mark.timeout(600)  # a quick reproduction (about 50-70 s on an idle machine)
 def test_reproduce_quick_end_to_end(tmp_path, capsys):
+    """A quick reproduction that builds its own dataset, replacing an earlier report as a
+    whole (--force), with two jobs; afterwards, without --force, it is refused."""
+    from asgp_ros.common.fileio import write_marker
+
     data, out = tmp_path / "data", tmp_path / "report"
-    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 0
+    out.mkdir()
+    write_marker(out, "reproduce-report")  # an earlier report: replaced as a whole
+    (out / "report.md").write_text("an earlier report")
+    (out / "stale.txt").write_text("not in a new report")
+    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick", "--jobs", "2",
+                 "--force"]) == 0
+    assert not (out / "stale.txt").exists()
     printed = capsys.readouterr().out
     assert "Table I (tested on Tile)" in printed and "Table III (tested on Hybrid)" in printed
     # the dataset was built in the paper's layout
@@ -194,13 +204,13 @@ def test_reproduce_quick_end_to_end(tmp_path, capsys):
     # Table I, the Both-trained MLP's row: the paper's 52.06 % beside our 2.0 s cell
     line = next(ln for ln in report.splitlines() if ln.startswith("| Both | MLP |"))
     assert line.split(" | ")[-1] == "52.06 |"
-    # a second run replaces the report only when asked, as a whole, reusing the dataset
+    assert res["settings"]["jobs"] == 2
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    # a second run replaces the report only when asked
+    before = (out / "results.json").read_bytes()
     assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick"]) == 2
     assert "--force" in capsys.readouterr().err
-    assert main(["reproduce", "--data", str(data), "--out", str(out), "--quick",
-                 "--jobs", "2", "--force"]) == 0
-    assert json.loads((out / "results.json").read_text())["settings"]["jobs"] == 2
-    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    assert (out / "results.json").read_bytes() == before
 
 
 def test_compared_models_come_from_the_registry_of_kinds():
