@@ -37,7 +37,8 @@ def rot_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
     rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
     ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
-    return rz @ ry @ rx
+    R: np.ndarray = rz @ ry @ rx
+    return R
 
 
 def planar_pose(x: float, y: float, theta: float) -> np.ndarray:
@@ -104,7 +105,8 @@ class CameraExtrinsic:
 
     def camera_pose(self, T_world_base: np.ndarray) -> np.ndarray:
         """Pose [4, 4] of the optical frame in the world from the chair pose T_world_base."""
-        return np.asarray(T_world_base, float) @ self.T_base_optical
+        T: np.ndarray = np.asarray(T_world_base, float) @ self.T_base_optical
+        return T
 
     def camera_pose_planar(self, x: float, y: float, theta: float) -> np.ndarray:
         """Pose [4, 4] of the optical frame in the world for a chair at (x, y, theta)."""
@@ -118,7 +120,8 @@ class CameraExtrinsic:
         T_b0_b1 = T_bc T_c0_c1 T_bc^-1.
         """
         Tbc = self.T_base_optical
-        return Tbc @ np.asarray(camera_motion, float) @ invert(Tbc)
+        T: np.ndarray = Tbc @ np.asarray(camera_motion, float) @ invert(Tbc)
+        return T
 
     def planar_twist(self, camera_motion: np.ndarray, dt: float) -> tuple[float, float]:
         """Chair velocities (v m/s, omega rad/s) over dt from one camera motion [4, 4].
@@ -149,7 +152,8 @@ class CameraExtrinsic:
         T_base_optical and divided by dt^2 (first order).
         """
         A = adjoint(self.T_base_optical)
-        return A @ np.asarray(camera_covariance, float) @ A.T / (dt * dt)
+        C: np.ndarray = A @ np.asarray(camera_covariance, float) @ A.T / (dt * dt)
+        return C
 
 
 DEFAULT_EXTRINSIC = CameraExtrinsic()

@@ -80,10 +80,11 @@ import math
 import time
 from dataclasses import dataclass, fields
 from enum import Enum
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
@@ -350,8 +351,9 @@ class VisualOdometry:
     recovery_frames: int = 5
     recovery_scale: float = 1.0
 
-    def __init__(self, camera_matrix, extrinsic: CameraExtrinsic = DEFAULT_EXTRINSIC,
-                 image_size: tuple[int, int] | None = None, **options) -> None:
+    def __init__(self, camera_matrix: ArrayLike,
+                 extrinsic: CameraExtrinsic = DEFAULT_EXTRINSIC,
+                 image_size: tuple[int, int] | None = None, **options: Any) -> None:
         K = np.asarray(camera_matrix, dtype=float)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             raise ValueError(f"camera_matrix must be a finite 3x3 matrix, got shape {K.shape}")
@@ -388,7 +390,7 @@ class VisualOdometry:
         return self._pose.copy()
 
     # ------------------------------------------------------------------------------------
-    def process(self, image, depth, stamp: float) -> VOResult:
+    def process(self, image: np.ndarray, depth: np.ndarray, stamp: float) -> VOResult:
         """Track one RGB-D frame.
 
         Args:
@@ -440,7 +442,7 @@ class VisualOdometry:
         return result
 
     # ------------------------------------------------------------------------------------
-    def _check_input(self, image, depth, stamp: float) -> str:
+    def _check_input(self, image: np.ndarray, depth: np.ndarray, stamp: float) -> str:
         if not math.isfinite(stamp):
             return f"stamp {stamp} is not finite"
         if self._prev_stamp is not None and stamp <= self._prev_stamp:
@@ -521,7 +523,8 @@ class VisualOdometry:
         levels = [gray]
         for _ in range(1, o.num_levels):
             levels.append(cv2.pyrDown(levels[-1]))
-        fast = cv2.FastFeatureDetector_create(round(self._fast_threshold), True)
+        fast = cv2.FastFeatureDetector_create(  # type: ignore[attr-defined]
+            round(self._fast_threshold), True)
         xy_all, lvl_all, desc_all = [], [], []
         n_level0 = 0
         for lv, img in enumerate(levels):
@@ -530,7 +533,7 @@ class VisualOdometry:
                 n_level0 = len(kps)
             if not kps:
                 continue
-            xy = cv2.KeyPoint_convert(kps)  # [n, 2] float32
+            xy = cv2.KeyPoint_convert(kps)  # type: ignore[attr-defined]  # [n, 2] float32
             resp = np.fromiter((k.response for k in kps), np.float32, len(kps))
             h, w = img.shape
             xy = np.round(xy)
@@ -848,18 +851,20 @@ class VisualOdometry:
         return _Covariance(covariance=cov, sigma2=sigma2, dof=dof, cells=G,
                            translation_std=t_std)
 
-    def _reprojection_errors(self, T, P, Q, uv_ref, uv_cur) -> np.ndarray:
+    def _reprojection_errors(self, T: np.ndarray, P: np.ndarray, Q: np.ndarray,
+                             uv_ref: np.ndarray, uv_cur: np.ndarray) -> np.ndarray:
         """Per match max of forward and backward reprojection error (px) [n]."""
         X = P @ T[:3, :3].T + T[:3, 3]
         Y = (Q - T[:3, 3]) @ T[:3, :3]
         with np.errstate(divide="ignore", invalid="ignore"):
             ef = np.linalg.norm(self._project(X) - uv_cur, axis=1)
             eb = np.linalg.norm(self._project(Y) - uv_ref, axis=1)
-        e = np.maximum(ef, eb)
+        e: np.ndarray = np.maximum(ef, eb)
         e[~np.isfinite(e) | (X[:, 2] <= 0) | (Y[:, 2] <= 0)] = np.inf
         return e
 
-    def _gauss_newton(self, T, P, Q, uv_ref, uv_cur, w) -> _GaussNewton:
+    def _gauss_newton(self, T: np.ndarray, P: np.ndarray, Q: np.ndarray, uv_ref: np.ndarray,
+                      uv_cur: np.ndarray, w: np.ndarray) -> _GaussNewton:
         """Minimise the bidirectional reprojection error over T_cur_ref (as Fovis).
 
         r_f = pi(R P + t) - uv_cur, r_b = pi(R^T (Q - t)) - uv_ref, weights w^2, update
@@ -921,7 +926,8 @@ def _bucket(xy: np.ndarray, resp: np.ndarray, cell: int, per_cell: int, width: i
     k = key[order]
     start = np.r_[0, np.flatnonzero(k[1:] != k[:-1]) + 1]
     rank = np.arange(len(k)) - np.repeat(start, np.diff(np.r_[start, len(k)]))
-    return order[rank < per_cell]
+    kept: np.ndarray = order[rank < per_cell]
+    return kept
 
 
 _DY, _DX = np.mgrid[-_HALF:_HALF + 1, -_HALF:_HALF + 1]
@@ -986,7 +992,8 @@ def _patches(img: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Zero-mean unit-variance PATCHxPATCH patches [n, PATCH^2] float32 around integer xy."""
     if len(xy) == 0:
         return np.zeros((0, PATCH * PATCH), np.float32)
-    p = img[xy[:, 1, None] + _DY[None], xy[:, 0, None] + _DX[None]].astype(np.float32)
+    p: np.ndarray = img[xy[:, 1, None] + _DY[None], xy[:, 0, None] + _DX[None]].astype(
+        np.float32)
     p -= p.mean(axis=1, keepdims=True)
     p /= np.maximum(p.std(axis=1, keepdims=True), 1.0)
     return p
@@ -1132,14 +1139,16 @@ def _se3_log(T: np.ndarray) -> np.ndarray:
     th = math.acos(cos_th)
     if th < 1e-10:
         om = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-        return np.r_[T[:3, 3], om]
+        small: np.ndarray = np.r_[T[:3, 3], om]
+        return small
     om = th / (2.0 * math.sin(th)) * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0],
                                                  R[1, 0] - R[0, 1]])
     W = np.array([[0.0, -om[2], om[1]], [om[2], 0.0, -om[0]], [-om[1], om[0], 0.0]])
     b = (1.0 - math.cos(th)) / th**2
     c = (th - math.sin(th)) / th**3
     V = np.eye(3) + b * W + c * W @ W
-    return np.r_[np.linalg.solve(V, T[:3, 3]), om]
+    xi: np.ndarray = np.r_[np.linalg.solve(V, T[:3, 3]), om]
+    return xi
 
 
 def _scale_motion(T: np.ndarray, s: float) -> np.ndarray:
