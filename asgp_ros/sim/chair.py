@@ -241,7 +241,7 @@ def _profile(u: float, dead_zone: float, expo: float) -> float:
     a = abs(u)
     if a <= dead_zone:
         return 0.0
-    s = min(1.0, (a - dead_zone) / (1.0 - dead_zone)) ** expo
+    s: float = min(1.0, (a - dead_zone) / (1.0 - dead_zone)) ** expo
     return s if u > 0.0 else -s
 
 

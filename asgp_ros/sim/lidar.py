@@ -104,7 +104,8 @@ class Lidar:
         self.config = config or LidarConfig()
         self._rng = np.random.default_rng(seed)
         c = self.config
-        self._beam = c.angle_min + c.angle_increment * np.arange(c.beams)
+        self._beam: FloatArray = c.angle_min + c.angle_increment * np.arange(c.beams,
+                                                                            dtype=float)
 
     def true_ranges(self, x: float, y: float, theta: float) -> FloatArray:
         """Noise-free ranges [beams] from the chair's pose (base frame at x, y, theta)."""

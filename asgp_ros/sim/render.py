@@ -138,9 +138,10 @@ class RGBDRenderer:
         self._margin = 64
         hb, wb = self.height + self._margin, self.width + self._margin
         self._image_bank = np.empty((hb, wb, 3), np.int16)
-        cv2.randn(self._image_bank, 0, self.noise.image_sigma)
+        cv2.randn(self._image_bank, 0, self.noise.image_sigma)  # type: ignore[call-overload]
         self._disp_bank = np.empty((hb, wb), np.float32)
-        cv2.randn(self._disp_bank, 0, self.noise.disparity_sigma)
+        cv2.randn(self._disp_bank, 0,  # type: ignore[call-overload]
+                  self.noise.disparity_sigma)
         self._rng = np.random.default_rng(self.seed)
         fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
         self._u = np.arange(self.width, dtype=np.float32)[None, :]
@@ -157,11 +158,13 @@ class RGBDRenderer:
         ])
 
     # ------------------------------------------------------------------------------------
-    def render_chair(self, x: float, y: float, theta: float, noisy: bool = True):
+    def render_chair(self, x: float, y: float, theta: float, noisy: bool = True
+                     ) -> tuple[np.ndarray, np.ndarray]:
         """Render from the camera mounted on a chair at planar pose (x, y, theta)."""
         return self.render(self.extrinsic.camera_pose_planar(x, y, theta), noisy=noisy)
 
-    def render(self, T_world_cam: np.ndarray, noisy: bool = True):
+    def render(self, T_world_cam: np.ndarray, noisy: bool = True
+               ) -> tuple[np.ndarray, np.ndarray]:
         """Render the scene seen from the optical-frame pose T_world_cam [4, 4].
 
         Returns:
@@ -231,7 +234,8 @@ class RGBDRenderer:
         return self._apply_noise(image, ibuf)
 
     # ------------------------------------------------------------------------------------
-    def _apply_noise(self, image: np.ndarray, ibuf: np.ndarray):
+    def _apply_noise(self, image: np.ndarray, ibuf: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
         nz = self.noise
         cv2.setRNGSeed((self.seed * 1_000_003 + self.frame_index) % (2**31 - 1))
         h, w = ibuf.shape
@@ -245,7 +249,7 @@ class RGBDRenderer:
         fb = float(self.K[0, 0] * nz.baseline)
         if nz.disparity_sigma > 0 or nz.subpixel > 0:
             # Khoshelham & Elberink 2012, eq. 7-8: disparity noise -> sigma_z ~ z^2
-            disp = ibuf * np.float32(fb)
+            disp: np.ndarray = ibuf * np.float32(fb)
             if nz.disparity_sigma > 0:
                 oy, ox = self._rng.integers(0, self._margin, 2)
                 disp += self._disp_bank[oy:oy + h, ox:ox + w]
@@ -266,14 +270,14 @@ class RGBDRenderer:
             valid &= spread <= nz.edge_fraction * zt
         if nz.blob_fraction > 0:
             small = np.empty((max(2, h // 12), max(2, w // 12)), np.float32)
-            cv2.randn(small, 0, 1)
+            cv2.randn(small, 0, 1)  # type: ignore[call-overload]
             field = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
             # a Gaussian field (std ~0.6 after interpolation) above the quantile of blob_fraction
             thr = 0.6 * _normal_quantile(1.0 - nz.blob_fraction)
             valid &= field < thr
         if nz.dropout_fraction > 0:
             u = np.empty((h, w), np.float32)
-            cv2.randu(u, 0, 1)
+            cv2.randu(u, 0, 1)  # type: ignore[call-overload]
             valid &= u >= nz.dropout_fraction
         depth[~valid] = 0.0
         return image, depth

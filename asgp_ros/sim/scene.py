@@ -21,7 +21,7 @@ second blank wall (-y side) and the dim zone.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import cv2
@@ -55,7 +55,8 @@ class Quad:
     def normal(self) -> np.ndarray:
         """Unit normal [3] = u x v / |u x v| (the visible side)."""
         n = np.cross(self.u, self.v)
-        return n / np.linalg.norm(n)
+        unit: np.ndarray = n / np.linalg.norm(n)
+        return unit
 
     @property
     def corners(self) -> np.ndarray:
@@ -89,7 +90,8 @@ def _noise(rng: np.random.Generator, h: int, w: int, scale: float, sigma: float)
     """Smooth noise [h, w] float32 of std about sigma with features of ``scale`` pixels."""
     sh, sw = max(2, int(h / scale)), max(2, int(w / scale))
     small = rng.standard_normal((sh, sw)).astype(np.float32)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC) * sigma
+    out: np.ndarray = cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC) * sigma
+    return out
 
 
 def _tile_texture(rng: np.random.Generator, w: int, h: int, ppm: float) -> np.ndarray:
@@ -98,7 +100,7 @@ def _tile_texture(rng: np.random.Generator, w: int, h: int, ppm: float) -> np.nd
     ix, iy = (xs // tile).astype(np.int32), (ys // tile).astype(np.int32)
     shades = rng.uniform(-28, 28, size=(int(h / tile) + 2, int(w / tile) + 2)).astype(np.float32)
     base = np.array([190, 196, 200], np.float32)  # BGR light grey-beige
-    img = base[None, None, :] + shades[iy, ix][..., None]
+    img: np.ndarray = base[None, None, :] + shades[iy, ix][..., None]
     img += rng.normal(0, 14, size=(h, w, 1)).astype(np.float32)  # speckle
     img += _noise(rng, h, w, 6, 14)[..., None]
     grout = ((xs % tile) < 0.012 * ppm) | ((ys % tile) < 0.012 * ppm)
@@ -108,15 +110,16 @@ def _tile_texture(rng: np.random.Generator, w: int, h: int, ppm: float) -> np.nd
 
 def _carpet_texture(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     base = np.array([110, 100, 140], np.float32)
-    fibre = rng.normal(0, 9, size=(h, w)).astype(np.float32)
+    fibre: np.ndarray = rng.normal(0, 9, size=(h, w)).astype(np.float32)
     fibre = cv2.GaussianBlur(fibre, (0, 0), 1.2)
     # loop-pile mottling: low-contrast blobs a few centimetres across
-    img = (base[None, None, :] + fibre[..., None] + _noise(rng, h, w, 5, 9)[..., None]
-           + _noise(rng, h, w, 80, 3)[..., None])
+    img: np.ndarray = (base[None, None, :] + fibre[..., None] + _noise(rng, h, w, 5, 9)[..., None]
+                       + _noise(rng, h, w, 80, 3)[..., None])
     return img
 
 
-def _paint(rng: np.random.Generator, w: int, h: int, colour) -> np.ndarray:
+def _paint(rng: np.random.Generator, w: int, h: int, colour: tuple[float, float, float]
+           ) -> np.ndarray:
     img = np.empty((h, w, 3), np.float32)
     img[:] = colour
     img += _noise(rng, h, w, 150, 1.5)[..., None]
@@ -183,7 +186,7 @@ def _wood(rng: np.random.Generator, w: int, h: int) -> np.ndarray:
     return img
 
 
-def _finish(q: Quad, light) -> Quad:
+def _finish(q: Quad, light: Callable[[np.ndarray], np.ndarray]) -> Quad:
     """Bake lighting (callable world xyz [..., 3] -> gain) and build the mip pyramid."""
     h, w = q.texture.shape[:2]
     gh, gw = max(2, h // 8), max(2, w // 8)
@@ -199,11 +202,12 @@ def _finish(q: Quad, light) -> Quad:
     return q
 
 
-def _wall_quad(p0, p1, height, texture, name) -> Quad:
+def _wall_quad(p0: Sequence[float], p1: Sequence[float], height: float, texture: np.ndarray,
+               name: str) -> Quad:
     """Vertical quad from floor point p0 to floor point p1 (texture rows top-down)."""
-    p0 = np.array([p0[0], p0[1], height], float)
-    p1 = np.array([p1[0], p1[1], height], float)
-    return Quad(origin=p0, u=p1 - p0, v=np.array([0.0, 0.0, -height]), texture=texture,
+    a = np.array([p0[0], p0[1], height], float)
+    b = np.array([p1[0], p1[1], height], float)
+    return Quad(origin=a, u=b - a, v=np.array([0.0, 0.0, -height]), texture=texture,
                 name=name)
 
 
@@ -270,7 +274,8 @@ def _lighting(room: Room, dim_zone: tuple[float, float, float, float] | None
         if dim_zone is not None:
             zx0, zx1, zy0, zy1 = dim_zone
 
-            def inside(a, lo, hi):  # soft indicator of lo < a < hi, 0.3 m edges
+            def inside(a: np.ndarray, lo: float, hi: float) -> np.ndarray:
+                # soft indicator of lo < a < hi, 0.3 m edges
                 return 1.0 / ((1.0 + np.exp(-(a - lo) / 0.3)) * (1.0 + np.exp((a - hi) / 0.3)))
 
             g = g * (1.0 - 0.7 * inside(p[..., 0], zx0, zx1) * inside(p[..., 1], zy0, zy1))
@@ -324,11 +329,12 @@ def _wall_and_furniture(room: Room, k: int, name: str, p0: tuple[float, float],
 
     def s_of_x(x: float) -> float:
         # arc-length coordinate along the wall of world x (for walls along x)
-        return (x - p0[0]) / d[0]
+        return float((x - p0[0]) / d[0])
 
     blank_ranges: list[tuple[float, float]] = []
     if name == "wall_+y":
-        blank_ranges.append(tuple(sorted((s_of_x(blank[0]), s_of_x(blank[1])))))
+        lo, hi = sorted((s_of_x(blank[0]), s_of_x(blank[1])))
+        blank_ranges.append((lo, hi))
     if poor and name == "wall_-y":
         blank_ranges.append((0.5, length - 0.5))
 
@@ -380,7 +386,9 @@ def _wall_and_furniture(room: Room, k: int, name: str, p0: tuple[float, float],
     return quads
 
 
-def _box(rng, a, b, depth_vec, height, ppm, name) -> list[Quad]:
+def _box(rng: np.random.Generator, a: Sequence[float] | np.ndarray,
+         b: Sequence[float] | np.ndarray, depth_vec: Sequence[float] | np.ndarray,
+         height: float, ppm: float, name: str) -> list[Quad]:
     """Front, top and the two side faces of a box standing on the floor against a wall.
 
     a, b: back corners on the floor along the wall [2]; depth_vec [2]: into the room.

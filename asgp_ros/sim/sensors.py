@@ -99,7 +99,8 @@ def quantise_joystick(
                      + p.adc_noise_counts * rng.standard_normal(u.shape))
     counts = np.clip(counts, 0, 2**p.adc_bits - 1)
     counts[np.abs(counts - centre) <= p.centre_deadband_counts] = centre
-    return np.clip((counts - centre) / half, -1.0, 1.0)
+    out: FloatArray = np.clip((counts - centre) / half, -1.0, 1.0)
+    return out
 
 
 def joystick_samples(

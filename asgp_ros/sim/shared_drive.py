@@ -71,7 +71,7 @@ from asgp_ros.core.shared_control import (
     is_neutral,
 )
 from asgp_ros.serial import safety as fw
-from asgp_ros.serial.protocol import Mode
+from asgp_ros.serial.protocol import Mode, Status
 from asgp_ros.sim.chair import Chair, ChairState
 from asgp_ros.sim.driver import Driver, DriverParams
 from asgp_ros.sim.lidar import Lidar, LidarConfig, room_grid
@@ -480,7 +480,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
             else:
                 sent = None
         output = board.step(cal, raw, now_ms)
-        active = bool(output.status & fw.Status.OVERRIDE_ACTIVE)
+        active = bool(output.status & Status.OVERRIDE_ACTIVE)
         applied = (cal[0].dac_to_deflection(output.out_code[0]),
                    cal[1].dac_to_deflection(output.out_code[1]))
         if active:
