@@ -55,8 +55,7 @@ bench: setup
 
 lint: setup
 	$(VPY) -m ruff check asgp_ros test benchmarks launch
-	$(VPY) -m mypy --strict asgp_ros/core asgp_ros/nodes asgp_ros/common asgp_ros/recording \
-		asgp_ros/serial asgp_ros/learning asgp_ros/vo asgp_ros/sim
+	$(VPY) -m mypy --strict asgp_ros
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .mypy_cache .ruff_cache

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
@@ -20,7 +21,7 @@ from asgp_ros.learning.adapting import (
 )
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "adapt",
         help="adapt a trained ASGP to recordings of a new floor, chair or user and save it "
@@ -54,7 +55,7 @@ def _pct(x: float | None) -> str:
     return "  -  " if x is None else f"{100 * x:5.1f}%"
 
 
-def summary_lines(meta: dict) -> list[str]:
+def summary_lines(meta: dict[str, Any]) -> list[str]:
     """What ``asgp adapt`` did, from the model's ``adaptation`` meta (also ``asgp info``)."""
     ad = meta.get("adaptation")
     if not isinstance(ad, dict):

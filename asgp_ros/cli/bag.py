@@ -23,7 +23,7 @@ GAPS_LISTED = 10
 """Gaps listed per topic by ``asgp bag info`` (the rest are counted)."""
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "bag",
         help="show what a bag holds (info) or write a clean copy of a damaged one (repair)",

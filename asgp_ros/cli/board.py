@@ -17,7 +17,7 @@ from asgp_ros.serial.protocol import Status
 from asgp_ros.sim.board import ScriptedJoystick, SimulatedBoard, driver_joystick
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "board", help="simulated Arduino joystick board on a pty (or monitor a real one)",
         description="Start the simulated joystick interface board: it speaks the real link "

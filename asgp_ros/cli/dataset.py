@@ -10,7 +10,7 @@ from asgp_ros.cli._argtypes import cli_integer, cli_number
 from asgp_ros.learning.dataset import STORAGES, DatasetError, DatasetOptionError, build_dataset
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "dataset",
         help="simulate the paper's dataset: 8 tile, 8 carpet, 2 hybrid bags",

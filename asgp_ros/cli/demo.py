@@ -7,10 +7,11 @@ from pathlib import Path
 
 from asgp_ros.cli import CommandError
 from asgp_ros.core.scan_match import VELOCITY_SOURCES
-from asgp_ros.demo.orchestrator import DemoError, DemoOptions, run_demo
+from asgp_ros.demo.common import DemoError
+from asgp_ros.demo.orchestrator import DemoOptions, run_demo
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "demo",
         help="run the whole system live on simulated hardware and report how well it predicts",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
@@ -27,7 +28,7 @@ from asgp_ros.learning.evaluation import (
 )
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "evaluate",
         help="score a model's k-step path predictions on bags (success rate, median error)",
@@ -78,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def format_table(result: dict) -> str:
+def format_table(result: dict[str, Any]) -> str:
     """Plain-text table of an evaluation's JSON form."""
     head = f"{'horizon':>8} {'steps':>5} {'cases':>7} {'success':>8} {'median':>8} {'p90':>8}"
     has_cov = any(h.get("coverage_95") is not None for h in result["horizons"].values())
@@ -150,7 +151,7 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
                                skip_s=args.skip, name=str(args.model))
     except (AdaptError, EvaluationError) as exc:
         raise CommandError(str(exc)) from exc
-    result = ev.to_json()
+    result: dict[str, Any] = ev.to_json()
     print(f"{args.model} adapting online (half-life {args.adapt_half_life:g} s, trained data "
           f"{args.adapt_trained_half_life:g} s, trained floor "
           f"{args.adapt_floor:g}, {'constant' if args.adapt_constant_mean else 'trained'} "

@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     node = None
     try:
         node = rclpy.create_node("asgp_replay")
-        with BagReplayer(args.bag, config, node, should_stop=lambda: not rclpy.ok()) as player:
+        with BagReplayer(args.bag, config, node,
+                         should_stop=lambda: not rclpy.utilities.ok()) as player:
             for line in summary(player):
                 print(f"replaying {line}")
             player.run()
@@ -98,11 +99,11 @@ def run(args: argparse.Namespace) -> int:
     except ExternalShutdownException:
         pass
     except Exception:
-        if rclpy.ok():
+        if rclpy.utilities.ok():
             raise
         # SIGINT/SIGTERM shut the context down between a check and a publish: a stop
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        rclpy.utilities.try_shutdown()
     return 0

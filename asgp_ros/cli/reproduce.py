@@ -12,7 +12,7 @@ from asgp_ros.cli._argtypes import cli_integer
 from asgp_ros.cli.dataset import progress_bar
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "reproduce",
         help="train and evaluate every model of the paper's protocol; write Tables I-III",

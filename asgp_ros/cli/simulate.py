@@ -12,7 +12,7 @@ from asgp_ros.recording.bags import BagError
 from asgp_ros.sim.simulate import simulate, write_recording
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "simulate",
         help="simulate one wheelchair recording and write it as a bag",

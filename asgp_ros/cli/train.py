@@ -32,7 +32,7 @@ def _default_lags_help() -> str:
     return ", ".join(special + (["others 1"] if len(special) < len(lags) else []))
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = subparsers.add_parser(
         "train",
         help="train a motion predictor on bags and save the model file",

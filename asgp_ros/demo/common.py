@@ -49,4 +49,5 @@ def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
     if proc.returncode != 0:
         raise DemoError(f"asgp evaluate failed ({proc.returncode}): "
                         f"{(proc.stderr or proc.stdout).strip()[-2000:]}")
-    return json.loads(out_json.read_text())
+    scores: dict[str, Any] = json.loads(out_json.read_text())
+    return scores

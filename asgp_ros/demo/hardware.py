@@ -39,7 +39,7 @@ import sys
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, fields
+from dataclasses import MISSING, dataclass, fields
 from typing import Any
 
 import rclpy
@@ -173,6 +173,8 @@ class HardwareNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         for f in fields(HardwareNodeParams):
+            if f.default is MISSING:
+                raise TypeError(f"HardwareNodeParams.{f.name} has no default")
             self.declare_parameter(f.name, f.default, _descriptor(f.name, f.default))
         try:
             self.params = HardwareNodeParams(**{
@@ -402,7 +404,7 @@ class HardwareNode(Node):
         if self._thread is not None:
             self._thread.join(2.0)
         self.hw.stop()
-        super().destroy_node()
+        super().destroy_node()  # type: ignore[no-untyped-call]
 
 
 def main(args: list[str] | None = None,
@@ -425,12 +427,12 @@ def main(args: list[str] | None = None,
         rclpy.logging.get_logger(NODE_NAME).fatal(f"refusing to start: {exc}")
         return 1
     except Exception:
-        if rclpy.ok():
+        if rclpy.utilities.ok():
             raise
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        rclpy.utilities.try_shutdown()
     return 0
 
 

@@ -110,7 +110,8 @@ class TruthTrack:
         t0, t1 = self._t[i - 1], self._t[i]
         a = (t - t0) / (t1 - t0)
         p0, p1 = np.asarray(self._p[i - 1]), np.asarray(self._p[i])
-        return p0 + a * (p1 - p0)
+        p: FloatArray = p0 + a * (p1 - p0)
+        return p
 
 
 @dataclass
@@ -254,7 +255,7 @@ class OnlineScore:
         hits = self._scored("inside", h, t0_filter, dt)
         return (float(np.mean(hits)) if hits else float("nan")), len(hits)
 
-    def success(self, h: float, **kwargs) -> tuple[float, int]:
+    def success(self, h: float, **kwargs: Any) -> tuple[float, int]:
         """(success rate in [0, 1] or nan, number of scored paths) at horizon ``h``."""
         e = self.errors(h, **kwargs)
         if e.size == 0:

@@ -507,7 +507,7 @@ def _stop_monitor(node: MonitorNode, executor: SingleThreadedExecutor, context: 
     executor.remove_node(node)
     node.destroy_node()
     executor.shutdown()
-    rclpy.try_shutdown(context=context)
+    rclpy.utilities.try_shutdown(context=context)
     if recorder is not None:
         recorder.close()
         if bag_final.exists():

@@ -55,7 +55,7 @@ class Child:
     name: str
     argv: list[str]
     log_path: Path
-    proc: subprocess.Popen
+    proc: subprocess.Popen[bytes]
     started: float = field(default_factory=time.monotonic)
     ended: float | None = None
     cpu_s: float = 0.0

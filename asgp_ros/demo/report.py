@@ -281,7 +281,7 @@ def shared_control_summary(state: RunState, monitor: MonitorNode
     without = contacts_without_layer(state)
     overriding = float(value("shared_control_node", "overriding_s").replace("n/a", "nan"))
     drive = max(state.drive_seconds, 1e-9)
-    data = {
+    data: dict[str, Any] = {
         "contacts_with_layer": with_layer, "contacts_without_layer": without,
         "interventions": value("shared_control_node", "interventions"),
         "overriding_s": overriding, "untouched_share": 1.0 - overriding / drive,

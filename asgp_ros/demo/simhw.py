@@ -37,6 +37,7 @@ import copy
 import logging
 import os
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,6 +51,9 @@ from asgp_ros.sim.lidar import Lidar
 from asgp_ros.sim.world import SURFACES, room_for_surface
 
 log = logging.getLogger(__name__)
+
+if TYPE_CHECKING:
+    from asgp_ros.sim.render import RGBDRenderer
 
 FloatArray = NDArray[np.float64]
 
@@ -189,7 +193,7 @@ class SimulatedHardware:
             self.board = SimulatedBoard(self._stick, rate_hz=c.board_rate_hz,
                                         link_path=link_path, seed=s_board)
         self._cam_seed = s_cam
-        self._renderer = None
+        self._renderer: RGBDRenderer | None = None
 
     # ---- the board -------------------------------------------------------------------
 
@@ -259,7 +263,7 @@ class SimulatedHardware:
     # ---- the camera ------------------------------------------------------------------
 
     @property
-    def renderer(self):
+    def renderer(self) -> RGBDRenderer:
         """The RGB-D renderer (built on first use: about a second for the textures)."""
         if self._renderer is None:
             # OpenCV (slow to import) only once the camera is used.
