@@ -200,10 +200,10 @@ class MonitorNode(Node):
             self._by_t0.pop(next(iter(self._by_t0)))
 
     def _on_predicted_path_uncertainty(self, msg: MarkerArray, now: float) -> None:
-        cyl = [m for m in msg.markers if m.action == Marker.ADD]
-        if not cyl:
+        first = next((m for m in msg.markers if m.action == Marker.ADD), None)
+        if first is None:  # only the DELETEALL: predictions stopped
             return
-        rec = self._by_t0.get(round(conv.stamp_to_seconds(cyl[0].header.stamp) * 1e6))
+        rec = self._by_t0.get(round(conv.stamp_to_seconds(first.header.stamp) * 1e6))
         if rec is None:
             return
         rec.ellipses = conv.ellipses_from_markers(msg)
