@@ -13,6 +13,7 @@ Prints:
   it takes at 5 Hz, beside the same drive without the layer (the simulator's own cost).
 
 Usage: benchmarks/shared_control.py [MODEL] [--minutes M] [--no-heading] [--no-exact]
+                                   [--hull-reference SECONDS]
 (without MODEL a tile model is trained on 10 simulated minutes first, about a minute).
 """
 
@@ -133,6 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-heading", action="store_true",
                     help="the layer checks with the position covariance and mean heading")
     ap.add_argument("--no-exact", action="store_true", help="skip the exact method")
+    ap.add_argument("--hull-reference", type=float, default=0.0, metavar="SECONDS",
+                    help="also time a hybrid drive of SECONDS with the raster's windows from "
+                    "the hull and from every point, side by side")
     args = ap.parse_args(argv)
     config = SharedControlConfig(heading_uncertainty=not args.no_heading)
     with threadpool_limits(limits=1):
@@ -155,7 +159,33 @@ def main(argv: list[str] | None = None) -> int:
           f"{cpu_sim:.1f} s): {cpu_layer:.1f} s = {100 * cpu_layer / (60 * args.minutes):.1f} % "
           f"of one core at {rate:.1f} decisions/s")
     print(f"  contacts without / with the layer: {base.contacts} / {run.contacts}")
+    if args.hull_reference:
+        hull_side_by_side(model, args.hull_reference)
     return 0
+
+
+def hull_side_by_side(model, seconds: float) -> None:
+    """The raster's windows cut by the obstacle points' convex hull (now) or by every
+    point's box (``collision._support_points`` the identity, as before), on a hybrid drive
+    of ``seconds`` with the velocity source 'auto' (the obstacle memory carried by scan
+    matching, many points in reach), alternately, twice each: CPU time of the whole drive,
+    and whether the two drives are the same."""
+    hull = collision._support_points
+    print(f"the raster's windows from the hull vs from every point, a {seconds:g}-s hybrid "
+          "drive (velocity source auto), CPU s of the whole drive:")
+    summaries = []
+    for _ in range(2):
+        for name, support in (("hull", hull), ("every point", lambda p: p)):
+            collision._support_points = support
+            try:
+                t = time.process_time()
+                r = drive(model, seconds, 3, layer=True, inattention=0.5, surface="hybrid",
+                          velocity_source="auto")
+                print(f"  {name:11s} {time.process_time() - t:6.2f} s")
+            finally:
+                collision._support_points = hull
+            summaries.append(r.summary() | {"solve_p50_ms": 0, "solve_p99_ms": 0})
+    print(f"  the same drive every time: {all(x == summaries[0] for x in summaries)}")
 
 
 if __name__ == "__main__":

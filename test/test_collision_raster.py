@@ -346,3 +346,34 @@ def test_the_support_points_have_the_extent_of_all_points():
             np.testing.assert_allclose(some.min(axis=1), every.min(axis=1), rtol=0, atol=1e-9)
             np.testing.assert_allclose(some.max(axis=1), every.max(axis=1), rtol=0, atol=1e-9)
     assert C._support_points(rng.uniform(-4, 4, (3000, 2))).shape[0] < 100
+
+
+def test_the_raster_gives_the_same_probabilities_from_the_hull_as_from_every_point(
+        monkeypatch):
+    """The windows cut by the hull's vertices give the probabilities and the tolerance that
+    every obstacle point's box gave (a cloud, a wall, a room; position and pose
+    covariances; one path and a batch)."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 2 * np.pi, 900)
+    scenes = [rng.uniform(-4, 4, (2000, 2)),
+              np.stack([np.full(400, 1.8), np.linspace(-3, 3, 400)], 1),
+              np.stack([3 * np.cos(a), 2 * np.sin(a)], 1)]
+    k = 10
+    for n, pts in enumerate(scenes):
+        fld = points_field(pts)
+        B = (1, 64)[n % 2]
+        pose = np.zeros((B, k, 3))
+        pose[..., 0] = rng.uniform(0.2, 1.0, B)[:, None] * np.linspace(0.3, 2.0, k)
+        pose[..., 1] = rng.normal(0, 0.3, B)[:, None] * np.linspace(0.1, 1.0, k)
+        pose[..., 2] = rng.normal(0, 0.5, B)[:, None] * np.linspace(0.1, 1.0, k)
+        pos = np.eye(2) * (np.linspace(0.02, 0.1, k) ** 2)[:, None, None] * np.ones((B, 1, 1, 1))
+        full = np.zeros((B, k, 3, 3))
+        full[..., :2, :2] = pos
+        full[..., 2, 2] = np.linspace(0.01, 0.2, k) ** 2
+        for cov in (pos, full):
+            hull = C.contact_probability(fld, pose, cov, method="raster")
+            with monkeypatch.context() as m:
+                m.setattr(C, "_support_points", lambda p: p)
+                every = C.contact_probability(fld, pose, cov, method="raster")
+            np.testing.assert_array_equal(hull.per_step, every.per_step)
+            assert hull.tolerance == every.tolerance

@@ -565,10 +565,12 @@ def test_reason_codes_are_one_documented_enum():
 def test_the_sample_buffer_keeps_what_a_list_would():
     """The buffers keep their samples in one array that grows by replacement and is pruned
     from the front: against a plain list, through growth, pruning by the newest stamp (in
-    arrival order, stopping at the first sample inside the window), out-of-order and equal
-    stamps, and clears; arrays handed out earlier never change."""
+    arrival order, stopping at the first sample inside the window), the cap on rows (the
+    oldest go, counted), out-of-order and equal stamps, and clears; arrays handed out
+    earlier never change."""
     rng = np.random.default_rng(3)
-    buf = online._Buffer(2)
+    cap = 60
+    buf = online._Buffer(2, cap)
     ref: list[tuple[float, float, float]] = []
     newest = -math.inf
     handed: list[tuple[np.ndarray, np.ndarray]] = []
@@ -584,9 +586,11 @@ def test_the_sample_buffer_keeps_what_a_list_would():
         ref.append(row)
         newest = max(newest, t)
         horizon = float(rng.choice([1.0, 10.0]))
-        buf.prune(horizon)
+        capped = buf.prune(horizon)
         while ref and ref[0][0] < newest - horizon:
             ref.pop(0)
+        assert capped == max(0, len(ref) - cap)
+        del ref[:capped]
         assert len(buf) == len(ref)
         if i % 97 == 0:
             stamps, values = buf.arrays()
@@ -600,3 +604,16 @@ def test_the_sample_buffer_keeps_what_a_list_would():
     for stamps, values, want in handed:
         np.testing.assert_array_equal(stamps, want[:, 0])
         np.testing.assert_array_equal(values, want[:, 1:])
+
+
+def test_a_flood_of_samples_does_not_grow_the_buffers_without_bound():
+    """A sender stuck on one stamp (or flooding) would keep every sample inside the time
+    window: the buffers keep at most MAX_SAMPLE_RATE_HZ per second of buffer_s, the newest,
+    and count what they dropped."""
+    pred = Predictor(linear_model(), PredictorConfig(buffer_s=2.0))
+    cap = math.ceil(2.0 * online.MAX_SAMPLE_RATE_HZ)
+    for i in range(cap + 500):
+        assert pred.feed_joy(100.0, (0.001 * (i % 7), 0.0))
+    stamps, values = pred._joy.arrays()
+    assert len(stamps) == cap and pred.stats.dropped_overflow == 500
+    assert values[-1, 0] == pytest.approx(0.001 * ((cap + 499) % 7))

@@ -135,6 +135,10 @@ MAX_PLANS = 16  # plans kept: only those issued within about one step before now
 MAX_PLAN_STEPS = 1000
 #: Most override times kept (``feed_override``): 25 Hz for the longest buffer, 600 s.
 MAX_OVERRIDES = 15_000
+#: Most samples per second of ``buffer_s`` a buffer keeps (a 100 Hz joystick uses 5 %): a
+#: flood, or a sender stuck on one stamp, drops the oldest samples instead of growing the
+#: buffer without bound (counted in ``stats.dropped_overflow``).
+MAX_SAMPLE_RATE_HZ = 2000.0
 
 
 class RejectedInputError(ValueError):
@@ -207,6 +211,7 @@ class PredictorStats:
     predictions: int = 0
     overrides: int = 0
     overrides_late: int = 0
+    dropped_overflow: int = 0
     rejected: dict[Reason, int] = field(default_factory=dict)
     last_rejected: str = ""
 
@@ -324,8 +329,9 @@ class _Buffer:
 
     _MIN_CAPACITY = 64
 
-    def __init__(self, width: int) -> None:
+    def __init__(self, width: int, max_rows: int) -> None:
         self.width = width
+        self.max_rows = max(1, int(max_rows))
         self._data = np.empty((self._MIN_CAPACITY, width + 1))
         self._start = 0  # the live rows are _data[_start:_end]
         self._end = 0
@@ -350,13 +356,17 @@ class _Buffer:
             self.before_newest = t
         return late
 
-    def prune(self, horizon_s: float) -> None:
-        """Drop the oldest rows, in arrival order, up to the first one inside the window."""
+    def prune(self, horizon_s: float) -> int:
+        """Drop the oldest rows, in arrival order, up to the first one inside the window,
+        and beyond ``max_rows`` the oldest of the rest; return how many the cap dropped."""
         cutoff = self.newest - horizon_s
-        if self._start == self._end or not self._data[self._start, 0] < cutoff:
-            return
-        inside = self._data[self._start:self._end, 0] >= cutoff
-        self._start = self._end if not inside.any() else self._start + int(np.argmax(inside))
+        if self._start < self._end and self._data[self._start, 0] < cutoff:
+            inside = self._data[self._start:self._end, 0] >= cutoff
+            self._start = (self._end if not inside.any()
+                           else self._start + int(np.argmax(inside)))
+        over = max(0, self._end - self._start - self.max_rows)
+        self._start += over
+        return over
 
     def arrays(self) -> tuple[FloatArray, FloatArray]:
         """Stamps [n] and values [n, width], copies, in arrival order."""
@@ -420,9 +430,10 @@ class Predictor:
         self.dt = 1.0 / float(model.resample_config.rate_hz)
         self.lags = int(model.feature_config.lags)
         self.stats = PredictorStats()
-        self._joy = _Buffer(2)
-        self._vo = _Buffer(3)  # v, omega, tracking ok (1.0 / 0.0)
-        self._pose = _Buffer(3)
+        rows = math.ceil(self.config.buffer_s * MAX_SAMPLE_RATE_HZ)
+        self._joy = _Buffer(2, rows)
+        self._vo = _Buffer(3, rows)  # v, omega, tracking ok (1.0 / 0.0)
+        self._pose = _Buffer(3, rows)
         self._plans: list[tuple[float, FloatArray]] = []  # (stamp, [m, 2]) by stamp
         # times overrides were sent (feed_override), bounded in number as well as in time
         self._overrides: deque[float] = deque(maxlen=MAX_OVERRIDES)
@@ -535,7 +546,7 @@ class Predictor:
         self._admit(t)
         self.stats.joy_samples += 1
         self.stats.out_of_order += self._joy.add(t, values)
-        self._joy.prune(self.config.buffer_s)
+        self.stats.dropped_overflow += self._joy.prune(self.config.buffer_s)
         return True
 
     def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True) -> bool:
@@ -561,7 +572,7 @@ class Predictor:
         self._admit(t)
         self.stats.vo_samples += 1
         self.stats.out_of_order += self._vo.add(t, (v, w, 1.0 if ok else 0.0))
-        self._vo.prune(self.config.buffer_s)
+        self.stats.dropped_overflow += self._vo.prune(self.config.buffer_s)
         return True
 
     def feed_override(self, t: float, now: float | None = None) -> bool:
@@ -631,7 +642,7 @@ class Predictor:
                          problem)
             return False
         self._pose.add(t, (float(x), float(y), float(yaw)))
-        self._pose.prune(self.config.buffer_s)
+        self.stats.dropped_overflow += self._pose.prune(self.config.buffer_s)
         return True
 
     def _check_commands(self, commands: FloatArray, what: str) -> None:

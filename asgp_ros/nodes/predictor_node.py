@@ -748,6 +748,7 @@ class PredictorNode(Node):
             "paths_published": str(self._paths_published),
             "horizon_steps": str(self.predictor.config.horizon_steps),
             "dropped_nonfinite": str(stats.dropped_nonfinite),
+            "dropped_overflow": str(stats.dropped_overflow),
             "rejected": ", ".join(f"{code}={n}" for code, n in sorted(stats.rejected.items()))
             or "none",
             "last_rejected": stats.last_rejected,
