@@ -36,6 +36,10 @@ messages (with ``sim``, as when a bag is replayed, this script publishes /clock 
 joystick sample, and each one wakes the node too); the inputs are stamped with the wall
 clock and sent at their own times, so only the real-rate part (2.) is measured.
 
+``--joy-poll 0,0.05`` runs the node with each ``joy_poll_period_s`` in turn (0: rclpy's
+callback for each joystick message, as before the polling; 0.05: the default, the
+joystick read in batches every 50 ms and before each VO message).
+
 Targets: p99 latency under 5 ms (with adaptation too); CPU under 5% of one core.
 """
 
@@ -181,9 +185,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="online adaptation (adapt.enabled) of the node: off, on (the "
                              "node's default), or both "
                              "one after the other (side by side)")
+    parser.add_argument("--joy-poll", default="0.05", metavar="S[,S...]",
+                        help="the node's joy_poll_period_s (0.05, its default; 0 = a "
+                             "callback per joystick message); several, comma-separated, "
+                             "run side by side")
     args = parser.parse_args(argv)
     if not 10.0 <= args.joy_hz <= 1000.0:
         parser.error("--joy-hz must be in [10, 1000]")
+    try:
+        polls = [float(x) for x in args.joy_poll.split(",")]
+    except ValueError:
+        parser.error(f"--joy-poll: not a list of seconds: {args.joy_poll!r}")
 
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model
@@ -195,9 +207,10 @@ def main(argv: list[str] | None = None) -> int:
             _cli("train", "--out", model, str(bag))
         modes = {"off": [False], "on": [True], "both": [False, True]}[args.adapt]
         for adapt in modes:
-            rc = measure(args, model, adapt)
-            if rc:
-                return rc
+            for poll in polls:
+                rc = measure(args, model, adapt, poll)
+                if rc:
+                    return rc
     return 0
 
 
@@ -240,8 +253,9 @@ def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag:
     return n, lat_ms, missed, node_p99
 
 
-def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
-    """Start the node on ``model`` (adapting or not), measure, print, stop it."""
+def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> int:
+    """Start the node on ``model`` (adapting or not; the joystick read every ``poll`` s),
+    measure, print, stop it."""
     import rclpy
 
     from asgp_ros.core.modelfile import load_model
@@ -258,6 +272,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
          "-p", f"model_path:={model}", "-p", f"use_sim_time:={str(sim).lower()}",
          "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
          "-p", f"adapt.enabled:={'true' if adapt else 'false'}",
+         "-p", f"joy_poll_period_s:={poll!r}",
          "--log-level", "warn"],
         cwd=REPO, env=env)
     rclpy.init()
@@ -312,9 +327,9 @@ def measure(args: argparse.Namespace, model: str, adapt: bool) -> int:
             node.kill()
             node.wait()
 
-    print(f"predictor node, adaptation {'on' if adapt else 'off'}, horizon {args.horizon} "
-          f"steps, clock {args.clock}, {len(lat_ms)} steps back to back ({missed} without a "
-          "path)")
+    print(f"predictor node, adaptation {'on' if adapt else 'off'}, joy_poll_period_s {poll:g}, "
+          f"horizon {args.horizon} steps, clock {args.clock}, {len(lat_ms)} steps back to back "
+          f"({missed} without a path)")
     if adapt:
         print(f"  adaptation: {drv.diag.get('adapt_rows_absorbed', '?')} steps absorbed, "
               f"last update {drv.diag.get('adapt_last_update_ms', '?')} ms, last check "

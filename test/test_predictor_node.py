@@ -109,6 +109,9 @@ class Harness:
                      Parameter("use_sim_time", value=True),
                      Parameter("horizon_steps", value=K),
                      Parameter("diagnostics_period_s", value=0.5)]
+        # the joystick is read in batches; often here, as each sample is waited for (the
+        # default 0.05 s would make this file twice as slow)
+        params = {"joy_poll_period_s": 0.005, **params}
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.node = PredictorNode(context=context, parameter_overrides=overrides)
         self.test = __import__("rclpy").create_node("predictor_test", context=context)
@@ -266,7 +269,9 @@ def test_one_topic_named_twice_refuses_to_start(rclpy_context, model_file, names
     ("diagnostics_period_s", math.nan, "diagnostics_period_s"),
     ("joy_timeout_s", math.nan, "joy_timeout_s"), ("reset_jump_s", -1.0, "reset_jump_s"),
     ("uncertainty", "exact", "uncertainty"), ("adapt_half_life_s", -5.0, "adapt"),
-    ("adapt_max_rate", math.nan, "adapt"),
+    ("adapt_max_rate", math.nan, "adapt"), ("joy_poll_period_s", -0.01, "joy_poll_period_s"),
+    ("joy_poll_period_s", math.nan, "joy_poll_period_s"),
+    ("joy_poll_period_s", 1e30, "joy_poll_period_s"),
 ])
 def test_every_bad_parameter_is_named(field, value, why):
     """Each parameter out of its range (NaN, inf, 1e30, empty names) refuses with its name,
@@ -285,8 +290,10 @@ def test_node_process_exits_nonzero_with_a_clear_message(repo_root):
     assert "refusing to start" in proc.stderr and "/nonexistent/chair.npz" in proc.stderr
 
 
-def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model_file):
-    h = Harness(rclpy_context, model_file)
+@pytest.mark.parametrize("poll", [0.005, 0.0], ids=["polled", "callbacks"])
+def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model_file, poll):
+    """The joystick read in batches (joy_poll_period_s) or by a callback per message."""
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=poll)
     try:
         h.drive(100.0, 103.0)
         h.spin_until(lambda: len(h.paths) >= 8, what="paths")
@@ -319,6 +326,51 @@ def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model
                                             "ellipses_p99_ms")]
         assert all(0.0 < x < 1e4 for x in parts)
         assert parts[1] <= parts[0] and parts[2] <= parts[0]
+        # every joystick sample was taken in a drain, or none with callbacks
+        polled = int(values["polled_messages"])
+        assert polled == (h.node.predictor.stats.joy_samples if poll else 0) and polled >= 0
+        assert values["polled_queue_full"] == "0"
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("trigger", ["vo", "override"])
+def test_the_joystick_is_read_before_a_vo_message_or_an_override(rclpy_context, model_file,
+                                                                 trigger):
+    """The joystick waiting when a VO message or an override comes is fed before it (here
+    joy_poll_period_s is 1 s, so no timer reads it first): the samples of a step are in
+    when the VO message completes it, and an override never overtakes the stick
+    readings that came before it."""
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=1.0)
+    pred = h.node.predictor
+    order: list[str] = []
+
+    def recording(name: str):
+        real = getattr(pred, name)
+
+        def recorded(*args, **kwargs):
+            order.append(name)
+            return real(*args, **kwargs)
+        return recorded
+
+    for name in ("feed_joy", "feed_vo", "feed_override"):
+        setattr(pred, name, recording(name))
+    override_pub = h.test.create_publisher(Joy, "joy_override", QoSProfile(depth=10))
+    try:
+        h.spin_until(lambda: override_pub.get_subscription_count() > 0, what="discovery")
+        h.clock(100.0)
+        for _ in range(20):  # the timers due at the new clock (they read the joystick too)
+            h.executor.spin_once(timeout_sec=0.005)
+        assert order == []
+        for i in range(3):
+            h.joy_pub.publish(conv.joy_from_sample(99.97 + 0.01 * i, 0.5, 0.0))
+        if trigger == "vo":
+            h.vo_pub.publish(conv.twist_stamped_from_sample(100.0, 0.4, 0.0, "base_link"))
+        else:
+            override_pub.publish(conv.joy_from_sample(100.0, 0.1, 0.0))
+        fed = f"feed_{trigger}"
+        h.spin_until(lambda: fed in order, what=trigger)
+        assert order == ["feed_joy"] * 3 + [fed]
     finally:
         h.close()
 
@@ -787,9 +839,11 @@ def test_the_boards_measured_output_feeds_while_it_arrives(rclpy_context, model_
 
     def applied(t: float, fwd: float, turn: float) -> None:
         h.clock(t)
+        n = node.polled.taken
         pub.publish(conv.joy_from_sample(t, fwd, turn))
-        h.spin_until(lambda: node._joy_source.measured_arrival == pytest.approx(t),
-                     what="joy_applied")
+        h.spin_until(lambda: node.polled.taken > n, what="joy_applied")
+        # on the simulated clock, standing at t, it arrived within a drain's period of t
+        assert t - 0.5 <= node._joy_source.measured_arrival <= t
 
     def joy(t: float, fwd: float, turn: float) -> None:
         h.clock(t)

@@ -19,7 +19,11 @@ messages and wires callbacks. A prediction is made once per grid step of the mod
 (its rate), as soon as the sample that completes the step arrives (the VO message,
 usually), so the path is published within the prediction's latency of the data; a timer
 at the model's rate is the watchdog (staleness, clock jumps, clearing the RViz ellipses)
-and another publishes diagnostics. Stale input means no path and a diagnostic saying
+and another publishes diagnostics. The joystick topics (``joy``, ``joy_applied``; 100 Hz from
+the serial bridge) wake nothing: they are read in batches every ``joy_poll_period_s`` and
+before each VO message, override, watchdog check and diagnostics message, each message with
+its own arrival time (:mod:`asgp_ros.nodes.polled`; half the node's CPU went to rclpy's
+wake-ups for them). Stale input means no path and a diagnostic saying
 why; fresh input resumes prediction without a restart. Input that is not finite or out of
 its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a reason
 code; the diagnostics count the refusals by code (``rejected``) and give the newest one
@@ -84,6 +88,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, sim_time_change
+from asgp_ros.nodes.polled import Arrival, PolledInputs
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
@@ -136,6 +141,7 @@ class PredictorNodeParams:
     uncertainty: str = "linear"
     publish_uncertainty: bool = True
     diagnostics_period_s: float = 1.0
+    joy_poll_period_s: float = 0.05
     # adapt.* (asgp_ros.nodes.adaptation.ADAPT_PARAMS; the same defaults)
     adapt_enabled: bool = True
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
@@ -170,6 +176,9 @@ class PredictorNodeParams:
             raise ValueError(
                 f"diagnostics_period_s must be in [0.1, 60] s, got {self.diagnostics_period_s}"
             )
+        if not (math.isfinite(self.joy_poll_period_s) and 0.0 <= self.joy_poll_period_s <= 1.0):
+            raise ValueError(
+                f"joy_poll_period_s must be in [0, 1] s, got {self.joy_poll_period_s}")
         # the predictor's own settings are validated by PredictorConfig, adaptation's here
         self.predictor_config(5.0)
         self.adapt_settings()
@@ -270,6 +279,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("uncertainty", "'linear', 'mc' or 'none' uncertainty propagation", runtime=True),
     _spec("publish_uncertainty", "publish the 95% ellipses", runtime=True),
     _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
+    _spec("joy_poll_period_s", "the joystick topics are read in batches this often (and "
+          "before every VO message, override and watchdog check), not at each message, "
+          "which cost the executor's wake-up; 0 = at each message", 0.0, 1.0),
     *adapt_params.ADAPT_PARAMS,
 )
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}
@@ -369,10 +381,12 @@ class PredictorNode(Node):
         self.path_pub = watch.publisher(Path, p.path_topic, reliable)
         self.marker_pub = watch.publisher(MarkerArray, f"{p.path_topic}/uncertainty", reliable)
         self.diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
-        watch.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # the joystick topics at the board's 100 Hz: read in batches (polled)
+        self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
+        self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         if p.applied_topic.strip():
-            watch.subscription(Joy, p.applied_topic, self._on_joy_applied,
-                               qos_profile_sensor_data)
+            self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
+                                     qos_profile_sensor_data)
         if p.vo_type == "twist":
             watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
                                qos_profile_sensor_data)
@@ -499,39 +513,39 @@ class PredictorNode(Node):
             return None
         return self._stamp(t, now), command
 
-    def _on_joy(self, msg: Joy) -> None:
-        now = self._now()
+    def _on_joy(self, msg: Joy, arrival: Arrival) -> None:
+        now = arrival.now
         read = self._read_joy(msg, self.params.joy_topic, now)
         if read is None:
             return
         t, command = read
-        self._joy_rate.tick(time.monotonic())
+        self._joy_rate.tick(arrival.monotonic)
         if self._joy_source.measured(now):
             return  # the board's measured output feeds (_on_joy_applied)
         applied = self._applied(command, t, now)
         if applied is not None and np.all(np.isfinite(command)):
             command = applied
             self._joy_overridden += 1
-        self._feed_joy(t, command, now, measured=False)
+        self._feed_joy(t, command, arrival, measured=False)
 
-    def _on_joy_applied(self, msg: Joy) -> None:
+    def _on_joy_applied(self, msg: Joy, arrival: Arrival) -> None:
         """What the board drives the chair with, measured: it feeds while it arrives."""
-        now = self._now()
+        now = arrival.now
         read = self._read_joy(msg, self.params.applied_topic, now)
         if read is None:
             return
         if not np.all(np.isfinite(read[1])):  # no measurement: refused and counted, and
-            self._feed_joy(*read, now, measured=True)  # joy goes on feeding
+            self._feed_joy(*read, arrival, measured=True)  # joy goes on feeding
         elif self._joy_source.take_measured(read[0], now):
-            self._feed_joy(*read, now, measured=True)
+            self._feed_joy(*read, arrival, measured=True)
 
-    def _feed_joy(self, t: float, command: np.ndarray, now: float | None,
+    def _feed_joy(self, t: float, command: np.ndarray, arrival: Arrival,
                   measured: bool) -> None:
         if not self.predictor.feed_joy(t, command):
             self._warn_rejected()
             return
         self._joy_source.fed(t, measured)
-        self._maybe_predict(now, time.perf_counter())
+        self._maybe_predict(arrival.now, arrival.perf)
 
     def _applied(self, user: np.ndarray, t: float, now: float | None) -> np.ndarray | None:
         """The override the board drives with instead of ``user`` read at ``t``, or None:
@@ -551,6 +565,9 @@ class PredictorNode(Node):
         apply it (``override_paths``); when adapting, the steps it may have driven are
         not learnt from (what drove the chair is modelled, not measured)."""
         now = self._now()
+        # the joystick samples that came before it go first, with the gate they came under
+        # (read after now: every sample read later arrived after it, on either clock)
+        self.polled.drain()
         stamp = conv.stamp_to_seconds(msg.header.stamp)
         if not self.predictor.feed_override(self._stamp(stamp, now), now=now):
             self._warn_rejected()
@@ -570,6 +587,7 @@ class PredictorNode(Node):
 
     def _on_twist(self, msg: TwistStamped) -> None:
         arrival = time.perf_counter()
+        self.polled.drain()  # the step's joystick samples
         if not self._vo_frame.ok(msg, self.get_logger()):
             return
         now = self._now()
@@ -582,6 +600,7 @@ class PredictorNode(Node):
 
     def _on_odometry(self, msg: Odometry) -> None:
         arrival = time.perf_counter()
+        self.polled.drain()  # the step's joystick samples
         if not self._vo_frame.ok(msg, self.get_logger()):
             return
         now = self._now()
@@ -700,6 +719,7 @@ class PredictorNode(Node):
         return path_out
 
     def _on_watchdog(self) -> None:
+        self.polled.drain()
         now = self._now()
         if now is None:
             self._last_result = Prediction(False, Reason.NO_INPUT, "waiting for /clock")
@@ -763,6 +783,7 @@ class PredictorNode(Node):
             "last_reset": self.predictor.last_reset_detail,
             "plan_used": str(result.from_plan),
             "qos_mismatch": self.qos_watch.summary(),
+            **self.polled.values(),
         }
         values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
                                                      self._adapt_unavailable))
@@ -773,6 +794,7 @@ class PredictorNode(Node):
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:
+        self.polled.drain()
         self.qos_watch.check()
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()

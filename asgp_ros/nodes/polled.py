@@ -1,0 +1,188 @@
+"""High-rate inputs read in batches instead of one executor wake-up per message.
+
+rclpy's executor wakes for every message of every subscription and, at each wake-up,
+builds its wait set over all of a node's entities in Python: about 0.35 ms of CPU per
+message in ``predictor_node`` (cProfile), so the serial bridge's ``joy`` and ``joy_applied``
+at the board's 100 Hz took 14-16 % of a core there, more than the predictions did
+(``benchmarks/predictor_latency.py --clock system --joy-hz 100 --applied``).
+
+The predictor needs the joystick only when it predicts, checks its inputs or reports them.
+:class:`PolledInputs` therefore creates those subscriptions in a callback group the
+executor never waits on (:class:`_NeverReady`: rclpy leaves out of its wait set every
+entity whose group says it cannot execute) and takes their messages itself
+(:meth:`PolledInputs.drain`, the take rclpy's own ``wait_for_message`` uses): every
+``period_s`` on the steady clock, and wherever the node calls it (before a VO message, an
+override, its watchdog and its diagnostics). Nothing is lost between two drains: the
+subscriptions keep :data:`DEPTH` messages each, and a drain that finds a queue full counts
+it (:attr:`PolledInputs.full_queues`: some of its oldest messages may have been dropped).
+
+Each message is handed over with its arrival as the callback would have seen it: the node's
+clock at the drain less how long ago DDS received it (the middleware's reception stamp,
+on the system clock; the lag is bounded by the time since the previous drain, so a step of
+the system clock cannot throw it), and the same lag on the process's own clocks. A
+simulated clock (``use_sim_time``, a bag replayed) may run at any rate or stand still:
+there the arrival is never before the clock's time at the previous drain. Messages
+of all the polled subscriptions are handed over in the order they were received, so a
+sample published on ``joy`` and then on ``joy_applied`` is seen in that order, as the
+callbacks saw them.
+
+``period_s`` 0 keeps rclpy's callbacks: each message is handed over as it arrives.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from rclpy.callback_groups import CallbackGroup
+from rclpy.clock import Clock, ROSClock
+from rclpy.clock_type import ClockType
+from rclpy.node import Node
+from rclpy.qos import QoSProfile
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
+
+from asgp_ros.nodes.qos_watch import QosWatch
+
+__all__ = ["DEPTH", "Arrival", "PolledInputs"]
+
+#: Messages each polled subscription keeps until a drain takes them: 10 s of the board's
+#: 100 Hz, far beyond the time between two drains.
+DEPTH = 1000
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """When a message arrived: on the node's clock (None before a simulated clock has
+    started) and on the process's ``time.monotonic`` and ``time.perf_counter``."""
+
+    now: float | None
+    monotonic: float
+    perf: float
+
+
+#: What a polled subscription hands each message to.
+Handler = Callable[[Any, Arrival], None]
+
+
+class _NeverReady(CallbackGroup):
+    """A callback group the executor never runs: its entities stay out of the wait set."""
+
+    def can_execute(self, entity: Any) -> bool:
+        return False
+
+    def beginning_execution(self, entity: Any) -> bool:
+        return False
+
+    def ending_execution(self, entity: Any) -> None:
+        return None
+
+
+@dataclass
+class _Polled:
+    sub: Subscription
+    handler: Handler
+
+
+class PolledInputs:
+    """A node's high-rate subscriptions, drained in batches (see the module docstring)."""
+
+    def __init__(self, node: Node, watch: QosWatch, period_s: float) -> None:
+        if not period_s >= 0.0:
+            raise ValueError(f"period_s must be >= 0, got {period_s}")
+        self._node = node
+        self._watch = watch
+        self.period_s = float(period_s)
+        self._group = _NeverReady()
+        self._polled: list[_Polled] = []
+        self._last_drain = time.monotonic()
+        self._last_clock_ns = node.get_clock().now().nanoseconds
+        self.drains = 0
+        self.taken = 0
+        self.full_queues = 0
+        #: the drain's timer (None with ``period_s`` 0)
+        self.timer: Timer | None = None
+        if self.period_s > 0.0:
+            # the steady clock, with use_sim_time too: messages arrive on the wall clock,
+            # and a paused /clock must not leave them waiting
+            self.timer = node.create_timer(self.period_s, self.drain,
+                                            clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def subscription(self, msg_type: Any, topic: str, handler: Handler,
+                     qos: QoSProfile) -> Subscription:
+        """Subscribe ``topic``; ``handler(msg, arrival)`` gets every message, in a drain
+        (``qos``'s depth raised to :data:`DEPTH`), or as it arrives with ``period_s`` 0."""
+        if self.period_s == 0.0:
+            return self._watch.subscription(
+                msg_type, topic, lambda msg: handler(msg, self._arrival(0.0)), qos)
+        deep = QoSProfile(history=qos.history, depth=DEPTH, reliability=qos.reliability,
+                          durability=qos.durability)
+        sub = self._watch.subscription(msg_type, topic, _never_called, deep,
+                                       callback_group=self._group)
+        self._polled.append(_Polled(sub, handler))
+        return sub
+
+    def _arrival(self, lag_s: float) -> Arrival:
+        ns = self._node.get_clock().now().nanoseconds
+        now = None if ns == 0 else ns * 1e-9 - lag_s
+        return Arrival(now, time.monotonic() - lag_s, time.perf_counter() - lag_s)
+
+    def drain(self) -> int:
+        """Hand every waiting message to its handler, in the order received; the number
+        handed over."""
+        if not self._polled:
+            return 0
+        taken: list[tuple[int, int, Any, Handler]] = []
+        for polled in self._polled:
+            sub = polled.sub
+            count = 0
+            with sub.handle:
+                while True:
+                    got = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if got is None:
+                        break
+                    msg, info = got
+                    received = int(info.get("received_timestamp", 0) or 0)
+                    taken.append((received, len(taken), msg, polled.handler))
+                    count += 1
+            if count >= DEPTH:
+                self.full_queues += 1
+        mono = time.monotonic()
+        since_last = max(0.0, mono - self._last_drain)
+        self._last_drain = mono
+        self.drains += 1
+        clock = self._node.get_clock()
+        clock_ns = clock.now().nanoseconds
+        # the node's clock at the previous drain: on a simulated clock (a bag replayed), which
+        # may run at any rate or stand still, no message arrived before it (unless the
+        # clock went back since: a bag played again)
+        floor_ns = self._last_clock_ns if self._last_clock_ns <= clock_ns else 0
+        self._last_clock_ns = clock_ns
+        if not taken:
+            return 0
+        self.taken += len(taken)
+        taken.sort(key=lambda item: (item[0], item[1]))
+        simulated = isinstance(clock, ROSClock) and clock.ros_time_is_active
+        wall_ns = time.time_ns()
+        perf = time.perf_counter()
+        for received, _, msg, handler in taken:
+            # how long ago DDS received it (0 when the middleware gives no stamp), at most
+            # the time since the previous drain
+            lag = min(max(0.0, (wall_ns - received) * 1e-9), since_last) if received else 0.0
+            now = None
+            if clock_ns != 0:
+                now = clock_ns * 1e-9 - lag
+                if simulated:
+                    now = max(now, floor_ns * 1e-9)
+            handler(msg, Arrival(now, mono - lag, perf - lag))
+        return len(taken)
+
+    def values(self) -> dict[str, str]:
+        """Diagnostics: the messages taken in drains, and drains that found a queue full."""
+        return {"polled_messages": str(self.taken), "polled_queue_full": str(self.full_queues)}
+
+
+def _never_called(msg: Any) -> None:  # pragma: no cover - the group never executes
+    raise AssertionError("a polled subscription's callback ran")
