@@ -133,8 +133,10 @@ class Harness:
         t.create_subscription(DiagnosticArray, "diagnostics", self.diags.append,
                               QoSProfile(depth=50))
         self.now = 0.0
-        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in (
-            self.clock_pub, self.joy_pub, self.vo_pub, self.plan_pub)) and all(
+        inputs = [self.joy_pub, self.vo_pub, self.plan_pub]
+        if params.get("use_sim_time", True):
+            inputs.append(self.clock_pub)
+        self.spin_until(lambda: all(p.get_subscription_count() > 0 for p in inputs) and all(
             self.test.count_publishers(n) > 0 for n in (
                 "predicted_path", "predicted_path/uncertainty", "diagnostics")),
             what="discovery")
@@ -330,6 +332,32 @@ def test_paths_published_per_step_with_k_poses_and_ellipses(rclpy_context, model
         polled = int(values["polled_messages"])
         assert polled == (h.node.predictor.stats.joy_samples if poll else 0) and polled >= 0
         assert values["polled_queue_full"] == "0"
+    finally:
+        h.close()
+
+
+def test_joystick_messages_without_a_stamp_keep_their_arrival_times(rclpy_context,
+                                                                    model_file):
+    """On the system clock a Joy sent with a zero stamp is stamped with its arrival, and read
+    in a batch it keeps the time it was received: three sent 30 ms apart and read together
+    0.2 s later are 30 ms apart in the buffer, not stamped with the read's time."""
+    h = Harness(rclpy_context, model_file, use_sim_time=False, joy_poll_period_s=1.0)
+    node = h.node
+    try:
+        node.polled.drain()
+        sent = []
+        for _ in range(3):
+            sent.append(time.time())
+            h.joy_pub.publish(conv.joy_from_sample(0.0, 0.5, 0.0))
+            time.sleep(0.03)
+        time.sleep(0.2)
+        deadline = time.monotonic() + 5.0
+        while node.predictor.stats.joy_samples < 3:
+            assert time.monotonic() < deadline, "the three samples were not fed"
+            node.polled.drain()
+            time.sleep(0.005)
+        stamps = node.predictor._joy.arrays()[0]
+        np.testing.assert_allclose(stamps, sent, rtol=0.0, atol=0.015)
     finally:
         h.close()
 
