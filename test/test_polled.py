@@ -175,9 +175,9 @@ def test_on_a_simulated_clock_a_message_never_arrives_before_the_previous_drain(
         rig.close()
 
 
-def test_a_full_queue_keeps_the_newest_and_is_counted(rclpy_context):
-    """More than DEPTH messages between two drains: the newest DEPTH are handed over and
-    the drain says the queue was full."""
+def test_a_full_queue_keeps_the_newest_and_is_counted(rclpy_context, capfd):
+    """More than DEPTH messages between two drains: the newest DEPTH are handed over, and
+    the drain counts the queue full and says so in the log."""
     rig = Rig(rclpy_context, period_s=600.0)
     try:
         for i in range(DEPTH + 10):
@@ -191,6 +191,7 @@ def test_a_full_queue_keeps_the_newest_and_is_counted(rclpy_context):
         stamps = [stamp for _, stamp, _ in rig.got]
         assert stamps == [11.0 + i for i in range(DEPTH)]
         assert rig.inputs.full_queues == 1
+        assert "/a: 1000 messages waiting at one read, its queue full" in capfd.readouterr().err
     finally:
         rig.close()
 

@@ -149,6 +149,10 @@ class PolledInputs:
                     count += 1
             if count >= DEPTH:
                 self.full_queues += 1
+                self._node.get_logger().warning(
+                    f"{sub.topic_name}: {count} messages waiting at one read, its queue full: "
+                    f"the oldest may have been lost ({self.full_queues} full so far)",
+                    throttle_duration_sec=5.0)
         mono = time.monotonic()
         since_last = max(0.0, mono - self._last_drain)
         self._last_drain = mono
