@@ -196,6 +196,27 @@ def test_a_full_queue_keeps_the_newest_and_is_counted(rclpy_context, capfd):
         rig.close()
 
 
+def test_a_polled_subscription_keeps_the_qos_asked_but_its_history(rclpy_context):
+    """The subscription is made with the profile asked (here best effort, a deadline),
+    its history the last DEPTH messages whatever the profile said (KEEP_ALL, depth 5)."""
+    import rclpy
+    from rclpy.duration import Duration
+
+    node = rclpy.create_node("polled_qos", context=rclpy_context)
+    try:
+        asked = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=5,
+                           reliability=ReliabilityPolicy.BEST_EFFORT,
+                           deadline=Duration(seconds=2))
+        sub = PolledInputs(node, QosWatch(node), 600.0).subscription(
+            Joy, "q", lambda msg, arrival: None, asked)
+        made = sub.qos_profile
+        assert made.history == HistoryPolicy.KEEP_LAST and made.depth == DEPTH
+        assert made.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert made.deadline == Duration(seconds=2)
+    finally:
+        node.destroy_node()
+
+
 def test_period_zero_keeps_a_callback_per_message(rclpy_context):
     rig = Rig(rclpy_context, period_s=0.0)
     try:

@@ -40,7 +40,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.clock import Clock, ROSClock
 from rclpy.clock_type import ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
+from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.subscription import Subscription
 from rclpy.timer import Timer
 
@@ -117,8 +117,12 @@ class PolledInputs:
         if self.period_s == 0.0:
             return self._watch.subscription(
                 msg_type, topic, lambda msg: handler(msg, self._arrival(0.0)), qos)
-        deep = QoSProfile(history=qos.history, depth=DEPTH, reliability=qos.reliability,
-                          durability=qos.durability)
+        # ``qos`` with a history of the last DEPTH messages (bounded whatever it asked)
+        deep = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=DEPTH, reliability=qos.reliability,
+            durability=qos.durability, lifespan=qos.lifespan, deadline=qos.deadline,
+            liveliness=qos.liveliness, liveliness_lease_duration=qos.liveliness_lease_duration,
+            avoid_ros_namespace_conventions=qos.avoid_ros_namespace_conventions)
         sub = self._watch.subscription(msg_type, topic, _never_called, deep,
                                        callback_group=self._group)
         self._polled.append(_Polled(sub, handler))
