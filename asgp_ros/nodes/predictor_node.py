@@ -14,20 +14,20 @@ steps they may have driven); publishes ``predicted_path``
 (nav_msgs/Path), ``predicted_path/uncertainty`` (visualization_msgs/MarkerArray, a 95%
 position ellipse per step) and ``diagnostics``.
 
-The numerics are :class:`asgp_ros.core.online.Predictor`; this node only converts
-messages and wires callbacks. A prediction is made once per grid step of the model
-(its rate), as soon as the sample that completes the step arrives (the VO message,
-usually), so the path is published within the prediction's latency of the data; a timer
-at the model's rate is the watchdog (staleness, clock jumps, clearing the RViz ellipses)
-and another publishes diagnostics. The joystick topics (``joy``, ``joy_applied``; 100 Hz from
-the serial bridge) wake nothing: they are read in batches every ``joy_poll_period_s`` and
-before each VO message, override, watchdog check and diagnostics message, each message with
-its own arrival time (:mod:`asgp_ros.nodes.polled`; half the node's CPU went to rclpy's
-wake-ups for them). Stale input means no path and a diagnostic saying
-why; fresh input resumes prediction without a restart. Input that is not finite or out of
-its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor with a reason
-code; the diagnostics count the refusals by code (``rejected``) and give the newest one
-(``last_rejected``).
+The numerics are :class:`asgp_ros.core.online.Predictor`; this node only converts messages
+and wires callbacks. A prediction is made once per grid step of the model (its rate), as
+soon as the sample that completes the step arrives (the VO message, usually; a joystick
+sample when it is read, below), so the path is published within the prediction's latency of
+the data; a timer at the model's rate is the watchdog (staleness, clock jumps, clearing the
+RViz ellipses) and another publishes diagnostics. The joystick topics (``joy``,
+``joy_applied``; 100 Hz from the serial bridge) wake nothing: they are read in batches
+every ``joy_poll_period_s`` and before each VO message, override, watchdog check and
+diagnostics message, each message with its own arrival time (:mod:`asgp_ros.nodes.polled`;
+half the node's CPU went to rclpy's wake-ups for them). Stale input means no path and a
+diagnostic saying why; fresh input resumes prediction without a restart. Input that is not
+finite or out of its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor
+with a reason code; the diagnostics count the refusals by code (``rejected``) and give the
+newest one (``last_rejected``).
 
 Adaptation (``adapt.enabled``, on by default; an ASGP model only, another kind predicts as
 trained, with a warning and ``adapt_unavailable`` in the diagnostics): every completed
