@@ -196,6 +196,45 @@ def test_a_full_queue_keeps_the_newest_and_is_counted(rclpy_context, capfd):
         rig.close()
 
 
+def test_a_sender_faster_than_the_reads_cannot_keep_a_drain_going(rclpy_context):
+    """A queue refilled as fast as it is read (a flood): one drain takes at most DEPTH
+    messages of it, counts the queue full and returns; the rest wait for the next drain."""
+    from asgp_ros.nodes.polled import _Polled
+
+    class Endless:  # a subscription handle whose queue is never empty
+        taken = 0
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def take_message(self, msg_type, raw):
+            Endless.taken += 1
+            stamp = conv.seconds_to_stamp(float(Endless.taken))
+            msg = Joy()
+            msg.header.stamp = stamp
+            return msg, {"received_timestamp": time.time_ns()}
+
+    class FakeSub:
+        handle = Endless()
+        msg_type = Joy
+        raw = False
+        topic_name = "/flood"
+
+    rig = Rig(rclpy_context, period_s=600.0)
+    try:
+        got = []
+        rig.inputs._polled[:] = [_Polled(FakeSub(), lambda msg, arrival: got.append(msg))]
+        assert rig.inputs.drain() == DEPTH
+        assert len(got) == DEPTH and rig.inputs.full_queues == 1
+        assert rig.inputs.drain() == DEPTH  # the next drain goes on from there
+        assert got[-1].header.stamp.sec == 2 * DEPTH
+    finally:
+        rig.close()
+
+
 def test_a_polled_subscription_keeps_the_qos_asked_but_its_history(rclpy_context):
     """The subscription is made with the profile asked (here best effort, a deadline),
     its history the last DEPTH messages whatever the profile said (KEEP_ALL, depth 5)."""

@@ -99,7 +99,6 @@ class PolledInputs:
         self._polled: list[_Polled] = []
         self._last_drain = time.monotonic()
         self._last_clock_ns = node.get_clock().now().nanoseconds
-        self.drains = 0
         self.taken = 0
         self.full_queues = 0
         #: the drain's timer (None with ``period_s`` 0)
@@ -116,7 +115,7 @@ class PolledInputs:
         (``qos``'s depth raised to :data:`DEPTH`), or as it arrives with ``period_s`` 0."""
         if self.period_s == 0.0:
             return self._watch.subscription(
-                msg_type, topic, lambda msg: handler(msg, self._arrival(0.0)), qos)
+                msg_type, topic, lambda msg: handler(msg, self._arrival()), qos)
         # ``qos`` with a history of the last DEPTH messages (bounded whatever it asked)
         deep = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=DEPTH, reliability=qos.reliability,
@@ -128,14 +127,15 @@ class PolledInputs:
         self._polled.append(_Polled(sub, handler))
         return sub
 
-    def _arrival(self, lag_s: float) -> Arrival:
+    def _arrival(self) -> Arrival:
+        """Now, for a message handed over as it arrives."""
         ns = self._node.get_clock().now().nanoseconds
-        now = None if ns == 0 else ns * 1e-9 - lag_s
-        return Arrival(now, time.monotonic() - lag_s, time.perf_counter() - lag_s)
+        return Arrival(None if ns == 0 else ns * 1e-9, time.monotonic(), time.perf_counter())
 
     def drain(self) -> int:
-        """Hand every waiting message to its handler, in the order received; the number
-        handed over."""
+        """Hand the waiting messages to their handlers, in the order received, at most
+        :data:`DEPTH` of each subscription (a sender faster than the reads cannot keep one
+        going: the rest wait for the next); the number handed over."""
         if not self._polled:
             return 0
         taken: list[tuple[int, int, Any, Handler]] = []
@@ -143,7 +143,7 @@ class PolledInputs:
             sub = polled.sub
             count = 0
             with sub.handle:
-                while True:
+                while count < DEPTH:
                     got = sub.handle.take_message(sub.msg_type, sub.raw)
                     if got is None:
                         break
@@ -160,7 +160,6 @@ class PolledInputs:
         mono = time.monotonic()
         since_last = max(0.0, mono - self._last_drain)
         self._last_drain = mono
-        self.drains += 1
         clock = self._node.get_clock()
         clock_ns = clock.now().nanoseconds
         # the node's clock at the previous drain: on a simulated clock (a bag replayed), which
