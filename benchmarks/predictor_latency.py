@@ -70,10 +70,22 @@ def _cli(*args: str) -> None:
                    check=True, capture_output=True, text=True)
 
 
-def _cpu_seconds(pid: int) -> float:
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid`` (s), from /proc."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     utime, stime = int(fields[11]), int(fields[12])  # fields 14 and 15 of proc(5)
     return (utime + stime) / os.sysconf("SC_CLK_TCK")
+
+
+def stop_node(node: subprocess.Popen) -> None:
+    """SIGINT to a node's process and wait for it; killed after 10 s."""
+    node.send_signal(signal.SIGINT)
+    try:
+        node.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        print("the node did not stop within 10 s of SIGINT: killed", file=sys.stderr)
+        node.kill()
+        node.wait()
 
 
 class Driver:
@@ -311,7 +323,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
                 return 1
 
         # ---- 2. CPU at the real rate ------------------------------------------------
-        cpu0, wall0 = _cpu_seconds(node.pid), time.monotonic()
+        cpu0, wall0 = cpu_seconds(node.pid), time.monotonic()
         steps_cpu = round(args.cpu_seconds / DT)
         start = time.monotonic()
         sent_at: dict[int, float] = {}
@@ -319,7 +331,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
             drv.send_step_inputs(n, paced_from=start + i * DT if sim else None)
             sent_at[n - lag] = drv.send_vo(n)
             n += 1
-        cpu = (_cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
+        cpu = (cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
         drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
         paced_node = {k: drv.diag.get(k, "nan") for k in (
             "latency_p99_ms", "predict_p99_ms", "path_p99_ms", "ellipses_p99_ms")}
@@ -329,13 +341,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         drv.executor.shutdown()
         drv.node.destroy_node()
         rclpy.try_shutdown()
-        node.send_signal(signal.SIGINT)
-        try:
-            node.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            print("the node did not stop within 10 s of SIGINT: killed", file=sys.stderr)
-            node.kill()
-            node.wait()
+        stop_node(node)
 
     print(f"predictor node, adaptation {'on' if adapt else 'off'}, joy_poll_period_s {poll:g}, "
           f"horizon {args.horizon} steps, clock {args.clock}, {len(lat_ms)} steps back to back "

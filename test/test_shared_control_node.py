@@ -49,6 +49,8 @@ class Harness:
     """The node on a simulated clock; a test node publishes joy, VO, scans and the clock."""
 
     def __init__(self, context, model: str, **params) -> None:
+        # the joystick read every 5 ms (each of drive()'s samples is awaited)
+        params = {"joy_poll_period_s": 0.005, **params}
         overrides = [Parameter("model_path", value=model),
                      Parameter("use_sim_time", value=True),
                      Parameter("laser_x", value=LASER_X)]
@@ -197,10 +199,14 @@ def test_an_intervention_slows_the_chair_before_a_wall(harness):
     assert held.sum() >= 6 and after.sum() >= 6
     assert np.allclose(joy[held], command, atol=1e-6)
     assert np.allclose(joy[after], (0.8, 0.0))
-    # a clock gone back forgets that override: it is not of the new time line
+    # a stick sample that arrived before the override was sent (read in a later batch) is
+    # what the user drove with, and that override is kept
     stick = np.array([0.8, 0.0])
+    assert np.allclose(h.node._applied(stick, last_sent - 0.01), stick)
     assert np.allclose(h.node._applied(stick, last_sent + 0.1), command)
-    assert np.allclose(h.node._applied(stick, last_sent - 2.0), stick)
+    # a clock gone back forgets that override: it is not of the new time line
+    h.clock(last_sent - 2.0)
+    assert np.allclose(h.node._applied(stick, last_sent - 1.9), stick)
     assert np.allclose(h.node._applied(stick, last_sent + 0.1), stick)
 
 
@@ -229,6 +235,86 @@ def test_joy_axes_signs_and_the_boards_measured_output(harness):
     h.joy_pub.publish(conv.joy_from_sample(101.15, 0.5, 0.3))
     h.spin_until(lambda: node._user[0] == pytest.approx(101.15), what="joy")
     assert newest() == [0.4, -0.3]  # the user's stick decides, the measurement feeds
+
+
+def _reads_stopped(h: Harness) -> None:
+    """Stop the node's read timer: only its own reads (before a VO or scan message, an
+    override, ...) take the joystick now; and check that the executor never would."""
+    node = h.node
+    assert node.polled.timer is not None
+    node.polled.timer.cancel()
+    for _ in range(20):  # the timers due at the clock (their reads find nothing)
+        h.executor.spin_once(timeout_sec=0.005)
+    subs = [polled.sub for polled in node.polled._polled]
+    assert sorted(sub.topic_name for sub in subs) == ["/joy", "/joy_applied"]
+    assert not any(sub.callback_group.can_execute(sub) for sub in subs)
+
+
+@pytest.mark.parametrize("trigger", ["vo", "scan"])
+def test_the_joystick_is_read_before_a_vo_message_or_a_scan(harness, trigger):
+    """The joystick topics are read in batches (joy_poll_period_s): what waits when a VO
+    message or a scan comes, either of which may bring a decision, is read first, in the
+    order received (the board's output before the stick's sample of the same stamp: it
+    feeds, and the stick's, a repeat, does not)."""
+    h = harness(joy_poll_period_s=1.0)
+    node = h.node
+    h.drive(100.0, 101.0, wall=20.0)
+    applied = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    h.spin_until(lambda: applied.get_subscription_count() > 0, what="discovery")
+    h.clock(101.02)
+    _reads_stopped(h)
+    taken = node.polled.taken
+    applied.publish(conv.joy_from_sample(101.02, 0.4, 0.0))
+    time.sleep(0.02)
+    h.joy_pub.publish(conv.joy_from_sample(101.02, 0.6, 0.0))
+    time.sleep(0.05)  # both delivered to the node's queues
+    assert node.polled.taken == taken
+    if trigger == "vo":
+        n = node._vo_messages
+        h.vo_pub.publish(conv.twist_stamped_from_sample(101.02, 0.72, 0.0))
+        h.spin_until(lambda: node._vo_messages > n, what="vo")
+    else:
+        seen = h._scan_state()
+        h.scan_pub.publish(wall_scan_msg(101.02, 20.0))
+        h.spin_until(lambda: h._scan_state() != seen, what="scan")
+    assert node.polled.taken == taken + 2
+    assert node._user[0] == pytest.approx(101.02)
+    assert node._joy_source.measured_samples == 1
+    assert [round(float(x), 6) for x in node.predictor._joy.arrays()[1][-1]] == [0.4, 0.0]
+    values = conv.diagnostic_values(node.diagnostic_status())
+    assert int(values["polled_messages"]) == node.polled.taken
+    assert values["polled_queue_full"] == "0"
+
+
+def test_a_neutral_stick_waiting_stops_the_override_before_it_is_sent(harness):
+    """The stick released while the layer intervenes: its sample, not yet read, is read
+    before the next override would be sent, and none is."""
+    h = harness(joy_poll_period_s=1.0)
+    node = h.node
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening" and h.overrides
+    _reads_stopped(h)
+    sent = node._overrides_sent
+    h.joy_pub.publish(conv.joy_from_sample(104.0, 0.0, 0.0))
+    time.sleep(0.05)
+    node._send_override()  # as its timer would
+    assert node._overrides_sent == sent
+    assert node._user[1].tolist() == [0.0, 0.0] and node._decision is None
+
+
+def test_the_joystick_by_a_callback_per_message(harness):
+    """joy_poll_period_s 0: rclpy's callback for each joystick message."""
+    h = harness(joy_poll_period_s=0.0)
+    node = h.node
+    assert node.polled.timer is None and node.polled._polled == []
+    h.drive(100.0, 101.0, wall=20.0)
+    pub = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    h.spin_until(lambda: pub.get_subscription_count() > 0, what="discovery")
+    h.clock(101.01)
+    pub.publish(conv.joy_from_sample(101.01, 0.4, 0.0))
+    h.spin_until(lambda: node._joy_source.measured_samples == 1, what="joy_applied")
+    assert conv.diagnostic_values(node.diagnostic_status())["polled_messages"] == "0"
 
 
 def test_neutral_stick_never_commands_motion(harness):
@@ -619,6 +705,11 @@ def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noq
         with pytest.raises(StartupError, match=f"{name} must not be empty"):
             SharedControlNode(context=rclpy_context, parameter_overrides=[
                 Parameter("model_path", value=model_file), Parameter(name, value=" ")])
+    for value in (-0.01, math.nan, 2.0, 1e30):
+        with pytest.raises(StartupError, match="joy_poll_period_s"):
+            SharedControlNode(context=rclpy_context, parameter_overrides=[
+                Parameter("model_path", value=model_file),
+                Parameter("joy_poll_period_s", value=value)])
     for name, topic in (("applied_topic", "/joy"), ("override_topic", "joy_applied")):
         with pytest.raises(StartupError, match="name one topic"):
             SharedControlNode(context=rclpy_context, parameter_overrides=[

@@ -8,8 +8,8 @@ chair wakes for every message: with ``joy`` and ``joy_applied`` at the board's 1
 latency unchanged (two runs each, alternated; ``benchmarks/predictor_latency.py --clock
 system --adapt off --joy-hz 100 --applied``).
 
-``predictor_node`` and ``shared_control_node``, which read the joystick at that rate (the
-predictor now in batches, :mod:`asgp_ros.nodes.polled`), therefore create their endpoints
+``predictor_node`` and ``shared_control_node``, which read the joystick at that rate (now in
+batches, :mod:`asgp_ros.nodes.polled`), therefore create their endpoints
 without those handlers (:meth:`QosWatch.subscription`, :meth:`QosWatch.publisher`) and
 check their peers here instead, at their diagnostics period (:meth:`QosWatch.check`): every
 publisher of a topic the node subscribes to, every subscription of a topic it publishes,

@@ -27,16 +27,22 @@ what was done and why, probability before and after, change, solve time) and
 ``diagnostics``.
 
 The predictor is fed the command the chair actually received: measured, from
-``applied_topic`` (``joy_applied``, the serial bridge's reading of the board's output) while it
-arrives (:mod:`asgp_ros.nodes.joy_source`); else as far as the layer can tell
+``applied_topic`` (``joy_applied``, the serial bridge's reading of the board's output) while
+it arrives (:mod:`asgp_ros.nodes.joy_source`); else as far as the layer can tell
 (:func:`~asgp_ros.core.shared_control.applied_command`): its last override, until
 ``OVERRIDE_APPLIED_S`` after it (the bridge re-sends it and the board holds it that long,
 also after the layer has stopped) while the user's stick is out of the board's neutral, else
-the user's stick. Its velocity comes from the scans matched to each other while they match and
-from the VO while they do not (``velocity_source: auto``, the default: a camera loses its
-features in front of a wall, where a laser sees best), from the VO alone (``vo``), or from
-the scans alone (``scan_matching``: each matched interval's twist, stamped with the newer
-scan; a refused match is a lost sample).
+the user's stick. Its velocity comes from the scans matched to each other while they match
+and from the VO while they do not (``velocity_source: auto``, the default: a camera loses
+its features in front of a wall, where a laser sees best), from the VO alone (``vo``), or
+from the scans alone (``scan_matching``: each matched interval's twist, stamped with the
+newer scan; a refused match is a lost sample).
+
+The joystick topics, which the bridge publishes at the board's 100 Hz, are read in batches
+(:mod:`asgp_ros.nodes.polled`), not by a wake-up of the executor per message: every
+``joy_poll_period_s`` and before every VO and scan message, watchdog check, diagnostics
+message and override sent, so that an override is never sent after a neutral stick has
+arrived (``joy_poll_period_s: 0.0``: a callback per message).
 
 Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
 map, or an override older than ``hold_s`` (the node stalled) means no override.
@@ -103,6 +109,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
+from asgp_ros.nodes.polled import Arrival, PolledInputs
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 
@@ -200,6 +207,10 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
+    _spec("joy_poll_period_s", 0.05, "the joystick topics (joy_topic, applied_topic: 100 Hz "
+          "each from the bridge) are read in batches this often and before every VO and scan "
+          "message, decision, override sent, watchdog check and diagnostics message, not at "
+          "each message, which cost the executor's wake-up; 0 = at each message", 0.0, 1.0),
 )
 #: Every parameter the node declares: its own and the online adaptation's (adapt.*).
 PARAMS: tuple[ParamSpec, ...] = (*LAYER_PARAMS, *adapt_params.ADAPT_PARAMS)
@@ -245,6 +256,7 @@ class SharedControlParams:
     velocity_source: str
     heading_uncertainty: bool
     diagnostics_period_s: float
+    joy_poll_period_s: float
 
     def __post_init__(self) -> None:
         if not self.model_path:
@@ -271,6 +283,9 @@ class SharedControlParams:
                              "to 'laser' or 'both'")
         if self.obstacles != "laser" and self.vo_type != "odometry":
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
+        if not (math.isfinite(self.joy_poll_period_s) and 0.0 <= self.joy_poll_period_s <= 1.0):
+            raise ValueError(f"joy_poll_period_s must be in [0, 1] s, got "
+                             f"{self.joy_poll_period_s}")
         parse_joy_axes(self.joy_axes)
         self.config()
 
@@ -394,10 +409,13 @@ class SharedControlNode(Node):
         self.status_pub = watch.publisher(DiagnosticStatus, topics.SHARED_CONTROL_STATUS,
                                           reliable)
         self.diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
-        watch.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # the joystick topics at the board's 100 Hz: read in batches (polled), and before
+        # every override sent (a neutral stick read there stops it)
+        self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
+        self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         if p.applied_topic.strip():
-            watch.subscription(Joy, p.applied_topic, self._on_joy_applied,
-                               qos_profile_sensor_data)
+            self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
+                                     qos_profile_sensor_data)
         if p.vo_type == "twist":
             watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
                                qos_profile_sensor_data)
@@ -436,16 +454,20 @@ class SharedControlNode(Node):
         return t if t > 0.0 else now
 
     def _applied(self, user: np.ndarray, now: float) -> np.ndarray:
-        """What the firmware drives with: the last override sent, for OVERRIDE_APPLIED_S
-        after it (also when the layer has stopped: the bridge and the board keep it that
-        long) while the stick is out of the board's neutral, else the stick."""
-        if now < self._sent_t:  # the clock went back: that override is of another time
+        """What the firmware drives with when the stick ``user`` arrived at ``now``: the last
+        override sent, for OVERRIDE_APPLIED_S after it (also when the layer has stopped: the
+        bridge and the board keep it that long) while the stick is out of the board's
+        neutral, else the stick (also when it arrived before that override was sent, and
+        was read in a later batch)."""
+        clock = self._now()
+        if clock is not None and clock < self._sent_t:
+            # the clock went back: that override is of another time
             self._sent, self._sent_t = None, -math.inf
         applied = applied_command(user, self._sent, now - self._sent_t, OVERRIDE_APPLIED_S)
         return user if applied is None else applied
 
-    def _on_joy(self, msg: Joy) -> None:
-        now = self._now()
+    def _on_joy(self, msg: Joy, arrival: Arrival) -> None:
+        now = arrival.now
         if now is None:
             return
         read = self._read_joy(msg, self.params.joy_topic, now)
@@ -454,13 +476,13 @@ class SharedControlNode(Node):
         t, user = read
         self._user = (t, user)
         if is_neutral(user, self.config.neutral_deadband):
-            self._stop_overriding()  # at once, not at the next decision
+            self._stop_overriding()  # now (read before every override), not at the next decision
         if not self._joy_source.measured(now):  # else the board's output feeds
             self._feed_joy(t, self._applied(user, now), measured=False)
 
-    def _on_joy_applied(self, msg: Joy) -> None:
+    def _on_joy_applied(self, msg: Joy, arrival: Arrival) -> None:
         """What the board drives the chair with, measured: it feeds while it arrives."""
-        now = self._now()
+        now = arrival.now
         if now is None:
             return
         read = self._read_joy(msg, self.params.applied_topic, now)
@@ -486,6 +508,7 @@ class SharedControlNode(Node):
             self._joy_source.fed(t, measured)
 
     def _on_twist(self, msg: TwistStamped) -> None:
+        self.polled.drain()  # the step's joystick samples
         now = self._now()
         if now is None:
             return
@@ -500,6 +523,7 @@ class SharedControlNode(Node):
             self._maybe_decide(now)
 
     def _on_odometry(self, msg: Odometry) -> None:
+        self.polled.drain()  # the step's joystick samples
         now = self._now()
         if now is None:
             return
@@ -530,6 +554,7 @@ class SharedControlNode(Node):
             self.odometer.lost()  # no twist to carry the memory along
 
     def _on_scan(self, msg: LaserScan) -> None:
+        self.polled.drain()  # a scan may bring a decision
         now = self._now()
         if now is None:
             return
@@ -720,6 +745,7 @@ class SharedControlNode(Node):
     def _on_watchdog(self) -> None:
         """At the model rate: stale inputs end an intervention even when no new step
         arrives, and without new steps the layer still decides (and says why not)."""
+        self.polled.drain()
         now = self._now()
         if now is None:
             return
@@ -737,6 +763,9 @@ class SharedControlNode(Node):
             self._decision = None
 
     def _send_override(self) -> None:
+        # the joystick waiting first: an override is never sent after a neutral stick that
+        # has arrived (read before now: every sample read later arrived after this send)
+        self.polled.drain()
         now = self._now()
         d = self._decision
         if now is None or d is None or d.command is None:
@@ -805,6 +834,7 @@ class SharedControlNode(Node):
             "bad_messages": str(self._bad_messages),
             # its own overrides, given to its predictor (see predictor_node's)
             "joy_measured": str(self._joy_source.measured_samples),
+            **self.polled.values(),
             "overrides_seen": str(self.predictor.stats.overrides),
             "overrides_late": str(self.predictor.stats.overrides_late),
             **adapt_params.diagnostic_values(self.predictor.adaptation,
@@ -821,6 +851,7 @@ class SharedControlNode(Node):
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:
+        self.polled.drain()
         self.qos_watch.check()
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
