@@ -334,3 +334,27 @@ def test_constant_twist_motion_moves_a_scan_into_the_prediction_frame() -> None:
     y = ahead[1] + s * back[0] + c * back[1]
     np.testing.assert_allclose([x, y, ahead[2] + back[2]], 0.0, atol=1e-12)
     assert C.constant_twist_motion(v, w, 0.0) == (0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("shape, obstacles", [((324, 324), 300), ((7, 400), 1),
+                                              ((1, 1), 1), ((900, 300), 3)])
+def test_the_distance_field_is_the_exact_euclidean_transform_and_never_more(shape,
+                                                                            obstacles):
+    """The field's clearances (OpenCV's transform) against scipy's exact Euclidean
+    distance transform as the reference: the same to 1e-5 of the distance, never larger,
+    less half a cell; inf everywhere without an obstacle."""
+    import scipy.ndimage
+
+    from asgp_ros.core.collision import _distances
+
+    rng = np.random.default_rng(obstacles)
+    mask = np.zeros(shape, bool)
+    mask[rng.integers(0, shape[0], obstacles), rng.integers(0, shape[1], obstacles)] = True
+    res = 0.05
+    want = np.maximum(scipy.ndimage.distance_transform_edt(~mask) * res - 0.5 * res, 0.0)
+    got = _distances(mask, res)
+    assert got.dtype == np.float64 and got.shape == shape
+    assert np.all(got <= want)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
+    assert np.all(got[mask] == 0.0)
+    assert np.all(np.isinf(_distances(np.zeros(shape, bool), res)))

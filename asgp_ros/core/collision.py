@@ -11,7 +11,7 @@ Model and approximations, stated once:
 * **Obstacles.** Points: a scan's end points of its valid beams (in the scan's frame), or
   a grid's occupied cell centres (the rectangle is then grown by half a cell). A distance
   field on a raster (``resolution``; :class:`DistanceField`,
-  ``scipy.ndimage.distance_transform_edt``, less half a cell) only decides which steps
+  OpenCV's exact Euclidean distance transform, less half a cell) only decides which steps
   need sampling: a step that none of its samples can bring within reach of an obstacle
   (its covering discs farther than the draws' largest displacement, plus two cells for
   the field's own raster error) is 0 without sampling.
@@ -85,7 +85,6 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-import scipy.ndimage
 import scipy.spatial
 from numpy.typing import NDArray
 from scipy.stats import norm, qmc
@@ -230,13 +229,28 @@ def scan_points(scan: Scan) -> FloatArray:
     return pts
 
 
+#: Taken off OpenCV's distances (cells, per cell of distance, and 1 + the distance): they
+#: are float32, within 1e-7 of the exact Euclidean distance relatively (measured against
+#: scipy's transform, rasters up to 3,000 cells a side), so none then overstates it.
+_EDT_SLACK = 1e-6
+
+
 def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     """Distance (m) from every cell centre to the nearest obstacle cell, less half a cell
-    (so it never overstates a clearance); inf without obstacles."""
+    (so it never overstates a clearance); inf without obstacles.
+
+    OpenCV's exact Euclidean transform (``DIST_MASK_PRECISE``, Felzenszwalb and
+    Huttenlocher's algorithm): the distances ``scipy.ndimage.distance_transform_edt`` gives,
+    to float32 rounding (the slack below), in an eighth of its time and without its
+    index arrays (two int64 per cell)."""
     if not mask.any():
         return np.full(mask.shape, math.inf)
-    edt = scipy.ndimage.distance_transform_edt(~mask)
-    return np.maximum(np.asarray(edt, dtype=np.float64) * res - 0.5 * res, 0.0)
+    free = np.ascontiguousarray(~mask).view(np.uint8)  # 1 free, 0 obstacle
+    out = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
+    # (d - slack (1 + d) - 1/2) res, in place
+    out *= (1.0 - _EDT_SLACK) * res
+    out -= (0.5 + _EDT_SLACK) * res
+    return np.maximum(out, 0.0, out=out)
 
 
 def _pose_matrix(pose: tuple[float, float, float]) -> tuple[FloatArray, FloatArray]:
