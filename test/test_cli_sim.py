@@ -87,3 +87,31 @@ def test_dataset_bad_arguments(tmp_path, capsys):
     assert main(["dataset", "--out", str(tmp_path / "d"), "--scale", "0.001"]) == 2
     assert "scale" in capsys.readouterr().err
     assert main(["dataset", "--out", str(tmp_path / "d"), "--jobs", "0"]) == 2
+
+
+def test_a_command_imports_its_own_module_alone(repo_root):
+    """``asgp info MODEL`` imports the info command's module (and what it needs), not the
+    other commands' (the simulator, the demo, scipy's optimisers: a second and more of
+    start-up); ``asgp --help`` and a mistyped command still see every command."""
+    model = repo_root / "docs" / "reproduction" / "models" / "tile_asgp.npz"
+    code = ("import sys\n"
+            "from asgp_ros.cli import main\n"
+            f"rc = main(['-v', 'info', {str(model)!r}])\n"
+            "print('loaded', rc, *sorted(m for m in sys.modules if m.startswith(('asgp_ros.cli.',"
+            " 'scipy.optimize', 'scipy.cluster', 'asgp_ros.sim'))))\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=repo_root, capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    loaded = r.stdout.splitlines()[-1].split()
+    assert loaded[:2] == ["loaded", "0"] and "asgp_ros.cli.info" in loaded
+    assert not any(m.startswith(("asgp_ros.cli.demo", "asgp_ros.cli.reproduce",
+                                 "asgp_ros.cli.simulate", "scipy.optimize", "scipy.cluster",
+                                 "asgp_ros.sim")) for m in loaded), loaded
+    every = ["adapt", "bag", "board", "dataset", "demo", "evaluate", "info", "replay",
+             "reproduce", "simulate", "train"]
+    for top in (["--help"], ["-h", "info"], ["-v", "--help", "train"]):
+        r = _asgp(repo_root, *top)
+        assert r.returncode == 0 and all(name in r.stdout for name in every), top
+    r = _asgp(repo_root, "-v", "infoo", "x")
+    assert r.returncode == 2 and "invalid choice: 'infoo'" in r.stderr
+    assert all(f"'{name}'" in r.stderr for name in every)

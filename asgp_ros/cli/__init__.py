@@ -1,9 +1,12 @@
 """The ``asgp`` command: one entry point, one module per subcommand.
 
 Every module in this package that defines ``register(subparsers)`` contributes a
-subcommand. ``register`` adds its parser and sets ``func`` (``args -> exit code``) as the
-parser default; heavy imports (rclpy, OpenCV, scikit-learn) happen inside ``func`` so that
-``asgp --help`` stays fast.
+subcommand of its own name. ``register`` adds its parser and sets ``func`` (``args -> exit
+code``) as the parser default; heavy imports (rclpy, OpenCV, scikit-learn) happen inside
+``func`` so that ``asgp --help`` stays fast. A command line that names a subcommand imports
+that module alone (``asgp info MODEL`` needs none of the others' imports: scipy's
+optimisers and statistics, the simulator, ...); ``asgp --help``, or a name that is not a
+subcommand, imports them all.
 """
 
 from __future__ import annotations
@@ -60,7 +63,26 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _commands() -> list[str]:
+    """The subcommand modules' names, sorted (without importing them)."""
+    return sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_"))
+
+
+def _named_command(argv: Sequence[str]) -> str | None:
+    """The subcommand ``argv`` names: its first word that is not an option (the top-level
+    options take no value), when that is a subcommand; else None (also for the top-level
+    help, ``asgp -h info``, which lists every subcommand)."""
+    for word in argv:
+        if word in ("--", "-h", "--help"):
+            return None
+        if not word.startswith("-"):
+            return word if word in _commands() else None
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``asgp`` parser with every subcommand, or only ``command``'s (a subcommand's
+    name: its module alone is imported)."""
     parser = _Parser(
         prog="asgp",
         description="Smart-wheelchair motion prediction with an autoregressive sparse GP.",
@@ -69,10 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("_"):
-            continue
-        module = importlib.import_module(f"{__name__}.{info.name}")
+    for name in [command] if command is not None else _commands():
+        module = importlib.import_module(f"{__name__}.{name}")
         register = getattr(module, "register", None)
         if register is not None:
             register(sub)
@@ -80,9 +100,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    words = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_named_command(words))
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(words)
     except SystemExit as exc:  # --help, --version, or a usage error (printed, exit 2)
         return exc.code if isinstance(exc.code, int) else 2
     # Progress and log records go to stdout: stderr carries nothing but the one-line error

@@ -49,7 +49,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from asgp_ros.core.metrics import CHI2_2DOF_95, mahalanobis_sq
@@ -297,6 +296,8 @@ def fit_calibration(parts: FloatArray, err: FloatArray, speed: FloatArray, *,
     eps2 = FIT_POSITION_STD_M**2
     x0 = np.log(np.array([1.0, 1.0, 1e-4, 1e-4]))
     bounds = [(math.log(1e-6), math.log(1e4))] * 2 + [(math.log(1e-10), math.log(1e2))] * 2
+    import scipy.optimize  # here: loading a calibrated model needs no optimiser (0.3 s)
+
     res = scipy.optimize.minimize(_nll, x0, args=(parts, err, eps2), jac=True,
                                   method="L-BFGS-B", bounds=bounds,
                                   options={"maxiter": 500})

@@ -65,17 +65,18 @@ import logging
 import math
 import warnings
 from collections.abc import Callable, Mapping
-from typing import NamedTuple, cast
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
-from scipy.cluster.vq import kmeans2
 from threadpoolctl import ThreadpoolController, threadpool_limits
 
 from asgp_ros.core import fitc, posterior
 from asgp_ros.core.fitc import FactorisationError, Params, Workspace
 from asgp_ros.core.posterior import FitcPosterior, PosteriorError
+
+if TYPE_CHECKING:  # imported where a fit runs: loading a model needs no optimiser (0.3 s)
+    import scipy.optimize
 
 FloatArray = NDArray[np.float64]
 ProgressCallback = Callable[[int, float], None]
@@ -344,6 +345,8 @@ class SparseGP:
         # A seeded subsample keeps k-means cheap for large N.
         sub = Xs if N <= 5000 else Xs[np.sort(rng.choice(N, 5000, replace=False))]
         if self.init == "kmeans":
+            from scipy.cluster.vq import kmeans2  # (0.3 s to import: only where a fit starts)
+
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # an empty cluster is repaired below
                 Z, _ = kmeans2(sub, M, iter=20, minit="++", seed=rng)
@@ -497,6 +500,8 @@ class SparseGP:
                 )
             on_iteration = _IterationLogger(self.optimisation_log, N, lml_offset, callback)
             if max_iter == 0:
+                import scipy.optimize
+
                 res = scipy.optimize.OptimizeResult(
                     x=theta0, fun=f0, success=True, message="max_iter = 0", nit=0, nfev=1
                 )
@@ -568,6 +573,8 @@ class SparseGP:
         line search and stops, so a run that hit one is continued from the best finite
         point seen, while it still makes progress and budget is left.
         """
+        import scipy.optimize
+
         start, nit, nfev = theta0, 0, 0
         while True:
             failures, f_start = track.failures, track.f
