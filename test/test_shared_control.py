@@ -126,6 +126,11 @@ def test_stale_inputs_or_no_obstacle_source_never_intervene():
     assert d.why is Why.NO_OBSTACLES and d.command is None
     d = decide(pred, now, np.array([math.nan, 0.0]), wall_ahead(1.0), CONFIG)
     assert d.why is Why.STALE_INPUT and d.command is None
+    # a command no stick gives (a stray publisher's 1e30): refused as such, not a failed
+    # prediction, and nothing commanded
+    for bad in ([1e30, 0.0], [0.5, -7.0], [1.5, 0.0]):
+        d = decide(pred, now, np.array(bad), wall_ahead(1.0), CONFIG)
+        assert d.why is Why.STALE_INPUT and d.command is None and "outside" in d.detail
     d = decide(pred, now + 2.0, user, wall_ahead(1.0), CONFIG)  # joystick and VO 2 s old
     assert d.why is Why.STALE_INPUT and d.command is None and "stale" in d.detail
 

@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 
 from asgp_ros.common.board import OVERRIDE_TIMEOUT_S, WATCHDOG_MS
 from asgp_ros.core.online import Prediction, Predictor
+from asgp_ros.core.streams import joy_problem
 
 FloatArray = NDArray[np.float64]
 
@@ -232,8 +233,9 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
             ``predictor.learn()`` afterwards.
     """
     user = np.asarray(user, dtype=np.float64).reshape(2)
-    if not np.all(np.isfinite(user)):
-        return Decision(Why.STALE_INPUT, "the user's command is not finite", user)
+    problem = joy_problem(float(user[0]), float(user[1]))
+    if problem is not None:  # not a stick's reading (a stray publisher): nothing to judge
+        return Decision(Why.STALE_INPUT, f"the user's command: {problem}", user)
     if is_neutral(user, config.neutral_deadband):
         return Decision(Why.NEUTRAL, "the stick is neutral: nothing is commanded", user)
     start = time.perf_counter()
