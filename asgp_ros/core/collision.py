@@ -229,9 +229,9 @@ def scan_points(scan: Scan) -> FloatArray:
     return pts
 
 
-#: Taken off OpenCV's distances (cells, per cell of distance, and 1 + the distance): they
-#: are float32, within 1e-7 of the exact Euclidean distance relatively (measured against
-#: scipy's transform, rasters up to 3,000 cells a side), so none then overstates it.
+#: OpenCV's distance d (cells) is taken as d - slack (1 + d): its float32 values lie within
+#: 1e-7 of the exact Euclidean distance, relatively (measured against scipy's transform,
+#: rasters up to 3,000 cells a side), so that none then overstates it.
 _EDT_SLACK = 1e-6
 
 
