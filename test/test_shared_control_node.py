@@ -303,6 +303,44 @@ def test_a_neutral_stick_waiting_stops_the_override_before_it_is_sent(harness):
     assert node._user[1].tolist() == [0.0, 0.0] and node._decision is None
 
 
+def test_a_stick_gone_neutral_while_deciding_is_what_the_status_says(harness):
+    """The read before an intervening decision's override finds the stick neutral (it
+    came while the decision was made): nothing is sent, and the decision's status says
+    neutral_stick, not intervening."""
+    h = harness(joy_poll_period_s=1.0)
+    node = h.node
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening"
+    _reads_stopped(h)
+    send = node._send_override
+    armed = [False]
+
+    def send_after_a_neutral_read() -> None:
+        if armed[0]:  # as if the read in _send_override took a neutral sample
+            armed[0] = False
+            node._user = (node._user[0], np.zeros(2))
+            node._stop_overriding()
+        send()
+
+    node._send_override = send_after_a_neutral_read
+    h.clock(104.2)
+    for _ in range(20):  # the timers due at the new clock
+        h.executor.spin_once(timeout_sec=0.005)
+    sent, statuses = node._overrides_sent, len(h.status)
+    armed[0] = True
+    h.joy_pub.publish(conv.joy_from_sample(104.2, 0.8, 0.0))
+    time.sleep(0.05)  # in the queue when the VO message comes
+    h.vo_pub.publish(conv.twist_stamped_from_sample(104.2, 0.72, 0.0))
+    h.spin_until(lambda: len(h.status) > statuses, what="a decision")
+    last = h.last()
+    assert not armed[0], "the decision did not intervene"
+    assert last["why"] == "neutral_stick" and last["command_forward"] == "", last
+    assert "before the override was sent" in h.status[-1].message
+    assert node._overrides_sent == sent and not node._was_intervening
+    assert node._decision is not None and node._decision.why.value == "neutral_stick"
+
+
 def test_the_joystick_by_a_callback_per_message(harness):
     """joy_poll_period_s 0: rclpy's callback for each joystick message."""
     h = harness(joy_poll_period_s=0.0)

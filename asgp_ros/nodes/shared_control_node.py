@@ -723,10 +723,18 @@ class SharedControlNode(Node):
         if decision.solve_s > 0.0:
             self._solve_ms.append(1e3 * decision.solve_s)
         if decision.intervening:
+            self._send_override()
+            if self._decision is None:
+                # the stick read before the send (it came while this decision was made) is
+                # neutral: nothing was sent, and the status says so
+                decision = dataclasses.replace(
+                    decision, why=Why.NEUTRAL, command=None, p_command=math.nan, change=0.0,
+                    detail="the stick went neutral before the override was sent")
+                self._decision = decision
+        if decision.intervening:
             if not self._was_intervening:  # a new intervention begins
                 self._interventions += 1
             self._changes.append(decision.change)
-            self._send_override()
         else:
             self._stop_overriding()
         self._was_intervening = decision.intervening
