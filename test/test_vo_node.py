@@ -483,3 +483,37 @@ def test_vo_node_process_starts_with_the_shipped_config(repo_root, tmp_path):
             proc.kill()
             proc.wait()
     assert proc.returncode in (0, -signal.SIGINT), proc.returncode
+
+
+@pytest.mark.ros
+def test_no_event_handler_per_endpoint_and_an_unmatched_peer_is_reported(rclpy_context):
+    """As predictor_node's (asgp_ros.nodes.qos_watch): rclpy's per-endpoint QoS event
+    handlers are off on the VO's endpoints, and a peer that cannot be matched (a
+    subscription of the twist that asks for transient-local durability) is named in the
+    diagnostics until it goes."""
+    from geometry_msgs.msg import TwistStamped
+    from rclpy.qos import DurabilityPolicy, QoSProfile
+
+    h = _Harness(rclpy_context)
+    node = h.node
+    try:
+        mine = [e for e in [*node.subscriptions, *node.publishers]
+                if e.topic_name not in ("/parameter_events", "/rosout", "/clock")]
+        assert len(mine) == 6 and all(not e.event_handlers for e in mine), [
+            e.topic_name for e in mine if e.event_handlers]
+        assert h.spin_until(lambda: node.qos_watch.check() == [])
+        latched = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        wrong = h.driver.create_subscription(TwistStamped, "vo/twist", lambda _: None, latched)
+
+        def newest() -> str:
+            found = _levels(h.diags)
+            return found[-1][2].get("qos_mismatch", "") if found else ""
+
+        # the node's own check, at its diagnostics period, finds it
+        assert h.spin_until(lambda: newest().startswith(
+            "/vo/twist: subscription of /vo_test_driver: incompatible")), newest()
+        assert node.qos_watch.problems == [newest()]
+        h.driver.destroy_subscription(wrong)
+        assert h.spin_until(lambda: newest() == "none")
+    finally:
+        h.close()

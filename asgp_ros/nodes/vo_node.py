@@ -39,6 +39,7 @@ from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
+from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
 from asgp_ros.vo.planar import PlanarOdometry
@@ -68,18 +69,22 @@ class VONode(Node):
         self.add_on_set_parameters_callback(refuse_at_runtime(self, SPECS, "vo_node"))
         p = self.params
         reliable = QoSProfile(depth=10)
-        self._twist_pub = self.create_publisher(TwistStamped, topics.VO_TWIST, reliable)
-        self._odom_pub = (self.create_publisher(Odometry, topics.VO_ODOM, reliable)
+        # endpoints without rclpy's per-endpoint QoS event handlers (waitables at every
+        # wake-up, three image streams' worth of them); the peers are checked at the
+        # diagnostics period instead (asgp_ros/nodes/qos_watch.py)
+        self.qos_watch = watch = QosWatch(self)
+        self._twist_pub = watch.publisher(TwistStamped, topics.VO_TWIST, reliable)
+        self._odom_pub = (watch.publisher(Odometry, topics.VO_ODOM, reliable)
                           if p.publish_odom else None)
-        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
+        self._diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         self._color: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
         self._depth: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
         self._wake = self.create_guard_condition(self._process_newest)
-        self.create_subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data)
-        self.create_subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
-        self.create_subscription(CameraInfo, p.camera_info_topic, self._on_info,
-                                 qos_profile_sensor_data)
-        self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,
+        watch.subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data)
+        watch.subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
+        watch.subscription(CameraInfo, p.camera_info_topic, self._on_info,
+                           qos_profile_sensor_data)
+        self.create_timer(p.diagnostics_period_s, self._on_diagnostics_timer,
                           clock=runtime.pacing_clock(self))
 
         self.vo: VisualOdometry | None = None
@@ -244,6 +249,10 @@ class VONode(Node):
 
     # -- diagnostics -----------------------------------------------------------------------
 
+    def _on_diagnostics_timer(self) -> None:
+        self.qos_watch.check()  # the peers, from the graph (not at every state change)
+        self._publish_diagnostics()
+
     def _publish_diagnostics(self) -> None:
         p = self.params
         r = self.last_result
@@ -282,6 +291,7 @@ class VONode(Node):
             values["process_ms_max"] = 1e3 * float(np.max(self._elapsed))
         if age is not None:
             values["last_frame_age_s"] = float(age)
+        values["qos_mismatch"] = self.qos_watch.summary()
         status = conv.diagnostic_status("vo_node: tracking", level, msg, p.color_topic, values)
         self._diag_pub.publish(conv.diagnostic_array(
             self.get_clock().now().nanoseconds * 1e-9, [status]))
