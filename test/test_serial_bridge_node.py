@@ -346,3 +346,31 @@ def test_node_process_runs_and_stops_cleanly(repo_root, tmp_path):
         board.stop()
     assert proc.returncode == 0, out
     assert "Traceback" not in out, out
+
+
+def test_no_event_handler_per_endpoint_and_an_unmatched_subscriber_is_named(harness):
+    """As the other nodes' (asgp_ros.nodes.qos_watch): rclpy's per-endpoint QoS event
+    handlers are off on the bridge's endpoints, and a subscriber of the best-effort joy
+    that asks for reliable delivery (it gets nothing) is named in the link's diagnostics,
+    found by the bridge's own check at its diagnostics period, until it goes."""
+    from rclpy.qos import ReliabilityPolicy
+
+    h = harness(lambda t: (0.3, 0.0), diagnostics_period=0.2)
+    node = h.node
+    mine = [e for e in [*node.subscriptions, *node.publishers]
+            if e.topic_name not in ("/parameter_events", "/rosout")]
+    assert len(mine) == 4 and all(not e.event_handlers for e in mine), [
+        e.topic_name for e in mine if e.event_handlers]
+
+    def mismatch() -> str:
+        st = h.link_status()
+        return conv.diagnostic_values(st).get("qos_mismatch", "") if st is not None else ""
+
+    assert h.spin_until(lambda: mismatch() == "none", 10.0)
+    wrong = h.probe.create_subscription(
+        Joy, "joy", lambda _: None,
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    assert h.spin_until(lambda: mismatch().startswith("/joy: subscription of /probe:"), 10.0)
+    assert "best effort publisher and reliable subscription" in mismatch().lower()
+    h.probe.destroy_subscription(wrong)
+    assert h.spin_until(lambda: mismatch() == "none", 10.0)

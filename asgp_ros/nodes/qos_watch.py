@@ -9,21 +9,21 @@ latency unchanged (two runs each, alternated; ``benchmarks/predictor_latency.py 
 system --adapt off --joy-hz 100 --applied``).
 
 ``predictor_node`` and ``shared_control_node``, which read the joystick at that rate (now in
-batches, :mod:`asgp_ros.nodes.polled`), and ``vo_node`` (three image streams), therefore
-create their endpoints without those handlers (:meth:`QosWatch.subscription`,
-:meth:`QosWatch.publisher`) and check their peers here instead, at their diagnostics period
-(:meth:`QosWatch.check`): every publisher of a topic the node subscribes to, every
-subscription of a topic it publishes, from the graph (``get_publishers_info_by_topic`` and
-``get_subscriptions_info_by_topic``), against the node's own QoS as the graph reports it
-(``rclpy.qos.qos_check_compatible``; the profile a node creates an endpoint with says
-"default" where the graph says "infinite", which the check would take for a mismatch) and
-message type. A peer that cannot be matched is logged once, as rclpy's handlers log it, and
-named in the diagnostics (``qos_mismatch``, at most :data:`MAX_SHOWN` of them by name) for
-as long as it is there; one that goes and comes back is logged again, and one whose node the
-graph has not discovered yet is logged once it has. The graph is asked with each topic's
-name as the node created it (the queries expand and remap their argument, as creation did).
-Only a certain mismatch counts: a QoS that may or may not match ("system default" in a
-peer's profile) is left to DDS.
+batches, :mod:`asgp_ros.nodes.polled`), ``vo_node`` (three image streams) and
+``serial_bridge_node``, therefore create their endpoints without those handlers
+(:meth:`QosWatch.subscription`, :meth:`QosWatch.publisher`) and check their peers here
+instead, at their diagnostics period (:meth:`QosWatch.check`): every publisher of a topic
+the node subscribes to, every subscription of a topic it publishes, from the graph
+(``get_publishers_info_by_topic`` and ``get_subscriptions_info_by_topic``), against the
+node's own QoS as the graph reports it (``rclpy.qos.qos_check_compatible``; the profile a
+node creates an endpoint with says "default" where the graph says "infinite", which the
+check would take for a mismatch) and message type. A peer that cannot be matched is logged
+once, as rclpy's handlers log it, and named in the diagnostics (``qos_mismatch``, at most
+:data:`MAX_SHOWN` of them by name) for as long as it is there; one that goes and comes back
+is logged again, and one whose node the graph has not discovered yet is logged once it has.
+The graph is asked with each topic's name as the node created it (the queries expand and
+remap their argument, as creation did). Only a certain mismatch counts: a QoS that may or
+may not match ("system default" in a peer's profile) is left to DDS.
 """
 
 from __future__ import annotations

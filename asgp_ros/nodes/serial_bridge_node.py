@@ -47,6 +47,7 @@ from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.serial import status as board_status
 from asgp_ros.serial.calibration import board_permille, host_deflection
 from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
@@ -84,14 +85,16 @@ class SerialBridgeNode(Node):
             raise ValueError(SIM_TIME_REFUSED)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self._joy_pub = self.create_publisher(Joy, topics.JOY, qos_profile_sensor_data)
-        self._applied_pub = self.create_publisher(Joy, topics.JOY_APPLIED,
-                                                  qos_profile_sensor_data)
+        # endpoints without rclpy's per-endpoint QoS event handlers, their peers checked at
+        # the diagnostics period and named there (a reliable subscriber of the best-effort
+        # joy gets nothing: asgp_ros/nodes/qos_watch.py)
+        self.qos_watch = watch = QosWatch(self)
+        self._joy_pub = watch.publisher(Joy, topics.JOY, qos_profile_sensor_data)
+        self._applied_pub = watch.publisher(Joy, topics.JOY_APPLIED, qos_profile_sensor_data)
         self._board = default_calibration()  # the firmware's own (config.h)
-        self._diag_pub = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                               QoSProfile(depth=10))
-        self.create_subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
-                                 qos_profile_sensor_data)
+        self._diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                         QoSProfile(depth=10))
+        watch.subscription(Joy, topics.JOY_OVERRIDE, self._on_override, qos_profile_sensor_data)
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)
         self._diag_lock = threading.Lock()  # diagnostics come from two threads
@@ -109,7 +112,7 @@ class SerialBridgeNode(Node):
                                 on_state=self._on_state)
         pacing = runtime.pacing_clock(self)
         self.create_timer(1.0 / self.params.override_rate, self._send_override, clock=pacing)
-        self.create_timer(self.params.diagnostics_period, self._publish_diagnostics,
+        self.create_timer(self.params.diagnostics_period, self._on_diagnostics_timer,
                           clock=pacing)
         self.link.start()
         self.get_logger().info(f"serial bridge on {self.params.port}")
@@ -227,6 +230,10 @@ class SerialBridgeNode(Node):
 
     # -- diagnostics -------------------------------------------------------------------------
 
+    def _on_diagnostics_timer(self) -> None:
+        self.qos_watch.check()  # the peers, from the graph (here only, not from the reader)
+        self._publish_diagnostics()
+
     def _publish_diagnostics(self, only_if_levels_change: bool = False) -> None:
         """Publishes the three statuses (link, joystick, override); with
         ``only_if_levels_change`` only when a level differs from the last publication.
@@ -279,6 +286,7 @@ class SerialBridgeNode(Node):
                 "host_lost": st.host_lost, "host_lost_events": st.host_lost_events,
                 "last_sample_age_s": st.last_sample_age,
                 "last_heartbeat_age_s": st.last_heartbeat_age,
+                "qos_mismatch": self.qos_watch.summary(),
             })
 
     def _joystick_status(self, st: LinkStats) -> DiagnosticStatus:
