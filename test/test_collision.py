@@ -358,3 +358,55 @@ def test_the_distance_field_is_the_exact_euclidean_transform_and_never_more(shap
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-7)
     assert np.all(got[mask] == 0.0)
     assert np.all(np.isinf(_distances(np.zeros(shape, bool), res)))
+
+
+_CORE_CHECK = """
+import importlib, json, pkgutil, sys
+blocked = {blocked!r}
+for name in blocked:
+    sys.modules[name] = None  # an import of it raises ImportError
+before = set(sys.modules)  # the interpreter's own start-up (site hooks) is not the core's
+import numpy as np
+import asgp_ros.core
+for m in pkgutil.iter_modules(asgp_ros.core.__path__):
+    importlib.import_module("asgp_ros.core." + m.name)
+from importlib.metadata import packages_distributions
+installed = packages_distributions()  # top-level import name -> its distributions
+loaded = {{n.split(".")[0] for n, mod in sys.modules.items()
+          if mod is not None and n not in before}}
+third = sorted(loaded & set(installed) - {{"asgp_ros", "numpy", "scipy", "threadpoolctl"}})
+cv2_at_import = "cv2" in sys.modules and sys.modules["cv2"] is not None
+from asgp_ros.core.collision import _distances
+import scipy.ndimage
+rng = np.random.default_rng(5)
+mask = np.zeros((120, 90), bool)
+mask[rng.integers(0, 120, 40), rng.integers(0, 90, 40)] = True
+want = np.maximum(scipy.ndimage.distance_transform_edt(~mask) * 0.05 - 0.025, 0.0)
+got = _distances(mask, 0.05)
+print(json.dumps({{"third": third, "cv2_at_import": cv2_at_import,
+                  "cv2_used": sys.modules.get("cv2") is not None,
+                  "exact": bool(np.array_equal(got, want)),
+                  "close": bool(np.all(got <= want) and np.allclose(got, want, rtol=1e-5))}}))
+"""
+
+
+@pytest.mark.parametrize("blocked", [(), ("cv2", "rclpy", "sklearn", "matplotlib", "rosbags",
+                                          "serial")])
+def test_the_core_needs_numpy_and_scipy_alone(repo_root, blocked):
+    """Every module of asgp_ros.core imports with numpy, scipy and threadpoolctl alone (the
+    others blocked): OpenCV is imported at the first distance field, not with the core, and
+    where it cannot be, the field is scipy's exact transform itself."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _CORE_CHECK.format(blocked=list(blocked))],
+                       cwd=repo_root, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["third"] == [] and not out["cv2_at_import"], out
+    assert out["close"], out
+    if blocked:
+        assert out["exact"] and not out["cv2_used"], out
+    else:
+        assert out["cv2_used"], out

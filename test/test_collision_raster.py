@@ -377,3 +377,25 @@ def test_the_raster_gives_the_same_probabilities_from_the_hull_as_from_every_poi
                 every = C.contact_probability(fld, pose, cov, method="raster")
             np.testing.assert_array_equal(hull.per_step, every.per_step)
             assert hull.tolerance == every.tolerance
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_without_opencv_the_raster_gives_the_same_probabilities(seed, monkeypatch):
+    """The summed-area table by numpy's running sums (where OpenCV cannot be imported)
+    equals cv2.integral's, table and probabilities, to the last bit: its entries are whole
+    numbers."""
+    rng = np.random.default_rng(100 + seed)
+    diff = rng.integers(-3, 4, (rng.integers(1, 60), rng.integers(1, 60))).astype(np.float32)
+    with_cv2 = C._summed_area(diff)
+    fld = random_scene(rng)
+    pose, cov = random_paths(rng, 4, 5, heading=bool(seed % 2))
+    fast = C.contact_probability(fld, pose, cov, method="raster")
+    monkeypatch.setattr(C, "_CV2", False)  # as when ``import cv2`` failed
+    table = C._summed_area(diff)
+    assert table.dtype == np.float32 and table.shape == (diff.shape[0] + 1, diff.shape[1] + 1)
+    np.testing.assert_array_equal(table, with_cv2)
+    np.testing.assert_array_equal(table[1:, 1:], np.cumsum(np.cumsum(diff, 0), 1))
+    slow = C.contact_probability(fld, pose, cov, method="raster")
+    np.testing.assert_array_equal(slow.per_step, fast.per_step)
+    np.testing.assert_array_equal(slow.within, fast.within)
+    assert slow.tolerance == fast.tolerance

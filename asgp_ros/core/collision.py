@@ -81,13 +81,12 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
-import cv2
 import numpy as np
 import scipy.spatial
+import scipy.special
 from numpy.typing import NDArray
-from scipy.stats import norm, qmc
 
 from asgp_ros.core.unicycle import integrate_path
 
@@ -235,6 +234,24 @@ def scan_points(scan: Scan) -> FloatArray:
 _EDT_SLACK = 1e-6
 
 
+_CV2: Any = None  # the cv2 module, False when it cannot be imported, None before the first try
+
+
+def _opencv() -> Any:
+    """OpenCV's module, or None where it is not installed (the core needs numpy and scipy
+    alone; the package installs OpenCV for its VO, and the distance fields use it when it
+    is there). Imported at the first field, not with this module."""
+    global _CV2
+    if _CV2 is None:
+        try:
+            import cv2
+        except ImportError:
+            _CV2 = False
+        else:
+            _CV2 = cv2
+    return _CV2 or None
+
+
 def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     """Distance (m) from every cell centre to the nearest obstacle cell, less half a cell
     (so it never overstates a clearance); inf without obstacles.
@@ -242,11 +259,21 @@ def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     OpenCV's exact Euclidean transform (``DIST_MASK_PRECISE``, Felzenszwalb and
     Huttenlocher's algorithm): the distances ``scipy.ndimage.distance_transform_edt`` gives,
     to float32 rounding (the slack below), without its index arrays (two int64 per cell);
-    a scan's whole field in under half the time (``benchmarks/shared_control.py``)."""
+    a scan's whole field in under half the time (``benchmarks/shared_control.py``). Without
+    OpenCV, scipy's transform itself."""
     if not mask.any():
         return np.full(mask.shape, math.inf)
+    cv2 = _opencv()
+    if cv2 is None:
+        import scipy.ndimage
+
+        edt = np.asarray(scipy.ndimage.distance_transform_edt(~mask), dtype=np.float64)
+        edt *= res
+        edt -= 0.5 * res
+        return np.maximum(edt, 0.0, out=edt)
     free = np.ascontiguousarray(~mask).view(np.uint8)  # 1 free, 0 obstacle
-    out = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64)
+    out: FloatArray = np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
+                                 dtype=np.float64)
     # (d - slack (1 + d) - 1/2) res, in place
     out *= (1.0 - _EDT_SLACK) * res
     out -= (0.5 + _EDT_SLACK) * res
@@ -428,8 +455,10 @@ def _draws(samples: int) -> FloatArray:
     """[samples, 3] fixed standard-normal draws (scrambled Sobol, seed 0): columns 0 and 1
     move the position, column 2 only the heading (through a lower Cholesky factor)."""
     if samples not in _NORMAL_DRAWS:
+        from scipy.stats import qmc  # at the first draw: scipy.stats takes 0.4 s to import
+
         sobol = qmc.Sobol(d=3, scramble=True, seed=0).random(samples)
-        _NORMAL_DRAWS[samples] = norm.ppf(np.clip(sobol, 1e-12, 1 - 1e-12))
+        _NORMAL_DRAWS[samples] = scipy.special.ndtri(np.clip(sobol, 1e-12, 1 - 1e-12))
     return _NORMAL_DRAWS[samples]
 
 
@@ -730,6 +759,19 @@ def _chunks(nu: int, m: int) -> list[NDArray[np.intp]]:
     return [np.arange(a, min(a + per, nu)) for a in range(0, nu, per)] if m else []
 
 
+def _summed_area(diff: NDArray[np.float32]) -> NDArray[np.float32]:
+    """[h, w] -> [h + 1, w + 1] summed-area table (zero first row and column), in float32:
+    ``cv2.integral``, or numpy's running sums without OpenCV. The entries are whole numbers
+    (+1/-1 marks and their sums), exact in float32 either way."""
+    cv2 = _opencv()
+    if cv2 is not None:
+        return cast(NDArray[np.float32], cv2.integral(diff, sdepth=cv2.CV_32F))
+    out = np.zeros((diff.shape[0] + 1, diff.shape[1] + 1), dtype=np.float32)
+    np.cumsum(diff, axis=0, out=out[1:, 1:])
+    np.cumsum(out[1:, 1:], axis=1, out=out[1:, 1:])
+    return out
+
+
 def _boxes(pts: FloatArray, cb: FloatArray, sb: FloatArray, box: FloatArray
            ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """[r, m] extent (u0, u1, v0, v1) of the box at each point ``pts`` [m, 2], in the
@@ -802,7 +844,7 @@ def _raster_touch(fld: DistanceField, rect: _Rect, smp: _Samples, cell: float,
     pad = mag * (2.0**-20 if single else 2.0**-48) + 1e-9
 
     # mark the cells each box meets: +1/-1 at its corners, then the summed-area table
-    # (cv2.integral: entry (r + 1, c + 1) sums rows <= r, columns <= c, the cover count)
+    # (entry (r + 1, c + 1) sums rows <= r, columns <= c: the cover count)
     diff = np.zeros((int(row[-1]), wc), dtype=np.float32)
     flat_diff = diff.reshape(-1)
     for rows in _chunks(p.cos.size, m):
@@ -825,7 +867,7 @@ def _raster_touch(fld: DistanceField, rect: _Rect, smp: _Samples, cell: float,
                   np.float32(1.0))
         np.add.at(flat_diff, np.concatenate([(bi + y0) * wc + x1, (bi + y1) * wc + x0]),
                   np.float32(-1.0))
-    covered = cv2.integral(diff, sdepth=cv2.CV_32F).reshape(-1)  # cover counts
+    covered = _summed_area(diff).reshape(-1)  # cover counts
     stride = np.int32(wc + 1)
 
     # one lookup per sample: its cell in its heading's bin
