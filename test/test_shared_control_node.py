@@ -1132,3 +1132,38 @@ def test_no_event_handler_per_endpoint_and_the_peers_checked(harness):
     assert node.qos_watch.check() == []
     node._publish_diagnostics()
     assert conv.diagnostic_values(node.diagnostic_status())["qos_mismatch"] == "none"
+
+
+_FIRST_DECISION_CHECK = """
+import json, sys
+import rclpy
+from rclpy.parameter import Parameter
+from asgp_ros.core import collision
+from asgp_ros.nodes.shared_control_node import SharedControlNode
+def state():
+    return {"cv2": collision._CV2 not in (None, False),
+            "draws": collision.SAMPLES in collision._NORMAL_DRAWS}
+before = state()
+rclpy.init()
+node = SharedControlNode(parameter_overrides=[Parameter("model_path", value=%r)])
+after = state()
+node.destroy_node()
+rclpy.shutdown()
+print(json.dumps({"before": before, "after": after}))
+"""
+
+
+def test_the_node_loads_the_checks_parts_at_start_up_not_at_its_first_decision(
+        repo_root, model_file):  # noqa: F811
+    """OpenCV and the collision check's Sobol draws (scipy.stats' import: 0.4 s) are loaded
+    when the node starts, not by its first decision, which they would delay."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _FIRST_DECISION_CHECK % str(model_file)],
+                       cwd=repo_root, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out == {"before": {"cv2": False, "draws": False},
+                   "after": {"cv2": True, "draws": True}}, out

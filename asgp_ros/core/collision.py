@@ -462,6 +462,14 @@ def _draws(samples: int) -> FloatArray:
     return _NORMAL_DRAWS[samples]
 
 
+def prepare(samples: int = SAMPLES) -> None:
+    """Load now what the first check would load: OpenCV (where it is installed) and the
+    Sobol draws of ``samples`` per step (scipy.stats' import, about 0.4 s). A node calls it
+    at start-up, so that its first decision is not the slow one."""
+    _opencv()
+    _draws(samples)
+
+
 def _chol3(cov: FloatArray) -> FloatArray:
     """[..., 3, 3] (or [..., 2, 2], padded with a zero heading) PSD -> [..., 3, 3] lower
     Cholesky factors in closed form. A negative round-off variance or Schur complement is

@@ -327,6 +327,7 @@ class SharedControlNode(Node):
         except (ValueError, TypeError) as exc:
             self.destroy_node()
             raise StartupError(f"invalid parameters: {exc}") from exc
+        collision.prepare()  # OpenCV and the draws: not at the first decision
         self.add_on_set_parameters_callback(
             refuse_at_runtime(self, {spec.name for spec in PARAMS}, NODE_NAME))
         p = self.params
