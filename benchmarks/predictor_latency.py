@@ -77,6 +77,16 @@ def cpu_seconds(pid: int) -> float:
     return (utime + stime) / os.sysconf("SC_CLK_TCK")
 
 
+def spin_until(executor, cond, timeout: float) -> bool:
+    """Spin ``executor`` until ``cond()`` holds (True) or ``timeout`` seconds pass (False)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.001)
+    return True
+
+
 def stop_node(node: subprocess.Popen) -> None:
     """SIGINT to a node's process and wait for it; killed after 10 s."""
     node.send_signal(signal.SIGINT)
@@ -136,12 +146,7 @@ class Driver:
             self.diag = {kv.key: kv.value for kv in status.values}
 
     def spin_until(self, cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.001)
-        return True
+        return spin_until(self.executor, cond, timeout)
 
     def send_step_inputs(self, n: int, paced_from: float | None = None) -> None:
         """/clock and the joystick samples of grid step n (the last one after t_n).

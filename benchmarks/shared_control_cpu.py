@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from predictor_latency import cpu_seconds, stop_node
+from predictor_latency import cpu_seconds, spin_until, stop_node
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_MODEL = REPO / "docs" / "reproduction" / "models" / "tile_asgp.npz"
@@ -114,12 +114,7 @@ class Feeder:
                 self.diag = {kv.key: kv.value for kv in status.values}
 
     def spin_until(self, cond, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        while not cond():
-            if time.monotonic() > deadline:
-                return False
-            self.executor.spin_once(timeout_sec=0.001)
-        return True
+        return spin_until(self.executor, cond, timeout)
 
     def feed(self, seconds: float) -> None:
         """The inputs for ``seconds`` of wall time, each at its own time."""
