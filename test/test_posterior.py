@@ -106,6 +106,49 @@ def test_posterior_is_immutable_and_replaced_whole(fitted) -> None:
         dataclasses.replace(post, alpha=np.zeros(3))
 
 
+def test_new_weights_give_the_posterior_a_replace_would(fitted) -> None:
+    """``with_weights`` (an online update's new posterior) equals ``dataclasses.replace``
+    with the same LA, alpha and C, field by field and in every stacked array, is as
+    read-only, and refuses wrong shapes; the weights are copied, not kept."""
+    gp, X, _ = fitted
+    post = gp.posterior
+    rng = np.random.default_rng(4)
+    M = post.num_inducing
+    LA = np.tril(rng.standard_normal((M, M))) + 3.0 * np.eye(M)
+    alpha = rng.standard_normal(M)
+    C = rng.standard_normal((M, M))
+    C = C @ C.T * 1e-3
+    got = post.with_weights(LA, alpha, C)
+    want = dataclasses.replace(post, LA=LA, alpha=alpha, C=C)
+    assert got is not post and got.stacked is not post.stacked
+    def same(a: object, b: object, name: str) -> None:
+        assert type(a) is type(b), name
+        if isinstance(a, tuple):  # kernel, stacked: NamedTuples of arrays (and of tuples)
+            for x, z, field in zip(a, b, type(a)._fields, strict=True):
+                same(x, z, f"{name}.{field}")
+        elif isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            assert a == b, name
+
+    for f in dataclasses.fields(FitcPosterior):
+        same(getattr(got, f.name), getattr(want, f.name), f.name)
+        if isinstance(getattr(got, f.name), np.ndarray):
+            assert not getattr(got, f.name).flags.writeable, f.name
+    for name in ("LA", "alpha", "C"):
+        assert not np.shares_memory(getattr(got, name), locals()[name])
+    alpha[0] += 1.0  # the caller's array changes; the posterior's does not
+    assert got.alpha[0] != alpha[0]
+    for a, b in zip(posterior.predict(got.stacked, X[None], True, True),
+                    posterior.predict(want.stacked, X[None], True, True), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert post.alpha is not got.alpha and gp.posterior is post  # the original untouched
+    with pytest.raises(PosteriorError, match="alpha has shape"):
+        post.with_weights(LA, np.zeros(3), C)
+    with pytest.raises(PosteriorError, match="C has shape"):
+        post.with_weights(LA, alpha, C[:2])
+
+
 # --------------------------------------------------------------- state arrays
 
 

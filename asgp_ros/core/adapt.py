@@ -540,9 +540,4 @@ class OnlinePosterior:
         C = 0.5 * (S + S.T)
         if not (np.all(np.isfinite(alpha)) and np.all(np.isfinite(C))):
             return RejectReason.NONFINITE_TERMS
-        return FitcPosterior(
-            x_mean=post.x_mean, x_scale=post.x_scale, y_mean=post.y_mean,
-            y_scale=post.y_scale, Z=post.Z, lengthscales=post.lengthscales,
-            signal_variance=post.signal_variance, noise_variance=post.noise_variance,
-            jitter=post.jitter, L=post.L, LA=LA, alpha=alpha, C=C,
-        )
+        return post.with_weights(LA, alpha, C)

@@ -114,6 +114,33 @@ class FitcPosterior:
                                                 self.signal_variance))
         object.__setattr__(self, "stacked", stack([self]))
 
+    def with_weights(self, LA: FloatArray, alpha: FloatArray, C: FloatArray) -> FitcPosterior:
+        """This posterior with new LA, alpha and C: what an online update changes (the
+        inputs, pseudo-inputs and hyperparameters are the same).
+
+        Equal to ``dataclasses.replace(self, LA=LA, alpha=alpha, C=C)``, but the unchanged
+        arrays and the derived kernel terms are shared (they are read-only), not copied,
+        checked and derived again, and ``stacked`` is this one's with the new weights:
+        an update of ``asgp_ros.core.adapt`` publishes a posterior per block of rows.
+        """
+        M = self.num_inducing
+        new = {}
+        for name, value, shape in (("LA", LA, (M, M)), ("alpha", alpha, (M,)),
+                                   ("C", C, (M, M))):
+            arr = np.array(value, dtype=np.float64)  # a private, read-only copy
+            if arr.shape != shape:
+                raise PosteriorError(f"posterior: {name} has shape {arr.shape}, expected "
+                                     f"{shape}")
+            arr.flags.writeable = False
+            new[name] = arr
+        out = object.__new__(FitcPosterior)
+        out.__dict__.update(self.__dict__)
+        out.__dict__.update(new)
+        a = new["alpha"][None, :, None]  # as stack([out]) lays out one channel
+        out.__dict__["stacked"] = self.stacked._replace(
+            alpha=a, alpha_z=a * self.Z[None], C=new["C"][None])
+        return out
+
     @property
     def num_inducing(self) -> int:
         """M."""
