@@ -393,6 +393,8 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     cal = fw.default_calibration()
     board = fw.Safety()
     board.set_mode(Mode.OVERRIDE if layer else Mode.PASSTHROUGH, 0)
+    if layer:
+        collision.prepare()  # as the node at start-up: no import in a decision's time
     rate = float(model.resample_config.rate_hz)
     predictor = Predictor(model, PredictorConfig(horizon_steps=max(1, round(horizon_s * rate))),
                           adapt=adapt)
