@@ -119,9 +119,10 @@ class FitcPosterior:
         inputs, pseudo-inputs and hyperparameters are the same).
 
         Equal to ``dataclasses.replace(self, LA=LA, alpha=alpha, C=C)``, but the unchanged
-        arrays and the derived kernel terms are shared (they are read-only), not copied,
-        checked and derived again, and ``stacked`` is this one's with the new weights:
-        an update of ``asgp_ros.core.adapt`` publishes a posterior per block of rows.
+        (read-only) arrays and the derived kernel terms are shared, not copied, checked and
+        derived again (nothing writes to them), and ``stacked`` is this one's with the new
+        weights: an update of ``asgp_ros.core.adapt`` publishes a posterior per block of
+        rows. LA, alpha and C are copied.
         """
         M = self.num_inducing
         new = {}
