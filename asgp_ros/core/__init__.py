@@ -1,4 +1,5 @@
-"""ROS-free numerics of the ASGP predictor (numpy and scipy only).
+"""ROS-free numerics of the ASGP predictor (numpy and scipy only, with threadpoolctl for the
+BLAS threads; OpenCV is used where it is installed, not needed: see ``collision._opencv``).
 
 The functions ``resample`` and ``rollout`` are not re-exported here, so that
 ``asgp_ros.core.resample`` and ``asgp_ros.core.rollout`` always name the modules:
