@@ -1,6 +1,6 @@
 """CPU of the shared-control layer's node, fed at the chair's rates, across processes.
 
-    .venv/bin/python benchmarks/shared_control_cpu.py [--seconds 30] [--poll 0,0.05]
+    .venv/bin/python benchmarks/shared_control_cpu.py [--seconds 30] [--poll 0,0.25]
         [--runs 2] [--model M.npz]
 
 Set-up: ``shared_control_node`` runs as its own process on the system clock (as on the
@@ -20,7 +20,7 @@ swinging by 0.25 rad, the far wall close enough at the end of each run forward f
 layer to judge it (and at times to intervene).
 
 For each value of ``--poll`` in turn (the node's ``joy_poll_period_s``: 0 is rclpy's
-callback for each joystick message; 0.05 the default, read in batches), repeated
+callback for each joystick message; 0.25 the default, read in batches), repeated
 ``--runs`` times and alternated: 5 s of warm-up, then the node process's user + system time
 (/proc/PID/stat) over ``--seconds`` divided by the wall time. Printed per run: that CPU
 share, the decisions taken and interventions begun (the node's diagnostics, over the
@@ -207,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=30.0,
                         help="measured time of each run (30 s, after 5 s of warm-up)")
-    parser.add_argument("--poll", default="0,0.05", metavar="S[,S...]",
-                        help="the node's joy_poll_period_s values, in turn (0,0.05)")
+    parser.add_argument("--poll", default="0,0.25", metavar="S[,S...]",
+                        help="the node's joy_poll_period_s values, in turn (0,0.25)")
     parser.add_argument("--runs", type=int, default=2, help="runs of each value (2)")
     parser.add_argument("--model", default=str(DEFAULT_MODEL),
                         help="model file (default: the committed tile ASGP)")

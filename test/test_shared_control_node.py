@@ -303,6 +303,24 @@ def test_a_neutral_stick_waiting_stops_the_override_before_it_is_sent(harness):
     assert node._user[1].tolist() == [0.0, 0.0] and node._decision is None
 
 
+def test_the_override_timer_reads_the_joystick_when_not_intervening_too(harness):
+    """The override timer (override_rate_hz, 20 Hz) reads what waits whether or not the
+    layer intervenes: the joystick is read at least that often, which is why the read
+    timer's own period (joy_poll_period_s, 0.25 s by default) may be long."""
+    h = harness(joy_poll_period_s=1.0)
+    node = h.node
+    h.drive(100.0, 101.0, wall=20.0)
+    assert node._decision is None or node._decision.command is None
+    _reads_stopped(h)
+    taken = node.polled.taken
+    h.joy_pub.publish(conv.joy_from_sample(101.0, 0.3, 0.0))
+    time.sleep(0.05)  # in the node's queue
+    assert node.polled.taken == taken
+    node._send_override()  # as its timer would: nothing to send
+    assert node.polled.taken == taken + 1
+    assert node._user[1].tolist() == pytest.approx([0.3, 0.0])
+
+
 def test_a_stick_gone_neutral_while_deciding_is_what_the_status_says(harness):
     """The read before an intervening decision's override finds the stick neutral (it
     came while the decision was made): nothing is sent, and the decision's status says

@@ -40,9 +40,10 @@ newer scan; a refused match is a lost sample).
 
 The joystick topics, which the bridge publishes at the board's 100 Hz, are read in batches
 (:mod:`asgp_ros.nodes.polled`), not by a wake-up of the executor per message: every
-``joy_poll_period_s`` and before every VO and scan message, watchdog check, diagnostics
-message and override sent, so that an override is never sent after a neutral stick has
-arrived (``joy_poll_period_s: 0.0``: a callback per message).
+``joy_poll_period_s`` (0.25 s) and before every VO and scan message, watchdog check,
+diagnostics message and override send (the override timer runs at ``override_rate_hz``,
+intervening or not: the joystick is read at least that often), so that an override is never
+sent after a neutral stick has arrived (``joy_poll_period_s: 0.0``: a callback per message).
 
 Never on stale data: no prediction (stale joystick or VO, tracking lost), no fresh scan or
 map, or an override older than ``hold_s`` (the node stalled) means no override.
@@ -207,10 +208,11 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("heading_uncertainty", True, "sample the predicted heading with the position "
           "(the rollout's pose covariance): a turning chair's corner sweep counts"),
     _spec("diagnostics_period_s", 1.0, "diagnostics period", 0.1, 60.0),
-    _spec("joy_poll_period_s", 0.05, "the joystick topics (joy_topic, applied_topic: 100 Hz "
+    _spec("joy_poll_period_s", 0.25, "the joystick topics (joy_topic, applied_topic: 100 Hz "
           "each from the bridge) are read in batches this often and before every VO and scan "
-          "message, decision, override sent, watchdog check and diagnostics message, not at "
-          "each message, which cost the executor's wake-up; 0 = at each message", 0.0, 1.0),
+          "message, decision, override send (override_rate_hz, intervening or not), watchdog "
+          "check and diagnostics message, not at each message, which cost the executor's "
+          "wake-up; 0 = at each message", 0.0, 1.0),
 )
 #: Every parameter the node declares: its own and the online adaptation's (adapt.*).
 PARAMS: tuple[ParamSpec, ...] = (*LAYER_PARAMS, *adapt_params.ADAPT_PARAMS)
