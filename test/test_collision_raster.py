@@ -390,7 +390,7 @@ def test_without_opencv_the_raster_gives_the_same_probabilities(seed, monkeypatc
     fld = random_scene(rng)
     pose, cov = random_paths(rng, 4, 5, heading=bool(seed % 2))
     fast = C.contact_probability(fld, pose, cov, method="raster")
-    monkeypatch.setattr(C, "_CV2", False)  # as when ``import cv2`` failed
+    monkeypatch.setattr(C, "_opencv", lambda: None)  # as when ``import cv2`` failed
     table = C._summed_area(diff)
     assert table.dtype == np.float32 and table.shape == (diff.shape[0] + 1, diff.shape[1] + 1)
     np.testing.assert_array_equal(table, with_cv2)

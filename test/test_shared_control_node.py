@@ -1159,7 +1159,7 @@ from rclpy.parameter import Parameter
 from asgp_ros.core import collision
 from asgp_ros.nodes.shared_control_node import SharedControlNode
 def state():
-    return {"cv2": collision._CV2 not in (None, False),
+    return {"cv2": collision._opencv.cache_info().currsize == 1 and "cv2" in sys.modules,
             "draws": collision.SAMPLES in collision._NORMAL_DRAWS}
 before = state()
 rclpy.init()

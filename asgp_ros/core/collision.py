@@ -77,6 +77,7 @@ wheelchair looks like that), shapes that do not match.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable
@@ -234,22 +235,16 @@ def scan_points(scan: Scan) -> FloatArray:
 _EDT_SLACK = 1e-6
 
 
-_CV2: Any = None  # the cv2 module, False when it cannot be imported, None before the first try
-
-
+@functools.cache
 def _opencv() -> Any:
     """OpenCV's module, or None where it is not installed (the core needs numpy and scipy
     alone; the package installs OpenCV for its VO, and the distance fields use it when it
     is there). Imported at the first field, not with this module."""
-    global _CV2
-    if _CV2 is None:
-        try:
-            import cv2
-        except ImportError:
-            _CV2 = False
-        else:
-            _CV2 = cv2
-    return _CV2 or None
+    try:
+        import cv2
+    except ImportError:
+        return None
+    return cv2
 
 
 def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
@@ -267,16 +262,17 @@ def _distances(mask: NDArray[np.bool_], res: float) -> FloatArray:
     if cv2 is None:
         import scipy.ndimage
 
-        edt = np.asarray(scipy.ndimage.distance_transform_edt(~mask), dtype=np.float64)
-        edt *= res
-        edt -= 0.5 * res
-        return np.maximum(edt, 0.0, out=edt)
-    free = np.ascontiguousarray(~mask).view(np.uint8)  # 1 free, 0 obstacle
-    out: FloatArray = np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
-                                 dtype=np.float64)
+        out: FloatArray = np.asarray(scipy.ndimage.distance_transform_edt(~mask),
+                                     dtype=np.float64)
+        slack = 0.0  # exact
+    else:
+        free = np.ascontiguousarray(~mask).view(np.uint8)  # 1 free, 0 obstacle
+        out = np.asarray(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
+                         dtype=np.float64)
+        slack = _EDT_SLACK
     # (d - slack (1 + d) - 1/2) res, in place
-    out *= (1.0 - _EDT_SLACK) * res
-    out -= (0.5 + _EDT_SLACK) * res
+    out *= (1.0 - slack) * res
+    out -= (0.5 + slack) * res
     return np.maximum(out, 0.0, out=out)
 
 
