@@ -127,21 +127,19 @@ statistics exactly as they were; :attr:`AdaptStats.rejected` counts each reason.
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from enum import StrEnum
 from types import MappingProxyType
-from typing import NamedTuple, cast
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import ThreadpoolController
 
-from asgp_ros.core import kernel
+from asgp_ros.core import blas, kernel
 from asgp_ros.core.posterior import FitcPosterior
 from asgp_ros.core.sparse_gp import SparseGP
 
@@ -149,23 +147,6 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = ["AdaptConfig", "AdaptError", "AdaptStats", "OnlinePosterior", "RejectReason"]
-
-
-_BLAS_CONTROLLER: ThreadpoolController | None = None
-
-
-def _blas_single_thread() -> contextlib.AbstractContextManager[object]:
-    """Single-threaded BLAS for the M x M algebra of an update.
-
-    OpenBLAS threads the triangular solves and products of M ~ 30 - 80 matrices; on a
-    loaded 2-core machine one update then took up to 10 - 30 ms instead of a fraction
-    of one (the switch costs about 10 us).
-    """
-    global _BLAS_CONTROLLER
-    if _BLAS_CONTROLLER is None:
-        _BLAS_CONTROLLER = ThreadpoolController()
-    return cast("contextlib.AbstractContextManager[object]",
-                _BLAS_CONTROLLER.limit(limits=1, user_api="blas"))
 
 
 _potrf = scipy.linalg.lapack.dpotrf
@@ -427,7 +408,7 @@ class OnlinePosterior:
             raise AdaptError("half_life_s forgetting needs the rows' time stamps t")
         if n == 0:
             return 0
-        with _blas_single_thread():
+        with blas.single_thread():
             return self._absorb(Xa, ya, ta, start)
 
     def _absorb(self, Xa: FloatArray, ya: FloatArray, ta: FloatArray | None, start: float

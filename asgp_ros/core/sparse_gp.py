@@ -65,13 +65,13 @@ import logging
 import math
 import warnings
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, NamedTuple, cast
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from threadpoolctl import ThreadpoolController, threadpool_limits
+from threadpoolctl import threadpool_limits
 
-from asgp_ros.core import fitc, posterior
+from asgp_ros.core import blas, fitc, posterior
 from asgp_ros.core.fitc import FactorisationError, Params, Workspace
 from asgp_ros.core.posterior import FitcPosterior, PosteriorError
 
@@ -122,7 +122,6 @@ def _clip_to(theta: FloatArray, bounds: list[tuple[float | None, float | None]])
     return np.clip(theta, lo, hi)
 
 
-_BLAS_CONTROLLER: ThreadpoolController | None = None
 _SINGLE_THREAD_ROWS = 256  # batches from this size get single-threaded BLAS in predict
 
 
@@ -131,15 +130,11 @@ def _blas_single_thread(rows: int) -> contextlib.AbstractContextManager[object]:
 
     The products of a prediction are [N*, M] x [M, M] with M ~ 40: OpenBLAS starts
     threading them at a few hundred rows and was then 2.5x to 20x slower than one thread
-    on a loaded 2-core machine.  Small batches skip the (~10 us) switch.
+    on a loaded 2-core machine.  Small batches skip the switch.
     """
-    global _BLAS_CONTROLLER
     if rows < _SINGLE_THREAD_ROWS:
         return contextlib.nullcontext()
-    if _BLAS_CONTROLLER is None:
-        _BLAS_CONTROLLER = ThreadpoolController()
-    return cast("contextlib.AbstractContextManager[object]",
-                _BLAS_CONTROLLER.limit(limits=1, user_api="blas"))
+    return blas.single_thread()
 
 
 def _validate_inputs(X: ArrayLike, name: str, num_features: int | None = None) -> FloatArray:
