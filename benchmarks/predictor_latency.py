@@ -36,9 +36,10 @@ messages (with ``sim``, as when a bag is replayed, this script publishes /clock 
 joystick sample, and each one wakes the node too); the inputs are stamped with the wall
 clock and sent at their own times, so only the real-rate part (2.) is measured.
 
-``--joy-poll 0,0.05`` runs the node with each ``joy_poll_period_s`` in turn (0: rclpy's
-callback for each joystick message, as before the polling; 0.05: the default, the
-joystick read in batches every 50 ms and before each VO message).
+``--joy-poll 0,0.25`` runs the node with each ``joy_poll_period_s`` in turn (0: rclpy's
+callback for each joystick message, as before the polling; 0.25: the default, the
+joystick read in batches every 250 ms, before each VO message and, while a step waits for
+the joystick only, every 10 ms).
 
 Each run has a ROS domain of its own (``--domain-id``, default 60 + pid % 80) on localhost:
 two runs at once used to share the default domain, and each node got both drivers' inputs.
@@ -205,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="online adaptation (adapt.enabled) of the node: off, on (the "
                              "node's default), or both "
                              "one after the other (side by side)")
-    parser.add_argument("--joy-poll", default="0.05", metavar="S[,S...]",
-                        help="the node's joy_poll_period_s (0.05, its default; 0 = a "
+    parser.add_argument("--joy-poll", default="0.25", metavar="S[,S...]",
+                        help="the node's joy_poll_period_s (0.25, its default; 0 = a "
                              "callback per joystick message); several, comma-separated, "
                              "run side by side")
     parser.add_argument("--domain-id", type=int,
@@ -339,7 +340,8 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         cpu = (cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
         drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
         paced_node = {k: drv.diag.get(k, "nan") for k in (
-            "latency_p99_ms", "predict_p99_ms", "path_p99_ms", "ellipses_p99_ms")}
+            "latency_p99_ms", "predict_p99_ms", "path_p99_ms", "ellipses_p99_ms",
+            "joy_waits")}
         paced_ms = 1e3 * np.asarray([drv.received[k] - t for k, t in sent_at.items()
                                      if k in drv.received])
     finally:
@@ -373,7 +375,8 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
     clock = f"/clock {joy_hz + 1 / DT:g} Hz, " if sim else ""
     joy = f"joystick {joy_hz:g} Hz" + (" on joy and joy_applied" if args.applied else "")
     print(f"  CPU at 5 Hz ({joy}, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
-          f"(target < 5%)")
+          f"(target < 5%); steps that waited for the joystick "
+          f"{paced_node.get('joy_waits', 'nan')}")
     return 0
 
 

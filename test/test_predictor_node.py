@@ -403,6 +403,46 @@ def test_the_joystick_is_read_before_a_vo_message_or_an_override(rclpy_context, 
         h.close()
 
 
+def test_a_step_waiting_for_the_joystick_reads_it_before_the_next_batch(
+        rclpy_context, model_file, monkeypatch):
+    """A joystick slower than the VO: the VO message comes first and its step waits for the
+    stick only. The node reads the joystick again every JOY_WAIT_TICK_S (here the batch
+    timer is stopped, so nothing else would read it) and the path of that step comes from
+    the sample's handler; then the quick reads stop. A VO message whose step the joystick
+    already covers, or a silent stick, starts none."""
+    import asgp_ros.nodes.predictor_node as pn
+
+    monkeypatch.setattr(pn, "JOY_WAIT_MAX_S", 30.0)  # the window: joy_poll_period_s, 1 s
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=1.0)
+    node = h.node
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and abs(_t0(h.paths[-1]) - 102.0) < 1e-9, what="paths")
+        assert node.polled.timer is not None
+        node.polled.timer.cancel()
+        waits = node._joy_waits
+        h.clock(102.05)
+        h.vo(102.03, 0.4, 0.1)  # the joystick covers 102.0 already: no new step, no wait
+        assert node._joy_waits == waits and node._joy_wait_timer.is_canceled()
+        h.clock(102.23)
+        h.vo(102.23, 0.4, 0.1)  # step 102.2 waits for the stick (newest 102.0)
+        assert node._joy_waits == waits + 1
+        assert not node._joy_wait_timer.is_canceled()
+        n = len(h.paths)
+        h.joy_pub.publish(conv.joy_from_sample(102.21, 0.5, 0.0))
+        h.spin_until(lambda: len(h.paths) > n, what="the waiting step's path")
+        assert abs(_t0(h.paths[-1]) - 102.2) < 1e-9
+        h.spin_until(lambda: node._joy_wait_timer.is_canceled(), what="the reads to stop")
+        # a stick silent for longer than joy_timeout_s: no quick reads for it
+        h.clock(102.83)
+        h.vo(102.83, 0.4, 0.1)
+        assert node._joy_waits == waits + 1 and node._joy_wait_timer.is_canceled()
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert values["joy_waits"] == str(waits + 1)
+    finally:
+        h.close()
+
+
 def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
     h = Harness(rclpy_context, model_file, vo_timeout_s=0.5)
     try:

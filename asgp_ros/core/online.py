@@ -719,6 +719,17 @@ class Predictor:
             return None  # one VO sample, whose interval is not known yet
         return math.floor(ready / self.dt + 1e-6)
 
+    def joystick_behind(self) -> bool:
+        """Whether the VO covers a newer grid step than the joystick does: the next step
+        waits for a joystick sample only (cheap; a node reading the joystick in batches
+        reads it again soon instead of at its next batch)."""
+        if not self._joy or not self._vo:
+            return False
+        vo = self._vo_covers()
+        if not math.isfinite(vo):
+            return False
+        return math.floor(self._joy.newest / self.dt + 1e-6) < math.floor(vo / self.dt + 1e-6)
+
     def _vo_covers(self) -> float:
         """The newest time the VO buffer gives a velocity for: its newest stamp, or with
         midpoint stamps (:mod:`asgp_ros.core.resample`) the middle of the newest interval

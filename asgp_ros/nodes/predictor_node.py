@@ -23,7 +23,8 @@ RViz ellipses) and another publishes diagnostics. The joystick topics (``joy``,
 ``joy_applied``; 100 Hz from the serial bridge) wake nothing: they are read in batches
 every ``joy_poll_period_s`` and before each VO message, override, watchdog check and
 diagnostics message, each message with its own arrival time (:mod:`asgp_ros.nodes.polled`;
-half the node's CPU went to rclpy's wake-ups for them). Stale input means no path and a
+half the node's CPU went to rclpy's wake-ups for them), and every 10 ms while a step the VO
+completed waits for a joystick sample only. Stale input means no path and a
 diagnostic saying why; fresh input resumes prediction without a restart. Input that is not
 finite or out of its range (see :mod:`asgp_ros.core.streams`) is refused by the Predictor
 with a reason code; the diagnostics count the refusals by code (``rejected``) and give the
@@ -62,6 +63,8 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock
+from rclpy.clock_type import ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -110,6 +113,11 @@ _LOAD_POLL_S = 0.05
 #: learning right after the publication took a core from the path's subscribers on a
 #: two-core laptop and added to their latency (``benchmarks/predictor_latency.py``).
 LEARN_DELAY_S = 0.02
+#: A step the VO completed that waits for a joystick sample only (a joystick slower than
+#: the VO) has the joystick read every JOY_WAIT_TICK_S until it comes, for at most
+#: JOY_WAIT_MAX_S (or ``joy_poll_period_s`` if shorter), instead of at the next batch.
+JOY_WAIT_TICK_S = 0.01
+JOY_WAIT_MAX_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -141,7 +149,7 @@ class PredictorNodeParams:
     uncertainty: str = "linear"
     publish_uncertainty: bool = True
     diagnostics_period_s: float = 1.0
-    joy_poll_period_s: float = 0.05
+    joy_poll_period_s: float = 0.25
     # adapt.* (asgp_ros.nodes.adaptation.ADAPT_PARAMS; the same defaults)
     adapt_enabled: bool = True
     adapt_half_life_s: float = DEFAULT_HALF_LIFE_S
@@ -280,8 +288,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("publish_uncertainty", "publish the 95% ellipses", runtime=True),
     _spec("diagnostics_period_s", "diagnostics period", 0.1, 60.0),
     _spec("joy_poll_period_s", "the joystick topics are read in batches this often (and "
-          "before every VO message, override and watchdog check), not at each message, "
-          "which cost the executor's wake-up; 0 = at each message", 0.0, 1.0),
+          "before every VO message, override and watchdog check, and every 10 ms while a "
+          "step waits for the joystick only), not at each message, which cost the "
+          "executor's wake-up; 0 = at each message", 0.0, 1.0),
     *adapt_params.ADAPT_PARAMS,
 )
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}
@@ -384,6 +393,12 @@ class PredictorNode(Node):
         # the joystick topics at the board's 100 Hz: read in batches (polled)
         self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
         self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # the quick reads of a step waiting for the joystick (_await_joystick); one at a time
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._joy_wait_timer = None if self.polled.timer is None else self.create_timer(
+            JOY_WAIT_TICK_S, self._on_joy_wait, clock=steady, autostart=False)
+        self._joy_wait_until = 0.0
+        self._joy_waits = 0
         if p.applied_topic.strip():
             self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
                                      qos_profile_sensor_data)
@@ -597,6 +612,34 @@ class PredictorNode(Node):
             self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
+        self._await_joystick(now)
+
+    def _joystick_behind(self, now: float) -> bool:
+        """The next step waits for a joystick sample only, and the joystick is not stale
+        (a silent stick is the watchdog's to report, not worth reads every tick)."""
+        joy_newest, _ = self.predictor.newest_stamps()
+        return (self.predictor.joystick_behind()
+                and now - joy_newest <= self.params.joy_timeout_s)
+
+    def _await_joystick(self, now: float | None) -> None:
+        """After a VO message: if its step waits for the joystick only, read the joystick
+        every JOY_WAIT_TICK_S until the sample comes (its handler predicts), not at the
+        next batch, ``joy_poll_period_s`` away."""
+        timer = self._joy_wait_timer
+        if timer is None or now is None or not timer.is_canceled() \
+                or not self._joystick_behind(now):
+            return
+        self._joy_waits += 1
+        self._joy_wait_until = time.monotonic() + min(JOY_WAIT_MAX_S, self.polled.period_s)
+        timer.reset()
+
+    def _on_joy_wait(self) -> None:
+        self.polled.drain()
+        now = self._now()
+        if now is None or time.monotonic() >= self._joy_wait_until \
+                or not self._joystick_behind(now):
+            assert self._joy_wait_timer is not None
+            self._joy_wait_timer.cancel()
 
     def _on_odometry(self, msg: Odometry) -> None:
         arrival = time.perf_counter()
@@ -613,6 +656,7 @@ class PredictorNode(Node):
             self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
+        self._await_joystick(now)
 
     def _on_plan(self, msg: JointTrajectory) -> None:
         now = self._now()
@@ -784,6 +828,7 @@ class PredictorNode(Node):
             "plan_used": str(result.from_plan),
             "qos_mismatch": self.qos_watch.summary(),
             **self.polled.values(),
+            "joy_waits": str(self._joy_waits),
         }
         values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
                                                      self._adapt_unavailable))
