@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("rclpy")
 
 from builtin_interfaces.msg import Duration
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry, Path
 from rclpy.executors import SingleThreadedExecutor
@@ -1205,7 +1205,8 @@ def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_co
                                                                         model_file):
     """rclpy's default QoS event handlers are off (they cost CPU at every message); a
     publisher that cannot be matched is found from the graph, logged, named in the
-    diagnostics while it is there, and forgotten when it goes."""
+    diagnostics while it is there (the status WARN though paths are published), and
+    forgotten when it goes."""
     from rclpy.qos import ReliabilityPolicy
 
     h = Harness(rclpy_context, model_file)
@@ -1219,6 +1220,11 @@ def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_co
 
         h.spin_until(lambda: bool(node.qos_watch.check() == []), what="no mismatch")
         assert node.qos_watch.summary() == "none"
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= 3, what="paths")
+        status = node.diagnostic_status()
+        assert (status.level, status.message.startswith("predicting")) == (
+            DiagnosticStatus.OK, True)
         # a best-effort plan publisher cannot reach the node's reliable subscription
         bad = h.test.create_publisher(
             JointTrajectory, "joy_plan",
@@ -1228,8 +1234,12 @@ def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_co
         assert problem.startswith("/joy_plan: publisher of /predictor_test: incompatible QoS")
         assert "best effort publisher and reliable subscription" in problem.lower()
         node._publish_diagnostics()
-        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        status = node.diagnostic_status()
+        values = {kv.key: kv.value for kv in status.values}
         assert values["qos_mismatch"] == problem
+        # the paths go on, but a planner's plans cannot reach the node: not OK
+        assert status.level == DiagnosticStatus.WARN
+        assert status.message.startswith("predicting") and problem in status.message
         # a compatible publisher on the same topic is not reported
         h.test.create_publisher(JointTrajectory, "joy_plan", QoSProfile(depth=10))
         h.spin_until(lambda: h.test.count_publishers("joy_plan") == 3, what="discovery")
@@ -1237,6 +1247,7 @@ def test_no_event_handler_per_endpoint_and_unmatched_peers_are_reported(rclpy_co
         h.test.destroy_publisher(bad)
         h.spin_until(lambda: node.qos_watch.check() == [], what="the mismatch gone")
         assert node.qos_watch.summary() == "none"
+        assert "cannot be matched" not in node.diagnostic_status().message
         assert not node.qos_watch._warned  # a peer that comes back is logged again
     finally:
         h.close()

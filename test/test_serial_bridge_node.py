@@ -372,5 +372,10 @@ def test_no_event_handler_per_endpoint_and_an_unmatched_subscriber_is_named(harn
         QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     assert h.spin_until(lambda: mismatch().startswith("/joy: subscription of /probe:"), 10.0)
     assert "best effort publisher and reliable subscription" in mismatch().lower()
+    # the link itself is up, but a subscriber gets nothing: the status says so
+    st = h.link_status()
+    assert st.level == DiagnosticStatus.WARN and st.message.startswith("connected")
+    assert "cannot be matched: /joy: subscription of /probe:" in st.message
     h.probe.destroy_subscription(wrong)
     assert h.spin_until(lambda: mismatch() == "none", 10.0)
+    assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.OK, 10.0)

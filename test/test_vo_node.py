@@ -513,7 +513,10 @@ def test_no_event_handler_per_endpoint_and_an_unmatched_peer_is_reported(rclpy_c
         assert h.spin_until(lambda: newest().startswith(
             "/vo/twist: subscription of /vo_test_driver: incompatible")), newest()
         assert node.qos_watch.problems == [newest()]
+        level, message, _ = _levels(h.diags)[-1]
+        assert level >= 1 and message.endswith(f"; cannot be matched: {newest()}")
         h.driver.destroy_subscription(wrong)
         assert h.spin_until(lambda: newest() == "none")
+        assert "cannot be matched" not in _levels(h.diags)[-1][1]
     finally:
         h.close()

@@ -834,8 +834,8 @@ class PredictorNode(Node):
                                                      self._adapt_unavailable))
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
-        return conv.diagnostic_status(f"{self.get_name()}: prediction",
-                                      "OK" if result.ok else "WARN", message,
+        level, message = self.qos_watch.escalate("OK" if result.ok else "WARN", message)
+        return conv.diagnostic_status(f"{self.get_name()}: prediction", level, message,
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:

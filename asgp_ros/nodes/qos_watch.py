@@ -19,7 +19,8 @@ node's own QoS as the graph reports it (``rclpy.qos.qos_check_compatible``; the 
 node creates an endpoint with says "default" where the graph says "infinite", which the
 check would take for a mismatch) and message type. A peer that cannot be matched is logged
 once, as rclpy's handlers log it, and named in the diagnostics (``qos_mismatch``, at most
-:data:`MAX_SHOWN` of them by name) for as long as it is there; one that goes and comes back
+:data:`MAX_SHOWN` of them by name; the status is then WARN at least, its message naming the
+first, :meth:`QosWatch.escalate`) for as long as it is there; one that goes and comes back
 is logged again, and one whose node the graph has not discovered yet is logged once it has.
 The graph is asked with each topic's name as the node created it (the queries expand and
 remap their argument, as creation did). Only a certain mismatch counts: a QoS that may or
@@ -99,6 +100,18 @@ class QosWatch:
         shown = self._problems[:MAX_SHOWN]
         more = len(self._problems) - len(shown)
         return "; ".join(shown + ([f"{more} more"] if more else [])) or "none"
+
+    def escalate(self, level: str, message: str) -> tuple[str, str]:
+        """A diagnostic status's level and message, given the peers found at the last
+        :meth:`check`: with one that cannot be matched an OK becomes WARN (the topic's data
+        do not flow to or from that peer, though the node's own work goes on) and the
+        message names the first; otherwise both as given."""
+        if not self._problems:
+            return level, message
+        n = len(self._problems)
+        more = f" (and {n - 1} more, qos_mismatch)" if n > 1 else ""
+        return ("WARN" if level == "OK" else level,
+                f"{message}; cannot be matched: {self._problems[0]}{more}")
 
     def check(self) -> list[str]:
         """Look at every peer of every endpoint now; log each new mismatch once."""

@@ -268,6 +268,7 @@ class SerialBridgeNode(Node):
             msg = st.last_error
         elif st.state == LinkState.HANDSHAKE and st.unsolicited_versions:
             msg = f"handshake again after an unsolicited VERSION ({st.last_error})"
+        level, msg = self.qos_watch.escalate(level, msg)
         return conv.diagnostic_status(
             "serial_bridge: link", level, msg, st.port, {
                 "state": st.state.value, "reason": self._last_state_reason,

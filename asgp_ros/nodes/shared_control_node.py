@@ -858,6 +858,7 @@ class SharedControlNode(Node):
         level = "WARN" if stale or d is None else "OK"
         if self._second_frame is not None:  # no laser until a restart: set laser_frame
             level, message = "ERROR", self._scan_problem
+        level, message = self.qos_watch.escalate(level, message)
         return conv.diagnostic_status(f"{self.get_name()}: shared control", level, message,
                                       hardware_id=self.params.model_path, values=values)
 

@@ -292,6 +292,7 @@ class VONode(Node):
         if age is not None:
             values["last_frame_age_s"] = float(age)
         values["qos_mismatch"] = self.qos_watch.summary()
+        level, msg = self.qos_watch.escalate(level, msg)
         status = conv.diagnostic_status("vo_node: tracking", level, msg, p.color_topic, values)
         self._diag_pub.publish(conv.diagnostic_array(
             self.get_clock().now().nanoseconds * 1e-9, [status]))
