@@ -287,17 +287,22 @@ def test_every_timer_runs_on_the_pacing_clock(rclpy_context, tmp_path, module, s
 
 
 def _paced_timers(node) -> list:
-    """The node's timers but the one that drains its polled joystick topics, which runs on
-    the steady clock whatever use_sim_time says (the messages arrive on the wall clock,
-    and a paused /clock must not leave them waiting)."""
+    """The node's timers but those that read its polled joystick topics (the drain, and the
+    predictor's quick reads while a step waits for the joystick), which run on the steady
+    clock whatever use_sim_time says (the messages arrive on the wall clock, and a paused
+    /clock must not leave them waiting)."""
     from rclpy.clock import ClockType
 
     polled = getattr(node, "polled", None)
     if polled is None:
         return list(node.timers)
-    assert polled.timer is not None and polled.timer in list(node.timers)
-    assert polled.timer.clock.clock_type == ClockType.STEADY_TIME
-    return [t for t in node.timers if t is not polled.timer]
+    readers = [polled.timer]
+    if hasattr(node, "_joy_wait_timer"):
+        readers.append(node._joy_wait_timer)
+    for timer in readers:
+        assert timer is not None and timer in list(node.timers)
+        assert timer.clock.clock_type == ClockType.STEADY_TIME
+    return [t for t in node.timers if all(t is not r for r in readers)]
 
 
 @pytest.mark.parametrize("sim_time", [False, True], ids=["system_time", "sim_time"])
