@@ -36,6 +36,10 @@ messages (with ``sim``, as when a bag is replayed, this script publishes /clock 
 joystick sample, and each one wakes the node too); the inputs are stamped with the wall
 clock and sent at their own times, so only the real-rate part (2.) is measured.
 
+``--joy-late 0.03`` sends each step's joystick samples 30 ms after its VO message at the
+real rate (a joystick slower than the VO), so that the joystick completes each step; the
+latency is counted from them (a model reading the VO at its frames' stamps is needed).
+
 ``--joy-poll 0,0.25`` runs the node with each ``joy_poll_period_s`` in turn (0: rclpy's
 callback for each joystick message, as before the polling; 0.25: the default, the
 joystick read in batches every 250 ms, before each VO message and, while a step waits for
@@ -58,6 +62,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -149,12 +154,14 @@ class Driver:
     def spin_until(self, cond, timeout: float) -> bool:
         return spin_until(self.executor, cond, timeout)
 
-    def send_step_inputs(self, n: int, paced_from: float | None = None) -> None:
+    def send_step_inputs(self, n: int, paced_from: float | None = None,
+                         hold: list[Any] | None = None) -> None:
         """/clock and the joystick samples of grid step n (the last one after t_n).
 
         ``paced_from``: the wall time (time.monotonic) the step's interval starts; each
         sample is then sent at its own time within the interval (30 Hz by default), spinning
-        between them, instead of all at once."""
+        between them, instead of all at once. ``hold``: the samples are appended to it
+        instead of sent (:meth:`send_joy` sends them later)."""
         t_prev = n * DT - DT
         if not self.sim_clock:
             paced_from = t_prev - self.wall_offset
@@ -169,14 +176,24 @@ class Driver:
                 self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(t)))
             msg = self.conv.joy_from_sample(
                 t, 0.5 + 0.4 * math.sin(0.3 * t), 0.3 * math.cos(0.2 * t))
-            self.joy_pub.publish(msg)
-            if self.applied_pub is not None:
-                self.applied_pub.publish(msg)
+            if hold is not None:
+                hold.append(msg)
+            else:
+                self.send_joy([msg])
         if paced_from is not None:
             due = paced_from + DT + 0.01
             self.spin_until(lambda: time.monotonic() >= due, DT)
         if self.sim_clock:
             self.clock_pub.publish(self.Clock(clock=self.conv.seconds_to_stamp(n * DT + 0.03)))
+
+    def send_joy(self, msgs: list[Any]) -> float:
+        """Publish joystick messages (on joy_applied too with ``applied``); the
+        ``perf_counter`` time after the last."""
+        for msg in msgs:
+            self.joy_pub.publish(msg)
+            if self.applied_pub is not None:
+                self.applied_pub.publish(msg)
+        return time.perf_counter()
 
     def send_vo(self, n: int) -> float:
         t = n * DT + 0.01
@@ -210,6 +227,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="the node's joy_poll_period_s (0.25, its default; 0 = a "
                              "callback per joystick message); several, comma-separated, "
                              "run side by side")
+    parser.add_argument("--joy-late", type=float, default=0.0, metavar="S",
+                        help="at the real rate, send each step's joystick samples S seconds "
+                             "after its VO message (a joystick slower than the VO: the "
+                             "joystick completes the step); the latency is then counted "
+                             "from them. Needs a model reading the VO at its frames' stamps "
+                             "(the one trained without --model is, with this option)")
     parser.add_argument("--domain-id", type=int,
                         help="ROS_DOMAIN_ID of the run (default 60 + pid %% 80: two runs at "
                              "once must not hear each other's inputs)")
@@ -220,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     if not 10.0 <= args.joy_hz <= 1000.0:
         parser.error("--joy-hz must be in [10, 1000]")
+    if not 0.0 <= args.joy_late <= 0.15:
+        parser.error("--joy-late must be in [0, 0.15] s (the joystick times out at 0.5 s)")
     try:
         polls = [float(x) for x in args.joy_poll.split(",")]
     except ValueError:
@@ -232,7 +257,8 @@ def main(argv: list[str] | None = None) -> int:
             model = str(Path(tmp) / "chair.npz")
             print("training an ASGP model on a 3-minute simulated bag ...", flush=True)
             _cli("simulate", "--minutes", "3", "--seed", "5", "--out", str(bag), "--no-truth")
-            _cli("train", "--out", model, str(bag))
+            _cli("train", "--out", model, str(bag),
+                 *(["--vo-stamp", "frame"] if args.joy_late > 0 else []))
         modes = {"off": [False], "on": [True], "both": [False, True]}[args.adapt]
         for adapt in modes:
             for poll in polls:
@@ -292,6 +318,11 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
     # ("frame") it completes step n; read at the middle of its interval ("midpoint", a
     # frame-to-frame VO's mean velocity) it completes step n - 1 (README, "VO stamps").
     lag = 1 if load_model(model).resample_config.vel_stamp == "midpoint" else 0
+    if args.joy_late > 0 and lag:
+        print("--joy-late needs a model that reads the VO at its frames' stamps: with "
+              "midpoint stamps the VO message completes the step before, whose joystick "
+              "samples are already in", file=sys.stderr)
+        return 1
 
     sim = args.clock == "sim"
     env = dict(os.environ, PYTHONPATH=str(REPO))
@@ -334,8 +365,13 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         start = time.monotonic()
         sent_at: dict[int, float] = {}
         for i in range(steps_cpu):
-            drv.send_step_inputs(n, paced_from=start + i * DT if sim else None)
+            held: list[Any] | None = [] if args.joy_late > 0 else None
+            drv.send_step_inputs(n, paced_from=start + i * DT if sim else None, hold=held)
             sent_at[n - lag] = drv.send_vo(n)
+            if held is not None:  # the joystick completes the step
+                due = time.monotonic() + args.joy_late
+                drv.spin_until(lambda due=due: time.monotonic() >= due, 1.0)
+                sent_at[n - lag] = drv.send_joy(held)
             n += 1
         cpu = (cpu_seconds(node.pid) - cpu0) / (time.monotonic() - wall0)
         drv.spin_until(lambda: False, 0.6)  # one more diagnostics message
@@ -363,7 +399,10 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
               f"max {lat_ms.max():.2f} ms   (target p99 < 5 ms)")
         print(f"  inside the node (VO callback -> path published): p99 {node_p99} ms")
     if len(paced_ms):
-        print(f"  at the real rate (a step every {1e3 * DT:.0f} ms, {len(paced_ms)} steps): "
+        late = (f", each step's joystick sent {1e3 * args.joy_late:.0f} ms after its VO "
+                "message and the latency counted from it" if args.joy_late > 0 else "")
+        print(f"  at the real rate (a step every {1e3 * DT:.0f} ms, {len(paced_ms)} steps"
+              f"{late}): "
               f"p50 {np.percentile(paced_ms, 50):.2f} ms, p99 "
               f"{np.percentile(paced_ms, 99):.2f} ms")
         print("  inside the node, over its last 1,000 paths (mostly at the real rate with a "
