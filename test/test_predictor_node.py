@@ -438,7 +438,29 @@ def test_a_step_waiting_for_the_joystick_reads_it_before_the_next_batch(
         h.vo(102.83, 0.4, 0.1)
         assert node._joy_waits == waits + 1 and node._joy_wait_timer.is_canceled()
         values = {kv.key: kv.value for kv in node.diagnostic_status().values}
-        assert values["joy_waits"] == str(waits + 1)
+        assert (values["joy_waits"], values["joy_wait_timeouts"]) == (str(waits + 1), "0")
+        # a stick whose sample does not come within the wait: it ends, counted, and none
+        # starts for JOY_WAIT_BACKOFF_S (here until the test lifts it)
+        h.clock(103.0)
+        h.joy(102.99, 0.5, 0.0)
+        monkeypatch.setattr(pn, "JOY_WAIT_MAX_S", 0.02)
+        h.clock(103.23)
+        h.vo(103.23, 0.4, 0.1)  # step 103.2 waits for the stick (newest 102.99)
+        assert node._joy_waits == waits + 2
+        h.spin_until(lambda: node._joy_wait_timer.is_canceled(), what="the wait to end")
+        assert node._joy_wait_timeouts == 1
+        h.clock(103.43)
+        h.vo(103.43, 0.4, 0.1)  # the stick is still fresh, but the last wait was in vain
+        assert node._joy_waits == waits + 2 and node._joy_wait_timer.is_canceled()
+        node._joy_wait_blocked_until = 0.0
+        # a fresh sample, behind the next VO message's step (read here: no timer reads it)
+        n = node.predictor.stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(103.45, 0.5, 0.0))
+        h.spin_until(lambda: node.polled.drain() >= 0 and node.predictor.stats.joy_samples > n,
+                     what="the sample")
+        h.clock(103.63)
+        h.vo(103.63, 0.4, 0.1)
+        assert node._joy_waits == waits + 3
     finally:
         h.close()
 

@@ -118,6 +118,10 @@ LEARN_DELAY_S = 0.02
 #: JOY_WAIT_MAX_S (or ``joy_poll_period_s`` if shorter), instead of at the next batch.
 JOY_WAIT_TICK_S = 0.01
 JOY_WAIT_MAX_S = 0.1
+#: After a wait the sample did not end (a joystick stamped later than the VO by more than
+#: the wait: its driver's clock or transport), none starts for this long: such a stick
+#: would otherwise keep the node reading every JOY_WAIT_TICK_S for nothing.
+JOY_WAIT_BACKOFF_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -398,7 +402,9 @@ class PredictorNode(Node):
         self._joy_wait_timer = None if self.polled.timer is None else self.create_timer(
             JOY_WAIT_TICK_S, self._on_joy_wait, clock=steady, autostart=False)
         self._joy_wait_until = 0.0
+        self._joy_wait_blocked_until = 0.0
         self._joy_waits = 0
+        self._joy_wait_timeouts = 0
         if p.applied_topic.strip():
             self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
                                      qos_profile_sensor_data)
@@ -626,20 +632,26 @@ class PredictorNode(Node):
         every JOY_WAIT_TICK_S until the sample comes (its handler predicts), not at the
         next batch, ``joy_poll_period_s`` away."""
         timer = self._joy_wait_timer
+        wall = time.monotonic()
         if timer is None or now is None or not timer.is_canceled() \
-                or not self._joystick_behind(now):
+                or wall < self._joy_wait_blocked_until or not self._joystick_behind(now):
             return
         self._joy_waits += 1
-        self._joy_wait_until = time.monotonic() + min(JOY_WAIT_MAX_S, self.polled.period_s)
+        self._joy_wait_until = wall + min(JOY_WAIT_MAX_S, self.polled.period_s)
         timer.reset()
 
     def _on_joy_wait(self) -> None:
         self.polled.drain()
         now = self._now()
-        if now is None or time.monotonic() >= self._joy_wait_until \
-                or not self._joystick_behind(now):
-            assert self._joy_wait_timer is not None
-            self._joy_wait_timer.cancel()
+        wall = time.monotonic()
+        behind = now is not None and self._joystick_behind(now)
+        if behind and wall < self._joy_wait_until:
+            return
+        assert self._joy_wait_timer is not None
+        self._joy_wait_timer.cancel()
+        if behind:  # the sample did not come in time: a later stick, not a slower one
+            self._joy_wait_timeouts += 1
+            self._joy_wait_blocked_until = wall + JOY_WAIT_BACKOFF_S
 
     def _on_odometry(self, msg: Odometry) -> None:
         arrival = time.perf_counter()
@@ -829,6 +841,7 @@ class PredictorNode(Node):
             "qos_mismatch": self.qos_watch.summary(),
             **self.polled.values(),
             "joy_waits": str(self._joy_waits),
+            "joy_wait_timeouts": str(self._joy_wait_timeouts),
         }
         values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
                                                      self._adapt_unavailable))
