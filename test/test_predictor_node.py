@@ -128,8 +128,8 @@ class Harness:
         self.markers: list[MarkerArray] = []
         self.diags: list[DiagnosticArray] = []
         t.create_subscription(Path, "predicted_path", self.paths.append, QoSProfile(depth=50))
-        t.create_subscription(MarkerArray, "predicted_path/uncertainty", self.markers.append,
-                              QoSProfile(depth=50))
+        self.marker_sub = t.create_subscription(
+            MarkerArray, "predicted_path/uncertainty", self.markers.append, QoSProfile(depth=50))
         t.create_subscription(DiagnosticArray, "diagnostics", self.diags.append,
                               QoSProfile(depth=50))
         self.now = 0.0
@@ -461,6 +461,34 @@ def test_a_step_waiting_for_the_joystick_reads_it_before_the_next_batch(
         h.clock(103.63)
         h.vo(103.63, 0.4, 0.1)
         assert node._joy_waits == waits + 3
+    finally:
+        h.close()
+
+
+def test_the_ellipses_are_made_only_while_something_subscribes(rclpy_context, model_file):
+    """No subscriber of predicted_path/uncertainty (no RViz on the chair): the paths go on,
+    no ellipse message is made; one that subscribes gets them from the next path."""
+    h = Harness(rclpy_context, model_file)
+    node = h.node
+    try:
+        h.drive(100.0, 101.0)
+        h.spin_until(lambda: h.paths and h.markers, what="paths and ellipses")
+        h.test.destroy_subscription(h.marker_sub)
+        h.spin_until(lambda: node.marker_pub.get_subscription_count() == 0,
+                     what="the subscriber gone")
+        made, n = len(node._ellipses_ms), len(h.paths)
+        h.drive(101.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= n + 4, what="paths")
+        assert len(node._ellipses_ms) == made
+        markers: list[MarkerArray] = []
+        h.test.create_subscription(MarkerArray, "predicted_path/uncertainty", markers.append,
+                                   QoSProfile(depth=50))
+        h.spin_until(lambda: node.marker_pub.get_subscription_count() == 1,
+                     what="the subscriber back")
+        h.drive(102.0, 102.6)
+        h.spin_until(lambda: bool(markers), what="ellipses again")
+        assert len(markers[-1].markers) == K + 1
+        assert len(node._ellipses_ms) > made
     finally:
         h.close()
 

@@ -766,7 +766,9 @@ class PredictorNode(Node):
         self.path_pub.publish(conv.path_from_poses(pose, result.times, frame, result.t0))
         path_out = time.perf_counter()
         self._paths_published += 1
-        if p.publish_uncertainty:
+        # the ellipses are made and sent only while something subscribes to them (RViz
+        # on a laptop beside the chair, say): about 1.5 ms of the node's CPU per path
+        if p.publish_uncertainty and self.marker_pub.get_subscription_count() > 0:
             ellipses = online.confidence_ellipses(cov)
             self.marker_pub.publish(
                 conv.ellipse_markers(pose[:, :2], ellipses, frame, result.t0))
