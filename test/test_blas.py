@@ -49,3 +49,16 @@ def test_libraries_already_on_one_thread_or_silent_about_it_are_left_alone(monke
     with blas.single_thread():
         assert (one.n, unknown.n, four.n) == (1, None, 1)
     assert one.calls == [] and unknown.calls == [] and four.calls == [1, 4]
+
+
+class _Failing(_Lib):
+    def set_num_threads(self, n):
+        raise OSError("cannot set")
+
+
+def test_a_library_that_cannot_be_set_leaves_the_others_restored(monkeypatch):
+    first, bad = _Lib(4), _Failing(2)
+    monkeypatch.setattr(blas, "_LIBS", [first, bad])
+    with pytest.raises(OSError), blas.single_thread():
+        pass
+    assert first.n == 4 and first.calls == [1, 4]

@@ -297,7 +297,7 @@ def _paced_timers(node) -> list:
     if polled is None:
         return list(node.timers)
     readers = [polled.timer]
-    if hasattr(node, "_joy_wait_timer"):
+    if getattr(node, "_joy_wait_timer", None) is not None:
         readers.append(node._joy_wait_timer)
     for timer in readers:
         assert timer is not None and timer in list(node.timers)

@@ -493,6 +493,21 @@ def test_the_ellipses_are_made_only_while_something_subscribes(rclpy_context, mo
         h.close()
 
 
+def test_no_quick_reads_when_the_batches_come_every_tick(rclpy_context, model_file):
+    """joy_poll_period_s no longer than a quick read's tick: the batches already read that
+    often, and each wait would end in a counted timeout and a second's block."""
+    import asgp_ros.nodes.predictor_node as pn
+
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=pn.JOY_WAIT_TICK_S)
+    try:
+        assert h.node.polled.timer is not None and h.node._joy_wait_timer is None
+        h.drive(100.0, 101.0)
+        h.spin_until(lambda: bool(h.paths), what="paths")
+        assert h.node._joy_waits == 0
+    finally:
+        h.close()
+
+
 def test_staleness_stops_paths_and_they_resume(rclpy_context, model_file):
     h = Harness(rclpy_context, model_file, vo_timeout_s=0.5)
     try:

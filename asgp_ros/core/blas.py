@@ -43,10 +43,12 @@ def single_thread() -> Iterator[None]:
     # restored
     changed = [(lib, n) for lib, n in zip(libs, before, strict=True)
                if isinstance(n, int) and n != 1]
-    for lib, _ in changed:
-        lib.set_num_threads(1)  # type: ignore[attr-defined]
+    done: list[tuple[object, int]] = []
     try:
+        for lib, n in changed:  # inside: a library that fails leaves the others restored
+            lib.set_num_threads(1)  # type: ignore[attr-defined]
+            done.append((lib, n))
         yield
     finally:
-        for lib, n in changed:
+        for lib, n in done:
             lib.set_num_threads(n)  # type: ignore[attr-defined]

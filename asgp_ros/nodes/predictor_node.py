@@ -399,7 +399,9 @@ class PredictorNode(Node):
         self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
         # the quick reads of a step waiting for the joystick (_await_joystick); one at a time
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._joy_wait_timer = None if self.polled.timer is None else self.create_timer(
+        # (none when the batches come every tick anyway: each wait would end in a timeout)
+        quick = self.polled.timer is not None and self.polled.period_s > JOY_WAIT_TICK_S
+        self._joy_wait_timer = None if not quick else self.create_timer(
             JOY_WAIT_TICK_S, self._on_joy_wait, clock=steady, autostart=False)
         self._joy_wait_until = 0.0
         self._joy_wait_blocked_until = 0.0

@@ -97,8 +97,9 @@ class QosWatch:
 
     def summary(self) -> str:
         """``qos_mismatch`` of the diagnostics: "none", or the peers that cannot be matched."""
-        shown = self._problems[:MAX_SHOWN]
-        more = len(self._problems) - len(shown)
+        problems = self._problems  # one snapshot: check() may replace it on another thread
+        shown = problems[:MAX_SHOWN]
+        more = len(problems) - len(shown)
         return "; ".join(shown + ([f"{more} more"] if more else [])) or "none"
 
     def escalate(self, level: str, message: str) -> tuple[str, str]:
@@ -106,12 +107,13 @@ class QosWatch:
         :meth:`check`: with one that cannot be matched an OK becomes WARN (the topic's data
         do not flow to or from that peer, though the node's own work goes on) and the
         message names the first; otherwise both as given."""
-        if not self._problems:
+        problems = self._problems  # one snapshot (the bridge calls this from its reader)
+        if not problems:
             return level, message
-        n = len(self._problems)
+        n = len(problems)
         more = f" (and {n - 1} more, qos_mismatch)" if n > 1 else ""
         return ("WARN" if level == "OK" else level,
-                f"{message}; cannot be matched: {self._problems[0]}{more}")
+                f"{message}; cannot be matched: {problems[0]}{more}")
 
     def check(self) -> list[str]:
         """Look at every peer of every endpoint now; log each new mismatch once."""
