@@ -4,9 +4,9 @@ OpenBLAS threads the products and triangular solves of matrices of a few dozen t
 hundred rows; on a loaded 2-core machine a threaded call then took 2.5x to 100x longer than
 one thread (an online update 10 - 30 ms instead of a fraction of one).  The nodes limit
 BLAS to one thread for the whole process; a library call limits it around its own work
-only, and skips the switch when BLAS already runs on one thread (a check of about 2 us,
-against about 18 us for threadpoolctl's ``limit`` context, which reads every library's
-state and sets it twice).
+only, and skips the switch when BLAS already runs on one thread (a check of about 4-7 us,
+and 10 us with the switch, against about 17 us for threadpoolctl's ``limit`` context,
+which reads every library's state and sets it twice).
 """
 
 from __future__ import annotations
