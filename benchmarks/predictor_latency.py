@@ -25,8 +25,9 @@ messages it gets on the chair.
    that work ends before the next step (the joystick samples are sent at their own times,
    30 Hz, and the VO message just after the step's end). The node's own p99 over its last
    1,000 paths, two of its parts (the prediction; the path's message made
-   and published) and the ellipses' message that follows the path, are read from its
-   diagnostics after these steps: with a small ``--steps`` they are mostly real-rate paths.
+   and published) and the ellipses' message that follows the path (made only while
+   something subscribes to it; this script does not), are read from its diagnostics
+   after these steps: with a small ``--steps`` they are mostly real-rate paths.
 
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
@@ -405,11 +406,14 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
               f"{late}): "
               f"p50 {np.percentile(paced_ms, 50):.2f} ms, p99 "
               f"{np.percentile(paced_ms, 99):.2f} ms")
+        ellipses = paced_node.get("ellipses_p99_ms", "nan")
+        ellipses = ("none made (this script does not subscribe to them, as nothing on the "
+                    "chair does)" if ellipses == "nan" else f"p99 {ellipses} ms")
         print("  inside the node, over its last 1,000 paths (mostly at the real rate with a "
               f"small --steps): p99 {paced_node.get('latency_p99_ms', 'nan')} ms; its parts: "
               f"prediction p99 {paced_node.get('predict_p99_ms', 'nan')} ms, the path's "
-              f"message p99 {paced_node.get('path_p99_ms', 'nan')} ms; then the ellipses' "
-              f"p99 {paced_node.get('ellipses_p99_ms', 'nan')} ms")
+              f"message p99 {paced_node.get('path_p99_ms', 'nan')} ms; then the ellipses': "
+              f"{ellipses}")
     joy_hz = drv.joy_per_step / DT
     clock = f"/clock {joy_hz + 1 / DT:g} Hz, " if sim else ""
     joy = f"joystick {joy_hz:g} Hz" + (" on joy and joy_applied" if args.applied else "")

@@ -235,6 +235,30 @@ def test_stale_vo_stops_prediction_then_it_resumes():
     assert r.t0 > now + 2.0
 
 
+def test_the_joystick_is_behind_only_for_a_step_the_caller_predicts():
+    """``joystick_behind(n)``: the VO covers a newer grid step than the joystick, one whose
+    index is a multiple of n (a node predicting every n-th step waits for no other)."""
+    pred = Predictor(linear_model(), PredictorConfig())
+    assert not pred.joystick_behind()  # no samples
+    dt = pred.dt
+    pred.feed_joy(1000.0 * dt, (0.3, 0.0))  # step 1000
+    assert not pred.joystick_behind()  # no VO
+    for t in (999.0, 999.5, 1000.0):
+        pred.feed_vo(t * dt, (0.2, 0.0))
+    # midpoint stamps: the VO covers 999.75 dt, behind the joystick
+    assert not pred.joystick_behind()
+    pred.feed_vo(1002.2 * dt, (0.2, 0.0))  # covers 1001.1 dt: step 1001 waits
+    assert pred.joystick_behind() and pred.joystick_behind(1)
+    assert not pred.joystick_behind(2)  # step 1001 is odd, 1000 is the joystick's
+    assert pred.joystick_behind(7)  # 1001 = 7 x 143
+    pred.feed_vo(1004.2 * dt, (0.2, 0.0))  # covers 1003.2 dt: steps 1001-1003 wait
+    assert pred.joystick_behind(2) and not pred.joystick_behind(4)
+    pred.feed_joy(1003.5 * dt, (0.3, 0.0))  # the joystick covers step 1003
+    assert not pred.joystick_behind() and not pred.joystick_behind(2)
+    with pytest.raises(ValueError, match="every_n"):
+        pred.joystick_behind(0)
+
+
 def test_stale_joystick_stops_prediction():
     pred, (jt, _, vt, _) = _fed(1010.0, joy_timeout_s=0.3)
     now = max(jt[-1], vt[-1])

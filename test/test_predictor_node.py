@@ -465,6 +465,41 @@ def test_a_step_waiting_for_the_joystick_reads_it_before_the_next_batch(
         h.close()
 
 
+def test_with_decimation_only_a_predicted_step_waits_for_the_joystick(
+        rclpy_context, model_file, monkeypatch):
+    """rate_hz = half the model's: the node predicts every second grid step. A VO message
+    whose new step is one it skips starts no quick reads (a wait for it would predict
+    nothing, and one in vain would block the next predicted step's wait); one whose new
+    steps include a predicted step does, and that step's path comes from the sample."""
+    import asgp_ros.nodes.predictor_node as pn
+
+    monkeypatch.setattr(pn, "JOY_WAIT_MAX_S", 30.0)  # the window: joy_poll_period_s, 1 s
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=1.0, rate_hz=2.5)
+    node = h.node
+    try:
+        assert node.every_n == 2
+        h.drive(100.0, 102.0)  # step 510 (102.0 s) is predicted
+        h.spin_until(lambda: h.paths and abs(_t0(h.paths[-1]) - 102.0) < 1e-9, what="paths")
+        assert node.polled.timer is not None
+        node.polled.timer.cancel()
+        waits = node._joy_waits
+        h.clock(102.23)
+        h.vo(102.23, 0.4, 0.1)  # step 511 (skipped) waits for the stick: no reads
+        assert node._joy_waits == waits and node._joy_wait_timer.is_canceled()
+        h.clock(102.43)
+        h.vo(102.43, 0.4, 0.1)  # steps 511 and 512 (predicted) wait: reads
+        assert node._joy_waits == waits + 1 and not node._joy_wait_timer.is_canceled()
+        n = len(h.paths)
+        h.joy_pub.publish(conv.joy_from_sample(102.21, 0.5, 0.0))
+        h.joy_pub.publish(conv.joy_from_sample(102.41, 0.5, 0.0))
+        h.spin_until(lambda: len(h.paths) > n, what="the waiting step's path")
+        assert abs(_t0(h.paths[-1]) - 102.4) < 1e-9
+        h.spin_until(lambda: node._joy_wait_timer.is_canceled(), what="the reads to stop")
+        assert node._joy_wait_timeouts == 0 and len(h.paths) == n + 1
+    finally:
+        h.close()
+
+
 def test_the_ellipses_are_made_only_while_something_subscribes(rclpy_context, model_file):
     """No subscriber of predicted_path/uncertainty (no RViz on the chair): the paths go on,
     no ellipse message is made; one that subscribes gets them from the next path."""
@@ -476,10 +511,14 @@ def test_the_ellipses_are_made_only_while_something_subscribes(rclpy_context, mo
         h.test.destroy_subscription(h.marker_sub)
         h.spin_until(lambda: node.marker_pub.get_subscription_count() == 0,
                      what="the subscriber gone")
-        made, n = len(node._ellipses_ms), len(h.paths)
+        made, n = node._markers_made, len(h.paths)
         h.drive(101.0, 102.0)
         h.spin_until(lambda: len(h.paths) >= n + 4, what="paths")
-        assert len(node._ellipses_ms) == made
+        assert node._markers_made == made
+        # their time is not reported while none are made; the count says how many were
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert values["ellipses_p99_ms"] == "nan"
+        assert values["ellipses_published"] == str(made) and int(values["paths_published"]) > made
         markers: list[MarkerArray] = []
         h.test.create_subscription(MarkerArray, "predicted_path/uncertainty", markers.append,
                                    QoSProfile(depth=50))
@@ -488,7 +527,8 @@ def test_the_ellipses_are_made_only_while_something_subscribes(rclpy_context, mo
         h.drive(102.0, 102.6)
         h.spin_until(lambda: bool(markers), what="ellipses again")
         assert len(markers[-1].markers) == K + 1
-        assert len(node._ellipses_ms) > made
+        assert node._markers_made > made and float(
+            {kv.key: kv.value for kv in node.diagnostic_status().values}["ellipses_p99_ms"]) > 0
     finally:
         h.close()
 

@@ -719,16 +719,21 @@ class Predictor:
             return None  # one VO sample, whose interval is not known yet
         return math.floor(ready / self.dt + 1e-6)
 
-    def joystick_behind(self) -> bool:
-        """Whether the VO covers a newer grid step than the joystick does: the next step
-        waits for a joystick sample only (cheap; a node reading the joystick in batches
-        reads it again soon instead of at its next batch)."""
+    def joystick_behind(self, every_n: int = 1) -> bool:
+        """Whether the VO covers a newer grid step than the joystick does, one whose index
+        is a multiple of ``every_n`` (a node predicting every n-th step): that step waits
+        for a joystick sample only (cheap; a node reading the joystick in batches reads it
+        again soon instead of at its next batch)."""
+        if every_n < 1:
+            raise ValueError(f"every_n must be at least 1, got {every_n}")
         if not self._joy or not self._vo:
             return False
         vo = self._vo_covers()
         if not math.isfinite(vo):
             return False
-        return math.floor(self._joy.newest / self.dt + 1e-6) < math.floor(vo / self.dt + 1e-6)
+        joy_step = math.floor(self._joy.newest / self.dt + 1e-6)
+        vo_step = math.floor(vo / self.dt + 1e-6)
+        return vo_step // every_n * every_n > joy_step
 
     def _vo_covers(self) -> float:
         """The newest time the VO buffer gives a velocity for: its newest stamp, or with

@@ -379,6 +379,7 @@ class PredictorNode(Node):
         self._joy_rate = _RateMeter()
         self._vo_rate = _RateMeter()
         self._paths_published = 0
+        self._markers_made = 0
         self._bad_messages = 0
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._resets_seen = 0
@@ -623,10 +624,11 @@ class PredictorNode(Node):
         self._await_joystick(now)
 
     def _joystick_behind(self, now: float) -> bool:
-        """The next step waits for a joystick sample only, and the joystick is not stale
-        (a silent stick is the watchdog's to report, not worth reads every tick)."""
+        """A step the node will predict (every ``every_n``-th) waits for a joystick sample
+        only, and the joystick is not stale (a silent stick is the watchdog's to report,
+        not worth reads every tick)."""
         joy_newest, _ = self.predictor.newest_stamps()
-        return (self.predictor.joystick_behind()
+        return (self.predictor.joystick_behind(self.every_n)
                 and now - joy_newest <= self.params.joy_timeout_s)
 
     def _await_joystick(self, now: float | None) -> None:
@@ -776,7 +778,10 @@ class PredictorNode(Node):
             self.marker_pub.publish(
                 conv.ellipse_markers(pose[:, :2], ellipses, frame, result.t0))
             self._markers_shown = True
+            self._markers_made += 1
             self._ellipses_ms.append(1e3 * (time.perf_counter() - path_out))
+        else:  # ellipses_p99_ms: "nan" while none are made, not the times of a past viewer
+            self._ellipses_ms.clear()
         return path_out
 
     def _on_watchdog(self) -> None:
@@ -827,6 +832,7 @@ class PredictorNode(Node):
             "path_p99_ms": _p99(self._path_ms),
             "ellipses_p99_ms": _p99(self._ellipses_ms),
             "paths_published": str(self._paths_published),
+            "ellipses_published": str(self._markers_made),
             "horizon_steps": str(self.predictor.config.horizon_steps),
             "dropped_nonfinite": str(stats.dropped_nonfinite),
             "dropped_overflow": str(stats.dropped_overflow),
