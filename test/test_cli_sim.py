@@ -115,3 +115,25 @@ def test_a_command_imports_its_own_module_alone(repo_root):
     r = _asgp(repo_root, "-v", "infoo", "x")
     assert r.returncode == 2 and "invalid choice: 'infoo'" in r.stderr
     assert all(f"'{name}'" in r.stderr for name in every)
+
+
+def test_every_help_text_reads_as_printed():
+    """Each command's --help (and its subcommands'): argparse %-formats an argument's help
+    but not a description, so a doubled percent sign there was printed as "%%"."""
+    import argparse
+
+    from asgp_ros.cli import build_parser
+
+    def parsers(parser: argparse.ArgumentParser):
+        yield parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    yield from parsers(sub)
+
+    seen = 0
+    for parser in parsers(build_parser()):
+        text = parser.format_help()
+        assert "%%" not in text and "%(" not in text, (parser.prog, text)
+        seen += 1
+    assert seen >= 12

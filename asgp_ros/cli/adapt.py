@@ -29,7 +29,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Absorb every row of the bags that training would accept into the "
                     "trained ASGP's posterior (hyperparameters and pseudo-inputs as "
                     "trained; the rows teach a correction to the trained function), fit "
-                    "the variance calibration again on the last 20%% of each bag (held "
+                    "the variance calibration again on the last 20% of each bag (held "
                     "out, then absorbed too), and write the result as a new model file. "
                     "Prints the held-out k-step success of the model as trained and as "
                     "adapted. MODEL is never modified.",

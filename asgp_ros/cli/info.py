@@ -23,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Print what a model file holds: kind, lags, coupling, pseudo-inputs, "
                     "grid, training data, the automatic configuration's candidates with "
                     "their held-out scores, and the variance calibration with the held-out "
-                    "coverage of its 95%% ellipses per horizon, speed regime, joystick "
+                    "coverage of its 95% ellipses per horizon, speed regime, joystick "
                     "steadiness and recording.",
     )
     p.add_argument("model", metavar="MODEL", help="model file (.npz)")

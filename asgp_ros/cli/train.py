@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Resample the bags to the model grid (5 Hz), build the autoregressive "
                     "features and fit one regressor per channel (v, omega). With no model "
                     "flags the ASGP chooses its own configuration (lags, coupling, "
-                    "pseudo-inputs) by the k-step success on the last 20%% of each bag, "
+                    "pseudo-inputs) by the k-step success on the last 20% of each bag, "
                     "and calibrates its variance there; --paper trains the paper's "
                     "configuration instead, and --lags/--coupled/--inducing-* pin values. "
                     "Progress goes to stdout; stderr carries only an error.",
