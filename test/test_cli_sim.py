@@ -135,5 +135,8 @@ def test_every_help_text_reads_as_printed():
     for parser in parsers(build_parser()):
         text = parser.format_help()
         assert "%%" not in text and "%(" not in text, (parser.prog, text)
+        # and every option says what it does
+        bare = [a.option_strings for a in parser._actions if a.option_strings and not a.help]
+        assert not bare, (parser.prog, bare)
         seen += 1
     assert seen >= 12

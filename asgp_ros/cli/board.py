@@ -34,7 +34,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "(auto: driver if available)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing symlink at --link (nothing else is replaced)")
-    p.add_argument("--seed", type=cli_integer("seed"), default=0)
+    p.add_argument("--seed", type=cli_integer("seed"), default=0,
+                   help="seed of the driver, the script and the ADC noise (0)")
     p.add_argument("--noise", type=cli_number("noise_counts"), default=0.5,
                    help="ADC noise, counts (0.5)")
     p.add_argument("--duration", type=cli_number("duration_s", "s"), default=None,

@@ -25,7 +25,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="base seed (default 0)")
     p.add_argument("--jobs", type=cli_integer("jobs"), default=1,
                    help="parallel processes (default 1)")
-    p.add_argument("--storage", choices=STORAGES, default=STORAGES[0])
+    p.add_argument("--storage", choices=STORAGES, default=STORAGES[0],
+                   help=f"ROS 2 storage of the bags (default {STORAGES[0]})")
     p.add_argument("--force", action="store_true",
                    help="re-simulate bags that exist (only bags are replaced)")
     p.set_defaults(func=run)

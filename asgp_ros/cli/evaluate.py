@@ -71,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                    help="the absorbed rows teach the function against a constant prior mean, "
                         "not a correction to the trained function")
     p.add_argument("--skip", type=cli_number("skip_s", "s"), default=0.0,
-                   help="with --adapt: score cases from this many seconds into each bag")
+                   help="with --adapt: score cases from this many seconds into each bag (0)")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the scores as JSON")
     p.add_argument("--force", action="store_true",
                    help="replace an existing evaluation JSON file at --json")

@@ -20,7 +20,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     "Fovis-like VO at 4-7 Hz with tracking failures, ground truth) and write "
                     "/joy, /vo/twist and /ground_truth/odom to a bag.",
     )
-    p.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile")
+    p.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile",
+                   help="floor: tile, carpet, or the hybrid atrium that changes between them "
+                        "(default tile)")
     p.add_argument("--minutes", type=cli_number("minutes", "min"), default=20.0,
                    help="length (default 20)")
     p.add_argument("--seed", type=cli_integer("seed"), default=0,
