@@ -1157,24 +1157,29 @@ import json, sys
 import rclpy
 from rclpy.parameter import Parameter
 from asgp_ros.core import collision
-from asgp_ros.nodes.shared_control_node import SharedControlNode
+from asgp_ros.nodes.shared_control_node import SharedControlNode, StartupError
 def state():
     return {"cv2": collision._opencv.cache_info().currsize == 1 and "cv2" in sys.modules,
             "draws": collision.SAMPLES in collision._NORMAL_DRAWS}
 before = state()
 rclpy.init()
+try:
+    SharedControlNode(parameter_overrides=[Parameter("model_path", value="/nonexistent.npz")])
+except StartupError:
+    refused = state()
 node = SharedControlNode(parameter_overrides=[Parameter("model_path", value=%r)])
 after = state()
 node.destroy_node()
 rclpy.shutdown()
-print(json.dumps({"before": before, "after": after}))
+print(json.dumps({"before": before, "refused": refused, "after": after}))
 """
 
 
 def test_the_node_loads_the_checks_parts_at_start_up_not_at_its_first_decision(
         repo_root, model_file):  # noqa: F811
     """OpenCV and the collision check's Sobol draws (scipy.stats' import: 0.4 s) are loaded
-    when the node starts, not by its first decision, which they would delay."""
+    when the node starts, not by its first decision, which they would delay; and only once
+    its model is loaded, so that a refused model file is reported without that wait."""
     import json
     import subprocess
     import sys
@@ -1184,4 +1189,5 @@ def test_the_node_loads_the_checks_parts_at_start_up_not_at_its_first_decision(
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout.splitlines()[-1])
     assert out == {"before": {"cv2": False, "draws": False},
+                   "refused": {"cv2": False, "draws": False},
                    "after": {"cv2": True, "draws": True}}, out

@@ -329,7 +329,6 @@ class SharedControlNode(Node):
         except (ValueError, TypeError) as exc:
             self.destroy_node()
             raise StartupError(f"invalid parameters: {exc}") from exc
-        collision.prepare()  # OpenCV and the draws: not at the first decision
         self.add_on_set_parameters_callback(
             refuse_at_runtime(self, {spec.name for spec in PARAMS}, NODE_NAME))
         p = self.params
@@ -338,6 +337,9 @@ class SharedControlNode(Node):
         except (ModelFileError, OSError, ValueError) as exc:
             self.destroy_node()
             raise StartupError(f"cannot load the model: {exc}") from exc
+        # OpenCV and the draws: loaded at start-up, not at the first decision (after the
+        # model, so that a refused model file is reported without waiting for them)
+        collision.prepare()
         rate = float(self.model.resample_config.rate_hz)
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
