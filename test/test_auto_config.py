@@ -446,6 +446,24 @@ def test_asgp_info_shows_the_configuration_and_refuses_what_is_no_model(
         assert err.count("\n") == 1 and str(bad) in err
 
 
+def test_asgp_info_names_the_calibrations_speed_regimes(auto_model) -> None:  # type: ignore[no-untyped-def]
+    """Each speed regime's factor with the speeds that split them; a calibration fitted on
+    too few held-out cases to split has one factor, and says so."""
+    import dataclasses
+
+    from asgp_ros.cli.info import _calibration_lines
+
+    cal = auto_model.calibration
+    head = _calibration_lines(auto_model)[0]
+    assert len(cal.speed_edges) == 2  # the fixture's held-out part splits into thirds
+    assert "speed regimes " + ", ".join(f"{f:.3g}" for f in cal.speed_factors) in head
+    assert "split at |v| = " + ", ".join(f"{e:.3g}" for e in cal.speed_edges) in head
+    one = dataclasses.replace(auto_model, calibration=dataclasses.replace(
+        cal, speed_edges=(), speed_factors=(1.25,)))
+    head = _calibration_lines(one)[0]
+    assert "one speed regime" in head and "factor 1.25" in head and "split at" not in head
+
+
 def test_the_coverage_is_reported_per_speed_regime_and_steadiness_together(auto_model) -> None:  # type: ignore[no-untyped-def]
     """Slow steady driving can be over-confident where slow driving as a whole is not: the
     report crosses the speed regimes with the joystick's steadiness, and asgp info shows it."""

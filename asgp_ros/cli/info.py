@@ -118,10 +118,11 @@ def _calibration_lines(model: MotionModel) -> list[str]:
             + ("identity" if cal.is_identity else
                f"scale v {cal.scale[0]:.4g}, omega {cal.scale[1]:.4g}; floor v "
                f"{cal.floor[0]:.3g} (m/s)^2, omega {cal.floor[1]:.3g} (rad/s)^2; "
-               "speed regimes "
-               + ", ".join(f"{f:.3g}" for f in cal.speed_factors)
-               + (f" split at |v| = {', '.join(f'{e:.3g}' for e in cal.speed_edges)}"
-                  " m/s" if cal.speed_edges else "")))
+               + (("speed regimes " + ", ".join(f"{f:.3g}" for f in cal.speed_factors)
+                   + f" split at |v| = {', '.join(f'{e:.3g}' for e in cal.speed_edges)} m/s")
+                  if cal.speed_edges else
+                  f"one speed regime (too few held-out cases, or speeds, to split), factor "
+                  f"{cal.speed_factors[0]:.3g}")))
     return [head, *_section("  held-out coverage", lambda: [
         "  " + line for line in coverage_lines(model.meta.get("calibration", {}))])]
 
