@@ -7,6 +7,7 @@ input sample, so the test is deterministic and takes no wall time beyond the spi
 
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import subprocess
@@ -226,6 +227,13 @@ def test_bad_parameters_refuse_to_start(rclpy_context, model_file):
     with pytest.raises(StartupError, match="divided by an integer"):
         PredictorNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=model_file), Parameter("rate_hz", value=3.0)])
+    # a rate so small that the model's over it is inf (it raised OverflowError), or one
+    # path in more than MAX_DECIMATION steps
+    for tiny in (2.5e-308, 1e-300, 0.004):
+        with pytest.raises(StartupError, match="divided by an integer from 1 to 1000"):
+            PredictorNode(context=rclpy_context, parameter_overrides=[
+                Parameter("model_path", value=model_file), Parameter("rate_hz", value=tiny)])
+    assert PredictorNodeParams(model_path="m.npz", rate_hz=0.005).decimation(5.0) == 1000
 
 
 @pytest.mark.parametrize("names", [
@@ -496,6 +504,106 @@ def test_with_decimation_only_a_predicted_step_waits_for_the_joystick(
         assert abs(_t0(h.paths[-1]) - 102.4) < 1e-9
         h.spin_until(lambda: node._joy_wait_timer.is_canceled(), what="the reads to stop")
         assert node._joy_wait_timeouts == 0 and len(h.paths) == n + 1
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize("phase", [0, 1])
+def test_with_decimation_a_vo_completing_two_steps_at_once_still_gives_paths(
+        rclpy_context, model_file, phase):
+    """rate_hz = half the model's, and a VO every 0.4 s (a 5 Hz camera losing every other
+    frame, within max_gap_vel_s): each VO message completes two grid steps, and the newest
+    step may be odd every time. A path comes whenever the completed steps pass a multiple of
+    2 (it was made only when the newest step was one: none at all in one phase)."""
+    h = Harness(rclpy_context, model_file, rate_hz=2.5)
+    try:
+        for i in range(40):  # joystick 10 Hz, VO at t + 0.03 on every fourth sample
+            t = 100.0 + 0.1 * (i + 1)
+            h.clock(t)
+            h.joy(t, 0.5 + 0.3 * math.sin(t), 0.4 * math.cos(0.5 * t))
+            if i % 4 == 2 * phase + 1:
+                h.clock(t + 0.03)
+                h.vo(t + 0.03, 0.45 + 0.25 * math.sin(t - 0.3), 0.3 * math.cos(0.5 * t))
+        h.spin_until(lambda: len(h.paths) >= 5, what="paths at 2.5 Hz")
+        steps = [round(_t0(path) / DT) for path in h.paths]
+        assert all(b - a == 2 for a, b in itertools.pairwise(steps)), steps
+    finally:
+        h.close()
+
+
+def test_with_decimation_a_wait_for_the_joystick_ends_in_a_path_past_the_multiple(
+        rclpy_context, model_file, monkeypatch):
+    """rate_hz = half the model's. The joystick covers step 509, the VO step 511: the wait
+    is for step 510, and the sample that ends it completes 510 and 511 at once. The path
+    comes from that sample (at 511), not never."""
+    import asgp_ros.nodes.predictor_node as pn
+
+    monkeypatch.setattr(pn, "JOY_WAIT_MAX_S", 30.0)  # the window: joy_poll_period_s, 1 s
+    h = Harness(rclpy_context, model_file, joy_poll_period_s=1.0, rate_hz=2.5)
+    node = h.node
+    try:
+        h.drive(100.0, 101.8)  # the joystick at 101.8 (step 509), the VO at 101.83
+        h.spin_until(lambda: h.paths and abs(_t0(h.paths[-1]) - 101.6) < 1e-9, what="paths")
+        assert node.polled.timer is not None
+        node.polled.timer.cancel()
+        h.clock(101.95)
+        got = node.predictor.stats.joy_samples  # still step 509 (read here: no timer does)
+        h.joy_pub.publish(conv.joy_from_sample(101.95, 0.5, 0.0))
+        h.spin_until(lambda: node.polled.drain() >= 0
+                     and node.predictor.stats.joy_samples > got, what="the sample")
+        waits, n = node._joy_waits, len(h.paths)
+        h.clock(102.23)
+        h.vo(102.23, 0.4, 0.1)  # steps 510 and 511 wait for the stick
+        assert node._joy_waits == waits + 1
+        h.joy_pub.publish(conv.joy_from_sample(102.21, 0.5, 0.0))
+        h.spin_until(lambda: len(h.paths) > n, what="the path the wait was for")
+        assert abs(_t0(h.paths[-1]) - 102.2) < 1e-9
+        h.spin_until(lambda: node._joy_wait_timer.is_canceled(), what="the reads to stop")
+        assert node._joy_wait_timeouts == 0
+    finally:
+        h.close()
+
+
+def test_ellipses_switched_off_at_runtime_are_cleared(rclpy_context, model_file):
+    """publish_uncertainty set to false while RViz shows the ellipses: one DELETEALL, so
+    the last path's ellipses do not stay beside the new paths; none after it."""
+    h = Harness(rclpy_context, model_file)
+    node = h.node
+    try:
+        h.drive(100.0, 101.0)
+        h.spin_until(lambda: h.paths and h.markers, what="paths and ellipses")
+        assert node.set_parameters([Parameter("publish_uncertainty", value=False)])[0].successful
+        n_paths, n_markers = len(h.paths), len(h.markers)
+        h.drive(101.0, 102.0)
+        h.spin_until(lambda: len(h.paths) >= n_paths + 4 and len(h.markers) > n_markers,
+                     what="paths and the clearing")
+        for _ in range(20):
+            h.executor.spin_once(timeout_sec=0.01)
+        assert len(h.markers) == n_markers + 1
+        assert [m.action for m in h.markers[-1].markers] == [Marker.DELETEALL]
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert values["ellipses_p99_ms"] == "nan"
+    finally:
+        h.close()
+
+
+def test_the_ellipses_time_is_not_reported_once_the_viewer_left_and_paths_stopped(
+        rclpy_context, model_file):
+    """The viewer leaves while no path comes (stale inputs): ellipses_p99_ms is nan, not
+    the times of the ellipses it was sent."""
+    h = Harness(rclpy_context, model_file)
+    node = h.node
+    try:
+        h.drive(100.0, 101.0)
+        h.spin_until(lambda: h.paths and h.markers, what="paths and ellipses")
+        h.clock(102.0)  # inputs stale: no path
+        h.spin_until(lambda: _reason(h) != Reason.OK, what="stale inputs")
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert float(values["ellipses_p99_ms"]) > 0  # the viewer is still there
+        h.test.destroy_subscription(h.marker_sub)
+        h.spin_until(lambda: node.marker_pub.get_subscription_count() == 0, what="gone")
+        values = {kv.key: kv.value for kv in node.diagnostic_status().values}
+        assert values["ellipses_p99_ms"] == "nan"
     finally:
         h.close()
 

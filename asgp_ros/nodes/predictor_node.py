@@ -113,6 +113,9 @@ _LOAD_POLL_S = 0.05
 #: learning right after the publication took a core from the path's subscribers on a
 #: two-core laptop and added to their latency (``benchmarks/predictor_latency.py``).
 LEARN_DELAY_S = 0.02
+#: Largest n of ``rate_hz`` = the model's rate / n (a path every 200 s at 5 Hz): a smaller
+#: rate (1e-300 Hz, say) is refused rather than never predicting.
+MAX_DECIMATION = 1000
 #: A step the VO completed that waits for a joystick sample only (a joystick slower than
 #: the VO) has the joystick read every JOY_WAIT_TICK_S until it comes, for at most
 #: JOY_WAIT_MAX_S (or ``joy_poll_period_s`` if shorter), instead of at the next batch.
@@ -229,10 +232,10 @@ class PredictorNodeParams:
         if self.rate_hz == 0.0:
             return 1
         n = model_rate_hz / self.rate_hz
-        if n < 1.0 - 1e-9 or abs(n - round(n)) > 1e-6:
+        if not (1.0 - 1e-9 <= n <= MAX_DECIMATION + 1e-6) or abs(n - round(n)) > 1e-6:
             raise ValueError(
                 f"rate_hz {self.rate_hz} must be the model's rate ({model_rate_hz} Hz) divided "
-                "by an integer, or 0 for the model's rate"
+                f"by an integer from 1 to {MAX_DECIMATION}, or 0 for the model's rate"
             )
         return round(n)
 
@@ -624,9 +627,9 @@ class PredictorNode(Node):
         self._await_joystick(now)
 
     def _joystick_behind(self, now: float) -> bool:
-        """A step the node will predict (every ``every_n``-th) waits for a joystick sample
-        only, and the joystick is not stale (a silent stick is the watchdog's to report,
-        not worth reads every tick)."""
+        """A step the node will predict from (a multiple of ``every_n``, see
+        ``_maybe_predict``) waits for a joystick sample only, and the joystick is not stale
+        (a silent stick is the watchdog's to report, not worth reads every tick)."""
         joy_newest, _ = self.predictor.newest_stamps()
         return (self.predictor.joystick_behind(self.every_n)
                 and now - joy_newest <= self.params.joy_timeout_s)
@@ -697,7 +700,9 @@ class PredictorNode(Node):
     # ---- prediction ------------------------------------------------------------------
 
     def _maybe_predict(self, now: float | None, arrival: float) -> None:
-        """Predict once per newly completed grid step (every n-th with rate_hz)."""
+        """Predict once per newly completed grid step; with rate_hz (every n-th step), once
+        the completed steps reach a multiple of n (the newest step may have passed it: a
+        VO slower than the grid, or a lost frame, completes two steps at once)."""
         if now is None:
             return
         if self.predictor.stats.resets != self._resets_seen:
@@ -707,8 +712,9 @@ class PredictorNode(Node):
         step = self.predictor.ready_step()
         if step is None or (self._last_step is not None and step <= self._last_step):
             return
+        last = step - 1 if self._last_step is None else self._last_step
         self._last_step = step
-        if step % self.every_n:
+        if step // self.every_n == last // self.every_n:  # no multiple in (last, step]
             return
         if not self._learn_timer.is_canceled():
             # the last path's learning is still to come (a step closer than LEARN_DELAY_S
@@ -773,16 +779,27 @@ class PredictorNode(Node):
         # the ellipses are made and sent only while something subscribes to them (RViz
         # on a laptop beside the chair, say): their message took up to 1.4 ms (p99) after
         # each path
-        if p.publish_uncertainty and self.marker_pub.get_subscription_count() > 0:
+        if self._making_ellipses():
             ellipses = online.confidence_ellipses(cov)
             self.marker_pub.publish(
                 conv.ellipse_markers(pose[:, :2], ellipses, frame, result.t0))
             self._markers_shown = True
             self._markers_made += 1
             self._ellipses_ms.append(1e3 * (time.perf_counter() - path_out))
-        else:  # ellipses_p99_ms: "nan" while none are made, not the times of a past viewer
-            self._ellipses_ms.clear()
+        else:  # publish_uncertainty switched off: the last path's ellipses go too
+            self._clear_markers(result.t0)
         return path_out
+
+    def _making_ellipses(self) -> bool:
+        """Ellipses are made for each path: publish_uncertainty, and something subscribes."""
+        return self.params.publish_uncertainty and self.marker_pub.get_subscription_count() > 0
+
+    def _clear_markers(self, stamp: float) -> None:
+        """Clear the ellipses last sent (in RViz), once."""
+        if self._markers_shown:
+            self.marker_pub.publish(conv.ellipse_markers(
+                np.zeros((0, 2)), np.zeros((0, 3)), self._output_frame(), stamp))
+            self._markers_shown = False
 
     def _on_watchdog(self) -> None:
         self.polled.drain()
@@ -793,10 +810,7 @@ class PredictorNode(Node):
         bad = self.predictor.status(now)
         if bad is not None:
             self._last_result = bad
-            if self._markers_shown:  # clear the ellipses of the last path in RViz
-                self.marker_pub.publish(conv.ellipse_markers(
-                    np.zeros((0, 2)), np.zeros((0, 3)), self._output_frame(), now))
-                self._markers_shown = False
+            self._clear_markers(now)  # the last path's ellipses, in RViz
             return
         self._maybe_predict(now, time.perf_counter())
 
@@ -816,6 +830,8 @@ class PredictorNode(Node):
         joy_newest, vo_newest = self.predictor.newest_stamps()
         lat = np.asarray(self._latency_ms)
         wall = time.monotonic()
+        if not self._making_ellipses():  # ellipses_p99_ms: nan, not a past viewer's times
+            self._ellipses_ms.clear()
 
         def age(newest: float) -> str:
             return "inf" if now is None or not math.isfinite(newest) else f"{now - newest:.3f}"
