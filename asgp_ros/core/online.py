@@ -721,9 +721,9 @@ class Predictor:
 
     def joystick_behind(self, every_n: int = 1) -> bool:
         """Whether the VO covers a newer grid step than the joystick does, one whose index
-        is a multiple of ``every_n`` (a node predicting every n-th step): that step waits
-        for a joystick sample only (cheap; a node reading the joystick in batches reads it
-        again soon instead of at its next batch)."""
+        is a multiple of ``every_n`` (a node that predicts once the completed steps pass a
+        multiple of n): that step waits for a joystick sample only (cheap; a node reading
+        the joystick in batches reads it again soon instead of at its next batch)."""
         if every_n < 1:
             raise ValueError(f"every_n must be at least 1, got {every_n}")
         if not self._joy or not self._vo:
