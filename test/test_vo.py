@@ -321,3 +321,60 @@ def test_first_frame_size_must_fit_camera_matrix(scene):
     img = np.zeros((480, 640, 3), np.uint8)
     res = vo.process(img, np.ones((480, 640), np.float32), 0.0)
     assert res.status is Status.BAD_INPUT and "principal point" in res.message
+
+
+def test_an_image_size_given_must_fit_the_camera_matrix_and_the_levels():
+    """The size a camera_info gives is checked as the first frame's is (it was not: a
+    principal point far outside the image tracked, with twists three times too fast)."""
+    K = np.array([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]])
+    VisualOdometry(K, image_size=(640, 480))
+    with pytest.raises(ValueError, match="principal point outside the 300x240 image"):
+        VisualOdometry(K, image_size=(300, 240))
+    with pytest.raises(ValueError, match="too small"):
+        VisualOdometry(np.array([[50.0, 0, 10.0], [0, 50.0, 10.0], [0, 0, 1]]),
+                       image_size=(20, 20))
+
+
+@pytest.mark.parametrize("size", [(4480, 56), (5000, 64), (8000, 60)])
+def test_a_very_wide_image_never_raises(size):
+    """Tracking lost on a very wide image: the rotation guess shrank it to 80 px wide and
+    1 px high, and OpenCV raised (cv2.error out of ``process``)."""
+    w, h = size
+    rng = np.random.default_rng(0)
+    K = np.array([[300.0, 0, w / 2], [0, 300.0, h / 2], [0, 0, 1]])
+    import cv2
+
+    base = cv2.GaussianBlur(rng.integers(0, 256, (h + 40, w + 40), dtype=np.uint8), (3, 3), 0)
+    for given in (None, (w, h)):
+        vo = VisualOdometry(K, image_size=given)
+        for k in range(5):
+            img = (np.ascontiguousarray(base[3 * k:3 * k + h, 5 * k:5 * k + w]) if k < 3
+                   else rng.integers(0, 256, (h, w), dtype=np.uint8))
+            res = vo.process(img, np.full((h, w), 2.0, np.float32), 1.0 + 0.1 * k)
+            assert isinstance(res.status, Status)
+
+
+def test_restart_holds_the_pose_and_reports_a_reinitialisation(scene):
+    """``restart``: the reference is forgotten, the pose held (or the one given), and the
+    next frame's reference is a re-initialisation (``reset``), so PlanarOdometry raises
+    the pose's variance."""
+    r = RGBDRenderer(scene, seed=2)
+    drive = segment_drive((0.0, 0.0, 0.0), [(0.5, 0.0, 0.4)], 30.0)
+    poses = _drive_poses(drive)
+    vo = VisualOdometry(r.K)
+    for k in range(6):
+        res = vo.process(*r.render(poses[k]), drive.t[k])
+    assert res.ok
+    pose = vo.pose
+    assert not np.allclose(pose, np.eye(4))
+    vo.restart()
+    res = vo.process(*r.render(poses[6]), drive.t[6])
+    assert res.status is Status.REFERENCE_SET and res.reset
+    np.testing.assert_array_equal(res.pose, pose)
+    res = vo.process(*r.render(poses[7]), drive.t[7])
+    assert res.ok and not res.reset
+    other = VisualOdometry(r.K)
+    other.restart(pose)
+    np.testing.assert_array_equal(other.pose, pose)
+    with pytest.raises(ValueError, match="4x4"):
+        other.restart(np.full((4, 4), np.nan))

@@ -86,6 +86,9 @@ def test_camera_info_to_matrix():
     ([525.0, 0, 319.5, 0, 1e-9, 239.5, 0, 0, 1], (640, 480), "focal lengths 525, 1e-09"),
     ([525.0, 0, 1e30, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "principal point beyond"),
     ([525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1], (4_000_000_000, 480), "size 4000000000x480"),
+    # within the +-1e6 px range, but outside its own 640x480 image (twists of 3x the speed)
+    ([525.0, 0, 3320.0, 0, 525.0, -1760.0, 0, 0, 1], (640, 480), "outside its 640x480"),
+    ([525.0, 0, 640.0, 0, 525.0, 239.5, 0, 0, 1], (640, 480), "outside its 640x480"),
 ])
 def test_camera_info_out_of_range_is_refused(k, size, why):
     msg = camera.camera_info_from_matrix(0.0, np.eye(3), 640, 480, "camera")
@@ -369,6 +372,121 @@ def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
         dist = math.hypot(drive.x[3] - drive.x[0], drive.y[3] - drive.y[0])
         assert ok and math.hypot(x, y) == pytest.approx(dist, abs=0.03)  # from the restart
         assert yaw == pytest.approx(drive.theta[3] - drive.theta[0], abs=0.02)
+    finally:
+        h.close()
+
+
+def _msgs(images, k, colour_frame="camera", depth_frame="camera"):
+    img, depth = images[k]
+    return (camera.image_from_array(0.0, img, colour_frame),
+            camera.image_from_array(0.0, depth, depth_frame))
+
+
+@pytest.mark.ros
+def test_a_pair_stamped_before_the_epoch_or_ahead_of_the_clock_is_refused(
+        rclpy_context, frames):
+    """A negative stamp (int32 seconds allow it) crashed the node when its twist was
+    stamped; one stamped far ahead of the node's clock (one glitched frame), tracked, made
+    every later pair look stamped back in time, and the odometry restarted at the origin.
+    Both are refused as bad input, and the track goes on."""
+    from builtin_interfaces.msg import Time
+
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        t0 = h.node.get_clock().now().nanoseconds * 1e-9 - 10.0  # a live camera's stamps
+        for k in range(4):
+            h.send(t0 + drive.t[k], *_msgs(images, k))
+        assert len(h.twists) == 3
+        bad = h.node.stats["bad_input"]
+        c, d = _msgs(images, 4)
+        c.header.stamp = d.header.stamp = Time(sec=-10, nanosec=0)
+        h.color.publish(c)
+        h.depth.publish(d)
+        assert h.spin_until(lambda: h.node.stats["bad_input"] == bad + 1)
+        assert "before the clock's epoch" in h.node.last_result.message
+        c, d = _msgs(images, 4)
+        c.header.stamp = d.header.stamp = conv.seconds_to_stamp(t0 + drive.t[4] + 3600.0)
+        h.color.publish(c)  # an hour ahead
+        h.depth.publish(d)
+        assert h.spin_until(lambda: h.node.stats["bad_input"] == bad + 2)
+        assert "after this node's clock" in h.node.last_result.message
+        for k in range(5, 8):
+            h.send(t0 + drive.t[k], *_msgs(images, k))
+        assert h.node.stats["resets"] == 0 and len(h.twists) == 6
+        _, _, ok, (x, y, _) = conv.odometry_to_sample(h.odoms[-1])
+        dist = math.hypot(drive.x[7] - drive.x[0], drive.y[7] - drive.y[0])
+        assert ok and math.hypot(x, y) == pytest.approx(dist, abs=0.03)  # not restarted
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
+def test_a_new_camera_calibration_restarts_tracking_with_the_pose_held(rclpy_context, frames):
+    """camera_info changes mid-stream (the driver restarted): the chair has not moved, so
+    vo/odom goes on from the pose it had, its variance raised as after a tracking loss, and
+    the restart is counted; it used to start again at the origin, as sure as before."""
+    from asgp_ros.vo.planar import RESET_VARIANCE
+
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        for k in range(6):
+            h.send(100.0 + drive.t[k], *_msgs(images, k))
+        _, _, _, (x0, y0, _) = conv.odometry_to_sample(h.odoms[-1])
+        var0 = h.odoms[-1].pose.covariance[0]
+        K2 = np.array(K, dtype=float)
+        K2[0, 0] *= 1.001
+        h.info.publish(camera.camera_info_from_matrix(0.0, K2, 640, 480, "camera"))
+        assert h.spin_until(lambda: h.node.stats["resets"] == 1)
+        for k in range(6, 10):
+            h.send(100.0 + drive.t[k], *_msgs(images, k))
+        assert h.node.last_result.ok
+        _, _, ok, (x, y, _) = conv.odometry_to_sample(h.odoms[-1])
+        moved = math.hypot(drive.x[9] - drive.x[6], drive.y[9] - drive.y[6])
+        assert ok and math.hypot(x - x0, y - y0) == pytest.approx(moved, abs=0.03)
+        assert h.odoms[-1].pose.covariance[0] >= var0 + RESET_VARIANCE
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
+def test_a_refused_camera_info_says_why_and_unpaired_images_are_counted(
+        rclpy_context, frames):
+    """The diagnostics give the reason a camera_info is refused (they said "waiting for
+    camera_info" while it came, refused, ten times a second), count the images that went
+    without a partner, and say when colour and depth come from different frames (depth not
+    registered to the colour camera)."""
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        assert h.spin_until(lambda: h.info.get_subscription_count() >= 1)
+        h.info.publish(camera.camera_info_from_matrix(0.0, np.zeros((3, 3)), 640, 480,
+                                                      "camera"))
+        assert h.spin_until(lambda: any(
+            level == 2 and "refused" in msg and "uncalibrated" in msg
+            for level, msg, _ in _levels(h.diags)))
+        h.connect(K)
+        for i in range(12):  # depth 40 ms after colour: beyond sync_tolerance_s
+            c, d = _msgs(images, i % 3)
+            c.header.stamp = conv.seconds_to_stamp(100.0 + i / 15.0)
+            d.header.stamp = conv.seconds_to_stamp(100.04 + i / 15.0)
+            h.color.publish(c)
+            h.depth.publish(d)
+            h.spin_until(lambda: False, 0.02)
+        assert h.spin_until(lambda: h.node.stats["evicted"] >= 8)
+        assert h.spin_until(lambda: any(
+            "went without a partner within sync_tolerance_s" in msg
+            for _, msg, _ in _levels(h.diags)[-2:]))
+        for k in range(3):
+            h.send(101.0 + drive.t[k], *_msgs(images, k, depth_frame="camera_depth"))
+        assert len(h.twists) == 2
+        h.diags.clear()
+        assert h.spin_until(lambda: any(
+            level == 1 and "colour and depth frames differ" in msg
+            for level, msg, _ in _levels(h.diags)))
     finally:
         h.close()
 

@@ -497,7 +497,8 @@ def camera_info_to_matrix(msg: CameraInfo) -> tuple[FloatArray, int, int, bool]:
     Raises:
         ValueError: K unset (all zero), not finite, not a pinhole matrix, or a focal length,
             principal point or image side outside ``CAMERA_FOCAL_RANGE_PX``,
-            ``CAMERA_MAX_ABS_CENTRE_PX``, ``CAMERA_MAX_SIDE_PX``.
+            ``CAMERA_MAX_ABS_CENTRE_PX``, ``CAMERA_MAX_SIDE_PX``; a principal point outside
+            the image the message gives the size of.
     """
     K = np.asarray(msg.k, dtype=np.float64).reshape(3, 3)
     if not np.all(np.isfinite(K)) or not np.any(K):
@@ -515,6 +516,10 @@ def camera_info_to_matrix(msg: CameraInfo) -> tuple[FloatArray, int, int, bool]:
             and 0 <= int(msg.height) <= CAMERA_MAX_SIDE_PX):
         raise ValueError(f"CameraInfo size {msg.width}x{msg.height} is beyond "
                          f"{CAMERA_MAX_SIDE_PX} px")
+    if msg.width and msg.height and not (0.0 <= K[0, 2] < msg.width
+                                         and 0.0 <= K[1, 2] < msg.height):
+        raise ValueError(f"CameraInfo principal point ({K[0, 2]:g}, {K[1, 2]:g}) px lies "
+                         f"outside its {msg.width}x{msg.height} image: K does not fit")
     d = np.asarray(msg.d, dtype=np.float64)
     return K, int(msg.width), int(msg.height), bool(d.size and np.any(d != 0))
 

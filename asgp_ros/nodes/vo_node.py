@@ -57,6 +57,9 @@ _LEVEL = {
 }
 _BUFFER = 8  # messages kept per image stream while waiting for a partner
 _JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry
+#: A pair stamped more than this after the node's clock is refused: one such pair, tracked,
+#: would make every later (correct) pair look stamped back in time and reset the odometry.
+_AHEAD_S = 1.0
 
 
 class VONode(Node):
@@ -97,7 +100,11 @@ class VONode(Node):
         self._last_problem = ""  # conversion error of the last pair, if any
         self._elapsed: collections.deque[float] = collections.deque(maxlen=100)
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
-                      "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0}
+                      "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0,
+                      "colour_images": 0, "depth_images": 0, "evicted": 0}
+        self._evicted_since_pair = 0  # images pushed out of a full buffer since a pair
+        self._info_problem = ""  # why the last camera_info was refused, if it was
+        self._frames = ("", "")  # frame_id of the last colour and depth image paired
         self._not_newer_since_processed = 0  # pairs not newer than the last processed one
         self.get_logger().info(
             f"VO on {p.color_topic} + {p.depth_topic} ({p.camera_info_topic}); camera at "
@@ -107,15 +114,21 @@ class VONode(Node):
     # -- input ---------------------------------------------------------------------------
 
     def _on_color(self, msg: Image) -> None:
-        t = conv.stamp_to_seconds(msg.header.stamp)
-        self._drop_old_timeline(t)
-        self._color.append((t, msg))
-        self._wake.trigger()
+        self.stats["colour_images"] += 1
+        self._buffer(msg, colour=True)
 
     def _on_depth(self, msg: Image) -> None:
+        self.stats["depth_images"] += 1
+        self._buffer(msg, colour=False)
+
+    def _buffer(self, msg: Image, colour: bool) -> None:
         t = conv.stamp_to_seconds(msg.header.stamp)
-        self._drop_old_timeline(t)
-        self._depth.append((t, msg))
+        self._drop_old_timeline(t)  # (may replace the queues)
+        queue = self._color if colour else self._depth
+        if len(queue) == _BUFFER:  # its oldest image goes, unpaired and unprocessed
+            self.stats["evicted"] += 1
+            self._evicted_since_pair += 1
+        queue.append((t, msg))
         self._wake.trigger()
 
     def _drop_old_timeline(self, t: float) -> None:
@@ -135,22 +148,30 @@ class VONode(Node):
     def _on_info(self, msg: CameraInfo) -> None:
         try:
             K, w, h, distorted = conv.camera_info_to_matrix(msg)
+            if self._K is not None and np.allclose(K, self._K) and self._info_size == (w, h):
+                self._info_problem = ""
+                return
+            size = (w, h) if w > 0 and h > 0 else None
+            vo = VisualOdometry(K, extrinsic=self.params.extrinsic, image_size=size,
+                                **self.params.vo_options)
         except ValueError as exc:
             self.stats["camera_info_errors"] += 1
+            self._info_problem = str(exc)
             self.get_logger().warn(f"camera_info refused: {exc}", throttle_duration_sec=5.0)
             return
-        if self._K is not None and np.allclose(K, self._K) and self._info_size == (w, h):
-            return
+        self._info_problem = ""
         if distorted:
             self.get_logger().warn("camera_info has non-zero distortion: vo_node expects "
                                    "rectified images (image_rect) and uses K only")
-        if self._K is not None:
-            self.get_logger().warn("camera_info changed: odometry restarts")
+        if self.vo is not None:
+            # a new calibration of the same camera (a driver restarted): the chair has not
+            # moved, so the pose is held, and re-initialised with its variance
+            # (PlanarOdometry), as after a tracking loss
+            self.get_logger().warn("camera_info changed: tracking restarts, pose held")
+            vo.restart(self.vo.pose)
+            self.stats["resets"] += 1
         self._K, self._info_size = K, (w, h)
-        size = (w, h) if w > 0 and h > 0 else None
-        self.vo = VisualOdometry(K, extrinsic=self.params.extrinsic, image_size=size,
-                                 **self.params.vo_options)
-        self.planar.reset()
+        self.vo = vo
         self._last_stamp = None
         self._wake.trigger()
 
@@ -181,6 +202,15 @@ class VONode(Node):
         if pair is None:
             return
         stamp, cmsg, dmsg = pair
+        self._evicted_since_pair = 0
+        self._frames = (cmsg.header.frame_id, dmsg.header.frame_id)
+        problem = self._stamp_problem(stamp)
+        if problem:  # refused before it could reset the odometry or time a twist
+            self.stats["bad_input"] += 1
+            self._last_problem = problem
+            self._report(VOResult(status=Status.BAD_INPUT, stamp=stamp, pose=self.vo.pose,
+                                  message=problem))
+            return
         if self._last_stamp is not None and stamp <= self._last_stamp:
             if stamp < self._last_stamp - _JUMP_BACK_S:
                 self.get_logger().warn(f"image stamps jumped back by "
@@ -238,6 +268,18 @@ class VONode(Node):
             self.stats["lost"] += 1
         self._report(result)
 
+    def _stamp_problem(self, stamp: float) -> str:
+        """Why a pair's stamp cannot be a frame's time, or "": before the clock's epoch (a
+        twist could not be stamped), or more than _AHEAD_S after the node's clock (a
+        camera stamping with another clock, or one glitched frame)."""
+        if stamp < 0.0:
+            return f"image stamp {stamp:.3f} s is before the clock's epoch"
+        now = self.get_clock().now().nanoseconds * 1e-9
+        if now > 0.0 and stamp > now + _AHEAD_S:
+            return (f"image stamped {stamp - now:.3f} s after this node's clock (is the "
+                    "camera driver stamping with the host's clock?)")
+        return ""
+
     def _report(self, result: VOResult) -> None:
         previous = self.last_result
         self.last_result = result
@@ -258,18 +300,27 @@ class VONode(Node):
         r = self.last_result
         age = (time.monotonic() - self._last_processed_wall
                if self._last_processed_wall is not None else None)
-        if self.vo is None:
+        n = self.stats
+        unpaired = (f" ({self._evicted_since_pair} images went without a partner within "
+                    f"sync_tolerance_s {p.sync_tolerance_s:g} s)"
+                    if self._evicted_since_pair else "")
+        if self.vo is None and self._info_problem:
+            level, msg = "ERROR", (f"camera_info on {p.camera_info_topic} refused: "
+                                   f"{self._info_problem}")
+        elif self.vo is None:
             level, msg = "WARN", f"waiting for camera_info on {p.camera_info_topic}"
         elif r is None or age is None:
-            level, msg = "WARN", f"waiting for colour/depth pairs on {p.color_topic}, " \
-                                 f"{p.depth_topic}"
+            level, msg = "WARN", (f"waiting for colour/depth pairs on {p.color_topic} "
+                                  f"({n['colour_images']} received), {p.depth_topic} "
+                                  f"({n['depth_images']} received){unpaired}")
         elif age > p.stale_timeout_s and self._not_newer_since_processed:
             level, msg = "ERROR", (
                 f"{self._not_newer_since_processed} colour/depth pairs in {age:.2f} s, none "
                 "stamped after the last one processed (is the camera driver stamping its "
                 "images?): no twist published")
         elif age > p.stale_timeout_s:
-            level, msg = "ERROR", f"no colour/depth pair for {age:.2f} s: no twist published"
+            level, msg = "ERROR", (f"no colour/depth pair for {age:.2f} s{unpaired}: no twist "
+                                   "published")
         elif r.ok:
             level, msg = "OK", f"tracking ({r.num_inliers} inliers)"
         elif r.status is Status.REFERENCE_SET:
@@ -291,6 +342,14 @@ class VONode(Node):
             values["process_ms_max"] = 1e3 * float(np.max(self._elapsed))
         if age is not None:
             values["last_frame_age_s"] = float(age)
+        if self._info_problem:
+            values["camera_info_problem"] = self._info_problem
+        colour_frame, depth_frame = self._frames
+        if colour_frame != depth_frame and level == "OK":
+            # depth not registered to the colour camera: its pixels are not the colour's
+            level, msg = "WARN", (f"{msg}; colour and depth frames differ ({colour_frame!r}, "
+                                  f"{depth_frame!r}): vo_node needs depth registered to the "
+                                  "colour camera")
         values["qos_mismatch"] = self.qos_watch.summary()
         level, msg = self.qos_watch.escalate(level, msg)
         status = conv.diagnostic_status("vo_node: tracking", level, msg, p.color_topic, values)

@@ -367,6 +367,10 @@ class VisualOdometry:
         self.extrinsic = extrinsic
         self.image_size = None if image_size is None else (int(image_size[0]),
                                                            int(image_size[1]))
+        if self.image_size is not None:
+            problem = self._size_problem(*self.image_size)
+            if problem:
+                raise ValueError(problem)
         self._fast_threshold = float(self.options.fast_threshold)
         self.reset()
 
@@ -383,6 +387,20 @@ class VisualOdometry:
         self._ok_stamp: float | None = None  # last tracked frame
         self._lost = 0
         self._since_loss = self.recovery_frames  # tracked frames since an untracked one
+        self._restarted = False  # the next reference re-initialises a held pose
+
+    def restart(self, pose: ArrayLike | None = None) -> None:
+        """Forget the reference frame but hold the pose (this track's, or ``pose`` [4, 4],
+        e.g. from the instance this one replaces after a new camera calibration): the next
+        frame with features becomes the reference, reported as a re-initialisation
+        (``VOResult.reset``: the motion in between is unknown), as after
+        ``max_frames_lost``."""
+        held = self._pose.copy() if pose is None else np.asarray(pose, dtype=float).copy()
+        if held.shape != (4, 4) or not np.all(np.isfinite(held)):
+            raise ValueError(f"pose must be a finite 4x4 matrix, got shape {held.shape}")
+        self.reset()
+        self._pose = held
+        self._restarted = True
 
     @property
     def pose(self) -> np.ndarray:
@@ -427,7 +445,7 @@ class VisualOdometry:
             return self._fail(Status.INSUFFICIENT_FEATURES, stamp, t0,
                               f"{nfeat} features with depth", nfeat)
         if self._ref is None or len(self._ref.level) < self.options.min_features_for_estimate:
-            return self._set_reference(frame, t0, reset=False)
+            return self._set_reference(frame, t0, reset=self._restarted)
         result = self._track(frame, t0)
         if result.ok:
             return self._recovery(result)
@@ -461,14 +479,21 @@ class VisualOdometry:
             return f"depth {depth.shape} and image {image.shape[:2]} sizes differ"
         h, w = image.shape[:2]
         if self.image_size is None:
-            if not (0 <= self.K[0, 2] < w and 0 <= self.K[1, 2] < h):
-                return f"principal point outside the {w}x{h} image: K does not fit"
-            if min(w, h) >> (self.options.num_levels - 1) < 2 * _BORDER + 2:
-                return f"image {w}x{h} too small for {self.options.num_levels} levels"
+            problem = self._size_problem(w, h)
+            if problem:
+                return problem
             self.image_size = (w, h)
         elif (w, h) != self.image_size:
             return f"image size {w}x{h} differs from the expected {self.image_size[0]}x" \
                    f"{self.image_size[1]}"
+        return ""
+
+    def _size_problem(self, w: int, h: int) -> str:
+        """Why images of w x h cannot be tracked with this K and these options, or ""."""
+        if not (0 <= self.K[0, 2] < w and 0 <= self.K[1, 2] < h):
+            return f"principal point outside the {w}x{h} image: K does not fit"
+        if min(w, h) >> (self.options.num_levels - 1) < 2 * _BORDER + 2:
+            return f"image {w}x{h} too small for {self.options.num_levels} levels"
         return ""
 
     def _depth_metres(self, depth: np.ndarray) -> np.ndarray:
@@ -504,6 +529,7 @@ class VisualOdometry:
                         num_features=nfeat, elapsed=time.perf_counter() - t0)
 
     def _set_reference(self, frame: _Frame, t0: float, reset: bool) -> VOResult:
+        self._restarted = False
         frame.pose = self._pose.copy()
         self._ref = frame
         self._T_ref_prev = np.eye(4)
@@ -563,7 +589,9 @@ class VisualOdometry:
         good = z > 0
         uv, z = uv[good], z[good]
         coarse = levels[-1]
-        while coarse.shape[1] > 80:
+        # at most 80 px wide, and at least 8 px high (a very wide image would otherwise
+        # end 1 px high, where no window fits)
+        while coarse.shape[1] > 80 and coarse.shape[0] >= 16:
             coarse = cv2.pyrDown(coarse)
         coarse = cv2.GaussianBlur(coarse.astype(np.float32), (0, 0), 1.0)
         return _Frame(levels=levels, depth=depth, xy=xy[good], level=level[good], uv=uv,
@@ -580,6 +608,8 @@ class VisualOdometry:
         """
         assert ref.coarse is not None and cur.coarse is not None
         h, w = cur.coarse.shape
+        if min(h, w) < 2:  # no window to correlate in: no guess
+            return np.eye(4)
         window = cv2.createHanningWindow((w, h), cv2.CV_32F)
         (dx, dy), _ = cv2.phaseCorrelate(ref.coarse, cur.coarse, window)
         scale = cur.levels[0].shape[1] / w
