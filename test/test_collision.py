@@ -147,12 +147,19 @@ def test_bad_scans_are_refused_and_never_read_as_clear():
     half_bad = np.where(np.arange(200) % 3 == 0, 2.0, np.nan)
     with pytest.raises(C.CollisionError, match="NaN"):
         C.scan_check(C.Scan(half_bad, a0, inc, 0.05, 8.0))
+    # angles beyond a turn of the laser's axis: at 1e17 rad every beam fell on one bearing
+    # (float64), and a wall ahead read as clear
     for bad in (dict(ranges=np.zeros(0)), dict(range_min=-1.0), dict(range_max=np.inf),
-                dict(angle_min=np.nan), dict(ranges=np.zeros((2, 2)))):
+                dict(angle_min=np.nan), dict(ranges=np.zeros((2, 2))),
+                dict(angle_min=1e17), dict(angle_min=-7.0), dict(angle_increment=1.0),
+                dict(angle_increment=1e30)):
         kw = dict(ranges=np.ones(10), angle_min=a0, angle_increment=inc, range_min=0.05,
                   range_max=8.0) | bad
         with pytest.raises(C.CollisionError):
             C.Scan(**kw)
+    # a full turn, from -pi or from 0, is a scan
+    C.Scan(np.ones(360), -np.pi, 2 * np.pi / 360, 0.05, 8.0)
+    C.Scan(np.ones(360), 0.0, -2 * np.pi / 360, 0.05, 8.0)
     # -inf (too close to measure) is an obstacle at range_min, not free space
     close = np.full(200, np.inf)
     close[100] = -np.inf

@@ -1191,3 +1191,130 @@ def test_the_node_loads_the_checks_parts_at_start_up_not_at_its_first_decision(
     assert out == {"before": {"cv2": False, "draws": False},
                    "refused": {"cv2": False, "draws": False},
                    "after": {"cv2": True, "draws": True}}, out
+
+
+# ---- from an attack on the layer: each a break found, now a regression test ----------
+
+
+def _intervene(h) -> None:
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening" and h.overrides
+
+
+def _spin(h, n: int = 20) -> None:
+    for _ in range(n):
+        h.executor.spin_once(timeout_sec=0.005)
+
+
+def test_a_moved_stick_is_judged_again_not_sent_the_old_override(harness):
+    """The layer slows a forward drive; the user pulls the stick back. The old decision's
+    forward command was sent again, twice, after the reverse stick was read: now each
+    override sent was decided with the stick the node held when it sent it."""
+    h = harness()
+    _intervene(h)
+    node = h.node
+    sends = []
+    publish = node.override_pub.publish
+
+    def record(msg):
+        sends.append((float(msg.axes[0]), float(node._user[1][0])))
+        publish(msg)
+    node.override_pub.publish = record
+    h.drive(104.0, 104.5, fwd=-0.8, wall=1.6, speed=0.5)
+    _spin(h)
+    assert node._user[1][0] == pytest.approx(-0.8)
+    assert not [(cmd, user) for cmd, user in sends if user < 0.0 and cmd > 0.0], sends
+
+
+def test_a_stale_or_out_of_order_scan_is_refused(harness):
+    """A scan stamped 5 s back (a buffered or replayed one on the topic) replaced the fresh
+    one, restarted the scan matching and emptied the obstacle memory, and the diagnostics
+    said 'received'. Now it is refused, counted and named."""
+    h = harness()
+    _drive_down_a_corridor(h, 100.0, 103.0, wall_at=3.2, speed=0.72, vo=False)
+    node = h.node
+    before = (node.memory.size, node.scan_odometer.breaks, node.memory.resets)
+    assert before[0] > 0
+    fresh = node._scan
+    h.scan_pub.publish(corridor_scan_msg(98.0, 3.2))
+    h.spin_until(lambda: node._scans_old == 1, what="the old scan refused")
+    assert node._scan is fresh
+    assert (node.memory.size, node.scan_odometer.breaks, node.memory.resets) == before
+    values = conv.diagnostic_values(node.diagnostic_status())
+    assert "stale on arrival" in values["scan"] and values["scans_old"] == "1"
+    # within scan_timeout_s, but older than the newest scan taken: out of order
+    h.scan_pub.publish(corridor_scan_msg(fresh[1].stamp - 0.05, 3.2))
+    h.spin_until(lambda: node._scans_old == 2, what="the out-of-order scan refused")
+    assert node._scan is fresh and "out of order" in node._scan_problem
+
+
+def test_a_map_whose_orientation_is_not_a_rotation_is_refused():
+    """(0, 0, 0.5, 0.5) is 90 degrees half-written: read as 45, it turned a wall ahead into
+    'clear'. A map origin that is not a unit quaternion is refused; an odometry pose with
+    one is a lost sample (no pose, no velocity); within tf2's 1 % it is normalised."""
+    data = np.zeros((10, 10), dtype=np.int8)
+    msg = conv.grid_to_msg(data, 0.1, (0.0, 0.0, math.pi / 2), 0.0, "odom")
+    o = msg.info.origin.orientation
+    o.x, o.y, o.z, o.w = 0.0, 0.0, 0.5, 0.5
+    with pytest.raises(ValueError, match="not a unit quaternion"):
+        conv.grid_from_msg(msg)
+    o.z, o.w = 0.0, 0.0
+    with pytest.raises(ValueError, match="not a unit quaternion"):
+        conv.grid_from_msg(msg)
+    o.z = o.w = math.sqrt(0.5) * 1.005
+    assert conv.grid_from_msg(msg).origin[2] == pytest.approx(math.pi / 2)
+    odom = conv.odometry_from_pose(1.0, 0.0, 0.0, math.pi / 2, 0.5, 0.0)
+    assert conv.odometry_to_sample(odom)[2]
+    q = odom.pose.pose.orientation
+    q.z, q.w = 0.5, 0.5
+    _, _, ok, (_, _, yaw) = conv.odometry_to_sample(odom)
+    assert not ok and math.isnan(yaw)
+
+
+def test_a_malformed_scan_is_named_in_the_diagnostics(harness):
+    """Only malformed scans come (range_min > range_max): the decision says there is no
+    obstacle source, and the diagnostics' scan value says why (it said 'received')."""
+    h = harness()
+    _intervene(h)
+    node = h.node
+    bad = wall_scan_msg(104.05, 1.6)
+    bad.range_min, bad.range_max = 9.0, 8.0
+    n = node._bad_messages
+    h.scan_pub.publish(bad)
+    h.spin_until(lambda: node._bad_messages > n, what="the malformed scan")
+    values = conv.diagnostic_values(node.diagnostic_status())
+    assert values["scan"].startswith("malformed scan:") and "range limits" in values["scan"]
+
+
+def test_the_override_stops_when_the_only_map_is_dropped(harness):
+    """Obstacles from the map, intervening; a map in another frame drops it. The
+    intervention is judged again at once (without an obstacle source: no override), as a
+    dropped scan's is; overrides went on until the next step."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    h.drive(100.0, 103.0)
+    _publish_map(h, wall_map_msg(3.2 + 0.72 * 0.4))
+    h.drive(103.0, 103.6)
+    assert h.last()["why"] == "intervening"
+    decisions = h.node._decisions
+    _publish_map(h, wall_map_msg(3.6, frame="map"))
+    assert h.node._grid is None and h.node._decisions == decisions + 1
+    assert h.node._decision is None or not h.node._decision.intervening
+    dropped = h.node._now()
+    h.drive(103.6, 104.2)
+    _spin(h)
+    late = [conv.stamp_to_seconds(m.header.stamp) for m in h.overrides]
+    assert max(late) <= dropped + 1e-9 and h.last()["why"] == "no_obstacle_source"
+
+
+def test_decisions_go_on_after_the_clock_steps_back_less_than_a_second(harness):
+    """use_sim_time, intervening; /clock steps back 0.8 s (less than the predictor's
+    reset_jump_s) and the inputs go on. The watchdog took a decision 'ahead' of the clock
+    for a recent one: no decision, status or override for a second."""
+    h = harness()
+    _intervene(h)
+    n_status = len(h.status)
+    h.drive(103.2, 104.2, wall=1.6)
+    _spin(h)
+    assert len(h.status) - n_status >= 5

@@ -189,6 +189,12 @@ class Scan:
                                  "are not 0 <= min < max <= 1000 m")
         if self.angle_increment == 0.0 and r.size > 1:
             raise CollisionError("scan angle_increment is 0")
+        # the beams within a turn or two of the laser's x axis (an angle_min of 1e17 put
+        # every beam on one bearing, in float64: a wall ahead read as free)
+        span = abs(self.angle_increment) * (r.size - 1)
+        if abs(self.angle_min) > 2.0 * math.pi or span > 2.0 * math.pi + 1e-6:
+            raise CollisionError(f"scan angles from {self.angle_min:g} rad over {span:g} rad "
+                                 "are not within one turn of the laser's axis")
 
 
 @dataclass(frozen=True)

@@ -170,9 +170,27 @@ def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
           and 0.0 <= var < ODOM_LOST_VARIANCE)
     p = msg.pose.pose
     q = p.orientation
-    yaw = float(quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w)))
-    return (stamp_to_seconds(msg.header.stamp), (v, w), ok,
+    yaw, unit = _yaw_of(q)
+    # a quaternion that is not a rotation (not of unit length) gives no yaw to trust: the
+    # sample is a lost one (no pose, no velocity), as tf2 refuses such a transform
+    return (stamp_to_seconds(msg.header.stamp), (v, w), ok and unit,
             (float(p.position.x), float(p.position.y), yaw))
+
+
+#: How far from 1 a quaternion's length may be (tf2's own limit): a rotation written with
+#: a few digits; beyond, it is not a rotation (``quaternion_to_yaw`` assumes one: (0, 0,
+#: 0.5, 0.5), 90 degrees half-written, read as 45).
+QUATERNION_NORM_TOLERANCE = 0.01
+
+
+def _yaw_of(q: Any) -> tuple[float, bool]:
+    """(yaw of the normalised quaternion, whether it is of unit length within tolerance)."""
+    c = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+    norm = float(np.linalg.norm(c))
+    if not (math.isfinite(norm) and abs(norm - 1.0) <= QUATERNION_NORM_TOLERANCE):
+        return math.nan, False
+    c /= norm
+    return float(quaternion_to_yaw(*c)), True
 
 
 PLAN_JOINTS = ("forward", "turn")
@@ -575,7 +593,10 @@ def grid_from_msg(msg: OccupancyGrid) -> collision.Grid:
         raise ValueError(f"map data holds {len(msg.data)} cells, info says {w} x {h}")
     o = msg.info.origin
     q = o.orientation
-    yaw = float(quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w)))
+    yaw, unit = _yaw_of(q)
+    if not unit:
+        raise ValueError(f"map origin orientation ({q.x:g}, {q.y:g}, {q.z:g}, {q.w:g}) is not "
+                         "a unit quaternion")
     data = np.asarray(msg.data, dtype=np.int8).reshape(h, w)
     return collision.Grid(data, float(msg.info.resolution),
                           (float(o.position.x), float(o.position.y), yaw))

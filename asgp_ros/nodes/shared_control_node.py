@@ -125,6 +125,11 @@ SCAN_LEAD_S = 0.1
 #: of the node's clock to ``joy_timeout_s`` behind it: one stamped further ahead (a bridge
 #: whose clock runs ahead) would look fresh after the stick's messages stopped.
 JOY_LEAD_S = 0.1
+#: While intervening, a stick moved by more than this (deflection, either axis) since the
+#: decision is judged again at the next override send, never the old decision re-sent: a
+#: forward push went on after the user pulled the stick back (0.05: above an ADC's noise
+#: and a steady hand's tremor, which would only cost a decision).
+STICK_CHANGE = 0.05
 
 
 class StartupError(Exception):
@@ -402,7 +407,9 @@ class SharedControlNode(Node):
         # is unknown, so no scan is taken until a restart (None: one frame so far)
         self._second_frame: str | None = None
         self._scans_two_frames = 0  # scans of the first frame refused since then
+        self._scans_old = 0  # scans refused as stale on arrival or out of order
         self._scan_problem = ""
+        self._deciding = False  # inside _decide (its override send must not decide again)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -567,8 +574,7 @@ class SharedControlNode(Node):
             scan = conv.scan_from_msg(msg)
         except ValueError as exc:
             self._bad_messages += 1
-            self.get_logger().warning(f"ignoring {self.params.scan_topic}: {exc}",
-                                      throttle_duration_sec=5.0)
+            self._refuse_scan(f"malformed scan: {exc}")
             return
         frame = conv.frame_name(msg.header.frame_id)  # an empty one is a frame of its own
         if self._laser_frame is None:
@@ -601,6 +607,20 @@ class SharedControlNode(Node):
             self._scans_ahead += 1
             self._refuse_scan(f"scans stamped {lead:.3f} s after the node's clock (limit "
                               f"{SCAN_LEAD_S} s): is the laser's clock synchronised?")
+            return
+        if now - scan.stamp > self.params.scan_timeout_s:
+            self._scans_old += 1
+            self._refuse_scan(f"scans stamped {now - scan.stamp:.3f} s before the node's "
+                              f"clock (scan_timeout_s {self.params.scan_timeout_s:g} s): stale "
+                              "on arrival")
+            return
+        if self._scan is not None and scan.stamp < self._scan[1].stamp <= now + SCAN_LEAD_S:
+            # older than the newest scan taken, on the same timeline (the clock did not go
+            # back past it): taken, it would replace the fresh one and break the scan
+            # matching and the obstacle memory
+            self._scans_old += 1
+            self._refuse_scan(f"a scan stamped {self._scan[1].stamp - scan.stamp:.3f} s "
+                              "before the newest one taken: out of order")
             return
         self._scan_problem = ""
         if self._scan is not None and scan.stamp == self._scan[1].stamp:
@@ -658,10 +678,8 @@ class SharedControlNode(Node):
 
     def _on_map(self, msg: OccupancyGrid) -> None:
         if msg.header.frame_id and msg.header.frame_id != self.params.odom_frame:
-            self._grid, self._grid_problem = None, (
-                f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
-                f"{self.params.odom_frame!r}")
-            self.get_logger().error(self._grid_problem)
+            self._drop_map(f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
+                           f"{self.params.odom_frame!r}")
             return
         try:
             grid = conv.grid_from_msg(msg)
@@ -669,8 +687,16 @@ class SharedControlNode(Node):
             self._grid_problem = ""
         except ValueError as exc:
             self._bad_messages += 1
-            self._grid, self._grid_problem = None, f"bad map: {exc}"
-            self.get_logger().error(self._grid_problem)
+            self._drop_map(f"bad map: {exc}")
+
+    def _drop_map(self, problem: str) -> None:
+        """The map held is dropped: an intervention it drove is judged again now (it went
+        on without an obstacle source until the next step or scan)."""
+        self._grid, self._grid_problem = None, problem
+        self.get_logger().error(problem)
+        now = self._now()
+        if now is not None and self._decision is not None and self._decision.intervening:
+            self._decide(now)
 
     # ---- deciding -----------------------------------------------------------------------
 
@@ -720,6 +746,13 @@ class SharedControlNode(Node):
         self._decide(now)
 
     def _decide(self, now: float) -> None:
+        self._deciding = True
+        try:
+            self._decide_now(now)
+        finally:
+            self._deciding = False
+
+    def _decide_now(self, now: float) -> None:
         user = self._user[1] if self._user is not None else np.full(2, np.nan)
         decision = decide(self.predictor, now, user, None, self.config,
                           check_for=self._check_for(now), learn=False)
@@ -763,7 +796,7 @@ class SharedControlNode(Node):
         if now is None:
             return
         period = self.predictor.dt
-        late = not now - self._decision_t <= 1.5 * period  # (or the clock went back)
+        late = not 0.0 <= now - self._decision_t <= 1.5 * period  # (or the clock went back)
         intervening = self._decision is not None and self._decision.intervening
         if late or (intervening and (self.predictor.status(now) is not None
                                      or not now - self._decision_t <= self.params.hold_s)):
@@ -788,6 +821,13 @@ class SharedControlNode(Node):
                 or is_neutral(user[1], self.config.neutral_deadband)
                 or not 0.0 <= now - self._decision_t <= self.params.hold_s):
             self._stop_overriding()  # (a decision "ahead" of the clock: it went back)
+            return
+        if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
+            # the user moved the stick since the decision: judged again with it (from the
+            # timer; inside a decision, a sample read by the drain above waits for the next
+            # send), never the old decision sent again
+            if not self._deciding:
+                self._decide(now)
             return
         self.override_pub.publish(conv.joy_from_sample(now, float(d.command[0]),
                                                        float(d.command[1])))
@@ -830,6 +870,7 @@ class SharedControlNode(Node):
             "scan": self._scan_problem or ("none" if self._scan is None else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
+            "scans_old": str(self._scans_old),
             "laser_frame": "none yet" if self._laser_frame is None
             else self._laser_frame or "(empty frame_id)",
             "scans_other_frame": str(self._scans_other_frame),
