@@ -1045,14 +1045,16 @@ def test_paths_are_predicted_from_the_override_the_board_applies(rclpy_context,
 
     def override(stamp: float | None, *axes: float, sec: int | None = None) -> None:
         stats = h.node.predictor.stats
-        n = stats.overrides + sum(stats.rejected.values())
+
+        def taken() -> int:  # kept out of learning, refused by the predictor, or malformed
+            return stats.overrides + sum(stats.rejected.values()) + h.node._bad_messages
+        n = taken()
         msg = conv.joy_from_sample(stamp or 0.0, 0.0, 0.0)
         if sec is not None:
             msg.header.stamp.sec = sec
         msg.axes = [float(a) for a in axes]
         pub.publish(msg)
-        h.spin_until(lambda: stats.overrides + sum(stats.rejected.values()) > n,
-                     what="override")
+        h.spin_until(lambda: taken() > n, what="override")
 
     def fed(t: float, fwd: float, turn: float, clock: float | None = None) -> list[float]:
         h.clock(t if clock is None else clock)
@@ -1517,3 +1519,176 @@ def test_qos_watch_names_a_peer_of_another_type():
         "incompatible QoS")
     # without the graph's report of the node's own QoS, only the type is judged
     assert _mismatch(out, "sensor_msgs/msg/Joy", reliable, None) is None
+
+
+# ---- from an attack on the node's inputs: each a break found, now a regression test ----
+
+
+def _values(h: Harness) -> dict[str, str]:
+    return conv.diagnostic_values(h.node.diagnostic_status())
+
+
+def _spin(h: Harness, n: int = 20) -> None:
+    for _ in range(n):
+        h.executor.spin_once(timeout_sec=0.01)
+
+
+@pytest.mark.parametrize("stamp", [101.5, 105.0], ids=["late", "ahead"])
+def test_one_mis_stamped_joystick_message_is_refused_not_a_new_timeline(
+        rclpy_context, model_file, stamp):
+    """One joy message stamped 1.5 s behind the newest sample (the clock normal), or 2 s
+    ahead of the clock, cleared every buffer (plans and overrides too), and the next second
+    gave one path instead of five. Now it is refused with its reason; the clock tells a
+    new timeline (a bag played again) from a mis-stamped message."""
+    h = Harness(rclpy_context, model_file)
+    try:
+        h.drive(100.0, 103.0)
+        h.spin_until(lambda: h.paths and _t0(h.paths[-1]) > 103.0 - 1e-9, what="paths")
+        resets = h.node.predictor.stats.resets
+        n = h.node.predictor.stats.rejected.get(Reason.REJECT_TIME, 0)
+        h.joy_pub.publish(conv.joy_from_sample(stamp, 0.5, 0.0))
+        h.spin_until(lambda: h.node.predictor.stats.rejected.get(Reason.REJECT_TIME, 0) > n,
+                     what="the message refused")
+        paths = len(h.paths)
+        h.drive(103.0, 104.0)
+        _spin(h)
+        assert h.node.predictor.stats.resets == resets and len(h.paths) - paths >= 4
+    finally:
+        h.close()
+
+
+def test_an_out_of_range_board_output_does_not_silence_the_stick(rclpy_context, model_file):
+    """joy_applied at forward 3.0 (finite, out of range) was taken as the board's measured
+    output arriving, so the good joy stream was dropped, and no path came for 2 s. Such a
+    sample is no measurement, as a NaN one was not."""
+    h = Harness(rclpy_context, model_file)
+    applied = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    h.spin_until(lambda: applied.get_subscription_count() > 0, what="discovery")
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and _t0(h.paths[-1]) > 102.0 - 1e-9, what="paths")
+        paths = len(h.paths)
+        joy = h.joy
+
+        def joy_and_bad_applied(t, fwd, turn):
+            applied.publish(conv.joy_from_sample(t, 3.0, 0.0))
+            joy(t, fwd, turn)
+        h.joy = joy_and_bad_applied
+        h.drive(102.0, 104.0)
+        _spin(h)
+        assert len(h.paths) - paths >= 8 and _values(h)["reason"] == Reason.OK
+    finally:
+        h.close()
+
+
+def test_odometry_poses_in_another_frame_are_not_taken(rclpy_context, model_file):
+    """path_frame odom, and the VO's poses in 'map' (50 m away): paths were published
+    labelled odom from them. They are not taken (counted, logged), so no path in odom."""
+    h = Harness(rclpy_context, model_file, odometry=True)
+    publish = h.vo_pub.publish
+
+    def publish_in_map(msg):
+        msg.header.frame_id = "map"
+        msg.pose.pose.position.x += 50.0
+        publish(msg)
+    h.vo_pub.publish = publish_in_map
+    try:
+        h.drive(100.0, 102.0)
+        _spin(h)
+        assert not h.paths
+        values = _values(h)
+        assert int(values["poses_other_frame"]) > 5 and values["reason"] == Reason.NO_POSE
+    finally:
+        h.close()
+
+
+def test_an_override_the_bridge_refuses_does_not_stop_learning(rclpy_context, model_file):
+    """An override with a NaN axis, which the bridge never writes, was fed to the predictor
+    as sent: every step it 'may have driven' was kept out of learning (0 rows absorbed in
+    12 s instead of 46). It is refused first, and learning goes on."""
+    h = Harness(rclpy_context, model_file)
+    pub = h.test.create_publisher(Joy, "joy_override", qos_profile_sensor_data)
+    h.spin_until(lambda: pub.get_subscription_count() > 0, what="discovery")
+    try:
+        vo = h.vo
+
+        def vo_and_bad_override(t, v, w, lost=False):
+            msg = Joy()
+            msg.header.stamp = conv.seconds_to_stamp(t)
+            msg.axes = [math.nan, 0.0]
+            n = h.node._bad_messages
+            pub.publish(msg)
+            h.spin_until(lambda: h.node._bad_messages > n, what="the override refused")
+            vo(t, v, w, lost)
+        h.vo = vo_and_bad_override
+        h.drive(100.0, 112.0)
+        _spin(h)
+        assert h.node.predictor.stats.overrides == 0
+        assert int(_values(h)["adapt_rows_absorbed"]) > 20
+    finally:
+        h.close()
+
+
+def test_odometry_whose_angular_variance_flags_a_loss_is_a_lost_sample(
+        rclpy_context, model_file):
+    """twist.covariance[35] (omega's variance) -1 or NaN was taken as good tracking: only
+    [0] was read. Either flags the sample lost; a malformed plan is named in the
+    diagnostics (only bad_messages counted it)."""
+    h = Harness(rclpy_context, model_file, odometry=True)
+    publish = h.vo_pub.publish
+
+    def lost_omega(msg):
+        msg.twist.covariance[35] = -1.0
+        publish(msg)
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and _t0(h.paths[-1]) > 102.0 - 1e-9, what="paths")
+        h.vo_pub.publish = lost_omega
+        paths = len(h.paths)
+        h.drive(102.0, 103.0)
+        _spin(h)
+        assert len(h.paths) == paths and _values(h)["reason"] != Reason.OK
+        plan = conv.plan_to_trajectory(np.array([[math.nan, 0.0]]), 103.0, DT)
+        n = h.node._bad_messages
+        h.plan_pub.publish(plan)
+        h.spin_until(lambda: h.node._bad_messages > n or _values(h)["plan_problem"] != "none",
+                     what="the plan refused")
+        assert _values(h)["plan_problem"] != "none"
+    finally:
+        h.close()
+
+
+def test_adapting_a_model_whose_calibration_factor_is_at_its_limit(rclpy_context, tmp_path):
+    """A loadable model with a speed factor of 1e6 (FACTOR_RANGE's top) and its ellipses too
+    small: raising the online scale made every publication of the adapted model raise
+    (factor above 1e6), learning failed at every step with a throttled log line, and the
+    scale ran on. The scale now stops where the factor does."""
+    from dataclasses import replace as dc_replace
+
+    from asgp_ros.core.calibration import FACTOR_RANGE, VarianceCalibration
+    from asgp_ros.core.modelfile import save_model
+
+    model = load_model(_model_file(tmp_path, "frame"))
+    cal = VarianceCalibration(scale=(1e-7, 1e-7), floor=(0.0, 0.0), speed_factors=(1e6,))
+    path = str(tmp_path / "edge.npz")
+    save_model(path, dc_replace(model, calibration=cal))
+    h = Harness(rclpy_context, path)
+    errors: list[str] = []
+    learn = h.node.predictor.learn
+
+    def learn_and_record() -> None:
+        try:
+            learn()
+        except Exception as exc:
+            errors.append(repr(exc))
+            raise
+    h.node.predictor.learn = learn_and_record
+    try:
+        h.drive(100.0, 124.0)
+        _spin(h)
+        assert not errors, errors[:1]
+        assert int(_values(h)["adapt_rows_absorbed"]) > 0
+        factors = h.node.predictor.model.calibration.speed_factors
+        assert all(FACTOR_RANGE[0] <= f <= FACTOR_RANGE[1] for f in factors)
+    finally:
+        h.close()

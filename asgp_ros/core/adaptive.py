@@ -99,6 +99,7 @@ import scipy.special
 from numpy.typing import NDArray
 
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
+from asgp_ros.core.calibration import FACTOR_RANGE
 from asgp_ros.core.features import design_matrix
 from asgp_ros.core.metrics import CHI2_1DOF_95, CHI2_2DOF_95, mahalanobis_sq
 from asgp_ros.core.models import MotionModel
@@ -437,7 +438,8 @@ class ModelAdapter:
         """The model predictions use: the published posterior at its online scales."""
         e = self._published
         cal = self.base.calibration
-        factors = tuple(float(f * math.exp(ls))
+        lo, hi = FACTOR_RANGE  # (the update keeps them there; rounding aside)
+        factors = tuple(min(max(float(f * math.exp(ls)), lo), hi)
                         for f, ls in zip(cal.speed_factors, self._log_scales[e], strict=True))
         if e == TRAINED:
             return replace(self.base, calibration=replace(cal, speed_factors=factors))
@@ -647,8 +649,14 @@ class ModelAdapter:
             step = cfg.gain * (miss - (1.0 - cfg.target))
             ls = self._log_scales[e]
             lowest = math.log(cfg.min_scale if e == ADAPTED else max(cfg.min_scale, 1.0))
+            highest = math.log(cfg.max_scale)
+            # the scaled factor stays a calibration's factor (FACTOR_RANGE): a model whose
+            # factor is near a limit made every publication raise, and the scale ran on
+            factor = self.base.calibration.speed_factors[regime]
+            lowest = max(lowest, math.log(FACTOR_RANGE[0] / factor))
+            highest = max(min(highest, math.log(FACTOR_RANGE[1] / factor)), lowest)
             ls[regime] = min(max(ls[regime] + min(max(step, -bound), bound), lowest),
-                             math.log(cfg.max_scale))
+                             highest)
             loss[e] = sq = float(np.mean(np.sum(err[e] * err[e], axis=1)))
             self._errors[e] = sq if math.isnan(self._errors[e]) else \
                 (1.0 - alpha) * self._errors[e] + alpha * sq

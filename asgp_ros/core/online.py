@@ -521,13 +521,39 @@ class Predictor:
                          f"{what}: {problem}")
         return problem is None
 
-    def _admit(self, t: float) -> None:
+    def _admit(self, t: float, what: str, now: float | None) -> bool:
+        """Whether a sample stamped ``t`` is taken. Without ``now``, one stamped more than
+        ``reset_jump_s`` behind the newest starts a new timeline (a bag played again): the
+        buffers are reset. With ``now`` (a node's clock at its arrival), the clock tells:
+        gone back, the buffers are reset first (as ``status`` would); else such a sample,
+        and one stamped more than ``reset_jump_s`` ahead of the clock, is refused (one
+        mis-stamped message used to clear every buffer)."""
+        jump = self.config.reset_jump_s
+        if now is None:
+            newest = self._newest()
+            if t < newest - jump:
+                self.reset(f"sample stamped {t:.3f} s is {newest - t:.3f} s behind the newest")
+            return True
+        self._check_clock(now)
         newest = self._newest()
-        if t < newest - self.config.reset_jump_s:
-            self.reset(f"sample stamped {t:.3f} s is {newest - t:.3f} s behind the newest")
+        if t > now + jump:
+            self._reject(Reason.REJECT_TIME, f"{what} stamped {t - now:.3f} s ahead of the "
+                                             f"clock ({now:.3f} s)")
+            return False
+        if t < newest - jump:
+            self._reject(Reason.REJECT_TIME, f"{what} stamped {newest - t:.3f} s behind the "
+                                             "newest sample, the clock not gone back")
+            return False
+        return True
 
-    def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray) -> bool:
+    def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray,
+                 now: float | None = None) -> bool:
         """Add a joystick sample (forward, turn) at time t.
+
+        Args:
+            now: the clock at its arrival, if known: a sample stamped too far from it, or
+                too far behind the newest while the clock did not go back, is refused
+                (see ``_admit``); without it such a sample starts a new timeline.
 
         Returns:
             False if refused (a stamp or a deflection not finite or out of range; see
@@ -543,14 +569,17 @@ class Predictor:
             self._reject(Reason.REJECT_JOY if finite else Reason.REJECT_NONFINITE,
                          f"joystick: {problem}")
             return False
-        self._admit(t)
+        if not self._admit(t, "joystick", now):
+            return False
         self.stats.joy_samples += 1
         self.stats.out_of_order += self._joy.add(t, values)
         self.stats.dropped_overflow += self._joy.prune(self.config.buffer_s)
         return True
 
-    def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True) -> bool:
-        """Add a VO velocity (v, omega) at time t; ``ok`` False = VO reported tracking loss.
+    def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True,
+                now: float | None = None) -> bool:
+        """Add a VO velocity (v, omega) at time t; ``ok`` False = VO reported tracking loss;
+        ``now`` as for :meth:`feed_joy`.
 
         A sample with tracking loss carries no velocity: it is kept (as a tracking
         failure, which the resampler invalidates) with zeros whatever its values.
@@ -569,7 +598,8 @@ class Predictor:
             self._reject(Reason.REJECT_VO if finite else Reason.REJECT_NONFINITE,
                          f"VO: {problem}")
             return False
-        self._admit(t)
+        if not self._admit(t, "VO", now):
+            return False
         self.stats.vo_samples += 1
         self.stats.out_of_order += self._vo.add(t, (v, w, 1.0 if ok else 0.0))
         self.stats.dropped_overflow += self._vo.prune(self.config.buffer_s)

@@ -159,15 +159,16 @@ def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
                                               tuple[float, float, float]]:
     """nav_msgs/Odometry -> (stamp s, (v, omega), tracking ok, (x, y, yaw) in the odom frame).
 
-    Tracking is taken as lost when the twist is not finite or its linear-x variance is
-    negative, non-finite or >= ``ODOM_LOST_VARIANCE`` (how odometry sources flag an
-    unusable estimate).
+    Tracking is taken as lost when the twist is not finite or the variance of its linear x
+    or of its angular z (the two velocities taken) is negative, non-finite or >=
+    ``ODOM_LOST_VARIANCE`` (how odometry sources flag an unusable estimate), or when the
+    pose's quaternion is not a rotation.
     """
     tw = msg.twist
     v, w = float(tw.twist.linear.x), float(tw.twist.angular.z)
-    var = float(tw.covariance[0])
-    ok = (math.isfinite(v) and math.isfinite(w) and math.isfinite(var)
-          and 0.0 <= var < ODOM_LOST_VARIANCE)
+    variances = (float(tw.covariance[0]), float(tw.covariance[35]))
+    ok = (math.isfinite(v) and math.isfinite(w)
+          and all(math.isfinite(var) and 0.0 <= var < ODOM_LOST_VARIANCE for var in variances))
     p = msg.pose.pose
     q = p.orientation
     yaw, unit = _yaw_of(q)

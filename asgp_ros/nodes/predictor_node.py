@@ -86,6 +86,7 @@ from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, Reason
 from asgp_ros.core.shared_control import BOARD_WATCHDOG_S, applied_command
+from asgp_ros.core.streams import joy_problem
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
@@ -383,6 +384,8 @@ class PredictorNode(Node):
         self._vo_rate = _RateMeter()
         self._paths_published = 0
         self._markers_made = 0
+        self._poses_other_frame = 0  # odometry poses not taken: another parent frame
+        self._plan_problem = ""  # why the last plan was not taken, if it was not
         self._bad_messages = 0
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._resets_seen = 0
@@ -561,14 +564,14 @@ class PredictorNode(Node):
         read = self._read_joy(msg, self.params.applied_topic, now)
         if read is None:
             return
-        if not np.all(np.isfinite(read[1])):  # no measurement: refused and counted, and
-            self._feed_joy(*read, arrival, measured=True)  # joy goes on feeding
+        if joy_problem(*read[1]) is not None:  # no measurement (NaN, 3.0): refused and
+            self._feed_joy(*read, arrival, measured=True)  # counted, and joy goes on feeding
         elif self._joy_source.take_measured(read[0], now):
             self._feed_joy(*read, arrival, measured=True)
 
     def _feed_joy(self, t: float, command: np.ndarray, arrival: Arrival,
                   measured: bool) -> None:
-        if not self.predictor.feed_joy(t, command):
+        if not self.predictor.feed_joy(t, command, now=arrival.now):
             self._warn_rejected()
             return
         self._joy_source.fed(t, measured)
@@ -595,18 +598,18 @@ class PredictorNode(Node):
         # the joystick samples that came before it go first, with the gate they came under
         # (read after now: every sample read later arrived after it, on either clock)
         self.polled.drain()
+        try:  # what the bridge writes to the board: it refuses the same messages, so a
+            command = conv.joy_to_override(msg)  # malformed one never drove the chair
+        except ValueError as exc:
+            self._bad_messages += 1
+            self.get_logger().warning(f"ignoring {self.params.override_topic}: {exc}",
+                                      throttle_duration_sec=5.0)
+            return
         stamp = conv.stamp_to_seconds(msg.header.stamp)
         if not self.predictor.feed_override(self._stamp(stamp, now), now=now):
             self._warn_rejected()
             return  # not kept out of learning, so not predicted from either
         if now is None:
-            return
-        try:  # what the bridge writes to the board: it refuses the same messages
-            command = conv.joy_to_override(msg)
-        except ValueError as exc:
-            self._bad_messages += 1
-            self.get_logger().warning(f"ignoring {self.params.override_topic}: {exc}",
-                                      throttle_duration_sec=5.0)
             return
         # as the bridge: stamped too long ago or too far ahead, it is never written
         self._gate.offer(command, stamp if stamp != 0.0 else None, now, now,
@@ -620,7 +623,7 @@ class PredictorNode(Node):
         now = self._now()
         t, vel = conv.twist_stamped_to_sample(msg)
         self._vo_rate.tick(time.monotonic())
-        if not self.predictor.feed_vo(self._stamp(t, now), vel):
+        if not self.predictor.feed_vo(self._stamp(t, now), vel, now=now):
             self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
@@ -669,9 +672,17 @@ class PredictorNode(Node):
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
         self._vo_rate.tick(time.monotonic())
-        if ok and not self.predictor.feed_pose(t, *pose):
+        parent = conv.frame_name(msg.header.frame_id)
+        if ok and parent not in ("", self.params.odom_frame):
+            # poses in another frame ('map'): a path labelled odom_frame would be placed
+            # wrong, so no pose is taken (the velocities are the child frame's, checked)
+            self._poses_other_frame += 1
+            self.get_logger().warning(
+                f"{self.params.vo_topic}: poses in frame {parent!r}, not odom_frame "
+                f"{self.params.odom_frame!r}: not taken", throttle_duration_sec=5.0)
+        elif ok and not self.predictor.feed_pose(t, *pose):
             self._warn_rejected()
-        if not self.predictor.feed_vo(t, vel, ok=ok):
+        if not self.predictor.feed_vo(t, vel, ok=ok, now=now):
             self._warn_rejected()
             return
         self._maybe_predict(now, arrival)
@@ -685,15 +696,19 @@ class PredictorNode(Node):
             start, plan = conv.plan_from_trajectory(msg, self.predictor.dt, arrival=now)
         except ValueError as exc:  # malformed message
             self._bad_messages += 1
+            self._plan_problem = f"malformed plan: {exc}"
             self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
             return
         try:
             self.predictor.set_plan(plan, start, now=now)
-        except online.RejectedInputError:  # counted with its reason by the predictor
+            self._plan_problem = ""
+        except online.RejectedInputError as exc:  # counted with its reason by the predictor
+            self._plan_problem = f"plan refused: {exc}"
             self._warn_rejected()
         except ValueError as exc:
             self._bad_messages += 1
+            self._plan_problem = f"plan refused: {exc}"
             self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
                                       throttle_duration_sec=5.0)
 
@@ -849,6 +864,8 @@ class PredictorNode(Node):
             "ellipses_p99_ms": _p99(self._ellipses_ms),
             "paths_published": str(self._paths_published),
             "ellipses_published": str(self._markers_made),
+            "poses_other_frame": str(self._poses_other_frame),
+            "plan_problem": self._plan_problem or "none",
             "horizon_steps": str(self.predictor.config.horizon_steps),
             "dropped_nonfinite": str(stats.dropped_nonfinite),
             "dropped_overflow": str(stats.dropped_overflow),

@@ -105,6 +105,7 @@ from asgp_ros.core.shared_control import (
     decide,
     is_neutral,
 )
+from asgp_ros.core.streams import joy_problem
 from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
@@ -408,6 +409,7 @@ class SharedControlNode(Node):
         self._second_frame: str | None = None
         self._scans_two_frames = 0  # scans of the first frame refused since then
         self._scans_old = 0  # scans refused as stale on arrival or out of order
+        self._poses_other_frame = 0  # odometry poses not taken: another parent frame
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
 
@@ -490,7 +492,7 @@ class SharedControlNode(Node):
         if is_neutral(user, self.config.neutral_deadband):
             self._stop_overriding()  # now (read before every override), not at the next decision
         if not self._joy_source.measured(now):  # else the board's output feeds
-            self._feed_joy(t, self._applied(user, now), measured=False)
+            self._feed_joy(t, self._applied(user, now), measured=False, now=now)
 
     def _on_joy_applied(self, msg: Joy, arrival: Arrival) -> None:
         """What the board drives the chair with, measured: it feeds while it arrives."""
@@ -498,8 +500,13 @@ class SharedControlNode(Node):
         if now is None:
             return
         read = self._read_joy(msg, self.params.applied_topic, now)
-        if read is not None and self._joy_source.take_measured(read[0], now):
-            self._feed_joy(*read, measured=True)
+        if read is None:
+            return
+        if joy_problem(*read[1]) is not None:  # no measurement (3.0): refused, counted,
+            self._bad_messages += 1  # and joy goes on feeding
+            return
+        if self._joy_source.take_measured(read[0], now):
+            self._feed_joy(*read, measured=True, now=now)
 
     def _read_joy(self, msg: Joy, topic: str, now: float) -> tuple[float, np.ndarray] | None:
         """(stamp, [forward, turn]) of a Joy message with ``joy_axes``, or None (counted:
@@ -515,8 +522,9 @@ class SharedControlNode(Node):
             return None
         return self._stamp(t, now), command
 
-    def _feed_joy(self, t: float, command: np.ndarray, measured: bool) -> None:
-        if self.predictor.feed_joy(t, command):
+    def _feed_joy(self, t: float, command: np.ndarray, measured: bool,
+                  now: float | None = None) -> None:
+        if self.predictor.feed_joy(t, command, now=now):
             self._joy_source.fed(t, measured)
 
     def _on_twist(self, msg: TwistStamped) -> None:
@@ -531,7 +539,7 @@ class SharedControlNode(Node):
         t = self._stamp(t, now)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
-        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel):
+        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, now=now):
             self._maybe_decide(now)
 
     def _on_odometry(self, msg: Odometry) -> None:
@@ -544,11 +552,18 @@ class SharedControlNode(Node):
             return
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
-        if ok:
+        parent = conv.frame_name(msg.header.frame_id)
+        if ok and parent not in ("", self.params.odom_frame):
+            # poses in another frame would place the map wrong: not taken
+            self._poses_other_frame += 1
+            self.get_logger().warning(
+                f"{self.params.vo_topic}: poses in frame {parent!r}, not odom_frame "
+                f"{self.params.odom_frame!r}: not taken", throttle_duration_sec=5.0)
+        elif ok:
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
-        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok):
+        if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok, now=now):
             self._maybe_decide(now)
 
     def _on_memory_odom(self, msg: Odometry) -> None:
@@ -871,6 +886,7 @@ class SharedControlNode(Node):
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
             "scans_old": str(self._scans_old),
+            "poses_other_frame": str(self._poses_other_frame),
             "laser_frame": "none yet" if self._laser_frame is None
             else self._laser_frame or "(empty frame_id)",
             "scans_other_frame": str(self._scans_other_frame),
