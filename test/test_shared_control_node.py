@@ -1318,3 +1318,38 @@ def test_decisions_go_on_after_the_clock_steps_back_less_than_a_second(harness):
     h.drive(103.2, 104.2, wall=1.6)
     _spin(h)
     assert len(h.status) - n_status >= 5
+
+
+def test_an_out_of_range_board_output_is_no_measurement(harness):
+    """joy_applied at forward 3.0 (finite, out of range) was taken as the board's measured
+    output arriving, so the stick's own samples stopped feeding the layer's predictor. It
+    is refused and counted, and the stick goes on feeding."""
+    h = harness()
+    node = h.node
+    h.drive(100.0, 101.0, wall=20.0)
+    applied = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    h.spin_until(lambda: applied.get_subscription_count() > 0, what="discovery")
+    bad = node._bad_messages
+    applied.publish(conv.joy_from_sample(101.0, 3.0, 0.0))
+    h.spin_until(lambda: node.polled.drain() >= 0 and node._bad_messages > bad,
+                 what="the sample refused")
+    assert node._joy_source.measured_samples == 0
+    fed = node.predictor.stats.joy_samples
+    h.drive(101.0, 101.5, wall=20.0)
+    assert node.predictor.stats.joy_samples > fed
+
+
+def test_odometry_poses_in_another_frame_do_not_place_the_map(harness):
+    """The VO's poses in 'map' would place the map's obstacles wrong: they are not taken
+    (counted, logged); their velocities, in the chair's frame, still are."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    node = h.node
+    h.spin_until(lambda: h.odom_pub.get_subscription_count() > 0, what="discovery")
+    h.clock(100.0)
+    msg = conv.odometry_from_pose(100.0, 50.0, 0.0, 0.0, 0.5, 0.0)
+    msg.header.frame_id = "map"
+    n = node._vo_messages
+    h.odom_pub.publish(msg)
+    h.spin_until(lambda: node._vo_messages > n, what="odometry")
+    assert node._poses_other_frame == 1 and node.predictor.stats.vo_samples == 1
+    assert conv.diagnostic_values(node.diagnostic_status())["poses_other_frame"] == "1"
