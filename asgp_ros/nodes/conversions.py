@@ -108,6 +108,16 @@ def frame_name(frame_id: str) -> str:
     return frame_id.lstrip("/")
 
 
+def pose_frame_problem(msg: Odometry, odom_frame: str) -> str | None:
+    """Why an Odometry's pose is not one of base_link in ``odom_frame`` (its header frame
+    is another, 'map' say: a path labelled odom, or a map, would be placed wrong), or None
+    (that frame, or none given)."""
+    parent = frame_name(msg.header.frame_id)
+    if parent in ("", frame_name(odom_frame)):
+        return None
+    return f"poses in frame {parent!r}, not odom_frame {odom_frame!r}: not taken"
+
+
 def velocity_frame(msg: TwistStamped | Odometry) -> str:
     """The frame a VO message's twist is in: a TwistStamped's header frame, an Odometry's
     child frame ('' when the publisher left it empty)."""

@@ -672,14 +672,12 @@ class PredictorNode(Node):
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
         self._vo_rate.tick(time.monotonic())
-        parent = conv.frame_name(msg.header.frame_id)
-        if ok and parent not in ("", self.params.odom_frame):
-            # poses in another frame ('map'): a path labelled odom_frame would be placed
-            # wrong, so no pose is taken (the velocities are the child frame's, checked)
+        # poses in another frame are not taken (the velocities are the child frame's)
+        problem = conv.pose_frame_problem(msg, self.params.odom_frame) if ok else None
+        if problem is not None:
             self._poses_other_frame += 1
-            self.get_logger().warning(
-                f"{self.params.vo_topic}: poses in frame {parent!r}, not odom_frame "
-                f"{self.params.odom_frame!r}: not taken", throttle_duration_sec=5.0)
+            self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
+                                      throttle_duration_sec=5.0)
         elif ok and not self.predictor.feed_pose(t, *pose):
             self._warn_rejected()
         if not self.predictor.feed_vo(t, vel, ok=ok, now=now):

@@ -552,13 +552,12 @@ class SharedControlNode(Node):
             return
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
-        parent = conv.frame_name(msg.header.frame_id)
-        if ok and parent not in ("", self.params.odom_frame):
-            # poses in another frame would place the map wrong: not taken
+        # poses in another frame would place the map wrong: not taken
+        problem = conv.pose_frame_problem(msg, self.params.odom_frame) if ok else None
+        if problem is not None:
             self._poses_other_frame += 1
-            self.get_logger().warning(
-                f"{self.params.vo_topic}: poses in frame {parent!r}, not odom_frame "
-                f"{self.params.odom_frame!r}: not taken", throttle_duration_sec=5.0)
+            self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
+                                      throttle_duration_sec=5.0)
         elif ok:
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
