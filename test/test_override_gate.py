@@ -75,3 +75,37 @@ def test_refusals_stop_being_reported_once_a_command_is_accepted():
     assert g.refusing(10.1)
     assert g.offer((0.4, 0.0), 100.2, arrival=10.2, clock_now=100.2, timeout=T)
     assert not g.refusing(10.3)
+
+
+def test_a_timeout_raised_later_does_not_bring_back_a_stale_command():
+    """override_timeout raised at runtime (0.1 -> 1.0 s) 0.49 s after the last override:
+    the bridge wrote that command five times more and the board applied it again. A
+    command stays fresh for the shorter of the timeout now and the one it came under."""
+    gate = OverrideGate()
+    assert gate.offer((0.5, 0.0), 100.0, arrival=10.0, clock_now=100.0, timeout=0.1)
+    assert gate.fresh(10.05, 100.05, 0.1) == (0.5, 0.0)
+    assert gate.fresh(10.49, 100.49, 1.0) is None
+    assert gate.fresh_until(1.0) == pytest.approx(10.1)
+    # lowering it takes effect at once; a command accepted under the new one keeps it
+    assert gate.offer((0.5, 0.0), 100.5, arrival=10.5, clock_now=100.5, timeout=1.0)
+    assert gate.fresh(10.6, 100.6, 0.05) is None
+    assert gate.fresh(11.4, 101.4, 1.0) == (0.5, 0.0)
+
+
+def test_an_older_command_arriving_after_a_newer_one_is_refused():
+    """A command stamped 0.1 s before the one in force, delivered after it (out of order):
+    it replaced the newer decision (forward 0.9 after reverse -0.5). It is refused and
+    counted while the newer one is fresh; once that one is stale, a late one counts as
+    any other."""
+    gate = OverrideGate()
+    assert gate.offer((-0.5, 0.0), 100.0, arrival=10.0, clock_now=100.0, timeout=0.15)
+    assert not gate.offer((0.9, 0.0), 99.9, arrival=10.01, clock_now=100.01, timeout=0.15)
+    assert gate.refused_older == 1 and gate.fresh(10.02, 100.02, 0.15) == (-0.5, 0.0)
+    # unstamped ones are judged by arrival alone, as before
+    assert gate.offer((0.2, 0.0), None, arrival=10.03, clock_now=100.03, timeout=0.15)
+    assert gate.offer((0.3, 0.0), 100.2, arrival=10.2, clock_now=100.2, timeout=0.15)
+    assert not gate.offer((0.4, 0.0), 100.19, arrival=10.25, clock_now=100.25, timeout=0.15)
+    assert gate.refused_older == 2
+    # the one in force gone stale (by its arrival), a late command is taken
+    assert gate.offer((0.4, 0.0), 100.3, arrival=10.5, clock_now=100.4, timeout=0.15)
+    assert gate.offer((0.1, 0.0), 100.29, arrival=10.7, clock_now=100.4, timeout=0.15)

@@ -274,6 +274,9 @@ def test_parameters_are_validated_at_runtime(harness):
     assert not r[0].successful and "calibration.forward" in r[0].reason
     r = node.set_parameters([Parameter("override_rate", value=2.0)])
     assert not r[0].successful
+    # in range, but its timer is made at start-up: it was accepted and changed nothing
+    r = node.set_parameters([Parameter("override_rate", value=200.0)])
+    assert not r[0].successful and "start-up" in r[0].reason
     r = node.set_parameters([Parameter("calibration.forward.invert", value=True)])
     assert r[0].successful
     n = len(h.joy)

@@ -329,7 +329,8 @@ class SerialBridgeNode(Node):
             f"{verdict.message} (board mode {board_mode})", st.port, {
                 "fresh": fresh, "overrides_sent": st.overrides_sent,
                 "overrides_refused": self._override_rejected,
-                "overrides_stale": gate.refused_stale, "board_mode": board_mode,
+                "overrides_stale": gate.refused_stale,
+                "overrides_out_of_order": gate.refused_older, "board_mode": board_mode,
                 "status": flags,
             })
 

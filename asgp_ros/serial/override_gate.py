@@ -45,6 +45,8 @@ class OverrideGate:
     refused_stale: int = 0           # stamped commands already stale when they arrived
     last_refusal: float = -math.inf  # monotonic clock of the last such refusal
     last_refused_age: float = math.nan  # how old (by stamp) that refused command was
+    refused_older: int = 0           # stamped before the fresh command held: out of order
+    timeout: float = math.inf        # the timeout the held command was accepted under
 
     def offer(self, command: tuple[float, float], stamp: float | None, arrival: float,
               clock_now: float, timeout: float) -> bool:
@@ -59,12 +61,22 @@ class OverrideGate:
                 self.last_refusal = arrival
                 self.last_refused_age = age
                 return False
+            if (self.stamp is not None and stamp < self.stamp
+                    and self.fresh(arrival, clock_now, timeout) is not None):
+                # older than the command in force (delivered out of order): it would
+                # replace a newer decision (a forward push after a reverse one)
+                self.refused_older += 1
+                return False
         self.command, self.stamp, self.arrival = command, stamp, arrival
+        self.timeout = timeout
         return True
 
     def fresh(self, mono_now: float, clock_now: float, timeout: float
               ) -> tuple[float, float] | None:
-        """The command to send now, or None once it is stale on either clock."""
+        """The command to send now, or None once it is stale on either clock (by the
+        shorter of ``timeout`` and the one it was accepted under: a timeout raised at
+        runtime does not bring back a command already stale)."""
+        timeout = min(timeout, self.timeout)
         if self.command is None or not mono_now - self.arrival <= timeout:
             return None
         if self.stamp is not None and not clock_now - self.stamp <= timeout:
@@ -78,7 +90,7 @@ class OverrideGate:
         if self.command is None:
             return -math.inf
         start = self.arrival if self.stamp is None else min(self.arrival, self.stamp)
-        return start + timeout
+        return start + min(timeout, self.timeout)
 
     def refusal(self, timeout: float) -> str:
         """Why the last refused command was refused, in words."""

@@ -20,8 +20,8 @@ PARAMS: tuple[ParamSpec, ...] = (
               "s: a joy_override older than this is stale and no longer sent", 0.02, 1.0,
               runtime=True),
     ParamSpec("override_rate", 25.0,
-              "Hz: overrides are re-sent at this rate while fresh (board watchdog 200 ms)",
-              6.0, 200.0, runtime=True),
+              "Hz: overrides are re-sent at this rate while fresh (board watchdog 200 ms); "
+              "read at start-up (its timer is made then)", 6.0, 200.0),
     ParamSpec("mode_release_after", 1.0,
               "s: after this long without a fresh override the board is set to passthrough",
               0.2, 60.0, runtime=True),
