@@ -412,6 +412,11 @@ def test_a_pair_stamped_before_the_epoch_or_ahead_of_the_clock_is_refused(
         h.depth.publish(d)
         assert h.spin_until(lambda: h.node.stats["bad_input"] == bad + 2)
         assert "after this node's clock" in h.node.last_result.message
+        # while only such pairs come (a camera on its own clock), the diagnostics say why
+        h.diags.clear()
+        assert h.spin_until(lambda: any(
+            level == 2 and "no colour/depth pair" in msg and "after this node's clock" in msg
+            for level, msg, _ in _levels(h.diags)), 5.0)
         for k in range(5, 8):
             h.send(t0 + drive.t[k], *_msgs(images, k))
         assert h.node.stats["resets"] == 0 and len(h.twists) == 6

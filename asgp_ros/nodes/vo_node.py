@@ -97,7 +97,7 @@ class VONode(Node):
         self._last_stamp: float | None = None  # last processed pair (colour stamp)
         self._last_processed_wall: float | None = None  # time.monotonic() of the last pair
         self.last_result: VOResult | None = None
-        self._last_problem = ""  # conversion error of the last pair, if any
+        self._last_problem = ""  # why the last pair was refused (bad image, bad stamp), if it was
         self._elapsed: collections.deque[float] = collections.deque(maxlen=100)
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
                       "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0,
@@ -319,8 +319,11 @@ class VONode(Node):
                 "stamped after the last one processed (is the camera driver stamping its "
                 "images?): no twist published")
         elif age > p.stale_timeout_s:
-            level, msg = "ERROR", (f"no colour/depth pair for {age:.2f} s{unpaired}: no twist "
-                                   "published")
+            # pairs refused on their stamps do not count as processed: say why they were
+            refused = f" (the last one refused: {self._last_problem})" if self._last_problem \
+                else ""
+            level, msg = "ERROR", (f"no colour/depth pair for {age:.2f} s{unpaired}{refused}: "
+                                   "no twist published")
         elif r.ok:
             level, msg = "OK", f"tracking ({r.num_inliers} inliers)"
         elif r.status is Status.REFERENCE_SET:
