@@ -1,11 +1,13 @@
 """serial_bridge_node in-process against the simulated board on a pty: joy in order and
 calibrated, overrides while fresh (and no longer when stale), unplug/replug seen in
-diagnostics within 1 s, parameter validation."""
+diagnostics within 1 s, a board restart, a device that is not the board, parameter
+validation."""
 
 from __future__ import annotations
 
 import itertools
 import math
+import os
 import time
 
 import numpy as np
@@ -18,11 +20,13 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import Joy  # noqa: E402
+from test_serial_sequence import echoing_pty  # noqa: E402
 
 from asgp_ros.nodes import conversions as conv  # noqa: E402
 from asgp_ros.nodes.serial_bridge_node import SerialBridgeNode  # noqa: E402
 from asgp_ros.serial import safety as fw  # noqa: E402
 from asgp_ros.serial.calibration import AxisCalibration  # noqa: E402
+from asgp_ros.serial.link import HANDSHAKE_ERROR_AFTER, SEQ_RESTART_AFTER  # noqa: E402
 from asgp_ros.sim.board import SimulatedBoard  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -382,3 +386,53 @@ def test_no_event_handler_per_endpoint_and_an_unmatched_subscriber_is_named(harn
     h.probe.destroy_subscription(wrong)
     assert h.spin_until(lambda: mismatch() == "none", 10.0)
     assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.OK, 10.0)
+
+
+def test_board_restart_is_followed_and_said(harness):
+    """The board resets (its watchdog, a brown-out) while the host overrides: its count and
+    uptime start over in passthrough. joy goes on without a reading twice or out of order,
+    the restart is counted, and the override is applied again (MODE first)."""
+    h = harness(lambda t: (((2.5 * t) % 2.0) - 1.0 if t % 2.0 < 1.0 else 0.6, 0.0),
+                diagnostics_period=0.2)
+    assert h.spin_until(lambda: (st := h.link_status()) is not None
+                        and st.level == DiagnosticStatus.OK and len(h.joy) > 20, 10.0)
+    push = lambda: h.override_pub.publish(Joy(axes=[0.2, 0.0]))  # noqa: E731
+    h.spin_for(0.3, each=push)
+    assert h.board.output.override_active
+    h.board.restart()
+    ok = False
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not ok:
+        h.spin_for(0.05, each=push)
+        st = h.link_status()
+        ok = (conv.diagnostic_values(st)["board_restarts"] == "1"
+              and st.level == DiagnosticStatus.OK and h.board.output.override_active)
+    assert ok, conv.diagnostic_values(h.link_status())
+    stamps = [conv.stamp_to_seconds(m.header.stamp) for _, m in h.joy]
+    assert all(b >= a for a, b in itertools.pairwise(stamps))
+    st = h.node.link.stats()
+    assert st.frames_repeated == 0 and st.frames_late == 0
+    assert st.frames_lost <= SEQ_RESTART_AFTER - 1 + 2  # the restart's first frames
+    assert h.node._published <= len(h.board.sent)
+
+
+def test_a_device_that_never_answers_the_handshake_is_an_error_with_a_reason(harness,
+                                                                           tmp_path):
+    """Another device behind the joystick's path (here one that echoes everything back)
+    answers but never with a VERSION: after HANDSHAKE_ERROR_AFTER the link is an ERROR that
+    says what was heard."""
+    h = harness(lambda t: (0.3, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: (st := h.link_status()) is not None
+                        and st.level == DiagnosticStatus.OK, 10.0)
+    h.board.unplug()
+    link = tmp_path / "asgp_joystick"
+    with echoing_pty() as path:
+        os.symlink(path, link)
+        try:
+            assert h.spin_until(lambda: h.link_status().level == DiagnosticStatus.ERROR
+                                and "handshake" in h.link_status().message,
+                                HANDSHAKE_ERROR_AFTER + 5.0)
+            msg = h.link_status().message
+            assert "HELLO" in msg and "echo" in msg and "baud" in msg, msg
+        finally:
+            os.unlink(link)

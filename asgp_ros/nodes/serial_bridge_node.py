@@ -50,7 +50,13 @@ from asgp_ros.nodes.parameters import declare
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.serial import status as board_status
 from asgp_ros.serial.calibration import board_permille, host_deflection
-from asgp_ros.serial.link import JoystickSample, LinkManager, LinkState, LinkStats
+from asgp_ros.serial.link import (
+    HANDSHAKE_ERROR_AFTER,
+    JoystickSample,
+    LinkManager,
+    LinkState,
+    LinkStats,
+)
 from asgp_ros.serial.override_gate import OverrideGate
 from asgp_ros.serial.params import PARAMS, SPECS, BridgeParams, bridge_params
 from asgp_ros.serial.protocol import Mode, Status
@@ -266,8 +272,17 @@ class SerialBridgeNode(Node):
             msg = f"no heartbeat from the board for {st.last_heartbeat_age:.2f} s"
         elif st.state == LinkState.INCOMPATIBLE:
             msg = st.last_error
+        elif st.state == LinkState.HANDSHAKE and st.state_age > HANDSHAKE_ERROR_AFTER:
+            heard = st.last_error or (f"{st.frames_rx} frame(s) received, none a VERSION"
+                                      if st.frames_rx else "nothing received")
+            level, msg = "ERROR", (
+                f"no handshake for {st.state_age:.1f} s, {st.hellos_unanswered} HELLO(s) "
+                f"unanswered: {heard}. Is this the joystick board, with the asgp_bridge "
+                f"firmware, at {self.params.baud} baud?")
         elif st.state == LinkState.HANDSHAKE and st.unsolicited_versions:
             msg = f"handshake again after an unsolicited VERSION ({st.last_error})"
+        elif st.state == LinkState.HANDSHAKE and st.board_restarts:
+            msg = f"handshake again: {st.last_error}"
         level, msg = self.qos_watch.escalate(level, msg)
         return conv.diagnostic_status(
             "serial_bridge: link", level, msg, st.port, {
@@ -277,6 +292,9 @@ class SerialBridgeNode(Node):
                 "board_rate_hz": st.board_rate_hz, "board_watchdog_ms": st.board_watchdog_ms,
                 "frames_rx": st.frames_rx, "samples_rx": st.samples_rx,
                 "joy_published": self._published, "frames_lost": st.frames_lost,
+                "frames_repeated": st.frames_repeated, "frames_late": st.frames_late,
+                "seq_restarts": st.seq_restarts, "board_restarts": st.board_restarts,
+                "host_frames_heard": st.host_frames_heard,
                 "crc_errors": st.crc_errors, "bytes_dropped": st.bytes_dropped,
                 "decode_errors": st.decode_errors, "board_errors": st.board_errors,
                 "last_board_error": st.last_board_error,

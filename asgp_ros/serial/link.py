@@ -48,6 +48,19 @@ class LinkState(enum.Enum):
 #: frame (line noise that passes the CRC) never decides.
 INCOMPATIBLE_AFTER = 3
 
+#: Frames behind the last sequence number (a frame delivered late, or a repeat) are
+#: dropped, not delivered: ``joy`` never goes back in time or says one reading twice. This
+#: many frames behind it in a row, each one after the other, are the board's counter
+#: starting over (a restart), and the link follows the new count from there.
+SEQ_RESTART_AFTER = 3
+#: ... and the first of them is this close to a new count's start (a restart's first frames
+#: may be lost, or cut by the reset itself).
+RESTART_SEQ_BELOW = 16
+
+#: A handshake that has not succeeded for this long is an error (a device that is not the
+#: board, the wrong baud rate, a boot loader): the diagnostics say what was heard instead.
+HANDSHAKE_ERROR_AFTER = 2.0
+
 _UP = (LinkState.CONNECTED, LinkState.STALE)
 _STATUS_BITS = tuple(bit for bit in proto.Status if bit)
 _ASKING = (LinkState.HANDSHAKE, LinkState.INCOMPATIBLE)
@@ -120,6 +133,10 @@ class LinkStats:
     frames_rx: int
     samples_rx: int
     frames_lost: int           # gaps in the board's sequence numbers
+    frames_repeated: int       # frames with the last frame's SEQ again (dropped)
+    frames_late: int           # frames behind the last SEQ, delivered late (dropped)
+    seq_restarts: int          # the board's SEQ started over (SEQ_RESTART_AFTER in a row)
+    board_restarts: int        # the board's uptime went back: it restarted
     crc_errors: int
     bytes_dropped: int
     decode_errors: int
@@ -142,6 +159,9 @@ class LinkStats:
     status_counts: dict[str, int]  # samples received with each status bit, by bit name
     last_sample_age: float     # s, inf if none
     last_heartbeat_age: float  # s, inf if none
+    hellos_unanswered: int     # HELLOs of the current handshake without a reply
+    state_age: float           # s in the current state
+    host_frames_heard: int     # frames only a host sends, received (the port echoes?)
 
 
 class LinkManager:
@@ -172,6 +192,16 @@ class LinkManager:
         self._frames_rx = 0
         self._samples_rx = 0
         self._frames_lost = 0
+        self._frames_repeated = 0
+        self._frames_late = 0
+        self._seq_restarts = 0
+        self._board_restarts = 0
+        self._host_frames_heard = 0
+        self._behind_seq: int | None = None  # the last frame behind _last_seq, and how many
+        self._behind_run = 0                 # such frames in a row, each one after the other
+        self._last_uptime: int | None = None  # the board's uptime in its last heartbeat
+        self._past_end = 0  # lost SEQs counted at the end of a count since that heartbeat
+        self._state_t = clock()
         self._crc_base = 0
         self._dropped_base = 0
         self._decode_errors = 0
@@ -302,6 +332,10 @@ class LinkManager:
                                zip(_STATUS_BITS, self._status_counts, strict=True)},
                 last_sample_age=now - self._last_sample_t,
                 last_heartbeat_age=now - self._last_heartbeat_t,
+                frames_repeated=self._frames_repeated, frames_late=self._frames_late,
+                seq_restarts=self._seq_restarts, board_restarts=self._board_restarts,
+                hellos_unanswered=self._hellos_unanswered, state_age=now - self._state_t,
+                host_frames_heard=self._host_frames_heard,
             )
 
     # -- internals ---------------------------------------------------------------------
@@ -311,6 +345,7 @@ class LinkManager:
             if state == self._state:
                 return
             self._state = state
+            self._state_t = self._clock()
         log.info("serial link %s: %s (%s)", self.config.port, state.value, reason)
         if self._on_state is not None:
             self._on_state(state, reason)
@@ -372,6 +407,9 @@ class LinkManager:
             self._dropped_base += self._parser.bytes_dropped
             self._parser = proto.StreamParser()
             self._last_seq = None
+            self._behind_seq = None
+            self._last_uptime = None
+            self._past_end = 0
             self._version = None
             self._connects += 1
             self._board_rx_frames = None
@@ -432,11 +470,24 @@ class LinkManager:
                 self._last_error = str(exc)
             log.debug("undecodable frame: %s", exc)
             return
+        if isinstance(msg, proto.HOST_ONLY):
+            with self._lock:
+                self._host_frames_heard += 1
+                self._last_error = (f"received a {msg.TYPE.name} frame, which only a host "
+                                    "sends: does the device echo what is written to it?")
+            return
         with self._lock:
             self._frames_rx += 1
-            if self._last_seq is not None:
-                self._frames_lost += (frame.seq - self._last_seq - 1) & 0xFF
-            self._last_seq = frame.seq
+            restarted = isinstance(msg, proto.Heartbeat) and self._uptime_back(msg.uptime_ms)
+            if restarted:
+                self._last_seq, self._behind_seq, self._behind_run = frame.seq, None, 0
+            elif not self._in_sequence(frame.seq):
+                return
+            if isinstance(msg, proto.Heartbeat):
+                self._last_uptime = msg.uptime_ms
+                if restarted:  # SEQs after the old count's last were never sent, not lost
+                    self._frames_lost -= self._past_end
+                self._past_end = 0
         if isinstance(msg, proto.Sample):
             if self._state not in _UP:
                 return  # protocol not confirmed yet
@@ -472,7 +523,12 @@ class LinkManager:
                 self._board_rx_frames = msg.rx_frames
                 if self._host_lost and msg.rx_frames != self._host_lost_rx:
                     self._host_lost = False  # the board hears us again
-            if self._state == LinkState.STALE:
+            if restarted and self._state in _UP:
+                # its firmware may have changed (a reflash): confirm the protocol again
+                log.warning("serial link %s: %s; new handshake", self.config.port,
+                            self._last_error)
+                self._begin_handshake("the board restarted: new handshake")
+            elif self._state == LinkState.STALE:
                 self._set_state(LinkState.CONNECTED, "heartbeat back")
         elif isinstance(msg, proto.Version):
             self._on_version(msg, t_rx)
@@ -481,6 +537,58 @@ class LinkManager:
                 self._board_errors += 1
                 self._last_board_error = msg.describe()
             log.debug("board reports %s", msg.describe())
+
+    def _uptime_back(self, uptime_ms: int) -> bool:
+        """Whether a heartbeat's uptime is behind the last one's: the board restarted (its
+        SEQ starts over too). Wrap-safe: the uint32 of milliseconds wraps after 49.7 days,
+        and an uptime more than half the counter behind is ahead. Under ``_lock``."""
+        last = self._last_uptime
+        if last is None or (uptime_ms - last) & 0xFFFFFFFF < 1 << 31:
+            return False
+        self._board_restarts += 1
+        self._last_error = f"the board restarted (uptime {uptime_ms} ms, {last} ms before)"
+        return True
+
+    def _in_sequence(self, seq: int) -> bool:
+        """Whether a frame with this SEQ is taken (under ``_lock``); counts the verdict.
+
+        A frame after the last one (at most half the counter ahead) is taken, and the SEQs
+        it skipped are lost frames. The last SEQ again is a repeat, and one behind it a
+        frame delivered late: neither is taken. SEQ_RESTART_AFTER frames behind in a row,
+        each one after the other and the first of them among the first RESTART_SEQ_BELOW of
+        a count, are the board's counter starting over: the last of them is taken and the
+        others count as lost. A restart after a SEQ above 127 looks like a jump to a new
+        count: the next heartbeat's uptime, at most 0.2 s later, tells, and the SEQs counted
+        lost past the old count's last frame are taken back (``_past_end``).
+        """
+        last = self._last_seq
+        if last is None:
+            self._last_seq = seq
+            return True
+        ahead = (seq - last) & 0xFF
+        if ahead == 0:
+            self._frames_repeated += 1
+            return False
+        if ahead < 128:
+            self._frames_lost += ahead - 1
+            if seq < RESTART_SEQ_BELOW <= last:  # into a new count: a wrap, or a restart
+                self._past_end = ahead - 1 - seq  # counted lost: SEQs last+1 .. 255
+            self._last_seq, self._behind_seq, self._behind_run = seq, None, 0
+            return True
+        follows = self._behind_seq is not None and seq == (self._behind_seq + 1) & 0xFF
+        if not follows:  # a new run; 0: one that cannot be a restart
+            self._behind_run = 1 if seq < RESTART_SEQ_BELOW else 0
+        elif self._behind_run:
+            self._behind_run += 1
+        self._behind_seq = seq
+        if self._behind_run < SEQ_RESTART_AFTER:
+            self._frames_late += 1
+            return False
+        self._seq_restarts += 1
+        self._frames_late -= self._behind_run - 1  # those were the new count's first frames
+        self._frames_lost += self._behind_run - 1
+        self._last_seq, self._behind_seq, self._behind_run = seq, None, 0
+        return True
 
     def _on_version(self, msg: proto.Version, t_rx: float) -> None:
         """The handshake (docs/serial_protocol.md, "HELLO / VERSION").

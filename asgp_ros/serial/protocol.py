@@ -270,6 +270,8 @@ Message = Union[Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorRepor
 MESSAGE_CLASSES: dict[int, type[Message]] = {
     cls.TYPE: cls for cls in (Sample, Override, SetMode, Heartbeat, Hello, Version, ErrorReport)
 }
+#: Messages only a host sends: a board never does.
+HOST_ONLY: tuple[type[Message], ...] = (Override, SetMode, Hello)
 PAYLOAD_LEN: dict[int, int] = {
     t: struct.calcsize(cls.FORMAT) for t, cls in MESSAGE_CLASSES.items()
 }

@@ -41,14 +41,14 @@ log = logging.getLogger(__name__)
 
 JoystickSource = Callable[[float], tuple[float, float]]
 """``source(t) -> (forward, turn)``: deflections in [-1, 1] (+ forward, + left) at time
-``t`` seconds since the board started."""
+``t`` seconds since the board started (a :meth:`SimulatedBoard.restart` does not reset it)."""
 
 
 @dataclass(frozen=True)
 class BoardOutput:
     """What the board currently writes to the chair."""
 
-    t: float             # board time, s
+    t: float             # the joystick's time (JoystickSource), s
     forward: float       # deflection the chair sees, [-1, 1]
     turn: float          # [-1, 1], + left
     code_forward: int    # DAC codes
@@ -144,7 +144,8 @@ class SimulatedBoard:
         self._slave_path = ""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._t0 = time.monotonic()
+        self._t0 = time.monotonic()    # the joystick's time
+        self._boot = self._t0           # the firmware's uptime counts from here
         self._silent = False
         self._deaf = False
         self._raw_override: tuple[int, int] | None = None
@@ -211,7 +212,7 @@ class SimulatedBoard:
         # are all up, so that stop() finds a started thread to join.
         with signals_deferred():
             self._open_pty()
-            self._t0 = time.monotonic()
+            self._t0 = self._boot = time.monotonic()
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="asgp-sim-board",
                                             daemon=True)
@@ -235,6 +236,12 @@ class SimulatedBoard:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+    def restart(self, timeout: float = 2.0) -> None:
+        """The board resets (its watchdog, a brown-out, a reflash): the firmware starts over
+        in passthrough, with its sequence numbers, counters and uptime from zero. The port
+        stays (the USB-serial adapter is not the MCU) and the joystick goes on."""
+        self._request("restart", timeout)
 
     def unplug(self, timeout: float = 2.0) -> None:
         """The device disappears: pty closed (the host's reads fail), symlink removed."""
@@ -284,7 +291,8 @@ class SimulatedBoard:
         self._master = self._slave = None
 
     def _now_ms(self) -> int:
-        return int((time.monotonic() - self._t0) * 1000.0) & 0xFFFFFFFF
+        """The firmware's clock: milliseconds since it started."""
+        return int((time.monotonic() - self._boot) * 1000.0) & 0xFFFFFFFF
 
     def _write(self, frame: bytes) -> None:
         if self._held is not None:
@@ -323,7 +331,7 @@ class SimulatedBoard:
 
     def _tick(self) -> None:
         now_ms = self._now_ms()
-        t = now_ms / 1000.0
+        t = time.monotonic() - self._t0
         fwd, turn = self._joystick(t)
         raw = self._raw_override or (self._raw(fwd, 0), self._raw(turn, 1))
         before = self._logic.out.status
@@ -362,6 +370,10 @@ class SimulatedBoard:
                 return
             if what == "unplug":
                 self._close_pty()
+            elif what == "restart":
+                self._boot = time.monotonic()
+                self._logic = fw.BoardLogic(self._write, self._cal, round(self.rate_hz),
+                                            fw.WATCHDOG_MS)
             elif what == "replug" and self._master is None:
                 self._open_pty()
             elif isinstance(what, tuple) and what[0] == "inject" and self._master is not None:

@@ -1,0 +1,233 @@
+"""The link's rule for the board's sequence numbers, over a real pty: what reaches ``joy``
+is each reading once, in the board's order. A repeated frame is dropped, a frame behind the
+last one (delivered late) is dropped, a board restart (its count and uptime from zero) is
+followed without counting frames that were never sent, and the counters say which."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Iterator
+
+import pytest
+
+from asgp_ros.serial import protocol as proto
+from asgp_ros.serial.link import (
+    RESTART_SEQ_BELOW,
+    SEQ_RESTART_AFTER,
+    LinkConfig,
+    LinkManager,
+    LinkState,
+)
+
+
+def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(period)
+    return bool(pred())
+
+
+def sample(mark: int) -> proto.Sample:
+    """A SAMPLE whose raw forward reading names it."""
+    return proto.Sample(mark, 512, proto.Status.NONE, 2048, 2048)
+
+
+class ScriptedBoard:
+    """A pty that answers every HELLO with our VERSION (its SEQ one after the last frame
+    played) and writes the frames it is given, as given."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.master)
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.next_seq = 0
+        self.hellos = 0
+        self._lock = threading.Lock()
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def play(self, frames: list[tuple[int, proto.Message]]) -> None:
+        with self._lock:
+            data = b"".join(proto.encode(m, seq) for seq, m in frames)
+            os.write(self.master, data)
+            self.next_seq = (frames[-1][0] + 1) & 0xFF
+
+    def _run(self) -> None:
+        parser = proto.StreamParser()
+        while not self.stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.01)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 1024)
+            except OSError:
+                continue
+            for f in parser.feed(data):
+                if f.type == proto.MsgType.HELLO:
+                    self.hellos += 1
+                    with self._lock, contextlib.suppress(OSError):
+                        v = proto.Version(proto.PROTOCOL_VERSION, 9, 9, 9, 100, 200)
+                        os.write(self.master, proto.encode(v, self.next_seq))
+                        self.next_seq = (self.next_seq + 1) & 0xFF
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(1.0)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+@pytest.fixture
+def linked():
+    board = ScriptedBoard()
+    marks: list[int] = []
+    # long timeouts: the script, not the clock, decides what the link sees
+    link = LinkManager(LinkConfig(board.path, heartbeat_timeout=30.0, silence_reopen=30.0),
+                       on_sample=lambda s: marks.append(s.raw_forward))
+    link.start()
+    try:
+        assert link.wait_for_state(LinkState.CONNECTED, 5.0)
+        yield board, link, marks
+    finally:
+        link.stop()
+        board.close()
+
+
+def run(board, link, frames) -> None:
+    """Plays the frames and waits until the link has read all of them."""
+    before = link.stats()
+    board.play(frames)
+    n = len(frames)
+    assert wait_until(lambda: link.stats().frames_rx - before.frames_rx >= n, 5.0)
+
+
+def advance_to(board, link, target: int) -> None:
+    """Steps the count forward, less than half of it at a time, to end at ``target``."""
+    cur = (board.next_seq - 1) & 0xFF
+    while not 1 <= (target - cur) & 0xFF < 128:
+        cur = (cur + 100) & 0xFF
+        run(board, link, [(cur, sample(50))])
+    run(board, link, [(target, sample(51))])
+
+
+def frames_of(seqs: list[int], start_mark: int = 100) -> list[tuple[int, proto.Message]]:
+    return [(s, sample(start_mark + i)) for i, s in enumerate(seqs)]
+
+
+@pytest.mark.parametrize("seqs, taken, lost, repeated, late, restarts", [
+    # in order, across the wrap of the count
+    ([250, 251, 252, 253, 254, 255, 0, 1, 2], range(9), 0, 0, 0, 0),
+    # a gap: two frames lost
+    ([10, 11, 14, 15], [0, 1, 2, 3], 2, 0, 0, 0),
+    # one frame twice: published once
+    ([10, 11, 11, 12], [0, 1, 3], 0, 1, 0, 0),
+    # one frame delivered after the next: dropped, its SEQ counted lost to joy
+    ([10, 12, 11, 13], [0, 1, 3], 1, 0, 1, 0),
+    # three late frames in a row, far from a new count's start: late, not a restart
+    ([100, 101, 105, 102, 103, 104, 106], [0, 1, 2, 6], 3, 0, 3, 0),
+    # the board restarts after SEQ 50: its first frames are behind; SEQ_RESTART_AFTER in
+    # a row follow the new count, and the ones before the last of them are lost
+    ([48, 49, 50, 0, 1, 2, 3, 4], [0, 1, 2, 5, 6, 7], SEQ_RESTART_AFTER - 1, 0, 0, 1),
+    # a restart whose first frame was cut by the reset itself
+    ([60, 61, 1, 2, 3, 4], [0, 1, 4, 5], SEQ_RESTART_AFTER - 1, 0, 0, 1),
+])
+def test_sequence_rule(linked, seqs, taken, lost, repeated, late, restarts):
+    board, link, marks = linked
+    before = link.stats()
+    advance_to(board, link, (seqs[0] - 1) & 0xFF)
+    del marks[:]
+    st0 = link.stats()
+    run(board, link, frames_of(seqs))
+    st = link.stats()
+    assert marks == [100 + i for i in taken]
+    assert st.frames_lost - st0.frames_lost == lost
+    assert st.frames_repeated - st0.frames_repeated == repeated
+    assert st.frames_late - st0.frames_late == late
+    assert st.seq_restarts - st0.seq_restarts == restarts
+    assert st.state == LinkState.CONNECTED and before.board_restarts == st.board_restarts
+
+
+def test_restart_after_a_high_seq_is_told_by_the_uptime(linked):
+    """A restart after SEQ 200 looks like a jump ahead to the new count: 55 SEQs that were
+    never sent. The new count's first heartbeat has a smaller uptime: the restart is
+    counted, the 55 are taken back, and the protocol is confirmed again (the firmware may
+    be new) before samples flow again."""
+    board, link, marks = linked
+    advance_to(board, link, 197)
+    run(board, link, [(198, proto.Heartbeat(60_000, 5, 0, 0)), (199, sample(51)),
+                      (200, sample(52))])
+    del marks[:]
+    st0 = link.stats()
+    hellos0 = board.hellos
+    # the new count: SEQ 0 is cut by the reset, 1 .. 19 are samples, 20 a heartbeat
+    run(board, link, [*frames_of(list(range(1, 20))), (20, proto.Heartbeat(200, 0, 0, 0))])
+    st = link.stats()
+    assert marks == [100 + i for i in range(19)]
+    assert st.board_restarts - st0.board_restarts == 1
+    assert st.frames_lost - st0.frames_lost == 1  # SEQ 0, not 201 .. 255
+    assert "restarted" in st.last_error
+    assert wait_until(lambda: board.hellos > hellos0, 2.0)
+    assert link.wait_for_state(LinkState.CONNECTED, 2.0)
+    run(board, link, [(board.next_seq, sample(300))])
+    assert marks[-1] == 300
+
+
+def test_uptime_wrap_is_no_restart(linked):
+    """After 49.7 days the board's uptime (uint32 ms) wraps: no restart."""
+    board, link, _ = linked
+    s = board.next_seq
+    run(board, link, [(s, proto.Heartbeat(0xFFFF_FF00, 1, 0, 0)),
+                      ((s + 1) & 0xFF, proto.Heartbeat(0x0000_0010, 2, 0, 0))])
+    st = link.stats()
+    assert st.board_restarts == 0 and st.state == LinkState.CONNECTED
+
+
+@contextlib.contextmanager
+def echoing_pty() -> Iterator[str]:
+    """A pty whose far end writes back whatever it reads (a loopback adapter); yields the
+    path a host opens."""
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    stop = threading.Event()
+
+    def echo() -> None:
+        while not stop.is_set():
+            ready, _, _ = select.select([master], [], [], 0.02)
+            if ready:
+                with contextlib.suppress(OSError):
+                    os.write(master, os.read(master, 1024))
+
+    th = threading.Thread(target=echo, daemon=True)
+    th.start()
+    try:
+        yield os.ttyname(slave)
+    finally:
+        stop.set()
+        th.join(1.0)
+        os.close(master)
+        os.close(slave)
+
+
+def test_frames_only_a_host_sends_are_named():
+    """A device that echoes what the host writes (a loopback) never completes the
+    handshake, and the link says what it heard."""
+    with echoing_pty() as path, LinkManager(LinkConfig(path)) as link:
+        assert wait_until(lambda: link.stats().host_frames_heard > 0, 3.0)
+        st = link.stats()
+        assert st.state == LinkState.HANDSHAKE
+        assert "HELLO" in st.last_error and "echo" in st.last_error
+        assert st.hellos_unanswered > 0
+
+
+def test_restart_window_constant_is_below_half_the_count():
+    assert SEQ_RESTART_AFTER < RESTART_SEQ_BELOW < 128
