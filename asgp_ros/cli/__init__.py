@@ -101,24 +101,28 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(_named_command(words))
     try:
+        # a subcommand's imports take a few tenths of a second: Ctrl-C then is no traceback
+        parser = build_parser(_named_command(words))
         args = parser.parse_args(words)
     except SystemExit as exc:  # --help, --version, or a usage error (printed, exit 2)
         return exc.code if isinstance(exc.code, int) else 2
-    # Progress and log records go to stdout: stderr carries nothing but the one-line error
-    # of a failed command (or "interrupted"), so that scripts can rely on it.
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(levelname)s %(name)s: %(message)s",
-        handlers=[logging.StreamHandler(sys.stdout)],
-    )
-    if threading.current_thread() is threading.main_thread():
-        raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
-    # A reader that stops early (``asgp info MODEL | head``) ends the command quietly, as
-    # for any Unix filter: no logging traceback, no error line.
-    logging.raiseExceptions = False
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     try:
+        # Progress and log records go to stdout: stderr carries nothing but the one-line
+        # error of a failed command (or "interrupted"), so that scripts can rely on it.
+        logging.basicConfig(
+            level=logging.DEBUG if args.verbose else logging.INFO,
+            format="%(levelname)s %(name)s: %(message)s",
+            handlers=[logging.StreamHandler(sys.stdout)],
+        )
+        if threading.current_thread() is threading.main_thread():
+            raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
+        # A reader that stops early (``asgp info MODEL | head``) ends the command quietly,
+        # as for any Unix filter: no logging traceback, no error line.
+        logging.raiseExceptions = False
         return int(args.func(args) or 0)
     except BrokenPipeError:
         _silence_stdout()

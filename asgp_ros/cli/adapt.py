@@ -10,7 +10,7 @@ from typing import Any
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
-from asgp_ros.common.fileio import MODEL_FILE, check_output
+from asgp_ros.common.fileio import MODEL_FILE, bag_inputs, check_output
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.resample import learning_config
 from asgp_ros.learning.adapting import (
@@ -88,7 +88,8 @@ def summary_lines(meta: dict[str, Any]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, MODEL_FILE, inputs=[args.model, *args.bags], force=args.force)
+    check_output(args.out, MODEL_FILE, inputs=[args.model, *bag_inputs(args.bags)],
+                 force=args.force)
     seen: dict[str, str] = {}
     for bag in args.bags:  # a bag given twice would count its rows twice
         key = os.path.realpath(bag)  # (a symbolic link loop stays a path: the reader says)

@@ -16,7 +16,7 @@ from typing import Any
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import number
-from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, check_output
+from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, bag_inputs, check_output
 from asgp_ros.recording.bags import BagError, recover_bag, repair_bag, topic_stats
 
 GAPS_LISTED = 10
@@ -60,12 +60,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     repair.add_argument("--force", action="store_true",
                         help="replace an existing bag at OUT (nothing else is replaced)")
     repair.set_defaults(func=run_repair)
-
-
-def _inputs(bag: str) -> list[str]:
-    """The input and, for a storage file inside a bag directory, that directory."""
-    p = Path(bag)
-    return [bag, str(p.parent)] if p.suffix in (".mcap", ".db3") else [bag]
 
 
 def _seconds(ns: int, origin: int) -> str:
@@ -119,7 +113,7 @@ def run_info(args: argparse.Namespace) -> int:
 def run_repair(args: argparse.Namespace) -> int:
     ros1_out = args.storage == "ros1" or Path(args.out).suffix == ".bag"
     out = check_output(args.out, ROS1_BAG if ros1_out else ROS2_BAG,
-                       inputs=_inputs(args.bag), force=args.force, option="OUT")
+                       inputs=bag_inputs([args.bag]), force=args.force, option="OUT")
     try:
         recovered = repair_bag(args.bag, out, storage=args.storage)
     except BagError as exc:

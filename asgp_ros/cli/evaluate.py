@@ -9,7 +9,7 @@ from typing import Any
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
-from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, check_output
+from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, bag_inputs, check_output
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
     DEFAULT_HALF_LIFE_S,
@@ -105,7 +105,7 @@ def format_table(result: dict[str, Any]) -> str:
 
 def run(args: argparse.Namespace) -> int:
     if args.json:
-        check_output(args.json, SCORES_JSON, inputs=[args.model, *args.bags],
+        check_output(args.json, SCORES_JSON, inputs=[args.model, *bag_inputs(args.bags)],
                      force=args.force, option="--json")
     try:
         model = load_model(args.model)

@@ -8,7 +8,7 @@ import dataclasses
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, integer, number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
-from asgp_ros.common.fileio import MODEL_FILE, check_output
+from asgp_ros.common.fileio import MODEL_FILE, bag_inputs, check_output
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import horizon_key
 from asgp_ros.core.modelfile import save_model
@@ -133,7 +133,7 @@ def selection_table(model: MotionModel) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, MODEL_FILE, inputs=args.bags, force=args.force)
+    check_output(args.out, MODEL_FILE, inputs=bag_inputs(args.bags), force=args.force)
     try:
         rc = ResampleConfig(vel_stamp=args.vo_stamp) if args.rate is None else \
             ResampleConfig(rate_hz=args.rate, vel_stamp=args.vo_stamp)

@@ -409,9 +409,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         if directory != tmp.is_dir():
             raise FileExistsError(f"{tmp} is not the {'directory' if directory else 'file'} "
                                   f"expected for {final}")
-        if not directory:
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
+        _fsync_tree(tmp)  # on the disk before it is published (and the old one removed)
         # The commit, whole or not at all: a signal between the two renames of a
         # replacement would leave the old directory in the temporary removed below.
         with signals_deferred():
@@ -426,10 +424,41 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
                     raise
             else:
                 os.replace(tmp, final)
+        _fsync_directory(parent)  # the rename itself, before a replaced one is removed
     finally:
         if tmpdir is not None:
             with signals_deferred():  # raised once the temporary is gone
                 shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+def _fsync_directory(path: Path) -> None:
+    """Flushes a directory's entries (a rename in it). Some filesystems cannot fsync a
+    directory (EINVAL): their renames are as durable as they get."""
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(path: Path) -> None:
+    """Flushes a written file, or every file and directory of a written directory (a ROS 2
+    bag), to the disk: a power cut after the publishing rename then finds them whole."""
+    if not path.is_dir():
+        with open(path, "rb+") as fh:
+            os.fsync(fh.fileno())
+        return
+    for root, dirs, files in os.walk(path):
+        for name in files:
+            f = Path(root) / name
+            if f.is_file() and not f.is_symlink():
+                with open(f, "rb") as fh:
+                    os.fsync(fh.fileno())
+        _fsync_directory(Path(root))
+        dirs[:] = [d for d in dirs if not (Path(root) / d).is_symlink()]
 
 
 #: The name atomic_path gives the aside copy of a directory it replaces, in its temporary.
@@ -590,8 +619,33 @@ def is_ros1_bag(path: Path) -> bool:
         return False
 
 
+#: What a ROS 2 bag directory holds besides metadata.yaml: its storage files (mcap,
+#: SQLite with its journal files, zstd-compressed files).
+_BAG_FILE_SUFFIXES = (".mcap", ".db3", ".db3-wal", ".db3-shm", ".db3-journal", ".zstd")
+
+
 def is_ros2_bag(path: Path) -> bool:
-    return path.is_dir() and (path / "metadata.yaml").is_file()
+    """A ROS 2 bag directory: a metadata.yaml that rosbag2 wrote (its top-level key) and
+    nothing but storage files beside it. A directory that merely has a metadata.yaml (a
+    project with its notes) is not one, and ``--force`` never replaces it."""
+    meta = path / "metadata.yaml"
+    try:
+        st = os.lstat(meta)
+        if not (path.is_dir() and stat.S_ISREG(st.st_mode)) or st.st_size > 16 * 2**20:
+            return False
+        with open(meta, "rb") as fh:
+            head = fh.read(4096)
+        if not any(line.rstrip() == b"rosbag2_bagfile_information:"
+                   for line in head.splitlines()):
+            return False
+        for entry in os.scandir(path):
+            if entry.name != "metadata.yaml" and not (
+                    entry.is_file(follow_symlinks=False)
+                    and entry.name.endswith(_BAG_FILE_SUFFIXES)):
+                return False
+    except OSError:
+        return False
+    return True
 
 
 def _small_json(path: Path, max_bytes: int) -> Any:
@@ -662,6 +716,19 @@ def _is_dataset(p: Path) -> bool:
 
 
 DATASET_DIR = OutputKind("dataset directory", True, _is_dataset, resumable=True)
+
+
+def bag_inputs(paths: Iterable[str | os.PathLike[str]]) -> list[str]:
+    """Input paths for :func:`check_output`: each one and, for a ROS 2 storage file
+    (``.mcap`` / ``.db3``), its directory, which it stands for when it is a bag's (a
+    recorder that was killed leaves a bag directory without metadata.yaml, so any such
+    directory is taken for one): an output written into it would damage the bag."""
+    out: list[str] = []
+    for raw in paths:
+        out.append(str(raw))
+        if Path(raw).suffix in (".mcap", ".db3"):
+            out.append(str(Path(raw).parent))
+    return out
 
 
 def _absolute(path: Path) -> Path:

@@ -11,7 +11,8 @@ Each bag lasts 20 * scale minutes and has its own seed (``seed * 100 + n``, n = 
 so a dataset is reproducible bag by bag. The manifest lists every bag with its surface,
 seed, length, message counts, VO failures and the paper's split (per surface, bags 1-6
 train and 7-8 test; hybrid bags are test only). Bags already present with the same
-surface, seed and length are kept (an interrupted run resumes).
+surface, seed, length and storage are kept (an interrupted run resumes); one of them
+that is damaged (cut or lost since) is simulated again.
 
 :func:`build_dataset` is what ``asgp dataset`` runs, and what ``asgp reproduce --quick``
 runs to make its small dataset.
@@ -20,6 +21,7 @@ runs to make its small dataset.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
 from collections.abc import Callable
@@ -38,7 +40,7 @@ from asgp_ros.common.fileio import (
     write_marker,
 )
 from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST
-from asgp_ros.recording.bags import BagError, read_sim_metadata, write_bag
+from asgp_ros.recording.bags import BagError, read_sim_metadata, recover_bag, write_bag
 from asgp_ros.sim.simulate import simulate
 
 LAYOUT = (("tile", 8), ("carpet", 8), ("hybrid", 2))
@@ -46,6 +48,8 @@ BAG_MINUTES = 20.0
 #: The shortest bag a dataset may have (minutes): below, nothing but lead-in and tail.
 MIN_BAG_MINUTES = 0.1
 MANIFEST_VERSION = 1
+log = logging.getLogger(__name__)
+
 STORAGES = ("mcap", "sqlite3")
 
 #: progress(bags done, bags in all, name of the bag just done ("" at the start), seconds).
@@ -116,6 +120,15 @@ def plan(seed: int, scale: float) -> list[dict[str, Any]]:
     return bags
 
 
+def _damage(path: Path) -> str | None:
+    """What is wrong with a bag already there (None: it is intact)."""
+    try:
+        damage = recover_bag(path, topics=()).damage  # the bytes of no topic are kept
+    except BagError as exc:
+        return str(exc)
+    return None if damage.intact else "; ".join(damage.problems)
+
+
 def _make(job: tuple[str, dict[str, Any], str, bool]) -> dict[str, Any]:
     """Simulate and write one bag (or keep the one there); runs in a pool worker."""
     root, bag, storage, force = job
@@ -128,9 +141,17 @@ def _make(job: tuple[str, dict[str, Any], str, bool]) -> dict[str, Any]:
         meta = read_sim_metadata(path) if not force else None
         if (meta and meta.get("seed") == bag["seed"] and meta.get("surface") == bag["surface"]
                 and abs(meta.get("duration_s", -1) - 60.0 * bag["minutes"]) < 1e-6):
-            return {**bag, **meta.get("summary", {}), "reused": True,
-                    "seconds": time.perf_counter() - start}
-        if not force:
+            suffix = {"mcap": ".mcap", "sqlite3": ".db3"}[storage]
+            if not any(e.name.endswith(suffix) for e in os.scandir(path)):
+                raise RuntimeError(f"{path} is this dataset's bag in another storage than "
+                                   f"{storage}; use --force to simulate the bags again")
+            damage = _damage(path)
+            if damage is None:
+                return {**bag, **meta.get("summary", {}), "reused": True,
+                        "seconds": time.perf_counter() - start}
+            # its own bag, cut or lost since it was written: made again, not reused
+            log.warning("%s is damaged (%s): simulating it again", path, damage)
+        elif not force:
             raise RuntimeError(f"{path} exists and is not this dataset's bag; use --force "
                                "to replace it")
     rec = simulate(bag["surface"], bag["minutes"], bag["seed"])

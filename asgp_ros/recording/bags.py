@@ -57,7 +57,7 @@ import zlib
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, TypeGuard
 
 import numpy as np
 import yaml
@@ -77,6 +77,7 @@ from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
 log = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 STORAGES = ("mcap", "sqlite3", "ros1")
 CUSTOM_DATA_KEY = "asgp_ros.simulation"
@@ -273,23 +274,38 @@ def _stamp_ns(msg: Any) -> int:
     return int(st.sec) * 1_000_000_000 + int(st.nanosec)
 
 
+#: A message stamped this much (s) longer before it was recorded than its stream's median
+#: latency is a stale reading delivered late: it is dropped, as the live predictor refuses
+#: a sample stamped ``reset_jump_s`` (1 s) behind the newest (a clock step moves the bag
+#: time and the stamps together, and keeps the latency).
+MAX_EXTRA_LATENCY = 1.0
+
+
 def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray[np.int64],
-                  max_skew: float, source: str) -> FloatArray:
-    """Header stamps where valid, bag time (minus the median latency) elsewhere; seconds."""
+                  max_skew: float, source: str) -> tuple[FloatArray, BoolArray]:
+    """Header stamps where valid, bag time (minus the median latency) elsewhere, seconds;
+    and which messages are stale (MAX_EXTRA_LATENCY), to be dropped."""
     bag = bag_ns.astype(np.float64) * 1e-9
+    fresh = np.ones(bag.shape, dtype=bool)
     if stamp_ns is None:
-        return bag
+        return bag, fresh
     stamp = stamp_ns.astype(np.float64) * 1e-9
     valid = (stamp_ns > 0) & (np.abs(stamp - bag) <= max_skew)
     if not valid.any():
         log.warning("%s: %s has no valid header stamps; using bag time", source, name)
-        return bag
+        return bag, fresh
     if not valid.all():
         log.warning("%s: %s: %d of %d header stamps invalid (zero or > %.1f s from bag "
                     "time); using bag time for those", source, name, int((~valid).sum()),
                     valid.size, max_skew)
     latency = float(np.median(bag[valid] - stamp[valid]))
-    return np.where(valid, stamp, bag - latency)
+    fresh = ~(valid & (bag - stamp - latency > MAX_EXTRA_LATENCY))
+    if not fresh.all():
+        log.warning("%s: %s: %d of %d messages stamped more than %.1f s before they were "
+                    "recorded, beyond the usual %.3f s (stale readings delivered late); "
+                    "they are dropped", source, name, int((~fresh).sum()), fresh.size,
+                    MAX_EXTRA_LATENCY, latency)
+    return np.where(valid, stamp, bag - latency), fresh
 
 
 def _topics_listing(reader: Any) -> str:
@@ -506,23 +522,30 @@ def read_streams(
     j = np.asarray(jr, dtype=np.float64).reshape(-1, 3)
     v = np.asarray(vr, dtype=np.float64).reshape(-1, 3)
     has_header = tw_conns[0].msgtype != "geometry_msgs/msg/Twist"
-    joy_t = _choose_times(joy_topic, np.asarray([r[0] for r in jr], dtype=np.int64),
-                          np.asarray(jb, dtype=np.int64), max_stamp_skew, source)
-    vel_t = _choose_times(
+    joy_t, keep = _choose_times(joy_topic, np.asarray([r[0] for r in jr], dtype=np.int64),
+                                np.asarray(jb, dtype=np.int64), max_stamp_skew, source)
+    joy_t, j = joy_t[keep], j[keep]
+    vel_t, keep = _choose_times(
         twist_topic, np.asarray([r[0] for r in vr], dtype=np.int64) if has_header else None,
         np.asarray(vb, dtype=np.int64), max_stamp_skew, source)
+    vel_t, v = vel_t[keep], v[keep]
+    for name, topic, rows in (("joystick", joy_topic, j), ("velocity", twist_topic, v)):
+        if not rows.shape[0]:
+            raise BagError(f"{source}: every message of the {name} topic {topic!r} is stale")
     truth_t = np.zeros(0)
     truth = np.zeros((0, 5))
     if tr:
         ta = np.asarray(tr, dtype=np.float64).reshape(-1, 6)
-        truth_t = _choose_times(truth_topic or "", np.asarray([r[0] for r in tr], np.int64),
-                                np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
-        truth = ta[:, 1:]
+        truth_t, keep = _choose_times(truth_topic or "",
+                                      np.asarray([r[0] for r in tr], np.int64),
+                                      np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
+        truth_t, truth = truth_t[keep], ta[keep, 1:]
     override_t = np.zeros(0)
     if orows:
-        override_t = _choose_times(override_topic or "", np.asarray([r[0] for r in orows],
-                                                                   np.int64),
-                                   np.asarray(ob, dtype=np.int64), max_stamp_skew, source)
+        # an override is kept whatever its latency: it says the joystick did not drive
+        override_t, _ = _choose_times(override_topic or "",
+                                      np.asarray([r[0] for r in orows], np.int64),
+                                      np.asarray(ob, dtype=np.int64), max_stamp_skew, source)
     for name, topic, bad, n in (
             ("joystick", joy_topic, int(np.count_nonzero(~joy_in_range(j[:, 1:]))), j.shape[0]),
             ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:]))),
@@ -1412,7 +1435,16 @@ def _scan_ros1(buf: Any, name: str, keep: Callable[[str], bool]) -> _Scan:
     try:
         end, tail = scanner.records(buf, len(ROS1_MAGIC), nested=False)
     except _StopError as exc:
-        scan.problems.append(f"unreadable record: {exc}")
+        # what follows the last complete record is no record: the file is cut there (a
+        # recorder's preallocated zeros), or it has garbage after a complete index
+        scan.complete = scanner.top_end
+        if scanner.index_pos and scanner.expected_chunks:
+            scan.expected_bytes = scanner.index_pos
+        scan.problems.append(
+            f"{len(buf) - scanner.top_end} bytes after the index are no record ({exc}); "
+            "every message is before them"
+            if scanner.index_pos and scanner.top_end > scanner.index_pos
+            else f"unreadable record: {exc}")
         return scan
     index_pos, chunks, expected_chunks = (scanner.index_pos, scanner.chunks,
                                           scanner.expected_chunks)
@@ -1446,6 +1478,7 @@ class _Ros1Scanner:
         self.index_pos = 0
         self.chunks = 0
         self.expected_chunks = 0
+        self.top_end = len(ROS1_MAGIC)  # the end of the last complete top-level record
 
     def records(self, view: Any, pos: int, nested: bool
                 ) -> tuple[int, tuple[dict[str, bytes], int] | None]:
@@ -1480,6 +1513,8 @@ class _Ros1Scanner:
             elif nested:
                 raise _StopError(f"record op {op!r} inside a chunk")
             pos = end
+            if not nested:
+                self.top_end = end
         return pos, None
 
     def _connection(self, head: dict[str, bytes], data: Any) -> None:
@@ -1521,8 +1556,10 @@ class _Ros1Scanner:
         return inner if compression == "none" else 0
 
 
-def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]:
-    """The bag, its storage kind and its storage files, for a scan.
+def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path], list[str]]:
+    """The bag, its storage kind, its storage files and the problems of their listing (a
+    file metadata.yaml names that is not there, one there that it does not name), for a
+    scan.
 
     Accepts what :func:`resolve_bag` accepts, and also a ROS 2 bag directory whose
     metadata.yaml is missing or unreadable (the recorder writes it last), or a lone
@@ -1540,11 +1577,11 @@ def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]
             raise BagError(f"{p}: not a bag: expected a ROS 1 .bag file, a ROS 2 bag "
                            "directory or its .mcap / .db3 file")
         if p.suffix == ".bag":
-            return p, "ros1", [p]
+            return p, "ros1", [p], []
         if regular_file_problem(p.parent / "metadata.yaml") is None:
             p = p.parent if str(p.parent) else Path(".")
         else:
-            return p, _STORAGE_SUFFIXES[p.suffix], [p]
+            return p, _STORAGE_SUFFIXES[p.suffix], [p], []
     names: list[str] = []
     try:
         files = _bag_metadata(p).get("relative_file_paths")
@@ -1569,7 +1606,11 @@ def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path]]
         problem = regular_file_problem(p / n)
         if problem is not None:
             raise BagError(f"{p / n}: {problem} (a storage file of the bag {p})")
-    return p, kinds.pop(), [p / n for n in ordered]
+    listing = [f"{n} (listed in metadata.yaml) is missing" for n in names if n not in present]
+    if names:
+        listing += [f"{n} is not listed in metadata.yaml (read too)" for n in present
+                    if n not in names]
+    return p, kinds.pop(), [p / n for n in ordered], listing
 
 
 def recover_bag(path: str | os.PathLike[str],
@@ -1592,13 +1633,14 @@ def recover_bag(path: str | os.PathLike[str],
     Raises:
         BagError: not a bag, or nothing recoverable (no connection found).
     """
-    bag, storage, files = _storage_files(path)
+    bag, storage, files, listing = _storage_files(path)
     wanted = None if topics is None else frozenset(topics)
 
     def keep(topic: str) -> bool:
         return wanted is None or topic in wanted
 
     custom, expected_messages, expected_end, problems = _metadata_expectations(bag)
+    problems += listing
     scans: list[_Scan] = []
     size = 0
     for f in files:
@@ -1614,6 +1656,11 @@ def recover_bag(path: str | os.PathLike[str],
     n_expected = (expected_messages if expected_messages is not None
                   else sum(s.expected_messages or 0 for s in scans) or None)
     all_problems = tuple(problems + [p for s in scans for p in s.problems])
+    if not all_problems and expected_messages is not None \
+            and expected_messages != len(messages):
+        # every file ended as a bag ends, yet they do not hold what metadata.yaml counts
+        all_problems = (f"{len(messages)} messages where metadata.yaml counts "
+                        f"{expected_messages}",)
     exp_bytes = (sum(s.expected_bytes or 0 for s in scans)
                  if all(s.expected_bytes is not None for s in scans) else None)
     damage = BagDamage(
@@ -1626,6 +1673,12 @@ def recover_bag(path: str | os.PathLike[str],
         intact=all(s.ended for s in scans) and not all_problems,
         problems=all_problems)
     return RecoveredBag(connections, messages, storage == "ros1", custom, damage)
+
+
+def _count_in_range(value: object, limit: int = 1 << 53) -> TypeGuard[int]:
+    """A count (or nanoseconds) from metadata.yaml that can be one: an int, not a bool,
+    in [0, limit); anything else is no expectation at all."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < limit
 
 
 def _metadata_expectations(bag: Path) -> tuple[dict[str, str], int | None, int | None,
@@ -1643,11 +1696,12 @@ def _metadata_expectations(bag: Path) -> tuple[dict[str, str], int | None, int |
                       and isinstance(v, str)} if isinstance(c, dict) else {}
             mc, st, du = (info.get("message_count"), info.get("starting_time"),
                           info.get("duration"))
-            expected_messages = mc if isinstance(mc, int) else None
+            expected_messages = mc if _count_in_range(mc) else None
             if isinstance(st, dict) and isinstance(du, dict):
                 start = st.get("nanoseconds_since_epoch")
                 dur = du.get("nanoseconds")
-                if isinstance(start, int) and isinstance(dur, int):
+                if _count_in_range(start, 1 << 63) and _count_in_range(dur, 1 << 63) \
+                        and start + dur < 1 << 63:
                     expected_end = start + dur
         except BagError as exc:
             what = "missing" if "without" in str(exc) else "unreadable"
