@@ -293,12 +293,12 @@ def test_registered_kinds_use_the_same_file_format(tmp_path: Path) -> None:
     register_kind(ModelKind("test_scale", to_arrays, from_arrays), replace=True)
     fc = FeatureConfig(lags=2)
     m = MotionModel("test_scale", fc, ResampleConfig(),
-                    (ScaleChannel(np.arange(5.0)), ScaleChannel(-np.arange(5.0))))
+                    (ScaleChannel(0.01 * np.arange(5.0)), ScaleChannel(-0.01 * np.arange(5.0))))
     path = tmp_path / "scale.model"  # any suffix: nothing is appended
     save_model(path, m)
     assert os.listdir(tmp_path) == ["scale.model"]
     loaded = load_model(path, kind="test_scale")
-    np.testing.assert_array_equal(loaded.channels[1].predict(np.ones((1, 5)))[0], [-10.0])
+    np.testing.assert_allclose(loaded.channels[1].predict(np.ones((1, 5)))[0], [-0.1])
     rewrite(path, edit_meta(lambda meta: meta.update(features={"lags": 3, "coupled": False})))
     expect_error(path, "invalid 'test_scale' model: v.a must have 7 entries")
     with pytest.raises(ValueError, match="already registered"):
@@ -434,7 +434,7 @@ def test_an_integer_beyond_floats_range_is_refused(saved: Path, where: str, sign
             else huge
 
     rewrite(saved, edit_meta(change))
-    err = expect_error(saved, "must be in|must hold numbers|disagrees with")
+    err = expect_error(saved, "must be in|must hold numbers|disagrees with|beyond 64 bits")
     assert "\n" not in str(err) and len(str(err)) < 2000
 
 
@@ -573,3 +573,79 @@ def test_a_malformed_npy_header_is_a_model_file_error(saved: Path, header: bytes
     member = b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text
     _replace_member(saved, "v.alpha.npy", member + np.zeros(8).tobytes())
     expect_error(saved, "array 'v.alpha' cannot be read \\(truncated or corrupt header")
+
+
+# ---- hostile values that each pass their array's range (an attack on the loader) --------
+
+def _scaled(name: str, value: float) -> Callable[[dict[str, np.ndarray]], None]:
+    def edit(arrays: dict[str, np.ndarray]) -> None:
+        arrays[name] = np.full_like(arrays[name], value)
+    return edit
+
+
+@pytest.mark.parametrize("name, value", [("v.y_mean", 1e6), ("v.alpha", 1e12),
+                                         ("omega.alpha", -1e12)])
+def test_a_model_that_drives_a_chair_at_rest_beyond_physics_is_refused(
+        saved: Path, name: str, value: float) -> None:
+    """Each value within its array's range, the model predicted 1e6 m/s from rest with the
+    stick held: such a file is no wheelchair's model, and is refused at load."""
+    rewrite(saved, _scaled(name, value))
+    expect_error(saved, "not a wheelchair's model: the model predicted")
+
+
+@pytest.mark.parametrize("value", [1e15, 1e-300])
+def test_a_noise_variance_out_of_range_is_refused_by_name(saved: Path, value: float) -> None:
+    rewrite(saved, _scaled("v.noise_variance", value))
+    expect_error(saved, "noise_variance")
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_a_variance_matrix_that_is_no_posterior_is_refused(saved: Path, sign: float) -> None:
+    """Without its Cholesky factor (older files), a var_matrix of +-1e12 I loaded: the
+    latent variance was clipped to 0 (over-confident ellipses) or huge."""
+    def edit(arrays: dict[str, np.ndarray]) -> None:
+        M = arrays["v.var_matrix"].shape[0]
+        arrays["v.var_matrix"] = sign * 1e12 * np.eye(M)
+        del arrays["v.chol_a"]
+        meta = json.loads(str(arrays["__meta__"][()]))
+        del meta["arrays"]["v.chol_a"]
+        arrays["__meta__"] = np.array(json.dumps(meta))
+    rewrite(saved, edit)
+    expect_error(saved, "var_matrix")
+
+
+def test_an_array_of_no_part_of_the_model_is_refused(saved: Path) -> None:
+    """An array the manifest lists but the model is not made of ('zz', 'v.extra') loaded."""
+    for name in ("zz", "v.extra"):
+        def edit(arrays: dict[str, np.ndarray], name: str = name) -> None:
+            arrays[name] = np.zeros(3)
+            meta = json.loads(str(arrays["__meta__"][()]))
+            meta["arrays"][name] = [3]
+            arrays["__meta__"] = np.array(json.dumps(meta))
+        rewrite(saved, edit)
+        expect_error(saved, f"{name!r} belong to no part")
+        rewrite(saved, lambda a, name=name: _forget(a, name))
+
+
+def _forget(arrays: dict[str, np.ndarray], name: str) -> None:
+    del arrays[name]
+    meta = json.loads(str(arrays["__meta__"][()]))
+    del meta["arrays"][name]
+    arrays["__meta__"] = np.array(json.dumps(meta))
+
+
+def test_a_bool_where_a_number_goes_and_a_negative_count_are_refused(saved: Path) -> None:
+    rewrite(saved, lambda a: a.update({"v.y_scale": np.asarray(True)}))
+    expect_error(saved, "'v.y_scale' has dtype bool")
+    rewrite(saved, lambda a: a.update({"v.y_scale": np.asarray(1.0)}))
+    rewrite(saved, _scaled("v.num_data", -5.0))
+    expect_error(saved, "num_data")
+
+
+def test_an_integer_beyond_64_bits_anywhere_in_the_metadata_is_refused(saved: Path) -> None:
+    """The free record (what training wrote, read by ``asgp info``) too: 10**400 there
+    raised OverflowError with a traceback in ``asgp info``."""
+    rewrite(saved, edit_meta(lambda m: m["meta"].update(training_data={"duration_s":
+                                                                       10**400})))
+    err = expect_error(saved, "beyond 64 bits")
+    assert "\n" not in str(err)

@@ -9,6 +9,7 @@ for a prediction whenever a new grid step completes, as the node does.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import inspect
 import itertools
 import math
@@ -641,3 +642,22 @@ def test_a_flood_of_samples_does_not_grow_the_buffers_without_bound():
     stamps, values = pred._joy.arrays()
     assert len(stamps) == cap and pred.stats.dropped_overflow == 500
     assert values[-1, 0] == pytest.approx(0.001 * ((cap + 499) % 7))
+
+
+def test_a_model_that_predicts_beyond_physics_gives_no_path():
+    """A model (loaded before its file was checked, or far outside its data) predicting
+    speeds beyond any wheelchair's, or variances beyond them squared: no path, reason
+    model_out_of_range, never a path of 1e6 m/s."""
+    jt, joy, vt, vel = make_streams(duration=10.0)
+    for channels in ((LinearChannel(np.zeros(2 * LAGS + 1), b=1e6), LinearChannel(
+            np.zeros(2 * LAGS + 1))), (linear_model().channels[0], LinearChannel(
+                np.zeros(2 * LAGS + 1), var=1e6))):
+        model = dataclasses.replace(linear_model(), channels=channels)
+        pred = Predictor(model, PredictorConfig(horizon_steps=5))
+        for ev in arrival_order(jt, joy, vt, vel):
+            feed(pred, ev)
+        r = pred.predict(jt[-1])
+        assert not r.ok and r.reason == Reason.MODEL_OUT_OF_RANGE, r
+        assert r.pose.shape == (0, 3)
+        batch = pred.predict_batch(np.zeros((3, 5, 2)), jt[-1])
+        assert not batch.ok and batch.reason == Reason.MODEL_OUT_OF_RANGE

@@ -200,6 +200,14 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _bounded_int(text: str) -> int:
+    value = int(text)
+    if not -(1 << 63) <= value < 1 << 63:
+        raise ValueError(f"integer {text[:20]}{'...' if len(text) > 20 else ''} is beyond "
+                         "64 bits")
+    return value
+
+
 def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a finite number")
 
@@ -212,8 +220,8 @@ def loads_bounded(text: str, max_chars: int = MAX_META_CHARS,
     deeply nested document is refused without recursing into it.
 
     Raises:
-        ValueError: too long, nested too deeply, NaN / Infinity / an overflowing number,
-            or not JSON.
+        ValueError: too long, nested too deeply, NaN / Infinity / an overflowing number
+            (an integer beyond 64 bits too), or not JSON.
     """
     if len(text) > max_chars:
         raise ValueError(f"{len(text)} characters, more than the limit of {max_chars}")
@@ -225,7 +233,8 @@ def loads_bounded(text: str, max_chars: int = MAX_META_CHARS,
     if depth > max_depth:
         raise ValueError(f"nested {depth} levels deep, more than the limit of {max_depth}")
     try:
-        return json.loads(text, parse_float=_finite_float, parse_constant=_no_constant)
+        return json.loads(text, parse_float=_finite_float, parse_int=_bounded_int,
+                          parse_constant=_no_constant)
     except RecursionError:  # pragma: no cover - the depth check comes first
         raise ValueError(f"nested more than {max_depth} levels deep") from None
 
@@ -580,5 +589,41 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionM
             meta.get("calibration", VarianceCalibration().to_dict()))
     except CalibrationError as exc:
         raise ModelFileError(p, str(exc)) from None
-    return MotionModel(kind=kind_name, feature_config=features, resample_config=resample_cfg,
-                       channels=(v_model, w_model), meta=user_meta, calibration=calibration)
+    model = MotionModel(kind=kind_name, feature_config=features, resample_config=resample_cfg,
+                        channels=(v_model, w_model), meta=user_meta, calibration=calibration)
+    # every array is one the model is made of, of its type (not one the manifest merely
+    # lists, nor a bool where a number goes)
+    canonical = model_kind.to_arrays(model)[0]
+    extra = sorted(set(arrays) - set(canonical))
+    if extra:
+        raise ModelFileError(p, f"array(s) {', '.join(map(repr, extra))} belong to no part "
+                                f"of a {kind_name!r} model")
+    for name, arr in arrays.items():
+        want = np.asarray(canonical[name]).dtype
+        if arr.dtype.kind != want.kind:
+            raise ModelFileError(p, f"array {name!r} has dtype {arr.dtype}, a {kind_name!r} "
+                                    f"model stores {want}")
+    problem = _probe_problem(model)
+    if problem is not None:
+        raise ModelFileError(p, f"not a wheelchair's model: {problem}")
+    return model
+
+
+def _probe_problem(model: MotionModel) -> str | None:
+    """Why a model cannot be a wheelchair's (None: it may be one): from rest, with the
+    joystick held at its centre, at each end of each axis and at a corner for 2 s, it must
+    predict speeds, yaw rates and variances within the physical limits (a hostile file
+    predicted 1e6 m/s from values each within its array's range)."""
+    from asgp_ros.core.rollout import rollout
+
+    s = model.lags
+    k = max(1, round(2.0 * model.resample_config.rate_hz))
+    held = np.array([(0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0),
+                     (1.0, 1.0)])
+    future = np.repeat(held[:, None, :], k, axis=1)
+    try:
+        with np.errstate(all="ignore"):
+            out = rollout(model, np.zeros((s, 2)), np.zeros((s, 2)), future)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        return f"it does not predict from rest ({exc})"
+    return out.problem()

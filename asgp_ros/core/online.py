@@ -112,6 +112,10 @@ class Reason(StrEnum):
     """``now`` is not a valid time (:func:`asgp_ros.core.streams.time_problem`)."""
     PREDICTION_ERROR = "prediction_error"
     """The numerics of one step failed (set by the node, which logs the error)."""
+    MODEL_OUT_OF_RANGE = "model_out_of_range"
+    """The model predicted a speed, yaw rate or variance beyond the physical limits
+    (:meth:`asgp_ros.core.rollout.Rollout.problem`): a damaged model file, or inputs far
+    outside its data. No path."""
 
     # ---- an input's refusal (keys of PredictorStats.rejected)
     REJECT_NONFINITE = "nonfinite"
@@ -1009,6 +1013,9 @@ class Predictor:
 
     def _result(self, step: int, t0: float, joy_past: FloatArray, vel_past: FloatArray,
                 futures: FloatArray, out: Rollout, from_plan: bool, batch: bool) -> Prediction:
+        problem = out.problem()
+        if problem is not None:
+            return Prediction(False, Reason.MODEL_OUT_OF_RANGE, problem)
         pose = np.asarray(out.pose, dtype=np.float64)
         pos_cov = np.asarray(out.pos_cov, dtype=np.float64)
         pose_cov = np.asarray(out.pose_cov, dtype=np.float64)

@@ -265,6 +265,11 @@ def state_array(state: Mapping[str, ArrayLike], key: str, ndim: int) -> FloatArr
     return a
 
 
+#: Noise variances a stored state may have (standardised outputs; the fit keeps them in
+#: [1e-6, 10]).
+NOISE_VARIANCE_RANGE = (1e-9, 1e3)
+
+
 def from_state(state: Mapping[str, ArrayLike]) -> FitcPosterior:
     """The posterior of :func:`to_state` arrays; alpha and C are used as stored.
 
@@ -299,6 +304,11 @@ def from_state(state: Mapping[str, ArrayLike]) -> FitcPosterior:
             raise PosteriorError(f"entry {key!r} must be > 0")
     if arrs["jitter"] < 0.0:
         raise PosteriorError("entry 'jitter' must be >= 0")
+    # the fit's bounds (standardised outputs: 1e-6 .. 10) with a margin
+    if not NOISE_VARIANCE_RANGE[0] <= float(arrs["noise_variance"]) <= NOISE_VARIANCE_RANGE[1]:
+        raise PosteriorError(f"entry 'noise_variance' = {float(arrs['noise_variance']):g} is "
+                             f"outside [{NOISE_VARIANCE_RANGE[0]:g}, "
+                             f"{NOISE_VARIANCE_RANGE[1]:g}] (outputs have unit variance)")
     Z = np.ascontiguousarray(arrs["inducing_inputs"])
     sf2, jitter = float(arrs["signal_variance"]), float(arrs["jitter"])
     try:
@@ -309,6 +319,16 @@ def from_state(state: Mapping[str, ArrayLike]) -> FitcPosterior:
     C = arrs["var_matrix"]
     LA = arrs.get("chol_a")
     if LA is None:
+        # nothing to check C against: L^T C L = I - A^-1 has its eigenvalues in [0, 1] for
+        # any FITC posterior, and C is symmetric
+        B = L.T @ C @ L
+        eig = np.linalg.eigvalsh(0.5 * (B + B.T))
+        asym = float(np.max(np.abs(C - C.T)))
+        if asym > 1e-9 * max(float(np.max(np.abs(C))), 1e-300) \
+                or eig[0] < -1e-6 or eig[-1] > 1.0 + 1e-6:
+            raise PosteriorError("entry 'var_matrix' is no FITC posterior's (L^T C L has "
+                                 f"eigenvalues {eig[0]:.3g} .. {eig[-1]:.3g}, not within "
+                                 "[0, 1], or it is not symmetric)")
         LA = _chol_a_from_c(L, C)
     else:
         if not (np.allclose(LA, np.tril(LA), rtol=0.0, atol=0.0) and np.all(np.diag(LA) > 0)):

@@ -55,6 +55,7 @@ from asgp_ros.core import posterior
 from asgp_ros.core.features import CHANNELS, build_inputs, input_layout
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.sparse_gp import SparseGP
+from asgp_ros.core.streams import MAX_ABS_SPEED, MAX_ABS_YAW_RATE, vel_in_range
 from asgp_ros.core.unicycle import integrate_path, sensitivity_time_major
 
 FloatArray = NDArray[np.float64]
@@ -86,6 +87,26 @@ class Rollout:
     @property
     def batch(self) -> int:
         return int(self.vel.shape[0])
+
+    def problem(self) -> str | None:
+        """Why this rollout is no wheelchair's (None: it may be one): a predicted speed or
+        yaw rate beyond the physical limits of :mod:`asgp_ros.core.streams`, a velocity
+        standard deviation beyond them too, or a covariance that is not finite. A damaged
+        or hostile model file, or one far outside its data, does this; such a path is
+        never published."""
+        vel = np.asarray(self.vel, dtype=np.float64)
+        bad = ~vel_in_range(vel.reshape(-1, 2))
+        if bad.any():
+            v, w = vel.reshape(-1, 2)[int(np.flatnonzero(bad)[0])]
+            return (f"the model predicted (v, omega) = ({v:.3g} m/s, {w:.3g} rad/s), beyond "
+                    f"the physical limits ({MAX_ABS_SPEED:g} m/s, {MAX_ABS_YAW_RATE:g} rad/s)")
+        var = np.diagonal(np.asarray(self.vel_cov, dtype=np.float64), axis1=-2, axis2=-1)
+        limit = np.array([MAX_ABS_SPEED, MAX_ABS_YAW_RATE]) ** 2
+        if not (np.all(np.isfinite(self.pose_cov)) and np.all(np.isfinite(var))
+                and np.all(var <= limit)):
+            return ("the model predicted a velocity variance that is not finite or beyond "
+                    "the physical limits squared")
+        return None
 
     @property
     def steps(self) -> int:

@@ -691,8 +691,12 @@ class SparseGP:
             raise SparseGPError(f"SparseGP state: {err}") from err
         gp = cls(num_inducing=post.num_inducing, jitter=post.jitter)
         gp._posterior = post
+        n = float(fit["num_data"])
+        if not (0.0 <= n < 1e13 and n == round(n)):
+            raise SparseGPError(f"SparseGP state: entry 'num_data' must be a whole number "
+                                f">= 0, got {n:g}")
         gp._lml = float(fit["log_marginal_likelihood"])
-        gp._num_data = int(fit["num_data"])
+        gp._num_data = int(n)
         return gp
 
     # ------------------------------------------------------------------ prediction
