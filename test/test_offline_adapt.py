@@ -353,3 +353,74 @@ def test_a_model_file_with_a_record_of_another_shape(
     assert "variance calibration" in out
     assert main(["adapt", str(bad), str(floors["carpet"]), "--out", str(tmp_path / "o.npz")]) == 0
     capsys.readouterr()
+
+
+def test_the_commands_fail_in_one_line(floors: dict[str, Path], tile_model: Path,
+                                       tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """From an attack on the model-file commands: each of these was a traceback."""
+    import warnings
+
+    import asgp_ros.cli.adapt as adapt_cli
+    import asgp_ros.cli.info as info_cli
+    import asgp_ros.learning.evaluation as evaluation
+    from asgp_ros.core.modelfile import ModelFileError
+
+    def one_line_error() -> str:
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+        return err
+
+    test = str(floors["carpet_test"])
+    # a horizon longer than the online predictor predicts (200 steps), with --adapt
+    assert main(["evaluate", str(tile_model), test, "--adapt", "--horizons", "100"]) == 2
+    assert "longer than the online predictor predicts" in one_line_error()
+    # a model that diverges on the test data
+    def diverging(*args: object, **kwargs: object) -> None:
+        raise ValueError("channel v predicted NaN or inf")
+    with monkeypatch.context() as m:
+        m.setattr(evaluation, "rollout", diverging)
+        assert main(["evaluate", str(tile_model), test]) == 2
+        assert "rollout over" in one_line_error()
+    # an adapted model the saver refuses: not written, one line
+    def refuse(path: object, model: object) -> None:
+        raise ModelFileError(str(path), "array 'omega.alpha' has a value beyond +-1e+15")
+    with monkeypatch.context() as m:
+        m.setattr(adapt_cli, "save_model", refuse)
+        out = tmp_path / "adapted.npz"
+        assert main(["adapt", str(tile_model), str(floors["carpet"]), "--out", str(out)]) == 2
+        assert "the adapted model is not saved" in one_line_error()
+        assert not out.exists()
+    # a library's warning is a log record on stdout: stderr holds nothing
+    real = info_cli.run
+    def warns(args: object) -> int:
+        warnings.warn("SparseGP: 1 negative latent variance(s) clipped", RuntimeWarning,
+                      stacklevel=1)
+        return real(args)
+    with monkeypatch.context() as m:
+        m.setattr(info_cli, "run", warns)
+        assert main(["info", str(tile_model)]) == 0
+        assert capsys.readouterr().err == ""
+
+
+def test_long_horizons_are_rolled_out_in_small_batches(floors: dict[str, Path],
+                                                      tile_model: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The linear rollout's memory grows as cases x k^2: 2,000 cases of 40 s in one batch
+    took 11 GB (100 s: killed). Each batch now holds at most CHUNK_CASE_STEPS2 / k^2."""
+    import asgp_ros.learning.evaluation as evaluation
+    from asgp_ros.core.rollout import rollout as real
+
+    sizes: list[int] = []
+
+    def recorded(model: object, joy_past: np.ndarray, *args: object, **kw: object) -> object:
+        sizes.append(int(np.asarray(joy_past).shape[0]))
+        return real(model, joy_past, *args, **kw)  # type: ignore[arg-type]
+    monkeypatch.setattr(evaluation, "rollout", recorded)
+    model = load_model(tile_model)
+    res = read_series([str(floors["carpet_test"])])[0].res
+    idx = np.flatnonzero(res.valid)[10:1010]
+    k = 200
+    pose, _, _ = evaluation.rollout_cases(model, res, idx[idx + k < res.t.size], k,
+                                          uncertainty="linear")
+    assert max(sizes) <= evaluation.CHUNK_CASE_STEPS2 // k**2 and sum(sizes) == pose.shape[0]

@@ -118,6 +118,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             format="%(levelname)s %(name)s: %(message)s",
             handlers=[logging.StreamHandler(sys.stdout)],
         )
+        logging.captureWarnings(True)  # a library's warning is a log record, on stdout
         if threading.current_thread() is threading.main_thread():
             raise_on_termination()  # SIGTERM/SIGHUP run the same clean-up as Ctrl-C
         # A reader that stops early (``asgp info MODEL | head``) ends the command quietly,

@@ -127,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
         adapted = adapt_model(model, series, opts, progress=progress)
     except (AdaptingError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    save_model(args.out, adapted)
+    try:
+        save_model(args.out, adapted)
+    except ModelFileError as exc:  # a model the loader would refuse is not written
+        raise CommandError(f"the adapted model is not saved: {exc}") from exc
     for line in summary_lines(adapted.meta):
         print(line)
     print(f"wrote {args.out}: {args.model} adapted (asgp info {args.out} shows it)")

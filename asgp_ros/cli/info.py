@@ -64,7 +64,7 @@ _STAMPS = {"midpoint": "the middle of its frame interval", "frame": "its frame's
 
 #: What a section's description may raise on a model file whose metadata record (free
 #: JSON: what training, selection, calibration and adaptation wrote) has another shape.
-_MALFORMED = (AttributeError, TypeError, KeyError, ValueError, IndexError)
+_MALFORMED = (AttributeError, TypeError, KeyError, ValueError, IndexError, ArithmeticError)
 
 
 def _section(name: str, lines: Callable[[], list[str]]) -> list[str]:

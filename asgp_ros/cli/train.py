@@ -11,7 +11,7 @@ from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.common.fileio import MODEL_FILE, bag_inputs, check_output
 from asgp_ros.core.features import LAGS_RANGE
 from asgp_ros.core.metrics import horizon_key
-from asgp_ros.core.modelfile import save_model
+from asgp_ros.core.modelfile import ModelFileError, save_model
 from asgp_ros.core.models import MotionModel, get_kind, trainable_kinds
 from asgp_ros.core.resample import RESAMPLE_RANGES, VEL_STAMPS, ResampleConfig
 from asgp_ros.learning.training import (
@@ -155,7 +155,10 @@ def run(args: argparse.Namespace) -> int:
             model = train(series, opts, resample_config=rc, progress=progress)
     except (TrainingError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    save_model(args.out, model)
+    try:
+        save_model(args.out, model)
+    except ModelFileError as exc:  # a model the loader would refuse is not written
+        raise CommandError(f"the trained model is not saved: {exc}") from exc
     for line in selection_table(model):
         print(line)
     summary = model.meta["training_data"]

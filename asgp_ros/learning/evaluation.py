@@ -35,8 +35,12 @@ from asgp_ros.core.unicycle import integrate_path
 
 log = logging.getLogger(__name__)
 
-#: Rollouts are batched over test steps in chunks of this size (bounds memory).
+#: Rollouts are batched over test steps in chunks of at most this size...
 CHUNK = 4096
+#: ... and of at most this many cases times steps squared: the linear rollout's memory
+#: grows as cases x k^2 (about 140 bytes each: 11 GB for 2,000 cases of 40 s at 5 Hz in
+#: one batch), so that a chunk takes about 0.6 GB whatever the horizon.
+CHUNK_CASE_STEPS2 = 1 << 22
 
 
 class EvaluationError(ValueError):
@@ -129,8 +133,9 @@ def rollout_cases(
     """
     s = int(model.feature_config.lags)
     poses, covs, vels = [], [], []
-    for a in range(0, idx.shape[0], CHUNK):
-        chunk = idx[a:a + CHUNK]
+    size = max(1, min(CHUNK, CHUNK_CASE_STEPS2 // max(1, steps) ** 2))
+    for a in range(0, idx.shape[0], size):
+        chunk = idx[a:a + size]
         joy_past = metrics.windows(res.joy, chunk, -s, s)
         vel_past = metrics.windows(res.vel, chunk, -s, s)
         joy_future = metrics.windows(res.joy, chunk, 0, steps)
@@ -237,7 +242,11 @@ def _evaluate_horizon(model: Any, series: Sequence[TestSeries], h: float, k: int
         idx = metrics.case_indices(res.segment, need, k)
         if idx.size == 0:
             continue
-        pose, cov, _ = rollout_cases(model, res, idx, k, uncertainty=uncertainty)
+        try:
+            pose, cov, _ = rollout_cases(model, res, idx, k, uncertainty=uncertainty)
+        except (ValueError, ArithmeticError) as exc:  # a model that diverges on this data
+            raise EvaluationError(f"{name}: the model's rollout over {h:g} s failed on "
+                                  f"{ts.name}: {exc}") from exc
         ref_path = reference_path(metrics.windows(res.vel, idx, -1, k + 1), dt)  # [N, k, 3]
         preds.append(pose[:, -1, :2])
         refs.append(ref_path[:, -1, :2])
@@ -450,7 +459,11 @@ def evaluate_adaptive(
     dt = 1.0 / rate
     k_max = max(steps_list)
     settings = settings if settings is not None else AdaptSettings()
-    config = PredictorConfig(horizon_steps=k_max)
+    try:
+        config = PredictorConfig(horizon_steps=k_max)
+    except ValueError as exc:  # the online predictor's horizon is bounded
+        raise EvaluationError(f"horizon {max(horizons_s):g} s ({k_max} steps) is longer than "
+                              f"the online predictor predicts: {exc}") from exc
     replays = []
     for ts in series:
         try:
