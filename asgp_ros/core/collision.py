@@ -109,6 +109,8 @@ HEADING_BIN = math.radians(0.25)
 #: refused (CollisionError): no wheelchair's prediction looks like that.
 MAX_COORDINATE = 1e6
 MAX_VARIANCE = 1e12
+#: Smallest |angle_increment| of a scan (rad): 100,000 beams over two thirds of a turn.
+MIN_ANGLE_INCREMENT = 4e-5
 #: Cells a side of a scan's distance field, at most (range_max 25 m at 5 cm cells).
 MAX_SCAN_FIELD_SIDE = 1024
 #: A scan's obstacle points (with what obstacle memory adds), at most: a denser scan (a 3-D
@@ -196,8 +198,10 @@ class Scan:
         if not 0.0 <= self.range_min < self.range_max <= 1000.0:
             raise CollisionError(f"scan range limits [{self.range_min}, {self.range_max}] "
                                  "are not 0 <= min < max <= 1000 m")
-        if self.angle_increment == 0.0 and r.size > 1:
-            raise CollisionError("scan angle_increment is 0")
+        if abs(self.angle_increment) < MIN_ANGLE_INCREMENT and r.size > 1:
+            # 1e-12 put every beam on one bearing: a wall ahead read as clear
+            raise CollisionError(f"scan angle_increment {self.angle_increment:g} rad is "
+                                 f"below {MIN_ANGLE_INCREMENT:g} (no scanner resolves that)")
         # the beams within a turn or two of the laser's x axis (an angle_min of 1e17 put
         # every beam on one bearing, in float64: a wall ahead read as free)
         span = abs(self.angle_increment) * (r.size - 1)
@@ -220,6 +224,12 @@ class Grid:
         d = np.asarray(self.data)
         if d.ndim != 2 or d.size == 0:
             raise CollisionError(f"a grid needs [height, width] cells, got shape {d.shape}")
+        if d.dtype.kind not in "iu" and not (d.dtype.kind == "f" and np.all(d == np.round(d))):
+            raise CollisionError(f"grid cells must be whole numbers, got dtype {d.dtype}")
+        if d.size and (d.min() < -1 or d.max() > 100):
+            # int8 wraps: 256 read as 0 (free), and NaN too
+            raise CollisionError(f"grid cells must be -1 (unknown) or 0..100, got "
+                                 f"{d.min():g} .. {d.max():g}")
         if d.size > 50_000_000:
             raise CollisionError(f"a grid of {d.size} cells is more than 50 million")
         if not (math.isfinite(self.resolution) and 1e-3 <= self.resolution <= 100.0):
@@ -380,6 +390,10 @@ class DistanceField:
         The raster has at most :data:`MAX_SCAN_FIELD_SIDE` cells a side: a long-range scan
         gets coarser cells (the pruning's margins grow with them; the footprint tests use
         the points themselves), never gigabytes of raster."""
+        if not (isinstance(resolution, int | float) and 1e-3 <= resolution <= 10.0):
+            raise CollisionError(f"resolution must be in [0.001, 10] m, got {resolution}")
+        if not (isinstance(max_invalid, int | float) and 0.0 <= max_invalid <= 1.0):
+            raise CollisionError(f"max_invalid must be in [0, 1], got {max_invalid}")
         nan = np.isnan(scan.ranges)
         if nan.all() or nan.mean() > max_invalid:
             raise CollisionError(f"scan has {int(nan.sum())} of {nan.size} beams NaN "
@@ -993,6 +1007,14 @@ def _check_inputs(pose: FloatArray, cov: FloatArray,
         raise CollisionError(f"a path leaves +-{MAX_COORDINATE:g} m (or rad)")
     if C.size and np.abs(C).max() > MAX_VARIANCE:
         raise CollisionError(f"a covariance entry exceeds {MAX_VARIANCE:g}")
+    if C.size:
+        # a covariance is symmetric positive semi-definite, to round-off: -I or a skew one
+        # was clipped to zero, and read as certainty (a path beside a wall as clear)
+        scale = np.abs(C).max(axis=(-1, -2)) + 1e-300
+        asym = np.abs(C - np.swapaxes(C, -1, -2)).max(axis=(-1, -2))
+        low = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, -1, -2)))[..., 0]
+        if np.any(asym > 1e-6 * scale) or np.any(low < -1e-6 * scale):
+            raise CollisionError("a covariance is not symmetric positive semi-definite")
     if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE for v in transform):
         raise CollisionError(f"transform must be a finite (x, y, yaw), got {transform}")
     return P, C

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, NDArray
 from asgp_ros.core.features import input_layout
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.rollout import ChannelStep, rollout
+from asgp_ros.core.streams import MAX_ABS_POSITION, joy_in_range, vel_in_range
 from asgp_ros.core.unicycle import integrate_path, path_sensitivity
 
 FloatArray = NDArray[np.float64]
@@ -83,7 +84,21 @@ def _window(name: str, a: ArrayLike, s: int) -> FloatArray:
                          f"{arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf")
-    return arr[arr.shape[0] - s:]
+    arr = arr[arr.shape[0] - s:]
+    in_range = joy_in_range(arr) if name == "joy_past" else vel_in_range(arr)
+    if not np.all(in_range):
+        raise ValueError(f"{name} holds a sample beyond the physical range of "
+                         "asgp_ros.core.streams")
+    return arr
+
+
+def _whole(name: str, value: object, low: int, high: int) -> int:
+    """``value`` as an int in [low, high], or ValueError naming it (1.5 or NaN iterations
+    made scipy's solver run forever)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) \
+            or not low <= int(value) <= high:
+        raise ValueError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return int(value)
 
 
 def _window_columns(model: MotionModel) -> tuple[list[IntArray], list[IntArray]]:
@@ -175,11 +190,20 @@ def solve(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike, target_x
     s = model.feature_config.lags
     jp = _window("joy_past", joy_past, s)
     vp = _window("vel_past", vel_past, s)
+    if np.iscomplexobj(target_xy):
+        raise ValueError("target_xy must be real positions, got complex numbers")
     target = np.asarray(target_xy, dtype=np.float64)
     if target.ndim != 2 or target.shape[1] != 2 or not 1 <= target.shape[0] <= 200:
         raise ValueError(f"target_xy must be [k, 2] with 1 <= k <= 200, got {target.shape}")
     if not np.all(np.isfinite(target)):
         raise ValueError("target_xy contains NaN or inf")
+    if np.abs(target).max() > MAX_ABS_POSITION:
+        raise ValueError(f"target_xy leaves +-{MAX_ABS_POSITION:g} m")
+    max_iter = _whole("max_iter", max_iter, 1, 10_000)
+    if method == "cem":
+        samples = _whole("samples", samples, 2, 1 << 16)
+        elites = _whole("elites", elites, 1, samples)
+        seed = _whole("seed", seed, 0, (1 << 63) - 1)
     k = target.shape[0]
     for name, w in (("jerk", jerk), ("effort", effort), ("reference_weight", reference_weight)):
         if not (math.isfinite(w) and w >= 0.0):

@@ -22,6 +22,7 @@ from __future__ import annotations
 import array
 import functools
 import importlib
+import importlib.util
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -108,10 +109,38 @@ class ReplayConfig:
         for src, dst in self.remap:
             if not src or not dst:
                 raise ValueError(f"a remapping needs two topic names, got {src!r}:={dst!r}")
+        sources = [src for src, _ in self.remap]
+        twice = sorted({src for src in sources if sources.count(src) > 1})
+        if twice:
+            raise ValueError(f"{', '.join(twice)} remapped more than once")
 
 
 # --------------------------------------------------------------------------------------
 # Type mapping and message conversion (no rclpy: only the generated message classes)
+
+
+#: ROS 2 time has int32 seconds: the first bag time it cannot carry (2038-01-19).
+_MAX_ROS_TIME_NS = (1 << 31) * 1_000_000_000
+
+
+def _is_interface_package(pkg: str) -> bool:
+    """Whether ``pkg`` is an installed package of ROS 2 interfaces (rosidl's generated
+    Python, with its type support library), found without running any of its code: a bag
+    names its types, and importing whatever module it names would run that module."""
+    if not pkg.isidentifier():
+        return False
+    try:
+        spec = importlib.util.find_spec(pkg)  # a top-level name: located, not imported
+    except (ImportError, ValueError):
+        return False
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    for root in spec.submodule_search_locations:
+        base = Path(root)
+        if (base / "msg" / "__init__.py").is_file() and any(
+                base.glob(f"{pkg}_s__rosidl_typesupport_c*.so")):
+            return True
+    return False
 
 
 def message_class(msgtype: str) -> type:
@@ -129,6 +158,8 @@ def message_class(msgtype: str) -> type:
         pkg, name = parts[0], parts[2]
     else:
         raise ImportError(f"not a message type name: {msgtype!r}")
+    if not _is_interface_package(pkg):
+        raise ImportError(f"message package {pkg!r} is not installed")
     try:
         module = importlib.import_module(f"{pkg}.msg")
     except ImportError as exc:
@@ -285,9 +316,16 @@ class BagReplayer:
             raise ReplayError(f"{self.path}: cannot open the bag (corrupt or truncated): "
                               f"{_one_line(exc)}") from exc
         self.reader: AnyReader = reader
+        end = reader.end_time
+        if end >= _MAX_ROS_TIME_NS:
+            self.close()
+            raise ReplayError(f"{self.path}: bag times reach {end * 1e-9:.0f} s, beyond "
+                              "2038-01-19: ROS 2 time has int32 seconds (/clock and the "
+                              "stamps would wrap negative)")
         self.published = 0
         self.skipped_types: dict[str, str] = {}
         self.skipped_commands: list[str] = []  # commands to the chair, not played
+        self.skipped_names: dict[str, str] = {}  # bag topics ROS 2 cannot publish on
         self.topics: dict[str, _Topic] = {}
         try:
             self._select_topics()
@@ -318,7 +356,7 @@ class BagReplayer:
             by_topic.setdefault(conn.topic, []).append(conn)
         wanted = set(self.config.topics)
         remap = dict(self.config.remap)
-        unknown = sorted(wanted - set(by_topic))
+        unknown = sorted((wanted | set(remap)) - set(by_topic))
         if unknown:
             raise ReplayError(
                 f"{self.path}: topics not in the bag: {', '.join(unknown)} "
@@ -328,6 +366,12 @@ class BagReplayer:
             if wanted and topic not in wanted:
                 continue
             out = remap.get(topic, topic)
+            problem = self._name_problem(out)
+            if problem is not None:
+                if topic in remap:
+                    raise ReplayError(f"--remap {topic}:={out}: {problem}")
+                self.skipped_names[topic] = problem
+                continue
             # a command asked for by its own name (--topics) is played; one that becomes a
             # command by a remap needs --commands
             asked = topic in wanted and out == topic
@@ -350,6 +394,9 @@ class BagReplayer:
                 "skipping topics whose message types are not installed: %s",
                 "; ".join(f"{t}: {why}" for t, why in self.skipped_types.items()),
             )
+        if self.skipped_names:
+            LOG.warning("skipping topics that cannot be published in ROS 2: %s", "; ".join(
+                f"{t}: {why}" for t, why in self.skipped_names.items()))
         if self.skipped_commands:
             LOG.warning(
                 "not playing %s: commands to the chair, which a running serial bridge would "
@@ -360,6 +407,17 @@ class BagReplayer:
             but = " that is not a command to the chair" if self.skipped_commands else ""
             raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type"
                               f"{but})")
+
+    def _name_problem(self, name: str) -> str | None:
+        """Why the replay cannot publish on ``name`` (None: it can): a name ROS 2 refuses
+        (a ROS 1 bag's ``/cam/image-raw``), or ``/clock``, which the replay publishes."""
+        try:
+            resolved = self.node.resolve_topic_name(name)
+        except Exception as exc:  # rclpy raises several types for a bad name
+            return f"not a valid ROS 2 topic name ({_one_line(exc)})"
+        if resolved == "/clock" and self.config.publish_clock:
+            return "the replay publishes /clock itself"
+        return None
 
     def _commands_the_chair(self, name: str) -> bool:
         """Whether publishing on ``name`` reaches the chair: ``joy_override`` in any
@@ -385,8 +443,12 @@ class BagReplayer:
                     else DurabilityPolicy.VOLATILE
                 ),
             )
-            topic.publisher = self.node.create_publisher(topic.cls, topic.out_name or topic.name,
-                                                         qos)
+            name = topic.out_name or topic.name
+            try:
+                topic.publisher = self.node.create_publisher(topic.cls, name, qos)
+            except Exception as exc:  # e.g. /rosout, taken by another type
+                raise ReplayError(f"cannot publish {topic.name} on {name}: "
+                                  f"{_one_line(exc)}") from exc
         if self.config.publish_clock:
             self._clock_pub = self.node.create_publisher(Clock, "/clock", QoSProfile(depth=10))
 
