@@ -366,3 +366,39 @@ def test_asgp_board_monitor_without_a_board_fails_with_a_message(tmp_path, capsy
 
     assert main(["board", "--monitor", str(tmp_path / "nothing"), "--duration", "0.1"]) == 2
     assert "no board answered" in capsys.readouterr().err
+
+
+def test_the_link_is_made_without_touching_a_file_beside_it(tmp_path):
+    """The board made its link through PATH.tmp and deleted a user's file of that name."""
+    precious = tmp_path / "asgp_joystick.tmp"
+    precious.write_text("the user's data\n")
+    with SimulatedBoard(link_path=tmp_path / "asgp_joystick") as board:
+        assert os.readlink(board.port) == board.slave_path
+    assert precious.read_text() == "the user's data\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["asgp_joystick.tmp"]
+
+
+def test_a_board_that_stops_leaves_a_link_it_no_longer_owns(tmp_path):
+    """A second board took the link over; the first one's exit removed it while the second
+    ran."""
+    link = tmp_path / "asgp_joystick"
+    first = SimulatedBoard(link_path=link).start()
+    try:
+        with SimulatedBoard(link_path=link) as second:
+            assert os.readlink(link) == second.slave_path
+            first.stop()
+            assert os.readlink(link) == second.slave_path
+        assert not os.path.lexists(link)  # its own link, removed
+    finally:
+        first.stop()
+
+
+def test_a_slow_board_keeps_its_link_supervised(tmp_path):
+    """Heartbeats came every 20 ticks whatever the rate: at 10 Hz every 2 s, and the host,
+    which expects one within 0.6 s, saw the link stale half the time. They come at 5 Hz."""
+    with SimulatedBoard(rate_hz=10.0) as board, LinkManager(LinkConfig(board.port)) as link:
+        assert link.wait_for_state(LinkState.CONNECTED, 5.0)
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
+            assert link.state == LinkState.CONNECTED, link.stats()
+            time.sleep(0.05)

@@ -4,6 +4,7 @@ real AVR build for the ATmega2560."""
 
 from __future__ import annotations
 
+import itertools
 import os
 import random
 import re
@@ -55,7 +56,8 @@ def test_python_mirror_uses_the_firmware_constants(repo_root):
     d = _defines(src / "config.h") | _defines(src / "protocol.h")
     assert (d["ASGP_FW_MAJOR"], d["ASGP_FW_MINOR"], d["ASGP_FW_PATCH"]) == fw.FW_VERSION
     for name in ("SAMPLE_RATE_HZ", "HEARTBEAT_EVERY", "WATCHDOG_MS", "HOST_TIMEOUT_MS",
-                 "ADC_NEUTRAL", "ADC_SPAN", "ADC_DEADBAND", "ADC_FAULT_LOW", "ADC_FAULT_HIGH",
+                 "RX_IDLE_MS", "ADC_NEUTRAL", "ADC_SPAN", "ADC_DEADBAND", "ADC_FAULT_LOW",
+                 "ADC_FAULT_HIGH",
                  "DAC_NEUTRAL", "DAC_SPAN", "DAC_MIN", "DAC_MAX", "FWD_LIMIT_POS",
                  "FWD_LIMIT_NEG", "TURN_LIMIT_POS", "TURN_LIMIT_NEG", "BAUD"):
         assert d[f"ASGP_{name}"] == getattr(fw, name), name
@@ -317,4 +319,150 @@ def test_compiled_firmware_in_simavr_driven_by_the_host_link(repo_root, avr_buil
             assert proto.Status.NEUTRAL_STOP in samples[-1].status
             assert link.stats().frames_lost == 0 and link.stats().crc_errors == 0
     finally:
+        board.close()
+
+
+def _both(host_build, commands: list[str]) -> list[list[str]]:
+    """The outputs ("O status code_a code_b ...") of the C board and of the Python mirror
+    for the same commands, checked equal line for line (frames included)."""
+    got = _tool(host_build, commands)
+    expected: list[str] = []
+    board = fw.BoardLogic(lambda frame: expected.append(f"W {frame.hex().upper()}"))
+    for c in commands:
+        op, now, *rest = c.split()
+        if op == "rx":
+            board.rx(bytes.fromhex(rest[0]), int(now))
+        else:
+            o = board.tick((int(rest[0]), int(rest[1])), int(now))
+            expected.append(f"O {int(o.status)} {o.out_code[0]} {o.out_code[1]} "
+                            f"{o.user_pm[0]} {o.user_pm[1]} {o.out_pm[0]} {o.out_pm[1]}")
+    assert got == expected
+    return [line.split()[1:] for line in got if line.startswith("O ")]
+
+
+def _override(forward: int, turn: int, seq: int) -> str:
+    return proto.encode(proto.Override(forward, turn), seq).hex()
+
+
+def test_an_override_stale_once_never_drives_again_after_the_clock_wraps(host_build):
+    """The board's millisecond clock wraps after 49.7 days: an override 2^32 + 50 ms old
+    looked 50 ms old and drove the chair again (a host holding override mode with
+    heartbeats alone). Stale once, it is forgotten."""
+    hb = proto.encode(proto.Heartbeat(0, 0, 0, 0), 3).hex()
+    t0, wrap = 1000, 1000 + 2**32
+    commands = [f"rx {t0} {proto.encode(proto.SetMode(1), 1).hex()}",
+                f"rx {t0} {_override(900, 0, 2)}", f"tick {t0 + 5} 700 512",
+                f"rx {t0 + 300} {hb}", f"tick {t0 + 300} 700 512"]
+    for k in range(5, 0, -1):  # the host alive, with heartbeats only, up to the wrap
+        t = (wrap - 200 * k) % 2**32
+        commands += [f"rx {t} {hb}", f"tick {t} 700 512"]
+    commands += [f"rx {(wrap + 50) % 2**32} {hb}", f"tick {(wrap + 50) % 2**32} 700 512"]
+    outs = _both(host_build, commands)
+    assert int(outs[0][0]) & proto.Status.OVERRIDE_ACTIVE
+    assert all(not int(o[0]) & proto.Status.OVERRIDE_ACTIVE for o in outs[1:]), outs
+    assert outs[-1][1] == outs[1][1]  # the user's stick drives
+
+
+def test_an_override_behind_line_noise_is_never_applied_late(host_build):
+    """Three bytes of noise claiming a 32-byte frame (A5 5A 20) before the host's last
+    override: the parser waited for 39 bytes, the host's heartbeats completed them 400 ms
+    later, and the override, delivered then, drove the chair for 200 ms more. A partial
+    frame idle for RX_IDLE_MS is given up at the next tick, and what follows it is timed
+    by its last byte: the override drives the chair only while it is fresh."""
+    hb = proto.encode(proto.Heartbeat(0, 0, 0, 0), 9).hex()
+    commands = [f"rx 0 {proto.encode(proto.SetMode(1), 1).hex()}", "tick 5 700 512",
+                f"rx 10 a55a20{_override(-900, 0, 2)}"]
+    for t in range(15, 520, 10):
+        if t in (215, 415):
+            commands.append(f"rx {t - 5} {hb}")
+        commands.append(f"tick {t} 700 512")
+    outs = _both(host_build, commands)
+    active = [15 + 10 * i for i, o in enumerate(outs[1:])
+              if int(o[0]) & proto.Status.OVERRIDE_ACTIVE]
+    assert active, "the override behind the noise was lost"
+    assert min(active) >= 10 + fw.RX_IDLE_MS and max(active) < 10 + fw.WATCHDOG_MS, active
+
+
+def test_one_version_a_tick_whatever_the_hellos(host_build):
+    """Each HELLO was answered at once: a host sending 1000 a second (8 kB/s, within the
+    link) kept the firmware's loop writing VERSION frames into a full UART, the AVR
+    watchdog reset the board every 140 ms, and the user lost the chair. VERSION now goes
+    out at the next tick, one a tick."""
+    hello = proto.encode(proto.Hello(proto.PROTOCOL_VERSION), 0).hex()
+    commands = []
+    for t in range(0, 200, 10):
+        commands += [f"rx {t + k} {hello}" for k in range(10)] + [f"tick {t + 10} 700 512"]
+    got = _tool(host_build, commands)
+    versions = sum(1 for line in got if line.startswith("W ")
+                   and int(line[2 + 6:2 + 8], 16) == proto.MsgType.VERSION)
+    assert versions == 20  # one a tick, for 200 HELLOs
+    _both(host_build, commands)
+
+
+@pytest.mark.firmware
+@pytest.mark.slow
+@NO_AVR
+@pytest.mark.skipif(not os.path.exists("/usr/include/simavr/sim_avr.h"),
+                    reason="simavr headers not installed (Debian: simavr libsimavr-dev)")
+def test_compiled_firmware_keeps_the_user_in_charge_under_a_hello_flood(repo_root, avr_build):
+    """1000 HELLOs a second (8 kB/s, within the 115200-baud link) made the real firmware's
+    loop answer each at once into a full UART: the AVR watchdog reset it every 140 ms and
+    the chair's input swung between neutral and the user's stick. The loop now takes at
+    most ASGP_RX_PER_PASS bytes a pass and VERSION goes out once a tick."""
+    import select
+    import tty
+
+    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={avr_build}",
+                        f"{avr_build}/host/asgp_simavr"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    board = SimavrBoard(avr_build / "host/asgp_simavr", avr_build / "asgp_bridge.elf",
+                        3000, 2500)  # the user holds the stick half forward
+    fd = os.open(board.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    tty.setraw(fd)
+    parser = proto.StreamParser()
+    frames: list[tuple[float, proto.Frame]] = []
+    stop = threading.Event()
+
+    def read() -> None:
+        while not stop.is_set():
+            if select.select([fd], [], [], 0.05)[0]:
+                try:
+                    data = os.read(fd, 4096)
+                except OSError:
+                    continue
+                now = time.monotonic()
+                frames.extend((now, f) for f in parser.feed(data))
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        assert _wait(lambda: any(f.type == proto.MsgType.SAMPLE for _, f in frames), 10.0)
+        user_code = board.code("A")
+        assert user_code > fw.DAC_NEUTRAL + 300  # passthrough of the user's stick
+        hello = proto.encode(proto.Hello(proto.PROTOCOL_VERSION), 0)
+        t0 = time.monotonic()
+        sent = 0
+        while time.monotonic() < t0 + 1.0:
+            due = int((time.monotonic() - t0) * 1000)
+            while sent < due:
+                try:
+                    os.write(fd, hello)
+                except BlockingIOError:
+                    break
+                sent += 1
+            time.sleep(0.0005)
+        t1 = time.monotonic()
+        time.sleep(0.3)
+        samples = [t for t, f in frames if f.type == proto.MsgType.SAMPLE and t0 <= t < t1]
+        uptimes = [proto.Heartbeat.unpack(f.payload).uptime_ms for _, f in frames
+                   if f.type == proto.MsgType.HEARTBEAT]
+        restarts = sum(1 for a, b in itertools.pairwise(uptimes) if b < a)
+        codes = {c for t, ch, c in board.dac if ch == "A" and t >= t0}
+        assert sent > 500 and restarts == 0 and codes <= {user_code}, (sent, restarts, codes)
+        assert len(samples) >= 60, len(samples)  # simulated time is paced to real time
+    finally:
+        stop.set()
+        reader.join(1.0)
+        os.close(fd)
         board.close()

@@ -331,6 +331,16 @@ class StreamParser:
         self.bytes_dropped += len(self._buf)
         self._buf.clear()
 
+    def expire(self) -> list[Frame]:
+        """Gives up the partial frame at the start of the buffer (``asgp_parser_expire``:
+        the line went idle, its rest is not coming): drops one byte and rescans, as for a
+        bad CRC; returns the complete frames found. Call again while bytes are held."""
+        if not self._buf:
+            return []
+        del self._buf[:1]
+        self.bytes_dropped += 1
+        return self.feed(b"")
+
     def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
         """Frames completed by ``data``, in order."""
         buf = self._buf

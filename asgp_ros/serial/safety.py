@@ -31,6 +31,7 @@ SAMPLE_RATE_HZ = 100
 HEARTBEAT_EVERY = 20
 WATCHDOG_MS = board.WATCHDOG_MS
 HOST_TIMEOUT_MS = 1000
+RX_IDLE_MS = 20
 ADC_NEUTRAL = 512
 ADC_SPAN = 205
 ADC_DEADBAND = 8
@@ -188,8 +189,9 @@ class Safety:
         fault = any(r < c.adc_fault_low or r > c.adc_fault_high
                     for r, c in zip(raw, cal, strict=True))
         user = (cal[0].adc_to_permille(raw[0]), cal[1].adc_to_permille(raw[1]))
-        fresh = (self.mode == Mode.OVERRIDE and self.have_override
-                 and ((now_ms - self.override_ms) & _U32) < WATCHDOG_MS)
+        if self.have_override and ((now_ms - self.override_ms) & _U32) >= WATCHDOG_MS:
+            self.have_override = False  # stale once is stale for good (2^32 ms later too)
+        fresh = self.mode == Mode.OVERRIDE and self.have_override
         if self.mode == Mode.OVERRIDE and not fresh:
             status |= Status.WATCHDOG
         if fault:
@@ -235,6 +237,12 @@ class BoardLogic:
         self.pending_detail = 0
         self.rx_frames = 0
         self.tick_count = 0
+        self.pending_version = False
+        self.last_rx_ms = 0
+        # heartbeats at the firmware's 5 Hz whatever the simulated rate (every 20 ticks at
+        # 100 Hz: at 10 Hz, every 20 ticks let the host's 0.6 s supervision go stale)
+        self.heartbeat_every = max(1, round(self.sample_rate_hz * HEARTBEAT_EVERY
+                                            / SAMPLE_RATE_HZ))
 
     def _send(self, msg_type: int, payload: bytes) -> None:
         self.write(proto.encode_frame(msg_type, self.tx_seq, payload))
@@ -245,6 +253,8 @@ class BoardLogic:
 
     def rx(self, data: bytes, now_ms: int) -> None:
         """Bytes from the host; complete frames are acted on at once."""
+        if data:
+            self.last_rx_ms = now_ms & _U32
         for byte in data:  # byte by byte, so a CRC error is reported like the firmware does
             crc_before = self.parser.crc_errors
             frames = self.parser.feed(bytes((byte,)))
@@ -264,10 +274,7 @@ class BoardLogic:
         self.safety.host_alive(now_ms)
         err = 0
         if f.type == MsgType.HELLO:
-            major, minor, patch = FW_VERSION
-            self._send(MsgType.VERSION, proto.Version(
-                proto.PROTOCOL_VERSION, major, minor, patch, self.sample_rate_hz,
-                self.watchdog_ms).payload())
+            self.pending_version = True  # at the next tick: one VERSION a tick
             if f.payload[0] != proto.PROTOCOL_VERSION:
                 self._report(ErrorCode.VERSION_MISMATCH, f.payload[0])
         elif f.type == MsgType.MODE:
@@ -279,7 +286,10 @@ class BoardLogic:
             self._report(err, f.seq)
 
     def tick(self, raw: tuple[int, int], now_ms: int) -> Output:
-        """One control tick: safety step, SAMPLE (+ HEARTBEAT, ERROR) frames out."""
+        """One control tick: a partial frame idle for RX_IDLE_MS given up, safety step,
+        SAMPLE (+ HEARTBEAT, VERSION, ERROR) frames out."""
+        if self.parser.pending and ((now_ms - self.last_rx_ms) & _U32) >= RX_IDLE_MS:
+            self._expire()
         was_fault = Status.ADC_FAULT in self.out.status
         self.out = self.safety.step(self.cal, raw, now_ms)
         if Status.ADC_FAULT in self.out.status and not was_fault:
@@ -287,11 +297,27 @@ class BoardLogic:
         self._send(MsgType.SAMPLE, proto.Sample(raw[0] & 0xFFFF, raw[1] & 0xFFFF, self.out.status,
                                             *self.out.out_code).payload())
         self.tick_count += 1
-        if self.tick_count >= HEARTBEAT_EVERY:
+        if self.tick_count >= self.heartbeat_every:
             self.tick_count = 0
             self._send(MsgType.HEARTBEAT, proto.Heartbeat(
                 now_ms, self.rx_frames, self.parser.crc_errors, self.safety.mode).payload())
+        if self.pending_version:
+            self.pending_version = False
+            major, minor, patch = FW_VERSION
+            self._send(MsgType.VERSION, proto.Version(
+                proto.PROTOCOL_VERSION, major, minor, patch, self.sample_rate_hz,
+                self.watchdog_ms).payload())
         if self.pending_error:
             self._send(MsgType.ERROR, bytes((self.pending_error, self.pending_detail)))
             self.pending_error = 0
         return self.out
+
+    def _expire(self) -> None:
+        """The partial frame held is given up (``expire_rx``): frames found behind it are
+        acted on, timed by the last byte received."""
+        crc_before = self.parser.crc_errors
+        while self.parser.pending:
+            for f in self.parser.expire():
+                self._handle(f, self.last_rx_ms)
+        if self.parser.crc_errors != crc_before:
+            self._report(ErrorCode.BAD_CRC, 0)

@@ -275,16 +275,27 @@ class SimulatedBoard:
         self._master, self._slave = master, slave
         self._slave_path = os.ttyname(slave)
         if self.link_path is not None:
-            tmp = self.link_path.with_name(self.link_path.name + ".tmp")
-            if tmp.is_symlink() or tmp.exists():
-                tmp.unlink()
-            os.symlink(self._slave_path, tmp)
+            # a temporary name of its own (a fixed PATH.tmp deleted a user's file there),
+            # then the atomic rename over the link
+            for _ in range(100):
+                tmp = self.link_path.with_name(
+                    f".{self.link_path.name}.{os.getpid()}.{os.urandom(4).hex()}.tmp")
+                try:
+                    os.symlink(self._slave_path, tmp)
+                except FileExistsError:
+                    continue
+                break
+            else:
+                raise FileExistsError(f"no free temporary name next to {self.link_path}")
             os.replace(tmp, self.link_path)
         log.debug("simulated board on %s", self.port)
 
     def _close_pty(self) -> None:
+        # the link only if it is still this board's (another board may have taken it over)
         if self.link_path is not None and self.link_path.is_symlink():
-            self.link_path.unlink()
+            with contextlib.suppress(OSError):
+                if os.readlink(self.link_path) == self._slave_path:
+                    self.link_path.unlink()
         for fd in (self._master, self._slave):
             if fd is not None:
                 os.close(fd)

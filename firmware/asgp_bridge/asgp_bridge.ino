@@ -74,7 +74,8 @@ void setup()
 void loop()
 {
     wdt_reset();
-    while (Serial.available() > 0) {
+    /* bounded: a host that floods the link cannot keep the tick (and wdt_reset) waiting */
+    for (uint8_t i = 0; i < ASGP_RX_PER_PASS && Serial.available() > 0; ++i) {
         asgp_board_rx(&board, (uint8_t)Serial.read(), millis());
     }
     if (!tick_pending) {

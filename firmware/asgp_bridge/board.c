@@ -64,7 +64,7 @@ static void handle(asgp_board_t *b, const asgp_frame_t *f, uint32_t now_ms)
     asgp_safety_host_alive(&b->safety, now_ms);
     switch (f->type) {
     case ASGP_MSG_HELLO:
-        send_version(b);
+        b->pending_version = 1; /* at the next tick: a flood of HELLOs cannot fill the UART */
         if (f->payload[0] != ASGP_PROTOCOL_VERSION) {
             report(b, ASGP_ERR_VERSION_MISMATCH, f->payload[0]);
         }
@@ -87,6 +87,7 @@ static void handle(asgp_board_t *b, const asgp_frame_t *f, uint32_t now_ms)
 void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms)
 {
     asgp_frame_t f;
+    b->last_rx_ms = now_ms;
     uint16_t crc_before = b->parser.crc_errors;
     int got = asgp_parser_feed(&b->parser, byte, &f);
     if (b->parser.crc_errors != crc_before) {
@@ -98,8 +99,27 @@ void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms)
     }
 }
 
+static void expire_rx(asgp_board_t *b)
+{
+    asgp_frame_t f;
+    uint16_t crc_before = b->parser.crc_errors;
+    while (b->parser.n > 0) {
+        int got = asgp_parser_expire(&b->parser, &f);
+        while (got) {
+            handle(b, &f, b->last_rx_ms);
+            got = asgp_parser_next(&b->parser, &f);
+        }
+    }
+    if (b->parser.crc_errors != crc_before) {
+        report(b, ASGP_ERR_BAD_CRC, 0);
+    }
+}
+
 const asgp_output_t *asgp_board_tick(asgp_board_t *b, const int16_t raw[2], uint32_t now_ms)
 {
+    if (b->parser.n > 0 && (uint32_t)(now_ms - b->last_rx_ms) >= ASGP_RX_IDLE_MS) {
+        expire_rx(b);
+    }
     uint8_t was_fault = b->out.status & ASGP_ST_ADC_FAULT;
     asgp_safety_step(&b->safety, b->cal, raw, now_ms, &b->out);
     if ((b->out.status & ASGP_ST_ADC_FAULT) && !was_fault) {
@@ -120,6 +140,10 @@ const asgp_output_t *asgp_board_tick(asgp_board_t *b, const int16_t raw[2], uint
         asgp_put_u16(p + 6, b->parser.crc_errors);
         p[8] = b->safety.mode;
         send(b, ASGP_MSG_HEARTBEAT, p, ASGP_LEN_HEARTBEAT);
+    }
+    if (b->pending_version) {
+        b->pending_version = 0;
+        send_version(b);
     }
     if (b->pending_error) {
         uint8_t e[ASGP_LEN_ERROR] = {b->pending_error, b->pending_detail};

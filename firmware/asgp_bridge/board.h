@@ -28,14 +28,19 @@ typedef struct {
     uint8_t pending_detail;
     uint16_t rx_frames;     /* valid frames from the host */
     uint16_t tick_count;
+    uint8_t pending_version; /* a HELLO came: VERSION goes out at the next tick (one) */
+    uint32_t last_rx_ms;     /* when the last byte came */
     asgp_write_fn write;
     void *write_ctx;
 } asgp_board_t;
 
 void asgp_board_init(asgp_board_t *b, asgp_write_fn write, void *ctx);
-/* One received byte; complete frames are acted on at once. */
+/* One received byte; complete frames are acted on at once (a HELLO's VERSION is sent at
+ * the next tick: one a tick, whatever the host sends). */
 void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms);
-/* One control tick (ASGP_SAMPLE_RATE_HZ): returns the output to write to the DAC. */
+/* One control tick (ASGP_SAMPLE_RATE_HZ): returns the output to write to the DAC. A partial
+ * frame idle for ASGP_RX_IDLE_MS is given up first (frames found behind it are acted on,
+ * timed by their last byte: an override behind line noise is never applied late). */
 const asgp_output_t *asgp_board_tick(asgp_board_t *b, const int16_t raw[2], uint32_t now_ms);
 
 #ifdef __cplusplus

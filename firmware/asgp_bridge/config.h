@@ -16,6 +16,8 @@
 #define ASGP_HEARTBEAT_EVERY 20   /* board HEARTBEAT every N samples (5 Hz at 100 Hz) */
 #define ASGP_WATCHDOG_MS 200      /* an override older than this is ignored */
 #define ASGP_HOST_TIMEOUT_MS 1000 /* no valid frame from the host: mode -> passthrough */
+#define ASGP_RX_IDLE_MS 20   /* a partial frame with no byte for this long is given up */
+#define ASGP_RX_PER_PASS 64  /* bytes taken from the UART per loop pass, at most */
 
 /* Joystick input (ATmega2560 ADC, 10 bit, AVCC = 5 V reference): an inductive wheelchair
  * joystick centred at 2.5 V with +-1.0 V full deflection. */

@@ -146,3 +146,12 @@ int asgp_parser_next(asgp_parser_t *p, asgp_frame_t *frame)
         return 1;
     }
 }
+
+int asgp_parser_expire(asgp_parser_t *p, asgp_frame_t *frame)
+{
+    if (p->n == 0) {
+        return 0;
+    }
+    drop(p, 1);
+    return asgp_parser_next(p, frame);
+}

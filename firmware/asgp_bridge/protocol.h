@@ -104,6 +104,12 @@ int asgp_parser_feed(asgp_parser_t *p, uint8_t byte, asgp_frame_t *frame);
  * while rescanning a corrupted one): call this until it returns 0 to get them in order. */
 int asgp_parser_next(asgp_parser_t *p, asgp_frame_t *frame);
 
+/* Gives up the partial frame at the start of the buffer (its rest is not coming: the line
+ * went idle): drops one byte and rescans, as for a bad CRC. Returns 1 and fills *frame for
+ * a complete frame found (then call asgp_parser_next for more); call again while bytes
+ * are held, every one of them stale. */
+int asgp_parser_expire(asgp_parser_t *p, asgp_frame_t *frame);
+
 /* little-endian helpers */
 static inline void asgp_put_u16(uint8_t *p, uint16_t v)
 {

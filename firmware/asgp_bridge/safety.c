@@ -130,8 +130,10 @@ void asgp_safety_step(asgp_safety_t *s, const asgp_axis_cal_t cal[2], const int1
         }
         out->user_pm[i] = asgp_adc_to_permille(&cal[i], raw[i]);
     }
-    uint8_t fresh = s->mode == ASGP_MODE_OVERRIDE && s->have_override &&
-                    (uint32_t)(now_ms - s->override_ms) < ASGP_WATCHDOG_MS;
+    if (s->have_override && (uint32_t)(now_ms - s->override_ms) >= ASGP_WATCHDOG_MS) {
+        s->have_override = 0; /* stale once is stale for good (2^32 ms later too) */
+    }
+    uint8_t fresh = s->mode == ASGP_MODE_OVERRIDE && s->have_override;
     if (s->mode == ASGP_MODE_OVERRIDE && !fresh) {
         status |= ASGP_ST_WATCHDOG;
     }

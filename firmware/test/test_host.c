@@ -286,16 +286,21 @@ static void test_board(void)
     asgp_parser_t p;
     asgp_frame_t fr[64];
     const int16_t pushed[2] = {700, 300};
+    const int16_t neutral_raw[2] = {512, 512};
     uint8_t pl[4];
     asgp_board_init(&b, capture, NULL);
     asgp_parser_init(&p);
 
     pl[0] = ASGP_PROTOCOL_VERSION;
     send_to(&b, ASGP_MSG_HELLO, 0, pl, 1, 0);
+    send_to(&b, ASGP_MSG_HELLO, 1, pl, 1, 0); /* a second HELLO in the same tick */
     int k = feed_all(&p, written, n_written, fr, 64);
-    CHECK(k == 1 && fr[0].type == ASGP_MSG_VERSION && fr[0].len == ASGP_LEN_VERSION &&
-          fr[0].payload[0] == ASGP_PROTOCOL_VERSION &&
-          asgp_get_u16(fr[0].payload + 6) == ASGP_WATCHDOG_MS);
+    CHECK(k == 0); /* VERSION waits for the tick: a HELLO flood cannot fill the UART */
+    asgp_board_tick(&b, neutral_raw, 5);
+    k = feed_all(&p, written, n_written, fr, 64);
+    CHECK(k == 2 && fr[0].type == ASGP_MSG_SAMPLE && fr[1].type == ASGP_MSG_VERSION &&
+          fr[1].len == ASGP_LEN_VERSION && fr[1].payload[0] == ASGP_PROTOCOL_VERSION &&
+          asgp_get_u16(fr[1].payload + 6) == ASGP_WATCHDOG_MS); /* one VERSION a tick */
 
     /* override reaches the output; samples report it */
     n_written = 0;
