@@ -59,14 +59,15 @@ def board(tmp_path):
 @pytest.mark.parametrize("version", [2, proto.PROTOCOL_VERSION])
 def test_stray_version_frame_starts_a_new_handshake_and_samples_resume(board, version):
     journal = Journal()
-    stray = proto.encode(proto.Version(version, 7, 7, 7, 100, 200), 77)
     with LinkManager(LinkConfig(board.port), on_sample=journal.sample,
                      on_state=journal.state) as link:
         assert link.wait_for_state(LinkState.CONNECTED, 3.0)
         assert wait_until(lambda: journal.samples_after(0.0) > 10, 2.0)
         mark = len(journal.events)
         t0 = time.monotonic()
-        board.inject(stray)
+        # a SEQ just ahead of the board's count (one behind it is a late frame, dropped)
+        seq = (board._logic.tx_seq + 2) & 0xFF
+        board.inject(proto.encode(proto.Version(version, 7, 7, 7, 100, 200), seq))
         assert wait_until(lambda: journal.samples_after(t0) > 20
                           and link.state == LinkState.CONNECTED, 1.0), link.stats()
         after = journal.events[mark:]

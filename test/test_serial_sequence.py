@@ -19,6 +19,7 @@ from asgp_ros.serial import protocol as proto
 from asgp_ros.serial.link import (
     RESTART_SEQ_BELOW,
     SEQ_RESTART_AFTER,
+    SEQ_RESYNC_AFTER,
     LinkConfig,
     LinkManager,
     LinkState,
@@ -139,6 +140,10 @@ def frames_of(seqs: list[int], start_mark: int = 100) -> list[tuple[int, proto.M
     ([48, 49, 50, 0, 1, 2, 3, 4], [0, 1, 2, 5, 6, 7], SEQ_RESTART_AFTER - 1, 0, 0, 1),
     # a restart whose first frame was cut by the reset itself
     ([60, 61, 1, 2, 3, 4], [0, 1, 4, 5], SEQ_RESTART_AFTER - 1, 0, 0, 1),
+    # one frame of line noise that passed the CRC with a SEQ far ahead: the board's count
+    # is followed again after SEQ_RESYNC_AFTER frames (it was held back up to 1.3 s)
+    ([40, 41, 140, *range(42, 54)], [0, 1, 2, *range(3 + SEQ_RESYNC_AFTER - 1, 15)],
+     98 + SEQ_RESYNC_AFTER - 1, 0, 0, 1),
 ])
 def test_sequence_rule(linked, seqs, taken, lost, repeated, late, restarts):
     board, link, marks = linked
@@ -230,4 +235,4 @@ def test_frames_only_a_host_sends_are_named():
 
 
 def test_restart_window_constant_is_below_half_the_count():
-    assert SEQ_RESTART_AFTER < RESTART_SEQ_BELOW < 128
+    assert SEQ_RESTART_AFTER < SEQ_RESYNC_AFTER < RESTART_SEQ_BELOW < 128

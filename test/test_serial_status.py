@@ -264,7 +264,8 @@ def test_host_lost_is_an_error_until_the_board_hears_us_and_overrides_resume(bri
 @pytest.mark.ros
 def test_joy_resumes_after_a_stray_version_frame(bridge):
     b = bridge(lambda t: (0.5, 0.0), diagnostics_period=0.2)
-    b.board.inject(proto.encode(proto.Version(2, 1, 0, 0, 100, 200), 99))
+    seq = (b.board._logic.tx_seq + 2) & 0xFF  # just ahead: one behind is dropped, late
+    b.board.inject(proto.encode(proto.Version(2, 1, 0, 0, 100, 200), seq))
     t0 = time.monotonic()
     assert b.spin_until(lambda: b.joy_count_after(t0 + 0.05) > 0, 10.0)
     assert b.node.link.stats().unsolicited_versions == 1

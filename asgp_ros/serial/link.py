@@ -56,6 +56,11 @@ SEQ_RESTART_AFTER = 3
 #: ... and the first of them is this close to a new count's start (a restart's first frames
 #: may be lost, or cut by the reset itself).
 RESTART_SEQ_BELOW = 16
+#: Frames behind in a row, each one after the other, from anywhere in the count: the
+#: board's count goes on from there (one frame of line noise that passed the CRC with a SEQ
+#: far ahead would otherwise hold every frame back until the count reached it, up to
+#: 1.3 s; a board that reorders this many frames is not expected).
+SEQ_RESYNC_AFTER = 8
 
 #: A handshake that has not succeeded for this long is an error (a device that is not the
 #: board, the wrong baud rate, a boot loader): the diagnostics say what was heard instead.
@@ -199,6 +204,7 @@ class LinkManager:
         self._host_frames_heard = 0
         self._behind_seq: int | None = None  # the last frame behind _last_seq, and how many
         self._behind_run = 0                 # such frames in a row, each one after the other
+        self._behind_start = 0               # the first of them
         self._last_uptime: int | None = None  # the board's uptime in its last heartbeat
         self._past_end = 0  # lost SEQs counted at the end of a count since that heartbeat
         self._state_t = clock()
@@ -556,8 +562,9 @@ class LinkManager:
         it skipped are lost frames. The last SEQ again is a repeat, and one behind it a
         frame delivered late: neither is taken. SEQ_RESTART_AFTER frames behind in a row,
         each one after the other and the first of them among the first RESTART_SEQ_BELOW of
-        a count, are the board's counter starting over: the last of them is taken and the
-        others count as lost. A restart after a SEQ above 127 looks like a jump to a new
+        a count, are the board's counter starting over (SEQ_RESYNC_AFTER from anywhere: a
+        noise frame took the count ahead): the last of them is taken and the others count
+        as lost. A restart after a SEQ above 127 looks like a jump to a new
         count: the next heartbeat's uptime, at most 0.2 s later, tells, and the SEQs counted
         lost past the old count's last frame are taken back (``_past_end``).
         """
@@ -576,12 +583,13 @@ class LinkManager:
             self._last_seq, self._behind_seq, self._behind_run = seq, None, 0
             return True
         follows = self._behind_seq is not None and seq == (self._behind_seq + 1) & 0xFF
-        if not follows:  # a new run; 0: one that cannot be a restart
-            self._behind_run = 1 if seq < RESTART_SEQ_BELOW else 0
-        elif self._behind_run:
+        if follows:
             self._behind_run += 1
+        else:  # a new run
+            self._behind_run, self._behind_start = 1, seq
         self._behind_seq = seq
-        if self._behind_run < SEQ_RESTART_AFTER:
+        need = SEQ_RESTART_AFTER if self._behind_start < RESTART_SEQ_BELOW else SEQ_RESYNC_AFTER
+        if self._behind_run < need:
             self._frames_late += 1
             return False
         self._seq_restarts += 1
