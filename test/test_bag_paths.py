@@ -246,3 +246,34 @@ def test_a_stale_joystick_reading_delivered_late_is_dropped(bag: Path, tmp_path:
     early = s.joy_t < t0 - 1.0
     assert not early.any(), (f"joystick sample at {s.joy_t[early] - t0} s (before the bag "
                              f"starts) with deflection {s.joy[early]}")
+
+
+@pytest.mark.parametrize("second", ["same", "symlink", "storage_file", "copy"])
+def test_one_recording_given_twice_is_refused(bag: Path, tmp_path: Path, second: str) -> None:
+    """``asgp train`` trained on its rows twice (``asgp adapt`` refused a path given twice,
+    not a link or a copy); ``asgp evaluate`` counted its cases twice."""
+    other = {"same": bag, "symlink": tmp_path / "link", "storage_file": bag / "b.mcap",
+             "copy": tmp_path / "copy"}[second]
+    if second == "symlink":
+        other.symlink_to(bag)
+    elif second == "copy":
+        shutil.copytree(bag, other)
+    out = tmp_path / "m.npz"
+    r = run("train", str(bag), str(other), "--out", str(out), "--model", "constant_velocity")
+    assert r.returncode == 2 and "the same recording as" in r.stderr, r.stderr
+    assert not out.exists()
+    assert run("train", str(bag), "--out", str(out), "--model",
+               "constant_velocity").returncode == 0
+    r = run("evaluate", str(out), str(bag), str(other))
+    assert r.returncode == 2 and "the same recording as" in r.stderr, r.stderr
+
+
+def test_a_dataset_holding_a_recording_twice_is_not_reproduced(tmp_path: Path) -> None:
+    """A backup copy of a test bag beside the others put it into the Tile and Both train
+    sets: models were tested on data they were trained on, and the report did not say."""
+    data = tmp_path / "data"
+    assert run("dataset", "--out", str(data), "--scale", "0.005").returncode == 0
+    shutil.copytree(data / "tile" / "tile_08", data / "tile" / "tile_08_backup")
+    r = run("reproduce", "--data", str(data), "--out", str(tmp_path / "rep"), "--quick")
+    assert r.returncode == 2 and "the same recording as" in r.stderr, r.stderr
+    assert not (tmp_path / "rep").exists()

@@ -335,3 +335,29 @@ def test_bad_manifests_are_refused_without_blocking_or_recursing(tmp_path):
     (loop / "manifest.json").symlink_to(loop / "manifest.json")
     with pytest.raises(ReproduceError):
         read_manifest(loop)
+
+
+def test_quick_resumes_the_dataset_an_interrupted_run_began(tmp_path, monkeypatch):
+    """Ctrl-C while ``asgp reproduce --quick`` built its dataset, then the same command: it
+    stopped on the half-built dataset ('the dataset has 2 tile bag(s) (need >= 4)')
+    instead of resuming it."""
+    from asgp_ros.common.fileio import write_marker
+    from asgp_ros.learning.reproduce import run as run_module
+
+    data = tmp_path / "q"
+    (data / "tile" / "tile_01").mkdir(parents=True)
+    (data / "tile" / "tile_01" / "metadata.yaml").write_text("rosbag2_bagfile_information:\n")
+    write_marker(data, "dataset")  # what build_dataset writes first; no manifest yet
+    built: list[Path] = []
+
+    class ResumedError(Exception):
+        pass
+
+    def resume(path, **kwargs):
+        built.append(Path(path))
+        raise ResumedError
+
+    monkeypatch.setattr(run_module, "build_quick_dataset", resume)
+    with pytest.raises(ResumedError):
+        run_module.run(data, tmp_path / "out", quick=True)
+    assert built == [data]

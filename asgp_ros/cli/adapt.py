@@ -19,6 +19,7 @@ from asgp_ros.learning.adapting import (
     adapt_model,
     check_adaptable,
 )
+from asgp_ros.recording.bags import same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -90,12 +91,9 @@ def summary_lines(meta: dict[str, Any]) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, MODEL_FILE, inputs=[args.model, *bag_inputs(args.bags)],
                  force=args.force)
-    seen: dict[str, str] = {}
-    for bag in args.bags:  # a bag given twice would count its rows twice
-        key = os.path.realpath(bag)  # (a symbolic link loop stays a path: the reader says)
-        if key in seen:
-            raise CommandError(f"{bag}: the same recording as {seen[key]}; give each once")
-        seen[key] = bag
+    twice = same_recording(args.bags)
+    if twice is not None:  # a bag given twice would count its rows twice
+        raise CommandError(f"{twice[1]}: the same recording as {twice[0]}; give each once")
     opts = OfflineAdaptOptions(trained_weight=args.trained_weight,
                                holdout=0.0 if args.no_calibration else 0.2,
                                calibrate=not args.no_calibration)

@@ -26,6 +26,7 @@ from asgp_ros.learning.evaluation import (
     evaluate_adaptive,
     evaluate_model,
 )
+from asgp_ros.recording.bags import same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -107,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         check_output(args.json, SCORES_JSON, inputs=[args.model, *bag_inputs(args.bags)],
                      force=args.force, option="--json")
+    twice = same_recording(args.bags)
+    if twice is not None:  # its cases would count twice
+        raise CommandError(f"{twice[1]}: the same recording as {twice[0]}; give each once")
     try:
         model = load_model(args.model)
     except (ModelFileError, OSError, ValueError) as exc:

@@ -23,6 +23,7 @@ from asgp_ros.learning.training import (
     train,
     train_auto,
 )
+from asgp_ros.recording.bags import same_recording
 
 
 def _default_lags_help() -> str:
@@ -134,6 +135,9 @@ def selection_table(model: MotionModel) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     check_output(args.out, MODEL_FILE, inputs=bag_inputs(args.bags), force=args.force)
+    twice = same_recording(args.bags)
+    if twice is not None:  # its rows would count twice
+        raise CommandError(f"{twice[1]}: the same recording as {twice[0]}; give each once")
     try:
         rc = ResampleConfig(vel_stamp=args.vo_stamp) if args.rate is None else \
             ResampleConfig(rate_hz=args.rate, vel_stamp=args.vo_stamp)

@@ -252,6 +252,52 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
     return p
 
 
+def _recording_keys(path: str | os.PathLike[str]) -> list[tuple[object, ...]]:
+    """What identifies the recording ``path`` names: its real path (a symbolic link or a
+    storage file stands for its bag), and, for a ROS 2 bag, its start, duration and
+    message count from metadata.yaml with the size of its storage (a copy of it is the
+    same recording); for a ROS 1 bag its size and first 64 KiB."""
+    try:
+        bag = resolve_bag(path)
+    except BagError:
+        return [("path", os.path.realpath(path))]  # the reader says what is wrong
+    keys: list[tuple[object, ...]] = [("path", os.path.realpath(bag))]
+    if bag.is_dir():
+        with contextlib.suppress(BagError, OSError):
+            info = _bag_metadata(bag)
+            start = (info.get("starting_time") or {}).get("nanoseconds_since_epoch") \
+                if isinstance(info.get("starting_time"), dict) else None
+            dur = (info.get("duration") or {}).get("nanoseconds") \
+                if isinstance(info.get("duration"), dict) else None
+            count = info.get("message_count")
+            # and the bytes of its storage files: two simulated bags start at one time and
+            # may hold as many messages
+            size = sum(f.stat().st_size for f in bag.iterdir()
+                       if f.suffix in (".mcap", ".db3") and f.is_file())
+            if all(_count_in_range(v, 1 << 63) for v in (start, dur, count)) and count:
+                keys.append(("ros2", start, dur, count, size))
+    else:
+        with contextlib.suppress(OSError), open(bag, "rb") as fh:
+            keys.append(("ros1", os.fstat(fh.fileno()).st_size, hash(fh.read(1 << 16))))
+    return keys
+
+
+def same_recording(paths: Collection[str | os.PathLike[str]]) -> tuple[str, str] | None:
+    """The first two of ``paths`` that are one recording (the same bag given twice, by a
+    symbolic link, its storage file or a copy), or None. Training or testing on a
+    recording twice counts its rows twice, and one in both a train and a test set tests a
+    model on its own data."""
+    seen: dict[tuple[object, ...], str] = {}
+    for p in paths:
+        keys = _recording_keys(p)
+        for key in keys:
+            if key in seen:
+                return seen[key], str(p)
+        for key in keys:
+            seen[key] = str(p)
+    return None
+
+
 def _check_ros1_magic(p: Path) -> None:
     """A ROS 1 bag starts with its version line. Checked here in 13 bytes because the
     reader looks for the end of that line with ``readline()``: in a file of zeros (a sparse

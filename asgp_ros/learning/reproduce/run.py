@@ -19,7 +19,14 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from asgp_ros.common.fileio import REPORT_DIR, OutputError, atomic_path, check_output, write_marker
+from asgp_ros.common.fileio import (
+    REPORT_DIR,
+    OutputError,
+    atomic_path,
+    check_output,
+    read_marker,
+    write_marker,
+)
 from asgp_ros.learning.dataset import BuiltDataset, manifest_topics
 from asgp_ros.learning.dataset import Progress as DatasetProgress
 from asgp_ros.learning.reproduce.data import (
@@ -51,7 +58,7 @@ from asgp_ros.learning.reproduce.protocol import (
 from asgp_ros.learning.reproduce.report import markdown
 from asgp_ros.learning.reproduce.summary import summarise
 from asgp_ros.learning.training import Series
-from asgp_ros.recording.bags import BagError
+from asgp_ros.recording.bags import BagError, same_recording
 
 log = logging.getLogger(__name__)
 
@@ -81,12 +88,20 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     t_start = time.perf_counter()
     st = Settings.for_mode(quick, jobs, seed)
     data = Path(data)
-    if quick and (not data.is_dir() or not any(discover_safe(data).values())):
+    # a new dataset, or one an interrupted run began (its marker, no manifest yet): resumed
+    unfinished = (data.is_dir() and read_marker(data) == "dataset"
+                  and not (data / "manifest.json").exists())
+    if quick and (not data.is_dir() or not any(discover_safe(data).values()) or unfinished):
         built = build_quick_dataset(data, progress=dataset_progress)
         if dataset_built is not None:
             dataset_built(built)
     manifest = read_manifest(data)
-    train_paths, test_paths = split(discover(data), manifest)
+    found = discover(data)
+    twice = same_recording([p for bags in found.values() for p in bags])
+    if twice is not None:  # trained twice on it, or tested on data a model was trained on
+        raise ReproduceError(f"{twice[1]} is the same recording as {twice[0]} (a copy, or a "
+                             "link): a dataset holds each recording once")
+    train_paths, test_paths = split(found, manifest)
     t_data = time.perf_counter()
     series = _read_dataset(manifest, train_paths, test_paths, st.jobs)
     t_read = time.perf_counter()
