@@ -31,6 +31,7 @@ from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.resample import Resampled
 from asgp_ros.core.rollout import rollout
 from asgp_ros.core.sparse_gp import SparseGP
+from asgp_ros.learning import training
 from asgp_ros.learning.evaluation import TestSeries, evaluate_model
 from asgp_ros.learning.training import (
     PAPER_OPTIONS,
@@ -479,3 +480,12 @@ def test_the_coverage_is_reported_per_speed_regime_and_steadiness_together(auto_
     assert steady == cal["by_steadiness"]["steady joystick"]["cases"]
     lines = coverage_lines(cal)
     assert sum(", steady" in ln or ", changing" in ln for ln in lines) == 2 * len(speed)
+
+
+def test_a_pinned_m_gets_the_rows_it_needs_whatever_the_budget() -> None:
+    """--inducing-v 600 --budget-s 10 sized the selection subset at 1,000 rows by the budget:
+    every candidate was skipped ('1000 rows are too few for M = 600') and the model fell
+    back to the paper's, uncalibrated, saying 'too little held-out data'."""
+    opts = AutoOptions(budget_s=10.0, inducing_v=600, inducing_w=600)
+    assert opts.selection_rows >= 2 * 600
+    assert AutoOptions(budget_s=10.0).selection_rows == training.MIN_SELECTION_ROWS

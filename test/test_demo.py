@@ -408,7 +408,26 @@ def test_options_are_validated():
         DemoOptions(minutes=0.0).validate()
     with pytest.raises(DemoError, match="domain"):
         DemoOptions(domain_id=233).validate()
+    # the simulated hardware node's range: 2^31 passed here and made the node fail with a
+    # traceback
+    with pytest.raises(DemoError, match="seed"):
+        DemoOptions(seed=2**31).validate()
+    DemoOptions(seed=2**31 - 1).validate()
     DemoOptions().validate()
+
+
+def test_a_demo_stopped_before_its_nodes_spoke_blames_none_of_them():
+    """Ctrl-C while the demo waited for its nodes gave exit 1 and 'joy never arrived:
+    serial_bridge_node ... produced no output' for each of them; now exit 130."""
+    from types import SimpleNamespace
+
+    from asgp_ros.demo import orchestrator
+
+    for stopped_by, silent in (("SIGINT", 0), ("", len(orchestrator.PRODUCERS))):
+        state = orchestrator.RunState(options={}, domain_id=1, stopped_by=stopped_by)
+        orchestrator._check_components(SimpleNamespace(counts={}),
+                                       SimpleNamespace(children=[]), state)
+        assert len(state.errors) == silent, state.errors
 
 
 def test_child_environment_isolates_the_demo():

@@ -131,8 +131,8 @@ class DemoOptions:
     def validate(self) -> None:
         if not (math.isfinite(self.minutes) and 0.05 <= self.minutes <= 600.0):
             raise DemoError(f"--minutes must be in [0.05, 600], got {self.minutes}")
-        if self.seed < 0:
-            raise DemoError(f"--seed must be >= 0, got {self.seed}")
+        if not 0 <= self.seed <= 2**31 - 1:  # the simulated hardware node's range
+            raise DemoError(f"--seed must be in [0, {2**31 - 1}], got {self.seed}")
         if self.domain_id is not None and not 1 <= self.domain_id <= 232:
             raise DemoError(f"--domain-id must be in 1..232 (Fast DDS), got {self.domain_id}")
         if not (math.isfinite(self.train_minutes) and 0.5 <= self.train_minutes <= 120.0):
@@ -449,7 +449,8 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
 def _check_components(monitor: MonitorNode, group: ProcessGroup, state: RunState) -> None:
     """An error in ``state`` for each component that produced nothing, and for each node that
     exited with a failure (not by the stop signal it was sent)."""
-    silent = silent_components(monitor.counts)
+    # stopped by the user before a component had its turn: that is no failure of it
+    silent = [] if state.stopped_by else silent_components(monitor.counts)
     for c in group.children:
         if c.returncode not in (0, None) and c.signal_used in ("", "SIGINT") and \
                 c.returncode != -signal.SIGINT:

@@ -321,8 +321,13 @@ class AutoOptions:
 
     @property
     def selection_rows(self) -> int:
-        return int(min(MAX_SELECTION_ROWS,
-                       max(MIN_SELECTION_ROWS, round(self.budget_s * ROWS_PER_BUDGET_S))))
+        # a pinned M needs 2 M rows to fit on: a subset sized by the budget alone skipped
+        # every candidate, and the model fell back to the paper's, uncalibrated
+        pinned = max((m for m in (self.inducing_v, self.inducing_w) if m is not None),
+                     default=0)
+        by_budget = min(MAX_SELECTION_ROWS,
+                        max(MIN_SELECTION_ROWS, round(self.budget_s * ROWS_PER_BUDGET_S)))
+        return int(max(by_budget, 2 * pinned))
 
     @property
     def selection_max_iter(self) -> int:
@@ -730,7 +735,9 @@ def _fallback(series: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
     meta["training"] = {**meta["training"], "configuration": "fallback"}
     meta["selection"] = {"fallback": why, "candidates": table,
                          "holdout_fraction": opts.holdout, "budget_s": opts.budget_s}
-    meta["calibration"] = {"fitted": False, "reason": "too little held-out data"}
+    meta["calibration"] = {"fitted": False,
+                           "reason": f"no candidate could be scored on the held-out data "
+                                     f"({why})"}
     return dataclasses.replace(model, meta=meta)
 
 
