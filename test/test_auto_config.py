@@ -489,3 +489,16 @@ def test_a_pinned_m_gets_the_rows_it_needs_whatever_the_budget() -> None:
     opts = AutoOptions(budget_s=10.0, inducing_v=600, inducing_w=600)
     assert opts.selection_rows >= 2 * 600
     assert AutoOptions(budget_s=10.0).selection_rows == training.MIN_SELECTION_ROWS
+
+
+def test_a_budget_overrun_is_said(chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
+    """--budget-s 1 ran for 9 s, the plan's floors kept, and nothing said so. (A clock that
+    moves a second at each reading makes the overrun certain, whatever the machine.)"""
+    ticks = iter(range(10**6))
+    monkeypatch.setattr(training.time, "perf_counter", lambda: float(next(ticks)))
+    said: list[str] = []
+    model = train_auto(chair, AutoOptions(seed=3, **{**SMALL, "budget_s": 1.0}),  # type: ignore[arg-type]
+                       progress=lambda channel, message: said.append(message))
+    total = model.meta["selection"]["seconds"]["total"]
+    assert total > 1.0
+    assert any(m.startswith(f"took {total:.1f} s, more than the 1 s planned") for m in said), said

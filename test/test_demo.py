@@ -682,3 +682,52 @@ def test_demo_leaves_no_processes_and_stops_on_ctrl_c(demo_run, tmp_path):
     assert (out / "report.md").exists()
     assert not _demo_children(proc.pid)
     assert not _demo_children()
+
+
+def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, monkeypatch):
+    """``asgp demo --force`` over a complete demo, then Ctrl-C before the drive: report.md
+    became one of a 0 s drive and run_bag held nothing recoverable. The earlier demo is
+    set aside and put back; a demo that drove replaces it; a failure puts it back too."""
+    from asgp_ros.common.fileio import write_marker
+    from asgp_ros.demo import orchestrator
+
+    out = tmp_path / "demo"
+    out.mkdir()
+    write_marker(out, "demo")
+    (out / "report.md").write_text("the earlier demo\n")
+    model = tmp_path / "m.npz"
+    model.write_bytes(b"")
+    said: list[str] = []
+
+    def stopped(opts, into, state, say):
+        (into / "report.md").write_text("a 0 s drive\n")
+        state.stopped_by = "SIGINT"
+        return 130
+
+    def drove(opts, into, state, say):
+        (into / "report.md").write_text("the new demo\n")
+        state.stopped_by, state.drive_start_wall = "SIGINT", 1.0
+        return 130
+
+    def failed(opts, into, state, say):
+        (into / "report.md").write_text("half\n")
+        raise DemoError("the model cannot be used")
+
+    opts = DemoOptions(out=out, force=True, model=model)
+    monkeypatch.setattr(orchestrator, "_run_in", stopped)
+    assert orchestrator.run_demo(opts, said.append) == 130
+    assert (out / "report.md").read_text() == "the earlier demo\n"
+    monkeypatch.setattr(orchestrator, "_run_in", failed)
+    with pytest.raises(DemoError):
+        orchestrator.run_demo(opts, said.append)
+    assert (out / "report.md").read_text() == "the earlier demo\n"
+    monkeypatch.setattr(orchestrator, "_run_in", drove)
+    assert orchestrator.run_demo(opts, said.append) == 130
+    assert (out / "report.md").read_text() == "the new demo\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo", "m.npz"]  # nothing aside
+    # a new directory that a failed run made, with nothing in it, is not left behind
+    monkeypatch.setattr(orchestrator, "_run_in", lambda *a: (_ for _ in ()).throw(
+        DemoError("no model")))
+    with pytest.raises(DemoError):
+        orchestrator.run_demo(DemoOptions(out=tmp_path / "new", model=model), said.append)
+    assert not (tmp_path / "new").exists()

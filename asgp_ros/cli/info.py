@@ -109,7 +109,8 @@ def _selection_lines(model: MotionModel) -> list[str]:
         f"fell back ({sel['fallback']})" if "fallback" in sel else
         f"chosen by {sel.get('criterion', '?')} on the last "
         f"{100 * sel.get('holdout_fraction', 0):.0f}% of each bag; "
-        f"{secs.get('total', '?')} s")] + ["  " + line for line in selection_table(model)]
+        f"{secs.get('total', '?')} s, planned for {sel.get('budget_s', '?')} s")] + [
+            "  " + line for line in selection_table(model)]
 
 
 def _calibration_lines(model: MotionModel) -> list[str]:

@@ -66,7 +66,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     p.add_argument("--budget-s", type=number(*BUDGET_RANGE_S, unit="s"), default=180.0,
                    help="time the automatic configuration is planned for (%(default)s s "
                         "fits 120 minutes of data on 2 cores); the plan is fixed before "
-                        "fitting, so the choice is deterministic for a seed")
+                        "fitting, so the choice is deterministic for a seed; it has floors "
+                        "(1000 rows, 20 iterations, two sizes of M), so a budget of a few "
+                        "seconds is overrun, and said")
     p.add_argument("--no-calibration", action="store_true",
                    help="asgp: do not calibrate the variance on the held-out data")
     p.add_argument("--max-iter", type=cli_integer("max_iter"), default=200,

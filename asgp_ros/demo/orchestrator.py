@@ -41,7 +41,13 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 import asgp_ros
 from asgp_ros.common import topics
-from asgp_ros.common.fileio import DEMO_DIR, OutputError, check_output, write_marker
+from asgp_ros.common.fileio import (
+    DEMO_DIR,
+    MARKER_NAME,
+    OutputError,
+    check_output,
+    write_marker,
+)
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.scan_match import VELOCITY_SOURCES
@@ -363,15 +369,48 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
                            inputs=[opts.model] if opts.model is not None else [])
     except OutputError as exc:
         raise DemoError(str(exc)) from exc
-    out.mkdir(parents=True, exist_ok=True)
-    write_marker(out, "demo")
+    # An earlier demo there (--force, or its model reused) is set aside, not written over:
+    # it is removed once this one has driven, and put back if it is stopped before that.
+    previous = None
+    if out.exists():
+        previous = out.with_name(f".{out.name}.previous.{os.urandom(4).hex()}")
+        os.rename(out, previous)
     domain = opts.domain_id if opts.domain_id is not None else default_domain_id()
     state = RunState(options={k: str(v) if isinstance(v, Path) else v
                               for k, v in asdict(opts).items()}, domain_id=domain)
+    try:
+        out.mkdir(parents=True)
+        write_marker(out, "demo")
+        if reuse and previous is not None and (previous / "model.npz").is_file():
+            shutil.copy2(previous / "model.npz", out / "model.npz")
+        rc = _run_in(opts, out, state, say)
+    except BaseException:
+        _put_back(out, previous)
+        if previous is None and out.is_dir() and set(os.listdir(out)) <= {MARKER_NAME}:
+            shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
+        raise
+    if previous is not None and state.stopped_by and state.drive_start_wall is None:
+        _put_back(out, previous)
+        say(f"stopped before the drive: the earlier demo in {out} is kept")
+    elif previous is not None:
+        shutil.rmtree(previous, ignore_errors=True)
+    return rc
+
+
+def _put_back(out: Path, previous: Path | None) -> None:
+    """The earlier demo back where it was (this run's output removed)."""
+    if previous is None:
+        return
+    shutil.rmtree(out, ignore_errors=True)
+    os.rename(previous, out)
+
+
+def _run_in(opts: DemoOptions, out: Path, state: RunState, say: Printer) -> int:
+    """The demo's steps, its output in ``out``; the exit code."""
     model, motion_model = _demo_model(opts, out, state, say)  # 1. the model
-    env = _enter_domain(domain, say)  # 2. environment of this process and the nodes
+    env = _enter_domain(state.domain_id, say)  # 2. environment of this process and the nodes
     bag_final = out / "run_bag"
-    monitor, group = _run_nodes(opts, out, model, env, domain, bag_final, state, say)
+    monitor, group = _run_nodes(opts, out, model, env, state.domain_id, bag_final, state, say)
     _check_components(monitor, group, state)  # 3. what every component produced
     return _report(out, state, monitor, motion_model, bag_final, env, say)  # 4. the report
 

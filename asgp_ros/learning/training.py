@@ -556,6 +556,14 @@ def train_auto(
     fc = chosen.features()
     seconds = {"selection": round(t_select, 2), "final_fit": round(t_fit, 2),
                "total": round(time.perf_counter() - t_start, 2)}
+    if seconds["total"] > opts.budget_s:
+        # the plan has floors whatever the budget (MIN_SELECTION_ROWS rows,
+        # SELECTION_MIN_ITER iterations, two sizes of M), and the final fit runs max_iter
+        report("select", f"took {seconds['total']:.1f} s, more than the {opts.budget_s:g} s "
+                         "planned: the plan's floors (at least "
+                         f"{MIN_SELECTION_ROWS} rows, {SELECTION_MIN_ITER} iterations and "
+                         f"two sizes of M per structure) and the final fit's {opts.max_iter} "
+                         "iterations do not shrink with it")
     meta = _automatic_meta(series, opts, chosen, infos, search.table, case_lags, seconds,
                            cal_meta)
     return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
