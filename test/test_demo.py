@@ -731,3 +731,35 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
     with pytest.raises(DemoError):
         orchestrator.run_demo(DemoOptions(out=tmp_path / "new", model=model), said.append)
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.ros
+def test_a_demo_refuses_a_domain_in_use(rclpy_context):
+    """Two demos on one domain recorded and scored each other's streams (online success
+    20-35 % instead of 80 %) and both exited 0. A demo listens for other nodes before it
+    starts its own, and stops when one of its outputs has a second publisher."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import Joy
+
+    from asgp_ros.common import topics
+    from asgp_ros.demo import orchestrator
+
+    monitor = rclpy.create_node("asgp_demo_monitor", context=rclpy_context)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(monitor)
+    try:
+        assert orchestrator._nodes_already_there(monitor, executor, seconds=0.2) == []
+        other = rclpy.create_node("serial_bridge_node", context=rclpy_context)
+        hidden = rclpy.create_node("_ros2cli_daemon", context=rclpy_context)
+        assert orchestrator._nodes_already_there(monitor, executor, seconds=5.0) == [
+            "/serial_bridge_node"]
+        assert orchestrator._foreign_publishers(monitor) == []
+        pubs = [n.create_publisher(Joy, topics.JOY, 10) for n in (other, hidden)]
+        assert orchestrator._foreign_publishers(monitor) == [topics.JOY]
+        for n, p in zip((other, hidden), pubs, strict=True):
+            n.destroy_publisher(p)
+            n.destroy_node()
+    finally:
+        executor.shutdown()
+        monitor.destroy_node()

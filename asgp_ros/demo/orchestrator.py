@@ -463,6 +463,11 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
     t_mon = time.monotonic()
     try:
         started = monitor, executor, _ = _start_monitor(domain, bag_tmp)
+        others = _nodes_already_there(monitor, executor)
+        if others:  # another demo (or anything) on this domain: each would score the other
+            raise DemoError(f"ROS_DOMAIN_ID {domain} is in use (nodes "
+                            f"{', '.join(others[:5])}{', ...' if len(others) > 5 else ''}); "
+                            "choose another with --domain-id")
         for name, entry, args in node_commands(opts, model.resolve(), port):
             group.start(name, entry, args)
         say(f"started {', '.join(c.name for c in group.children)} (logs in {out / 'logs'}); "
@@ -519,6 +524,31 @@ def _report(out: Path, state: RunState, monitor: MonitorNode, motion_model: Moti
     return 0
 
 
+#: How long the demo listens for other nodes on its domain before it starts its own.
+DOMAIN_CHECK_S = 1.0
+
+
+def _nodes_already_there(monitor: MonitorNode, executor: SingleThreadedExecutor,
+                         seconds: float = DOMAIN_CHECK_S) -> list[str]:
+    """The nodes on the demo's domain other than its monitor, within ``seconds`` of
+    discovery (at once when one shows up: absence takes the whole wait)."""
+    own = (monitor.get_name(), monitor.get_namespace())
+    deadline = time.monotonic() + seconds
+    while True:
+        found = sorted(f"{ns.rstrip('/')}/{name}" for name, ns in
+                       monitor.get_node_names_and_namespaces()
+                       if (name, ns) != own and not name.startswith("_"))  # not hidden ones
+        if found or time.monotonic() >= deadline:
+            return found
+        executor.spin_once(timeout_sec=0.05)
+
+
+def _foreign_publishers(monitor: MonitorNode) -> list[str]:
+    """The demo's outputs that more than one node publishes (another demo that started at
+    the same moment on the same domain)."""
+    return [topic for topic in PRODUCERS if monitor.count_publishers(topic) > 1]
+
+
 def _start_monitor(domain: int, bag_tmp: Path
                    ) -> tuple[MonitorNode, SingleThreadedExecutor, Context]:
     import rclpy
@@ -564,12 +594,21 @@ def _drive(opts: DemoOptions, mon: MonitorNode, executor: SingleThreadedExecutor
     t_start: float | None = None
     say("waiting for the nodes (bridge joy, camera, VO, predictor) before driving")
     last_wait = 0.0
+    last_check = time.monotonic()
     while True:
         executor.spin_once(timeout_sec=0.05)
         now = time.monotonic()
         if stop:
             state.stopped_by = stop.reason
             break
+        if now - last_check > 2.0:
+            last_check = now
+            doubled = _foreign_publishers(mon)
+            if doubled:
+                state.errors.append(
+                    f"{', '.join(doubled)} published by more than one node: another demo on "
+                    f"ROS_DOMAIN_ID {state.domain_id}? (choose another with --domain-id)")
+                break
         dead = [c for c in group.poll()]
         if dead:
             for c in dead:
