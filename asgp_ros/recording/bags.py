@@ -47,6 +47,7 @@ from __future__ import annotations
 import bisect
 import bz2
 import contextlib
+import hashlib
 import logging
 import mmap
 import os
@@ -252,33 +253,38 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
     return p
 
 
+def _content_digest(files: list[Path]) -> str:
+    """A digest of the storage files' sizes and of their first and last MiB: the same for a
+    copy, different for another recording (its messages' data differ) without reading a
+    whole bag."""
+    h = hashlib.sha256()
+    for f in files:
+        with open(f, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            h.update(size.to_bytes(8, "little"))
+            h.update(fh.read(1 << 20))
+            if size > 2 << 20:
+                fh.seek(size - (1 << 20))
+                h.update(fh.read(1 << 20))
+    return h.hexdigest()
+
+
 def _recording_keys(path: str | os.PathLike[str]) -> list[tuple[object, ...]]:
     """What identifies the recording ``path`` names: its real path (a symbolic link or a
-    storage file stands for its bag), and, for a ROS 2 bag, its start, duration and
-    message count from metadata.yaml with the size of its storage (a copy of it is the
-    same recording); for a ROS 1 bag its size and first 64 KiB."""
+    storage file stands for its bag), and a digest of its storage files (a copy of it is
+    the same recording; two simulated bags may start at one time and hold as many
+    messages in files of one size, so metadata alone cannot tell)."""
     try:
         bag = resolve_bag(path)
     except BagError:
         return [("path", os.path.realpath(path))]  # the reader says what is wrong
     keys: list[tuple[object, ...]] = [("path", os.path.realpath(bag))]
-    if bag.is_dir():
-        with contextlib.suppress(BagError, OSError):
-            info = _bag_metadata(bag)
-            start = (info.get("starting_time") or {}).get("nanoseconds_since_epoch") \
-                if isinstance(info.get("starting_time"), dict) else None
-            dur = (info.get("duration") or {}).get("nanoseconds") \
-                if isinstance(info.get("duration"), dict) else None
-            count = info.get("message_count")
-            # and the bytes of its storage files: two simulated bags start at one time and
-            # may hold as many messages
-            size = sum(f.stat().st_size for f in bag.iterdir()
-                       if f.suffix in (".mcap", ".db3") and f.is_file())
-            if all(_count_in_range(v, 1 << 63) for v in (start, dur, count)) and count:
-                keys.append(("ros2", start, dur, count, size))
-    else:
-        with contextlib.suppress(OSError), open(bag, "rb") as fh:
-            keys.append(("ros1", os.fstat(fh.fileno()).st_size, hash(fh.read(1 << 16))))
+    with contextlib.suppress(OSError):
+        files = ([bag] if not bag.is_dir() else
+                 sorted(f for f in bag.iterdir()
+                        if f.suffix in (".mcap", ".db3") and f.is_file()))
+        if files:
+            keys.append(("content", _content_digest(files)))
     return keys
 
 

@@ -141,7 +141,8 @@ class LinkStats:
     frames_repeated: int       # frames with the last frame's SEQ again (dropped)
     frames_late: int           # frames behind the last SEQ, delivered late (dropped)
     seq_restarts: int          # the board's SEQ started over (SEQ_RESTART_AFTER in a row)
-    board_restarts: int        # the board's uptime went back: it restarted
+    board_restarts: int        # the board restarted: its count started over, or its uptime
+                               # went back (counted once)
     crc_errors: int
     bytes_dropped: int
     decode_errors: int
@@ -207,6 +208,8 @@ class LinkManager:
         self._behind_start = 0               # the first of them
         self._last_uptime: int | None = None  # the board's uptime in its last heartbeat
         self._past_end = 0  # lost SEQs counted at the end of a count since that heartbeat
+        self._count_restarted = False  # _in_sequence followed a new count from its start
+        self._restart_seen = False     # a restart counted since the last heartbeat
         self._state_t = clock()
         self._crc_base = 0
         self._dropped_base = 0
@@ -416,6 +419,7 @@ class LinkManager:
             self._behind_seq = None
             self._last_uptime = None
             self._past_end = 0
+            self._count_restarted = self._restart_seen = False
             self._version = None
             self._connects += 1
             self._board_rx_frames = None
@@ -484,16 +488,35 @@ class LinkManager:
             return
         with self._lock:
             self._frames_rx += 1
-            restarted = isinstance(msg, proto.Heartbeat) and self._uptime_back(msg.uptime_ms)
-            if restarted:
+            back = isinstance(msg, proto.Heartbeat) and self._uptime_back(msg.uptime_ms)
+            if back:
                 self._last_seq, self._behind_seq, self._behind_run = frame.seq, None, 0
             elif not self._in_sequence(frame.seq):
                 return
+            # a restart is counted once: by its frame count starting over, or by its first
+            # heartbeat's uptime (a board up for less than 0.2 s shows only the first)
+            restarted = False
+            if self._count_restarted:
+                self._count_restarted = False
+                restarted = self._restart_seen = True
+                self._last_error = "the board restarted (its frame count started over)"
             if isinstance(msg, proto.Heartbeat):
+                if back and not self._restart_seen:
+                    restarted = True
+                    self._last_error = (f"the board restarted (uptime {msg.uptime_ms} ms, "
+                                        f"{self._last_uptime} ms before)")
+                self._restart_seen = False
                 self._last_uptime = msg.uptime_ms
-                if restarted:  # SEQs after the old count's last were never sent, not lost
+                if back:  # SEQs after the old count's last were never sent, not lost
                     self._frames_lost -= self._past_end
                 self._past_end = 0
+            if restarted:
+                self._board_restarts += 1
+        if restarted and self._state in _UP:
+            # its firmware may have changed (a reflash): confirm the protocol again
+            log.warning("serial link %s: %s; new handshake", self.config.port,
+                        self._last_error)
+            self._begin_handshake("the board restarted: new handshake")
         if isinstance(msg, proto.Sample):
             if self._state not in _UP:
                 return  # protocol not confirmed yet
@@ -529,12 +552,7 @@ class LinkManager:
                 self._board_rx_frames = msg.rx_frames
                 if self._host_lost and msg.rx_frames != self._host_lost_rx:
                     self._host_lost = False  # the board hears us again
-            if restarted and self._state in _UP:
-                # its firmware may have changed (a reflash): confirm the protocol again
-                log.warning("serial link %s: %s; new handshake", self.config.port,
-                            self._last_error)
-                self._begin_handshake("the board restarted: new handshake")
-            elif self._state == LinkState.STALE:
+            if self._state == LinkState.STALE:
                 self._set_state(LinkState.CONNECTED, "heartbeat back")
         elif isinstance(msg, proto.Version):
             self._on_version(msg, t_rx)
@@ -549,11 +567,7 @@ class LinkManager:
         SEQ starts over too). Wrap-safe: the uint32 of milliseconds wraps after 49.7 days,
         and an uptime more than half the counter behind is ahead. Under ``_lock``."""
         last = self._last_uptime
-        if last is None or (uptime_ms - last) & 0xFFFFFFFF < 1 << 31:
-            return False
-        self._board_restarts += 1
-        self._last_error = f"the board restarted (uptime {uptime_ms} ms, {last} ms before)"
-        return True
+        return last is not None and (uptime_ms - last) & 0xFFFFFFFF >= 1 << 31
 
     def _in_sequence(self, seq: int) -> bool:
         """Whether a frame with this SEQ is taken (under ``_lock``); counts the verdict.
@@ -593,6 +607,7 @@ class LinkManager:
             self._frames_late += 1
             return False
         self._seq_restarts += 1
+        self._count_restarted = self._behind_start < RESTART_SEQ_BELOW  # (not a noise jump)
         self._frames_late -= self._behind_run - 1  # those were the new count's first frames
         self._frames_lost += self._behind_run - 1
         self._last_seq, self._behind_seq, self._behind_run = seq, None, 0
