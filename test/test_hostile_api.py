@@ -14,28 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_collision import one, wall_scan
-from test_predictor import make_streams
+from test_inverse import gp_model  # noqa: F401 (a fixture)
 
 from asgp_ros.core import collision as C  # noqa: N812
-from asgp_ros.core.features import FeatureConfig, design_matrix
 from asgp_ros.core.inverse import solve
 from asgp_ros.core.models import MotionModel
-from asgp_ros.core.resample import ResampleConfig, resample
-from asgp_ros.core.sparse_gp import SparseGP
-from asgp_ros.core.streams import RawStreams
 
 
 @pytest.fixture(scope="module")
-def gp() -> MotionModel:
-    jt, joy, vt, vel = make_streams(60.0)
-    res = resample(RawStreams(joy_t=jt, joy=joy, vel_t=vt, vel=vel))
-    fc = FeatureConfig(lags=3, coupled=True)
-    chans = []
-    for c in (0, 1):
-        X, y, _ = design_matrix(res, c, fc)
-        chans.append(SparseGP(num_inducing=12, seed=0).fit(X, y, max_iter=40))
-    return MotionModel(kind="asgp", feature_config=fc, resample_config=ResampleConfig(),
-                       channels=(chans[0], chans[1]))
+def gp(gp_model: MotionModel) -> MotionModel:  # noqa: F811
+    return gp_model
 
 
 def _past(s: int = 3) -> tuple[np.ndarray, np.ndarray]:

@@ -9,11 +9,11 @@ import contextlib
 import os
 import select
 import threading
-import time
 import tty
 from collections.abc import Iterator
 
 import pytest
+from test_serial_link import wait_until
 
 from asgp_ros.serial import protocol as proto
 from asgp_ros.serial.link import (
@@ -24,15 +24,6 @@ from asgp_ros.serial.link import (
     LinkManager,
     LinkState,
 )
-
-
-def wait_until(pred, timeout: float, period: float = 0.005) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(period)
-    return bool(pred())
 
 
 def sample(mark: int) -> proto.Sample:
