@@ -9,6 +9,7 @@ import contextlib
 import os
 import select
 import threading
+import time
 import tty
 from collections.abc import Iterator
 
@@ -232,3 +233,22 @@ def test_frames_only_a_host_sends_are_named():
 
 def test_restart_window_constant_is_below_half_the_count():
     assert SEQ_RESTART_AFTER < SEQ_RESYNC_AFTER < RESTART_SEQ_BELOW < 128
+
+
+def test_a_sample_behind_line_noise_is_delivered_when_the_line_goes_idle(linked):
+    """Three bytes of noise claiming a 32-byte frame (A5 5A 20), then the board's last
+    sample and silence: the sample waited for 39 bytes that never came. A partial frame
+    idle for RX_IDLE_S is given up (as the firmware does), and the sample behind it is
+    delivered, timed by its last byte."""
+    board, link, marks = linked
+    advance_to(board, link, 9)
+    del marks[:]
+    times: list[float] = []
+    lost0 = link.stats().frames_lost
+    link._on_sample = lambda s: (marks.append(s.raw_forward), times.append(s.t_rx))
+    with board._lock:
+        t_sent = time.monotonic()
+        os.write(board.master, bytes.fromhex("a55a20") + proto.encode(sample(321), 10))
+    assert wait_until(lambda: marks == [321], 2.0), marks
+    assert times[0] - t_sent < 0.1  # the time its bytes came, not the time it was given
+    assert link.stats().frames_lost == lost0

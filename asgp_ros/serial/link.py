@@ -62,6 +62,10 @@ RESTART_SEQ_BELOW = 16
 #: 1.3 s; a board that reorders this many frames is not expected).
 SEQ_RESYNC_AFTER = 8
 
+#: A partial frame with no byte for this long (s) is given up, as the firmware does
+#: (``ASGP_RX_IDLE_MS``): the frames behind it are delivered.
+RX_IDLE_S = 0.02
+
 #: A handshake that has not succeeded for this long is an error (a device that is not the
 #: board, the wrong baud rate, a boot loader): the diagnostics say what was heard instead.
 HANDSHAKE_ERROR_AFTER = 2.0
@@ -454,6 +458,8 @@ class LinkManager:
                 return
             data = ser.read(max(1, ser.in_waiting))
             if not data:
+                if self._parser.pending and self._clock() - self._last_rx_t >= RX_IDLE_S:
+                    self._expire_partial()
                 continue
             t_rx = self._clock()
             self._last_rx_t = t_rx
@@ -461,6 +467,18 @@ class LinkManager:
                 frames = self._parser.feed(data)
             for frame in frames:
                 self._handle(frame, t_rx)
+
+    def _expire_partial(self) -> None:
+        """The line went idle inside a frame (its rest is not coming: noise claimed a long
+        frame, or the board stopped mid-frame): the frames parked behind the partial one
+        are delivered, timed by their last byte, as the firmware does (a sample was held
+        until more bytes came)."""
+        with self._lock:
+            frames: list[proto.Frame] = []
+            while self._parser.pending:
+                frames += self._parser.expire()
+        for frame in frames:
+            self._handle(frame, self._last_rx_t)
 
     def _begin_handshake(self, reason: str) -> None:
         """(Re)starts the version handshake: the next loop turn sends HELLO; samples are
