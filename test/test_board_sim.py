@@ -366,6 +366,13 @@ def test_asgp_board_monitor_without_a_board_fails_with_a_message(tmp_path, capsy
 
     assert main(["board", "--monitor", str(tmp_path / "nothing"), "--duration", "0.1"]) == 2
     assert "no board answered" in capsys.readouterr().err
+    # an empty port started the simulated board instead; a link in a missing directory
+    # was reported with the pty's name
+    assert main(["board", "--monitor", "", "--duration", "0.1"]) == 2
+    assert "--monitor needs the port" in capsys.readouterr().err
+    assert main(["board", "--link", str(tmp_path / "nodir" / "port"), "--duration",
+                 "0.1"]) == 2
+    assert f"no directory {tmp_path / 'nodir'}" in capsys.readouterr().err
 
 
 def test_the_link_is_made_without_touching_a_file_beside_it(tmp_path):

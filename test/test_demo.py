@@ -763,3 +763,20 @@ def test_a_demo_refuses_a_domain_in_use(rclpy_context):
     finally:
         executor.shutdown()
         monitor.destroy_node()
+
+
+@pytest.mark.ros
+def test_a_demo_that_recorded_nothing_leaves_no_bag(rclpy_context, tmp_path):
+    """A fresh demo stopped before the drive left run_bag, which 'asgp bag info' read as
+    'nothing recoverable'."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from asgp_ros.demo import orchestrator
+    from asgp_ros.demo.monitor_node import BagRecorder, MonitorNode
+
+    partial, final = tmp_path / ".run_bag.partial", tmp_path / "run_bag"
+    node = MonitorNode(recorder=BagRecorder(partial), context=rclpy_context)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    orchestrator._stop_monitor(node, executor, rclpy_context, partial, final)
+    assert not final.exists() and not partial.exists()

@@ -49,10 +49,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.monitor:
+    if args.monitor is not None:
+        if not args.monitor:  # '' started the simulated board instead
+            raise CommandError("--monitor needs the port of a real board, got ''")
         return _monitor(args)
     if not 1.0 <= args.rate <= 1000.0:
         raise CommandError(f"--rate must be in [1, 1000] Hz, got {args.rate}")
+    if args.link is not None and not args.link.parent.is_dir():
+        # (the pty's name was given as the missing path)
+        raise CommandError(f"--link {args.link}: no directory {args.link.parent}")
     if args.link is not None and os.path.lexists(args.link):
         if not args.link.is_symlink():
             raise CommandError(f"--link {args.link} exists and is not a symlink; refusing to "

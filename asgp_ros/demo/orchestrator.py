@@ -582,7 +582,10 @@ def _stop_monitor(node: MonitorNode, executor: SingleThreadedExecutor, context: 
         recorder.close()
         if bag_final.exists():
             shutil.rmtree(bag_final)
-        os.replace(bag_tmp, bag_final)
+        if recorder.messages:
+            os.replace(bag_tmp, bag_final)
+        else:  # stopped before anything was recorded: no bag (it read "nothing recoverable")
+            shutil.rmtree(bag_tmp, ignore_errors=True)
 
 
 def _drive(opts: DemoOptions, mon: MonitorNode, executor: SingleThreadedExecutor,
