@@ -259,6 +259,21 @@ class SimavrBoard:
             self.proc.wait(5)
 
 
+NO_SIMAVR = pytest.mark.skipif(
+    not os.path.exists("/usr/include/simavr/sim_avr.h"),
+    reason="simavr headers not installed (Debian: simavr libsimavr-dev)")
+
+
+@pytest.fixture(scope="module")
+def simavr(repo_root, avr_build):
+    """The simavr harness that runs the firmware image (built once per module)."""
+    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={avr_build}",
+                        f"{avr_build}/host/asgp_simavr"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return avr_build / "host/asgp_simavr"
+
+
 def _wait(pred, timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -271,16 +286,11 @@ def _wait(pred, timeout: float) -> bool:
 @pytest.mark.firmware
 @pytest.mark.slow
 @NO_AVR
-@pytest.mark.skipif(not os.path.exists("/usr/include/simavr/sim_avr.h"),
-                    reason="simavr headers not installed (Debian: simavr libsimavr-dev)")
-def test_compiled_firmware_in_simavr_driven_by_the_host_link(repo_root, avr_build):
+@NO_SIMAVR
+def test_compiled_firmware_in_simavr_driven_by_the_host_link(avr_build, simavr):
     """The real firmware image on a simulated ATmega2560: the host link handshakes with it,
     reads its samples, overrides its DAC, and sees its watchdog and neutral rule act."""
-    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={avr_build}",
-                        f"{avr_build}/host/asgp_simavr"], capture_output=True, text=True,
-                       timeout=120)
-    assert r.returncode == 0, r.stdout + r.stderr
-    board = SimavrBoard(avr_build / "host/asgp_simavr", avr_build / "asgp_bridge.elf",
+    board = SimavrBoard(simavr, avr_build / "asgp_bridge.elf",
                         3000, 2500)  # 0.5 V forward of neutral, turn at rest
     samples: list = []
     try:
@@ -322,9 +332,9 @@ def test_compiled_firmware_in_simavr_driven_by_the_host_link(repo_root, avr_buil
         board.close()
 
 
-def _both(host_build, commands: list[str]) -> list[list[str]]:
+def _both(host_build, commands: list[str]) -> tuple[list[list[str]], list[str]]:
     """The outputs ("O status code_a code_b ...") of the C board and of the Python mirror
-    for the same commands, checked equal line for line (frames included)."""
+    for the same commands, checked equal line for line (frames included), and every line."""
     got = _tool(host_build, commands)
     expected: list[str] = []
     board = fw.BoardLogic(lambda frame: expected.append(f"W {frame.hex().upper()}"))
@@ -337,7 +347,7 @@ def _both(host_build, commands: list[str]) -> list[list[str]]:
             expected.append(f"O {int(o.status)} {o.out_code[0]} {o.out_code[1]} "
                             f"{o.user_pm[0]} {o.user_pm[1]} {o.out_pm[0]} {o.out_pm[1]}")
     assert got == expected
-    return [line.split()[1:] for line in got if line.startswith("O ")]
+    return [line.split()[1:] for line in got if line.startswith("O ")], got
 
 
 def _override(forward: int, turn: int, seq: int) -> str:
@@ -357,7 +367,7 @@ def test_an_override_stale_once_never_drives_again_after_the_clock_wraps(host_bu
         t = (wrap - 200 * k) % 2**32
         commands += [f"rx {t} {hb}", f"tick {t} 700 512"]
     commands += [f"rx {(wrap + 50) % 2**32} {hb}", f"tick {(wrap + 50) % 2**32} 700 512"]
-    outs = _both(host_build, commands)
+    outs, _ = _both(host_build, commands)
     assert int(outs[0][0]) & proto.Status.OVERRIDE_ACTIVE
     assert all(not int(o[0]) & proto.Status.OVERRIDE_ACTIVE for o in outs[1:]), outs
     assert outs[-1][1] == outs[1][1]  # the user's stick drives
@@ -376,7 +386,7 @@ def test_an_override_behind_line_noise_is_never_applied_late(host_build):
         if t in (215, 415):
             commands.append(f"rx {t - 5} {hb}")
         commands.append(f"tick {t} 700 512")
-    outs = _both(host_build, commands)
+    outs, _ = _both(host_build, commands)
     active = [15 + 10 * i for i, o in enumerate(outs[1:])
               if int(o[0]) & proto.Status.OVERRIDE_ACTIVE]
     assert active, "the override behind the noise was lost"
@@ -392,19 +402,17 @@ def test_one_version_a_tick_whatever_the_hellos(host_build):
     commands = []
     for t in range(0, 200, 10):
         commands += [f"rx {t + k} {hello}" for k in range(10)] + [f"tick {t + 10} 700 512"]
-    got = _tool(host_build, commands)
+    _, got = _both(host_build, commands)
     versions = sum(1 for line in got if line.startswith("W ")
                    and int(line[2 + 6:2 + 8], 16) == proto.MsgType.VERSION)
     assert versions == 20  # one a tick, for 200 HELLOs
-    _both(host_build, commands)
 
 
 @pytest.mark.firmware
 @pytest.mark.slow
 @NO_AVR
-@pytest.mark.skipif(not os.path.exists("/usr/include/simavr/sim_avr.h"),
-                    reason="simavr headers not installed (Debian: simavr libsimavr-dev)")
-def test_compiled_firmware_keeps_the_user_in_charge_under_a_hello_flood(repo_root, avr_build):
+@NO_SIMAVR
+def test_compiled_firmware_keeps_the_user_in_charge_under_a_hello_flood(avr_build, simavr):
     """1000 HELLOs a second (8 kB/s, within the 115200-baud link) made the real firmware's
     loop answer each at once into a full UART: the AVR watchdog reset it every 140 ms and
     the chair's input swung between neutral and the user's stick. The loop now takes at
@@ -412,11 +420,7 @@ def test_compiled_firmware_keeps_the_user_in_charge_under_a_hello_flood(repo_roo
     import select
     import tty
 
-    r = subprocess.run(["make", "-C", str(repo_root / "firmware"), f"BUILD={avr_build}",
-                        f"{avr_build}/host/asgp_simavr"], capture_output=True, text=True,
-                       timeout=120)
-    assert r.returncode == 0, r.stdout + r.stderr
-    board = SimavrBoard(avr_build / "host/asgp_simavr", avr_build / "asgp_bridge.elf",
+    board = SimavrBoard(simavr, avr_build / "asgp_bridge.elf",
                         3000, 2500)  # the user holds the stick half forward
     fd = os.open(board.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
     tty.setraw(fd)

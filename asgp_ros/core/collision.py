@@ -1007,17 +1007,36 @@ def _check_inputs(pose: FloatArray, cov: FloatArray,
         raise CollisionError(f"a path leaves +-{MAX_COORDINATE:g} m (or rad)")
     if C.size and np.abs(C).max() > MAX_VARIANCE:
         raise CollisionError(f"a covariance entry exceeds {MAX_VARIANCE:g}")
-    if C.size:
-        # a covariance is symmetric positive semi-definite, to round-off: -I or a skew one
-        # was clipped to zero, and read as certainty (a path beside a wall as clear)
-        scale = np.abs(C).max(axis=(-1, -2)) + 1e-300
-        asym = np.abs(C - np.swapaxes(C, -1, -2)).max(axis=(-1, -2))
-        low = np.linalg.eigvalsh(0.5 * (C + np.swapaxes(C, -1, -2)))[..., 0]
-        if np.any(asym > 1e-6 * scale) or np.any(low < -1e-6 * scale):
-            raise CollisionError("a covariance is not symmetric positive semi-definite")
+    # a covariance is symmetric positive semi-definite, to round-off: -I or a skew one was
+    # clipped to zero, and read as certainty (a path beside a wall as clear)
+    if C.size and _psd_problem(C):
+        raise CollisionError("a covariance is not symmetric positive semi-definite")
     if not all(math.isfinite(v) and abs(v) <= MAX_COORDINATE for v in transform):
         raise CollisionError(f"transform must be a finite (x, y, yaw), got {transform}")
     return P, C
+
+
+def _psd_problem(C: FloatArray) -> bool:
+    """Whether any of the [..., d, d] matrices (d = 2 or 3) is not symmetric positive
+    semi-definite, to round-off (1e-6 of its largest entry): every principal minor >= 0,
+    in closed form (an eigendecomposition per matrix took 7 ms for a thousand paths)."""
+    scale = np.abs(C).max(axis=(-1, -2)) + 1e-300
+    tol = 1e-6 * scale
+    if np.any(np.abs(C - np.swapaxes(C, -1, -2)).max(axis=(-1, -2)) > tol):
+        return True
+    S = 0.5 * (C + np.swapaxes(C, -1, -2))
+    d = C.shape[-1]
+    bad = np.any(np.diagonal(S, axis1=-2, axis2=-1) < -tol[..., None], axis=-1)
+    for i in range(d):
+        for j in range(i + 1, d):
+            minor = S[..., i, i] * S[..., j, j] - S[..., i, j] ** 2
+            bad |= minor < -tol * scale
+    if d == 3:  # the determinant, by its first row
+        det = (S[..., 0, 0] * (S[..., 1, 1] * S[..., 2, 2] - S[..., 1, 2] ** 2)
+               - S[..., 0, 1] * (S[..., 0, 1] * S[..., 2, 2] - S[..., 1, 2] * S[..., 0, 2])
+               + S[..., 0, 2] * (S[..., 0, 1] * S[..., 1, 2] - S[..., 1, 1] * S[..., 0, 2]))
+        bad |= det < -tol * scale * scale
+    return bool(np.any(bad))
 
 
 def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
