@@ -34,6 +34,7 @@ signal during start-up is honoured as soon as the node is built.
 from __future__ import annotations
 
 import contextlib
+import gc
 import signal
 import socket
 import threading
@@ -48,7 +49,8 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
 
-__all__ = ["StopSignals", "init", "pacing_clock", "run", "stop_requested"]
+__all__ = ["StopSignals", "init", "pacing_clock", "run", "settle_garbage_collector",
+           "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -180,6 +182,20 @@ def init(args: list[str] | None = None) -> None:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+def settle_garbage_collector() -> None:
+    """Collect the start-up's garbage, then exempt every object left (the modules, the
+    model, the node) from Python's cyclic garbage collector for good (``gc.freeze``).
+
+    A full collection visits every tracked object. After rclpy, numpy, scipy and a model
+    are loaded that is over 60,000 objects, and the collection the interpreter starts now
+    and then when enough new objects have survived took 26-64 ms (a loaded 2-core
+    machine): in one callback, a path that late. Frozen, they are never visited; the
+    collector only looks at what the node made since.
+    """
+    gc.collect()
+    gc.freeze()
+
+
 def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
         refused: tuple[type[Exception], ...],
         interrupted: tuple[type[Exception], ...] = ()) -> int:
@@ -209,6 +225,7 @@ def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
             except interrupted:
                 return 0
             executor.add_node(node)
+            settle_garbage_collector()
             stops.spin(executor)
         finally:
             executor.shutdown()
