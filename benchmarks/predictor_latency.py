@@ -32,6 +32,11 @@ messages it gets on the chair.
 ``--adapt both`` runs the node twice, without and with online adaptation (adapt.enabled),
 side by side on the same model.
 
+``--reference echo`` (the default) runs, after the node, ``benchmarks/echo_node.py`` the same
+way: an rclpy node that answers each VO message with a path of the same length at once and
+does nothing else. Its latency is the floor on this machine (rclpy's executor and DDS
+delivery both ways); the ratio node / echo of each figure is printed last. ``none`` skips it.
+
 ``--clock system`` runs the node as on the chair: without ``use_sim_time``, so no /clock
 messages (with ``sim``, as when a bag is replayed, this script publishes /clock with every
 joystick sample, and each one wakes the node too); the inputs are stamped with the wall
@@ -234,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
                              "joystick completes the step); the latency is then counted "
                              "from them. Needs a model reading the VO at its frames' stamps "
                              "(the one trained without --model is, with this option)")
+    parser.add_argument("--reference", choices=("echo", "none"), default="echo",
+                        help="echo: also measure benchmarks/echo_node.py, a node answering "
+                             "each VO message with a path at once (the floor); none: skip")
     parser.add_argument("--domain-id", type=int,
                         help="ROS_DOMAIN_ID of the run (default 60 + pid %% 80: two runs at "
                              "once must not hear each other's inputs)")
@@ -261,12 +269,29 @@ def main(argv: list[str] | None = None) -> int:
             _cli("train", "--out", model, str(bag),
                  *(["--vo-stamp", "frame"] if args.joy_late > 0 else []))
         modes = {"off": [False], "on": [True], "both": [False, True]}[args.adapt]
+        runs: list[tuple[str, dict[str, float]]] = []
         for adapt in modes:
             for poll in polls:
-                rc = measure(args, model, adapt, poll)
-                if rc:
-                    return rc
+                figures = measure(args, model, adapt, poll)
+                if figures is None:
+                    return 1
+                runs.append((f"adaptation {'on' if adapt else 'off'}, joy_poll_period_s "
+                             f"{poll:g}", figures))
+        if args.reference == "echo":
+            echo = measure(args, model, False, 0.0, echo=True)
+            if echo is None:
+                return 1
+            print("ratio predictor node / echo node (p50 / p99 back to back | p50 / p99 at the "
+                  "real rate | CPU):")
+            for label, figures in runs:
+                print(f"  {label}: " + "  ".join(
+                    f"{figures[key] / echo[key]:.2f}" if echo.get(key) and key in figures
+                    else "-" for key in FIGURES))
     return 0
+
+
+#: The figures :func:`measure` returns, in the order the ratios are printed.
+FIGURES = ("p50", "p99", "paced_p50", "paced_p99", "cpu")
 
 
 def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag: int
@@ -308,9 +333,11 @@ def warm_up_and_measure_back_to_back(drv: Driver, args: argparse.Namespace, lag:
     return n, lat_ms, missed, node_p99
 
 
-def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> int:
+def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float,
+            echo: bool = False) -> dict[str, float] | None:
     """Start the node on ``model`` (adapting or not; the joystick read every ``poll`` s),
-    measure, print, stop it."""
+    or with ``echo`` benchmarks/echo_node.py, measure, print, stop it; its figures (ms and
+    the CPU share, see FIGURES), None when it failed."""
     import rclpy
 
     from asgp_ros.core.modelfile import load_model
@@ -323,18 +350,22 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         print("--joy-late needs a model that reads the VO at its frames' stamps: with "
               "midpoint stamps the VO message completes the step before, whose joystick "
               "samples are already in", file=sys.stderr)
-        return 1
+        return None
 
     sim = args.clock == "sim"
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    node = subprocess.Popen(
-        [sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
-         "-p", f"model_path:={model}", "-p", f"use_sim_time:={str(sim).lower()}",
-         "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
-         "-p", f"adapt.enabled:={'true' if adapt else 'false'}",
-         "-p", f"joy_poll_period_s:={poll!r}",
-         "--log-level", "warn"],
-        cwd=REPO, env=env)
+    if echo:
+        command = [sys.executable, str(REPO / "benchmarks" / "echo_node.py"), "--horizon",
+                   str(args.horizon), "--lag", str(lag), *(["--sim"] if sim else [])]
+    else:
+        command = [
+            sys.executable, "-m", "asgp_ros.nodes.predictor_node", "--ros-args",
+            "-p", f"model_path:={model}", "-p", f"use_sim_time:={str(sim).lower()}",
+            "-p", f"horizon_steps:={args.horizon}", "-p", "diagnostics_period_s:=0.5",
+            "-p", f"adapt.enabled:={'true' if adapt else 'false'}",
+            "-p", f"joy_poll_period_s:={poll!r}",
+            "--log-level", "warn"]
+    node = subprocess.Popen(command, cwd=REPO, env=env)
     rclpy.init()
     drv = Driver(sim_clock=sim, joy_per_step=max(2, round(args.joy_hz * DT)),
                  applied=args.applied)
@@ -344,11 +375,11 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         if not drv.spin_until(lambda: drv.node.count_subscribers("vo/twist") > 0
                               and drv.node.count_publishers("predicted_path") > 0, 30.0):
             print("the predictor node did not come up", file=sys.stderr)
-            return 1
+            return None
         if sim:
             measured = warm_up_and_measure_back_to_back(drv, args, lag)
             if measured is None:
-                return 1
+                return None
             n, lat_ms, missed, node_p99 = measured
         else:  # inputs at their wall-clock times from the start: 5 s of warm-up
             n = math.ceil(time.time() / DT) + 2
@@ -358,7 +389,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
                 n += 1
             if not drv.received:
                 print("no path from the node", file=sys.stderr)
-                return 1
+                return None
 
         # ---- 2. CPU at the real rate ------------------------------------------------
         cpu0, wall0 = cpu_seconds(node.pid), time.monotonic()
@@ -387,9 +418,26 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
         rclpy.try_shutdown()
         stop_node(node)
 
-    print(f"predictor node, adaptation {'on' if adapt else 'off'}, joy_poll_period_s {poll:g}, "
-          f"horizon {args.horizon} steps, clock {args.clock}, {len(lat_ms)} steps back to back "
-          f"({missed} without a path)")
+    what = ("echo node (the reference)" if echo else
+            f"predictor node, adaptation {'on' if adapt else 'off'}, joy_poll_period_s {poll:g}")
+    print(f"{what}, horizon {args.horizon} steps, clock {args.clock}, {len(lat_ms)} steps back "
+          f"to back ({missed} without a path)")
+    figures = {"cpu": cpu}
+    if len(lat_ms):
+        figures.update(p50=float(np.percentile(lat_ms, 50)),
+                       p99=float(np.percentile(lat_ms, 99)))
+    if len(paced_ms):
+        figures.update(paced_p50=float(np.percentile(paced_ms, 50)),
+                       paced_p99=float(np.percentile(paced_ms, 99)))
+    if echo:
+        if len(lat_ms):
+            print(f"  VO publish -> path received: p50 {figures['p50']:.2f} ms, p99 "
+                  f"{figures['p99']:.2f} ms, max {lat_ms.max():.2f} ms")
+        if len(paced_ms):
+            print(f"  at the real rate: p50 {figures['paced_p50']:.2f} ms, p99 "
+                  f"{figures['paced_p99']:.2f} ms")
+        print(f"  CPU at 5 Hz: {100 * cpu:.1f}% of one core")
+        return figures
     if adapt:
         print(f"  adaptation: {drv.diag.get('adapt_rows_absorbed', '?')} steps absorbed, "
               f"last update {drv.diag.get('adapt_last_update_ms', '?')} ms, last check "
@@ -420,7 +468,7 @@ def measure(args: argparse.Namespace, model: str, adapt: bool, poll: float) -> i
     print(f"  CPU at 5 Hz ({joy}, {clock}VO 5 Hz): {100 * cpu:.1f}% of one core "
           f"(target < 5%); steps that waited for the joystick "
           f"{paced_node.get('joy_waits', 'nan')}")
-    return 0
+    return figures
 
 
 if __name__ == "__main__":

@@ -477,8 +477,14 @@ class Predictor:
 
     @property
     def adaptation(self) -> AdapterStats | None:
-        """The online adaptation's counters, scales and coverage; None when not adapting."""
+        """The online adaptation's counters, scales and coverage; None when not adapting
+        (made at each call: :attr:`adapting` says whether there are any)."""
         return None if self._adapter is None else self._adapter.stats
+
+    @property
+    def adapting(self) -> bool:
+        """Whether this predictor adapts online."""
+        return self._adapter is not None
 
     def reset_adaptation(self) -> None:
         """Back to the trained posterior and calibration (no-op when not adapting). A window

@@ -753,7 +753,7 @@ class PredictorNode(Node):
             self._latency_ms.append(1e3 * (path_out - arrival))
             self._predict_ms.append(1e3 * (predicted - started))
             self._path_ms.append(1e3 * (path_out - predicted))
-        if self.predictor.adaptation is None:
+        if not self.predictor.adapting:
             self._learn()  # nothing to learn: no timer wakes the node for it
             return
         # learning (a few ms with adaptation) waits a moment: the path's subscribers, woken
