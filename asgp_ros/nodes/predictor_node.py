@@ -786,7 +786,7 @@ class PredictorNode(Node):
                 return None
             pose, cov = online.to_frame(pose, cov, result.origin)
             frame = p.odom_frame
-        self.path_pub.publish(conv.path_from_poses(pose, result.times, frame, result.t0))
+        self.path_pub.publish(conv.path_cdr(pose, result.times, frame, result.t0))
         path_out = time.perf_counter()
         self._paths_published += 1
         # the ellipses are made and sent only while something subscribes to them (RViz
