@@ -87,10 +87,13 @@ def test_executables_and_parameter_files_exist(repo_root, launch_name):
             cfg = repo_root / "config" / y
             assert cfg.is_file(), f"{launch_name}: {exe} uses config/{y}, which does not exist"
             data = yaml.safe_load(cfg.read_text())
-            assert isinstance(data, dict) and ("/**" in data or node_name in data), (
-                f"config/{y} has top-level keys {sorted(data)}, not the node name {node_name!r}"
+            # a bare node name is the node in / only: under namespace:=chair1 rcl would
+            # apply none of the file's values, without a word
+            key = f"/**/{node_name}"
+            assert isinstance(data, dict) and ("/**" in data or key in data), (
+                f"config/{y} has top-level keys {sorted(data)}, not {key!r} (or '/**')"
             )
-            section = data.get(node_name, data.get("/**"))
+            section = data.get(key, data.get("/**"))
             assert "ros__parameters" in section, f"config/{y}: no ros__parameters"
 
 
@@ -100,7 +103,7 @@ def test_predictor_yaml_matches_the_node_parameters(repo_root):
 
     data = yaml.safe_load((repo_root / "config" / "predictor.yaml").read_text())
     params = {}
-    for name, value in data["predictor_node"]["ros__parameters"].items():
+    for name, value in data["/**/predictor_node"]["ros__parameters"].items():
         if isinstance(value, dict):  # nested parameters: adapt: {enabled: ...} = adapt.enabled
             params.update({f"{name}.{key}": v for key, v in value.items()})
         else:

@@ -43,8 +43,9 @@ def _flatten(tree: dict, prefix: str = "") -> dict:
 def test_yaml_values_are_declared_typed_and_in_range(node):
     yaml_name, specs = _tables()[node]
     doc = yaml.safe_load((REPO / "config" / yaml_name).read_text())
-    assert list(doc) == [node], f"{yaml_name}: top level must be the node name {node}"
-    values = _flatten(doc[node]["ros__parameters"])
+    # /**/: the node in any namespace (a bare name is the node in / only)
+    assert list(doc) == [f"/**/{node}"], f"{yaml_name}: top level must be /**/{node}"
+    values = _flatten(doc[f"/**/{node}"]["ros__parameters"])
     by_name = {s.name: s for s in specs}
     unknown = sorted(set(values) - set(by_name) - ROS_BUILTINS)
     assert not unknown, f"{yaml_name} sets parameters {node} does not declare: {unknown}"
@@ -67,3 +68,38 @@ def test_readme_names_only_declared_parameters():
         assert float(value) == float(specs[name].default), (name, value)
     for name in re.findall(r"`((?:joy|vo|plan)_timeout_s|buffer_s|reset_jump_s)`", readme):
         assert name in specs, name
+
+
+@pytest.mark.parametrize("node", ["predictor_node", "serial_bridge_node", "vo_node",
+                                  "shared_control_node"])
+@pytest.mark.parametrize("namespace", ["/", "/chair1", "/lab/chair2"])
+def test_yaml_values_reach_the_node_in_any_namespace(node, namespace):
+    """launch/asgp.launch.py hands each node its config/*.yaml as it is, and namespace:=
+    as a remap of __ns. Keyed by the bare node name, rcl applied the file in / only: under
+    namespace:=chair1 the bridge drove the board with the default calibration and the
+    layer checked collisions with the default footprint, without a word. rcl's own
+    reading of the shipped file, as the launch file passes it, must give the node every
+    value in it."""
+    import rclpy
+    from rclpy.context import Context
+
+    yaml_name, _ = _tables()[node]
+    path = REPO / "config" / yaml_name
+    doc = yaml.safe_load(path.read_text())
+    (section,) = doc.values()
+    want = _flatten(section["ros__parameters"])
+    context = Context()
+    rclpy.init(context=context, args=["--ros-args", "-r", f"__ns:={namespace}",
+                                      "--params-file", str(path)])
+    try:
+        probe = rclpy.create_node(node, context=context, start_parameter_services=False,
+                                  automatically_declare_parameters_from_overrides=True)
+        try:
+            assert probe.get_fully_qualified_name() == f"{namespace.rstrip('/')}/{node}"
+            got = {name: probe.get_parameter(name).value for name in want
+                   if probe.has_parameter(name)}
+        finally:
+            probe.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert got == want

@@ -225,7 +225,7 @@ def _flatten(d, prefix=""):
 
 def test_bridge_yaml_matches_declared_parameters(repo_root):
     doc = yaml.safe_load((repo_root / "config/bridge.yaml").read_text())
-    values = dict(_flatten(doc["serial_bridge_node"]["ros__parameters"]))
+    values = dict(_flatten(doc["/**/serial_bridge_node"]["ros__parameters"]))
     assert set(values) == {p.name for p in PARAMS}
     for p in PARAMS:  # same types as declared, or rclpy refuses the file
         assert type(values[p.name]) is type(p.default), p.name

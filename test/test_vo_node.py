@@ -126,7 +126,7 @@ def _flatten(d, prefix=""):
 
 def test_config_file_matches_the_parameter_table(repo_root):
     shipped = yaml.safe_load((repo_root / "config" / "vo.yaml").read_text())
-    values = _flatten(shipped["vo_node"]["ros__parameters"])
+    values = _flatten(shipped["/**/vo_node"]["ros__parameters"])
     assert set(values) == {p.name for p in PARAMS}
     for p in PARAMS:
         assert type(values[p.name]) is type(p.default), p.name

@@ -153,7 +153,7 @@ def params_yaml(node_name: str = "vo_node") -> str:
             return str(d)
         return str(d)
 
-    lines = [f"{node_name}:", "  ros__parameters:"]
+    lines = [f"/**/{node_name}:", "  ros__parameters:"]  # in any namespace
     for spec in NODE_PARAMS:
         lines.append(f"    {spec.name}: {text(spec.default)}  # {spec.description}")
     lines.append("    vo:  # the odometry (asgp_ros.vo.VOOptions)")
