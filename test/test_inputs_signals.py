@@ -509,9 +509,7 @@ def test_a_node_spins_with_its_start_up_objects_out_of_the_collector(repo_root):
     Python starts now and then took tens of ms in one callback. runtime.run freezes what
     the start-up left (gc.freeze) before the node spins: the collector then looks only at
     what the node made since."""
-    env = dict(os.environ, ROS_DOMAIN_ID=str(os.getpid() % 100 + 100),
-               ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    out = subprocess.run([sys.executable, "-c", _FROZEN_AT_SPIN], cwd=repo_root, env=env,
+    out = subprocess.run([sys.executable, "-c", _FROZEN_AT_SPIN], cwd=repo_root,
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     frozen, tracked = (int(v) for v in out.stdout.split()[:2])

@@ -144,6 +144,23 @@ MAX_OVERRIDES = 15_000
 #: buffer without bound (counted in ``stats.dropped_overflow``).
 MAX_SAMPLE_RATE_HZ = 2000.0
 
+#: Most steps of a predicted path.
+MAX_HORIZON_STEPS = 200
+
+
+def horizon_steps(horizon_s: float, rate_hz: float) -> int:
+    """The steps of a ``horizon_s`` horizon at a model's ``rate_hz`` (at least one).
+
+    Raises:
+        ValueError: more than MAX_HORIZON_STEPS, naming ``horizon_s`` (a 25 Hz model's
+            10 s is 250 steps).
+    """
+    k = max(1, round(horizon_s * rate_hz))
+    if k > MAX_HORIZON_STEPS:
+        raise ValueError(f"horizon_s {horizon_s:g} s is {k} steps at the model's "
+                         f"{rate_hz:g} Hz, more than {MAX_HORIZON_STEPS}")
+    return k
+
 
 class RejectedInputError(ValueError):
     """A plan or a future joystick sequence the Predictor refuses.
@@ -184,8 +201,9 @@ class PredictorConfig:
 
     def __post_init__(self) -> None:
         steps = self.horizon_steps
-        if isinstance(steps, bool) or int(steps) != steps or not 1 <= int(steps) <= 200:
-            raise ValueError(f"horizon_steps must be an integer in [1, 200], "
+        if isinstance(steps, bool) or int(steps) != steps \
+                or not 1 <= int(steps) <= MAX_HORIZON_STEPS:
+            raise ValueError(f"horizon_steps must be an integer in [1, {MAX_HORIZON_STEPS}], "
                              f"got {self.horizon_steps}")
         for name in ("joy_timeout_s", "vo_timeout_s", "plan_timeout_s", "reset_jump_s"):
             value = getattr(self, name)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+from asgp_ros.nodes.parameters import topic_name_problem
+
 #: ``joy_applied`` feeds while its newest message is at most this old (s, the node's clock):
 #: ten of the bridge's 100 Hz samples.
 MEASURED_FRESH_S = 0.1
@@ -37,10 +39,10 @@ def check_topics(resolve: Callable[[str], str], **names: str) -> None:
     for param, name in names.items():
         if not name.strip():
             continue
-        try:
-            full = resolve(name)
-        except RuntimeError as exc:  # rclpy's RCLError: not a valid topic name
-            raise ValueError(f"{param}: {name!r} is not a valid topic name ({exc})") from None
+        problem = topic_name_problem(resolve, name)
+        if problem is not None:
+            raise ValueError(f"{param}: {name!r} is not a valid topic name ({problem})")
+        full = resolve(name)
         if full in seen:
             raise ValueError(f"{seen[full]} and {param} name one topic, {full}: they must "
                              "differ (the user's stick, the board's output and the "

@@ -49,11 +49,30 @@ def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, object]:
         except ParameterException as exc:
             raise ValueError(f"parameter {spec.name}: {' '.join(str(exc).split())}") from None
         values[spec.name] = node.get_parameter(spec.name).value
+        value = values[spec.name]
+        if spec.name.endswith("_topic") and isinstance(value, str) and value.strip():
+            # an invalid name reached rclpy's endpoint creation later, with a traceback
+            problem = topic_name_problem(node.resolve_topic_name, value)
+            if problem is not None:
+                raise ValueError(f"parameter {spec.name}: {value!r} is not a valid topic "
+                                 f"name ({problem})")
     unknown = unknown_overrides(node)
     if unknown:
         node.get_logger().warning(
             f"ignoring parameters this node does not have (misspelt?): {', '.join(unknown)}")
     return values
+
+
+def topic_name_problem(resolve: Callable[[str], str], name: str) -> str | None:
+    """Why ``name`` is no valid topic name for a node (``resolve``: its
+    ``resolve_topic_name``, expansion and remapping), in rcl's words; None if valid."""
+    try:
+        resolve(name)
+    except RuntimeError as exc:  # rclpy's RCLError
+        text = " ".join(str(exc).split())
+        text = text.removeprefix("failed to resolve name: ")
+        return text.split(", at /")[0]  # less rcl's source file and line
+    return None
 
 
 def unknown_overrides(node: Node) -> list[str]:

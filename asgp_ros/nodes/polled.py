@@ -31,6 +31,7 @@ callbacks saw them.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,11 +47,25 @@ from rclpy.timer import Timer
 
 from asgp_ros.nodes.qos_watch import QosWatch
 
-__all__ = ["DEPTH", "Arrival", "PolledInputs"]
+__all__ = ["DEPTH", "MIN_PERIOD_S", "Arrival", "PolledInputs", "period_problem"]
 
 #: Messages each polled subscription keeps until a drain takes them: 10 s of the board's
 #: 100 Hz, far beyond the time between two drains.
 DEPTH = 1000
+
+#: The shortest period of the drains, half the board's: a wake-up of the executor costs up
+#: to 0.35 ms, so at most 7 % of a core. A shorter one woke it at every spin (1e-9 s: an
+#: idle node took 66-97 % of a core), for nothing a callback per message (0) would not give.
+MIN_PERIOD_S = 0.005
+
+
+def period_problem(name: str, period_s: float, high: float = 1.0) -> str | None:
+    """Why ``period_s`` (the parameter ``name``) is no period of the drains, or None: 0 (a
+    callback per message) or in [MIN_PERIOD_S, high] s."""
+    if period_s == 0.0 or (math.isfinite(period_s) and MIN_PERIOD_S <= period_s <= high):
+        return None
+    return (f"{name} must be 0 (a callback per message) or in [{MIN_PERIOD_S:g}, {high:g}] s, "
+            f"got {period_s}")
 
 
 @dataclass(frozen=True)
@@ -90,8 +105,9 @@ class PolledInputs:
     """A node's high-rate subscriptions, drained in batches (see the module docstring)."""
 
     def __init__(self, node: Node, watch: QosWatch, period_s: float) -> None:
-        if not period_s >= 0.0:
-            raise ValueError(f"period_s must be >= 0, got {period_s}")
+        problem = period_problem("period_s", period_s, high=math.inf)
+        if problem is not None:
+            raise ValueError(problem)
         self._node = node
         self._watch = watch
         self.period_s = float(period_s)

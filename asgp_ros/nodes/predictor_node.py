@@ -92,7 +92,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, sim_time_change
-from asgp_ros.nodes.polled import Arrival, PolledInputs
+from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S, OverrideGate
@@ -192,9 +192,8 @@ class PredictorNodeParams:
             raise ValueError(
                 f"diagnostics_period_s must be in [0.1, 60] s, got {self.diagnostics_period_s}"
             )
-        if not (math.isfinite(self.joy_poll_period_s) and 0.0 <= self.joy_poll_period_s <= 1.0):
-            raise ValueError(
-                f"joy_poll_period_s must be in [0, 1] s, got {self.joy_poll_period_s}")
+        if (problem := period_problem("joy_poll_period_s", self.joy_poll_period_s)) is not None:
+            raise ValueError(problem)
         # the predictor's own settings are validated by PredictorConfig, adaptation's here
         self.predictor_config(5.0)
         self.adapt_settings()
@@ -212,7 +211,7 @@ class PredictorNodeParams:
         """k: horizon_steps, or horizon_s at the model's rate."""
         if self.horizon_steps > 0:
             return self.horizon_steps
-        return max(1, round(self.horizon_s * model_rate_hz))
+        return online.horizon_steps(self.horizon_s, model_rate_hz)
 
     def predictor_config(self, model_rate_hz: float, min_buffer_s: float = 0.0
                          ) -> PredictorConfig:
@@ -298,7 +297,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("joy_poll_period_s", "the joystick topics are read in batches this often (and "
           "before every VO message, override and watchdog check, and every 10 ms while a "
           "step waits for the joystick only), not at each message, which cost the "
-          "executor's wake-up; 0 = at each message", 0.0, 1.0),
+          "executor's wake-up; 0 = at each message, else at least 0.005", 0.0, 1.0),
     *adapt_params.ADAPT_PARAMS,
 )
 SPECS: dict[str, ParamSpec] = {spec.name: spec for spec in PARAMS}

@@ -35,8 +35,11 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import os
 import signal
 import socket
+import stat
+import sys
 import threading
 import types
 from collections.abc import Callable
@@ -44,13 +47,14 @@ from collections.abc import Callable
 import rclpy
 from rclpy.clock import Clock
 from rclpy.clock_type import ClockType
+from rclpy.exceptions import NameValidationException, ParameterException
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
 
-__all__ = ["StopSignals", "init", "pacing_clock", "run", "settle_garbage_collector",
-           "stop_requested"]
+__all__ = ["StopSignals", "init", "pacing_clock", "ros_args_problem", "run",
+           "settle_garbage_collector", "stop_requested"]
 
 _STOP = threading.Event()  # set by a stop signal; one per process, as signals are
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
@@ -182,6 +186,34 @@ def init(args: list[str] | None = None) -> None:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
+#: rcl's arguments that name a file it opens at ``rclpy.init``.
+_FILE_ARGUMENTS = ("--params-file", "--log-config-file")
+
+
+def ros_args_problem(argv: list[str]) -> str | None:
+    """Why rcl cannot be given ``argv``'s ROS arguments, in one line, or None: a
+    ``--params-file`` (or ``--log-config-file``) that is not a readable regular file. rcl
+    opens it at ``rclpy.init``: a FIFO blocked there with SIGINT and SIGTERM held back
+    (:func:`init`) until killed, and a missing file failed with a traceback."""
+    inside = False
+    for i, arg in enumerate(argv):
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg in _FILE_ARGUMENTS and i + 1 < len(argv):
+            path = argv[i + 1]
+            try:
+                info = os.stat(path)
+            except OSError as exc:
+                return f"{arg} {path}: {exc.strerror or exc}"
+            if not stat.S_ISREG(info.st_mode):
+                return f"{arg} {path}: not a regular file"
+            if not os.access(path, os.R_OK):
+                return f"{arg} {path}: not readable"
+    return None
+
+
 def settle_garbage_collector() -> None:
     """Collect the start-up's garbage, then exempt every object left (the modules, the
     model, the node) from Python's cyclic garbage collector for good (``gc.freeze``).
@@ -212,15 +244,27 @@ def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
     Returns:
         0 after a stop signal, 1 when the node refused to start.
     """
+    logger = rclpy.logging.get_logger(name)
     with StopSignals() as stops:
-        init(args)
+        problem = ros_args_problem(sys.argv if args is None else args)
+        if problem is None:
+            try:
+                init(args)
+            except RuntimeError as exc:  # rclpy's RCLError: arguments rcl refused
+                problem = " ".join(str(exc).split()).split(", at /")[0]
+        if problem is not None:
+            logger.fatal(f"refusing to start: {problem}")
+            return 1
         executor = SingleThreadedExecutor()
         node: Node | None = None
+        refusals: tuple[type[Exception], ...] = (
+            *refused, ParameterException, NameValidationException)
         try:
             try:
                 node = build()
-            except refused as exc:
-                rclpy.logging.get_logger(name).fatal(f"refusing to start: {exc}")
+            except refusals as exc:
+                # (rclpy's own: use_sim_time:=1 given to Node.__init__, say)
+                logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")
                 return 1
             except interrupted:
                 return 0

@@ -88,7 +88,7 @@ from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
 from asgp_ros.core.obstacle_memory import MEMORY_ODOMETRY, MemoryConfig, ScanMemory
-from asgp_ros.core.online import Prediction, Predictor, PredictorConfig
+from asgp_ros.core.online import Prediction, Predictor, PredictorConfig, horizon_steps
 from asgp_ros.core.scan_match import (
     VELOCITY_SOURCES,
     ScanOdometer,
@@ -111,7 +111,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
-from asgp_ros.nodes.polled import Arrival, PolledInputs
+from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 
@@ -218,7 +218,7 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
           "each from the bridge) are read in batches this often and before every VO and scan "
           "message, decision, override send (override_rate_hz, intervening or not), watchdog "
           "check and diagnostics message, not at each message, which cost the executor's "
-          "wake-up; 0 = at each message", 0.0, 1.0),
+          "wake-up; 0 = at each message, else at least 0.005", 0.0, 1.0),
 )
 #: Every parameter the node declares: its own and the online adaptation's (adapt.*).
 PARAMS: tuple[ParamSpec, ...] = (*LAYER_PARAMS, *adapt_params.ADAPT_PARAMS)
@@ -291,9 +291,8 @@ class SharedControlParams:
                              "to 'laser' or 'both'")
         if self.obstacles != "laser" and self.vo_type != "odometry":
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
-        if not (math.isfinite(self.joy_poll_period_s) and 0.0 <= self.joy_poll_period_s <= 1.0):
-            raise ValueError(f"joy_poll_period_s must be in [0, 1] s, got "
-                             f"{self.joy_poll_period_s}")
+        if (problem := period_problem("joy_poll_period_s", self.joy_poll_period_s)) is not None:
+            raise ValueError(problem)
         parse_joy_axes(self.joy_axes)
         self.config()
 
@@ -349,7 +348,7 @@ class SharedControlNode(Node):
         rate = float(self.model.resample_config.rate_hz)
         self.joy_axes = parse_joy_axes(p.joy_axes)
         try:
-            k = max(1, round(p.horizon_s * rate))
+            k = horizon_steps(p.horizon_s, rate)
             self.predictor, self._adapt_unavailable = adapt_params.make_predictor(
                 self, lambda settings: Predictor(self.model, PredictorConfig(
                     horizon_steps=k, joy_timeout_s=p.joy_timeout_s,

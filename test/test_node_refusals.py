@@ -1,0 +1,109 @@
+"""What a node given bad start-up arguments does: refuse in one line and exit 1, never a
+traceback and never a hang (every node starts through nodes.runtime.run)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from asgp_ros.core import online
+from asgp_ros.nodes import polled
+from asgp_ros.nodes.runtime import ros_args_problem
+
+pytest.importorskip("rclpy")
+
+MODEL = "docs/reproduction/models/tile_asgp.npz"
+
+
+def test_ros_args_problem_names_a_params_file_rcl_could_not_open(tmp_path):
+    good = tmp_path / "p.yaml"
+    good.write_text("/**:\n  ros__parameters: {}\n")
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    assert ros_args_problem(["node", "--ros-args", "--params-file", str(good)]) is None
+    assert "not a regular file" in ros_args_problem(
+        ["node", "--ros-args", "-p", "a:=1", "--params-file", str(fifo)])
+    assert "not a regular file" in ros_args_problem(
+        ["node", "--ros-args", "--params-file", str(tmp_path)])
+    assert "No such file" in ros_args_problem(
+        ["node", "--ros-args", "--log-config-file", str(tmp_path / "absent")])
+    # not a ROS argument: the program's own (after --, or before --ros-args)
+    assert ros_args_problem(["node", "--params-file", str(fifo)]) is None
+    assert ros_args_problem(["node", "--ros-args", "--", "--params-file", str(fifo)]) is None
+
+
+def test_a_horizon_beyond_the_steps_of_a_path_names_horizon_s():
+    """A 25 Hz model's 10 s (horizon_s within its range) was refused as 'horizon_steps
+    ... got 250', a parameter the shared-control node does not have."""
+    assert online.horizon_steps(2.0, 5.0) == 10
+    assert online.horizon_steps(0.01, 5.0) == 1
+    with pytest.raises(ValueError, match=r"horizon_s 10 s is 250 steps at the model's 25 Hz"):
+        online.horizon_steps(10.0, 25.0)
+
+
+def test_a_drain_period_between_0_and_5_ms_is_refused():
+    """joy_poll_period_s 1e-9 made a drain timer that fired at every spin: an idle node
+    took 66-97 % of a core."""
+    for ok in (0.0, polled.MIN_PERIOD_S, 0.25, 1.0):
+        assert polled.period_problem("joy_poll_period_s", ok) is None
+    for bad in (1e-9, 0.004, -0.1, 1.5, float("nan"), float("inf")):
+        assert "joy_poll_period_s must be 0" in polled.period_problem("joy_poll_period_s", bad)
+
+
+def _cases(tmp_path):
+    fifo = tmp_path / "params.yaml"
+    os.mkfifo(fifo)
+    bad_yaml = tmp_path / "bad.yaml"
+    bad_yaml.write_text('/**:\n  ros__parameters:\n    horizon_s: [1.0, "a"\n')
+    model = ["-p", f"model_path:={MODEL}"]
+    return {
+        # rcl opened the FIFO in rclpy.init with SIGINT and SIGTERM held: unkillable
+        "fifo": ("vo_node", ["--params-file", str(fifo)], "not a regular file"),
+        "missing": ("serial_bridge_node", ["--params-file", str(tmp_path / "absent.yaml")],
+                    "No such file"),
+        "malformed": ("shared_control_node", [*model, "--params-file", str(bad_yaml)],
+                      "params file"),
+        # rclpy's own parameter, of another type (launch's use_sim_time:=1 is an integer)
+        "sim_time_int": ("predictor_node", [*model, "-p", "use_sim_time:=1"], "use_sim_time"),
+        "sim_time_int_vo": ("vo_node", ["-p", "use_sim_time:=1"], "use_sim_time"),
+        # an invalid topic name reached rclpy's endpoint creation
+        "topic": ("predictor_node", [*model, "-p", "path_topic:=a//b"],
+                  "path_topic: 'a//b' is not a valid topic name"),
+        "topic_layer": ("shared_control_node", [*model, "-p", "scan_topic:=scan 2"],
+                        "scan_topic"),
+        "topic_vo": ("vo_node", ["-p", "color_topic:=1color"], "color_topic"),
+        "poll": ("predictor_node", [*model, "-p", "joy_poll_period_s:=1e-9"],
+                 "joy_poll_period_s must be 0"),
+    }
+
+
+def test_bad_start_up_arguments_are_refused_in_one_line(repo_root, tmp_path):
+    """All at once (each is a process of its own): each exits 1 within the deadline with
+    'refusing to start' and the reason, and no traceback."""
+    cases = _cases(tmp_path)
+    procs = {name: subprocess.Popen(
+        [sys.executable, "-m", f"asgp_ros.nodes.{node}", "--ros-args", *args], cwd=repo_root,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for name, (node, args, _) in cases.items()}
+    deadline = time.monotonic() + 120.0
+    outputs = {}
+    try:
+        for name, proc in procs.items():
+            try:
+                outputs[name] = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))[0]
+            except subprocess.TimeoutExpired:
+                pytest.fail(f"{name}: still running after the deadline (hung)")
+    finally:
+        for proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    for name, (_, _, reason) in cases.items():
+        out = outputs[name]
+        assert procs[name].returncode == 1, (name, out)
+        assert "Traceback" not in out, (name, out)
+        assert "refusing to start" in out and reason in out, (name, out)
