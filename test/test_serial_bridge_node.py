@@ -281,6 +281,11 @@ def test_parameters_are_validated_at_runtime(harness):
     # in range, but its timer is made at start-up: it was accepted and changed nothing
     r = node.set_parameters([Parameter("override_rate", value=200.0)])
     assert not r[0].successful and "start-up" in r[0].reason
+    # shorter than two of the override timer's periods (25 Hz): an override could go stale
+    # between two ticks and never be written
+    r = node.set_parameters([Parameter("override_timeout", value=0.05)])
+    assert not r[0].successful and "two periods" in r[0].reason, r[0].reason
+    assert node.params.override_timeout == 0.15
     r = node.set_parameters([Parameter("calibration.forward.invert", value=True)])
     assert r[0].successful
     n = len(h.joy)

@@ -241,6 +241,10 @@ def test_bridge_yaml_matches_declared_parameters(repo_root):
     ({"port": ""}, "port"),
     ({"calibration.forward.invert": 1}, "invert"),
     ({"override_timeout": math.nan}, "override_timeout"),
+    # written at the rate's ticks only: 6 Hz with 0.02 s sent 4 of 40 overrides
+    ({"override_rate": 6.0, "override_timeout": 0.02}, "two periods of override_rate"),
+    ({"override_rate": 6.0, "override_timeout": 0.3}, "two periods of override_rate"),
+    ({"override_rate": 25.0, "override_timeout": 0.05}, "two periods of override_rate"),
 ])
 def test_bad_parameters_are_refused_by_name(values, match):
     with pytest.raises(ValueError, match=match):
@@ -275,3 +279,8 @@ def test_scalar_and_vector_calibration_agree():
         vec = cal.deflection_array(raw)
         assert np.array_equal(vec, [cal.deflection(r) for r in raw])
         assert np.all(np.diff(vec) * (-1 if cal.invert else 1) >= 0)  # monotonic
+
+
+def test_an_override_timeout_of_two_rate_periods_is_taken():
+    assert bridge_params({"override_rate": 6.0, "override_timeout": 2 / 6.0}) is not None
+    assert bridge_params({"override_rate": 25.0, "override_timeout": 0.08}) is not None

@@ -17,7 +17,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("baud", 115200, "UART speed (ignored by USB CDC and ptys)", 1200, 2_000_000),
     ParamSpec("frame_id", "", "header.frame_id of published Joy messages"),
     ParamSpec("override_timeout", DEFAULT_TIMEOUT_S,
-              "s: a joy_override older than this is stale and no longer sent", 0.02, 1.0,
+              "s: a joy_override older than this is stale and no longer sent (at least "
+              "two periods of override_rate)", 0.02, 1.0,
               runtime=True),
     ParamSpec("override_rate", 25.0,
               "Hz: overrides are re-sent at this rate while fresh (board watchdog 200 ms); "
@@ -98,6 +99,15 @@ def bridge_params(values: Mapping[str, object]) -> BridgeParams:
             raise ValueError(f"calibration.{axis}: {exc}") from exc
     if v["reconnect_max"] < v["reconnect_min"]:
         raise ValueError("parameter reconnect_max must be >= reconnect_min")
+    if v["override_timeout"] < 2.0 / v["override_rate"]:
+        # overrides are written at the rate's ticks only: one that goes stale between two
+        # was never written (6 Hz and 0.02 s: 4 of 40 written, the chair back to the user
+        # four times in 2 s while the layer intervened)
+        raise ValueError(
+            f"parameter override_timeout ({v['override_timeout']:g} s) must be at least two "
+            f"periods of override_rate ({2.0 / v['override_rate']:.3g} s at "
+            f"{v['override_rate']:g} Hz): overrides are written at its ticks, and one that "
+            "went stale between two would never be sent")
     if v["heartbeat_timeout"] <= v["heartbeat_period"]:
         raise ValueError("parameter heartbeat_timeout must exceed heartbeat_period")
     if not v["port"]:
