@@ -245,10 +245,22 @@ def test_half_life_in_seconds_uses_the_stamps() -> None:
     assert s.data_weight == pytest.approx(
         (1 - 2.0 ** (-400 * dt / h)) / (1 - 2.0 ** (-dt / h)), rel=1e-12)
     assert s.trained_weight == pytest.approx(2.0 ** (-(t[-1] - t[0]) / h), rel=1e-12)
-    # a gap of ten half-lives: everything before it counts 2^-10
-    before = s.data_weight
+    # a pause of ten half-lives (VO lost, a forward clock jump): only time with rows
+    # forgets, the pause counts as max_gap_s (1 s)
+    before, trained_before = s.data_weight, s.trained_weight
     assert online.absorb(X2[0], float(y2[0]), t[-1] + 10 * h)
-    assert online.stats.data_weight == pytest.approx(1.0 + before / 1024.0, rel=1e-12)
+    assert online.stats.data_weight == pytest.approx(1.0 + before * 2.0 ** (-1.0 / h),
+                                                     rel=1e-12)
+    assert online.stats.trained_weight == pytest.approx(trained_before * 2.0 ** (-1.0 / h),
+                                                        rel=1e-12)
+    # uncapped, everything before it counts 2^-10
+    uncapped = OnlinePosterior(trained().posterior, 300, AdaptConfig(
+        half_life_s=h, trained_floor=0.0, max_gap_s=math.inf))
+    assert uncapped.absorb_rows(X2, y2, t) == 400
+    assert uncapped.absorb(X2[0], float(y2[0]), t[-1] + 10 * h)
+    assert uncapped.stats.data_weight == pytest.approx(1.0 + before / 1024.0, rel=1e-12)
+    with pytest.raises(AdaptError, match="max_gap_s"):
+        AdaptConfig(half_life_s=h, max_gap_s=float("nan"))
     with pytest.raises(AdaptError, match="time stamps"):
         online.absorb(X2[0], float(y2[0]))
 

@@ -1223,6 +1223,29 @@ def test_adaptation_learns_nothing_an_override_drove(rclpy_context, model_file,
         h.close()
 
 
+def test_a_forward_clock_jump_keeps_what_adaptation_learnt(rclpy_context, model_file):
+    """The simulated clock jumps an hour ahead (a bag played on from later, a machine's
+    clock set): the first row after it decayed what was learnt by the whole hour, 2^-12 at
+    a half-life of 300 s (weight 131.8 -> 8.0), and the trained data's to nothing. Only
+    time with rows forgets now; the jump counts as one second."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": True,
+                                              "adapt.half_life_s": 300.0})
+    try:
+        h.drive(100.0, 130.0)
+        h.clock(h.now + 0.3)
+        online = h.node.predictor._adapter._online[0]
+        h.spin_until(lambda: online.stats.data_weight > 50, 5.0, "rows learnt")
+        before = online.stats.data_weight
+        h.drive(3700.0, 3704.0)
+        h.clock(h.now + 0.3)
+        h.spin_until(lambda: online.stats.data_weight > before, 5.0,
+                     "rows learnt after the jump, adding to the weight")
+        assert h.node.predictor.stats.resets == 0  # forward: nothing to reset
+        assert online.stats.data_weight >= 0.99 * before
+    finally:
+        h.close()
+
+
 def test_adaptation_learns_after_the_path_is_out(rclpy_context, model_file):
     """Learning waits a moment (LEARN_DELAY_S on the node's clock) after each path, so the
     path's subscribers are not kept from a core by it; it still comes once per path, before

@@ -58,7 +58,8 @@ rho = 1 keeps the trained data whole (only the adapted rows fade); rho = 0 lets 
 posterior decay to the prior Kuu.  Every term of A6 is positive semi-definite with
 non-negative weights, so A >= I: A is always positive definite and C (A5) is between 0
 and Kuu^-1.  Time stands still between absorbed rows (rejected rows do not decay
-anything): forgetting is driven by new data replacing old.
+anything, and with a half-life in seconds a pause between two absorbed rows counts as
+at most ``AdaptConfig.max_gap_s``): forgetting is driven by new data replacing old.
 
 Safety (the issue's item 4).  The latent variance at x (P2, u = L^-1 k(Z, x)) is::
 
@@ -192,6 +193,11 @@ class AdaptConfig:
 
     Attributes:
         half_life_s: forgetting half-life in seconds of the rows' stamps (A7), or None.
+        max_gap_s: with ``half_life_s``, the longest interval between two absorbed rows
+            that decays as it is; a longer one (a pause of the rows: VO lost, the stick
+            silent, a forward clock jump) decays as this many seconds, so that only time
+            with data forgets (an hour's jump took the adapted weight from 255 to 14 rows
+            and the trained data's to nothing); inf: every interval as it is.
         half_life_rows: forgetting half-life in absorbed rows, or None.  At most one of
             the two; neither means no forgetting (every row counts forever).
         trained_floor: rho in [0, 1], the weight the trained statistics decay to (A7).
@@ -208,6 +214,7 @@ class AdaptConfig:
     """
 
     half_life_s: float | None = None
+    max_gap_s: float = 1.0
     half_life_rows: float | None = None
     trained_floor: float = 0.01
     trained_half_life: float | None = None
@@ -222,6 +229,8 @@ class AdaptConfig:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0.0):
                 raise AdaptError(f"{name} must be a finite number > 0 or None, got {value!r}")
+        if not self.max_gap_s > 0.0:  # (inf: every interval decays as it is)
+            raise AdaptError(f"max_gap_s must be > 0, got {self.max_gap_s!r}")
         if isinstance(self.row_noise, bool) or not isinstance(self.row_noise, int | float) \
                 or not (math.isfinite(self.row_noise) and 0.0 <= self.row_noise <= 1e6):
             raise AdaptError(f"row_noise must be a number in [0, 1e6], got {self.row_noise!r}")
@@ -491,7 +500,8 @@ class OnlinePosterior:
                 if ta is not None:
                     ti = float(ta[i])
                     if cfg.half_life_s is not None and t_last is not None:
-                        gamma = 2.0 ** (-(ti - t_last) / cfg.half_life_s)
+                        gap = min(ti - t_last, cfg.max_gap_s)  # a pause forgets nothing
+                        gamma = 2.0 ** (-gap / cfg.half_life_s)
                     t_last = ti
                 keep.append(i)
                 gammas.append(gamma)
