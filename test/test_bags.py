@@ -151,10 +151,12 @@ def test_same_seed_gives_byte_identical_bags(tmp_path, storage):
 def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | str = False,
                   joy_axes=(0.25, -0.5, 0.75), ros1: bool = False,
                   overrides: tuple[int, ...] = (),
-                  override_type: str = "sensor_msgs/msg/Joy") -> None:
+                  override_type: str = "sensor_msgs/msg/Joy",
+                  variances: dict[int, float] | None = None) -> None:
     """A hand-made bag: /joy + /twist of ``twist_type``, header stamps 20 ms before bag time;
     with ``overrides``, a /joy_override of ``override_type`` 5 ms after the joystick sample
-    of each of those indices."""
+    of each of those indices; ``variances``: the twist variance of those samples (of a type
+    with a covariance; else 0.01)."""
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)
     T = store.types
     ser = store.serialize_ros1 if ros1 else store.serialize_cdr
@@ -175,7 +177,9 @@ def _write_custom(path: Path, twist_type: str, n: int = 20, zero_stamps: bool | 
             return tw
         if twist_type == "geometry_msgs/msg/TwistStamped":
             return T[twist_type](header=header(t_ns, "base_link"), twist=tw)
-        twc = T["geometry_msgs/msg/TwistWithCovariance"](twist=tw, covariance=np.zeros(36))
+        cov = np.zeros(36)
+        cov[0] = cov[35] = (variances or {}).get(i, 0.01)
+        twc = T["geometry_msgs/msg/TwistWithCovariance"](twist=tw, covariance=cov)
         if twist_type == "geometry_msgs/msg/TwistWithCovarianceStamped":
             return T[twist_type](header=header(t_ns, "base_link"), twist=twc)
         pose = T["geometry_msgs/msg/PoseWithCovariance"](
@@ -221,6 +225,24 @@ def test_twist_types(tmp_path, twist_type):
     expect = t0 + 0.1 * i + (0.02 if twist_type == "geometry_msgs/msg/Twist" else 0.0)
     np.testing.assert_allclose(s.vel_t, expect, atol=1e-6)
     np.testing.assert_allclose(s.joy_t, t0 + 0.1 * i, atol=1e-6)  # header stamps
+
+
+@pytest.mark.parametrize("twist_type", ["nav_msgs/msg/Odometry",
+                                        "geometry_msgs/msg/TwistWithCovarianceStamped"])
+def test_a_twist_the_odometry_flags_lost_is_read_as_lost(tmp_path, twist_type):
+    """vo_node publishes a lost frame's twist as zero with variance ODOM_LOST_VARIANCE, and
+    the nodes take it as lost. Read from a bag it was a valid zero velocity: asgp train and
+    asgp adapt learnt the chair standing still while it drove (adapt: 240 of 566 rows)."""
+    from asgp_ros.core.resample import resample
+    from asgp_ros.core.streams import ODOM_LOST_VARIANCE
+
+    path = tmp_path / "b"
+    bad = {5: ODOM_LOST_VARIANCE, 9: float("nan"), 12: -1.0, 15: float("inf")}
+    _write_custom(path, twist_type, n=30, variances=bad)
+    s = read_streams(path, twist_topic="/twist")
+    np.testing.assert_array_equal(np.flatnonzero(~s.vel_ok), sorted(bad))
+    res = resample(s)
+    assert res.tracking_lost.any() and not res.valid[res.tracking_lost].any()
 
 
 @pytest.mark.parametrize("ros1", [False, True])

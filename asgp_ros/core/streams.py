@@ -52,6 +52,19 @@ MAX_ABS_YAW_RATE = 10.0
 MAX_ABS_POSITION = 1e6
 #: Largest |yaw| (rad) of an odometry pose accepted.
 MAX_ABS_YAW = 1e4
+#: Twist variance at or above which odometry reports a tracking failure (vo_node publishes
+#: a lost frame's twist as zero with this variance).
+ODOM_LOST_VARIANCE = 1e6
+
+
+def twist_tracked(v: float, omega: float, var_v: float, var_omega: float) -> bool:
+    """Whether a twist with covariance (nav_msgs/Odometry,
+    geometry_msgs/TwistWithCovarianceStamped) reports tracking: its v and omega finite and
+    their variances (``covariance[0]``, ``[35]``) finite, non-negative and below
+    ``ODOM_LOST_VARIANCE``. The one rule of the nodes and of reading a bag."""
+    return (math.isfinite(v) and math.isfinite(omega)
+            and all(math.isfinite(var) and 0.0 <= var < ODOM_LOST_VARIANCE
+                    for var in (var_v, var_omega)))
 
 
 def joy_in_range(joy: object) -> BoolArray:

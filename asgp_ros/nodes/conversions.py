@@ -22,7 +22,7 @@ from sensor_msgs.msg import CameraInfo, Image, Joy, LaserScan
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from visualization_msgs.msg import Marker, MarkerArray
 
-from asgp_ros.core import collision
+from asgp_ros.core import collision, streams
 from asgp_ros.core.online import MAX_PLAN_STEPS
 from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 from asgp_ros.recording.bags import JoyAxes
@@ -163,7 +163,7 @@ class VelocityFrameCheck:
 
 
 #: Odometry twist variance at or above which a velocity is taken as a tracking failure.
-ODOM_LOST_VARIANCE = 1e6
+ODOM_LOST_VARIANCE = streams.ODOM_LOST_VARIANCE
 
 
 def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
@@ -177,9 +177,7 @@ def odometry_to_sample(msg: Odometry) -> tuple[float, tuple[float, float], bool,
     """
     tw = msg.twist
     v, w = float(tw.twist.linear.x), float(tw.twist.angular.z)
-    variances = (float(tw.covariance[0]), float(tw.covariance[35]))
-    ok = (math.isfinite(v) and math.isfinite(w)
-          and all(math.isfinite(var) and 0.0 <= var < ODOM_LOST_VARIANCE for var in variances))
+    ok = streams.twist_tracked(v, w, float(tw.covariance[0]), float(tw.covariance[35]))
     p = msg.pose.pose
     q = p.orientation
     yaw, unit = _yaw_of(q)

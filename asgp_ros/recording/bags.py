@@ -68,7 +68,7 @@ from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
 from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST, is_override
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
-from asgp_ros.core.streams import RawStreams, joy_in_range, vel_in_range
+from asgp_ros.core.streams import RawStreams, joy_in_range, twist_tracked, vel_in_range
 
 # rosbags is imported where a bag is read or written, not here: ``asgp --help`` and the
 # predictor node import this module, and rosbags takes about 0.1 s to load.
@@ -490,10 +490,17 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
                     axes.turn_sign * float(a[axes.turn]))
 
         def twist_row(msg: Any, msgtype: str) -> tuple[Any, ...]:
+            """(stamp, v, omega, 1.0 tracked / 0.0 lost): a twist with covariance says
+            tracking was lost as the nodes read it (vo_node's lost frames: zero, variance
+            ODOM_LOST_VARIANCE), or a lost frame's zero would be learnt as the chair's."""
             if msgtype == "geometry_msgs/msg/Twist":
-                return (0, msg.linear.x, msg.angular.z)
-            tw = msg.twist if msgtype == "geometry_msgs/msg/TwistStamped" else msg.twist.twist
-            return (_stamp_ns(msg), tw.linear.x, tw.angular.z)
+                return (0, msg.linear.x, msg.angular.z, 1.0)
+            if msgtype == "geometry_msgs/msg/TwistStamped":
+                return (_stamp_ns(msg), msg.twist.linear.x, msg.twist.angular.z, 1.0)
+            tw, cov = msg.twist.twist, msg.twist.covariance
+            v, w = float(tw.linear.x), float(tw.angular.z)
+            tracked = twist_tracked(v, w, float(cov[0]), float(cov[35]))
+            return (_stamp_ns(msg), v, w, 1.0 if tracked else 0.0)
 
         def truth_row(msg: Any, _t: str) -> tuple[Any, ...]:
             p = msg.pose.pose
@@ -572,7 +579,7 @@ def read_streams(
         if not rows:
             raise BagError(f"{source}: {name} topic {topic!r} has no messages")
     j = np.asarray(jr, dtype=np.float64).reshape(-1, 3)
-    v = np.asarray(vr, dtype=np.float64).reshape(-1, 3)
+    v = np.asarray(vr, dtype=np.float64).reshape(-1, 4)
     has_header = tw_conns[0].msgtype != "geometry_msgs/msg/Twist"
     joy_t, keep = _choose_times(joy_topic, np.asarray([r[0] for r in jr], dtype=np.int64),
                                 np.asarray(jb, dtype=np.int64), max_stamp_skew, source)
@@ -600,15 +607,16 @@ def read_streams(
                                       np.asarray(ob, dtype=np.int64), max_stamp_skew, source)
     for name, topic, bad, n in (
             ("joystick", joy_topic, int(np.count_nonzero(~joy_in_range(j[:, 1:]))), j.shape[0]),
-            ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:]))),
+            ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:3]))),
              v.shape[0])):
         if bad:  # the resampler drops them; a large share means a wrong scale or topic
             log.warning("%s: %d of %d %s samples on %s are not finite or outside their "
                         "physical range (asgp_ros.core.streams); they are dropped", source,
                         bad, n, name, topic)
     try:
-        return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:],
-                          truth_t=truth_t, truth=truth, source=source, override_t=override_t)
+        return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:3],
+                          vel_ok=v[:, 3] > 0.5, truth_t=truth_t, truth=truth, source=source,
+                          override_t=override_t)
     except ValueError as exc:
         raise BagError(f"{source}: {exc}") from exc
 
