@@ -375,6 +375,10 @@ def test_the_commands_fail_in_one_line(floors: dict[str, Path], tile_model: Path
     # a horizon longer than the online predictor predicts (200 steps), with --adapt
     assert main(["evaluate", str(tile_model), test, "--adapt", "--horizons", "100"]) == 2
     assert "longer than the online predictor predicts" in one_line_error()
+    # a long horizon within it: adaptation's history (which grows with it) is buffered
+    # (from 7 s the replay's default 10 s buffer was refused with a traceback)
+    assert main(["evaluate", str(tile_model), test, "--adapt", "--horizons", "7.4"]) == 0
+    capsys.readouterr()
     # a model that diverges on the test data
     def diverging(*args: object, **kwargs: object) -> None:
         raise ValueError("channel v predicted NaN or inf")

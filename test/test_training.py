@@ -134,6 +134,16 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     assert adapted["adaptation"][0]["rows_absorbed"] > 100
     assert main(["evaluate", str(model), bags["test"], "--skip", "10"]) == 2
     assert "--skip needs --adapt" in capsys.readouterr().err
+    # every option of the adaptation alone (they were ignored), before any bag is read
+    assert main(["evaluate", str(model), "no_such_bag", "--adapt-half-life", "20",
+                 "--adapt-floor", "0", "--adapt-constant-mean"]) == 2
+    assert ("--adapt-half-life, --adapt-floor, --adapt-constant-mean need --adapt"
+            in capsys.readouterr().err)
+    # --force replaces an earlier --adapt --json (not recognised as an evaluation's)
+    rc = main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-half-life", "20",
+               "--skip", "10", "--json", str(adapt_json), "--force"])
+    assert rc == 0
+    capsys.readouterr()
     assert main(["evaluate", str(model), bags["test"], "--adapt", "--adapt-floor", "2"]) == 2
     capsys.readouterr()
     # the rows teach the function against a constant prior mean: another adapted model

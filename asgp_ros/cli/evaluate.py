@@ -57,21 +57,20 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         "is replayed from the trained model through the online predictor, "
                         "causally (a prediction uses only samples stamped before it is made), "
                         "and scored beside the same model not adapting, on the same cases")
+    # (no defaults here: given without --adapt they are refused, not ignored)
     p.add_argument("--adapt-half-life", type=cli_number("half_life_s", "s"),
-                   default=DEFAULT_HALF_LIFE_S,
-                   help="forgetting half-life of the rows the adapted posterior absorbs "
-                        "(%(default)s s)")
+                   help="with --adapt: forgetting half-life of the rows the adapted posterior "
+                        f"absorbs ({DEFAULT_HALF_LIFE_S:g} s)")
     p.add_argument("--adapt-trained-half-life", type=cli_number("half_life_s", "s"),
-                   default=DEFAULT_TRAINED_HALF_LIFE_S,
-                   help="half-life of the trained data's weight in the adapted posterior "
-                        "(%(default)s s)")
+                   help="with --adapt: half-life of the trained data's weight in the adapted "
+                        f"posterior ({DEFAULT_TRAINED_HALF_LIFE_S:g} s)")
     p.add_argument("--adapt-floor", type=cli_number("trained_floor", ""),
-                   default=DEFAULT_TRAINED_FLOOR,
-                   help="weight the trained data decay to, in [0, 1] (%(default)s)")
-    p.add_argument("--adapt-constant-mean", action="store_true",
-                   help="the absorbed rows teach the function against a constant prior mean, "
-                        "not a correction to the trained function")
-    p.add_argument("--skip", type=cli_number("skip_s", "s"), default=0.0,
+                   help="with --adapt: weight the trained data decay to, in [0, 1] "
+                        f"({DEFAULT_TRAINED_FLOOR:g})")
+    p.add_argument("--adapt-constant-mean", action="store_true", default=None,
+                   help="with --adapt: the absorbed rows teach the function against a "
+                        "constant prior mean, not a correction to the trained function")
+    p.add_argument("--skip", type=cli_number("skip_s", "s"),
                    help="with --adapt: score cases from this many seconds into each bag (0)")
     p.add_argument("--json", metavar="OUT", default=None, help="also write the scores as JSON")
     p.add_argument("--force", action="store_true",
@@ -104,7 +103,22 @@ def format_table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: The options that only mean something with --adapt.
+_ADAPT_ONLY = ("skip", "adapt_half_life", "adapt_trained_half_life", "adapt_floor",
+               "adapt_constant_mean")
+
+
 def run(args: argparse.Namespace) -> int:
+    if not args.adapt:  # before anything is read: given alone they would be ignored
+        given = [f"--{name.replace('_', '-')}" for name in _ADAPT_ONLY
+                 if getattr(args, name) is not None]
+        if given:
+            raise CommandError(f"{', '.join(given)} need{'s' if len(given) == 1 else ''} "
+                               "--adapt")
+    elif args.truth:
+        raise CommandError("--truth is not scored with --adapt")
+    elif args.uncertainty not in (None, "linear"):
+        raise CommandError("--adapt propagates the uncertainty linearly")
     if args.json:
         check_output(args.json, SCORES_JSON, inputs=[args.model, *bag_inputs(args.bags)],
                      force=args.force, option="--json")
@@ -120,8 +134,6 @@ def run(args: argparse.Namespace) -> int:
     tests = [TestSeries(s.name, s.res, s.raw) for s in series]
     if args.adapt:
         return _run_adaptive(args, model, tests)
-    if args.skip:
-        raise CommandError("--skip needs --adapt")
     try:
         ev = evaluate_model(model, tests, args.horizons, threshold_m=args.threshold,
                             case_lags=args.case_lags, truth=args.truth,
@@ -141,10 +153,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSeries]) -> int:
     """``--adapt``: the adapting model and the same model as trained, on the same cases."""
-    if args.truth:
-        raise CommandError("--truth is not scored with --adapt")
-    if args.uncertainty not in (None, "linear"):
-        raise CommandError("--adapt propagates the uncertainty linearly")
+    for name, default in (("skip", 0.0), ("adapt_half_life", DEFAULT_HALF_LIFE_S),
+                          ("adapt_trained_half_life", DEFAULT_TRAINED_HALF_LIFE_S),
+                          ("adapt_floor", DEFAULT_TRAINED_FLOOR),
+                          ("adapt_constant_mean", False)):
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     try:
         settings = AdaptSettings(AdaptConfig(half_life_s=args.adapt_half_life,
                                              trained_floor=args.adapt_floor,

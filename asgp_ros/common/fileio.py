@@ -700,8 +700,17 @@ def bag_kind(path: str | os.PathLike[str]) -> OutputKind:
     return ROS1_BAG if Path(path).suffix == ".bag" else ROS2_BAG
 
 
-SCORES_JSON = OutputKind("evaluation JSON file", False,
-                         lambda p: is_json_object_with(p, "horizons"))
+def _is_scores_json(path: Path) -> bool:
+    """``asgp evaluate --json``'s output: its horizons, or with ``--adapt`` the adapted and
+    the plain model's (``--force`` could not replace the latter)."""
+    data = _small_json(path, _JSON_MAX_BYTES)
+    if not isinstance(data, dict):
+        return False
+    return "horizons" in data or all(isinstance(data.get(key), dict)
+                                     and "horizons" in data[key] for key in ("adapted", "plain"))
+
+
+SCORES_JSON = OutputKind("evaluation JSON file", False, _is_scores_json)
 REPORT_DIR = OutputKind("reproduction report directory", True, marked("reproduce-report"))
 DEMO_DIR = OutputKind("demo output directory", True, marked("demo"))
 

@@ -451,7 +451,7 @@ def evaluate_adaptive(
     """
     from asgp_ros.core.adapt import AdaptError  # see _replay_series
     from asgp_ros.core.adaptive import AdaptSettings
-    from asgp_ros.core.online import PredictorConfig
+    from asgp_ros.core.online import Predictor, PredictorConfig
 
     if not (math.isfinite(skip_s) and skip_s >= 0.0):
         raise EvaluationError(f"skip must be a non-negative number of seconds, got {skip_s}")
@@ -460,7 +460,9 @@ def evaluate_adaptive(
     k_max = max(steps_list)
     settings = settings if settings is not None else AdaptSettings()
     try:
-        config = PredictorConfig(horizon_steps=k_max)
+        # the history adaptation needs grows with the horizon (the node sizes it alike)
+        config = PredictorConfig(horizon_steps=k_max,
+                                 buffer_s=Predictor.buffer_for(model, k_max, settings))
     except ValueError as exc:  # the online predictor's horizon is bounded
         raise EvaluationError(f"horizon {max(horizons_s):g} s ({k_max} steps) is longer than "
                               f"the online predictor predicts: {exc}") from exc
