@@ -277,3 +277,23 @@ def test_a_dataset_holding_a_recording_twice_is_not_reproduced(tmp_path: Path) -
     r = run("reproduce", "--data", str(data), "--out", str(tmp_path / "rep"), "--quick")
     assert r.returncode == 2 and "the same recording as" in r.stderr, r.stderr
     assert not (tmp_path / "rep").exists()
+
+
+def test_a_bag_directory_named_like_a_storage_file_is_the_bag(tmp_path):
+    """asgp simulate --out run1.mcap makes a bag directory of that name; taken as an input
+    it made its parent "the bag", and every output beside it was refused ("--out
+    results/model.npz is inside the input .")."""
+    from asgp_ros.common.fileio import MODEL_FILE, OutputError, bag_inputs, check_output
+
+    bag_dir = tmp_path / "run1.mcap"
+    bag_dir.mkdir()
+    storage = tmp_path / "rec" / "rec_0.mcap"
+    storage.parent.mkdir()
+    storage.write_bytes(b"")
+    assert bag_inputs([bag_dir]) == [str(bag_dir)]
+    assert bag_inputs([storage]) == [str(storage), str(storage.parent)]
+    check_output(tmp_path / "results" / "m.npz", MODEL_FILE, inputs=bag_inputs([bag_dir]))
+    with pytest.raises(OutputError, match="inside the input"):
+        check_output(storage.parent / "m.npz", MODEL_FILE, inputs=bag_inputs([storage]))
+    with pytest.raises(OutputError, match="inside the input"):
+        check_output(bag_dir / "m.npz", MODEL_FILE, inputs=bag_inputs([bag_dir]))

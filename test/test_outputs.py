@@ -284,6 +284,78 @@ def test_atomic_path_never_removes_another_kind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d", "f"]
 
 
+@pytest.mark.parametrize("directory", [False, True])
+def test_what_appears_at_an_output_while_it_is_written_is_left_alone(tmp_path, directory):
+    """A directory of notes made at --out while a simulation ran was deleted at its end
+    (a file at an evaluation's --json replaced), with or without --force: the commit
+    replaced whatever it found of the right kind. It replaces only what check_output saw
+    there when it approved the path, unchanged (else what was there on entry)."""
+    from asgp_ros.common.fileio import (
+        REPORT_DIR,
+        SCORES_JSON,
+        forget_approved_outputs,
+        write_marker,
+    )
+
+    kind = REPORT_DIR if directory else SCORES_JSON
+
+    def write(tmp: Path) -> None:
+        if directory:
+            tmp.mkdir()
+            write_marker(tmp, "reproduce-report")
+        else:
+            tmp.write_text('{"horizons": {}}')
+
+    def appear(out: Path) -> None:
+        if directory:
+            out.mkdir()
+            (out / "notes.txt").write_text("mine")
+        else:
+            out.write_text("mine")
+
+    def intact(out: Path) -> bool:
+        return (out / "notes.txt" if directory else out).read_text() == "mine"
+
+    forget_approved_outputs()
+    # approved while nothing was there; then the user's appears during the work
+    out = check_output(tmp_path / "a", kind)
+    with pytest.raises(FileExistsError, match="appeared"), \
+            atomic_path(out, directory=directory) as tmp:
+        appear(out)
+        write(tmp)
+    assert intact(out) and sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+    # no check_output (the library): what was there on entry, nothing
+    with pytest.raises(FileExistsError, match="appeared"), \
+            atomic_path(tmp_path / "b", directory=directory) as tmp:
+        appear(tmp_path / "b")
+        write(tmp)
+    assert intact(tmp_path / "b")
+    # approved with --force over an earlier output of the kind, which changes meanwhile
+    c = tmp_path / "c"
+    with atomic_path(c, directory=directory) as tmp:
+        write(tmp)
+    out = check_output(c, kind, force=True)
+    with pytest.raises(FileExistsError, match="changed"), \
+            atomic_path(out, directory=directory) as tmp:
+        time.sleep(0.01)  # (a coarse clock: the change is seen by its time stamp)
+        if directory:
+            (c / "notes.txt").write_text("mine")
+        else:
+            c.write_text("mine")
+        write(tmp)
+    assert intact(c)
+    # unchanged, it is replaced; and the command may write its own output again
+    d = tmp_path / "d"
+    with atomic_path(d, directory=directory) as tmp:
+        write(tmp)
+    out = check_output(d, kind, force=True)
+    for _ in range(2):
+        with atomic_path(out, directory=directory) as tmp:
+            write(tmp)
+    assert os.path.lexists(d) and sorted(p.name for p in tmp_path.iterdir()) == list("abcd")
+    forget_approved_outputs()
+
+
 def test_a_directory_whose_replacement_fails_comes_back(tmp_path, monkeypatch):
     """--force on a bag directory: if moving the new directory in fails after the old one
     was moved aside, the old one is moved back, whole, and the error is raised."""

@@ -22,7 +22,12 @@ from collections.abc import Sequence
 from typing import NoReturn
 
 from asgp_ros import __version__
-from asgp_ros.common.fileio import OutputError, Terminated, raise_on_termination
+from asgp_ros.common.fileio import (
+    OutputError,
+    Terminated,
+    forget_approved_outputs,
+    raise_on_termination,
+)
 
 
 class CommandError(Exception):
@@ -124,6 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # A reader that stops early (``asgp info MODEL | head``) ends the command quietly,
         # as for any Unix filter: no logging traceback, no error line.
         logging.raiseExceptions = False
+        forget_approved_outputs()  # an earlier command's in this process are not this one's
         return int(args.func(args) or 0)
     except BrokenPipeError:
         _silence_stdout()
@@ -136,6 +142,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         # the user needs the path and the reason, not a traceback.
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: {one_line(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        # numpy names the array it could not allocate; the user needs what to do
+        print(f"error: out of memory in asgp {args.command}: fewer or shorter inputs, or "
+              "shorter horizons, need less", file=sys.stderr)
         return 2
     except Terminated as exc:
         print(f"terminated ({one_line(str(exc))})", file=sys.stderr)

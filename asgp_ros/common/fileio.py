@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import functools
 import json
 import multiprocessing
 import multiprocessing.pool
@@ -392,11 +393,18 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     fails). Anything of another kind at ``final`` (a directory where a file goes, a file
     where a directory goes, a FIFO, a device) raises :class:`FileExistsError` before the
     caller writes anything. Whether the user allowed a replacement at all is
-    :func:`check_output`'s business; this function is the last line of defence.
+    :func:`check_output`'s business; this function is the last line of defence: the
+    commit replaces only what was at ``final`` when :func:`check_output` approved it (or,
+    for a path it did not check, when this function was entered), unchanged. Anything that
+    appeared there meanwhile, or changed (a file added to a directory), is left alone and
+    :class:`FileExistsError` raised: a directory of notes made at ``--out`` while a
+    simulation ran was deleted at its end, with or without ``--force``.
     """
     final = Path(final)
     parent = final.parent if str(final.parent) else Path(".")
     _refuse_other_kind(final, directory=directory, replace=replace)
+    key = _output_key(final)
+    expected = _approved.get(key, _identity(final))
     parent.mkdir(parents=True, exist_ok=True)
     tmpdir: Path | None = None
     try:
@@ -414,7 +422,13 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         # replacement would leave the old directory in the temporary removed below.
         with signals_deferred():
             _refuse_other_kind(final, directory=directory, replace=replace)
-            if directory and os.path.lexists(final):
+            if _identity(final) != expected:
+                raise FileExistsError(
+                    f"{final} appeared or changed while it was being written; it was not "
+                    "replaced")
+            if expected is None:  # nothing to replace: nor anything that appears now
+                _rename_no_replace(tmp, final)
+            elif directory:
                 old = tmpdir / _REPLACED
                 os.rename(final, old)
                 try:
@@ -425,10 +439,84 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
             else:
                 os.replace(tmp, final)
         _fsync_directory(parent)  # the rename itself, before a replaced one is removed
+        if key in _approved:  # this command's own output now (it may write it again)
+            _approved[key] = _identity(final)
     finally:
         if tmpdir is not None:
             with signals_deferred():  # raised once the temporary is gone
                 shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+#: What :func:`check_output` saw at each output path it approved (:func:`_identity`), by
+#: :func:`_output_key`: all :func:`atomic_path` may replace there.
+_approved: dict[str, tuple[int, ...] | None] = {}
+
+
+def forget_approved_outputs() -> None:
+    """Forget what :func:`check_output` approved: a new command starts (in one process)."""
+    _approved.clear()
+
+
+def _output_key(path: Path) -> str:
+    """An output path, absolute, its parent's symlinks resolved (not its own)."""
+    parent = path.parent if str(path.parent) else Path(".")
+    return os.path.join(os.path.realpath(parent), path.name)
+
+
+def _identity(path: Path) -> tuple[int, ...] | None:
+    """What is at ``path`` (not followed): None for nothing, else its device, inode, type
+    and, as they change with a write or with an entry added to a directory, its
+    modification time and size."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    return (st.st_dev, st.st_ino, st.st_mode, st.st_mtime_ns, st.st_size)
+
+
+_RENAME_NOREPLACE = 1
+_AT_FDCWD = -100
+
+
+@functools.cache
+def _libc() -> Any:
+    """The C library (errno kept), or None where it cannot be loaded by name."""
+    try:
+        return ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return None
+
+
+def _rename_no_replace(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst`` unless something is at ``dst`` (FileExistsError): Linux's
+    renameat2(RENAME_NOREPLACE), atomic; where the C library or the filesystem lacks it,
+    a check and a rename (a file: a hard link and an unlink, atomic too)."""
+    renameat2 = getattr(_libc(), "renameat2", None)
+    if renameat2 is not None:
+        if renameat2(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst),
+                     _RENAME_NOREPLACE) == 0:
+            return
+        err = ctypes.get_errno()
+        if err == errno.EEXIST:
+            raise FileExistsError(errno.EEXIST, f"{dst} appeared while it was being written; "
+                                  "it was not replaced", str(dst))
+        if err not in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
+            raise OSError(err, os.strerror(err), str(dst))
+    if not src.is_dir():
+        try:
+            os.link(src, dst)  # fails if dst exists
+        except FileExistsError:
+            raise FileExistsError(errno.EEXIST, f"{dst} appeared while it was being "
+                                  "written; it was not replaced", str(dst)) from None
+        except OSError:  # no hard links here (FAT): the check below, then a rename
+            pass
+        else:
+            os.unlink(src)
+            return
+    if os.path.lexists(dst):
+        raise FileExistsError(errno.EEXIST, f"{dst} appeared while it was being written; it "
+                              "was not replaced", str(dst))
+    os.rename(src, dst)
 
 
 def _fsync_directory(path: Path) -> None:
@@ -731,11 +819,13 @@ def bag_inputs(paths: Iterable[str | os.PathLike[str]]) -> list[str]:
     """Input paths for :func:`check_output`: each one and, for a ROS 2 storage file
     (``.mcap`` / ``.db3``), its directory, which it stands for when it is a bag's (a
     recorder that was killed leaves a bag directory without metadata.yaml, so any such
-    directory is taken for one): an output written into it would damage the bag."""
+    directory is taken for one): an output written into it would damage the bag. A bag
+    directory named like a storage file (``asgp simulate --out run1.mcap``) is the bag
+    itself: its parent is not (every output beside it was refused)."""
     out: list[str] = []
     for raw in paths:
         out.append(str(raw))
-        if Path(raw).suffix in (".mcap", ".db3"):
+        if Path(raw).suffix in (".mcap", ".db3") and not os.path.isdir(raw):
             out.append(str(Path(raw).parent))
     return out
 
@@ -759,6 +849,13 @@ def check_output(path: str | os.PathLike[str], kind: OutputKind, *,
     - an existing output of the same kind, unless ``force`` (or the kind is resumable).
     An existing empty directory is taken as a new directory output.
     """
+    out = _check_output(path, kind, inputs, force, option)
+    _approved[_output_key(out)] = _identity(out)  # all the commit may replace there
+    return out
+
+
+def _check_output(path: str | os.PathLike[str], kind: OutputKind,
+                  inputs: Iterable[str | os.PathLike[str]], force: bool, option: str) -> Path:
     raw = os.fspath(path)
     if not raw or "\0" in raw:
         raise OutputError(f"{option}: empty or invalid path {raw!r}")
