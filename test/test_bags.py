@@ -464,6 +464,16 @@ def test_failed_write_leaves_nothing(rec, tmp_path, monkeypatch):
         write_bag(target, rec)
     assert not target.exists()
     assert list(tmp_path.iterdir()) == []
+    # the sqlite3 storage on a full disk raises sqlite3's error (it was a traceback)
+    import sqlite3
+
+    def full_database(self, conn, ts, data):
+        raise sqlite3.OperationalError("database or disk is full")
+
+    monkeypatch.setattr(Writer, "write", full_database)
+    with pytest.raises(BagError, match=r"cannot write bag: .*database or disk is full"):
+        write_bag(target, rec, storage="sqlite3")
+    assert list(tmp_path.iterdir()) == []
     with pytest.raises(BagError, match="storage"):
         write_bag(tmp_path / "x", rec, storage="zip")
 

@@ -52,6 +52,7 @@ import logging
 import mmap
 import os
 import re
+import sqlite3
 import stat
 import struct
 import zlib
@@ -2096,6 +2097,7 @@ def write_bag(
                     for i in order:
                         ts, c, data = records[i]
                         w2.write(conns2[c], ts, data)
-    except (OSError, WriterError1, WriterError2) as exc:
+    except (OSError, WriterError1, WriterError2, sqlite3.Error) as exc:
+        # (sqlite3's: rosbags' sqlite3 storage on a full disk, "database or disk is full")
         raise BagError(f"{path}: cannot write bag: {_one_line(exc)}") from exc
     return path
