@@ -254,3 +254,38 @@ def test_horizon_longer_than_every_segment_is_a_clear_error():
         evaluate_model(model, [TestSeries("A", res)], [1.0], case_lags=1)
     with pytest.raises(EvaluationError, match="no test"):
         evaluate_model(model, [], [1.0])
+
+
+def test_a_horizon_off_the_grid_is_scored_and_labelled_where_it_is(caplog):
+    """A 2.5 Hz model's default '1.0 / 1.4 / 2.0 s' were scored at 0.8 / 1.6 / 2.0 s under
+    the labels asked for (its 1.0 s looked better than a 5 Hz model's); at 5 Hz, 0.3 and
+    0.5 s were both scored at 0.4 s (round half to even). Each is labelled as scored, once,
+    with a warning."""
+    from asgp_ros.core import metrics
+    from asgp_ros.learning.evaluation import _scored_horizons
+
+    assert metrics.horizon_steps([0.3, 0.5, 0.7, 1.0, 1.4, 2.0], 5.0) == [2, 3, 4, 5, 7, 10]
+    with caplog.at_level("WARNING"):
+        assert _scored_horizons([1.0, 1.4, 2.0], [5, 7, 10], 5.0) == [(1.0, 5), (1.4, 7),
+                                                                       (2.0, 10)]
+    assert not caplog.records
+    hs = [1.0, 1.4, 2.0]
+    scored = _scored_horizons(hs, metrics.horizon_steps(hs, 2.5), 2.5)
+    assert [(metrics.horizon_key(h), k) for h, k in scored] == [("1.2", 3), ("1.6", 4),
+                                                                ("2.0", 5)]
+    assert "horizon 1 s is 2.5 steps of the model's 2.5 Hz: scored at 1.2 s" in caplog.text
+    caplog.clear()
+    assert _scored_horizons([0.4, 0.41], [2, 2], 5.0) == [(0.4, 2)]
+    assert "scored once" in caplog.text
+
+
+def test_a_command_out_of_memory_says_so_in_one_line(monkeypatch, capsys):
+    import asgp_ros.cli.info as info_cli
+    from asgp_ros.cli import main
+
+    def exhausted(args):
+        raise MemoryError("Unable to allocate 19.6 GiB for an array")
+    monkeypatch.setattr(info_cli, "run", exhausted)
+    assert main(["info", "m.npz"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: out of memory in asgp info") and err.count("\n") == 1

@@ -46,7 +46,8 @@ def horizon_key(h: float) -> str:
 
 
 def horizon_steps(horizons_s: list[float] | tuple[float, ...], rate_hz: float) -> list[int]:
-    """Horizons in seconds -> numbers of steps k = round(h * rate) (1.0, 1.4, 2.0 s -> 5, 7, 10).
+    """Horizons in seconds -> numbers of steps k = h * rate rounded half up (1.0, 1.4, 2.0 s
+    -> 5, 7, 10; 0.5 s at 5 Hz -> 3, not Python's round-half-even 2).
 
     Raises ValueError for a non-positive horizon, or one shorter than half a step.
     """
@@ -56,7 +57,7 @@ def horizon_steps(horizons_s: list[float] | tuple[float, ...], rate_hz: float) -
     for h in horizons_s:
         if not math.isfinite(h) or h <= 0.0:
             raise ValueError(f"horizon must be a positive number of seconds, got {h}")
-        k = round(h * rate_hz)
+        k = math.floor(h * rate_hz + 0.5)
         if k < 1:
             raise ValueError(
                 f"horizon {h} s is shorter than one step at {rate_hz} Hz ({1.0 / rate_hz} s)"

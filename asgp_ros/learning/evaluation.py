@@ -41,6 +41,12 @@ CHUNK = 4096
 #: grows as cases x k^2 (about 140 bytes each: 11 GB for 2,000 cases of 40 s at 5 Hz in
 #: one batch), so that a chunk takes about 0.6 GB whatever the horizon.
 CHUNK_CASE_STEPS2 = 1 << 22
+#: ... and, with Monte Carlo uncertainty, of at most this many trajectories (cases times
+#: MC_SAMPLES): each holds its own kernel rows against the pseudo-inputs (a few kB at
+#: M = 120-160), and 4,096 cases of 1,000 took 20 GB; now under 1 GB.
+CHUNK_MC_TRAJECTORIES = 1 << 17
+#: Monte Carlo trajectories per case (rollout's default).
+MC_SAMPLES = 1000
 
 
 class EvaluationError(ValueError):
@@ -134,12 +140,15 @@ def rollout_cases(
     s = int(model.feature_config.lags)
     poses, covs, vels = [], [], []
     size = max(1, min(CHUNK, CHUNK_CASE_STEPS2 // max(1, steps) ** 2))
+    if uncertainty == "mc":
+        size = max(1, min(size, CHUNK_MC_TRAJECTORIES // MC_SAMPLES))
     for a in range(0, idx.shape[0], size):
         chunk = idx[a:a + size]
         joy_past = metrics.windows(res.joy, chunk, -s, s)
         vel_past = metrics.windows(res.vel, chunk, -s, s)
         joy_future = metrics.windows(res.joy, chunk, 0, steps)
-        out = rollout(model, joy_past, vel_past, joy_future, uncertainty=uncertainty)
+        out = rollout(model, joy_past, vel_past, joy_future, uncertainty=uncertainty,
+                      n_samples=MC_SAMPLES)
         poses.append(np.asarray(out.pose))
         vels.append(np.asarray(out.vel))
         if uncertainty != "none" and getattr(out, "pos_cov", None) is not None:
@@ -157,9 +166,9 @@ def longest_segment_s(series: Sequence[TestSeries], rate_hz: float) -> float:
 
 def _case_setup(model: Any, series: Sequence[TestSeries], horizons_s: Sequence[float],
                 threshold_m: float, case_lags: int | None
-                ) -> tuple[float, int, int, list[int]]:
+                ) -> tuple[float, int, int, list[tuple[float, int]]]:
     """Checked common inputs of an evaluation: (grid rate, the model's s, the past samples
-    a case needs, k per horizon)."""
+    a case needs, the horizons scored: (seconds, k) each, see :func:`_scored_horizons`)."""
     if not series:
         raise EvaluationError("no test recordings")
     if not math.isfinite(threshold_m) or threshold_m <= 0.0:
@@ -173,7 +182,25 @@ def _case_setup(model: Any, series: Sequence[TestSeries], horizons_s: Sequence[f
         steps_list = metrics.horizon_steps(list(horizons_s), rate)
     except ValueError as exc:
         raise EvaluationError(str(exc)) from exc
-    return rate, s, need, steps_list
+    return rate, s, need, _scored_horizons(horizons_s, steps_list, rate)
+
+
+def _scored_horizons(horizons_s: Sequence[float], steps: Sequence[int], rate: float
+                     ) -> list[tuple[float, int]]:
+    """The horizons as scored, (k / rate, k), once each: a horizon that is no whole number
+    of the model's steps is scored, and labelled, at the nearest one (a 2.5 Hz model's
+    '1.0 s' was scored at 0.8 s under the label 1.0 s), with a warning."""
+    out: list[tuple[float, int]] = []
+    for h, k in zip(horizons_s, steps, strict=True):
+        actual = k / rate
+        if abs(actual - h) > 1e-9 * max(1.0, h):
+            log.warning("horizon %g s is %g steps of the model's %g Hz: scored at %g s "
+                           "(%d steps)", h, h * rate, rate, actual, k)
+        if any(k == done for _, done in out):
+            log.warning("horizon %g s is %d steps, as an earlier one: scored once", h, k)
+            continue
+        out.append((actual, k))
+    return out
 
 
 def evaluate_model(
@@ -193,7 +220,8 @@ def evaluate_model(
     Args:
         model: MotionModel (kind, feature_config.lags, resample_config.rate_hz, channels).
         series: test recordings resampled with the model's resample config.
-        horizons_s: horizons in seconds, k = round(h * rate).
+        horizons_s: horizons in seconds, k = h * rate rounded (half up); one that is no
+            whole number of steps is scored and labelled at k / rate.
         case_lags: past samples a case needs (>= the model's s; default the model's s).
         truth: also score against ground truth (every series must have it).
         uncertainty: "linear", "mc" or "none" (default: "linear" for a probabilistic kind,
@@ -205,7 +233,7 @@ def evaluate_model(
         EvaluationError: no series, a horizon with no case in any series (longer than every
         segment), or truth asked for on series without ground truth.
     """
-    rate, s, need, steps_list = _case_setup(model, series, horizons_s, threshold_m, case_lags)
+    rate, s, need, scored = _case_setup(model, series, horizons_s, threshold_m, case_lags)
     if truth:
         missing = [ts.name for ts in series if not ts.has_truth]
         if missing:
@@ -213,7 +241,7 @@ def evaluate_model(
                                   "simulated bags with a ground-truth topic)")
     unc = uncertainty or _uncertainty_for(model)
     out: dict[str, HorizonEvaluation] = {}
-    for h, k in zip(horizons_s, steps_list, strict=True):
+    for h, k in scored:
         out[horizon_key(h)] = _evaluate_horizon(
             model, series, h, k, rate, need, uncertainty=unc, threshold_m=threshold_m,
             truth=truth, n_examples=n_examples, name=name)
@@ -455,9 +483,9 @@ def evaluate_adaptive(
 
     if not (math.isfinite(skip_s) and skip_s >= 0.0):
         raise EvaluationError(f"skip must be a non-negative number of seconds, got {skip_s}")
-    rate, s, need, steps_list = _case_setup(model, series, horizons_s, threshold_m, case_lags)
+    rate, s, need, scored = _case_setup(model, series, horizons_s, threshold_m, case_lags)
     dt = 1.0 / rate
-    k_max = max(steps_list)
+    k_max = max(k for _, k in scored)
     settings = settings if settings is not None else AdaptSettings()
     try:
         # the history adaptation needs grows with the horizon (the node sizes it alike)
@@ -475,7 +503,7 @@ def evaluate_adaptive(
     timeline, keep_all = _timeline_of_cases(series, replays, skip_s)
     horizons_a: dict[str, HorizonEvaluation] = {}
     horizons_p: dict[str, HorizonEvaluation] = {}
-    for h, k in zip(horizons_s, steps_list, strict=True):
+    for h, k in scored:
         adapted, plain, columns = _score_adaptive_horizon(
             model, series, replays, keep_all, h, k, need, dt, threshold_m=threshold_m,
             skip_s=skip_s, name=name)
