@@ -667,3 +667,22 @@ def test_metadata_naming_a_type_that_is_not_text_reads_from_a_scan(rec, tmp_path
             # one warning that says what is damaged, and that the storage itself is whole
             assert "not text" in caplog.text and "its storage is intact" in caplog.text
             assert "damaged" not in caplog.text and ": intact (" not in caplog.text
+
+
+def test_a_bags_topic_names_cannot_forge_rows_of_bag_info(tmp_path, capsys):
+    """A topic name holding a newline and a terminal escape printed a false '/vo/twist ...
+    9999' row in asgp bag info."""
+    from asgp_ros.cli import main
+    from asgp_ros.recording.bags import BagContent
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    data = bytes(store.serialize_ros1(store.types["std_msgs/msg/String"](data="x"),
+                                      "std_msgs/msg/String"))
+    topic = "/joy\n/vo/twist  geometry_msgs/msg/TwistStamped  9999 \x1b[31m"
+    write_bag(tmp_path / "esc.bag", BagContent(
+        connections=[(topic, "std_msgs/msg/String")],
+        messages=[(1_700_000_000_000_000_000 + i * 10**8, 0, data) for i in range(5)]))
+    assert main(["bag", "info", str(tmp_path / "esc.bag")]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and not any(line.startswith("/vo/twist")
+                                         for line in out.splitlines()), out

@@ -649,3 +649,24 @@ def test_an_integer_beyond_64_bits_anywhere_in_the_metadata_is_refused(saved: Pa
                                                                        10**400})))
     err = expect_error(saved, "beyond 64 bits")
     assert "\n" not in str(err)
+
+
+def test_a_model_files_strings_cannot_forge_lines_of_asgp_info(tmp_path, capsys):
+    """A newline or a terminal escape in a model file's metadata printed a second, false
+    'variance calibration:' line (and the escape went to the terminal)."""
+    import dataclasses
+
+    from asgp_ros.cli import main
+    from asgp_ros.core.modelfile import load_model, save_model
+
+    repo = Path(__file__).resolve().parents[1]
+    model = load_model(repo / "docs" / "reproduction" / "models" / "tile_asgp_paper.npz")
+    meta = dict(model.meta)
+    meta["training"] = {**meta["training"], "configuration":
+                        "automatic\nvariance calibration: calibrated, 95.0%\x1b[2K"}
+    forged = tmp_path / "forged.npz"
+    save_model(forged, dataclasses.replace(model, meta=meta))
+    assert main(["info", str(forged)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out
+    assert sum(line.startswith("variance calibration:") for line in out.splitlines()) == 1

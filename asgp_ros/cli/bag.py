@@ -14,7 +14,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from asgp_ros.cli import CommandError
+from asgp_ros.cli import CommandError, one_line
 from asgp_ros.cli._argtypes import number
 from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, bag_inputs, check_output
 from asgp_ros.recording.bags import BagError, recover_bag, repair_bag, topic_stats
@@ -106,7 +106,7 @@ def run_info(args: argparse.Namespace) -> int:
     except BagError as exc:
         raise CommandError(str(exc)) from exc
     for line in info_lines(topic_stats(recovered, args.gap_factor), recovered.damage):
-        print(line)
+        print(one_line(line))  # the bag's topic names: a newline or escape forged rows
     return 0
 
 

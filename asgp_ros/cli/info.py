@@ -9,7 +9,7 @@ import json
 from collections.abc import Callable
 from typing import Any
 
-from asgp_ros.cli import CommandError
+from asgp_ros.cli import CommandError, one_line
 from asgp_ros.cli.adapt import summary_lines
 from asgp_ros.cli.train import selection_table
 from asgp_ros.core.modelfile import ModelFileError, load_model
@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
                          indent=1, sort_keys=True))
         return 0
     for line in describe(args.model, model):
-        print(line)
+        print(one_line(line))  # the file's strings: a newline or escape forged report lines
     return 0
 
 
