@@ -274,6 +274,16 @@ def test_a_short_recording_keeps_the_trained_calibration(
     assert main(["adapt", str(trained), str(short), "--out", str(tmp_path / "t2.npz"),
                  "--trained-weight", "1"]) == 0
     assert "is one of the recordings" in capsys.readouterr().out
+    # adapted again to a recording it was adapted to: said too (its rows counted twice,
+    # silently), and the earlier adaptation's record is kept, not overwritten
+    twice = tmp_path / "twice.npz"
+    assert main(["adapt", str(out), str(short), "--out", str(twice)]) == 0
+    printed = capsys.readouterr().out
+    assert "was adapted to: its rows are in the posterior already and count twice" in printed
+    record = load_model(twice).meta["adaptation"]
+    assert [r["data"]["bags"] for r in record["earlier"]] == [[str(short)]]
+    assert main(["info", str(twice)]) == 0
+    assert f"before that (1 of 1): adapted to {short}" in capsys.readouterr().out
     # the same recording twice would count its rows twice
     again = tmp_path / "again.npz"
     assert main(["adapt", str(tile_model), str(short), str(tmp_path / "." / "short"),

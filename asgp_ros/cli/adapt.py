@@ -56,6 +56,26 @@ def _pct(x: float | None) -> str:
     return "  -  " if x is None else f"{100 * x:5.1f}%"
 
 
+def _adaptations(record: object) -> list[object]:
+    """The data records of an ``adaptation`` meta record and of the earlier ones in it."""
+    if not isinstance(record, dict):
+        return []
+    earlier = record.get("earlier")
+    return [*(r.get("data") for r in (earlier if isinstance(earlier, list) else [])
+              if isinstance(r, dict)), record.get("data")]
+
+
+def _recordings(*records: object) -> set[str]:
+    """The real paths of the existing bags named by data records (a model file's
+    ``training_data``, an adaptation's ``data``; any shape in a foreign file)."""
+    out: set[str] = set()
+    for data in records:
+        bags = data.get("bags") if isinstance(data, dict) else None
+        out.update(os.path.realpath(b) for b in (bags if isinstance(bags, list) else [])
+                   if isinstance(b, str) and os.path.exists(b))
+    return out
+
+
 def summary_lines(meta: dict[str, Any]) -> list[str]:
     """What ``asgp adapt`` did, from the model's ``adaptation`` meta (also ``asgp info``)."""
     ad = meta.get("adaptation")
@@ -66,6 +86,13 @@ def summary_lines(meta: dict[str, Any]) -> list[str]:
     lines = [f"adapted to {len(data.get('bags', []))} bag(s), "
              f"{data.get('duration_s', 0.0) / 60:.1f} min; trained data's weight "
              f"{ad.get('trained_weight', '?')}; calibration {ad.get('calibration', '?')}"]
+    earlier = [r for r in ad.get("earlier", []) if isinstance(r, dict)] \
+        if isinstance(ad.get("earlier"), list) else []
+    for n, record in enumerate(earlier, 1):
+        d = record.get("data")
+        d = d if isinstance(d, dict) else {}
+        lines.append(f"  before that ({n} of {len(earlier)}): adapted to "
+                     f"{', '.join(str(b) for b in d.get('bags', []))}")
     for name, ch in chans.items():
         refused = ", ".join(f"{v} {k}" for k, v in ch.get("refused", {}).items()) or "none"
         lines.append(f"  {name}: {ch.get('absorbed', '?')} of {ch.get('rows', '?')} rows "
@@ -104,16 +131,16 @@ def run(args: argparse.Namespace) -> int:
     except (AdaptingError, ModelFileError) as exc:
         raise CommandError(f"{args.model}: {exc}" if isinstance(exc, AdaptingError)
                            else str(exc)) from exc
-    data = model.meta.get("training_data")  # (a record: any shape in a foreign file)
-    bags = data.get("bags") if isinstance(data, dict) else None
-    trained_on = {os.path.realpath(b) for b in (bags if isinstance(bags, list) else [])
-                  if isinstance(b, str) and os.path.exists(b)}
+    trained_on = _recordings(model.meta.get("training_data"))
+    adapted_to = _recordings(*_adaptations(model.meta.get("adaptation")))
     for bag in args.bags:
-        if os.path.realpath(bag) in trained_on:
-            print(f"warning: {bag} is one of the recordings {args.model} was trained on: its "
-                  "rows are in the posterior already"
+        here = os.path.realpath(bag)
+        if here in trained_on or here in adapted_to:
+            print(f"warning: {bag} is one of the recordings {args.model} was "
+                  f"{'trained on' if here in trained_on else 'adapted to'}: its rows are in "
+                  "the posterior already"
                   + (" and count twice with --trained-weight 1"
-                     if args.trained_weight > 0.0 else ""), flush=True)
+                     if args.trained_weight > 0.0 or here in adapted_to else ""), flush=True)
     # learnt under the held-chair rule even where the model predicts without it
     series = read_series_or_fail(args.bags, args,
                                  resample_config=learning_config(model.resample_config))

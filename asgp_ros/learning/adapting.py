@@ -298,6 +298,14 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
         "calibration": _calibration_label(cal_meta),
         "seconds": round(time.perf_counter() - t_start, 2),
     }
+    # a model adapted again keeps the record of what it was adapted to before (its rows
+    # are in the posterior too), oldest first
+    earlier = model.meta.get("adaptation")
+    if isinstance(earlier, dict):
+        before_that = earlier.get("earlier")
+        meta["adaptation"]["earlier"] = [
+            *(before_that if isinstance(before_that, list) else []),
+            {key: value for key, value in earlier.items() if key != "earlier"}]
     if cal_meta.get("fitted"):
         meta["calibration"] = cal_meta
     return dataclasses.replace(adapted, calibration=calibration, meta=meta)
