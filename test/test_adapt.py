@@ -434,6 +434,9 @@ def test_invalid_rows_are_counted_and_change_nothing() -> None:
         (x, -np.finfo(np.float64).max, 1.0, RejectReason.NONFINITE),  # -inf scaled
         (x, 1.0, 0.3, RejectReason.TIME_ORDER),  # older than the last absorbed row
         (np.array([9.0, 0.0, 0.0]), 1.0, 1.0, RejectReason.OUTSIDE),
+        # finite but absurd: absorbed, it moved the mean at the training rows to 1e27
+        (x, 1e30, 1.0, RejectReason.OUTPUT_RANGE),
+        (x, -1e4, 1.0, RejectReason.OUTPUT_RANGE),
     ]
     for xb, yb, tb, _ in bad:
         assert not online.absorb(xb, yb, tb)
@@ -462,9 +465,9 @@ def test_invalid_rows_are_counted_and_change_nothing() -> None:
 def test_failed_update_leaves_the_posterior_bitwise_unchanged(
     monkeypatch: pytest.MonkeyPatch, failure: str
 ) -> None:
-    """An update whose statistics overflow (finite rows, absurd y), or whose Cholesky
-    factorisation fails (simulated: A >= I cannot fail in exact arithmetic), is rejected
-    whole: the posterior and the statistics stay as they were."""
+    """An update whose terms are not finite, or whose Cholesky factorisation fails (both
+    simulated: A >= I cannot fail in exact arithmetic, and an absurd y is refused row by
+    row), is rejected whole: the posterior and the statistics stay as they were."""
     gp = trained()
     online = OnlinePosterior.from_sparse_gp(gp, AdaptConfig(half_life_rows=50.0))
     X2, y2 = rows(4, seed=12)
@@ -472,15 +475,15 @@ def test_failed_update_leaves_the_posterior_bitwise_unchanged(
     post, stats = online.posterior, online.stats
     alpha, C = post.alpha.copy(), post.C.copy()
     y_bad = y2[2:].copy()
-    if failure == "factorisation":
-        potrf = adapt._potrf
+    potrf = adapt._potrf
 
-        def broken_potrf(A: np.ndarray, **kw: int) -> tuple[np.ndarray, int]:
-            LA, _ = potrf(A, **kw)
+    def broken_potrf(A: np.ndarray, **kw: int) -> tuple[np.ndarray, int]:
+        LA, info = potrf(A, **kw)
+        if failure == "factorisation":
             return LA, 3  # "the leading minor of order 3 is not positive definite"
-        monkeypatch.setattr(adapt, "_potrf", broken_potrf)
-    else:
-        y_bad[1] = 0.5e308 * gp.posterior.y_scale  # finite standardised; v y / lambda is not
+        LA[0, 0] = np.nan  # a factor that overflowed
+        return LA, info
+    monkeypatch.setattr(adapt, "_potrf", broken_potrf)
     assert online.absorb_rows(X2[2:], y_bad) == 0
     assert online.posterior is post and gp.posterior is post
     np.testing.assert_array_equal(post.alpha, alpha)

@@ -170,6 +170,11 @@ class AdaptError(ValueError):
     """A configuration or a trained posterior that cannot be adapted, or a mis-shaped call."""
 
 
+#: Farthest an absorbed row's output may lie from the trained outputs' mean, in their
+#: standard deviations: no chair's velocity (0.3 m/s of spread: 300 m/s).
+MAX_OUTPUT_SCALES = 1e3
+
+
 class RejectReason(StrEnum):
     """Why a row was not absorbed (the keys of :attr:`AdaptStats.rejected`)."""
 
@@ -184,7 +189,10 @@ class RejectReason(StrEnum):
     FACTORISATION = "factorisation"
     """The Cholesky factorisation of A (A4) failed."""
     NONFINITE_TERMS = "nonfinite_terms"
-    """The update gave non-finite statistics, alpha or C (e.g. an absurdly large y)."""
+    """The update gave non-finite statistics, alpha or C."""
+    OUTPUT_RANGE = "output_range"
+    """The output is more than MAX_OUTPUT_SCALES of the trained outputs' scale from their
+    mean (y = 1e30 was absorbed, and the mean at the training rows became 1e27)."""
 
 
 @dataclass(frozen=True)
@@ -431,6 +439,7 @@ class OnlinePosterior:
             finite &= np.isfinite(ta)
         Xs[~finite] = 0.0
         ys[~finite] = 0.0
+        in_range = np.abs(ys) <= MAX_OUTPUT_SCALES
         K = kernel.cross(Xs, post.kernel)  # [n, M] k(x, Z) (K2)
         if self.config.trained_mean:
             with np.errstate(over="ignore", invalid="ignore"):  # checked in _posterior_of
@@ -441,7 +450,7 @@ class OnlinePosterior:
         lam_ok = lam > 0.0
 
         s = self._stats
-        keep, gammas, t_last = self._select(finite, inside, lam_ok, ta, s.t_last)
+        keep, gammas, t_last = self._select(finite, in_range, inside, lam_ok, ta, s.t_last)
         if not keep:
             return 0
         idx = np.asarray(keep)
@@ -478,8 +487,8 @@ class OnlinePosterior:
             return total
         return float(total ** (h / cfg.trained_half_life))
 
-    def _select(self, finite: BoolArray, inside: BoolArray, lam_ok: BoolArray,
-                ta: FloatArray | None, t_last: float | None
+    def _select(self, finite: BoolArray, in_range: BoolArray, inside: BoolArray,
+                lam_ok: BoolArray, ta: FloatArray | None, t_last: float | None
                 ) -> tuple[list[int], list[float], float | None]:
         """The rows to keep, in order, with the decay before each, and the last stamp."""
         keep: list[int] = []
@@ -489,6 +498,8 @@ class OnlinePosterior:
         for i in range(finite.shape[0]):
             if not finite[i]:
                 reason = RejectReason.NONFINITE
+            elif not in_range[i]:
+                reason = RejectReason.OUTPUT_RANGE
             elif not inside[i]:
                 reason = RejectReason.OUTSIDE
             elif not lam_ok[i]:
