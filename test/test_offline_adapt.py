@@ -487,11 +487,13 @@ def test_the_timeline_records_the_scale_each_prediction_used(
 
     def predict(self: online.Predictor, now: float, joy_future: object = None, *,
                 learn: bool = True) -> object:
+        # the scales in force as it predicts: the published calibration's over the trained
+        # one's, per speed regime (learning, after it, may change them)
+        scales = [a / b for a, b in zip(self.model.calibration.speed_factors,
+                                        model.calibration.speed_factors, strict=True)]
         p = real(self, now, joy_future, learn=learn)  # type: ignore[arg-type]
-        if p.ok:  # the scale in force: the published calibration's over the trained one's
-            regime = int(model.calibration.regime(p.vel_past[-1, 0]))
-            used[int(p.step)] = (self.model.calibration.speed_factors[regime]
-                                 / model.calibration.speed_factors[regime])
+        if p.ok:
+            used[int(p.step)] = scales[int(model.calibration.regime(p.vel_past[-1, 0]))]
         return p
     monkeypatch.setattr(online.Predictor, "predict", predict)
     replay = evaluation._replay_series(
