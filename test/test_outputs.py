@@ -176,7 +176,7 @@ def test_evaluate_json_refuses_every_bad_output(work, capsys, monkeypatch):
         (w["bag"] / "metadata.yaml", "inside the input"),
         (Path("."), "directory"),
         (w["stranger"], "a directory"),
-        (w["notes"], "not a evaluation JSON file"),
+        (w["notes"], "not an evaluation JSON file"),
         (w["notes"] / "s.json", "not a directory"),
         (w["fifo"], "FIFO"),
         (w["scores"], "--force"),
@@ -957,3 +957,35 @@ def test_a_pool_worker_defers_a_stop_signal_as_the_parent_does(tmp_path):
     assert proc.exitcode == 128 + signal.SIGTERM
     assert (tmp_path / "w.inside").exists()
     assert not (tmp_path / "w.after").exists()
+
+
+def test_a_failed_write_leaves_no_directory_it_made(tmp_path, monkeypatch):
+    """atomic_path made the output's missing parent directories up front; a write that
+    failed left them (README: a failed write leaves nothing behind). The error names the
+    file (a full disk said only 'No space left on device')."""
+    from asgp_ros.common.fileio import atomic_write_text
+
+    (tmp_path / "kept").mkdir()
+    target = tmp_path / "kept" / "p1" / "p2" / "scores.json"
+
+    def full(self, data):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(Path, "write_bytes", full)
+    with pytest.raises(OSError, match="No space left") as err:
+        atomic_write_text(target, "{}")
+    assert err.value.filename == str(target)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept"]
+    assert list((tmp_path / "kept").iterdir()) == []
+
+
+def test_an_output_name_too_long_for_its_temporary_is_refused_first(tmp_path):
+    """A name of 238-255 bytes is a valid file name, but its temporary is not: the command
+    failed after all its work."""
+    from asgp_ros.common.fileio import MAX_OUTPUT_NAME_BYTES, SCORES_JSON
+
+    check_output(tmp_path / ("n" * MAX_OUTPUT_NAME_BYTES), SCORES_JSON)
+    with pytest.raises(OutputError, match="at most 237"):
+        check_output(tmp_path / ("n" * (MAX_OUTPUT_NAME_BYTES + 1)), SCORES_JSON)
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match="is not an evaluation JSON file"):
+        check_output(tmp_path / "notes.txt", SCORES_JSON, force=True)

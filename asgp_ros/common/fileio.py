@@ -405,8 +405,10 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     _refuse_other_kind(final, directory=directory, replace=replace)
     key = _output_key(final)
     expected = _approved.get(key, _identity(final))
+    made = [d for d in (parent, *parent.parents) if not os.path.lexists(d)]  # deepest first
     parent.mkdir(parents=True, exist_ok=True)
     tmpdir: Path | None = None
+    committed = False
     try:
         with signals_deferred():  # no signal between creating and owning tmpdir
             tmpdir = _temporary_directory(parent, final)
@@ -438,6 +440,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
                     raise
             else:
                 os.replace(tmp, final)
+        committed = True
         _fsync_directory(parent)  # the rename itself, before a replaced one is removed
         if key in _approved:  # this command's own output now (it may write it again)
             _approved[key] = _identity(final)
@@ -445,7 +448,16 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
         if tmpdir is not None:
             with signals_deferred():  # raised once the temporary is gone
                 shutil.rmtree(tmpdir, ignore_errors=True)
+                if not committed:  # a failed write leaves no directory it made either
+                    for d in made:
+                        try:
+                            os.rmdir(d)
+                        except OSError:
+                            break
 
+
+#: Longest output name: its temporary's (``.NAME.<12 hex>.tmp``) must fit in 255 bytes.
+MAX_OUTPUT_NAME_BYTES = 255 - len("..") - 12 - len(".tmp")
 
 #: What :func:`check_output` saw at each output path it approved (:func:`_identity`), by
 #: :func:`_output_key`: all :func:`atomic_path` may replace there.
@@ -643,8 +655,14 @@ def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
 
 
 def atomic_write_bytes(final: str | os.PathLike[str], data: bytes) -> None:
-    with atomic_path(final) as tmp:
-        tmp.write_bytes(data)
+    try:
+        with atomic_path(final) as tmp:
+            tmp.write_bytes(data)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        # (a full disk said only "No space left on device": the user needs the file)
+        raise OSError(exc.errno, exc.strerror or str(exc), os.fspath(final)) from exc
 
 
 def atomic_write_text(final: str | os.PathLike[str], text: str) -> None:
@@ -773,6 +791,11 @@ class OutputKind:
     same_kind: Callable[[Path], bool]
     resumable: bool = False
 
+    @property
+    def a_name(self) -> str:
+        """The name with its article ("a model file", "an evaluation JSON file")."""
+        return f"{'an' if self.name[:1] in 'aeiou' else 'a'} {self.name}"
+
 
 def marked(kind: str) -> Callable[[Path], bool]:
     return lambda p: p.is_dir() and not p.is_symlink() and read_marker(p) == kind
@@ -861,9 +884,14 @@ def _check_output(path: str | os.PathLike[str], kind: OutputKind,
         raise OutputError(f"{option}: empty or invalid path {raw!r}")
     out = Path(raw)
     if out.name in ("", ".", ".."):
-        raise OutputError(f"{option} {raw}: names a directory, not a {kind.name}"
+        raise OutputError(f"{option} {raw}: names a directory, not {kind.a_name}"
                           if kind.directory is not True
                           else f"{option} {raw}: give the {kind.name} a name of its own")
+    if len(os.fsencode(out.name)) > MAX_OUTPUT_NAME_BYTES:
+        # found only after the work, when the temporary could not be made
+        raise OutputError(f"{option} {raw}: a name of {len(os.fsencode(out.name))} bytes; at "
+                          f"most {MAX_OUTPUT_NAME_BYTES} (its temporary, .NAME.<12 hex>.tmp, "
+                          "must fit a file name's 255)")
     here = _absolute(out)
     for item in inputs:
         there = _absolute(Path(item))
@@ -884,14 +912,14 @@ def _check_output(path: str | os.PathLike[str], kind: OutputKind,
     if kind.directory is not False and out.is_dir() and not any(out.iterdir()):
         return out
     if kind.directory is True and not out.is_dir():
-        raise OutputError(f"{option} {raw} exists and is {what}, not a {kind.name}")
+        raise OutputError(f"{option} {raw} exists and is {what}, not {kind.a_name}")
     if kind.directory is False and not stat.S_ISREG(os.stat(out).st_mode):
-        raise OutputError(f"{option} {raw} exists and is {what}, not a {kind.name}")
+        raise OutputError(f"{option} {raw} exists and is {what}, not {kind.a_name}")
     if not kind.same_kind(out):
-        raise OutputError(f"{option} {raw} exists and is not a {kind.name} ({what}); "
+        raise OutputError(f"{option} {raw} exists and is not {kind.a_name} ({what}); "
                           f"refusing to replace it, even with --force")
     if kind.resumable or force:
         return out
-    raise OutputError(f"{option} {raw}: a {kind.name} exists there; use --force to replace "
+    raise OutputError(f"{option} {raw}: {kind.a_name} exists there; use --force to replace "
                       f"it")
 
