@@ -303,6 +303,36 @@ def test_a_neutral_stick_waiting_stops_the_override_before_it_is_sent(harness):
     assert node._user[1].tolist() == [0.0, 0.0] and node._decision is None
 
 
+def test_an_older_pushed_stick_after_the_neutral_one_takes_no_override_up(harness):
+    """Two publishers on joy (the bridge, and a relay delivering 20 ms late): the neutral
+    stick stops the override, then the relay's older sample of the stick still pushed
+    arrives. It was taken as the user's stick, and the next decision sent an override
+    again, after the neutral stick had arrived."""
+    h = harness()
+    node = h.node
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 104.0, wall=1.6)
+    assert h.last()["why"] == "intervening" and h.overrides
+    relay = h.test.create_publisher(Joy, "joy", qos_profile_sensor_data)
+    h.spin_until(lambda: relay.get_subscription_count() > 0, what="discovery")
+    h.clock(104.22)
+    h.joy_pub.publish(conv.joy_from_sample(104.21, 0.0, 0.0))
+    h.spin_until(lambda: node._user is not None and node._user[0] == pytest.approx(104.21),
+                 what="the neutral stick")
+    assert node._decision is None
+    sent = len(h.overrides)
+    taken = node.polled.taken
+    relay.publish(conv.joy_from_sample(104.19, 0.8, 0.0))
+    h.spin_until(lambda: node.polled.taken > taken, what="the late sample")
+    n = node._decisions
+    h.vo_pub.publish(conv.twist_stamped_from_sample(104.22, 0.721, 0.0))
+    h.spin_until(lambda: node._decisions > n, what="a decision")
+    for _ in range(20):
+        h.executor.spin_once(timeout_sec=0.01)
+    assert node._user[1].tolist() == [0.0, 0.0]
+    assert len(h.overrides) == sent
+
+
 def test_the_override_timer_reads_the_joystick_when_not_intervening_too(harness):
     """The override timer (override_rate_hz, 20 Hz) reads what waits whether or not the
     layer intervenes: the joystick is read at least that often, which is why the read

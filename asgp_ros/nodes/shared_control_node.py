@@ -487,7 +487,13 @@ class SharedControlNode(Node):
         if read is None:
             return
         t, user = read
-        self._user = (t, user)
+        newest = self._user
+        if newest is None or t >= newest[0] \
+                or newest[0] - t > self.predictor.config.reset_jump_s:
+            # the newest stick by its stamp (a restarted stream's too): an older sample
+            # (a second publisher, delivered late) is not what the user holds now. A pushed
+            # one took an override up again after the neutral stick had stopped it.
+            self._user = (t, user)
         if is_neutral(user, self.config.neutral_deadband):
             self._stop_overriding()  # now (read before every override), not at the next decision
         if not self._joy_source.measured(now):  # else the board's output feeds
