@@ -764,6 +764,14 @@ class Predictor:
 
     # ---- queries -------------------------------------------------------------------
 
+    def newest_velocity(self) -> tuple[float, float, float] | None:
+        """(stamp, v, omega) of the newest velocity sample, None without one or when it
+        reports tracking loss."""
+        if len(self._vo) == 0:
+            return None
+        t, v, w, ok = self._vo.newest_row()
+        return None if ok < 0.5 else (float(t), float(v), float(w))
+
     def newest_stamps(self) -> tuple[float, float]:
         """(newest joystick stamp, newest VO stamp); -inf when empty."""
         return self._joy.newest, self._vo.newest

@@ -122,6 +122,13 @@ NODE_NAME = "shared_control_node"
 #: the chair's motion of a time that has not come (a clock synchronised by NTP or PTP is
 #: within milliseconds).
 SCAN_LEAD_S = 0.1
+#: Faster than this (m/s, rad/s), a scan whose ranges are bit for bit the last one's is a
+#: frozen laser driver's: the scene cannot stand still while the chair moves.
+FROZEN_SCAN_SPEED = 0.05
+FROZEN_SCAN_YAW_RATE = 0.05
+#: ... and has at least this many returns (an open space's scan, no return at all, is the
+#: same every time, and holds no obstacle to freeze).
+FROZEN_SCAN_RETURNS = 10
 #: The user's stick sample is fresh, for re-sending an override, from this far (s) ahead
 #: of the node's clock to ``joy_timeout_s`` behind it: one stamped further ahead (a bridge
 #: whose clock runs ahead) would look fresh after the stick's messages stopped.
@@ -397,6 +404,7 @@ class SharedControlNode(Node):
         self._bad_messages = 0
         self._scans_ahead = 0  # scans refused: stamped more than SCAN_LEAD_S ahead
         self._scans_repeated = 0  # scans that came again with the newest one's stamp
+        self._scans_frozen = 0  # scans with the last one's ranges while the chair moved
         self._vo_messages = 0  # VO twists or odometry received (on the clock)
         self._vo_frame = conv.VelocityFrameCheck(p.base_frame)  # twists in another frame
         self._scans_other_frame = 0  # scans refused: another frame than the laser's
@@ -651,6 +659,19 @@ class SharedControlNode(Node):
                                   f"({self._scans_repeated} so far): a second publisher on "
                                   f"{self.params.scan_topic}, or stamps that do not advance?")
             return
+        if self._scan is not None \
+                and np.count_nonzero(np.isfinite(scan.ranges)) >= FROZEN_SCAN_RETURNS \
+                and np.array_equal(self._scan[1].ranges, scan.ranges, equal_nan=True):
+            moving = self._moving(now)
+            if moving is not None:
+                # the chair moves and the scene does not: a laser driver repeating its last
+                # scan with new stamps. Taken, the frozen obstacles kept the layer slowing
+                # the user 2 m past where the wall had been, its diagnostics OK
+                self._scans_frozen += 1
+                self._refuse_scan(f"scans repeat their last ranges bit for bit while the "
+                                  f"chair moves ({moving}; {self._scans_frozen} so far): a "
+                                  "frozen laser driver? Its obstacles are not used")
+                return
         extra = None
         matcher = self.scan_odometer or self.velocity_odometer  # each scan matched once
         scan_pose = matcher.add(scan) if matcher is not None else None
@@ -673,6 +694,18 @@ class SharedControlNode(Node):
             self.memory.reset()
         if self._decision is not None and self._decision.intervening:
             self._decide(now)  # no obstacle source: the override stops now
+
+    def _moving(self, now: float) -> str | None:
+        """How the chair moves, by the newest fresh velocity sample (within vo_timeout_s),
+        when faster than FROZEN_SCAN_SPEED or FROZEN_SCAN_YAW_RATE; else None (still, or not
+        known: a noise-free simulated laser repeats itself while the chair stands)."""
+        newest = self.predictor.newest_velocity()
+        if newest is None or now - newest[0] > self.params.vo_timeout_s:
+            return None
+        _, v, w = newest
+        if abs(v) > FROZEN_SCAN_SPEED or abs(w) > FROZEN_SCAN_YAW_RATE:
+            return f"{v:.2f} m/s, {w:.2f} rad/s"
+        return None
 
     def _refuse_scan(self, problem: str) -> None:
         """A scan not taken: the diagnostics' ``scan`` value and the log say why."""
@@ -889,6 +922,7 @@ class SharedControlNode(Node):
             "scan": self._scan_problem or ("none" if self._scan is None else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
+            "scans_frozen": str(self._scans_frozen),
             "scans_old": str(self._scans_old),
             "poses_other_frame": str(self._poses_other_frame),
             "laser_frame": "none yet" if self._laser_frame is None
