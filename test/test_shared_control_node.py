@@ -1373,6 +1373,27 @@ def test_the_override_stops_when_the_only_map_is_dropped(harness):
     assert max(late) <= dropped + 1e-9 and h.last()["why"] == "no_obstacle_source"
 
 
+def test_a_map_too_big_to_read_in_a_callback_is_refused(harness):
+    """A map of 49 million cells, within the field's own limit, held the layer's executor
+    for 24 s (3 GB): no override, watchdog or diagnostics meanwhile. A map of more than
+    MAX_MAP_CELLS is refused before it is read, and said; the last read's time is in the
+    diagnostics."""
+    from asgp_ros.nodes.shared_control_node import MAX_MAP_CELLS
+
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    assert float(conv.diagnostic_values(h.node.diagnostic_status())["map_read_ms"]) >= 0.0
+    big = OccupancyGrid()
+    big.header.frame_id = "odom"
+    big.info.resolution = 0.05
+    big.info.width, big.info.height = 2001, MAX_MAP_CELLS // 2000
+    big.info.origin.orientation.w = 1.0
+    big.data = bytes([255]) * (big.info.width * big.info.height)  # all unknown
+    _publish_map(h, big)
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert h.node._grid is None and "at most 4,000,000" in diag["map"], diag["map"]
+
+
 def test_decisions_go_on_after_the_clock_steps_back_less_than_a_second(harness):
     """use_sim_time, intervening; /clock steps back 0.8 s (less than the predictor's
     reset_jump_s) and the inputs go on. The watchdog took a decision 'ahead' of the clock

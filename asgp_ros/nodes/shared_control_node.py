@@ -64,6 +64,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -122,6 +123,10 @@ NODE_NAME = "shared_control_node"
 #: the chair's motion of a time that has not come (a clock synchronised by NTP or PTP is
 #: within milliseconds).
 SCAN_LEAD_S = 0.1
+#: Most cells of a map the layer reads (a 100 m square at 5 cm): its distance field and
+#: obstacle tree are built in the map's callback, where nothing else runs (1.6 s for 4
+#: million unknown cells on a 2-core laptop; 24 s and 3 GB for 49 million).
+MAX_MAP_CELLS = 4_000_000
 #: Faster than this (m/s, rad/s), a scan whose ranges are bit for bit the last one's is a
 #: frozen laser driver's: the scene cannot stand still while the chair moves.
 FROZEN_SCAN_SPEED = 0.05
@@ -387,6 +392,7 @@ class SharedControlNode(Node):
         self._scan: tuple[float, collision.Scan, np.ndarray | None] | None = None
         self._grid: collision.DistanceField | None = None
         self._grid_problem = ""
+        self._map_read_ms = math.nan  # the last map's field: how long the node was held
         self._decision: Decision | None = None
         self._decision_t = -math.inf  # node clock of the decision
         self._last_step: int | None = None
@@ -733,9 +739,19 @@ class SharedControlNode(Node):
             self._drop_map(f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
                            f"{self.params.odom_frame!r}")
             return
+        cells = int(msg.info.width) * int(msg.info.height)
+        if cells > MAX_MAP_CELLS:
+            self._bad_messages += 1
+            self._drop_map(f"a map of {msg.info.width} x {msg.info.height} cells: at most "
+                           f"{MAX_MAP_CELLS:,} (its field took 1.6 s at 4 million cells, 24 s "
+                           "at 49 million, and nothing else runs meanwhile); give the layer "
+                           "a local costmap around the chair")
+            return
         try:
             grid = conv.grid_from_msg(msg)
+            start = time.perf_counter()
             self._grid = collision.DistanceField.from_grid(grid)
+            self._map_read_ms = 1e3 * (time.perf_counter() - start)
             self._grid_problem = ""
         except ValueError as exc:
             self._bad_messages += 1
@@ -934,6 +950,7 @@ class SharedControlNode(Node):
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
             "map": self._grid_problem or ("received" if self._grid is not None else "none"),
+            "map_read_ms": f"{self._map_read_ms:.0f}",
             "vo_messages": str(self._vo_messages),
             **self._vo_frame.values(),
             "velocity_source": self.velocity.describe() + (
