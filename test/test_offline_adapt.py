@@ -350,6 +350,10 @@ def _with_meta(src: Path, dest: Path, change) -> Path:  # type: ignore[no-untype
     {"adaptation": {"data": {"bags": 5}, "channels": {"v": {"effective_size": "x"}},
                     "held_out": {"trained": {"1.0": 3}, "adapted": {"1.0": {}}}}},
     {"training": ["x"], "selection": {"candidates": 7}, "calibration": {"fitted": 1}},
+    # earlier adaptations' records, carried into the new one and shown after it was saved
+    {"adaptation": {"earlier": [5, {"data": {"bags": 5}}, {"data": [1]}, {}],
+                    "data": {"bags": [1, "x"], "duration_s": True}}},
+    {"adaptation": {"earlier": "x", "data": {"bags": 5}}},
 ])
 def test_a_model_file_with_a_record_of_another_shape(
         floors: dict[str, Path], tile_model: Path, tmp_path: Path, record: dict,
@@ -503,3 +507,21 @@ def test_the_timeline_records_the_scale_each_prediction_used(
     want = np.array([used[k0 + i - 1] for i in replay["idx"]])
     assert want.size > 100 and np.ptp(want) > 0.0  # the scale moved while it drove
     np.testing.assert_allclose(replay["scale"], want, rtol=1e-9)
+
+
+def test_a_model_at_another_rate_is_adapted_and_scored_where_it_is(
+        floors: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """At 1 Hz the horizons 1.0 and 1.4 s are one step, scored once: asgp adapt paired the
+    asked horizons with the scores and failed ('zip() argument 2 is shorter'), and at
+    other rates labelled each score with the horizon asked, not the one scored."""
+    model = tmp_path / "slow.npz"
+    assert main(["train", "--lags", "2", "--coupled", "--inducing-v", "10", "--inducing-w",
+                 "10", "--max-iter", "10", "--no-calibration", "--rate", "1",
+                 str(floors["tile"]), "--out", str(model)]) == 0
+    out = tmp_path / "adapted.npz"
+    capsys.readouterr()
+    assert main(["adapt", str(model), str(floors["carpet"]), "--out", str(out)]) == 0
+    held = load_model(out).meta["adaptation"]["held_out"]
+    for scores in held.values():
+        if scores:
+            assert set(scores) <= {"1.0", "2.0"}, scores  # 1.4 s is scored as 1.0 s

@@ -76,23 +76,34 @@ def _recordings(*records: object) -> set[str]:
     return out
 
 
+def _minutes(data: object) -> str:
+    seconds = data.get("duration_s") if isinstance(data, dict) else None
+    if isinstance(seconds, bool) or not isinstance(seconds, int | float):
+        return "?"
+    return f"{seconds / 60:.1f}"
+
+
+def _bag_names(data: object) -> list[str]:
+    """The bags a data record names (a foreign file's record may be of any shape)."""
+    bags = data.get("bags") if isinstance(data, dict) else None
+    return [str(b) for b in bags] if isinstance(bags, list) else []
+
+
 def summary_lines(meta: dict[str, Any]) -> list[str]:
     """What ``asgp adapt`` did, from the model's ``adaptation`` meta (also ``asgp info``)."""
     ad = meta.get("adaptation")
     if not isinstance(ad, dict):
         return []
-    data = ad.get("data", {})
+    data = ad.get("data")
     chans = ad.get("channels", {})
-    lines = [f"adapted to {len(data.get('bags', []))} bag(s), "
-             f"{data.get('duration_s', 0.0) / 60:.1f} min; trained data's weight "
+    lines = [f"adapted to {len(_bag_names(data))} bag(s), "
+             f"{_minutes(data)} min; trained data's weight "
              f"{ad.get('trained_weight', '?')}; calibration {ad.get('calibration', '?')}"]
     earlier = [r for r in ad.get("earlier", []) if isinstance(r, dict)] \
         if isinstance(ad.get("earlier"), list) else []
     for n, record in enumerate(earlier, 1):
-        d = record.get("data")
-        d = d if isinstance(d, dict) else {}
         lines.append(f"  before that ({n} of {len(earlier)}): adapted to "
-                     f"{', '.join(str(b) for b in d.get('bags', []))}")
+                     f"{', '.join(_bag_names(record.get('data'))) or '?'}")
     for name, ch in chans.items():
         refused = ", ".join(f"{v} {k}" for k, v in ch.get("refused", {}).items()) or "none"
         lines.append(f"  {name}: {ch.get('absorbed', '?')} of {ch.get('rows', '?')} rows "

@@ -16,6 +16,7 @@ pose k-1, at time t_{t+k-1}. The reference path integrates V_{t-1}, V_t, ..., V_
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import cast
 
@@ -64,6 +65,16 @@ def horizon_steps(horizons_s: list[float] | tuple[float, ...], rate_hz: float) -
             )
         steps.append(k)
     return steps
+
+
+def scored_horizons(horizons_s: Sequence[float], rate_hz: float) -> tuple[float, ...]:
+    """The horizons as a ``rate_hz`` grid scores them: each at its steps (``horizon_steps``)
+    k / rate, once (1.0 and 1.4 s at 1 Hz: 1.0 s)."""
+    out: list[float] = []
+    for k in horizon_steps(list(horizons_s), rate_hz):
+        if k / rate_hz not in out:
+            out.append(k / rate_hz)
+    return tuple(out)
 
 
 def segment_runs(segment: NDArray[np.integer]) -> list[tuple[int, int]]:

@@ -53,7 +53,7 @@ import numpy as np
 
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.features import CHANNELS
-from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.learning.evaluation import EvaluationError, TestSeries, evaluate_model
@@ -206,10 +206,15 @@ def _held_out_scores(model: MotionModel, held: Sequence[Series], opts: OfflineAd
                             threshold_m=opts.threshold_m)
     except EvaluationError:
         return None
-    return {horizon_key(h): {"success": r.vo.success_rate,
-                             "median_error_m": r.vo.median_error_m,
-                             "coverage_95": r.vo.coverage_95, "cases": r.vo.cases}
-            for h, r in zip(horizons, ev.horizons.values(), strict=True)}
+    # keyed as scored: a horizon off the model's grid is scored (and labelled) at the
+    # nearest step, and two that round to one step are scored once
+    return {key: {"success": r.vo.success_rate, "median_error_m": r.vo.median_error_m,
+                  "coverage_95": r.vo.coverage_95, "cases": r.vo.cases}
+            for key, r in ev.horizons.items()}
+
+
+#: The earlier adaptations' records a model keeps (the newest).
+MAX_EARLIER_ADAPTATIONS = 20
 
 
 def _calibration_label(cal_meta: dict[str, Any]) -> str:
@@ -303,9 +308,10 @@ def adapt_model(model: MotionModel, series: Sequence[Series],
     earlier = model.meta.get("adaptation")
     if isinstance(earlier, dict):
         before_that = earlier.get("earlier")
-        meta["adaptation"]["earlier"] = [
-            *(before_that if isinstance(before_that, list) else []),
-            {key: value for key, value in earlier.items() if key != "earlier"}]
+        records = [r for r in (before_that if isinstance(before_that, list) else [])
+                   if isinstance(r, dict)]
+        records.append({key: value for key, value in earlier.items() if key != "earlier"})
+        meta["adaptation"]["earlier"] = records[-MAX_EARLIER_ADAPTATIONS:]
     if cal_meta.get("fitted"):
         meta["calibration"] = cal_meta
     return dataclasses.replace(adapted, calibration=calibration, meta=meta)

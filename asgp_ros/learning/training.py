@@ -516,6 +516,12 @@ def train_auto(
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
     rc = resample_config if resample_config is not None else ResampleConfig()
     t_start = time.perf_counter()
+    aligned = metrics.scored_horizons(opts.horizons_s, rc.rate_hz)
+    if aligned != tuple(opts.horizons_s):
+        # scored where they are, as asgp evaluate does (a 1 Hz grid: 1.4 s is 1.0 s)
+        report("select", f"the horizons {list(opts.horizons_s)} s on the {rc.rate_hz:g} Hz "
+                         f"grid: scoring {list(aligned)} s")
+        opts = dataclasses.replace(opts, horizons_s=aligned)
     fit_on, held = split_holdout(series, opts.holdout)
     structures = _structures(opts)
     case_lags = max(max(s for s, _ in structures), PAPER_OPTIONS.resolved_lags())
