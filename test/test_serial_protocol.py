@@ -281,6 +281,14 @@ def test_scalar_and_vector_calibration_agree():
         assert np.all(np.diff(vec) * (-1 if cal.invert else 1) >= 0)  # monotonic
 
 
+def test_the_override_timeout_said_to_be_enough_is_taken():
+    """At 6 Hz the refusal said '(0.333 s) must be at least ... (0.333 s)': the minimum it
+    names, rounded up, is taken."""
+    with pytest.raises(ValueError, match=r"\(0\.334 s at 6 Hz\)"):
+        bridge_params({"override_rate": 6.0, "override_timeout": 0.333})
+    assert bridge_params({"override_rate": 6.0, "override_timeout": 0.334}) is not None
+
+
 def test_an_override_timeout_of_two_rate_periods_is_taken():
     assert bridge_params({"override_rate": 6.0, "override_timeout": 2 / 6.0}) is not None
     assert bridge_params({"override_rate": 25.0, "override_timeout": 0.08}) is not None

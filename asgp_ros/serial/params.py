@@ -3,6 +3,7 @@ the node's declarations and ``config/bridge.yaml``, validated into a frozen data
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -105,7 +106,7 @@ def bridge_params(values: Mapping[str, object]) -> BridgeParams:
         # four times in 2 s while the layer intervened)
         raise ValueError(
             f"parameter override_timeout ({v['override_timeout']:g} s) must be at least two "
-            f"periods of override_rate ({2.0 / v['override_rate']:.3g} s at "
+            f"periods of override_rate ({math.ceil(2e3 / v['override_rate']) / 1e3:g} s at "
             f"{v['override_rate']:g} Hz): overrides are written at its ticks, and one that "
             "went stale between two would never be sent")
     if v["heartbeat_timeout"] <= v["heartbeat_period"]:
