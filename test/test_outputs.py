@@ -989,3 +989,51 @@ def test_an_output_name_too_long_for_its_temporary_is_refused_first(tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(OutputError, match="is not an evaluation JSON file"):
         check_output(tmp_path / "notes.txt", SCORES_JSON, force=True)
+
+
+def test_a_failed_write_removes_only_the_directories_it_made(tmp_path, monkeypatch):
+    """--out missing/../keep/m.json: 'keep' (the user's, empty) was taken for one the
+    write had made, and removed when the write failed; 'missing', which it made, stayed."""
+    from asgp_ros.common.fileio import atomic_write_text
+
+    (tmp_path / "keep").mkdir()
+    monkeypatch.chdir(tmp_path)
+
+    def full(self, data):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(Path, "write_bytes", full)
+    with pytest.raises(OSError):
+        atomic_write_text(Path("missing/../keep/scores.json"), "{}")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep"]
+
+
+def test_an_empty_directory_approved_as_a_new_output_is_written(tmp_path):
+    """check_output takes an existing empty directory as a new directory output, but the
+    commit without replace refused it: asgp reproduce --out EMPTY failed after its work."""
+    from asgp_ros.common.fileio import REPORT_DIR, forget_approved_outputs, write_marker
+
+    forget_approved_outputs()
+    (tmp_path / "empty").mkdir()
+    out = check_output(tmp_path / "empty", REPORT_DIR)
+    with atomic_path(out, directory=True, replace=False) as tmp:
+        tmp.mkdir()
+        write_marker(tmp, "reproduce-report")
+    assert read_marker(out) == "reproduce-report"
+    forget_approved_outputs()
+
+
+def test_a_model_file_a_full_disk_refused_is_named(tmp_path, monkeypatch):
+    import numpy as np
+
+    from asgp_ros.core import modelfile
+
+    model = modelfile.load_model(Path(__file__).resolve().parents[1] / "docs" / "reproduction"
+                                 / "models" / "tile_asgp_paper.npz")
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(np, "savez", full)
+    target = tmp_path / "m.npz"
+    with pytest.raises(OSError) as err:
+        modelfile.save_model(target, model)
+    assert err.value.filename == str(target) and not target.exists()

@@ -405,8 +405,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     _refuse_other_kind(final, directory=directory, replace=replace)
     key = _output_key(final)
     expected = _approved.get(key, _identity(final))
-    made = [d for d in (parent, *parent.parents) if not os.path.lexists(d)]  # deepest first
-    parent.mkdir(parents=True, exist_ok=True)
+    made = _make_parents(parent)
     tmpdir: Path | None = None
     committed = False
     try:
@@ -449,7 +448,7 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
             with signals_deferred():  # raised once the temporary is gone
                 shutil.rmtree(tmpdir, ignore_errors=True)
                 if not committed:  # a failed write leaves no directory it made either
-                    for d in made:
+                    for d in reversed(made):
                         try:
                             os.rmdir(d)
                         except OSError:
@@ -458,6 +457,33 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
 
 #: Longest output name: its temporary's (``.NAME.<12 hex>.tmp``) must fit in 255 bytes.
 MAX_OUTPUT_NAME_BYTES = 255 - len("..") - 12 - len(".tmp")
+
+def _make_parents(parent: Path) -> list[Path]:
+    """Make ``parent`` and its missing ancestors; the directories this call made, in the
+    order made (one that exists, or appears meanwhile, is not among them, whatever the
+    path's ``..`` say: ``missing/../keep`` makes ``missing`` only)."""
+    missing: list[Path] = []
+    p = parent
+    while str(p) not in ("", ".") and not os.path.lexists(p) and p != p.parent:
+        missing.append(p)
+        p = p.parent
+    made: list[Path] = []
+    try:
+        for d in reversed(missing):
+            try:
+                os.mkdir(d)
+            except FileExistsError:
+                continue
+            made.append(d)
+        if not parent.is_dir():
+            parent.mkdir(parents=True, exist_ok=True)  # (raises what the system says)
+    except BaseException:
+        for d in reversed(made):
+            with contextlib.suppress(OSError):
+                os.rmdir(d)
+        raise
+    return made
+
 
 #: What :func:`check_output` saw at each output path it approved (:func:`_identity`), by
 #: :func:`_output_key`: all :func:`atomic_path` may replace there.
@@ -650,7 +676,9 @@ def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
     if not wanted:
         raise FileExistsError(f"{final} exists and is {describe_kind(final)}, not a "
                               f"{'directory' if directory else 'regular file'}")
-    if not replace:
+    if not replace and not (directory and not any(final.iterdir())):
+        # (an empty directory is taken as a new directory output, as check_output takes
+        # it: refused here, a report failed only after all its work)
         raise FileExistsError(f"{final} exists")
 
 

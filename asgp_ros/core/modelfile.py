@@ -336,9 +336,15 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
     except ValueError as exc:
         raise ModelFileError(path, f"metadata cannot be stored: {exc}") from exc
     payload: dict[str, Any] = {META_KEY: np.array(text), **arrays}
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        # a file object, so numpy does not append ".npz" to the temporary name
-        np.savez(fh, **payload)
+    try:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            # a file object, so numpy does not append ".npz" to the temporary name
+            np.savez(fh, **payload)
+    except OSError as exc:
+        if exc.filename is not None:
+            raise
+        # (a full disk said only "No space left on device": the user needs the file)
+        raise OSError(exc.errno, exc.strerror or str(exc), os.fspath(path)) from exc
     logger.info("saved %s model to %s", model.kind, path)
 
 
