@@ -535,6 +535,37 @@ def test_newest_pair_is_processed_and_older_frames_dropped(rclpy_context):
 
 
 @pytest.mark.ros
+def test_pairs_queued_behind_a_slow_frame_are_skipped_for_the_newest(rclpy_context, frames):
+    """rclpy's executor takes one message per subscription per wake-up, and the node chose
+    a pair after each: five pairs queued while it was busy were processed oldest first
+    (each about five frame periods late at 15 Hz). The newest only is processed now."""
+    K, _, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        t0 = 100.0
+        h.send(t0, *_msgs(images, 0))
+        for k in range(1, 6):  # delivered while the node does not spin (busy)
+            c, d = _msgs(images, k)
+            c.header.stamp = d.header.stamp = conv.seconds_to_stamp(t0 + k / 15.0)
+            h.color.publish(c)
+            h.depth.publish(d)
+        time.sleep(2.0)  # (into the subscriptions' queues; nothing is timed)
+        processed = []
+        real = h.node.vo.process
+
+        def spy(image, depth, stamp):
+            processed.append(round(stamp - t0, 4))
+            return real(image, depth, stamp)
+        h.node.vo.process = spy
+        h.spin_until(lambda: False, 1.0)
+        assert processed == [round(5 / 15.0, 4)], processed
+        assert h.node.stats["dropped"] >= 4
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
 def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_context):
     """A colour image waiting for its depth partner when the stamps went back 3 s (a bag
     restarted, the camera's clock stepped) is never paired with an image of the new

@@ -83,8 +83,12 @@ class VONode(Node):
         self._color: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
         self._depth: collections.deque[tuple[float, Image]] = collections.deque(maxlen=_BUFFER)
         self._wake = self.create_guard_condition(self._process_newest)
-        watch.subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data)
-        watch.subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data)
+        # (kept: the images waiting in them are taken before each pair is chosen)
+        self._image_subs = (
+            (watch.subscription(Image, p.color_topic, self._on_color, qos_profile_sensor_data),
+             self._on_color),
+            (watch.subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data),
+             self._on_depth))
         watch.subscription(CameraInfo, p.camera_info_topic, self._on_info,
                            qos_profile_sensor_data)
         self.create_timer(p.diagnostics_period_s, self._on_diagnostics_timer,
@@ -195,9 +199,23 @@ class VONode(Node):
 
     # -- processing ------------------------------------------------------------------------
 
+    def _take_waiting_images(self) -> None:
+        """Buffer the images still waiting in the subscriptions' queues. rclpy's executor
+        takes one message per subscription per wake-up, and this node's guard ran after
+        each: with pairs queued behind a slow frame it processed them oldest first (each
+        about 5 frame periods late at 15 Hz) instead of only the newest."""
+        for sub, handler in self._image_subs:
+            with sub.handle:
+                for _ in range(_BUFFER):  # (the QoS keeps fewer: a bound, not a limit)
+                    got = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if got is None:
+                        break
+                    handler(got[0])
+
     def _process_newest(self) -> None:
         if self.vo is None:
             return  # waiting for camera_info; images stay buffered (bounded)
+        self._take_waiting_images()
         pair = self._take_pair()
         if pair is None:
             return
