@@ -338,9 +338,10 @@ def test_node_publishes_the_chair_twist_and_reports_failures(rclpy_context, fram
 @pytest.mark.ros
 def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
         rclpy_context, frames):
-    """A bag played again (stamps 3 s back): the odometry restarts from the next pair (a
-    reference, no twist), then tracks again; a pair stamped at or before the last one but
-    within ``_JUMP_BACK_S`` (a repeat, a late pair) publishes nothing."""
+    """A bag played again (stamps 3 s back): the odometry restarts once three pairs in a
+    row came on the new timeline (a reference, no twist), then tracks again; a pair
+    stamped at or before the last one but within ``_JUMP_BACK_S`` (a repeat, a late pair)
+    publishes nothing."""
     K, drive, images = frames
     h = _Harness(rclpy_context)
 
@@ -370,20 +371,29 @@ def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
         assert h.spin_until(lambda: any(
             level == 2 and "none stamped after the last one processed" in msg
             for level, msg, _ in _levels(h.diags)), 3.0)
-        # 3 s back: the odometry restarts at the origin
+        # 3 s back: one stray pair is refused (it reset the odometry to the origin
+        # mid-drive); the third pair in a row on the new timeline restarts it there
         t1 = t0 + drive.t[3] - 3.0
-        h.send(t1, *msgs(0))
+        not_newer = h.node.stats["not_newer"]
+        for k in range(2):
+            c, d = msgs(k)
+            c.header.stamp = d.header.stamp = conv.seconds_to_stamp(t1 + drive.t[k])
+            h.color.publish(c)
+            h.depth.publish(d)
+            assert h.spin_until(lambda n=not_newer + k + 1: h.node.stats["not_newer"] >= n)
+        assert h.node.stats["resets"] == 0
+        h.send(t1 + drive.t[2], *msgs(2))
         assert h.node.stats["resets"] == 1 and len(h.twists) == 3  # a reference, no twist
-        for k in range(1, 4):
+        for k in range(3, 6):
             h.send(t1 + drive.t[k], *msgs(k))
         assert len(h.twists) == 6
         assert h.twists[-1].twist.linear.x == pytest.approx(0.4, abs=0.04)
         assert conv.stamp_to_seconds(h.twists[-1].header.stamp) == pytest.approx(
-            t1 + drive.t[3], abs=1e-6)
+            t1 + drive.t[5], abs=1e-6)
         _, _, ok, (x, y, yaw) = conv.odometry_to_sample(h.odoms[-1])
-        dist = math.hypot(drive.x[3] - drive.x[0], drive.y[3] - drive.y[0])
+        dist = math.hypot(drive.x[5] - drive.x[2], drive.y[5] - drive.y[2])
         assert ok and math.hypot(x, y) == pytest.approx(dist, abs=0.03)  # from the restart
-        assert yaw == pytest.approx(drive.theta[3] - drive.theta[0], abs=0.02)
+        assert yaw == pytest.approx(drive.theta[5] - drive.theta[2], abs=0.02)
     finally:
         h.close()
 

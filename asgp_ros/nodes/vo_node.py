@@ -56,7 +56,8 @@ _LEVEL = {
     Status.BAD_INPUT: "ERROR",
 }
 _BUFFER = 8  # messages kept per image stream while waiting for a partner
-_JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry
+_JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry...
+_JUMP_BACK_PAIRS = 3  # ... once this many pairs in a row came on the new timeline
 #: A pair stamped more than this after the node's clock is refused: one such pair, tracked,
 #: would make every later (correct) pair look stamped back in time and reset the odometry.
 _AHEAD_S = 1.0
@@ -107,6 +108,7 @@ class VONode(Node):
                       "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0,
                       "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0}
         self._last_colour: bytes | None = None  # the last processed colour image's data
+        self._behind: list[float] = []  # stamps of the pairs in a row far behind the last
         self._evicted_since_pair = 0  # images pushed out of a full buffer since a pair
         self._info_problem = ""  # why the last camera_info was refused, if it was
         self._frames = ("", "")  # frame_id of the last colour and depth image paired
@@ -231,16 +233,24 @@ class VONode(Node):
                                   message=problem))
             return
         if self._last_stamp is not None and stamp <= self._last_stamp:
-            if stamp < self._last_stamp - _JUMP_BACK_S:
+            far = stamp < self._last_stamp - _JUMP_BACK_S
+            if far and self._behind and stamp > self._behind[-1]:
+                self._behind.append(stamp)  # one more pair on the new timeline
+            elif far:
+                self._behind = [stamp]
+            if far and len(self._behind) >= _JUMP_BACK_PAIRS:
                 self.get_logger().warn(f"image stamps jumped back by "
                                        f"{self._last_stamp - stamp:.2f} s: odometry restarts")
                 self.vo.reset()
                 self.planar.reset()
                 self.stats["resets"] += 1
-            else:  # an old or repeated pair: counted, the diagnostics say so if it lasts
+            else:  # an old or repeated pair (or one stray pair stamped far back: it reset
+                # the odometry to the origin mid-drive): counted, the diagnostics say so if
+                # it lasts
                 self.stats["not_newer"] += 1
                 self._not_newer_since_processed += 1
                 return
+        self._behind = []
         self._last_stamp = stamp
         self._not_newer_since_processed = 0
         self._last_processed_wall = time.monotonic()
