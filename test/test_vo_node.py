@@ -588,6 +588,30 @@ def test_pairs_queued_behind_a_slow_frame_are_skipped_for_the_newest(rclpy_conte
 
 
 @pytest.mark.ros
+def test_camera_info_that_keeps_changing_is_said(rclpy_context, frames):
+    """Two calibrations alternating on camera_info (two cameras' drivers in one namespace):
+    each change restarts tracking, no twist ever comes, and the diagnostics said only
+    'initialising'."""
+    K, drive, images = frames
+    K2 = np.array(K, float)
+    K2[0, 0] *= 1.01
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        for k in range(6):
+            h.info.publish(camera.camera_info_from_matrix(0.0, K2 if k % 2 else K, 640, 480,
+                                                          "camera"))
+            h.spin_until(lambda k=k: h.node.stats["resets"] >= k, 1.0)
+            h.send(100.0 + drive.t[k], *_msgs(images, k))
+        h.diags.clear()
+        assert h.spin_until(lambda: len(_levels(h.diags)) >= 1, 3.0)
+        _, msg, _ = _levels(h.diags)[-1]
+        assert len(h.twists) == 0 and "camera_info changed" in msg, msg
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
 def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_context):
     """A colour image waiting for its depth partner when the stamps went back 3 s (a bag
     restarted, the camera's clock stepped) is never paired with an image of the new

@@ -58,6 +58,7 @@ _LEVEL = {
 _BUFFER = 8  # messages kept per image stream while waiting for a partner
 _JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the odometry...
 _JUMP_BACK_PAIRS = 3  # ... once this many pairs in a row came on the new timeline
+_INFO_CHANGES_WINDOW_S = 10.0  # camera_info changes this recent are said while initialising
 #: A pair stamped more than this after the node's clock is refused: one such pair, tracked,
 #: would make every later (correct) pair look stamped back in time and reset the odometry.
 _AHEAD_S = 1.0
@@ -109,6 +110,8 @@ class VONode(Node):
                       "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0}
         self._last_colour: bytes | None = None  # the last processed colour image's data
         self._behind: list[float] = []  # stamps of the pairs in a row far behind the last
+        # when camera_info last changed (time.monotonic), the newest few
+        self._info_changes: collections.deque[float] = collections.deque(maxlen=100)
         self._evicted_since_pair = 0  # images pushed out of a full buffer since a pair
         self._info_problem = ""  # why the last camera_info was refused, if it was
         self._frames = ("", "")  # frame_id of the last colour and depth image paired
@@ -174,7 +177,9 @@ class VONode(Node):
             # a new calibration of the same camera (a driver restarted): the chair has not
             # moved, so the pose is held, and re-initialised with its variance
             # (PlanarOdometry), as after a tracking loss
-            self.get_logger().warn("camera_info changed: tracking restarts, pose held")
+            self.get_logger().warn("camera_info changed: tracking restarts, pose held",
+                                   throttle_duration_sec=5.0)
+            self._info_changes.append(time.monotonic())
             vo.restart(self.vo.pose)
             self.stats["resets"] += 1
         self._K, self._info_size = K, (w, h)
@@ -366,6 +371,12 @@ class VONode(Node):
             level, msg = "OK", f"tracking ({r.num_inliers} inliers)"
         elif r.status is Status.REFERENCE_SET:
             level, msg = "WARN", "initialising: reference frame set, no twist yet"
+            recent = [t for t in self._info_changes
+                      if time.monotonic() - t <= _INFO_CHANGES_WINDOW_S]
+            if len(recent) > 1:  # two calibrations alternating on the topic restart it
+                msg += (f"; camera_info changed {len(recent)} times in the last "
+                        f"{_INFO_CHANGES_WINDOW_S:g} s, each a restart: two cameras or "
+                        f"drivers on {p.camera_info_topic}?")
         else:
             level = _LEVEL[r.status]
             msg = f"tracking lost ({r.status.value}): {r.message}; no twist published"
