@@ -289,3 +289,14 @@ def test_a_command_out_of_memory_says_so_in_one_line(monkeypatch, capsys):
     assert main(["info", "m.npz"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: out of memory in asgp info") and err.count("\n") == 1
+
+
+def test_a_bad_joy_axes_is_refused_before_anything_is_read(capsys):
+    """--joy-axes was parsed by the bag reader: a typo was reported after the model and
+    every earlier bag had been read (or a missing bag was reported instead)."""
+    from asgp_ros.cli import main
+
+    for command in (["evaluate", "no_model.npz"], ["train", "--paper", "--out", "m.npz"]):
+        assert main([*command, "no_such_bag", "--joy-axes", "0,0,1"]) == 2
+        err = capsys.readouterr().err
+        assert "argument --joy-axes" in err and "no_such" not in err, err

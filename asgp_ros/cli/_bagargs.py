@@ -9,7 +9,18 @@ from asgp_ros.cli import CommandError
 from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core.resample import ResampleConfig
 from asgp_ros.learning.training import Series, read_series
-from asgp_ros.recording.bags import BagError
+from asgp_ros.recording.bags import BagError, parse_joy_axes
+
+
+def _joy_axes(spec: str) -> str:
+    """--joy-axes checked as the command line is read (it was only when a bag was, after
+    the model and the earlier bags), passed on as given."""
+    try:
+        parse_joy_axes(spec)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix(f"--joy-axes {spec!r}: ")
+                                         ) from None
+    return spec
 
 
 def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> None:
@@ -17,7 +28,7 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
     parser.add_argument("--twist-topic", default=BAG_VO_TWIST,
                         help="velocity topic: TwistStamped, TwistWithCovarianceStamped, Twist "
                              "or Odometry (%(default)s)")
-    parser.add_argument("--joy-axes", default=None, metavar="FWD,TURN",
+    parser.add_argument("--joy-axes", default=None, metavar="FWD,TURN", type=_joy_axes,
                         help="Joy.axes indices of the forward and turn deflection, '-' flips a "
                              "sign: '0,1' (default), '1,-0', ...")
     parser.add_argument("--override-topic", default=BAG_JOY_OVERRIDE,
