@@ -61,7 +61,7 @@ def offline_cases(bag: Path, model: MotionModel) -> dict[str, set[int]]:
     lags = int(model.feature_config.lags)
     out: dict[str, set[int]] = {}
     for h in HORIZONS_S:
-        k = round(h * rate)
+        k = metrics.horizon_steps([h], rate)[0]  # (as evaluation rounds it)
         cases: set[int] = set()
         for s in series:
             idx = metrics.case_indices(s.res.segment, lags, k)
@@ -83,7 +83,7 @@ def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
     s = int(model.feature_config.lags)
     out: dict[str, dict[str, float]] = {}
     for h in HORIZONS_S:
-        k = round(h * rate)
+        k = metrics.horizon_steps([h], rate)[0]  # (as evaluation rounds it)
         errors = []
         for ser in series:
             res = ser.res
