@@ -40,7 +40,11 @@ def test_a_horizon_beyond_the_steps_of_a_path_names_horizon_s():
     """A 25 Hz model's 10 s (horizon_s within its range) was refused as 'horizon_steps
     ... got 250', a parameter the shared-control node does not have."""
     assert online.horizon_steps(2.0, 5.0) == 10
-    assert online.horizon_steps(0.01, 5.0) == 1
+    # rounded as evaluation rounds a horizon (half up: the node's 0.5 s was 2 steps, the
+    # evaluation's 3)
+    assert online.horizon_steps(0.5, 5.0) == 3
+    with pytest.raises(ValueError, match="shorter than one step"):
+        online.horizon_steps(0.01, 5.0)
     with pytest.raises(ValueError, match=r"horizon_s 10 s is 250 steps at the model's 25 Hz"):
         online.horizon_steps(10.0, 25.0)
 

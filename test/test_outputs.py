@@ -1037,3 +1037,28 @@ def test_a_model_file_a_full_disk_refused_is_named(tmp_path, monkeypatch):
     with pytest.raises(OSError) as err:
         modelfile.save_model(target, model)
     assert err.value.filename == str(target) and not target.exists()
+
+
+@pytest.mark.parametrize("renameat2", [True, False])
+@pytest.mark.parametrize("directory", [False, True])
+def test_a_new_output_never_moves_over_what_appeared_at_the_last_moment(
+        tmp_path, monkeypatch, renameat2, directory):
+    """The commit of a new output moves it in without replacing: Linux's
+    renameat2(RENAME_NOREPLACE), or where the C library lacks it a hard link (a file) or a
+    check and a rename. What appeared at the path in the instant between atomic_path's
+    check and the rename stays."""
+    from asgp_ros.common import fileio
+
+    if not renameat2:
+        monkeypatch.setattr(fileio, "_libc", lambda: None)
+    src, dst = tmp_path / "new", tmp_path / "out"
+    (src.mkdir() if directory else src.write_text("new"))
+    dst.mkdir() if directory else dst.write_text("mine")
+    with pytest.raises(FileExistsError, match="appeared"):
+        fileio._rename_no_replace(src, dst)
+    assert (dst.is_dir() and not any(dst.iterdir())) if directory else \
+        dst.read_text() == "mine"
+    assert src.exists()
+    dst.rmdir() if directory else dst.unlink()
+    fileio._rename_no_replace(src, dst)
+    assert dst.exists() and not src.exists()

@@ -68,12 +68,8 @@ def _adaptations(record: object) -> list[object]:
 def _recordings(*records: object) -> set[str]:
     """The real paths of the existing bags named by data records (a model file's
     ``training_data``, an adaptation's ``data``; any shape in a foreign file)."""
-    out: set[str] = set()
-    for data in records:
-        bags = data.get("bags") if isinstance(data, dict) else None
-        out.update(os.path.realpath(b) for b in (bags if isinstance(bags, list) else [])
-                   if isinstance(b, str) and os.path.exists(b))
-    return out
+    return {os.path.realpath(b) for data in records for b in _bag_names(data)
+            if os.path.exists(b)}
 
 
 def _minutes(data: object) -> str:
@@ -86,7 +82,7 @@ def _minutes(data: object) -> str:
 def _bag_names(data: object) -> list[str]:
     """The bags a data record names (a foreign file's record may be of any shape)."""
     bags = data.get("bags") if isinstance(data, dict) else None
-    return [str(b) for b in bags] if isinstance(bags, list) else []
+    return [b for b in bags if isinstance(b, str)] if isinstance(bags, list) else []
 
 
 def summary_lines(meta: dict[str, Any]) -> list[str]:

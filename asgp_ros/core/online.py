@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.core import inverse
+from asgp_ros.core import inverse, metrics
 from asgp_ros.core.adaptive import AdapterStats, AdaptSettings, ModelAdapter
 from asgp_ros.core.inverse import InverseResult
 from asgp_ros.core.metrics import CHI2_2DOF_95
@@ -149,13 +149,14 @@ MAX_HORIZON_STEPS = 200
 
 
 def horizon_steps(horizon_s: float, rate_hz: float) -> int:
-    """The steps of a ``horizon_s`` horizon at a model's ``rate_hz`` (at least one).
+    """The steps of a ``horizon_s`` horizon at a model's ``rate_hz``, rounded as
+    evaluation rounds them (:func:`asgp_ros.core.metrics.horizon_steps`).
 
     Raises:
-        ValueError: more than MAX_HORIZON_STEPS, naming ``horizon_s`` (a 25 Hz model's
-            10 s is 250 steps).
+        ValueError: shorter than half a step, or more than MAX_HORIZON_STEPS, naming
+            ``horizon_s`` (a 25 Hz model's 10 s is 250 steps).
     """
-    k = max(1, round(horizon_s * rate_hz))
+    (k,) = metrics.horizon_steps([horizon_s], rate_hz)  # evaluation's rounding (half up)
     if k > MAX_HORIZON_STEPS:
         raise ValueError(f"horizon_s {horizon_s:g} s is {k} steps at the model's "
                          f"{rate_hz:g} Hz, more than {MAX_HORIZON_STEPS}")

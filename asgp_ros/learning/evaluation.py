@@ -190,17 +190,15 @@ def _scored_horizons(horizons_s: Sequence[float], steps: Sequence[int], rate: fl
     """The horizons as scored, (k / rate, k), once each: a horizon that is no whole number
     of the model's steps is scored, and labelled, at the nearest one (a 2.5 Hz model's
     '1.0 s' was scored at 0.8 s under the label 1.0 s), with a warning."""
-    out: list[tuple[float, int]] = []
+    seen: set[int] = set()
     for h, k in zip(horizons_s, steps, strict=True):
-        actual = k / rate
-        if abs(actual - h) > 1e-9 * max(1.0, h):
+        if abs(k / rate - h) > 1e-9 * max(1.0, h):
             log.warning("horizon %g s is %g steps of the model's %g Hz: scored at %g s "
-                           "(%d steps)", h, h * rate, rate, actual, k)
-        if any(k == done for _, done in out):
+                        "(%d steps)", h, h * rate, rate, k / rate, k)
+        if k in seen:
             log.warning("horizon %g s is %d steps, as an earlier one: scored once", h, k)
-            continue
-        out.append((actual, k))
-    return out
+        seen.add(k)
+    return [(h, round(h * rate)) for h in metrics.scored_horizons(horizons_s, rate)]
 
 
 def evaluate_model(

@@ -108,7 +108,7 @@ class VONode(Node):
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
                       "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0,
                       "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0}
-        self._last_colour: bytes | None = None  # the last processed colour image's data
+        self._last_colour: Image | None = None  # the last processed colour image
         self._behind: list[float] = []  # stamps of the pairs in a row far behind the last
         # when camera_info last changed (time.monotonic), the newest few
         self._info_changes: collections.deque[float] = collections.deque(maxlen=100)
@@ -269,9 +269,9 @@ class VONode(Node):
                 raise ValueError(f"depth image has encoding {dmsg.encoding!r}")
             if depth.ndim != 2:
                 raise ValueError(f"depth image must have one channel, got {dmsg.encoding!r}")
-            colour = bytes(cmsg.data)
-            previous, self._last_colour = self._last_colour, colour
-            if colour == previous:
+            previous, self._last_colour = self._last_colour, cmsg
+            if previous is not None and (previous.encoding, previous.step) == (
+                    cmsg.encoding, cmsg.step) and previous.data == cmsg.data:
                 # a real camera's noise never repeats: a driver re-sending its last frame
                 # with new stamps. Tracked, it read as the chair stopped, with a twist
                 # variance of 1e-7 (m/s)^2, while the chair drove on
