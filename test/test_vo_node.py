@@ -615,7 +615,9 @@ def test_camera_info_that_keeps_changing_is_said(rclpy_context, frames):
 def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_context):
     """A colour image waiting for its depth partner when the stamps went back 3 s (a bag
     restarted, the camera's clock stepped) is never paired with an image of the new
-    timeline that carries the same stamp 3 s later."""
+    timeline that carries the same stamp 3 s later: it goes once three pairs' images in a
+    row came on the new timeline. One stray image stamped far back drops nothing (it
+    dropped the images waiting for their partners)."""
     from sensor_msgs.msg import Image
 
     from asgp_ros.nodes.vo_node import VONode
@@ -633,12 +635,20 @@ def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_co
         node._on_color(stale)  # its depth never comes (dropped by the camera)
         assert node._take_pair()[0] == 12.8 and [t for t, _ in node._color] == [12.9]
         dropped = node.stats["dropped"]
-        node._on_depth(image(10.0))  # the stamps go back: the old colour image goes
-        assert not node._color and [t for t, _ in node._depth] == [10.0]
-        assert node.stats["dropped"] == dropped + 1
-        for t in (10.0, 11.0, 12.0):
-            if t > 10.0:
-                node._on_depth(image(t))
+        node._on_depth(image(10.0))  # the stamps go back
+        node._on_color(image(10.0))
+        assert node._take_pair()[0] == 10.0
+        for t in (10.25, 10.5):
+            node._on_depth(image(t))
+            assert [c for c, _ in node._color] == [12.9]  # not yet: maybe a stray
+            node._on_color(image(t))
+            if t == 10.25:
+                assert node._take_pair()[0] == t
+        # the sixth image in a row on the new timeline: the old colour image goes
+        assert [t for t, _ in node._color] == [10.5] and node.stats["dropped"] == dropped + 1
+        assert node._take_pair()[0] == 10.5
+        for t in (11.0, 12.0):
+            node._on_depth(image(t))
             node._on_color(image(t))
             assert node._take_pair()[0] == t
         fresh = image(12.9)
@@ -650,6 +660,17 @@ def test_images_of_the_old_timeline_are_dropped_when_the_stamps_go_back(rclpy_co
         node._on_color(image(13.0))
         node._on_depth(image(12.5))
         assert len(node._color) == 1 and len(node._depth) == 1
+        assert node._take_pair() is None
+        # one stray image (and a stray pair) stamped far back: the colour image waiting
+        # for its depth partner stays, and is paired when the partner comes
+        dropped = node.stats["dropped"]
+        node._on_depth(image(9.0))
+        node._on_color(image(9.0))
+        assert sorted(t for t, _ in node._color) == [9.0, 13.0]
+        node._on_depth(image(13.0))
+        assert node._take_pair()[0] == 13.0
+        assert not node._color and not node._depth
+        assert node.stats["dropped"] == dropped + 1  # the stray colour image, as older
     finally:
         node.destroy_node()
 

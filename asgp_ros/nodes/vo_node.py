@@ -110,6 +110,7 @@ class VONode(Node):
                       "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0}
         self._last_colour: Image | None = None  # the last processed colour image
         self._behind: list[float] = []  # stamps of the pairs in a row far behind the last
+        self._back_images = 0  # images in a row stamped far behind the newest buffered one
         # when camera_info last changed (time.monotonic), the newest few
         self._info_changes: collections.deque[float] = collections.deque(maxlen=100)
         self._evicted_since_pair = 0  # images pushed out of a full buffer since a pair
@@ -142,18 +143,25 @@ class VONode(Node):
         self._wake.trigger()
 
     def _drop_old_timeline(self, t: float) -> None:
-        """An image stamped more than ``_JUMP_BACK_S`` before a buffered one: the stamps
-        went back (a bag restarted, the camera's clock stepped). The buffered images
-        stamped after it belong to the old timeline; kept, one waiting for its partner
-        would be paired, once the new stamps reach its own, with an image of another
-        moment."""
+        """Images stamped more than ``_JUMP_BACK_S`` before a buffered one, as many in a row
+        as ``_JUMP_BACK_PAIRS`` pairs have: the stamps went back (a bag restarted, the
+        camera's clock stepped). The buffered images stamped after them belong to the old
+        timeline; kept, one waiting for its partner would be paired, once the new stamps
+        reach its own, with an image of another moment. One stray image stamped far back
+        drops nothing (it dropped the images waiting for their partners): it is older than
+        the pairs to come, and goes when one of them is taken."""
         newest = max((s for s, _ in (*self._color, *self._depth)), default=-math.inf)
         if not t < newest - _JUMP_BACK_S:
+            self._back_images = 0
+            return
+        self._back_images += 1
+        if self._back_images < 2 * _JUMP_BACK_PAIRS:
             return
         n = len(self._color) + len(self._depth)
         self._color = collections.deque((c for c in self._color if c[0] <= t), maxlen=_BUFFER)
         self._depth = collections.deque((d for d in self._depth if d[0] <= t), maxlen=_BUFFER)
         self.stats["dropped"] += n - len(self._color) - len(self._depth)
+        self._back_images = 0
 
     def _on_info(self, msg: CameraInfo) -> None:
         try:
