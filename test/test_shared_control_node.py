@@ -1439,3 +1439,60 @@ def test_odometry_poses_in_another_frame_do_not_place_the_map(harness):
     h.spin_until(lambda: node._vo_messages > n, what="odometry")
     assert node._poses_other_frame == 1 and node.predictor.stats.vo_samples == 1
     assert conv.diagnostic_values(node.diagnostic_status())["poses_other_frame"] == "1"
+
+
+def test_a_map_is_read_off_the_executor(harness, monkeypatch):
+    """A map's field is computed in a worker (1.6 s at MAX_MAP_CELLS, during which the
+    layer's executor ran nothing: no scan, watchdog, decision or override). While a map is
+    read the layer goes on deciding with the map it holds; a newer map supersedes one being
+    read, and a map dropped meanwhile (another frame) is not brought back by the read."""
+    import threading
+
+    from asgp_ros.core import collision
+
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    held = h.node._grid
+    gate = threading.Event()
+    real = collision.DistanceField.from_grid
+
+    def slow(grid, *args, **kwargs):
+        assert gate.wait(30.0)
+        return real(grid, *args, **kwargs)
+
+    monkeypatch.setattr(collision.DistanceField, "from_grid", staticmethod(slow))
+    wall = wall_map_msg(3.2 + 0.72 * 0.4)  # the chair's path runs into it after 103 s
+    h.map_pub.publish(wall)
+    h.spin_until(lambda: h.node._map_reading, what="the map's read to start")
+    decisions = h.node._decisions
+    h.drive(100.0, 103.0)  # decided meanwhile, with the map held
+    assert h.node._decisions > decisions and h.node._grid is held
+    assert h.last()["why"] == "clear" and h.overrides == []
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["map"] == "received; a map is being read", values["map"]
+    gate.set()
+    h.spin_until(lambda: h.node._grid is not held, what="the map read")
+    assert not h.node._map_reading and h.node._grid.points.shape[0] > 0
+    h.drive(103.0, 103.6)
+    assert h.last()["why"] == "intervening"
+    # two maps while the worker is busy: the newer one (clear) is the one held
+    gate.clear()
+    wall_grid = h.node._grid
+    h.map_pub.publish(wall_map_msg(3.0))
+    h.spin_until(lambda: h.node._map_reading, what="the map's read to start")
+    h.map_pub.publish(wall_map_msg(None))
+    generation = h.node._map_generation
+    h.spin_until(lambda: h.node._map_generation > generation, what="the second map")
+    gate.set()
+    h.spin_until(lambda: not h.node._map_reading, what="the reads")
+    assert h.node._grid is not wall_grid and h.node._grid.points.shape[0] == 0
+    # a map being read, then one in another frame: the read one is not installed
+    gate.clear()
+    h.map_pub.publish(wall_map_msg(3.0))
+    h.spin_until(lambda: h.node._map_reading, what="the map's read to start")
+    _publish_map(h, wall_map_msg(3.0, frame="map"))
+    assert h.node._grid is None and not h.node._map_reading
+    gate.set()
+    h.node._map_worker.shutdown(wait=True)  # the read done, handed over
+    h.spin_until(lambda: h.node._map_read is None, what="the read handed over")
+    assert h.node._grid is None and "frame 'map'" in h.node._grid_problem

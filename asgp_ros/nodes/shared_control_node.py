@@ -61,9 +61,11 @@ Run: ``shared_control_node --ros-args --params-file config/shared_control.yaml
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import math
 import sys
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -333,6 +335,9 @@ class SharedControlNode(Node):
         StartupError: missing or invalid model file, invalid parameters.
     """
 
+    #: the map worker, made for the first map (the node may fail before that)
+    _map_worker: concurrent.futures.ThreadPoolExecutor | None = None
+
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         try:
@@ -392,7 +397,14 @@ class SharedControlNode(Node):
         self._scan: tuple[float, collision.Scan, np.ndarray | None] | None = None
         self._grid: collision.DistanceField | None = None
         self._grid_problem = ""
-        self._map_read_ms = math.nan  # the last map's field: how long the node was held
+        self._map_read_ms = math.nan  # how long the last map's field took (in the worker)
+        # A map's field is computed off the executor (1.6 s at MAX_MAP_CELLS, while scans,
+        # the watchdog and the overrides go on with the map held); the newest map wins.
+        self._map_lock = threading.Lock()
+        self._map_generation = 0  # of the newest map received (or dropped)
+        self._map_read: tuple[int, collision.DistanceField | None, str, float] | None = None
+        self._map_reading = False
+        self._map_ready = self.create_guard_condition(self._install_map)
         self._decision: Decision | None = None
         self._decision_t = -math.inf  # node clock of the decision
         self._last_step: int | None = None
@@ -735,6 +747,7 @@ class SharedControlNode(Node):
             self._maybe_decide(now)
 
     def _on_map(self, msg: OccupancyGrid) -> None:
+        self._map_generation += 1  # a map being read is superseded by this one
         if msg.header.frame_id and msg.header.frame_id != self.params.odom_frame:
             self._drop_map(f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
                            f"{self.params.odom_frame!r}")
@@ -744,22 +757,62 @@ class SharedControlNode(Node):
             self._bad_messages += 1
             self._drop_map(f"a map of {msg.info.width} x {msg.info.height} cells: at most "
                            f"{MAX_MAP_CELLS:,} (its field took 1.6 s at 4 million cells, 24 s "
-                           "at 49 million, and nothing else runs meanwhile); give the layer "
-                           "a local costmap around the chair")
+                           "at 49 million, and 3 GB); give the layer a local costmap around "
+                           "the chair")
             return
         try:
             grid = conv.grid_from_msg(msg)
-            start = time.perf_counter()
-            self._grid = collision.DistanceField.from_grid(grid)
-            self._map_read_ms = 1e3 * (time.perf_counter() - start)
-            self._grid_problem = ""
         except ValueError as exc:
             self._bad_messages += 1
             self._drop_map(f"bad map: {exc}")
+            return
+        if self._map_worker is None:
+            self._map_worker = concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="map_read")
+        self._map_reading = True
+        self._map_worker.submit(self._read_map, self._map_generation, grid)
+
+    def _read_map(self, generation: int, grid: collision.Grid) -> None:
+        """(The map worker.) The field of ``grid``, handed to the executor."""
+        field: collision.DistanceField | None = None
+        problem = ""
+        start = time.perf_counter()
+        try:
+            field = collision.DistanceField.from_grid(grid)
+        except ValueError as exc:
+            problem = f"bad map: {exc}"
+        except Exception as exc:  # MemoryError, ...: said, not a dead worker
+            problem = f"map not read: {type(exc).__name__}: {exc}"
+        with self._map_lock:
+            self._map_read = (generation, field, problem, 1e3 * (time.perf_counter() - start))
+        self._map_ready.trigger()
+
+    def _install_map(self) -> None:
+        """(The executor.) The field read by the worker, unless a newer map came since."""
+        with self._map_lock:
+            done, self._map_read = self._map_read, None
+        if done is None:
+            return
+        generation, field, problem, ms = done
+        if generation != self._map_generation:
+            return  # superseded (its successor is being read, or was dropped)
+        self._map_reading = False
+        self._map_read_ms = ms
+        if field is None:
+            self._bad_messages += 1
+            self._drop_map(problem)
+            return
+        self._grid, self._grid_problem = field, ""
+
+    def destroy_node(self) -> None:
+        if self._map_worker is not None:
+            self._map_worker.shutdown(wait=False, cancel_futures=True)
+        super().destroy_node()  # type: ignore[no-untyped-call]
 
     def _drop_map(self, problem: str) -> None:
         """The map held is dropped: an intervention it drove is judged again now (it went
         on without an obstacle source until the next step or scan)."""
+        self._map_reading = False
         self._grid, self._grid_problem = None, problem
         self.get_logger().error(problem)
         now = self._now()
@@ -949,7 +1002,8 @@ class SharedControlNode(Node):
             "memory_resets": "off" if self.memory is None else str(self.memory.resets),
             "odometry_breaks": str(self.odometer.breaks) if self.odometer is not None else
             str(self.scan_odometer.breaks) if self.scan_odometer is not None else "off",
-            "map": self._grid_problem or ("received" if self._grid is not None else "none"),
+            "map": (self._grid_problem or ("received" if self._grid is not None else "none"))
+            + ("; a map is being read" if self._map_reading else ""),
             "map_read_ms": f"{self._map_read_ms:.0f}",
             "vo_messages": str(self._vo_messages),
             **self._vo_frame.values(),
