@@ -133,13 +133,13 @@ class Harness:
             self.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
             self.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
             if vo and i % 4 == 3:
-                n = stats.vo_samples
+                n = self.node._vo_messages
                 v = speed + rng.normal(0.0, 0.003)
                 if odometry:
                     self.odom_pub.publish(conv.odometry_from_pose(t, self.x, 0.0, 0.0, v, 0.0))
                 else:
                     self.vo_pub.publish(conv.twist_stamped_from_sample(t, v, 0.0))
-                self.spin_until(lambda n=n: stats.vo_samples > n, what="vo")
+                self.spin_until(lambda n=n: self.node._vo_messages > n, what="vo")
             if scan and wall is not None and i % 2 == 1:
                 seen = self._scan_state()
                 msg = wall_scan_msg(t + scan_lead, wall, frame=scan_frame)
@@ -698,6 +698,19 @@ def test_a_frozen_laser_driver_drives_no_override(harness):
     frozen = node._scans_frozen
     h.drive(106.0, 107.0, fwd=0.0, speed=0.0, wall=1.6, frozen=True)
     assert node._scans_frozen <= frozen + 2  # (the first, while the VO still moved)
+
+
+def test_a_frozen_laser_is_refused_when_the_scans_give_the_velocity(harness):
+    """velocity_source 'scan_matching': the predictor's velocity comes from the scans
+    themselves, and frozen scans match as the chair standing still; 25 of 30 frozen scans
+    were taken while the VO said 0.72 m/s. The VO's twists say the chair moves."""
+    h = harness(velocity_source="scan_matching")
+    node = h.node
+    h.drive(100.0, 103.0, wall=20.0)
+    h.drive(103.0, 106.0, wall=1.6, frozen=True)
+    diag = conv.diagnostic_values(node.diagnostic_status())
+    assert int(diag["scans_frozen"]) >= 28, diag["scans_frozen"]
+    assert "frozen laser driver" in diag["scan"], diag["scan"]
 
 
 def test_auto_takes_the_vo_while_the_scans_do_not_match(harness, rclpy_context,

@@ -393,6 +393,7 @@ class SharedControlNode(Node):
                 mount, max_gap_s=p.vo_timeout_s)
 
         self._user: tuple[float, np.ndarray] | None = None  # (stamp, [2]) newest user command
+        self._vo_newest: tuple[float, float, float] | None = None  # (stamp, v, omega)
         # (arrival, scan with its stamp, remembered points outside its view)
         self._scan: tuple[float, collision.Scan, np.ndarray | None] | None = None
         self._grid: collision.DistanceField | None = None
@@ -568,6 +569,7 @@ class SharedControlNode(Node):
             return
         t, vel = conv.twist_stamped_to_sample(msg)
         t = self._stamp(t, now)
+        self._note_vo(t, vel)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self.odometer.feed(t, float(vel[0]), float(vel[1]))
         if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, now=now):
@@ -583,6 +585,7 @@ class SharedControlNode(Node):
             return
         t, vel, ok, pose = conv.odometry_to_sample(msg)
         t = self._stamp(t, now)
+        self._note_vo(t, vel, ok)
         # poses in another frame would place the map wrong: not taken
         problem = conv.pose_frame_problem(msg, self.params.odom_frame) if ok else None
         if problem is not None:
@@ -714,16 +717,26 @@ class SharedControlNode(Node):
             self._decide(now)  # no obstacle source: the override stops now
 
     def _moving(self, now: float) -> str | None:
-        """How the chair moves, by the newest fresh velocity sample (within vo_timeout_s),
-        when faster than FROZEN_SCAN_SPEED or FROZEN_SCAN_YAW_RATE; else None (still, or not
-        known: a noise-free simulated laser repeats itself while the chair stands)."""
-        newest = self.predictor.newest_velocity()
-        if newest is None or now - newest[0] > self.params.vo_timeout_s:
-            return None
-        _, v, w = newest
-        if abs(v) > FROZEN_SCAN_SPEED or abs(w) > FROZEN_SCAN_YAW_RATE:
-            return f"{v:.2f} m/s, {w:.2f} rad/s"
+        """How the chair moves, by the newest fresh velocity sample (within vo_timeout_s)
+        of the predictor's or of the VO's (whatever the velocity source: with
+        'scan_matching' the frozen scans themselves made the predictor's samples, which
+        read the chair still), when faster than FROZEN_SCAN_SPEED or FROZEN_SCAN_YAW_RATE;
+        else None (still, or not known: a noise-free simulated laser repeats itself while
+        the chair stands)."""
+        for newest in (self.predictor.newest_velocity(), self._vo_newest):
+            if newest is None or abs(now - newest[0]) > self.params.vo_timeout_s:
+                continue  # (not fresh, or of another timeline)
+            _, v, w = newest
+            if abs(v) > FROZEN_SCAN_SPEED or abs(w) > FROZEN_SCAN_YAW_RATE:
+                return f"{v:.2f} m/s, {w:.2f} rad/s"
         return None
+
+    def _note_vo(self, t: float, vel: tuple[float, float] | np.ndarray, ok: bool = True
+                 ) -> None:
+        """The VO's last tracked twist (stamp, v, omega), for :meth:`_moving`."""
+        v, w = float(vel[0]), float(vel[1])
+        if ok and math.isfinite(v) and math.isfinite(w):
+            self._vo_newest = (t, v, w)
 
     def _refuse_scan(self, problem: str) -> None:
         """A scan not taken: the diagnostics' ``scan`` value and the log say why."""
