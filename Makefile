@@ -34,15 +34,18 @@ firmware: $(SYSSTAMP)
 	$(MAKE) -C firmware
 
 # Three benchmarks read a dataset (`asgp dataset --out DIR --scale 1 --seed 0`): given with
-# `make bench DATA=DIR`, else skipped with a line saying so.
+# `make bench DATA=DIR`, else skipped with a line saying so. echo_node.py is no benchmark:
+# the reference node predictor_latency.py starts and stops (alone it runs until stopped).
 DATA ?=
 DATA_BENCH := benchmarks/adapt_choice.py benchmarks/calibration_covariates.py \
 	benchmarks/calibration_regimes.py
+NOT_BENCH := benchmarks/echo_node.py
 BENCH_RUN ?= $(VPY)
 
 bench: setup
 	@for b in benchmarks/*.py; do \
 	  args=""; \
+	  case " $(NOT_BENCH) " in *" $$b "*) continue;; esac; \
 	  case " $(DATA_BENCH) " in *" $$b "*) \
 	    if [ -z "$(DATA)" ]; then echo "== $$b: skipped (needs a dataset: make bench DATA=DIR)"; \
 	      continue; fi; \
