@@ -8,9 +8,11 @@ started by tests inherit these variables.
 
 from __future__ import annotations
 
+import fcntl
 import importlib.util
 import os
 import sys
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
@@ -20,16 +22,48 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+#: Lock files of the domains claimed by the test processes running on this machine.
+_DOMAIN_LOCKS = Path(tempfile.gettempdir()) / "asgp_ros_test_domains"
+_held_locks: list[int] = []  # held open (and so locked) for the process's life
+
+
+def _claim_domain(domain: int) -> bool:
+    """Lock ``domain`` for this process; False when another process holds it (or the lock
+    file cannot be made: another user's, a read-only temp dir)."""
+    try:
+        _DOMAIN_LOCKS.mkdir(exist_ok=True)
+        fd = os.open(_DOMAIN_LOCKS / f"{domain}.lock", os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        return False
+    _held_locks.append(fd)
+    return True
+
+
 def _run_domain_id() -> int:
+    """This process's domain: ASGP_TEST_DOMAIN_ID when given, else the first free one from
+    a start taken from the process ids, claimed by a lock file, so that concurrent runs on
+    the machine (their process ids equal modulo 29 gave two runs the same 8 domains) and
+    the workers of one run never share a domain."""
     forced = os.environ.get("ASGP_TEST_DOMAIN_ID")
     if forced:
+        _claim_domain(int(forced))  # (best effort: other runs then pass it by)
         return int(forced)
     # 1..232: domain 0 is the default everybody uses, 233+ do not work with Fast DDS ports.
     worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw0", "gw1", ... under pytest -n
     if worker.startswith("gw") and worker[2:].isdigit():
         # the workers of one run: consecutive domains from the controller's process id
-        return 1 + (os.getppid() * 8 + int(worker[2:])) % 232
-    return 1 + os.getpid() % 232
+        start = (os.getppid() * 8 + int(worker[2:])) % 232
+    else:
+        start = os.getpid() % 232
+    for i in range(232):
+        if _claim_domain(1 + (start + i) % 232):
+            return 1 + (start + i) % 232
+    return 1 + start  # every domain taken (or no lock file possible): as before
 
 
 os.environ["ROS_DOMAIN_ID"] = str(_run_domain_id())

@@ -644,6 +644,20 @@ def test_a_flood_of_samples_does_not_grow_the_buffers_without_bound():
     assert values[-1, 0] == pytest.approx(0.001 * ((cap + 499) % 7))
 
 
+def test_a_longer_buffer_set_at_runtime_moves_the_cap():
+    """buffer_s changed after the predictor was made (a node's parameter at runtime): the
+    cap on rows stayed the first buffer_s's, so a 100 Hz stick over 300 s with buffer_s
+    600 set from 2 dropped 10,000 samples counted as a flood, and the buffer kept 200 s."""
+    pred = Predictor(linear_model(), PredictorConfig(buffer_s=2.0))
+    pred.config = dataclasses.replace(pred.config, buffer_s=600.0)
+    for i in range(30_000):
+        assert pred.feed_joy(100.0 + 0.01 * i, (0.5, 0.0))
+    assert len(pred._joy) == 30_000 and pred.stats.dropped_overflow == 0
+    pred.config = dataclasses.replace(pred.config, buffer_s=2.0)  # and back: capped again
+    assert pred.feed_joy(400.0, (0.5, 0.0))
+    assert len(pred._joy) <= math.ceil(2.0 * online.MAX_SAMPLE_RATE_HZ)
+
+
 def test_a_model_that_predicts_beyond_physics_gives_no_path():
     """A model (loaded before its file was checked, or far outside its data) predicting
     speeds beyond any wheelchair's, or variances beyond them squared: no path, reason

@@ -8,6 +8,7 @@ payload, and a custom type that is not installed). Playback is tested across pro
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import subprocess
@@ -359,7 +360,8 @@ def test_start_offset_and_remap(rclpy_context, repo_root, ros2_bag):
         node.destroy_node()
 
 
-def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_path):
+def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_path,
+                                                            caplog):
     """A bag recorded with the shared-control layer holds joy_override: replayed, a running
     bridge would write it to the board. It is played only with commands=True (--commands),
     when named in topics, or remapped to a name no bridge listens to; a name rcl resolves
@@ -386,8 +388,9 @@ def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_pa
             with BagReplayer(path, ReplayConfig(**kw), node) as r:
                 return {t.out_name for t in r.topics.values()}, r.skipped_commands
 
-        assert played() == ({"/joy"}, ["/chair/joy_override", "/joy_override",
-                                       "{ns}joy_override"])
+        assert played() == ({"/joy"}, [(t, t) for t in ("/chair/joy_override",
+                                                          "/joy_override",
+                                                          "{ns}joy_override")])
         assert played(commands=True)[0] == {"/joy", "/joy_override", "/chair/joy_override",
                                             "{ns}joy_override"}
         assert played(topics=("/joy", "/joy_override"))[0] == {"/joy", "/joy_override"}
@@ -397,6 +400,14 @@ def test_commands_to_the_chair_are_not_played_unless_asked(rclpy_context, tmp_pa
         # named in topics; a name rcl resolves to one (a substitution) is one
         with pytest.raises(ReplayError, match="not a command to the chair"):
             played(remap=(("/joy", "/x/joy_override"),))
+        # the hint names the bag's topic (it printed "--remap /chair/joy_override (as
+        # /y/joy_override):=<other name>")
+        with caplog.at_level(logging.WARNING):
+            played(remap=(("/chair/joy_override", "/y/joy_override"),))
+        said = " ".join(r.getMessage() for r in caplog.records if "not playing" in
+                        r.getMessage())
+        assert "/chair/joy_override (as /y/joy_override)" in said
+        assert "--remap /chair/joy_override:=<other name>" in said, said
         with pytest.raises(ReplayError, match="not a command to the chair"):
             played(topics=("/joy",), remap=(("/joy", "/joy_override"),))
         assert played(topics=("/joy",), remap=(("/joy", "/joy_override"),),

@@ -434,7 +434,7 @@ class Predictor:
     def __init__(self, model: MotionModel, config: PredictorConfig | None = None,
                  adapt: AdaptSettings | None = None) -> None:
         self._model = model
-        self.config = config or PredictorConfig()
+        self._config = config or PredictorConfig()
         self._adapter: ModelAdapter | None = None
         if adapt is not None:
             self._adapter = ModelAdapter(model, adapt, horizon_steps=self.config.horizon_steps)
@@ -453,7 +453,7 @@ class Predictor:
         self.dt = 1.0 / float(model.resample_config.rate_hz)
         self.lags = int(model.feature_config.lags)
         self.stats = PredictorStats()
-        rows = math.ceil(self.config.buffer_s * MAX_SAMPLE_RATE_HZ)
+        rows = self._buffer_rows(self.config)
         self._joy = _Buffer(2, rows)
         self._vo = _Buffer(3, rows)  # v, omega, tracking ok (1.0 / 0.0)
         self._pose = _Buffer(3, rows)
@@ -465,6 +465,23 @@ class Predictor:
         self._to_learn: tuple[Resampled | RawStreams, FloatArray, int] | None = None
         self._last_now = -math.inf
         self.last_reset_detail = ""
+
+    @property
+    def config(self) -> PredictorConfig:
+        """The settings; a new one (a node's parameters changed at runtime) also sizes the
+        buffers' cap on rows for its ``buffer_s`` (``MAX_SAMPLE_RATE_HZ`` per second)."""
+        return self._config
+
+    @config.setter
+    def config(self, config: PredictorConfig) -> None:
+        self._config = config
+        rows = self._buffer_rows(config)
+        for buf in (self._joy, self._vo, self._pose):
+            buf.max_rows = rows
+
+    @staticmethod
+    def _buffer_rows(config: PredictorConfig) -> int:
+        return max(1, math.ceil(config.buffer_s * MAX_SAMPLE_RATE_HZ))
 
     @property
     def model(self) -> MotionModel:

@@ -568,8 +568,8 @@ def train_auto(
         report("select", f"took {seconds['total']:.1f} s, more than the {opts.budget_s:g} s "
                          "planned: the plan's floors (at least "
                          f"{MIN_SELECTION_ROWS} rows, {SELECTION_MIN_ITER} iterations and "
-                         f"two sizes of M per structure) and the final fit's {opts.max_iter} "
-                         "iterations do not shrink with it")
+                         "two sizes of M for the best structure) and the final fit's "
+                         f"{opts.max_iter} iterations do not shrink with it")
     meta = _automatic_meta(series, opts, chosen, infos, search.table, case_lags, seconds,
                            cal_meta)
     return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,

@@ -324,7 +324,8 @@ class BagReplayer:
                               "stamps would wrap negative)")
         self.published = 0
         self.skipped_types: dict[str, str] = {}
-        self.skipped_commands: list[str] = []  # commands to the chair, not played
+        # commands to the chair, not played: (the bag's topic, the name it would have had)
+        self.skipped_commands: list[tuple[str, str]] = []
         self.skipped_names: dict[str, str] = {}  # bag topics ROS 2 cannot publish on
         self.topics: dict[str, _Topic] = {}
         try:
@@ -376,7 +377,7 @@ class BagReplayer:
             # command by a remap needs --commands
             asked = topic in wanted and out == topic
             if self._commands_the_chair(out) and not (self.config.commands or asked):
-                self.skipped_commands.append(topic if out == topic else f"{topic} (as {out})")
+                self.skipped_commands.append((topic, out))
                 continue
             msgtype = conns[0].msgtype
             try:
@@ -402,7 +403,9 @@ class BagReplayer:
                 "not playing %s: commands to the chair, which a running serial bridge would "
                 "write to the board (--commands plays them; --remap %s:=<other name> plays "
                 "them where no bridge listens, e.g. for predictor_node's override_topic)",
-                ", ".join(self.skipped_commands), self.skipped_commands[0])
+                ", ".join(t if out == t else f"{t} (as {out})"
+                          for t, out in self.skipped_commands),
+                self.skipped_commands[0][0])
         if not self.topics:
             but = " that is not a command to the chair" if self.skipped_commands else ""
             raise ReplayError(f"{self.path}: nothing to replay (no topic with a known type"
