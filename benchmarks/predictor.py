@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/predictor.py [--model MODEL] [--minutes 3] [--joy-hz 100]
                                              [--adapt both] [--reference REV | none]
+                                             [--idle-ms 200]
 
 What lies between a VO message and the published path in ``predictor_node``:
 ``Predictor.predict(now, learn=False)`` (the buffers read, the window resampled and checked,
@@ -14,6 +15,10 @@ the wall clock. The joystick is resampled to ``--joy-hz`` (the serial bridge pub
 board's 100 Hz; a gamepad driver often 30-50 Hz): the buffers hold ``buffer_s`` of it, and
 reading them is part of every path. The two paths are compared too: the same inputs must
 give the same path, to the last bits.
+
+``--idle-ms 200`` sleeps that long before each timed call, as the node idles between its
+paths at 5 Hz: on a virtual machine a call right after an idle spell has taken twice as
+long as back to back (a woken vCPU, caches and branch predictors cold), whatever the code.
 
 ``--adapt both`` runs the pair twice, without and with online adaptation (each predictor
 then learns after every path, untimed). The node's latency across processes, DDS and the
@@ -70,7 +75,7 @@ def percentiles(ms: np.ndarray) -> np.ndarray:
 
 
 def side_by_side(model: object, classes: tuple[type, type], adapt: AdaptSettings | None,
-                 events: list[tuple[float, int, tuple[float, ...]]]
+                 events: list[tuple[float, int, tuple[float, ...]]], idle_s: float = 0.0
                  ) -> tuple[np.ndarray, np.ndarray, int, float]:
     """Per-path wall times (ms) of the two predictors, the paths compared, the largest
     difference of their poses and position covariances."""
@@ -92,6 +97,8 @@ def side_by_side(model: object, classes: tuple[type, type], adapt: AdaptSettings
         out = [None, None]
         took = [0.0, 0.0]
         for i in order:
+            if idle_s > 0.0:
+                time.sleep(idle_s)
             start = time.perf_counter()
             out[i] = preds[i].predict(t, learn=False)
             took[i] = time.perf_counter() - start
@@ -119,9 +126,13 @@ def main() -> None:
     ap.add_argument("--adapt", choices=("off", "on", "both"), default="both")
     ap.add_argument("--reference", default=REFERENCE,
                     help="git revision of online.py to run beside ('none': this tree twice)")
+    ap.add_argument("--idle-ms", type=float, default=0.0,
+                    help="sleep this long before each timed call (the node's 5 Hz: 200)")
     args = ap.parse_args()
     if not (args.joy_hz > 0 and np.isfinite(args.joy_hz)):
         ap.error("--joy-hz must be a positive number")
+    if not (0.0 <= args.idle_ms <= 10_000.0):
+        ap.error("--idle-ms must be in [0, 10000]")
 
     model = load_model(args.model)
     if args.reference == "none":
@@ -135,12 +146,14 @@ def main() -> None:
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.2f}")
     print(f"model {args.model} (s = {model.feature_config.lags}); a {args.minutes:g}-minute "
-          f"tile drive, joystick at {args.joy_hz:g} Hz; reference {args.reference[:12]}")
+          f"tile drive, joystick at {args.joy_hz:g} Hz; reference {args.reference[:12]}; "
+          f"idle {args.idle_ms:g} ms before each call")
     print("predict(), ms per path: p50 / p90 / p99 current | reference | ratio current / "
           "reference")
     modes = {"off": [None], "on": [AdaptSettings()], "both": [None, AdaptSettings()]}
     for adapt in modes[args.adapt]:
-        cur, ref, n, worst = side_by_side(model, (Predictor, reference), adapt, events)
+        cur, ref, n, worst = side_by_side(model, (Predictor, reference), adapt, events,
+                                          args.idle_ms / 1e3)
         a, b = percentiles(cur), percentiles(ref)
         label = "adapting    " if adapt is not None else "not adapting"
         print(f"  {label} {n} paths: "
