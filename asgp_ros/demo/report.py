@@ -408,7 +408,7 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
 def _draw_paths(axis: Axes, monitor: MonitorNode, recs: list[PathRecord], ellipses: bool,
                 lw: float) -> None:
     """Predicted paths placed at the true pose where they start, green or red by their
-    1.0 s error, with their 95% ellipses if asked."""
+    error at the shortest horizon (1.0 s), with their 95% ellipses if asked."""
     from matplotlib.patches import Ellipse
 
     for rec in recs:
@@ -416,7 +416,7 @@ def _draw_paths(axis: Axes, monitor: MonitorNode, recs: list[PathRecord], ellips
         assert p0 is not None  # the paths drawn are those with a true pose at t0
         c, s = math.cos(p0[2]), math.sin(p0[2])
         xy = rec.pose[:, :2] @ np.array([[c, s], [-s, c]]) + p0[:2]
-        ok = rec.errors.get("1.0")
+        ok = rec.errors.get(horizon_key(HORIZONS_S[0]))
         colour = "tab:green" if ok is not None and ok <= THRESHOLD_M else (
             "tab:red" if ok is not None else "tab:gray")
         axis.plot(np.r_[p0[0], xy[:, 0]], np.r_[p0[1], xy[:, 1]], "-", color=colour,
@@ -482,10 +482,12 @@ def _zoom_panel(az: Axes, monitor: MonitorNode, t: np.ndarray, truth: np.ndarray
 
 
 def _error_panel(ae: Axes, t: np.ndarray, paths: list[PathRecord]) -> None:
-    """The online prediction error at 1.0 and 2.0 s against time, and the 10 cm line."""
+    """The online prediction error at the shortest and the longest horizon (1.0 and 2.0 s)
+    against time, and the 10 cm line."""
     t_start = t[0] if t.size else 0.0
     top = 30.0
-    for key, colour in (("1.0", "tab:purple"), ("2.0", "tab:orange")):
+    for key, colour in ((horizon_key(HORIZONS_S[0]), "tab:purple"),
+                        (horizon_key(HORIZONS_S[-1]), "tab:orange")):
         tt = [p.t0 - t_start for p in paths if key in p.errors]
         ee = [min(100 * p.errors[key], top) for p in paths if key in p.errors]
         ae.plot(tt, ee, ".", ms=2.5, color=colour, label=f"error at {key} s")
