@@ -1488,17 +1488,23 @@ def test_a_map_is_read_off_the_executor(harness, monkeypatch):
     assert not h.node._map_reading and h.node._grid.points.shape[0] > 0
     h.drive(103.0, 103.6)
     assert h.last()["why"] == "intervening"
-    # two maps while the worker is busy: the newer one (clear) is the one held
+    # three maps while the worker is busy: the newest (clear) is the one held, and the one
+    # superseded while it waited is not read at all
     gate.clear()
+    reads = []
+    monkeypatch.setattr(collision.DistanceField, "from_grid", staticmethod(
+        lambda grid, *a, **kw: reads.append(grid) or slow(grid, *a, **kw)))
     wall_grid = h.node._grid
     h.map_pub.publish(wall_map_msg(3.0))
     h.spin_until(lambda: h.node._map_reading, what="the map's read to start")
-    h.map_pub.publish(wall_map_msg(None))
-    generation = h.node._map_generation
-    h.spin_until(lambda: h.node._map_generation > generation, what="the second map")
+    for wall_x in (2.5, None):
+        generation = h.node._map_generation
+        h.map_pub.publish(wall_map_msg(wall_x))
+        h.spin_until(lambda g=generation: h.node._map_generation > g, what="the next map")
     gate.set()
     h.spin_until(lambda: not h.node._map_reading, what="the reads")
     assert h.node._grid is not wall_grid and h.node._grid.points.shape[0] == 0
+    assert len(reads) == 2  # the first (already being read) and the newest
     # a map being read, then one in another frame: the read one is not installed
     gate.clear()
     h.map_pub.publish(wall_map_msg(3.0))

@@ -786,7 +786,10 @@ class SharedControlNode(Node):
         self._map_worker.submit(self._read_map, self._map_generation, grid)
 
     def _read_map(self, generation: int, grid: collision.Grid) -> None:
-        """(The map worker.) The field of ``grid``, handed to the executor."""
+        """(The map worker.) The field of ``grid``, handed to the executor; none for a map
+        superseded while it waited (a burst of maps: the newest is read, not each)."""
+        if generation != self._map_generation:
+            return
         field: collision.DistanceField | None = None
         problem = ""
         start = time.perf_counter()
