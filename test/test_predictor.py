@@ -675,3 +675,22 @@ def test_a_model_that_predicts_beyond_physics_gives_no_path():
         assert r.pose.shape == (0, 3)
         batch = pred.predict_batch(np.zeros((3, 5, 2)), jt[-1])
         assert not batch.ok and batch.reason == Reason.MODEL_OUT_OF_RANGE
+
+
+def test_a_clock_step_back_restarts_and_refuses_the_old_timeline():
+    """clock_stepped_back (a node's clock read going back: NTP): the buffers restart, and
+    until the clock is back where it was, samples stamped more than STEP_LEAD_S ahead of it
+    (sent before the step, delivered after) are refused; the new timeline's are taken."""
+    pred = Predictor(linear_model(), PredictorConfig())
+    for i in range(50):
+        t = 100.0 + 0.1 * i
+        assert pred.feed_joy(t, (0.5, 0.0), now=t)
+    assert len(pred._joy) == 50
+    pred.clock_stepped_back(104.0, 0.9)  # the clock read 104.9, now 104.0
+    assert len(pred._joy) == 0 and "stepped back by 0.900 s" in pred.last_reset_detail
+    assert not pred.feed_joy(104.95, (0.5, 0.0), now=104.0)  # of the old timeline
+    assert pred.stats.rejected[Reason.REJECT_TIME] == 1
+    assert pred.feed_joy(104.05, (0.3, 0.0), now=104.0)  # the new one's (a little ahead)
+    assert pred.feed_joy(104.9, (0.3, 0.0), now=104.9)  # the clock back where it was
+    assert pred.feed_joy(105.3, (0.3, 0.0), now=105.0)  # and the guard lifted
+    assert len(pred._joy) == 3

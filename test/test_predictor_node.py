@@ -1739,3 +1739,53 @@ def test_adapting_a_model_whose_calibration_factor_is_at_its_limit(rclpy_context
         assert all(FACTOR_RANGE[0] <= f <= FACTOR_RANGE[1] for f in factors)
     finally:
         h.close()
+
+
+def _path_end(path: Path) -> float:
+    p = path.poses[-1].pose.position
+    return math.hypot(p.x, p.y)
+
+
+@pytest.mark.parametrize("step", [0.0, 0.9])
+def test_no_stale_path_after_a_small_clock_step_back(rclpy_context, model_file, step):
+    """The clock steps back 0.9 s (less than reset_jump_s: NTP setting a clock that ran
+    ahead, every stream stamped by it) as the user lets go and the chair stops. The buffers
+    kept the old timeline, stamped up to 0.9 s ahead of the clock, and the new samples were
+    spliced in among them: paths with t0 at the clock's present predicted the chair driving
+    on, 0.9 s after it had stopped. The step restarts the buffers; no path is stale."""
+    h = Harness(rclpy_context, model_file)
+
+    def drive(phys_from: float, phys_to: float, shift: float) -> list[tuple[float, int]]:
+        # joystick 10 Hz, VO 5 Hz; forward until physical 110 s, then at rest within 0.3 s;
+        # stamps on the clock, ``shift`` behind physical time from 110 s on
+        seen = []
+        for i in range(round((phys_to - phys_from) / 0.1)):
+            t = phys_from + 0.1 * (i + 1)
+            s = t - (shift if t >= 110.0 - 1e-9 else 0.0)
+            fwd = 0.9 if t < 110.0 - 1e-9 else 0.0
+            v = 1.0 if t < 110.0 else max(0.0, 1.0 - (t - 110.0) / 0.3)
+            h.clock(s)
+            h.joy(s, fwd, 0.0)
+            if i % 2 == 1:
+                h.clock(s + 0.03)
+                h.vo(s + 0.03, v + 0.002 * math.sin(7 * t), 0.0)
+            for _ in range(3):
+                h.executor.spin_once(timeout_sec=0.005)
+            seen.append((t, len(h.paths)))
+        return seen
+
+    try:
+        drive(100.0, 110.0, 0.0)
+        moving = _path_end(h.paths[-1])  # (the test model's horizon: 0.27 m at 1 m/s)
+        assert moving > 0.2
+        seen = drive(110.0, 113.0, step)
+        first = next(n for t, n in seen if t >= 110.5)  # the chair at rest for 0.2 s
+        ends = [round(_path_end(p), 3) for p in h.paths[first:]]
+        assert ends, "no path after the stop"
+        stale = [e for e in ends if e > 0.5 * moving]
+        assert not stale, f"{len(stale)} path(s) predict the chair still driving: {ends}"
+        if step:
+            assert h.node.predictor.stats.resets >= 1
+            assert "stepped back" in h.node.predictor.last_reset_detail
+    finally:
+        h.close()

@@ -1515,3 +1515,48 @@ def test_a_map_is_read_off_the_executor(harness, monkeypatch):
     h.node._map_worker.shutdown(wait=True)  # the read done, handed over
     h.spin_until(lambda: h.node._map_read is None, what="the read handed over")
     assert h.node._grid is None and "frame 'map'" in h.node._grid_problem
+
+
+@pytest.mark.parametrize("step", [0.0, 0.9])
+def test_no_decision_on_the_timeline_before_a_clock_step_back(harness, step):
+    """The user slows from 0.8 to a crawl as a wall comes near, and at that moment the clock
+    steps back 0.9 s (less than reset_jump_s: an NTP step, every stream stamped by it). The
+    layer kept the old timeline's stick (0.8, stamped ahead of the new ones) and window: it
+    decided on them, and said the stick had gone neutral while it was at 0.15. The step
+    restarts the predictor and the stick is the new one: no override, no such decision."""
+    h = harness()
+    wall = 3.6
+
+    def drive(t_from: float, t_to: float, fwd: float, speed: float, shift: float) -> None:
+        stats = h.node.predictor.stats
+        users = []
+        rng = np.random.default_rng(int(t_from * 10))
+        for i in range(round((t_to - t_from) / 0.05)):
+            t = t_from + 0.05 * (i + 1)
+            s = t - shift
+            h.x += 0.05 * speed
+            h.clock(s)
+            n = stats.joy_samples + sum(stats.rejected.values())
+            h.joy_pub.publish(conv.joy_from_sample(s, fwd, 0.0))
+            h.spin_until(lambda n=n: stats.joy_samples + sum(stats.rejected.values()) > n,
+                         what="joy")
+            users.append(float(h.node._user[1][0]))  # the stick the layer holds the user's
+            if i % 4 == 3:
+                n = h.node._vo_messages
+                h.vo_pub.publish(conv.twist_stamped_from_sample(
+                    s, speed + rng.normal(0.0, 0.003), 0.0))
+                h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+            if i % 2 == 1:
+                seen = h._scan_state()
+                h.scan_pub.publish(wall_scan_msg(s, wall - h.x - 0.3))
+                h.spin_until(lambda s_=seen: h._scan_state() != s_, what="scan")
+        return users
+
+    drive(100.0, 102.0, 0.8, 0.72, 0.0)
+    n_status, n_overrides = len(h.status), len(h.overrides)
+    users = drive(102.0, 104.0, 0.15, 0.135, step)
+    assert len(h.overrides) == n_overrides
+    assert users == [pytest.approx(0.15)] * len(users)  # it held 0.8 for 0.9 s
+    # the stick was never neutral (0.8, then 0.15)
+    after = [conv.diagnostic_values(st) for st in h.status[n_status:]]
+    assert not [v for v in after if v["why"] == "neutral_stick"]

@@ -146,6 +146,9 @@ MAX_SAMPLE_RATE_HZ = 2000.0
 
 #: Most steps of a predicted path.
 MAX_HORIZON_STEPS = 200
+#: After the clock stepped back (:meth:`Predictor.clock_stepped_back`), until it is back
+#: where it was, a sample stamped more than this ahead of it is the old timeline's.
+STEP_LEAD_S = 0.1
 
 
 def horizon_steps(horizon_s: float, rate_hz: float) -> int:
@@ -464,6 +467,7 @@ class Predictor:
         # resampled under ``_learn_config``), the override times then, the complete steps
         self._to_learn: tuple[Resampled | RawStreams, FloatArray, int] | None = None
         self._last_now = -math.inf
+        self._stepped_until = -math.inf  # the clock before its last step back
         self.last_reset_detail = ""
 
     @property
@@ -550,6 +554,20 @@ class Predictor:
         if self._adapter is not None:
             self._adapter.restart_stream()
 
+    def clock_stepped_back(self, now: float, by: float) -> None:
+        """The clock stepped back by ``by`` seconds to ``now`` (a node's clock, read at each
+        callback, goes back only when it is stepped: NTP setting a clock that ran ahead, a
+        /clock restarted). The buffers are reset, whatever ``reset_jump_s``: their samples
+        are stamped up to ``by`` ahead of the clock, and the new ones would be spliced in
+        among them, one window holding two moments. Until the clock is back where it was,
+        a sample stamped more than :data:`STEP_LEAD_S` ahead of it is the old timeline's
+        (sent before the step, delivered after) and refused. (No second reset when none of
+        the samples held is ahead of the clock: a step beyond ``reset_jump_s`` has reset the
+        buffers already, at the first sample fed after it.)"""
+        self._stepped_until = now + by
+        if self._newest() > now + STEP_LEAD_S:
+            self.reset(f"the clock stepped back by {by:.3f} s to {now:.3f} s")
+
     def _newest(self) -> float:
         return max(self._joy.newest, self._vo.newest)
 
@@ -582,6 +600,11 @@ class Predictor:
             return True
         self._check_clock(now)
         newest = self._newest()
+        if now < self._stepped_until and t > now + STEP_LEAD_S:
+            self._reject(Reason.REJECT_TIME, f"{what} stamped {t - now:.3f} s ahead of the "
+                                             "clock, which stepped back: of the timeline "
+                                             "before the step")
+            return False
         if t > now + jump:
             self._reject(Reason.REJECT_TIME, f"{what} stamped {t - now:.3f} s ahead of the "
                                              f"clock ({now:.3f} s)")

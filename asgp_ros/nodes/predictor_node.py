@@ -332,6 +332,7 @@ class PredictorNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self._clock_reader = runtime.ClockReader(self, self._clock_stepped_back)
         try:
             self._setup()
         except (StartupError, StartupInterruptedError):
@@ -515,9 +516,14 @@ class PredictorNode(Node):
     # ---- input -----------------------------------------------------------------------
 
     def _now(self) -> float | None:
-        """Node clock in seconds; None before a simulated clock has started."""
-        ns = self.get_clock().now().nanoseconds
-        return None if ns == 0 else ns * 1e-9
+        """Node clock in seconds; None before a simulated clock has started. A step back
+        of the clock resets the predictor (:meth:`Predictor.clock_stepped_back`)."""
+        return self._clock_reader.now()
+
+    def _clock_stepped_back(self, now: float, by: float) -> None:
+        self.get_logger().warning(f"the clock stepped back by {by:.3f} s: the buffers "
+                                  "restart")
+        self.predictor.clock_stepped_back(now, by)
 
     def _warn_rejected(self) -> None:
         stats = self.predictor.stats

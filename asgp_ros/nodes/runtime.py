@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import os
 import signal
 import socket
@@ -161,6 +162,37 @@ def pacing_clock(node: Node) -> Clock:
     if node.get_parameter("use_sim_time").value:
         return node.get_clock()
     return Clock(clock_type=ClockType.STEADY_TIME)
+
+
+#: A node's clock read going back by more than this is a step (read at each callback, a
+#: ROS clock, system or simulated, goes back only when it is stepped).
+CLOCK_STEP_BACK_S = 0.01
+
+
+class ClockReader:
+    """A node's clock in seconds as its callbacks read it (None before a simulated clock
+    has started), telling ``on_step(now, by)`` when it stepped back by more than
+    :data:`CLOCK_STEP_BACK_S` (NTP setting a clock that ran ahead, a /clock restarted):
+    rcl's jump callbacks see only a simulated clock's jumps."""
+
+    def __init__(self, node: Node, on_step: Callable[[float, float], None]) -> None:
+        self._clock = node.get_clock()
+        self._on_step = on_step
+        self._seen = -math.inf
+        self.steps_back = 0
+
+    def now(self) -> float | None:
+        ns = self._clock.now().nanoseconds
+        if ns == 0:
+            return None
+        now = ns * 1e-9
+        if now < self._seen - CLOCK_STEP_BACK_S:
+            by, self._seen = self._seen - now, now
+            self.steps_back += 1
+            self._on_step(now, by)
+        else:
+            self._seen = max(self._seen, now)
+        return now
 
 
 def _nothing() -> None:

@@ -340,6 +340,7 @@ class SharedControlNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self._clock_reader = runtime.ClockReader(self, self._clock_stepped_back)
         try:
             values = check_values(PARAMS, declare(self, PARAMS))
             adapt_values = {name: values.pop(name) for name in adapt_params.ADAPT_NAMES}
@@ -486,8 +487,14 @@ class SharedControlNode(Node):
     # ---- time and input ---------------------------------------------------------------
 
     def _now(self) -> float | None:
-        ns = self.get_clock().now().nanoseconds
-        return None if ns == 0 else ns * 1e-9
+        """Node clock in seconds; None before a simulated clock has started. A step back
+        of the clock resets the predictor (:meth:`Predictor.clock_stepped_back`)."""
+        return self._clock_reader.now()
+
+    def _clock_stepped_back(self, now: float, by: float) -> None:
+        self.get_logger().warning(f"the clock stepped back by {by:.3f} s: the buffers "
+                                  "restart")
+        self.predictor.clock_stepped_back(now, by)
 
     @staticmethod
     def _stamp(t: float, now: float) -> float:
@@ -516,10 +523,12 @@ class SharedControlNode(Node):
         t, user = read
         newest = self._user
         if newest is None or t >= newest[0] \
-                or newest[0] - t > self.predictor.config.reset_jump_s:
+                or newest[0] - t > self.predictor.config.reset_jump_s \
+                or newest[0] > now + JOY_LEAD_S:
             # the newest stick by its stamp (a restarted stream's too): an older sample
             # (a second publisher, delivered late) is not what the user holds now. A pushed
-            # one took an override up again after the neutral stick had stopped it.
+            # one took an override up again after the neutral stick had stopped it. One
+            # stamped ahead of the clock is of the timeline before the clock stepped back.
             self._user = (t, user)
         if is_neutral(user, self.config.neutral_deadband):
             self._stop_overriding()  # now (read before every override), not at the next decision
