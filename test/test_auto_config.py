@@ -274,6 +274,30 @@ def test_too_few_held_out_cases_leave_the_model_uncalibrated() -> None:
     assert f"fewer than the {MIN_CALIBRATION_CASES} a calibration needs" in cal["reason"]
 
 
+def test_a_held_out_part_of_a_parked_chair_does_not_calibrate(auto_model) -> None:  # type: ignore[no-untyped-def]
+    """A recorder left running after the chair was parked: the held-out end of the
+    recording is hundreds of cases of a chair at rest. Fitted on them the map shrank the
+    v variance 600,000-fold (cross-validation cannot see it: both halves at rest), and on
+    driving the ellipses held 1-2 % of the positions. Cases in which the chair moves less
+    than the success distance do not count towards the calibration's minimum."""
+    from asgp_ros.core.calibration import CalibrationError
+    from asgp_ros.learning.training import MIN_CALIBRATION_CASES, calibrate
+
+    T = 2000  # 400 s at rest
+    rng = np.random.default_rng(5)
+    parked = _resampled(np.zeros((T, 2)), 1e-4 * rng.standard_normal((T, 2)))
+    opts = AutoOptions(seed=3, **SMALL)  # type: ignore[arg-type]
+    with pytest.raises(CalibrationError, match=f"0 of the .* held-out cases move the chair "
+                                               f"10 cm or more, fewer than the "
+                                               f"{MIN_CALIBRATION_CASES}"):
+        calibrate(auto_model, [Series("parked", parked)], opts, auto_model.lags)
+    # driving again after it: enough cases move, the calibration is fitted
+    drive = synthetic_chair(600, 11)
+    _, report = calibrate(auto_model, [Series("drive", drive), Series("parked", parked)],
+                            opts, auto_model.lags)
+    assert report["fitted"] and report["cases"] > MIN_CALIBRATION_CASES
+
+
 def test_the_leading_structures_are_scored_again_at_the_largest_m(
         chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
     # a held-out landscape where a short past wins at M = 40 by a hair, and a longer past

@@ -773,6 +773,17 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     if N < MIN_CALIBRATION_CASES:
         raise CalibrationError(f"{N} held-out cases, fewer than the {MIN_CALIBRATION_CASES} "
                                "a calibration needs (record longer)")
+    # A case in which the chair stays within the success distance says nothing of how
+    # wrong a moving chair's prediction gets: fitted on a held-out part of the chair parked
+    # (a recorder left running), the map shrank the variance 600,000-fold, and on driving
+    # the ellipses held 1-2 % of the positions.
+    moving = int(np.count_nonzero(cases.reach >= opts.threshold_m))
+    if moving < MIN_CALIBRATION_CASES:
+        raise CalibrationError(
+            f"{moving} of the {N} held-out cases move the chair {100 * opts.threshold_m:g} "
+            f"cm or more, fewer than the {MIN_CALIBRATION_CASES} a calibration needs: the "
+            "chair stands through most of the held-out part (the end of each recording); "
+            "record longer, or end the recordings while driving")
     fit = cases.fit(np.ones(N, dtype=bool))
     cal = fit.calibration
     cov_raw = cases.parts[0] + cases.parts[1]
@@ -826,6 +837,7 @@ class _HeldOutCases(NamedTuple):
     change: np.ndarray  # [N] largest change of the future joystick over the case
     half: np.ndarray  # [N] in the second half of its recording's held-out part
     K: int
+    reach: np.ndarray  # [N] farthest the chair got from the case's start (m), by the VO
 
     def fit(self, mask: np.ndarray) -> CalibrationFit:
         """The variance map fitted on the cases of ``mask`` (all their steps)."""
@@ -844,7 +856,7 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
     calibration of the BASIS (linearised propagation) and compared with the path
     integrated from the recorded VO."""
     dt = 1.0 / model.rate_hz
-    parts_l, err_l, names, speed_l, change_l, half_l = [], [], [], [], [], []
+    parts_l, err_l, names, speed_l, change_l, half_l, reach_l = [], [], [], [], [], [], []
     for s in held:
         idx = metrics.case_indices(s.res.segment, case_lags, K)
         if idx.size == 0:
@@ -860,6 +872,7 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
         ref = reference_path(metrics.windows(s.res.vel, idx, -1, K + 1), dt)
         parts_l.append(np.stack(covs))  # [4, N, K, 2, 2]
         err_l.append(ref[..., :2] - pose[..., :2])  # [N, K, 2]
+        reach_l.append(np.max(np.hypot(ref[..., 0], ref[..., 1]), axis=1))
         names.extend([s.name] * idx.size)
         speed_l.append(np.abs(s.res.vel[idx - 1, 0]))
         future = metrics.windows(s.res.joy, idx, -1, K + 1)  # [N, K+1, 2]
@@ -869,7 +882,7 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
         raise CalibrationError(f"no held-out case of {K} steps with {case_lags} past samples")
     return _HeldOutCases(np.concatenate(parts_l, axis=1), np.concatenate(err_l), names,
                          np.concatenate(speed_l), np.concatenate(change_l),
-                         np.concatenate(half_l), K)
+                         np.concatenate(half_l), K, np.concatenate(reach_l))
 
 
 def _cross_validated_covariances(cases: _HeldOutCases, cal: VarianceCalibration
