@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections import deque
 
 import numpy as np
 import pytest
@@ -1560,3 +1561,27 @@ def test_no_decision_on_the_timeline_before_a_clock_step_back(harness, step):
     # the stick was never neutral (0.8, then 0.15)
     after = [conv.diagnostic_values(st) for st in h.status[n_status:]]
     assert not [v for v in after if v["why"] == "neutral_stick"]
+
+
+def test_the_mean_change_is_kept_in_constant_memory(harness):
+    """The diagnostics' mean_change averaged a list of every intervening decision's change,
+    which grew by 15 a second of intervening (54,000 an hour) and was averaged whole at each
+    diagnostics period. It is a running sum: the same figure, in constant memory."""
+    h = harness()
+    changes = []
+    decide = h.node._decide_now
+
+    def recorded(now):
+        decide(now)
+        d = h.node._decision
+        if d is not None and d.intervening:
+            changes.append(d.change)
+    h.node._decide_now = recorded
+    _intervene(h)
+    h.drive(104.0, 105.0, wall=1.4)
+    assert len(changes) >= 10
+    growing = [k for k, v in vars(h.node).items() if len(changes) <= (
+        len(v) if isinstance(v, list) or (isinstance(v, deque) and v.maxlen is None) else 0)]
+    assert not growing, growing
+    diag = conv.diagnostic_values(h.node.diagnostic_status())
+    assert float(diag["mean_change"]) == pytest.approx(np.mean(changes), abs=1e-3)
