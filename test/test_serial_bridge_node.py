@@ -269,6 +269,39 @@ def test_unplug_replug_reconnects_and_diagnostics_say_so(harness):
     assert h.spin_until(lambda: len(h.joy) > n_joy + 10, 2.0)  # joy flows again
 
 
+def test_the_override_status_is_not_ok_while_nothing_reaches_the_board(harness):
+    """A planner keeps sending fresh overrides; the board is unplugged, then silent (hung,
+    its port open). The override status said OK "sending (board mode override)" and OK
+    "active: the chair follows joy_override", from the board's last sample, while nothing
+    reached it; it now says WARN, not reaching the board, the user drives."""
+    h = harness(lambda t: (0.5, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: (st := h.link_status()) is not None
+                        and st.level == DiagnosticStatus.OK, 10.0)
+
+    def send() -> None:
+        now = h.node.get_clock().now().nanoseconds * 1e-9
+        h.override_pub.publish(conv.joy_from_sample(now, 0.2, 0.0))
+
+    def override_says(level: int, text: str) -> bool:
+        h.spin_for(0.05, each=send)
+        st = _override_status(h)
+        return st is not None and st.level == level and text in st.message
+
+    assert h.spin_until(lambda: override_says(DiagnosticStatus.OK, "active"), 10.0)
+    h.board.unplug()
+    assert h.spin_until(lambda: override_says(DiagnosticStatus.WARN, "not reaching the "
+                                                                     "board: the link is "
+                                                                     "connecting"), 5.0)
+    assert "the user drives" in _override_status(h).message
+    h.board.replug()
+    assert h.spin_until(lambda: override_says(DiagnosticStatus.OK, "active"), 10.0)
+    h.board.set_silent(True)
+    assert h.spin_until(lambda: override_says(DiagnosticStatus.WARN, "not reaching the "
+                                                                     "board: the link is "
+                                                                     "stale"), 5.0)
+    h.board.set_silent(False)
+
+
 def test_parameters_are_validated_at_runtime(harness):
     h = harness(lambda t: (0.5, 0.0))
     node = h.node

@@ -332,9 +332,18 @@ class SerialBridgeNode(Node):
         fresh = gate.fresh(now, self._clock_s(), self.params.override_timeout) is not None
         board_mode = "override" if st.board_mode == Mode.OVERRIDE else "passthrough"
         s = self._last_sample
-        if s is None or st.state not in (LinkState.CONNECTED, LinkState.STALE):
+        flags = ""
+        if st.state is not LinkState.CONNECTED:
+            # nothing reaches the board, or nothing is heard of it: its last sample's
+            # flags are not what becomes of the overrides now (an unplugged board's said
+            # OK "sending", a silent one's OK "active")
+            board_mode = f"unknown: the link is {st.state.value}"
+            verdict = (board_status.Verdict("WARN", f"not reaching the board: the link is "
+                                                    f"{st.state.value}; "
+                                                    "the user drives")
+                       if fresh else board_status.Verdict("OK", "idle"))
+        elif s is None:
             verdict = board_status.Verdict("OK", f"{'sending' if fresh else 'idle'}")
-            flags = ""
         else:
             verdict = board_status.override_verdict(s.status, fresh)
             flags = board_status.flag_names(s.status)
