@@ -298,6 +298,35 @@ def test_a_held_out_part_of_a_parked_chair_does_not_calibrate(auto_model) -> Non
     assert report["fitted"] and report["cases"] > MIN_CALIBRATION_CASES
 
 
+def test_a_calibration_that_makes_the_model_refused_is_not_applied(
+        chair: list[Series], monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    """On very noisy odometry the fitted map (its omega scale 28) made the model predict
+    variances beyond a wheelchair's: `asgp train` wrote, and said it wrote, a file that
+    every command then refused. The map is not applied (said), and save_model never writes
+    a model that load_model refuses."""
+    from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+    from asgp_ros.learning import training
+
+    huge = VarianceCalibration(scale=(1e6, 1e6))
+    real = training.calibrate
+
+    def calibrate(*args, **kwargs):  # type: ignore[no-untyped-def]
+        _, meta = real(*args, **kwargs)
+        return huge, {**meta, "applied": True}
+
+    monkeypatch.setattr(training, "calibrate", calibrate)
+    model = train_auto(chair[:1], AutoOptions(seed=3, **SMALL))  # type: ignore[arg-type]
+    assert model.calibration.is_identity
+    cal = model.meta["calibration"]
+    assert not cal["applied"] and "beyond a wheelchair's limits" in cal["reason"]
+    save_model(tmp_path / "m.npz", model)
+    load_model(tmp_path / "m.npz")
+    bad = dataclasses.replace(model, calibration=huge)
+    with pytest.raises(ModelFileError, match="not a wheelchair's model"):
+        save_model(tmp_path / "bad.npz", bad)
+    assert not (tmp_path / "bad.npz").exists()
+
+
 def test_the_leading_structures_are_scored_again_at_the_largest_m(
         chair: list[Series], monkeypatch: pytest.MonkeyPatch) -> None:
     # a held-out landscape where a short past wins at M = 40 by a hair, and a longer past

@@ -305,7 +305,8 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
     Raises:
         ModelFileError: the model cannot be stored (unknown kind, arrays or metadata that
             :func:`load_model` would refuse: non-finite or out-of-range values, too large,
-            metadata that is not JSON or nested too deeply).
+            metadata that is not JSON or nested too deeply, predictions beyond a
+            wheelchair's limits).
     """
     try:
         kind = get_kind(model.kind)
@@ -335,6 +336,9 @@ def save_model(path: str | os.PathLike[str], model: MotionModel) -> None:
         loads_bounded(text)  # never write a file that load_model would refuse
     except ValueError as exc:
         raise ModelFileError(path, f"metadata cannot be stored: {exc}") from exc
+    problem = probe_problem(model)  # as load_model checks it: never a file it refuses
+    if problem is not None:
+        raise ModelFileError(path, f"not a wheelchair's model: {problem}")
     payload: dict[str, Any] = {META_KEY: np.array(text), **arrays}
     try:
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
@@ -609,13 +613,13 @@ def load_model(path: str | os.PathLike[str], kind: str | None = None) -> MotionM
         if arr.dtype.kind != want.kind:
             raise ModelFileError(p, f"array {name!r} has dtype {arr.dtype}, a {kind_name!r} "
                                     f"model stores {want}")
-    problem = _probe_problem(model)
+    problem = probe_problem(model)
     if problem is not None:
         raise ModelFileError(p, f"not a wheelchair's model: {problem}")
     return model
 
 
-def _probe_problem(model: MotionModel) -> str | None:
+def probe_problem(model: MotionModel) -> str | None:
     """Why a model cannot be a wheelchair's (None: it may be one): from rest, with the
     joystick held at its centre, at each end of each axis and at a corner for 2 s, it must
     predict speeds, yaw rates and variances within the physical limits (a hostile file

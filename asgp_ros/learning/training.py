@@ -41,6 +41,7 @@ from asgp_ros.core.calibration import (
 )
 from asgp_ros.core.features import CHANNELS, LAGS_RANGE, FeatureConfig, design_matrix
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
+from asgp_ros.core.modelfile import probe_problem
 from asgp_ros.core.models import FitBudget, ModelKind, MotionModel, get_kind, trainable_kinds
 from asgp_ros.core.resample import ResampleConfig, Resampled, resample
 from asgp_ros.core.sparse_gp import SparseGP
@@ -570,10 +571,21 @@ def train_auto(
                          f"{MIN_SELECTION_ROWS} rows, {SELECTION_MIN_ITER} iterations and "
                          "two sizes of M for the best structure) and the final fit's "
                          f"{opts.max_iter} iterations do not shrink with it")
+    model = MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
+                        channels=(chans[0], chans[1]), calibration=calibration)
+    if not calibration.is_identity and (problem := probe_problem(model)) is not None \
+            and probe_problem(dataclasses.replace(model, calibration=VarianceCalibration())) \
+            is None:
+        # a map fitted on very noisy odometry (its omega scale 28) made the model predict
+        # variances beyond a wheelchair's: a file that load_model refuses
+        reason = (f"not applied: with it the model predicts beyond a wheelchair's limits "
+                  f"({problem})")
+        report("calibrate", reason)
+        cal_meta = {**cal_meta, "applied": False, "reason": reason}
+        model = dataclasses.replace(model, calibration=VarianceCalibration())
     meta = _automatic_meta(series, opts, chosen, infos, search.table, case_lags, seconds,
                            cal_meta)
-    return MotionModel(kind="asgp", feature_config=fc, resample_config=rc,
-                       channels=(chans[0], chans[1]), meta=meta, calibration=calibration)
+    return dataclasses.replace(model, meta=meta)
 
 
 def _automatic_meta(series: Sequence[Series], opts: AutoOptions, chosen: Candidate,
