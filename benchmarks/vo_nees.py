@@ -99,6 +99,8 @@ class DriveSpec:
     role: str  # calibration | held-out
     speed: float = 0.55  # loop speed (rich, poor)
     mirror: bool = False  # dim drive: the turn to the other side first
+    turn_rate: float = 0.0  # turn drive: rad/s (+ left), on the spot
+    preset: str = ""  # scene preset when the kind does not say (turn: rich | poor)
 
 
 def drives(quick: bool = False) -> list[DriveSpec]:
@@ -143,7 +145,41 @@ def drives(quick: bool = False) -> list[DriveSpec]:
     out += _loops(((60, 30.0, 0.55), (61, 15.0, 0.6), (62, 20.0, 0.5), (63, 30.0, 0.7)),
                   "held-out", s)
     out += _loss_drives(range(60, 72), "held-out")
+    # turns on the spot at 0.5-3 rad/s (up to 0.2 rad between frames at 15 Hz): calibration
+    # scenes 6, 8, 9 and 14-16, held out 80-85 (fixed before any was run)
+    out += _turn_drives((6, 8, 9, 14, 15, 16), "calibration")
+    out += _turn_drives(range(80, 86), "held-out")
     return out
+
+
+TURN_RATES = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+"""Turn rates (rad/s) of the turn-on-the-spot drives (:func:`_turn_drives`)."""
+
+
+def _turn_drives(seeds, role: str, rates: tuple[float, ...] = TURN_RATES,
+                 seconds: float = 3.0) -> list[DriveSpec]:
+    """Turns on the spot, ``seconds`` at each of ``rates`` per seed: the tiled room for even
+    seeds, the carpet room for odd ones; the camera at 30, 15 and 20 Hz in turn and the turn
+    to the left and to the right in turn (start pose: :func:`turn_drive`)."""
+    out = []
+    for seed in seeds:
+        for i, w in enumerate(rates):
+            sign = 1.0 if (seed + i) % 2 == 0 else -1.0
+            out.append(DriveSpec(f"turn{w:g}-{seed}", "turn", seed, 100 + seed,
+                                 (30.0, 15.0, 20.0)[(seed + i) % 3], seconds, role,
+                                 turn_rate=sign * w,
+                                 preset="rich" if seed % 2 == 0 else "poor"))
+    return out
+
+
+def turn_drive(spec: DriveSpec) -> Drive:
+    """A turn on the spot at ``spec.turn_rate`` for ``spec.seconds``, from a start pose drawn
+    from the seed and the rate (within 2 m x 1.5 m of the room's centre: the walls and
+    furniture 2.5-6 m away)."""
+    rng = np.random.default_rng([spec.scene_seed, round(1000 * abs(spec.turn_rate))])
+    start = (float(rng.uniform(-2.0, 2.0)), float(rng.uniform(-1.5, 1.5)),
+             float(rng.uniform(-math.pi, math.pi)))
+    return segment_drive(start, [(0.0, spec.turn_rate, spec.seconds)], spec.rate)
 
 
 def _loops(specs: tuple[tuple[int, float, float], ...], role: str, length: float
@@ -189,6 +225,8 @@ def dim_zone_drive(scene: Scene, rate: float, mirror: bool = False) -> Drive:
 def make_drive(spec: DriveSpec, scene: Scene) -> Drive:
     if spec.kind in ("rich", "poor"):
         return loop_drive(spec.seconds, spec.rate, speed=spec.speed)
+    if spec.kind == "turn":
+        return turn_drive(spec)
     if spec.kind == "blank":
         drive = blank_wall_drive(spec.rate, scene=scene)
     elif spec.kind == "dim":
@@ -232,7 +270,7 @@ def run_drive(spec: DriveSpec, covariance_scale: float | None = None,
     (n0, p) replaces the few-inliers factor's constants;
     ``odometry`` is another revision's module (:func:`load_reference`).
     """
-    preset = "rich" if spec.kind == "rich" else "poor"
+    preset = spec.preset or ("rich" if spec.kind == "rich" else "poor")
     scene = build_scene(preset=preset, seed=spec.scene_seed)
     renderer = RGBDRenderer(scene, seed=spec.render_seed)
     drive = make_drive(spec, scene)
@@ -290,6 +328,20 @@ def nees(e: np.ndarray, S: np.ndarray) -> float:
     return float(z @ z)
 
 
+def reference_rotation(results: list[VOResult]) -> np.ndarray:
+    """[len(results)] rotation angle (rad) of each tracked frame's estimate against its
+    reference frame (the span its matches had to bridge), nan for the other frames."""
+    out = np.full(len(results), math.nan)
+    ref = None
+    for k, r in enumerate(results):
+        if r.ok and ref is not None:
+            R = (invert(ref) @ r.pose)[:3, :3]
+            out[k] = math.acos(float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        if r.keyframe_changed:
+            ref = r.pose
+    return out
+
+
 def evaluate(drive: Drive, results: list[VOResult], near: int = NEAR_LOSS) -> dict:
     """Per-frame NEES and its summary for one run."""
     nl = near_loss(results, near)
@@ -298,9 +350,11 @@ def evaluate(drive: Drive, results: list[VOResult], near: int = NEAR_LOSS) -> di
     values = np.array([nees(e, S) for _, e, S in recs])
     lost = [k for k, r in enumerate(results) if k > 0 and not r.ok]
     before = [any(0 < j - k <= near for j in lost) for k in ks]
+    rotation = reference_rotation(results)
     return {"frames": len(results), "k": ks.tolist(), "nees": values.tolist(),
             "near": nl[ks].tolist() if len(ks) else [], "before": before,
             "inliers": [results[k].num_inliers for k in ks],
+            "rotation": [float(rotation[k]) for k in ks],
             "recovering": [bool(getattr(results[k], "recovering", False)) for k in ks]}
 
 
