@@ -221,6 +221,68 @@ def test_known_arc_recovered_with_covariance(scene):
     assert np.all(np.diag(planar.covariance) > 0)
 
 
+def _base_motion_camera(dx: float, dy: float, dtheta: float) -> np.ndarray:
+    """The camera motion [4, 4] of a planar base_link increment (dx, dy, dtheta)."""
+    Tbc = DEFAULT_EXTRINSIC.T_base_optical
+    Tb = np.eye(4)
+    c, s = math.cos(dtheta), math.sin(dtheta)
+    Tb[:2, :2] = [[c, -s], [s, c]]
+    Tb[0, 3], Tb[1, 3] = dx, dy
+    return invert(Tbc) @ Tb @ Tbc
+
+
+def test_planar_twist_leaves_a_sideways_displacement_out_of_v():
+    """v is the SE(2) logarithm's forward part, not the chord's length: a sideways error
+    of a turn on the spot or of a chair standing still is not forward speed (the chord's
+    length read 5 mm sideways at 15 Hz as 0.075 m/s forward or backward), and errors of
+    either sign average out (the chord's length is biased away from zero)."""
+    dt = 1.0 / 15.0
+    for dy in (0.005, -0.005):
+        v, w = DEFAULT_EXTRINSIC.planar_twist(_base_motion_camera(0.0, dy, 0.0), dt)
+        assert v == pytest.approx(0.0, abs=1e-12) and w == pytest.approx(0.0, abs=1e-12)
+    # a turn on the spot at 3 rad/s read with a 2 mm error in a random direction
+    rng = np.random.default_rng(0)
+    v = np.array([DEFAULT_EXTRINSIC.planar_twist(
+        _base_motion_camera(*(0.002 * rng.standard_normal(2)), 0.2), dt)[0]
+        for _ in range(2000)])
+    assert abs(v.mean()) < 3 * v.std() / math.sqrt(len(v))
+    # a unicycle arc is read exactly, sideways component or not (it has none)
+    for vt, wt in ((0.5, 3.0), (-0.4, 1.0), (0.3, 0.0)):
+        h = 0.5 * wt * dt
+        chord = vt * dt * (math.sin(h) / h if h else 1.0)
+        motion = _base_motion_camera(chord * math.cos(h), chord * math.sin(h), wt * dt)
+        assert DEFAULT_EXTRINSIC.planar_twist(motion, dt) == pytest.approx((vt, wt), abs=1e-12)
+
+
+def test_twist_covariance_is_the_covariance_of_the_reported_twist():
+    """The (v, omega) block of VOResult.twist_covariance is J C J^T with J the Jacobian of
+    planar_twist's (v, omega) in the camera motion's right perturbation: v is read along the
+    interval's mean heading, so on a turn the sideways error of the current frame counts
+    (at 0.2 rad per frame, sin 0.1 of it)."""
+    dt = 1.0 / 15.0
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((6, 6))
+    C = A @ A.T * 1e-6 + np.diag([1e-6, 1e-6, 1e-6, 1e-8, 1e-8, 1e-8])
+    for vt, wt in ((0.0, 3.0), (0.5, -2.0), (0.4, 0.0)):
+        h = 0.5 * wt * dt
+        chord = vt * dt * (math.sin(h) / h if h else 1.0)
+        motion = _base_motion_camera(chord * math.cos(h), chord * math.sin(h), wt * dt)
+        # central differences of (v, omega) in the right perturbation of the camera motion
+        J = np.zeros((2, 6))
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = 1e-6
+            a = DEFAULT_EXTRINSIC.planar_twist(motion @ od._se3_exp(d), dt)
+            b = DEFAULT_EXTRINSIC.planar_twist(motion @ od._se3_exp(-d), dt)
+            J[:, i] = (np.array(a) - np.array(b)) / 2e-6
+        want = J @ C @ J.T
+        got = DEFAULT_EXTRINSIC.twist_covariance(C, dt, motion)[np.ix_([0, 5], [0, 5])]
+        np.testing.assert_allclose(got, want, rtol=2e-3, atol=1e-12)
+        if wt:  # the current frame's x is not the direction v is read in
+            plain = DEFAULT_EXTRINSIC.twist_covariance(C, dt)
+            assert abs(plain[0, 0] / want[0, 0] - 1.0) > 0.01
+
+
 def test_blank_wall_loss_is_reported_and_tracking_recovers(poor_scene):
     """Turn to the blank, dim wall: failures with no motion, then recovery on texture."""
     x0, x1, y = poor_scene.blank_wall

@@ -126,32 +126,46 @@ class CameraExtrinsic:
     def planar_twist(self, camera_motion: np.ndarray, dt: float) -> tuple[float, float]:
         """Chair velocities (v m/s, omega rad/s) over dt from one camera motion [4, 4].
 
-        The base motion is projected on the ground plane and read as a unicycle arc:
-        heading change dtheta, arc length s (SE(2) logarithm: chord length c and
-        s = c * (dtheta / 2) / sin(dtheta / 2), signed by the forward component), so a
-        constant (v, omega) over dt is recovered exactly.
+        The base motion is projected on the ground plane and read as a unicycle arc by the
+        SE(2) logarithm: heading change dtheta, and v dt = (dtheta / 2) / sin(dtheta / 2)
+        times the component of the displacement (dx, dy) along the interval's mean heading
+        dtheta / 2 (the logarithm's forward part), so a constant (v, omega) over dt is
+        recovered exactly. The sideways part, which a unicycle cannot have, is left out: it
+        is estimation error (a chair turning on the spot has none), and taking the chord's
+        length instead read it as forward speed, away from zero whatever its sign.
         """
         if not (dt > 0.0 and math.isfinite(dt)):
             raise ValueError(f"dt must be positive and finite, got {dt}")
         Tb = self.base_motion(camera_motion)
         dx, dy = float(Tb[0, 3]), float(Tb[1, 3])
         dtheta = math.atan2(Tb[1, 0], Tb[0, 0])
-        chord = math.hypot(dx, dy)
         half = 0.5 * dtheta
         factor = half / math.sin(half) if abs(half) > 1e-9 else 1.0
-        # direction of the chord relative to the mean heading tells forward from backward
         along = dx * math.cos(half) + dy * math.sin(half)
-        s = math.copysign(chord * factor, along) if chord > 0.0 else 0.0
-        return s / dt, dtheta / dt
+        return factor * along / dt, dtheta / dt
 
-    def twist_covariance(self, camera_covariance: np.ndarray, dt: float) -> np.ndarray:
+    def twist_covariance(self, camera_covariance: np.ndarray, dt: float,
+                         camera_motion: np.ndarray | None = None) -> np.ndarray:
         """Covariance [6, 6] of the base_link twist (v, w order) from a camera-motion one.
 
         ``camera_covariance`` is the covariance of the body-frame perturbation of the camera
         motion (linear first, in the current optical frame); mapped with the adjoint of
-        T_base_optical and divided by dt^2 (first order).
+        T_base_optical and divided by dt^2 (first order). With ``camera_motion``, the
+        linear part is that of :meth:`planar_twist`'s v: the displacement error in the
+        current base_link frame turned back by half the heading change (to the interval's
+        mean heading, along which v is read) and times the arc factor
+        (dtheta / 2) / sin(dtheta / 2); without it, the current frame's (the same for a
+        motion without a turn).
         """
         A = adjoint(self.T_base_optical)
+        if camera_motion is not None:
+            Tb = self.base_motion(camera_motion)
+            half = 0.5 * math.atan2(Tb[1, 0], Tb[0, 0])
+            factor = half / math.sin(half) if abs(half) > 1e-9 else 1.0
+            c, s = math.cos(half), math.sin(half)
+            M = np.eye(6)
+            M[:3, :3] = factor * np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            A = M @ A
         C: np.ndarray = A @ np.asarray(camera_covariance, float) @ A.T / (dt * dt)
         return C
 

@@ -697,7 +697,7 @@ class VisualOdometry:
         twist, twist_cov = None, None
         if dt <= o.max_twist_interval:  # else an average over a gap, not the current twist
             twist = self.extrinsic.planar_twist(motion, dt)
-            twist_cov = self.extrinsic.twist_covariance(cov, dt)
+            twist_cov = self.extrinsic.twist_covariance(cov, dt, motion)
         return VOResult(status=Status.OK, stamp=cur.stamp, pose=pose.copy(), motion=motion,
                         covariance=cov, dt=dt, twist=twist, twist_covariance=twist_cov,
                         num_features=len(cur.level), num_matches=nmatch, num_inliers=ninl,
