@@ -30,16 +30,21 @@ loop speeds; the dim drive turning the other way for seeds 1 and 4), the blank-w
 dim-zone drives of seeds 20-31 (30, 15 and 20 Hz in turn; the dim drive mirrored for odd
 seeds), for a few hundred held-out frames near a loss, the loops of seeds 40-43 and the
 blank-wall and dim-zone drives of seeds 40-51, and the same of seeds 60-63 and 60-71, each
-set fixed before it was run (``docs/vo_nees.md`` tells which calibration saw which).
+set fixed before it was run (``docs/vo_nees.md`` tells which calibration saw which). Turns
+on the spot (``turn``, :func:`turn_drive`: 3 s at each of 0.5-3 rad/s, up to 0.2 rad between
+frames at 15 Hz): calibration seeds 6, 8, 9 and 14-16, held out 80-85
+(``benchmarks/vo_turns.py`` reports their twists).
 
 ``--calibrate`` chooses the covariance's calibrated constants on the calibration drives
-(:func:`calibrate`): the few-inliers factor 1 + (n0 / n)^p and ``covariance_scale`` s so that
-95 % of the frames lie inside the bound in every group of calibration frames (all of them,
-those near a loss, inlier counts 0-50, 50-100, 100-200 and more, each kind of drive), the
-sharpest such covariance (smallest mean log of s f over the frames); then the recovery
-regime's own factor on top, if its frames still need one.
+(:func:`calibrate`): the few-inliers factor 1 + (n0 / n)^p, the rotation factor
+1 + (c theta)^2 of the rotation theta to the reference frame and ``covariance_scale`` s so
+that 95 % of the frames lie inside the bound in every group of calibration frames (all of
+them, those near a loss, inlier counts 0-50, 50-100, 100-200 and more, each kind of drive,
+rotations 0-0.05, 0.05-0.1, 0.1-0.15 rad and more), the sharpest such covariance (smallest
+mean log of s f g over the frames); then the recovery regime's own factor on top, if its
+frames still need one.
 
-    python benchmarks/vo_nees.py             # all drives (a few minutes)
+    python benchmarks/vo_nees.py             # all drives (about 40 minutes on one core)
     python benchmarks/vo_nees.py --quick     # shorter drives
     python benchmarks/vo_nees.py --calibrate  # the constants, from the calibration drives
     python benchmarks/vo_nees.py --reference 5939bd4   # another revision's odometry
@@ -262,13 +267,14 @@ def load_reference(rev: str) -> ModuleType:
 
 def run_drive(spec: DriveSpec, covariance_scale: float | None = None,
               odometry: ModuleType | None = None,
-              inlier_factor: tuple[float, float] | None = None, **options):
+              inlier_factor: tuple[float, float] | None = None,
+              rotation_gain: float | None = None, **options):
     """Render the drive and run the VO frame by frame: (drive, results).
 
     ``covariance_scale`` replaces :attr:`VisualOdometry.covariance_scale`, and
     :attr:`VisualOdometry.recovery_scale` is then 1 (calibration); ``inlier_factor``
-    (n0, p) replaces the few-inliers factor's constants;
-    ``odometry`` is another revision's module (:func:`load_reference`).
+    (n0, p) replaces the few-inliers factor's constants, ``rotation_gain`` the rotation
+    factor's; ``odometry`` is another revision's module (:func:`load_reference`).
     """
     preset = spec.preset or ("rich" if spec.kind == "rich" else "poor")
     scene = build_scene(preset=preset, seed=spec.scene_seed)
@@ -281,6 +287,8 @@ def run_drive(spec: DriveSpec, covariance_scale: float | None = None,
         vo.recovery_scale = 1.0
     if inlier_factor is not None:
         vo.inlier_count_scale, vo.inlier_count_power = inlier_factor
+    if rotation_gain is not None:
+        vo.rotation_gain = rotation_gain
     results = []
     for k in range(len(drive)):
         T = DEFAULT_EXTRINSIC.camera_pose_planar(drive.x[k], drive.y[k], drive.theta[k])
@@ -381,19 +389,27 @@ def _row(name: str, role: str, tracked: str, s: dict) -> str:
 
 GROUP_INLIERS = (0, 50, 100, 200)
 """Edges of the inlier-count groups of :func:`calibration_groups`."""
+GROUP_ROTATION = (0.0, 0.05, 0.1, 0.15)
+"""Edges (rad) of the groups of rotation to the reference frame (:func:`calibration_groups`)."""
 POWERS = (1.0, 1.5, 2.0)
 SCALES = tuple(range(0, 205, 5))
 """The few-inliers factor's candidates: p and n0 of 1 + (n0 / n)^p."""
+GAINS = tuple(range(0, 13))
+"""The rotation factor's candidates: c (1/rad) of 1 + (c theta)^2."""
 
 
-def calibration_groups(inliers: np.ndarray, near: np.ndarray, kinds: np.ndarray
-                       ) -> list[np.ndarray]:
+def calibration_groups(inliers: np.ndarray, near: np.ndarray, kinds: np.ndarray,
+                       rotation: np.ndarray | None = None) -> list[np.ndarray]:
     """Masks of the groups that must each have 95 % of their frames inside: all frames, those
-    near a loss, each inlier-count band (:data:`GROUP_INLIERS`), each kind of drive."""
+    near a loss, each inlier-count band (:data:`GROUP_INLIERS`), each kind of drive, each
+    band of rotation to the reference (:data:`GROUP_ROTATION`)."""
     edges = (*GROUP_INLIERS, math.inf)
     groups = [np.ones(len(inliers), bool), near.astype(bool)]
     groups += [(inliers >= lo) & (inliers < hi) for lo, hi in itertools.pairwise(edges)]
     groups += [kinds == k for k in sorted(set(kinds.tolist()))]
+    if rotation is not None:
+        groups += [(rotation >= lo) & (rotation < hi)
+                   for lo, hi in itertools.pairwise((*GROUP_ROTATION, math.inf))]
     return [g for g in groups if g.any()]
 
 
@@ -403,58 +419,78 @@ def group_scale(values: np.ndarray, groups: list[np.ndarray]) -> float:
     return max(float(np.quantile(values[g], 0.95)) for g in groups) / CHI2_3_95
 
 
-def _calibration_runs(specs: list[DriveSpec], near_n: int, inlier_factor: tuple[float, float]
-                      ) -> dict[str, np.ndarray]:
-    """Runs the drives at covariance_scale = recovery_scale = 1 with ``inlier_factor``; the
-    per-frame NEES, inlier count, near-loss and recovery flags and drive kind, pooled."""
-    acc: dict[str, list] = {"nees": [], "inliers": [], "near": [], "recovering": [],
-                            "kind": []}
+def _calibration_runs(specs: list[DriveSpec], near_n: int, inlier_factor: tuple[float, float],
+                      rotation_gain: float) -> dict[str, np.ndarray]:
+    """Runs the drives at covariance_scale = recovery_scale = 1 with ``inlier_factor`` and
+    ``rotation_gain``; the per-frame NEES, inlier count, rotation to the reference, near-loss
+    and recovery flags and drive kind, pooled."""
+    acc: dict[str, list] = {"nees": [], "inliers": [], "rotation": [], "near": [],
+                            "recovering": [], "kind": []}
     for spec in specs:
-        drive, results = run_drive(spec, covariance_scale=1.0, inlier_factor=inlier_factor)
+        drive, results = run_drive(spec, covariance_scale=1.0, inlier_factor=inlier_factor,
+                                   rotation_gain=rotation_gain)
         ev = evaluate(drive, results, near_n)
-        for key in ("nees", "inliers", "near", "recovering"):
+        for key in ("nees", "inliers", "rotation", "near", "recovering"):
             acc[key].extend(ev[key])
         acc["kind"].extend([spec.kind] * len(ev["nees"]))
     return {k: np.asarray(v) for k, v in acc.items()}
 
 
-def calibrate(specs: list[DriveSpec], near_n: int = NEAR_LOSS) -> int:
+def calibrate(specs: list[DriveSpec], near_n: int = NEAR_LOSS, cache: str | None = None) -> int:
     """The calibrated constants of the covariance from the calibration drives (module doc).
 
-    Stage 1 runs them without the few-inliers factor and picks (n0, p) from the grid
-    :data:`SCALES` x :data:`POWERS`, the factor applied to each frame's reported covariance
-    (exact for a frame matched to a new reference; for one whose reference was kept the
-    reported covariance also carries the earlier frame's, with that frame's own factor).
-    Stage 2 runs them again with the chosen factor and takes s exactly; then the recovery
-    frames' own factor on top of it, if they need one.
+    Stage 1 runs them without the few-inliers and rotation factors and picks (n0, p, c) from
+    the grid :data:`SCALES` x :data:`POWERS` x :data:`GAINS`, the factors applied to each
+    frame's reported covariance (exact for a frame matched to a new reference; for one
+    whose reference was kept the reported covariance also carries the earlier frame's, with
+    that frame's own factors). Stage 2 runs them again with the chosen factors and takes s
+    exactly; then the recovery frames' own factor on top of it, if they need one. ``cache``
+    (an .npz file) keeps stage 1's runs for the next call.
     """
-    raw = _calibration_runs(specs, near_n, (0.0, 2.0))
+    if cache and Path(cache).exists():
+        with np.load(cache) as z:
+            raw = {k: z[k] for k in z.files}
+    else:
+        raw = _calibration_runs(specs, near_n, (0.0, 2.0), 0.0)
+        if cache:
+            np.savez(cache, **raw)
     n = raw["inliers"].astype(float)
-    groups = calibration_groups(n, raw["near"], raw["kind"])
+    theta = raw["rotation"].astype(float)
+    groups = calibration_groups(n, raw["near"], raw["kind"], theta)
     print(f"calibration: {len(specs)} drives, {len(n)} tracked frames; groups of "
           f"{[int(g.sum()) for g in groups]} frames (all, near a loss, inliers "
-          f"{GROUP_INLIERS} and up, each kind of drive)")
+          f"{GROUP_INLIERS} and up, each kind of drive, rotation to the reference "
+          f"{GROUP_ROTATION} rad and up)")
     candidates = []
-    for p in POWERS:
-        for n0 in SCALES:
-            f = 1.0 + (n0 / n) ** p
-            scale = group_scale(raw["nees"] / f, groups)
-            candidates.append((float(np.mean(np.log(scale * f))), float(n0), p, scale))
+    for c in GAINS:
+        g = 1.0 + (c * theta) ** 2
+        for p in POWERS:
+            for n0 in SCALES:
+                f = (1.0 + (n0 / n) ** p) * g
+                scale = group_scale(raw["nees"] / f, groups)
+                candidates.append((float(np.mean(np.log(scale * f))), float(n0), p,
+                                   float(c), scale))
     candidates.sort()
-    print("stage 1, the sharpest candidates (mean log of s f, n0, p, s):")
-    for c in candidates[:5]:
-        print(f"  {c[0]:.4f}  n0 = {c[1]:g}  p = {c[2]:g}  s = {c[3]:.3f}")
-    none = next(c for c in candidates if c[1] == 0.0)
-    print(f"  without the factor: {none[0]:.4f}  s = {none[3]:.3f}")
-    _, n0, p, _ = candidates[0]
-    exact = _calibration_runs(specs, near_n, (n0, p))
-    groups = calibration_groups(exact["inliers"].astype(float), exact["near"], exact["kind"])
+    print("stage 1, the sharpest candidates (mean log of s f g, n0, p, c, s):")
+    for cand in candidates[:5]:
+        print(f"  {cand[0]:.4f}  n0 = {cand[1]:g}  p = {cand[2]:g}  c = {cand[3]:g}  "
+              f"s = {cand[4]:.3f}")
+    for name, keep in (("without the rotation factor", lambda cand: cand[3] == 0.0),
+                       ("without either factor", lambda cand: cand[1] == cand[3] == 0.0)):
+        best = next(cand for cand in candidates if keep(cand))
+        print(f"  {name}: {best[0]:.4f}  n0 = {best[1]:g}  p = {best[2]:g}  "
+              f"s = {best[4]:.3f}")
+    _, n0, p, c, _ = candidates[0]
+    exact = _calibration_runs(specs, near_n, (n0, p), c)
+    groups = calibration_groups(exact["inliers"].astype(float), exact["near"], exact["kind"],
+                                exact["rotation"].astype(float))
     scale = group_scale(exact["nees"], groups)
     rec = exact["recovering"].astype(bool)
     recovery = max(1.0, float(np.quantile(exact["nees"][rec], 0.95)) / CHI2_3_95 / scale) \
         if rec.any() else 1.0
-    print(f"stage 2, with n0 = {n0:g}, p = {p:g}: covariance_scale = {scale:.3f}; the recovery "
-          f"regime ({int(rec.sum())} frames) needs recovery_scale = {recovery:.3f} on top")
+    print(f"stage 2, with n0 = {n0:g}, p = {p:g}, c = {c:g}: covariance_scale = {scale:.3f}; "
+          f"the recovery regime ({int(rec.sum())} frames) needs recovery_scale = "
+          f"{recovery:.3f} on top")
     return 0
 
 
@@ -472,11 +508,13 @@ def main(argv=None) -> int:
     ap.add_argument("--calibrate", action="store_true",
                     help="choose the few-inliers factor and covariance_scale on the "
                          "calibration drives (95 %% inside in every group of their frames)")
+    ap.add_argument("--cache", help="with --calibrate: keep stage 1's runs in this .npz file "
+                                     "(and read them from it when it exists)")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     if args.calibrate:
         return calibrate([s for s in drives(args.quick) if s.role == "calibration"],
-                         args.near)
+                         args.near, args.cache)
     odometry = load_reference(args.reference) if args.reference else None
     specs = [s for s in drives(args.quick) if args.role in ("all", s.role)]
     if args.only:
@@ -495,7 +533,7 @@ def main(argv=None) -> int:
         print(_row(spec.name, spec.role, tracked, s), flush=True)
         report.append({"drive": spec.name, "role": spec.role, "summary": s, **ev})
         acc = pooled.setdefault(spec.role, {k: [] for k in ("nees", "near", "recovering",
-                                                            "before", "inliers")})
+                                                            "before", "inliers", "rotation")})
         for key, values in acc.items():
             values.extend(ev[key])
     for role, acc in pooled.items():
@@ -509,6 +547,9 @@ def main(argv=None) -> int:
                    "recovering (first frames after one)": np.asarray(acc["recovering"], bool)}
         for lo, hi in itertools.pairwise((*GROUP_INLIERS, math.inf)):
             regimes[f"inliers {lo}-{hi:g}"] = (n >= lo) & (n < hi)
+        theta = np.asarray(acc["rotation"], float)
+        for lo, hi in itertools.pairwise((*GROUP_ROTATION, math.inf)):
+            regimes[f"rotation {lo:g}-{hi:g} rad"] = (theta >= lo) & (theta < hi)
         words = ", ".join(f"{name} {100 * np.mean(v[m] <= CHI2_3_95):.1f} % ({int(m.sum())})"
                           for name, m in regimes.items() if m.any())
         print(f"  {role}: {words}")

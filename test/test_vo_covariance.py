@@ -193,6 +193,33 @@ def test_the_few_inliers_factor_widens_by_one_plus_n0_over_n_to_the_p(frame_pair
             (a.sigma2, a.dof, a.cells, a.translation_std)
 
 
+
+def test_the_rotation_factor_widens_by_one_plus_c_theta_squared(frame_pair):
+    """The covariance of an estimate whose motion against its reference turns by theta
+    carries 1 + (c theta)^2 (``VisualOdometry.rotation_gain`` c), and nothing else changes:
+    with c = 0 it is the model without the factor; the factor is the same at any inlier
+    count and grows with theta."""
+    vo, m = frame_pair
+    order = np.random.default_rng(SEED).permutation(len(m.P))
+    for k in (1, 4):
+        sub = _subset(m, np.sort(order[:len(m.P) // k]))
+        fit = vo._refine(sub, vo._clique(sub))
+        theta = od._rotation_angle(fit.T)
+        assert 0.01 < theta < 0.05  # the arc's 0.02 rad between frames at 15 Hz
+        plain, wide = copy.copy(vo), copy.copy(vo)
+        plain.rotation_gain, wide.rotation_gain = 0.0, 20.0
+        a = plain._covariance(sub, fit)
+        b = wide._covariance(sub, fit)
+        np.testing.assert_allclose(b.covariance, (1.0 + (20.0 * theta) ** 2) * a.covariance,
+                                   rtol=1e-12)
+        assert (b.sigma2, b.dof, b.cells, b.translation_std) == \
+            (a.sigma2, a.dof, a.cells, a.translation_std)
+        # the same matches seen after a turn twice as large: a larger factor
+        turned = fit._replace(T=od._se3_exp(np.r_[0.0, 0.0, 0.0, 0.0, 2.0 * theta, 0.0]))
+        assert od._rotation_angle(turned.T) == pytest.approx(2.0 * theta)
+        c = wide._covariance(sub, turned).covariance / plain._covariance(sub, turned).covariance
+        np.testing.assert_allclose(c, 1.0 + (40.0 * theta) ** 2, rtol=1e-12)
+
 def test_covariance_stage_is_spd_and_finite_in_degenerate_cases(frame_pair):
     """Matches all in one image cell (one cluster: no cluster-robust information), all
     along one image row, or only a dozen: the stage returns a symmetric positive definite,
