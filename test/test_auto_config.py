@@ -298,6 +298,32 @@ def test_a_held_out_part_of_a_parked_chair_does_not_calibrate(auto_model) -> Non
     assert report["fitted"] and report["cases"] > MIN_CALIBRATION_CASES
 
 
+def test_a_held_out_part_of_a_parked_chair_chooses_nothing() -> None:
+    """The recorder left running after the chair was parked: the held-out end of the
+    recording is the chair at rest, every candidate scored 100 %, and the median-error
+    tie-break chose the paper's configuration, which drove far worse; training said
+    'held-out mean success 100.0%'. Too few held-out cases move the chair: the paper's
+    configuration, uncalibrated, and the reason said."""
+    from asgp_ros.learning.training import MIN_SELECTION_MOVING_CASES
+
+    drive = synthetic_chair(480, 4)
+    T = drive.t.shape[0] + 600  # then 120 s parked: the held-out 20 % all at rest
+    joy = np.zeros((T, 2))
+    vel = np.zeros((T, 2))
+    joy[:drive.t.shape[0]], vel[:drive.t.shape[0]] = drive.joy, drive.vel
+    vel[drive.t.shape[0]:] = 1e-4 * np.random.default_rng(1).standard_normal((600, 2))
+    said: list[str] = []
+    model = train_auto([Series("parked", _resampled(joy, vel))],
+                       AutoOptions(seed=3, **SMALL),  # type: ignore[arg-type]
+                       progress=lambda ch, msg: said.append(msg))
+    assert model.meta["training"]["configuration"] == "fallback"
+    assert model.calibration.is_identity
+    why = model.meta["selection"]["fallback"]
+    assert f"fewer than the {MIN_SELECTION_MOVING_CASES} that tell the candidates apart" \
+        in why, why
+    assert any("tell the candidates apart" in m for m in said)
+
+
 def test_a_calibration_that_makes_the_model_refused_is_not_applied(
         chair: list[Series], monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
     """On very noisy odometry the fitted map (its omega scale 28) made the model predict

@@ -246,6 +246,12 @@ AUTO_STRUCTURE_INDUCING = 40
 #: are often within a few tenths of a point (a longer past needs pseudo-inputs to use it),
 #: so the structure stage alone can pick a short s that a larger M does not favour.
 REFINE_STRUCTURES = 3
+#: The fewest held-out cases in which the chair moves at least the success distance that
+#: the selection needs: over fewer, a success rate moves in steps of more than 5 points and
+#: cannot tell the candidates apart, and a chair at rest is predicted by anything (a
+#: held-out end of the chair parked scored every candidate 100 %, and the tie-break chose
+#: one that drove far worse).
+MIN_SELECTION_MOVING_CASES = 20
 #: Fraction of each training recording held out (its end) for selection and calibration.
 HOLDOUT_FRACTION = 0.2
 #: The fewest held-out cases (k-step rollouts) a variance calibration is fitted on: one
@@ -540,6 +546,16 @@ def train_auto(
                          f"{[h for h in opts.horizons_s if h not in usable]} s; scoring "
                          f"{list(usable)} s")
         opts = search.opts = dataclasses.replace(opts, horizons_s=usable)
+    moving = _moving_cases(held, rc, case_lags, opts)
+    if moving < MIN_SELECTION_MOVING_CASES:
+        search.table.append({"candidate": None, "stage": "check", "skipped":
+                             f"{moving} held-out cases move the chair "
+                             f"{100 * opts.threshold_m:g} cm or more in "
+                             f"{max(opts.horizons_s):g} s, fewer than the "
+                             f"{MIN_SELECTION_MOVING_CASES} that tell the candidates apart "
+                             "(the chair stands through most of the held-out part, the end "
+                             "of each recording)"})
+        return _fallback(series, opts, rc, search.table, report)
     chosen = search.run(structures)
     if chosen is None:
         return _fallback(series, opts, rc, search.table, report)
@@ -691,6 +707,23 @@ class _Search:
                     + f" ({row['seconds']:.1f} s)")
         if _better(result, self.best):
             self.best, self.best_cand, self.best_model = result, cand, model
+
+
+def _moving_cases(held: Sequence[Series], rc: ResampleConfig, case_lags: int,
+                  opts: AutoOptions) -> int:
+    """The held-out cases of the longest horizon in which the chair gets at least the
+    success distance from where it started (by the path integrated from the VO)."""
+    k = max(metrics.horizon_steps(list(opts.horizons_s), rc.rate_hz))
+    dt = 1.0 / rc.rate_hz
+    moving = 0
+    for s in held:
+        idx = metrics.case_indices(s.res.segment, case_lags, k)
+        if idx.size == 0:
+            continue
+        ref = reference_path(metrics.windows(s.res.vel, idx, -1, k + 1), dt)
+        reach = np.max(np.hypot(ref[..., 0], ref[..., 1]), axis=1)
+        moving += int(np.count_nonzero(reach >= opts.threshold_m))
+    return moving
 
 
 def _scorable_horizons(held: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
