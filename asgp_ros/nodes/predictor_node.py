@@ -332,7 +332,7 @@ class PredictorNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self._clock_reader = runtime.ClockReader(self, self._clock_stepped_back)
+        self._clock_reader = runtime.ClockReader(self, lambda: self.predictor)
         try:
             self._setup()
         except (StartupError, StartupInterruptedError):
@@ -517,13 +517,8 @@ class PredictorNode(Node):
 
     def _now(self) -> float | None:
         """Node clock in seconds; None before a simulated clock has started. A step back
-        of the clock resets the predictor (:meth:`Predictor.clock_stepped_back`)."""
+        of the clock resets the predictor (``runtime.ClockReader``)."""
         return self._clock_reader.now()
-
-    def _clock_stepped_back(self, now: float, by: float) -> None:
-        self.get_logger().warning(f"the clock stepped back by {by:.3f} s: the buffers "
-                                  "restart")
-        self.predictor.clock_stepped_back(now, by)
 
     def _warn_rejected(self) -> None:
         stats = self.predictor.stats

@@ -44,6 +44,7 @@ import sys
 import threading
 import types
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import rclpy
 from rclpy.clock import Clock
@@ -53,6 +54,9 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
+
+if TYPE_CHECKING:
+    from asgp_ros.core.online import Predictor
 
 __all__ = ["StopSignals", "init", "pacing_clock", "ros_args_problem", "run",
            "settle_garbage_collector", "stop_requested"]
@@ -171,13 +175,15 @@ CLOCK_STEP_BACK_S = 0.01
 
 class ClockReader:
     """A node's clock in seconds as its callbacks read it (None before a simulated clock
-    has started), telling ``on_step(now, by)`` when it stepped back by more than
-    :data:`CLOCK_STEP_BACK_S` (NTP setting a clock that ran ahead, a /clock restarted):
-    rcl's jump callbacks see only a simulated clock's jumps."""
+    has started). When it stepped back by more than :data:`CLOCK_STEP_BACK_S` (NTP setting
+    a clock that ran ahead, a /clock restarted; rcl's jump callbacks see only a simulated
+    clock's jumps), the node's predictor is told (``Predictor.clock_stepped_back``) and
+    the log says so."""
 
-    def __init__(self, node: Node, on_step: Callable[[float, float], None]) -> None:
+    def __init__(self, node: Node, predictor: Callable[[], Predictor]) -> None:
         self._clock = node.get_clock()
-        self._on_step = on_step
+        self._logger = node.get_logger()
+        self._predictor = predictor  # (made after the reader: the node's, when it steps)
         self._seen = -math.inf
         self.steps_back = 0
 
@@ -189,7 +195,9 @@ class ClockReader:
         if now < self._seen - CLOCK_STEP_BACK_S:
             by, self._seen = self._seen - now, now
             self.steps_back += 1
-            self._on_step(now, by)
+            self._logger.warning(f"the clock stepped back by {by:.3f} s: the predictor's "
+                                 "buffers restart")
+            self._predictor().clock_stepped_back(now, by)
         else:
             self._seen = max(self._seen, now)
         return now

@@ -340,7 +340,7 @@ class SharedControlNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        self._clock_reader = runtime.ClockReader(self, self._clock_stepped_back)
+        self._clock_reader = runtime.ClockReader(self, lambda: self.predictor)
         try:
             values = check_values(PARAMS, declare(self, PARAMS))
             adapt_values = {name: values.pop(name) for name in adapt_params.ADAPT_NAMES}
@@ -491,13 +491,8 @@ class SharedControlNode(Node):
 
     def _now(self) -> float | None:
         """Node clock in seconds; None before a simulated clock has started. A step back
-        of the clock resets the predictor (:meth:`Predictor.clock_stepped_back`)."""
+        of the clock resets the predictor (``runtime.ClockReader``)."""
         return self._clock_reader.now()
-
-    def _clock_stepped_back(self, now: float, by: float) -> None:
-        self.get_logger().warning(f"the clock stepped back by {by:.3f} s: the buffers "
-                                  "restart")
-        self.predictor.clock_stepped_back(now, by)
 
     @staticmethod
     def _stamp(t: float, now: float) -> float:
