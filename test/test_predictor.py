@@ -694,3 +694,9 @@ def test_a_clock_step_back_restarts_and_refuses_the_old_timeline():
     assert pred.feed_joy(104.9, (0.3, 0.0), now=104.9)  # the clock back where it was
     assert pred.feed_joy(105.3, (0.3, 0.0), now=105.0)  # and the guard lifted
     assert len(pred._joy) == 3
+    # a bag looped (the clock an hour back), its samples 0.2 s ahead of a 5 Hz /clock: the
+    # guard lasts STEP_GUARD_S, not the hour (half the samples were refused all along)
+    pred.clock_stepped_back(10.0, 3600.0)
+    assert not pred.feed_joy(10.2, (0.3, 0.0), now=10.0)
+    assert pred.feed_joy(10.0 + online.STEP_GUARD_S + 0.2, (0.3, 0.0),
+                         now=10.0 + online.STEP_GUARD_S)

@@ -147,8 +147,12 @@ MAX_SAMPLE_RATE_HZ = 2000.0
 #: Most steps of a predicted path.
 MAX_HORIZON_STEPS = 200
 #: After the clock stepped back (:meth:`Predictor.clock_stepped_back`), until it is back
-#: where it was, a sample stamped more than this ahead of it is the old timeline's.
+#: where it was, a sample stamped more than this ahead of it is the old timeline's ...
 STEP_LEAD_S = 0.1
+#: ... for at most this long on the clock: the old timeline's samples still in flight are
+#: delivered within it (a bag looped with ``--clock 5``, its samples up to 0.2 s ahead of
+#: the clock, lost half of them for the whole of the next loop).
+STEP_GUARD_S = 1.0
 
 
 def horizon_steps(horizon_s: float, rate_hz: float) -> int:
@@ -561,10 +565,11 @@ class Predictor:
         are stamped up to ``by`` ahead of the clock, and the new ones would be spliced in
         among them, one window holding two moments. Until the clock is back where it was,
         a sample stamped more than :data:`STEP_LEAD_S` ahead of it is the old timeline's
-        (sent before the step, delivered after) and refused. (No second reset when none of
+        (sent before the step, delivered after) and refused, for at most
+        :data:`STEP_GUARD_S`. (No second reset when none of
         the samples held is ahead of the clock: a step beyond ``reset_jump_s`` has reset the
         buffers already, at the first sample fed after it.)"""
-        self._stepped_until = now + by
+        self._stepped_until = now + min(by, STEP_GUARD_S)
         if self._newest() > now + STEP_LEAD_S:
             self.reset(f"the clock stepped back by {by:.3f} s to {now:.3f} s")
 
