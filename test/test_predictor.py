@@ -339,6 +339,33 @@ def test_out_of_order_and_duplicate_stamps_give_the_same_prediction(data):
     np.testing.assert_array_equal(a.pose, b.pose)
 
 
+def test_of_equal_stamps_the_last_to_arrive_drives_the_prediction(data):
+    """A backlog read at once can reach the predictor with equal stamps: of those, the
+    newer reading (the last to arrive) is the one kept, in the buffers and the resampler
+    alike, so a user who moved the stick from +0.6 to -0.6 is predicted at -0.6."""
+    jt, joy, vt, vel, _ = data
+    events = [e for e in arrival_order(jt, joy, vt, vel) if e[0] < 1012.0]
+    joy_stamps = [e[0] for e in events if e[1] == "joy"][-5:]
+
+    def run(values: list[tuple[float, float]]) -> Predictor:
+        pred = Predictor(linear_model(), PredictorConfig(horizon_steps=4))
+        for ev in events:
+            if ev[1] == "joy" and ev[0] in joy_stamps:
+                for v in values:
+                    assert pred.feed_joy(ev[0], v)
+            else:
+                feed(pred, ev)
+        return pred
+
+    now = events[-1][0]
+    both = run([(0.6, 0.0), (-0.6, 0.0)]).predict(now)
+    last = run([(-0.6, 0.0)]).predict(now)
+    first = run([(0.6, 0.0)]).predict(now)
+    assert both.ok and last.ok and first.ok
+    np.testing.assert_array_equal(both.pose, last.pose)
+    assert np.max(np.abs(both.pose - first.pose)) > 1e-3
+
+
 def test_plan_drives_the_future_joystick_and_changes_the_path():
     pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=5, plan_timeout_s=1.0)
     now = max(jt[-1], vt[-1])
@@ -624,8 +651,8 @@ def test_the_sample_buffer_keeps_what_a_list_would():
             np.testing.assert_array_equal(values, want[:, 1:])
             handed.append((stamps, values, want))
             if ref:
-                first_newest = max(range(len(ref)), key=lambda k: ref[k][0])
-                np.testing.assert_array_equal(buf.newest_row(), ref[first_newest])
+                last_newest = max(range(len(ref)), key=lambda k: (ref[k][0], k))
+                np.testing.assert_array_equal(buf.newest_row(), ref[last_newest])
     for stamps, values, want in handed:
         np.testing.assert_array_equal(stamps, want[:, 0])
         np.testing.assert_array_equal(values, want[:, 1:])

@@ -13,6 +13,7 @@ import time
 import tty
 from collections.abc import Iterator
 
+import numpy as np
 import pytest
 from test_serial_link import wait_until
 
@@ -268,3 +269,35 @@ def test_a_sample_behind_line_noise_is_delivered_when_the_line_goes_idle(linked)
     assert wait_until(lambda: marks == [321], 2.0), marks
     assert times[0] - t_sent < 0.1  # the time its bytes came, not the time it was given
     assert link.stats().frames_lost == lost0
+
+
+
+def test_a_backlog_read_at_once_is_timed_at_the_boards_rate(linked):
+    """After the reader stalled (a busy host), one read returns up to 2 s of the board's
+    samples. Each is timed back from the read by its distance to the newest at the board's
+    rate (100 Hz here), the SEQs lost between them counted as samples and other frames
+    not, and none before the previous read: a backlog is not the stick's present."""
+    board, link, marks = linked
+    advance_to(board, link, 9)
+    times: list[float] = []
+    del marks[:]
+    link._on_sample = lambda s: (marks.append(s.raw_forward), times.append(s.t_rx))
+    samples = [*range(11, 30), *range(31, 40), *range(42, 60)]  # 30 a heartbeat, 40-41 lost
+    frames = frames_of(samples)
+    frames.insert(19, (30, proto.Heartbeat(1000, 0, 0, 0)))
+    with link._lock:  # the reader stalls on its next read, after one sample
+        t_stall = time.monotonic()
+        board.play([(10, sample(99))])
+        time.sleep(0.6)  # the stall: the backlog (0.47 s at 100 Hz) is written meanwhile
+        board.play(frames)
+        t_release = time.monotonic()
+    assert wait_until(lambda: len(marks) == 1 + len(samples), 5.0), marks
+    assert marks == [99, *range(100, 100 + len(samples))]
+    backlog = np.array(times[1:])
+    steps = np.diff(backlog)
+    lost_at = samples.index(42) - 1  # between the samples of SEQ 39 and 42
+    np.testing.assert_allclose(np.delete(steps, lost_at), 0.01, rtol=0, atol=1e-9)
+    assert steps[lost_at] == pytest.approx(0.03, abs=1e-9)
+    assert backlog[-1] >= t_release  # the newest came when the read returned
+    assert backlog[0] - (backlog[-1] - 0.47) == pytest.approx(0.0, abs=1e-9)
+    assert backlog[0] > times[0] > t_stall  # and after the read before

@@ -404,9 +404,10 @@ class _Buffer:
         return live[:, 0], live[:, 1:]
 
     def newest_row(self) -> FloatArray:
-        """(stamp, values...) of the newest stamp (the first to arrive of equal stamps)."""
+        """(stamp, values...) of the newest stamp (the last to arrive of equal stamps, as
+        the resampler keeps)."""
         live = self._data[self._start:self._end]
-        row: FloatArray = live[int(np.argmax(live[:, 0]))].copy()
+        row: FloatArray = live[len(live) - 1 - int(np.argmax(live[::-1, 0]))].copy()
         return row
 
     def clear(self) -> None:
@@ -1016,8 +1017,7 @@ class Predictor:
         k = self.config.horizon_steps
         from_plan = False
         if joy_future is None:
-            joy_t, joy = self._joy.arrays()
-            held = joy[np.argmax(joy_t)]
+            held = self._joy.newest_row()[1:]
             planned = self.plan_future(t0, now, k, held)
             if planned is not None:
                 joy_future, from_plan = planned, True

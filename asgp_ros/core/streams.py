@@ -7,8 +7,9 @@ This is the hand-over type between the bag reader / simulator and the resampler:
 * optionally the ground truth of a simulator (pose and twist).
 
 Times are seconds on one clock (header stamps, or bag receive time when a message has
-no valid header). Arrays are sorted by time on construction; exact duplicate stamps are
-dropped (the first sample wins).
+no valid header). Arrays are sorted by time on construction; of exact duplicate stamps
+the last to arrive is kept (a sensor's newer reading: a joystick bridge that read a
+backlog at once, a driver that republished).
 
 Ranges (inclusive; defined here and nowhere else). A sample outside them is not data
 about a wheelchair: the resampler drops it as it drops a non-finite one, and the online
@@ -127,7 +128,7 @@ def _sorted_unique(t: FloatArray, *values: FloatArray) -> tuple[FloatArray, ...]
     order = np.argsort(t, kind="stable")
     t = t[order]
     keep = np.ones(t.shape[0], dtype=bool)
-    keep[1:] = np.diff(t) > 0.0
+    keep[:-1] = np.diff(t) > 0.0  # of equal stamps, the last to arrive (the sort is stable)
     return (t[keep], *(v[order][keep] for v in values))
 
 
