@@ -196,3 +196,40 @@ def test_cli_bad_inputs_write_nothing(bags, tmp_path, capsys):
     assert main(["evaluate", str(model), bags["test"], "--truth",
                  "--truth-topic", "/none"]) == 2
     assert "/none" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("axis, named", [(0, "forward axis"), (1, "turn axis")])
+def test_a_recording_that_never_uses_a_stick_axis_is_refused_by_name(axis, named, tmp_path,
+                                                                     capsys):
+    """A recording driven only straight (or only spun on the spot) has a joystick axis at 0
+    throughout: the GP cannot learn what it never saw. Both `asgp train` paths refuse it,
+    naming the signal and what to record, not a feature column; nothing is written."""
+    import dataclasses
+
+    from asgp_ros.core.resample import resample
+    from asgp_ros.learning.training import AutoOptions, train_auto
+
+    streams = _lag_streams(3)
+    joy = streams.joy.copy()
+    joy[:, axis] = 0.0
+    series = Series("straight", resample(dataclasses.replace(streams, joy=joy)))
+    for fit in (lambda: train([series], TrainOptions(kind="asgp", max_iter=5)),
+                lambda: train_auto([series], AutoOptions(budget_s=5.0))):
+        with pytest.raises(TrainingError) as err:
+            fit()
+        msg = str(err.value)
+        assert named in msg and "never show" in msg and "column" not in msg, msg
+    # the baselines need no variation of every input: still trained
+    train([series], TrainOptions(kind="mlp", max_iter=5))
+
+    from asgp_ros.recording.bags import write_bag
+    from asgp_ros.sim.simulate import simulate
+    rec = simulate("tile", 1.0, 5)
+    joy = rec.joy.copy()
+    joy[:, axis] = 0.0
+    bag = write_bag(tmp_path / "straight", dataclasses.replace(rec, joy=joy))
+    out = tmp_path / "m.npz"
+    assert main(["train", str(bag), "--out", str(out), "--budget-s", "5"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert named in err and "column" not in err and "Traceback" not in err, err
+    assert not out.exists()

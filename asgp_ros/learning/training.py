@@ -169,6 +169,31 @@ def design(series: Sequence[Series], channel: int, feature_config: Any) -> tuple
     return np.concatenate(Xs), np.concatenate(ys)
 
 
+#: The four signals of a row, named for messages: (array of Resampled, column, name, advice).
+_SIGNALS = (("joy", 0, "the joystick's forward axis (joy axis 0)", "driving forward and back"),
+            ("joy", 1, "the joystick's turn axis (joy axis 1)", "turning"),
+            ("vel", 0, "the odometry's forward speed v", "the chair driving forward and back"),
+            ("vel", 1, "the odometry's turn rate omega", "the chair turning"))
+
+
+def check_signals(series: Sequence[Series]) -> None:
+    """Refuse recordings in which one of the four signals never changes over the valid grid
+    points (a stick never turned, a chair that only spun on the spot, odometry stuck at
+    zero): a GP cannot standardise a constant input and learns nothing about what it never
+    saw. The message names the signal and what to record, not a feature column."""
+    for array, col, name, advice in _SIGNALS:
+        values = np.concatenate([getattr(s.res, array)[s.res.valid, col] for s in series])
+        if values.size == 0:
+            return  # no valid point at all: design() says so, per channel
+        spread = float(values.std())
+        if not spread > 1e-12 * max(1.0, float(np.abs(values).max())):
+            raise TrainingError(
+                f"{name} is {float(values[0]):.3g} at every valid point of "
+                f"{', '.join(s.name for s in series)}: a model cannot learn a motion the "
+                f"recordings never show; record driving that includes {advice} (a few "
+                "minutes of ordinary driving, with turns, stops and reversals)")
+
+
 def _fit_channel(kind: ModelKind, channel: int, X: np.ndarray, y: np.ndarray,
                  feature_config: Any, opts: TrainOptions, progress: Progress
                  ) -> tuple[Any, dict[str, Any]]:
@@ -200,6 +225,8 @@ def train(
         raise TrainingError("no training recordings")
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
     kind = get_kind(opts.kind)
+    if opts.kind == "asgp":
+        check_signals(series)
     fc = FeatureConfig(lags=opts.resolved_lags(), coupled=opts.coupled)
     rc = resample_config if resample_config is not None else ResampleConfig()
     channels = []
@@ -520,6 +547,7 @@ def train_auto(
     opts.validate()
     if not series:
         raise TrainingError("no training recordings")
+    check_signals(series)
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
     rc = resample_config if resample_config is not None else ResampleConfig()
     t_start = time.perf_counter()
@@ -785,8 +813,8 @@ def _fallback(series: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
         inducing_w=opts.inducing_w if opts.inducing_w is not None else PAPER_OPTIONS.inducing_w,
         max_iter=opts.max_iter, seed=opts.seed)
     why = next((row["skipped"] for row in table if "skipped" in row), "no candidate")
-    report("select", "no candidate could be scored on the held-out data (" + why + "); "
-                     f"training s={fallback.resolved_lags()} M={fallback.inducing_v}/"
+    report("select", "no candidate could be fitted and scored on the held-out data ("
+                     + why + f"); training s={fallback.resolved_lags()} M={fallback.inducing_v}/"
                      f"{fallback.inducing_w}{' coupled' if fallback.coupled else ''} on all the "
                      "data, without calibration")
     model = train(series, fallback, resample_config=rc, progress=report)
@@ -795,8 +823,8 @@ def _fallback(series: Sequence[Series], opts: AutoOptions, rc: ResampleConfig,
     meta["selection"] = {"fallback": why, "candidates": table,
                          "holdout_fraction": opts.holdout, "budget_s": opts.budget_s}
     meta["calibration"] = {"fitted": False,
-                           "reason": f"no candidate could be scored on the held-out data "
-                                     f"({why})"}
+                           "reason": "no candidate could be fitted and scored on the held-out "
+                                     f"data ({why})"}
     return dataclasses.replace(model, meta=meta)
 
 
@@ -867,7 +895,7 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     if not applied:
         report["reason"] = (f"not applied: cross-validated, the map moved the coverage away "
                             f"from 95% (mean deviation over speed regimes and horizons "
-                            f"{100 * dev_raw:.1f} points raw, {100 * dev_cal:.1f} calibrated)")
+                            f"{100 * dev_raw:.2f} points raw, {100 * dev_cal:.2f} calibrated)")
         return VarianceCalibration(), report
     return cal, report
 
