@@ -173,6 +173,48 @@ def test_bad_scans_are_refused_and_never_read_as_clear():
         clear(np.array([[np.nan, 0.0, 0.0]]), np.eye(2)[None])
 
 
+def test_an_erroneous_sector_is_never_read_as_a_way_through():
+    """NaN beams (REP-117: erroneous) straight ahead, 40 degrees of a wall 1.5 m away that a
+    chair would pass through if they read as free: a run of NaN beams counts as an obstacle
+    at the nearer of the returns that bound it; a run between beams with no return gives
+    none; a full-turn scan wraps. Scan matching and the memory keep to the returns."""
+    scan = wall_scan(1.5)
+    ang = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.size)
+    gap = np.abs(ang) < math.radians(20)
+    holed = C.Scan(np.where(gap, np.nan, scan.ranges), scan.angle_min, scan.angle_increment,
+                   scan.range_min, scan.range_max)
+    assert C.scan_check(holed)(*one(0.5 - HALF))[1][0] == 0.0  # well short of it
+    # through the NaN sector (0.55 m either side at 1.5 m, wider than the chair): touching
+    assert C.scan_check(holed)(*one(1.6))[1][0] == 1.0
+    assert len(C.scan_points(holed)) == np.count_nonzero(~gap & np.isfinite(scan.ranges))
+    pts = C.erroneous_beam_points(holed)
+    assert pts.shape == (np.count_nonzero(gap), 2)
+    np.testing.assert_allclose(np.hypot(pts[:, 0], pts[:, 1]), 1.5 / math.cos(math.radians(20)),
+                               rtol=2e-3)  # the nearer bounding return
+    # bounded by a beam too close to measure on one side: range_min
+    r = holed.ranges.copy()
+    r[np.flatnonzero(gap)[0] - 1] = -np.inf
+    near = C.erroneous_beam_points(C.Scan(r, scan.angle_min, scan.angle_increment, 0.05, 8.0))
+    np.testing.assert_allclose(np.hypot(near[:, 0], near[:, 1]), 0.05)
+    # NaN between beams with no return (open space both sides): nothing to stand in
+    open_ = C.Scan(np.where(gap, np.nan, np.inf), scan.angle_min, scan.angle_increment, 0.05,
+                   8.0)
+    assert C.erroneous_beam_points(open_).shape == (0, 2)
+    # NaN at the scan's edges, bounded on one side only
+    r = np.full(100, 2.0)
+    r[:5] = np.nan
+    edge = C.erroneous_beam_points(C.Scan(r, -0.5, 0.01, 0.05, 8.0))
+    np.testing.assert_allclose(np.hypot(edge[:, 0], edge[:, 1]), 2.0)
+    # a full turn: the first and last beams are neighbours (the last one sees 1 m)
+    n = 360
+    r = np.full(n, 3.0)
+    r[:4] = np.nan
+    r[-1] = 1.0
+    wrap = C.erroneous_beam_points(C.Scan(r, -math.pi, 2 * math.pi / n, 0.05, 8.0))
+    np.testing.assert_allclose(np.hypot(wrap[:, 0], wrap[:, 1]), 1.0)
+    assert C.erroneous_beam_points(wall_scan(1.5)).shape == (0, 2)
+
+
 def test_simulated_scanner_ranges_match_the_room():
     room = Room()
     cfg = LidarConfig(noise_sd=0.0, dropout=0.0, mount=(0.0, 0.0, 0.0))

@@ -65,7 +65,9 @@ REP-117 for scans: ``+inf`` or a range beyond ``range_max`` is no return within 
 (free as far as the scan sees); ``-inf`` or a range below ``range_min`` is an object too
 close to measure, counted as an obstacle at ``range_min``; ``NaN`` is an erroneous
 reading. A scan with no usable beam, or with more than ``max_invalid`` of them NaN, is
-refused (:class:`CollisionError`): an empty scan never reads as "clear".
+refused (:class:`CollisionError`): an empty scan never reads as "clear". A run of NaN beams
+counts as an obstacle at the nearer of the returns that bound it
+(:func:`erroneous_beam_points`): an erroneous sector is never read as a way through.
 
 Unknown space: a grid's unknown cells (-1) and everything outside a grid count as occupied
 by default (``unknown_is_obstacle``); outside a scan's window (``range_max`` around the
@@ -254,6 +256,46 @@ def scan_points(scan: Scan) -> FloatArray:
     return pts
 
 
+def erroneous_beam_points(scan: Scan) -> FloatArray:
+    """[m, 2] points standing in for a scan's NaN (erroneous) beams, in its own frame.
+
+    A NaN beam says nothing, and an obstacle may stand in its direction (a dark or shiny
+    surface, a glass door, a beam lost in the sensor). A run of NaN beams is given the
+    nearer of the two returns that bound it (a beam too close to measure counts at
+    ``range_min``): an erroneous sector between obstacles is never read as a way through.
+    A run bounded on both sides by beams with no return in range (or by the edges of a
+    scan that is not a full turn) gives no point: its neighbours see nothing either. A
+    full-turn scan's first and last beams are neighbours.
+
+    Only the collision test uses these points; scan matching and the obstacle memory keep
+    to the returns (:func:`scan_points`)."""
+    r = scan.ranges
+    nan = np.isnan(r)
+    n = r.size
+    if not nan.any() or nan.all():
+        return np.empty((0, 2))
+    # the range each beam shows an obstacle at: a return, range_min when too close, inf
+    # for none in range; NaN kept for the erroneous beams
+    shown = np.where(r < scan.range_min, scan.range_min, np.where(r <= scan.range_max, r, np.inf))
+    shown[nan] = np.nan
+    full_turn = abs(scan.angle_increment) * n >= 2.0 * math.pi - 0.5 * abs(scan.angle_increment)
+    reps = 3 if full_turn else 1
+    ext = np.tile(shown, reps)
+    good = ~np.isnan(ext)
+    i = np.arange(ext.size)
+    before = np.maximum.accumulate(np.where(good, i, -1))
+    after = np.minimum.accumulate(np.where(good, i, ext.size)[::-1])[::-1]
+    pad = np.append(ext, np.inf)  # index -1 / ext.size: no neighbour there
+    left = np.where(before >= 0, pad[before], np.inf)
+    right = np.where(after < ext.size, pad[np.minimum(after, ext.size)], np.inf)
+    fill = np.minimum(left, right)[(reps // 2) * n:(reps // 2 + 1) * n]
+    use = nan & np.isfinite(fill)
+    angles = scan.angle_min + scan.angle_increment * np.flatnonzero(use)
+    rr = fill[use]
+    pts: FloatArray = np.stack([rr * np.cos(angles), rr * np.sin(angles)], axis=1)
+    return pts
+
+
 def _merged(pts: FloatArray) -> tuple[FloatArray, float]:
     """At most MAX_SCAN_POINTS points: ``pts`` themselves, or the centres of the cells of
     the finest lattice (MERGE_START, doubling) that they occupy; and how far (m) any of
@@ -398,7 +440,7 @@ class DistanceField:
         if nan.all() or nan.mean() > max_invalid:
             raise CollisionError(f"scan has {int(nan.sum())} of {nan.size} beams NaN "
                                  "(erroneous): it cannot show the way is clear")
-        pts = scan_points(scan)
+        pts = np.concatenate([scan_points(scan), erroneous_beam_points(scan)])
         resolution = max(resolution, 2.0 * scan.range_max / (MAX_SCAN_FIELD_SIDE - 4))
         half = scan.range_max + 2 * resolution
         if extra is not None and extra.shape[0]:
