@@ -733,6 +733,15 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
     with pytest.raises(DemoError):
         orchestrator.run_demo(DemoOptions(out=tmp_path / "new", model=model), said.append)
     assert not (tmp_path / "new").exists()
+    # a run killed (SIGKILL) while its earlier demo was set aside: the next run says where
+    aside = tmp_path / ".demo.previous.0badc0de"
+    aside.mkdir()
+    (aside / "report.md").write_text("the killed run's earlier demo\n")
+    said.clear()
+    monkeypatch.setattr(orchestrator, "_run_in", drove)
+    assert orchestrator.run_demo(opts, said.append) == 130
+    assert any(str(aside) in line and "kept" in line for line in said), said
+    assert (aside / "report.md").read_text() == "the killed run's earlier demo\n"
 
 
 @pytest.mark.ros

@@ -24,6 +24,7 @@ Sequence:
 
 from __future__ import annotations
 
+import glob
 import logging
 import math
 import os
@@ -371,6 +372,10 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
         raise DemoError(str(exc)) from exc
     # An earlier demo there (--force, or its model reused) is set aside, not written over:
     # it is removed once this one has driven, and put back if it is stopped before that.
+    for stray in sorted(out.parent.glob(f".{glob.escape(out.name)}.previous.*")):
+        # set aside by a run killed (SIGKILL, power) before it could put it back or remove it
+        say(f"{stray} holds an earlier demo that a killed run set aside; it is kept (move it "
+            f"back over {out}, or delete it)")
     previous = None
     if out.exists():
         previous = out.with_name(f".{out.name}.previous.{os.urandom(4).hex()}")
