@@ -62,6 +62,10 @@ RESTART_SEQ_BELOW = 16
 #: 1.3 s; a board that reorders this many frames is not expected).
 SEQ_RESYNC_AFTER = 8
 
+#: Reads after the first that a turn of the reader may make while the OS still holds bytes
+#: (each at most 4 KiB): a backlog is taken whole, a device that floods cannot hold the reader.
+MAX_DRAIN_READS = 64
+
 #: A partial frame with no byte for this long (s) is given up, as the firmware does
 #: (``ASGP_RX_IDLE_MS``): the frames behind it are delivered.
 RX_IDLE_S = 0.02
@@ -462,6 +466,25 @@ class LinkManager:
                     self._expire_partial()
                 continue
             t_rx = self._clock()
+            if t_rx - self._last_rx_t > cfg.silence_reopen:
+                # no byte for longer than a silent board may take: the board was silent, or
+                # this reader stalled (a busy host) and what waits is a backlog older than
+                # the limit; either way, reopened as after a silence (its input flushed)
+                quiet = t_rx - self._last_rx_t
+                with self._lock:
+                    self._last_error = (f"no byte read for {quiet:.1f} s (a silent board, or "
+                                        "this reader stalled): the bytes waiting are dropped")
+                self._set_state(LinkState.CONNECTING, "silent board or stalled reader, "
+                                                      "reopening")
+                return
+            # all that the OS holds now, as one: a stall ends inside the read above, which
+            # returned one byte, and the OS hands over at most 4 KiB a read
+            for _ in range(MAX_DRAIN_READS):
+                waiting = ser.in_waiting
+                if not waiting:
+                    break
+                data += ser.read(waiting)
+            t_rx = self._clock()
             t_before, self._last_rx_t = self._last_rx_t, t_rx
             with self._lock:
                 frames = self._parser.feed(data)
@@ -471,16 +494,17 @@ class LinkManager:
 
     def _arrival_times(self, frames: list[proto.Frame], t_rx: float, t_before: float
                        ) -> list[float]:
-        """When each frame of one read came. One read returns what the OS buffered since
-        the last: after the reader stalled (a busy host), up to 2 s of the board's samples
-        at once. Its newest sample came at ``t_rx``; one n samples before it (counting the
-        SEQs lost between them as samples) came n periods of the board's rate before,
-        and none before the previous read (``t_before``). Other frames are timed at
-        ``t_rx``. Without the board's rate (before its VERSION), all at ``t_rx``.
+        """When each frame of one read came. One read (with what followed it at once)
+        returns what the OS buffered since the last: after the reader stalled (a busy
+        host), up to 2 s of the board's samples at once. Its newest sample came at
+        ``t_rx``; one n samples before it (counting the SEQs lost between them as samples)
+        came n periods of the board's rate before, and none before the previous read
+        (``t_before``). Other frames are timed at ``t_rx``. Without the board's rate
+        (before its VERSION), all at ``t_rx``.
 
         This holds while the OS buffer (4 KiB on Linux) did not overflow: at the
-        firmware's 100 Hz, some 2.5 s of backlog, beyond the 2 s after which a silent
-        link is reopened and its backlog dropped."""
+        firmware's 100 Hz, some 2.5 s of backlog, beyond the 2 s without a byte read after
+        which the link is reopened and its backlog dropped."""
         times = [t_rx] * len(frames)
         v = self._version
         rate = v.sample_rate_hz if v is not None else 0
