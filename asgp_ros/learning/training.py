@@ -169,27 +169,37 @@ def design(series: Sequence[Series], channel: int, feature_config: Any) -> tuple
     return np.concatenate(Xs), np.concatenate(ys)
 
 
-#: The four signals of a row, named for messages: (array of Resampled, column, name, advice).
-_SIGNALS = (("joy", 0, "the joystick's forward axis (joy axis 0)", "driving forward and back"),
-            ("joy", 1, "the joystick's turn axis (joy axis 1)", "turning"),
-            ("vel", 0, "the odometry's forward speed v", "the chair driving forward and back"),
-            ("vel", 1, "the odometry's turn rate omega", "the chair turning"))
+#: The four signals of a row, named for messages: (0 for the joystick or 1 for the
+#: odometry, column, name, advice).
+_SIGNALS = ((0, 0, "the joystick's forward axis (axis 0)", "driving forward and back"),
+            (0, 1, "the joystick's turn axis (axis 1)", "turning"),
+            (1, 0, "the odometry's forward speed v", "the chair driving forward and back"),
+            (1, 1, "the odometry's turn rate omega", "the chair turning"))
 
 
-def check_signals(series: Sequence[Series]) -> None:
+#: A signal whose standard deviation over the valid points is below this never changes for
+#: training: 0.001 of the stick's full deflection (a fifth of one count of a 10-bit ADC), or
+#: 1 mm/s and 1 mrad/s of odometry (below any VO's noise).
+MIN_SIGNAL_STD = 1e-3
+
+
+def check_signals(series: Sequence[Series], part: str = "") -> None:
     """Refuse recordings in which one of the four signals never changes over the valid grid
     points (a stick never turned, a chair that only spun on the spot, odometry stuck at
-    zero): a GP cannot standardise a constant input and learns nothing about what it never
-    saw. The message names the signal and what to record, not a feature column."""
-    for array, col, name, advice in _SIGNALS:
-        values = np.concatenate([getattr(s.res, array)[s.res.valid, col] for s in series])
+    zero; :data:`MIN_SIGNAL_STD`): a GP learns nothing about what it never saw, and cannot
+    standardise a constant input. The message names the signal and what to record, not a
+    feature column; ``part`` names the part of the recordings checked, if not all."""
+    for which, col, name, advice in _SIGNALS:
+        values = np.concatenate([(s.res.joy, s.res.vel)[which][s.res.valid, col]
+                                 for s in series])
         if values.size == 0:
             return  # no valid point at all: design() says so, per channel
-        spread = float(values.std())
-        if not spread > 1e-12 * max(1.0, float(np.abs(values).max())):
+        if not float(values.std()) >= MIN_SIGNAL_STD:
+            where = f"{part} of " if part else ""
             raise TrainingError(
-                f"{name} is {float(values[0]):.3g} at every valid point of "
-                f"{', '.join(s.name for s in series)}: a model cannot learn a motion the "
+                f"{name} never changes in {where}{', '.join(s.name for s in series)} "
+                f"(standard deviation {float(values.std()):.2g} over the valid points, around "
+                f"{float(np.median(values)):.3g}): a model cannot learn a motion the "
                 f"recordings never show; record driving that includes {advice} (a few "
                 "minutes of ordinary driving, with turns, stops and reversals)")
 
@@ -558,6 +568,9 @@ def train_auto(
                          f"grid: scoring {list(aligned)} s")
         opts = dataclasses.replace(opts, horizons_s=aligned)
     fit_on, held = split_holdout(series, opts.holdout)
+    # the candidates are fitted on the first part alone: a motion only in the held-out end
+    # is one they never see
+    check_signals(fit_on, f"the first {100 * (1 - opts.holdout):g} % (the part fitted on)")
     structures = _structures(opts)
     case_lags = max(max(s for s, _ in structures), PAPER_OPTIONS.resolved_lags())
     search = _Search(fit_on, held, opts, rc, report, case_lags)
