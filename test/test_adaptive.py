@@ -723,3 +723,66 @@ def test_the_choice_needs_evidence_before_it_switches() -> None:
                 dict(half_life=10.0, lag=10, published=2)):
         with pytest.raises(AdaptError):
             PosteriorChoice(**bad)  # type: ignore[arg-type]
+
+
+def _without_vo(s: RawStreams, t_from: float, t_to: float) -> RawStreams:
+    keep = ~((s.vel_t >= t_from) & (s.vel_t < t_to))
+    return RawStreams(joy_t=s.joy_t, joy=s.joy, vel_t=s.vel_t[keep], vel=s.vel[keep],
+                      vel_ok=s.vel_ok[keep])
+
+
+def test_a_longer_outage_counts_every_step_it_refused(model: MotionModel) -> None:
+    """The VO silent while the stick moves: no query comes, and the steps leave the buffer
+    unjudged. Each is a step training would not accept: 5 s counted 29, 60 s counted none."""
+    s = drive(240.0, seed=3)
+    counts = {}
+    for gap in (0.0, 5.0, 60.0):
+        pred = Predictor(model, PredictorConfig(horizon_steps=10), adapt=AdaptSettings())
+        replay(pred, _without_vo(s, T0 + 100.0, T0 + 100.0 + gap) if gap else s)
+        stats = pred.adaptation
+        assert stats is not None
+        counts[gap] = stats.steps_refused
+        grid = resample(s, RC).t.shape[0]
+        assert stats.rows_absorbed + stats.steps_refused <= grid
+    assert counts[5.0] >= counts[0.0] + 5 * RC.rate_hz
+    assert counts[60.0] >= counts[0.0] + 60 * RC.rate_hz, counts
+
+
+@pytest.mark.parametrize("observe", [False, True])
+def test_predicting_every_nth_step_still_checks_the_predictions(model: MotionModel,
+                                                                observe: bool) -> None:
+    """A caller predicting every 5th step (predictor_node with rate_hz 1 on a 5 Hz model):
+    the online calibration checked none (it waited for 5 predictions ready at once, and
+    dropped them first), so the trained posterior and its ellipses stayed on a chair that
+    had changed. Checked now in blocks of those waiting; with ``observe`` on the steps in
+    between (as the node does) every step is absorbed and checked."""
+    s = drive(240.0, seed=4, gain=(0.6, 0.6))  # a slower chair than the trained one
+    got = {}
+    for n in (1, 5):
+        pred = Predictor(model, PredictorConfig(horizon_steps=10), adapt=AdaptSettings())
+        last = None
+        for t, kind, j in events(s):
+            if kind == 0:
+                pred.feed_joy(t, s.joy[j])
+            else:
+                pred.feed_vo(t, s.vel[j], bool(s.vel_ok[j]))
+            step = pred.ready_step()
+            if step is None or (last is not None and step <= last):
+                continue
+            prev = step - 1 if last is None else last
+            last = step
+            if step // n != prev // n:
+                pred.predict(t)
+            elif observe:
+                pred.observe(t)
+        stats = pred.adaptation
+        assert stats is not None
+        got[n] = stats
+    every, fifth = got[1], got[5]
+    assert fifth.checked > 0
+    assert fifth.published == every.published == "adapted"
+    if observe:
+        assert fifth.checked == pytest.approx(every.checked, rel=0.02)
+        assert fifth.rows_absorbed == pytest.approx(every.rows_absorbed, rel=0.02)
+    else:
+        assert fifth.checked == pytest.approx(every.checked / 5, rel=0.2)

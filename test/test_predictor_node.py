@@ -1036,6 +1036,28 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
         h.close()
 
 
+def test_a_reduced_rate_still_adapts_and_checks_every_step(rclpy_context, model_file):
+    """rate_hz 1 on a 5 Hz model (a path every 5th step): adaptation learnt only on the
+    predicted steps, and its online calibration checked none (adapt_checked 0, the trained
+    posterior and its ellipses kept on a chair that had changed). Every step is learnt and
+    checked now, as at the model's rate."""
+    h = Harness(rclpy_context, model_file, rate_hz=1.0,
+                **{"adapt.enabled": True, "adapt.half_life_s": 10.0})
+    try:
+        def slow(t: float) -> tuple[float, float]:
+            return 0.3 + 0.2 * math.sin(t - 0.3), 0.2 * math.cos(0.5 * t)
+
+        h.drive(100.0, 140.0, vel=slow)
+        stats = h.node.predictor.adaptation
+        assert stats is not None and h.node._paths_published > 0
+        steps = 40.0 * 5  # the drive's grid steps
+        assert stats.rows_absorbed >= 0.8 * steps - 30  # less the lags and the settling
+        assert stats.checked >= 0.6 * steps, stats.checked
+        assert h.node._paths_published <= steps / 5 + 1
+    finally:
+        h.close()
+
+
 def _drive_with_overrides(h: Harness, t_from: float, t_to: float) -> None:
     """h.drive's inputs, with an override published at every joystick sample (a planner or
     the shared-control layer overriding the user the whole time)."""

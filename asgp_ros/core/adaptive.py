@@ -302,7 +302,8 @@ class AdapterStats:
     Attributes:
         rows_absorbed: grid steps absorbed (each by both channels).
         steps_refused: completed grid steps that training would not accept (invalid
-            window or target: gap, tracking loss, stale VO, another segment).
+            window or target: gap, tracking loss, stale VO, another segment), those that
+            left the buffer unjudged (no query while the VO was lost) too.
         rows_rejected: rows a channel refused (non-finite, outside the training range,
             a failed update), summed over the channels, by reason.
         effective_size: per channel, trained rows times their weight plus the adapted
@@ -547,11 +548,12 @@ class ModelAdapter:
         rows = [design_matrix(res, c, fc) for c in (0, 1)]
         index = rows[0][2]
         take = (index >= lo) & (index < hi)
-        # a step is refused unless it could be a training target: for the first steps of
-        # a window, whose lags lie before it, say nothing (they were judged before)
-        first_judgeable = max(lo, self.base.lags)
-        self._steps_refused += max(0, hi - first_judgeable) - int(
-            np.count_nonzero(take & (index >= first_judgeable)))
+        # every step after the last one judged is refused unless absorbed: those that left
+        # the buffer unjudged too (no query came while the VO was lost: its steps counted as
+        # long as they stayed in the buffer, and a 60 s outage counted none); at the very
+        # start the first `lags` steps, which no row can have as its target, are not steps
+        first = int(ks[0]) + self.base.lags if self._absorbed_to is None else start + 1
+        self._steps_refused += max(0, settled - first + 1 - int(np.count_nonzero(take)))
         self._absorbed_to = settled
         if not np.any(take):
             return
@@ -572,9 +574,17 @@ class ModelAdapter:
         assert cfg is not None
         k, s = self.horizon_steps, self.base.lags
         seg = np.asarray(res.segment)
-        ready = sum(1 for snap in self._snapshots if snap.step + k <= settled)
-        if ready < self.settings.update_steps:
-            return  # checked in blocks, as they are absorbed: batched rollouts
+        ready = 0
+        for snap in self._snapshots:  # in the order of their steps
+            if snap.step + k > settled:
+                break
+            ready += 1
+        if ready == 0 or (ready < self.settings.update_steps and settled - (
+                self._snapshots[0].step + k) < self.settings.update_steps):
+            # checked in blocks (batched rollouts): of update_steps predictions, or of those
+            # waiting since update_steps steps (a caller that predicts every n-th step only
+            # never has update_steps of them ready at once, and they were dropped unchecked)
+            return
         cases: list[tuple[int, _Snapshot]] = []
         while self._snapshots and self._snapshots[0].step + k <= settled:
             snap = self._snapshots.popleft()

@@ -993,6 +993,17 @@ class Predictor:
             grid = exclude_overridden(grid, overrides, self.resample_config)
         self._adapter.observe(grid, complete)
 
+    def observe(self, now: float) -> None:
+        """An adapting predictor's learning at ``now`` without a prediction: the window is
+        formed as :meth:`predict` forms it, and learnt from (absorbing the settled steps,
+        checking the predictions whose outcomes arrived). A caller that predicts every n-th
+        step calls it on the others, so that adaptation absorbs, and its online calibration
+        checks, every step. A no-op when not adapting."""
+        if self._adapter is None:
+            return
+        self._window(now)
+        self.learn()
+
     def predict(self, now: float, joy_future: FloatArray | None = None, *,
                 learn: bool = True) -> Prediction:
         """The predicted path at the last complete step, or why there is none.

@@ -728,6 +728,12 @@ class PredictorNode(Node):
         last = step - 1 if self._last_step is None else self._last_step
         self._last_step = step
         if step // self.every_n == last // self.every_n:  # no multiple in (last, step]
+            if self.predictor.adapting:
+                # adaptation learns from every step, predicted or not: with only the
+                # predicted ones (rate_hz 1 at 5 Hz), its online calibration checked none
+                if not self._learn_timer.is_canceled():
+                    self._on_learn_timer()
+                self._observe(now)
             return
         if not self._learn_timer.is_canceled():
             # the last path's learning is still to come (a step closer than LEARN_DELAY_S
@@ -763,6 +769,14 @@ class PredictorNode(Node):
     def _on_learn_timer(self) -> None:
         self._learn_timer.cancel()
         self._learn()
+
+    def _observe(self, now: float) -> None:
+        """Adaptation's work at a step not predicted (``rate_hz`` below the model's)."""
+        try:
+            self.predictor.observe(now)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # never let learning stop paths
+            self.get_logger().error(f"adaptation failed: {type(exc).__name__}: {exc}",
+                                    throttle_duration_sec=5.0)
 
     def _learn(self) -> None:
         """Adaptation's work for the steps so far (absorbing the settled ones, checking the
