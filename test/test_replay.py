@@ -589,3 +589,88 @@ def test_a_shutdown_between_checks_is_a_clean_stop(rclpy_context, ros2_bag):
     finally:
         helper.join()
         lis.close()
+
+
+def _play(context, bag: Path, name: str) -> int:
+    """Messages a whole replay of ``bag`` published (rate 1000, no clock)."""
+    import rclpy
+
+    from asgp_ros.recording.replay import BagReplayer
+
+    node = rclpy.create_node(name, context=context)
+    try:
+        config = ReplayConfig(rate=1000.0, wait_subscribers_s=0.0, publish_clock=False)
+        with BagReplayer(bag, config, node) as player:
+            player.run()
+            return player.published
+    finally:
+        node.destroy_node()
+
+
+@pytest.fixture(scope="module")
+def sim_bags(tmp_path_factory):
+    from asgp_ros.recording.bags import write_bag
+    from asgp_ros.sim.simulate import simulate
+
+    d = tmp_path_factory.mktemp("sim_replay")
+    rec = simulate("tile", 0.25, 6)
+    return {s: write_bag(d / s, rec, storage=s) for s in ("mcap", "sqlite3")}
+
+
+def _sql(bag: Path, sql: str, *params) -> None:
+    import sqlite3
+
+    con = sqlite3.connect(next(bag.glob("*.db3")))
+    con.execute(sql, params)
+    con.commit()
+    con.close()
+
+
+def test_replay_plays_from_the_first_message_not_from_metadata(rclpy_context, sim_bags,
+                                                               tmp_path):
+    """metadata.yaml copied from another recording, or edited, starting 30 s later: the
+    first 30 s were not played, unsaid. The messages' own times count."""
+    import shutil
+
+    whole = _play(rclpy_context, sim_bags["mcap"], "replay_whole")
+    bag = Path(shutil.copytree(sim_bags["mcap"], tmp_path / "late"))
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    assert "nanoseconds_since_epoch: 1700000000000000000" in text
+    meta.write_text(text.replace("nanoseconds_since_epoch: 1700000000000000000",
+                                 "nanoseconds_since_epoch: 1700000010000000000"))
+    assert _play(rclpy_context, bag, "replay_late") == whole
+
+
+@pytest.mark.parametrize("edit", ["after_2038", "int64_max"])
+def test_a_message_past_2038_is_refused_whatever_metadata_says(rclpy_context, sim_bags,
+                                                                tmp_path, edit):
+    """Rows past 2^31 s while metadata.yaml ends in 2023: /clock's int32 seconds wrapped to
+    1901; one row at INT64_MAX: a replay at rate 1000 of a 15 s bag waited 7.5e6 s for it.
+    Each message's time is checked before it is played."""
+    import shutil
+
+    from asgp_ros.recording.replay import ReplayError
+
+    bag = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / edit))
+    if edit == "after_2038":
+        _sql(bag, "update messages set timestamp = timestamp + ? where id > 10",
+             (2**31 - 1_700_000_000) * 10**9)
+    else:
+        _sql(bag, "update messages set timestamp = 9223372036854775807 where id = 5")
+    with pytest.raises(ReplayError, match="2038"):
+        _play(rclpy_context, bag, f"replay_{edit}")
+
+
+def test_replay_refuses_rows_left_in_a_write_ahead_log(rclpy_context, sim_bags, tmp_path):
+    """The indexed reader leaves a SQLite log's committed rows out: refused, saying what
+    writes a clean copy."""
+    import shutil
+
+    from asgp_ros.recording.replay import ReplayError
+
+    bag = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / "wal"))
+    db = next(bag.glob("*.db3"))
+    (bag / (db.name + "-wal")).write_bytes(b"\0" * 64)
+    with pytest.raises(ReplayError, match="bag repair"):
+        _play(rclpy_context, bag, "replay_wal")

@@ -390,6 +390,11 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     rows: list[tuple[Any, ...]] = []
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
+            if not (isinstance(timestamp, int) and 0 <= timestamp < 2**63):
+                # an SQLite row whose time is not an integer (1.5e30 stored as REAL) or
+                # beyond int64: damaged data, as the scan judges it
+                raise _DamagedDataError(f"{source}: corrupt bag: a message's bag time is "
+                                        f"{_one_line(repr(timestamp))[:40]}")
             msg = reader.deserialize(raw, conn.msgtype)
             bag_ns.append(int(timestamp))
             rows.append(extract(msg, conn.msgtype))
@@ -430,6 +435,12 @@ def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = 
             raise
         return _open_recovered(path, exc, topics)
     store = get_typestore(Stores.ROS1_NOETIC if bag.is_file() else Stores.ROS2_JAZZY)
+    if (log_file := unapplied_log(bag)) is not None:
+        # rosbags opens SQLite immutable, which ignores the log: its committed rows (half a
+        # recording, killed before a checkpoint) were silently left out; the scan applies it
+        return _open_recovered(bag, BagError(
+            f"{bag}: {log_file.name} holds writes not yet in the database (a recorder "
+            "stopped before its checkpoint)"), topics)
     try:
         reader = AnyReader([bag], default_typestore=store)
         reader.open()
@@ -447,6 +458,23 @@ def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = 
             f"not text ({_one_line(repr(odd[0].topic))[:60]} "
             f"[{_one_line(repr(odd[0].msgtype))[:60]}])"), topics)
     return reader
+
+
+def unapplied_log(bag: Path) -> Path | None:
+    """The first non-empty SQLite write-ahead log or rollback journal beside a ROS 2 bag
+    directory's ``.db3`` files, or None. The indexed reader (rosbags) opens SQLite as
+    immutable, which reads neither: the rows committed in a ``-wal`` (a recorder killed
+    before its checkpoint) would be left out without a word."""
+    if not bag.is_dir():
+        return None
+    try:
+        for entry in os.scandir(bag):
+            if entry.name.endswith((".db3-wal", ".db3-journal")) and entry.is_file() \
+                    and entry.stat().st_size > 0:
+                return Path(entry.path)
+    except OSError:
+        return None
+    return None
 
 
 def _unfinished_ros2_bag(path: str | os.PathLike[str]) -> bool:
@@ -1708,7 +1736,10 @@ def recover_bag(path: str | os.PathLike[str],
         scan, n = _scan_storage_file(f, storage, keep, only=len(files) == 1)
         scans.append(scan)
         size += n
-    connections, messages = _merge_scans(scans)
+    connections, messages, repeated = _merge_scans(scans)
+    if repeated:
+        problems.append(f"{repeated} messages of one storage file repeat another's (a copy "
+                        "of it in the bag): kept once")
     if not connections:
         found = "; ".join(problems + [p for s in scans for p in s.problems]) or "no data"
         raise BagError(f"{bag}: nothing recoverable: no complete connection record ({found})")
@@ -1795,13 +1826,17 @@ def _scan_storage_file(f: Path, storage: str, keep: Callable[[str], bool], *, on
 
 
 def _merge_scans(scans: list[_Scan]) -> tuple[list[RecoveredConnection],
-                                              list[tuple[int, int, bytes]]]:
+                                              list[tuple[int, int, bytes]], int]:
     """The connections of all the storage files, one per (topic, type) in order of first
-    appearance, and every message with its connection renumbered (in file order)."""
+    appearance, every message with its connection renumbered (in file order), and how many
+    messages were left out as repeating, in topic, time and bytes, one of an earlier file
+    (a stray copy of a storage file in the bag: every message twice, the output "intact")."""
     connections: list[RecoveredConnection] = []
     ids: dict[tuple[str, str], int] = {}
     messages: list[tuple[int, int, bytes]] = []
-    for scan in scans:
+    seen: set[tuple[int, int, bytes]] = set()
+    repeated = 0
+    for n, scan in enumerate(scans):
         local: dict[Any, int] = {}
         for key, (topic, msgtype, text, enc) in scan.conns.items():
             if (topic, msgtype) not in ids:
@@ -1809,8 +1844,15 @@ def _merge_scans(scans: list[_Scan]) -> tuple[list[RecoveredConnection],
                 connections.append(RecoveredConnection(len(connections), topic, msgtype,
                                                        text, enc))
             local[key] = ids[(topic, msgtype)]
-        messages.extend((local[c], ns, data) for c, ns, data in scan.messages)
-    return connections, messages
+        mine = [(local[c], ns, data) for c, ns, data in scan.messages]
+        if n:  # within one file, repeats are the recording's own
+            kept = [m for m in mine if m not in seen]
+            repeated += len(mine) - len(kept)
+            mine = kept
+        if len(scans) > 1:
+            seen.update(mine)
+        messages.extend(mine)
+    return connections, messages, repeated
 
 
 class _RecoveredReader:
@@ -2073,6 +2115,16 @@ def write_bag(
         content = content.bag_content(default_store, ros1)
     store = content.typestore if content.typestore is not None else default_store
     records = content.messages
+    # the times the format holds: ROS 1 uint32 seconds, ROS 2 from 0 to int64 (mcap's are
+    # unsigned, sqlite3's signed); a negative time (an SQLite bag may hold one) made the mcap
+    # writer raise OverflowError
+    limit = (1 << 32) * 1_000_000_000 if ros1 else 1 << 63
+    bad = next((r[0] for r in records
+                if not (isinstance(r[0], int | np.integer) and 0 <= r[0] < limit)), None)
+    if bad is not None:
+        raise BagError(f"{path}: cannot write a message with the bag time "
+                       f"{_one_line(repr(bad))[:30]} ns in a {storage} bag: its times run "
+                       f"from 0 to {limit * 1e-9:.4g} s")
     order = sorted(range(len(records)), key=lambda i: (records[i][0], i))
     try:
         with atomic_path(path, directory=not ros1) as tmp:

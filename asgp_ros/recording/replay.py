@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from asgp_ros.common.topics import is_override as is_command
-from asgp_ros.recording.bags import BagError, resolve_bag
+from asgp_ros.recording.bags import BagError, resolve_bag, unapplied_log
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
 # (for REPLAY_RANGES) and must stay fast, and rclpy is an optional dependency.
@@ -309,6 +309,11 @@ class BagReplayer:
             self.path = resolve_bag(path)  # os.stat first: never opens a FIFO or a device
         except BagError as exc:
             raise ReplayError(str(exc)) from None
+        if (log_file := unapplied_log(self.path)) is not None:
+            # the indexed reader would leave its committed rows out without a word
+            raise ReplayError(f"{self.path}: {log_file.name} holds writes not yet in the "
+                              "database (a recorder stopped before its checkpoint): `asgp bag "
+                              "repair` writes a clean copy to replay")
         try:
             reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
             reader.open()
@@ -500,10 +505,13 @@ class BagReplayer:
         """Play the bag once from ``start_s``; False if stopped early."""
         connections = [c for t in self.topics.values() for c in t.connections]
         topic_of = {id(c): self.topics[c.topic] for c in connections}
-        start_ns = self.reader.start_time + int(self.config.start_s * 1e9)
+        # from the first message's time, not metadata.yaml's (one copied from another
+        # recording, or edited, started 30 s in and dropped those messages unsaid)
+        skip_ns = int(self.config.start_s * 1e9)
+        t_bag0: int | None = None
         wall_start = time.monotonic()
         t_first: int | None = None
-        messages = self.reader.messages(connections=connections, start=start_ns)
+        messages = self.reader.messages(connections=connections)
         while True:
             try:
                 conn, t_ns, raw = next(messages)
@@ -512,6 +520,17 @@ class BagReplayer:
             except Exception as exc:  # damaged data further into the bag
                 raise ReplayError(f"{self.path}: corrupt or truncated bag after "
                                   f"{self.published} messages: {_one_line(exc)}") from exc
+            if not (isinstance(t_ns, int) and 0 <= t_ns < _MAX_ROS_TIME_NS):
+                # each message, whatever metadata.yaml says its last time is: /clock's int32
+                # seconds wrapped to 1901, and a row at INT64_MAX waited 7.5e6 s
+                raise ReplayError(f"{self.path}: a message on {topic_of[id(conn)].name} has "
+                                  f"the bag time {repr(t_ns)[:30]} ns, outside "
+                                  "0 .. 2038-01-19: ROS 2 time has int32 seconds (/clock and "
+                                  "the stamps would wrap)")
+            if t_bag0 is None:
+                t_bag0 = t_ns
+            if t_ns < t_bag0 + skip_ns:
+                continue
             if t_first is None:
                 t_first = t_ns
             target = wall_start + (t_ns - t_first) / 1e9 / self.config.rate
