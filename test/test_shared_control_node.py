@@ -819,6 +819,29 @@ def test_a_velocity_source_that_cannot_work_is_refused(harness):
         harness(velocity_source="scan_matching", obstacles="grid", vo_type="odometry")
 
 
+@pytest.mark.parametrize("scan_nan", ["erroneous", "no_return"])
+def test_scan_nan_says_what_a_nan_range_means(harness, scan_nan):
+    """REP-117's NaN is an erroneous reading, counted as an obstacle at the returns that
+    bound it (a doorway of NaN between walls is closed); a source that reports nothing in
+    range as NaN (depthimage_to_laserscan) would close every doorway onto a space beyond
+    range_max: ``scan_nan: no_return`` reads its NaN as +inf."""
+    h = harness(scan_nan=scan_nan)
+    try:
+        h.clock(100.0)
+        msg = wall_scan_msg(100.0, 2.0)
+        ranges = np.array(msg.ranges, dtype=np.float64)
+        ranges[260:280] = np.nan
+        msg.ranges = ranges.astype(np.float32).tolist()
+        h.scan_pub.publish(msg)
+        h.spin_until(lambda: h.node._scan is not None, what="scan")
+        got = h.node._scan[1].ranges[260:280]
+        assert np.all(np.isnan(got)) if scan_nan == "erroneous" else np.all(np.isinf(got))
+    finally:
+        h.close()
+    with pytest.raises(StartupError, match="scan_nan"):
+        harness(scan_nan="free")
+
+
 def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noqa: F811
     with pytest.raises(StartupError, match="obstacles"):
         SharedControlNode(context=rclpy_context, parameter_overrides=[

@@ -625,14 +625,19 @@ def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov:
 # Shared control: LaserScan, OccupancyGrid
 
 
-def scan_from_msg(msg: LaserScan) -> collision.Scan:
+def scan_from_msg(msg: LaserScan, nan_is_free: bool = False) -> collision.Scan:
     """sensor_msgs/LaserScan -> :class:`asgp_ros.core.collision.Scan` (stamp in seconds).
+    ``nan_is_free``: a NaN range is read as +inf, nothing in range (a source that reports
+    no return as NaN); by default NaN is an erroneous reading (REP-117).
 
     Raises:
         ValueError (:class:`~asgp_ros.core.collision.CollisionError`): no beams, more than
             100,000, non-finite limits or angles.
     """
-    return collision.Scan(np.asarray(msg.ranges, dtype=np.float64), float(msg.angle_min),
+    ranges = np.asarray(msg.ranges, dtype=np.float64)
+    if nan_is_free:
+        ranges = np.where(np.isnan(ranges), np.inf, ranges)
+    return collision.Scan(ranges, float(msg.angle_min),
                           float(msg.angle_increment), float(msg.range_min),
                           float(msg.range_max), stamp_to_seconds(msg.header.stamp))
 

@@ -120,6 +120,10 @@ from asgp_ros.recording.bags import parse_joy_axes
 
 NODE_NAME = "shared_control_node"
 
+#: What a NaN range of the scans may mean (``scan_nan``): REP-117's erroneous reading, or
+#: nothing in range (a source that does not follow REP-117's +inf for that).
+SCAN_NAN = ("erroneous", "no_return")
+
 #: A scan stamped more than this (s) after the node's clock is refused: a laser whose
 #: clock runs ahead would otherwise look fresh long after it stopped, and be placed with
 #: the chair's motion of a time that has not come (a clock synchronised by NTP or PTP is
@@ -194,6 +198,10 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("laser_frame", "", "frame_id of the scans that laser_x/y/yaw describe; scans in "
           "another frame (a second laser on scan_topic) are refused ('': the first scan's, "
           "until scans in a second frame come: then none is taken)"),
+    _spec("scan_nan", "erroneous", "what a NaN range of the scans means: 'erroneous' "
+          "(REP-117: a reading that failed; a run of them counts as an obstacle at the nearer "
+          "of the returns that bound it) or 'no_return' (a scan source that reports nothing "
+          "in range as NaN, as depthimage_to_laserscan does: read as +inf, free)"),
     _spec("laser_x", 0.3, "laser position in the base frame, x (m)", -5.0, 5.0),
     _spec("laser_y", 0.0, "laser position in the base frame, y (m)", -5.0, 5.0),
     _spec("laser_yaw", 0.0, "laser yaw in the base frame (rad)", -math.pi, math.pi),
@@ -264,6 +272,7 @@ class SharedControlParams:
     vo_timeout_s: float
     scan_timeout_s: float
     laser_frame: str
+    scan_nan: str
     laser_x: float
     laser_y: float
     laser_yaw: float
@@ -297,6 +306,8 @@ class SharedControlParams:
         if self.memory_odometry not in MEMORY_ODOMETRY:
             raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
                              f"{self.memory_odometry!r}")
+        if self.scan_nan not in SCAN_NAN:
+            raise ValueError(f"scan_nan must be one of {SCAN_NAN}, got {self.scan_nan!r}")
         if self.velocity_source not in VELOCITY_SOURCES:
             raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
                              f"{self.velocity_source!r}")
@@ -626,7 +637,7 @@ class SharedControlNode(Node):
         if now is None:
             return
         try:
-            scan = conv.scan_from_msg(msg)
+            scan = conv.scan_from_msg(msg, nan_is_free=self.params.scan_nan == "no_return")
         except ValueError as exc:
             self._bad_messages += 1
             self._refuse_scan(f"malformed scan: {exc}")
