@@ -338,19 +338,31 @@ def test_driver_joystick_closes_the_loop_through_the_board_output():
     assert source.state.v == 0.0  # the chair follows the board's (neutral) output
 
 
-def test_asgp_board_monitor_prints_a_calibration_block(tmp_path, capsys):
-    """``asgp board --monitor PORT`` on the simulated board: rest first, then the extremes."""
+@pytest.mark.parametrize("rest_counts", [0, 13])
+def test_asgp_board_monitor_prints_a_calibration_block(tmp_path, capsys, rest_counts):
+    """``asgp board --monitor PORT`` on the simulated board: rest first, then the extremes.
+    A stick resting 13 counts off the board's neutral (outside its +-8 window: the board
+    drives the chair at rest, and the dead-man rule cannot fire) was printed as an ordinary
+    block; it is warned about, as the bridge refuses it."""
     from asgp_ros.cli import main
+
+    rest = rest_counts / fw.ADC_SPAN
 
     def stick(t: float) -> tuple[float, float]:
         # at rest well past the first fifth of the samples (the monitor's neutral), then
         # the four extremes in turn
-        return (0.0, 0.0) if t < 2.5 else (math.copysign(1.0, math.sin(8.0 * t)),
-                                           math.copysign(1.0, math.cos(8.0 * t)))
+        return (rest, 0.0) if t < 2.5 else (math.copysign(1.0, math.sin(8.0 * t)),
+                                            math.copysign(1.0, math.cos(8.0 * t)))
 
     with SimulatedBoard(stick, link_path=tmp_path / "joy") as board:
         assert main(["board", "--monitor", board.port, "--duration", "4"]) == 0
-    out = capsys.readouterr().out
+    captured = capsys.readouterr()
+    out = captured.out
+    if rest_counts:
+        assert "warning: forward: the stick rests at 525 counts" in captured.err, captured.err
+        assert "turn" not in captured.err
+    else:
+        assert "warning" not in captured.err, captured.err
     block = out[out.index("calibration:"):]
     values = {}
     for axis in ("forward", "turn"):

@@ -107,10 +107,10 @@ def harness(rclpy_context, tmp_path):
 
 def test_joy_in_order_calibrated_and_stamped(harness):
     h = harness(lambda t: (((2.5 * t) % 2.0) - 1.0, 0.7 * math.sin(6.0 * t)),
-                **{"calibration.turn.invert": True, "calibration.forward.dead_zone": 0.1})
+                **{"calibration.turn.invert": True, "calibration.forward.dead_zone": 0.03})
     assert h.spin_until(lambda: len(h.joy) >= 80, 10.0)
     msgs = [m for _, m in h.joy]
-    fwd = AxisCalibration(dead_zone=0.1)
+    fwd = AxisCalibration(dead_zone=0.03)
     turn = AxisCalibration(invert=True)
     expected = [(fwd.deflection(s.raw_forward), turn.deflection(s.raw_turn))
                 for s in h.board.sent]
@@ -352,12 +352,12 @@ def test_params_file_loads_into_the_node(repo_root, tmp_path):
     context = rclpy.context.Context()
     rclpy.init(context=context, args=[
         "--ros-args", "--params-file", str(repo_root / "config/bridge.yaml"),
-        "-p", f"port:={board.port}", "-p", "calibration.turn.dead_zone:=0.2"])
+        "-p", f"port:={board.port}", "-p", "calibration.turn.dead_zone:=0.02"])
     try:
         node = SerialBridgeNode(context=context)
         try:
             assert node.params.port == board.port
-            assert node.params.calibration.turn.dead_zone == 0.2
+            assert node.params.calibration.turn.dead_zone == 0.02
             assert node.params.calibration.forward.maximum == 717.0
             assert node.link.wait_for_state(node.link.state.CONNECTED, 3.0)
         finally:

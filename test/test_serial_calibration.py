@@ -8,7 +8,12 @@ import numpy as np
 import pytest
 
 from asgp_ros.serial import safety as fw
-from asgp_ros.serial.calibration import AxisCalibration, board_permille, host_deflection
+from asgp_ros.serial.calibration import (
+    AxisCalibration,
+    board_neutral_problem,
+    board_permille,
+    host_deflection,
+)
 
 BOARD = fw.default_calibration()[0]
 HOSTS = {
@@ -77,3 +82,28 @@ def test_a_short_stick_is_not_overtaken_by_an_override():
     for d in DEFLECTIONS[DEFLECTIONS > 0]:
         assert board_permille(float(d), host, BOARD) <= BOARD.adc_to_permille(
             round(host.raw_for(float(d))))
+
+
+def test_a_host_zero_outside_the_boards_neutral_window_is_refused():
+    """The board reads 512 +- 8 counts as neutral (its dead-man rule: a neutral stick stops
+    any override). A stick resting at 525 was taken: the board drove the chair at rest, and
+    the layer's "stop" (an override of 0, sent as the host's neutral) drove it at 25 per
+    mille. A host dead zone reaching past the window made joy read 0 while the board drove
+    the chair (0.1: up to 532 counts)."""
+    from asgp_ros.serial.params import PARAMS, bridge_params
+
+    for host in HOSTS.values():
+        assert board_neutral_problem(host, BOARD) is None
+    off = AxisCalibration(neutral=525.0)
+    assert "rests at 525 counts" in board_neutral_problem(off, BOARD)
+    assert board_permille(0.0, off, BOARD) == 0  # a stop is a stop
+    wide = AxisCalibration(dead_zone=0.1)
+    problem = board_neutral_problem(wide, BOARD)
+    assert "joy reads 0 from 492 to 532 counts" in problem and "at most 0.039" in problem
+    assert board_neutral_problem(AxisCalibration(dead_zone=0.039), BOARD) is None
+    defaults = {spec.name: spec.default for spec in PARAMS}
+    for bad, words in (({"calibration.forward.neutral": 525.0}, "rests at 525"),
+                       ({"calibration.turn.dead_zone": 0.1}, "joy reads 0")):
+        with pytest.raises(ValueError, match=words) as err:
+            bridge_params({**defaults, **bad})
+        assert str(err.value).startswith(f"calibration.{next(iter(bad)).split('.')[1]}:")

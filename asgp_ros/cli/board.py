@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -12,7 +13,9 @@ import numpy as np
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
+from asgp_ros.serial.calibration import AxisCalibration, board_neutral_problem
 from asgp_ros.serial.link import JoystickSample, LinkConfig, LinkManager, LinkState
+from asgp_ros.serial.params import BOARD_CALIBRATION
 from asgp_ros.serial.protocol import Status
 from asgp_ros.sim.board import ScriptedJoystick, SimulatedBoard, driver_joystick
 
@@ -136,7 +139,19 @@ def _monitor(args: argparse.Namespace) -> int:
     r = np.asarray(raws, dtype=float)  # [N, 2]
     rest = r[: max(1, len(r) // 5)]
     print("calibration:")
+    problems = []
     for i, axis in enumerate(("forward", "turn")):
-        print(f"  {axis}:\n    neutral: {np.median(rest[:, i]):.1f}\n"
-              f"    minimum: {r[:, i].min():.1f}\n    maximum: {r[:, i].max():.1f}")
+        neutral, low, high = float(np.median(rest[:, i])), r[:, i].min(), r[:, i].max()
+        print(f"  {axis}:\n    neutral: {neutral:.1f}\n"
+              f"    minimum: {low:.1f}\n    maximum: {high:.1f}")
+        try:
+            cal = AxisCalibration(neutral=round(neutral, 1), minimum=low, maximum=high)
+        except ValueError as exc:  # the stick was not pushed both ways, say
+            problems.append(f"{axis}: {exc}")
+            continue
+        if (problem := board_neutral_problem(cal, BOARD_CALIBRATION[i])) is not None:
+            problems.append(f"{axis}: {problem}")
+    for problem in problems:
+        # the bridge refuses this calibration: said here, where it is measured
+        print(f"warning: {problem}", file=sys.stderr, flush=True)
     return 0

@@ -30,8 +30,10 @@ Safety rules, whatever the numbers say:
 
 * never on stale inputs: no prediction (stale joystick or VO, tracking lost, too little
   history) or no fresh obstacle source means no intervention, with the reason;
-* never motion from a neutral stick: with the user's stick in the neutral deadband the
-  layer never commands anything (the firmware also ignores overrides then);
+* never motion from a neutral stick: with the user's stick in the board's neutral window
+  (where the board drives nothing, and ignores overrides: its dead-man rule) the layer
+  commands nothing; within ``neutral_deadband`` beyond it (a stick barely touched, which
+  the board still drives: 5 % at 0.05) the layer's one candidate is stopping;
 * never faster than the user: a candidate's forward deflection has the user's sign and at
   most the user's magnitude, and its turn deflection stays within [-1, 1].
 """
@@ -85,7 +87,9 @@ class SharedControlConfig:
 
     Attributes:
         threshold: probability of contact within the horizon above which the layer acts.
-        neutral_deadband: the stick is neutral when both deflections are within this.
+        neutral_deadband: a stick whose deflections are both within this (barely touched,
+            yet driven by the board unless in its neutral window, :data:`BOARD_NEUTRAL`) is
+            guarded by stopping alone: never steered.
         speed_scales: factors applied to the user's forward deflection (must include 0,
             so that stopping is always a candidate, and 1).
         turn_offsets: shifts added to the user's turn deflection (must include 0).
@@ -236,8 +240,11 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
     problem = joy_problem(float(user[0]), float(user[1]))
     if problem is not None:  # not a stick's reading (a stray publisher): nothing to judge
         return Decision(Why.STALE_INPUT, f"the user's command: {problem}", user)
-    if is_neutral(user, config.neutral_deadband):
+    if is_neutral(user, BOARD_NEUTRAL):
         return Decision(Why.NEUTRAL, "the stick is neutral: nothing is commanded", user)
+    # within neutral_deadband the board still drives the chair (a stick at 0.05 creeps at
+    # 5 %): guarded, but only by stopping, never steered from a stick barely touched
+    creeping = is_neutral(user, config.neutral_deadband)
     start = time.perf_counter()
     k = predictor.config.horizon_steps
     held = np.repeat(user[None, :], k, axis=0)
@@ -269,7 +276,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,
                         solve_s=time.perf_counter() - start, prediction=pred)
 
-    commands = candidate_commands(user, config)  # [C, 2]
+    commands = (np.array([user, [0.0, 0.0]]) if creeping
+                else candidate_commands(user, config))  # [C, 2], row 0 the user's
     futures = np.repeat(commands[:, None, :], k, axis=1)  # [C, k, 2]
     try:
         batch = predictor.predict_batch(futures, now, learn=learn)

@@ -11,7 +11,9 @@ publishes it on ``joy_override`` at ``override_rate_hz`` while it is needed, and
 once the danger has passed (while it intervenes, every new scan is judged at once): the
 bridge stops writing, and the board's 200 ms watchdog
 hands the chair back to the user. The firmware also ignores an override while the user's
-stick is neutral, and this node never sends one then.
+stick is neutral (in its neutral window: joy 0), and this node never sends one then; a stick
+barely touched (within ``neutral_deadband``), which the board drives, is guarded by stopping
+alone.
 
 With ``memory_s`` > 0 (10 s by default; 0 turns it off) the scans' obstacles are remembered
 that long (:mod:`asgp_ros.core.obstacle_memory`), carried along by matching each scan to a
@@ -99,6 +101,7 @@ from asgp_ros.core.scan_match import (
     memory_odometers,
 )
 from asgp_ros.core.shared_control import (
+    BOARD_NEUTRAL,
     OVERRIDE_APPLIED_S,
     CollisionCheck,
     Decision,
@@ -166,7 +169,9 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("horizon_s", 2.0, "prediction horizon (s)", 0.2, 10.0),
     _spec("threshold", 0.05, "probability of contact within the horizon above which the "
           "layer intervenes", 0.001, 0.5),
-    _spec("neutral_deadband", 0.05, "the stick is neutral within this deflection", 0.0, 0.45),
+    _spec("neutral_deadband", 0.05, "a stick within this deflection (barely touched; the "
+          "board still drives it) is guarded only by stopping, never steered; at joy 0 (the "
+          "board's neutral) nothing is commanded", 0.0, 0.45),
     _spec("progress_weight", 0.5, "weight of forward progress given up (per m^2) against the "
           "command change squared", 0.0, 100.0),
     _spec("obstacles", "laser", "obstacle source: 'laser' (scan_topic), 'grid' (map_topic) "
@@ -539,7 +544,7 @@ class SharedControlNode(Node):
             # one took an override up again after the neutral stick had stopped it. One
             # stamped ahead of the clock is of the timeline before the clock stepped back.
             self._user = (t, user)
-        if is_neutral(user, self.config.neutral_deadband):
+        if is_neutral(user, BOARD_NEUTRAL):
             self._stop_overriding()  # now (read before every override), not at the next decision
         if not self._joy_source.measured(now):  # else the board's output feeds
             self._feed_joy(t, self._applied(user, now), measured=False, now=now)
@@ -974,7 +979,7 @@ class SharedControlNode(Node):
             return
         user = self._user
         if (user is None or not -JOY_LEAD_S <= now - user[0] <= self.params.joy_timeout_s
-                or is_neutral(user[1], self.config.neutral_deadband)
+                or is_neutral(user[1], BOARD_NEUTRAL)
                 or not 0.0 <= now - self._decision_t <= self.params.hold_s):
             self._stop_overriding()  # (a decision "ahead" of the clock: it went back)
             return

@@ -100,13 +100,46 @@ class JoystickCalibration:
         return self.forward.deflection(raw_forward), self.turn.deflection(raw_turn)
 
 
+def board_neutral_problem(host: AxisCalibration, board: AxisCal) -> str | None:
+    """Why the host's zero does not lie inside the board's neutral window, or None.
+
+    The firmware reads a stick within ``adc_deadband`` counts of its compiled
+    ``adc_neutral`` (``config.h``) as neutral: it drives nothing there, and a neutral stick
+    stops any override (the dead-man rule). Every reading the host calibration gives as 0
+    (its neutral, widened by its dead zone) must lie in that window: a stick resting
+    outside it drives the chair at rest and can never release an override, and a reading
+    ``joy`` gives as 0 while the board drives the chair is a false 0 on ``joy`` (the
+    predictor and the shared-control layer would take the creeping chair as at rest)."""
+    lo_ok = board.adc_neutral - board.adc_deadband
+    hi_ok = board.adc_neutral + board.adc_deadband
+    window = (f"the board's neutral window {lo_ok}..{hi_ok} counts (ASGP_ADC_NEUTRAL +- "
+              "ASGP_ADC_DEADBAND in firmware/asgp_bridge/config.h)")
+    if not lo_ok <= host.neutral <= hi_ok:
+        return (f"the stick rests at {host.neutral:g} counts, outside {window}: at rest the "
+                "board drives the chair, and a neutral stick cannot stop an override; set "
+                "ASGP_ADC_NEUTRAL (and its mirror in asgp_ros/serial/safety.py) to the "
+                "stick's rest and flash the board again")
+    zero_hi = math.floor(host.neutral + host.dead_zone * (host.maximum - host.neutral) + 1e-9)
+    zero_lo = math.ceil(host.neutral - host.dead_zone * (host.neutral - host.minimum) - 1e-9)
+    if zero_lo < lo_ok or zero_hi > hi_ok:
+        fits = min((hi_ok - host.neutral) / (host.maximum - host.neutral),
+                   (host.neutral - lo_ok) / (host.neutral - host.minimum))
+        return (f"joy reads 0 from {zero_lo} to {zero_hi} counts (neutral +- dead_zone), "
+                f"beyond {window}: there the board drives the chair while joy says the stick "
+                f"is at rest; a dead_zone of at most {math.floor(fits * 1000) / 1000:g} fits")
+    return None
+
+
 def board_permille(deflection: float, host: AxisCalibration, board: AxisCal) -> int:
     """What to send the board (per mille) for a command of ``deflection`` in the units of
     ``joy`` (this host calibration, + forward, + left): the output the board gives in
     passthrough for the stick position the host reads as that deflection. An override then
     drives the chair as the user's stick at the same reading does, whatever the two
     calibrations (a joystick wired the other way round, ``invert``, or one that does not
-    reach the board's full span)."""
+    reach the board's full span). A command of 0 is the board's neutral, a stop, whatever
+    the host's calibration (:func:`board_neutral_problem`)."""
+    if deflection == 0.0:
+        return 0
     raw = round(min(float(ADC_MAX), max(0.0, host.raw_for(deflection))))
     return board.adc_to_permille(raw)
 

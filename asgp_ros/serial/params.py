@@ -8,9 +8,17 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 from asgp_ros.common.paramspec import ParamSpec, check_values
-from asgp_ros.serial.calibration import AxisCalibration, JoystickCalibration
+from asgp_ros.serial.calibration import (
+    AxisCalibration,
+    JoystickCalibration,
+    board_neutral_problem,
+)
 from asgp_ros.serial.link import LinkConfig
 from asgp_ros.serial.override_gate import DEFAULT_TIMEOUT_S
+from asgp_ros.serial.safety import default_calibration
+
+#: The firmware's own calibration of (forward, turn) (config.h), which the host's must fit.
+BOARD_CALIBRATION = default_calibration()
 
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("port", "/dev/asgp_joystick",
@@ -98,6 +106,9 @@ def bridge_params(values: Mapping[str, object]) -> BridgeParams:
                 invert=v[f"calibration.{axis}.invert"])
         except ValueError as exc:
             raise ValueError(f"calibration.{axis}: {exc}") from exc
+        problem = board_neutral_problem(axes[axis], BOARD_CALIBRATION[axis == "turn"])
+        if problem is not None:
+            raise ValueError(f"calibration.{axis}: {problem}")
     if v["reconnect_max"] < v["reconnect_min"]:
         raise ValueError("parameter reconnect_max must be >= reconnect_min")
     if v["override_timeout"] < 2.0 / v["override_rate"]:
