@@ -117,3 +117,16 @@ def test_a_row_whose_time_is_not_an_integer_is_damage_not_a_traceback(recordings
     want = read_streams(recordings["sqlite3"])
     assert got.joy_t.size + got.vel_t.size >= want.joy_t.size + want.vel_t.size - 1
     assert "damaged sqlite3 bag" in caplog.text and "lost 1 of" in caplog.text
+
+
+def test_a_rollback_journal_left_beside_the_database_is_read_from_the_scan(recordings,
+                                                                          tmp_path, caplog):
+    """A hot journal (the last transaction not finished) is ignored by the immutable reader
+    too: the bag is read from the scan, said, and every row of the database is kept."""
+    bag = _copy(recordings["sqlite3"], tmp_path / "journal")
+    db = next(bag.glob("*.db3"))
+    (bag / (db.name + "-journal")).write_bytes(b"\xd9\xd5\x05\xf9\x20\xa1\x63\xd7" + bytes(504))
+    want, got = read_streams(recordings["sqlite3"]), read_streams(bag)
+    np.testing.assert_array_equal(got.joy_t, want.joy_t)
+    np.testing.assert_array_equal(got.vel, want.vel)
+    assert "rollback journal" in caplog.text and "read from a scan" in caplog.text

@@ -271,4 +271,6 @@ def test_joy_resumes_after_a_stray_version_frame(bridge):
     assert b.node.link.stats().unsolicited_versions == 1
     b.spin_for(0.3)
     assert b.node.link.state == LinkState.CONNECTED
-    assert b.latest(LINK).level == DiagnosticStatus.OK
+    # back to OK once the new handshake's diagnostics are out (under load, the one last
+    # published 0.3 s after joy resumed could still be of the handshake: WARN)
+    b.wait_level(LINK, "OK", 5.0)

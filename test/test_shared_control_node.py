@@ -842,6 +842,20 @@ def test_scan_nan_says_what_a_nan_range_means(harness, scan_nan):
         harness(scan_nan="free")
 
 
+def test_a_stick_barely_touched_is_stopped_before_a_wall(harness):
+    """The stick at 0.04 (within neutral_deadband, yet the board drives it) creeping into a
+    wall: the node sends the layer's stop, and keeps sending it (it stopped overriding at
+    every stick within the deadband, so the stop was never sent)."""
+    h = harness()
+    h.drive(100.0, 103.0, fwd=0.04, wall=20.0)
+    assert h.overrides == []
+    h.drive(103.0, 104.0, fwd=0.04, wall=0.4)  # the grown footprint 5 cm from it
+    last = h.last()
+    assert last["why"] in ("intervening", "no_safe_command"), last
+    assert h.overrides, "no override was sent"
+    assert conv.joy_to_override(h.overrides[-1]) == (0.0, 0.0)
+
+
 def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noqa: F811
     with pytest.raises(StartupError, match="obstacles"):
         SharedControlNode(context=rclpy_context, parameter_overrides=[
