@@ -131,6 +131,77 @@ def test_scan_and_grid_agree_on_the_same_wall():
     assert C.grid_check(unknown, unknown_is_obstacle=False)(*one(0.0))[1][0] == 0.0
 
 
+def _depth_by_brute_force(points: np.ndarray, pose: np.ndarray, fp: C.Footprint) -> float:
+    """Deepest point inside the rectangle over the poses [k, 3], every point tested."""
+    deepest = 0.0
+    for x, y, yaw in pose:
+        dx, dy = points[:, 0] - x, points[:, 1] - y
+        qx = math.cos(yaw) * dx + math.sin(yaw) * dy - fp.offset
+        qy = math.cos(yaw) * dy - math.sin(yaw) * dx
+        inside = np.minimum(0.5 * fp.length - np.abs(qx), 0.5 * fp.width - np.abs(qy))
+        deepest = max(deepest, float(inside.max(initial=0.0)))
+    return deepest
+
+
+def test_the_depth_of_a_mean_path_is_how_far_the_obstacles_stand_inside_its_footprint():
+    fld = C.DistanceField.from_scan(wall_scan(2.0))
+    depth = C.footprint_depth(fld, np.array([[[1.0, 0.0, 0.0], [1.5, 0.0, 0.0]],
+                                             [[1.3, 0.0, 0.0], [1.3, 0.0, 0.0]],
+                                             [[1.5, 0.0, math.pi / 2], [1.7, 0.0, math.pi / 2]]]))
+    # the front 0.1 m past the wall; 0.1 m short of it; side on, 0.35 + 0.05 m past it
+    np.testing.assert_allclose(depth, [0.1, 0.0, 0.05], atol=2e-3)
+    assert C.footprint_depth(fld, np.array([[1.0, 0.0, 0.0]])).shape == (1,)
+    # the scanner's mount and the chair's motion since the scan move the wall as they
+    # move the probability's
+    moved = C.scan_check(wall_scan(2.0), mount=(0.3, 0.0, 0.0), base_motion=(0.2, 0.0, 0.0))
+    assert moved.depth(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.0, abs=2e-3)
+    assert moved.depth(np.array([[[1.6, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=2e-3)
+    with pytest.raises(C.CollisionError):
+        C.footprint_depth(fld, np.array([[[np.nan, 0.0, 0.0]]]))
+    with pytest.raises(C.CollisionError):
+        C.footprint_depth(fld, np.zeros((2, 3, 2)))
+
+
+def test_the_depth_matches_a_brute_force_test_of_every_point():
+    rng = np.random.default_rng(4)
+    fp = C.Footprint(1.1, 0.65, 0.15)
+    for trial in range(20):
+        pts = rng.uniform(-2.0, 2.0, (rng.integers(1, 400), 2))
+        fld = _field_from_points(pts, res=0.05)
+        pose = np.concatenate([rng.uniform(-1.5, 1.5, (3, 6, 2)),
+                               rng.uniform(-4.0, 4.0, (3, 6, 1))], axis=-1)
+        got = C.footprint_depth(fld, pose, fp, transform=(0.2, -0.1, 0.3))
+        R = np.array([[math.cos(0.3), -math.sin(0.3)], [math.sin(0.3), math.cos(0.3)]])
+        moved = np.concatenate([pose[..., :2] @ R.T + [0.2, -0.1], pose[..., 2:] + 0.3], -1)
+        want = [_depth_by_brute_force(pts, moved[b], fp) for b in range(3)]
+        np.testing.assert_allclose(got, want, atol=1e-9, err_msg=f"trial {trial}")
+
+
+def test_a_grid_checks_depth_with_the_footprint_grown_by_half_a_cell():
+    res, n = 0.05, 200
+    data = np.zeros((n, n), np.int8)
+    data[:, round((2.0 + 5.0) / res)] = 100  # cell centres at x = 2.025
+    check = C.grid_check(C.Grid(data, res, (-5.0, -5.0, 0.0)))
+    # the front at 1.5 + 0.6 + 0.025 (half a cell) reaches 0.1 past the centres
+    assert check.depth(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=1e-9)
+    assert check.depth(np.array([[[1.35, 0.0, 0.0]]]))[0] == 0.0
+    # with a scan: the larger of the two depths, and of the two probabilities
+    scan = C.scan_check(wall_scan(1.9))
+    both = C.PathCheck.either([scan, check])
+    assert isinstance(both, C.PathCheck)
+    pose = np.array([[[1.5, 0.0, 0.0]]])
+    assert both.depth(pose)[0] == pytest.approx(0.2, abs=2e-3)
+    cov = np.eye(2)[None, None] * 0.05**2
+    np.testing.assert_array_equal(both(pose, cov)[1], np.maximum(scan(pose, cov)[1],
+                                                                  check(pose, cov)[1]))
+    # a check that cannot give depths makes the pair one that gives none
+    plain = C.PathCheck.either([scan, lambda p, c: (np.zeros(p.shape[:2]), np.zeros(1))])
+    assert not isinstance(plain, C.PathCheck)
+    assert C.PathCheck.either([scan]) is scan
+    with pytest.raises(ValueError):
+        C.PathCheck.either([])
+
+
 def test_scan_mount_and_motion_since_the_scan_are_applied():
     # scanner 0.3 m ahead of the base: the wall 2 m from the scanner is 2.3 m from the base
     check = C.scan_check(wall_scan(2.0), mount=(0.3, 0.0, 0.0))

@@ -11,6 +11,7 @@ import pytest
 from scipy.stats import norm
 from test_predictor import linear_model
 
+from asgp_ros.core.collision import PathCheck
 from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.shared_control import (
     SharedControlConfig,
@@ -95,6 +96,58 @@ def test_no_safe_command_sends_the_least_likely_or_lets_the_user_back_away():
     d = decide(pred, now, user, wall_ahead(HALF_LENGTH - 0.05), CONFIG)
     assert d.why is Why.NO_SAFE_COMMAND and d.command is None and "user" in d.detail
     assert path_x[-1] > stop_x
+
+
+def wall_with_depth(distance: float) -> PathCheck:
+    """``wall_ahead`` that also gives the mean paths' depth past the wall."""
+    return PathCheck(wall_ahead(distance), lambda pose: np.maximum(
+        0.0, (pose[..., 0] + HALF_LENGTH - distance).max(axis=-1)))
+
+
+def test_within_the_margin_a_command_into_the_wall_is_stopped_and_backing_away_passes():
+    """Every candidate certain to touch (the chair within its margin of the wall): the layer
+    let the user's command pass, pushing on into the wall (an offline drive's one contact:
+    reversing while turning swung a corner into the furniture). The depth of the mean
+    paths tells the candidates apart now; backing away still passes."""
+    pred, now = driving(forward=0.3)
+    user = np.array([0.3, 0.0])
+    wall = HALF_LENGTH - 0.05  # already 5 cm in
+    d = decide(pred, now, user, wall_with_depth(wall), CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is not None, d
+    assert d.p_command == pytest.approx(1.0) and d.p_user == pytest.approx(1.0)
+    assert 0.0 <= d.command[0] < user[0] and "deep" in d.detail
+    # the command sent goes no more than depth_tolerance deeper than the shallowest
+    cands = candidate_commands(user, CONFIG)
+    batch = pred.predict_batch(np.repeat(cands[:, None, :], 10, axis=1), now)
+    depth = wall_with_depth(wall).depth(batch.pose)
+    sent = int(np.flatnonzero(np.all(np.isclose(cands, d.command), axis=1))[0])
+    assert depth[sent] <= depth.min() + CONFIG.depth_tolerance < depth[0]
+    # a tolerance wider than the difference: the user's command passes, as before
+    loose = SharedControlConfig(depth_tolerance=0.5)
+    assert decide(pred, now, user, wall_with_depth(wall), loose).command is None
+    # without a depth (a plain check) it passes as before
+    d = decide(pred, now, user, wall_ahead(wall), CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is None and "user" in d.detail
+    # reversing away from a wall 30 cm in, every path certain to touch (a check that says
+    # so): no candidate is shallower than backing away; the user's command passes
+    certain = PathCheck(lambda pose, cov: (np.ones(pose.shape[:2]), np.ones(pose.shape[0])),
+                        wall_with_depth(HALF_LENGTH - 0.3).depth)
+    pred, now = driving(forward=-0.3)
+    d = decide(pred, now, np.array([-0.3, 0.0]), certain, CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is None and "user" in d.detail
+    # and one driving on into it is stopped
+    pred, now = driving(forward=0.3)
+    d = decide(pred, now, np.array([0.3, 0.0]), certain, CONFIG)
+    assert d.why is Why.NO_SAFE_COMMAND and d.command is not None and d.command[0] < 0.3
+
+
+def test_a_depth_that_fails_never_intervenes():
+    pred, now = driving(forward=0.3)
+    for bad in (lambda pose: np.full(pose.shape[0], np.nan), lambda pose: np.zeros(2),
+                lambda pose: (_ for _ in ()).throw(ValueError("broken"))):
+        d = decide(pred, now, np.array([0.3, 0.0]),
+                   PathCheck(wall_ahead(HALF_LENGTH - 0.05), bad), CONFIG)
+        assert d.why is Why.CHECK_FAILED and d.command is None, d
 
 
 def test_a_turn_on_the_spot_can_be_stopped():
@@ -209,7 +262,8 @@ def test_candidates_never_drive_faster_than_the_user_or_leave_the_stick_range():
 @pytest.mark.parametrize("bad", [dict(threshold=0.0), dict(threshold=1.0),
                                  dict(threshold=math.nan), dict(speed_scales=(0.5, 1.0)),
                                  dict(speed_scales=(0.0, 0.5)), dict(turn_offsets=(0.2,)),
-                                 dict(neutral_deadband=-0.1), dict(progress_weight=-1.0)])
+                                 dict(neutral_deadband=-0.1), dict(progress_weight=-1.0),
+                                 dict(depth_tolerance=-0.01), dict(depth_tolerance=math.nan)])
 def test_invalid_settings_are_refused(bad):
     with pytest.raises(ValueError):
         SharedControlConfig(**bad)

@@ -856,6 +856,26 @@ def test_a_stick_barely_touched_is_stopped_before_a_wall(harness):
     assert conv.joy_to_override(h.overrides[-1]) == (0.0, 0.0)
 
 
+@pytest.mark.parametrize("obstacles", ["laser", "both"])
+def test_within_the_margin_a_stick_pushing_on_into_the_wall_is_overridden(harness, obstacles):
+    """The grown footprint already 5 cm into a wall, every candidate certain to touch: the
+    node let the user's command pass, on into the wall. The depth of the mean paths decides
+    now (with a map too: the two sources' check gives the depth of both)."""
+    params = dict(obstacles=obstacles, vo_type="odometry", vo_topic="vo/odom") if (
+        obstacles == "both") else {}
+    h = harness(**params)
+    if obstacles == "both":
+        _publish_map(h, wall_map_msg(None))
+    h.drive(100.0, 103.0, fwd=0.3, wall=20.0)
+    assert h.overrides == []
+    h.drive(103.0, 104.0, fwd=0.3, wall=0.3)
+    last = h.last()
+    assert last["why"] == "no_safe_command" and "deep" in h.status[-1].message, last
+    assert h.overrides, "no override was sent"
+    fwd, _ = conv.joy_to_override(h.overrides[-1])
+    assert 0.0 <= fwd < 0.3
+
+
 def test_bad_parameters_and_messages(harness, rclpy_context, model_file):  # noqa: F811
     with pytest.raises(StartupError, match="obstacles"):
         SharedControlNode(context=rclpy_context, parameter_overrides=[

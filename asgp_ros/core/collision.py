@@ -84,7 +84,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple, cast
 
@@ -99,8 +99,8 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 __all__ = ["DEFAULT_FOOTPRINT", "CollisionError", "Contact", "DistanceField", "Footprint",
-           "Grid", "Scan", "constant_twist_motion", "contact_probability", "grid_check",
-           "inverse_pose", "scan_check"]
+           "Grid", "PathCheck", "Scan", "constant_twist_motion", "contact_probability",
+           "footprint_depth", "grid_check", "inverse_pose", "scan_check"]
 
 #: Sobol points per step (a power of two); the probability resolution is 1 / SAMPLES.
 SAMPLES = 256
@@ -128,6 +128,7 @@ _EXACT_WORK = 1 << 22  # method "auto": the exact test up to this many sample-po
 _CHUNK = 1 << 16  # elements of an intermediate array of the exact test (0.5 MB of float64)
 _BOX_CHUNK = 1 << 22  # (heading bin, point) pairs of the raster's box marking per pass
 _EPS_M = 1e-7  # boxes grown by this (m): round-off never turns a contact into a miss
+_DEPTH_POSES = 64  # poses per pass of footprint_depth (each with at most 8192 points in reach)
 
 
 class CollisionError(ValueError):
@@ -1205,10 +1206,116 @@ within [B])``: :func:`contact_probability` of paths in the base frame (a 3x3 cov
 (x, y, yaw) samples the heading too)."""
 
 
+def footprint_depth(fld: DistanceField, pose: FloatArray,
+                    footprint: Footprint = DEFAULT_FOOTPRINT,
+                    transform: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FloatArray:
+    """[B] how deep the obstacles stand inside the footprint along each mean path (m): the
+    largest, over the path's poses and the obstacle points, of a point's distance inside
+    the rectangle (to its nearest edge), 0 when no point is inside at any pose.
+
+    No uncertainty: the mean poses only. Where every path is certain to touch (the chair
+    already stands within its margin of a wall, say), probabilities cannot tell the paths
+    apart, and this can: a path that backs away keeps the depth the chair has now, one
+    that swings a corner into the wall deepens it. The rectangle is grown as
+    :func:`contact_probability` grows it (``fld.grow + fld.merge``); off a scan's window
+    there are no points, and nothing counts there.
+
+    Args:
+        fld: the obstacles.
+        pose: [k, 3] or [B, k, 3] (x, y, yaw) of the base frame along each path.
+        footprint: the chair.
+        transform: pose (x, y, yaw) of the paths' frame in the field's frame.
+
+    Raises:
+        CollisionError: a path with NaN, inf or absurd coordinates, or not [B, k, 3].
+    """
+    P = np.asarray(pose, dtype=np.float64)
+    if P.ndim == 2:
+        P = P[None]
+    if P.ndim != 3 or P.shape[-1] != 3:
+        raise CollisionError(f"paths must be [B, k, 3], got {P.shape}")
+    P, _ = _check_inputs(P, np.zeros((*P.shape[:2], 2, 2)), transform)
+    B, k = P.shape[:2]
+    depth = np.zeros(B * k)
+    if fld._tree is None or not P.size:
+        return depth.reshape(B, k).max(axis=1) if k else np.zeros(B)
+    R, t = _pose_matrix(transform)
+    xy = (P[..., :2] @ R.T + t).reshape(-1, 2)
+    yaw = (P[..., 2] + transform[2]).reshape(-1)
+    grow = fld.grow + fld.merge
+    rect = _Rect(footprint.offset - 0.5 * footprint.length - grow,
+                 footprint.offset + 0.5 * footprint.length + grow,
+                 0.5 * footprint.width + grow)
+    # the covering discs farther from every obstacle than their radius (with the field's
+    # raster error, two cells) hold no point: only the other poses are searched
+    centres = footprint.centres()[:, 0]
+    discs = xy[:, None, :] + np.stack([np.cos(yaw)[:, None] * centres,
+                                       np.sin(yaw)[:, None] * centres], axis=-1)
+    clear = fld.distance(discs).min(axis=-1) - footprint.radius
+    near = np.flatnonzero(clear < 2.0 * fld.resolution + grow + 1e-9)
+    for lo in range(0, near.size, _DEPTH_POSES):
+        rows = near[lo:lo + _DEPTH_POSES]
+        found = fld.neighbours(xy[rows], np.full(rows.size, rect.reach + 1e-9))
+        counts = np.fromiter((len(f) for f in found), dtype=np.intp, count=rows.size)
+        if not counts.any():
+            continue
+        which = np.repeat(rows, counts)
+        o = fld.points[np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp,
+                                   count=int(counts.sum()))]
+        c, s = np.cos(yaw[which]), np.sin(yaw[which])
+        dx, dy = o[:, 0] - xy[which, 0], o[:, 1] - xy[which, 1]
+        qx, qy = c * dx + s * dy, np.abs(c * dy - s * dx)
+        inside = np.minimum(np.minimum(qx - rect.x_lo, rect.x_hi - qx), rect.half_w - qy)
+        np.maximum.at(depth, which, np.maximum(inside, 0.0))
+    return depth.reshape(B, k).max(axis=1) if k else np.zeros(B)
+
+
+class PathCheck:
+    """A :data:`CollisionCheck` (called as one) that also gives :func:`footprint_depth` of
+    the mean paths (``depth(pose [B, k, 3]) -> [B]``) against the same obstacles: the
+    shared-control layer's tie-break among paths all certain to touch."""
+
+    def __init__(self, probability: CollisionCheck,
+                 depth: Callable[[FloatArray], FloatArray]) -> None:
+        self._probability = probability
+        self._depth = depth
+
+    def __call__(self, pose: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+        return self._probability(pose, cov)
+
+    def depth(self, pose: FloatArray) -> FloatArray:
+        """[B] :func:`footprint_depth` of paths [B, k, 3] in the base frame."""
+        return self._depth(pose)
+
+    @staticmethod
+    def either(checks: Sequence[CollisionCheck]) -> CollisionCheck:
+        """One check of several obstacle sources (a scan and a map): the larger of their
+        probabilities, and of their depths when every one of them gives a depth."""
+        if not checks:
+            raise ValueError("either() needs at least one check")
+        if len(checks) == 1:
+            return checks[0]
+        parts = tuple(checks)
+
+        def probability(pose: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
+            results = [c(pose, cov) for c in parts]
+            return (functools.reduce(np.maximum, [r[0] for r in results]),
+                    functools.reduce(np.maximum, [r[1] for r in results]))
+
+        if not all(isinstance(c, PathCheck) for c in parts):
+            return probability
+        with_depth = cast(tuple[PathCheck, ...], parts)
+
+        def depth(pose: FloatArray) -> FloatArray:
+            return functools.reduce(np.maximum, [c.depth(pose) for c in with_depth])
+
+        return PathCheck(probability, depth)
+
+
 def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
                mount: tuple[float, float, float] = (0.0, 0.0, 0.0),
                base_motion: tuple[float, float, float] = (0.0, 0.0, 0.0),
-               resolution: float = 0.05, extra: FloatArray | None = None) -> CollisionCheck:
+               resolution: float = 0.05, extra: FloatArray | None = None) -> PathCheck:
     """A check of paths in the base frame against ``scan`` (:data:`CollisionCheck`).
 
     Args:
@@ -1236,12 +1343,12 @@ def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
         c = contact_probability(fld, pose, cov, footprint, transform)
         return c.per_step, c.within
 
-    return check
+    return PathCheck(check, lambda pose: footprint_depth(fld, pose, footprint, transform))
 
 
 def grid_check(grid: Grid | DistanceField, footprint: Footprint = DEFAULT_FOOTPRINT,
                origin: tuple[float, float, float] | FloatArray = (0.0, 0.0, 0.0),
-               occupied: int = 65, unknown_is_obstacle: bool = True) -> CollisionCheck:
+               occupied: int = 65, unknown_is_obstacle: bool = True) -> PathCheck:
     """A check of paths in the base frame against a map (or its prebuilt field;
     :data:`CollisionCheck`).
 
@@ -1262,4 +1369,4 @@ def grid_check(grid: Grid | DistanceField, footprint: Footprint = DEFAULT_FOOTPR
         c = contact_probability(fld, pose, cov, footprint, transform)
         return c.per_step, c.within
 
-    return check
+    return PathCheck(check, lambda pose: footprint_depth(fld, pose, footprint, transform))

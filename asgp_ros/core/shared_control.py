@@ -22,9 +22,15 @@ searches for the least intrusive replacement:
 * the chosen command is the cheapest candidate whose probability is at or below the
   threshold; when none is, the candidate with the lowest probability is used, the one
   with the least motion among equals (stopping is always a candidate), and the decision
-  says ``no_safe_command``; if even that is no less likely than the user's command (the
-  chair already touches, or stands within the margin, say), the user's command passes:
-  overriding would only pin the chair against the obstacle.
+  says ``no_safe_command``;
+* if even that is no less likely than the user's command (the chair already touches, or
+  stands within the margin, and every candidate is certain to touch, say), the mean paths'
+  depth into the obstacles decides (when the check gives one, as the scan and map checks
+  of :mod:`asgp_ros.core.collision` do: :class:`~asgp_ros.core.collision.PathCheck`): a
+  user's command that goes ``depth_tolerance`` deeper than the shallowest candidate (into
+  the wall, or swinging a corner into it) is replaced by the cheapest candidate within
+  ``depth_tolerance`` of the shallowest (``no_safe_command``); otherwise the user's
+  command passes (backing away, say): overriding would only pin the chair there.
 
 Safety rules, whatever the numbers say:
 
@@ -50,6 +56,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from asgp_ros.common.board import OVERRIDE_TIMEOUT_S, WATCHDOG_MS
+from asgp_ros.core.collision import PathCheck
 from asgp_ros.core.online import Prediction, Predictor
 from asgp_ros.core.streams import joy_problem
 
@@ -98,6 +105,11 @@ class SharedControlConfig:
         heading_uncertainty: give the check the prediction's full pose covariance, so that
             the heading is sampled with the position (a turning chair's corners sweep);
             False: the position covariance and the mean heading.
+        depth_tolerance: when no candidate is less likely to touch than the user's command
+            (every one certain, say), a candidate replaces it only if its mean path goes at
+            least this much (m) less deep into the obstacles
+            (:func:`~asgp_ros.core.collision.footprint_depth`), and candidates within this
+            of the shallowest count as equally deep.
     """
 
     threshold: float = 0.05
@@ -106,6 +118,7 @@ class SharedControlConfig:
     turn_offsets: tuple[float, ...] = (0.0, -0.15, 0.15, -0.3, 0.3, -0.5, 0.5, -0.8, 0.8)
     progress_weight: float = 0.5
     heading_uncertainty: bool = True
+    depth_tolerance: float = 0.02
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.threshold) and 0.0 < self.threshold < 1.0):
@@ -125,6 +138,9 @@ class SharedControlConfig:
                              f"{self.turn_offsets}")
         if not (math.isfinite(self.progress_weight) and self.progress_weight >= 0.0):
             raise ValueError(f"progress_weight must be >= 0, got {self.progress_weight}")
+        if not (math.isfinite(self.depth_tolerance) and 0.0 <= self.depth_tolerance <= 0.5):
+            raise ValueError(f"depth_tolerance must be in [0, 0.5] m, got "
+                             f"{self.depth_tolerance}")
 
 
 @dataclass(frozen=True)
@@ -218,6 +234,27 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
     return grid[np.sort(first)]
 
 
+def _shallower(check: CollisionCheck, pose: FloatArray, low: NDArray[np.intp],
+               cost: FloatArray, tolerance: float) -> tuple[int, float, float] | None:
+    """Among the candidates ``low`` (as likely to touch as the user's command, row 0 of the
+    paths ``pose`` [C, k, 3]), the cheapest whose mean path goes into the obstacles at least
+    ``tolerance`` less deep than the user's and no more than ``tolerance`` deeper than the
+    shallowest (:func:`~asgp_ros.core.collision.footprint_depth`), with the user's depth and
+    its own; None when there is none, or the check cannot tell depths."""
+    if not isinstance(check, PathCheck):
+        return None
+    depth = np.asarray(check.depth(pose), dtype=np.float64)
+    if depth.shape != (pose.shape[0],) or not np.all(np.isfinite(depth)):
+        raise ValueError(f"the check gave depths {depth.shape} for {pose.shape[0]} paths, "
+                         "or non-finite ones")
+    shallowest = float(depth[low].min())
+    if depth[0] - shallowest <= tolerance:
+        return None
+    near = low[depth[low] <= shallowest + tolerance]
+    best = int(near[np.argmin(cost[near])])
+    return best, float(depth[0]), float(depth[best])
+
+
 def decide(predictor: Predictor, now: float, user: FloatArray,
            check: CollisionCheck | None, config: SharedControlConfig, *,
            check_for: Callable[[Prediction], CollisionCheck | None] | None = None,
@@ -302,12 +339,23 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         best = int(low[np.lexsort((cost[low], motion))[0]])
         why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
         if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9:
-            # nothing does better than the user (already touching, say): the layer would
-            # only pin the chair there; the user's command passes (to back away)
-            return Decision(why, f"{words}, and none does better than the user's command "
-                            f"(p {p_user:.3f})", user, p_user=p_user,
-                            solve_s=time.perf_counter() - start,
-                            candidates=int(commands.shape[0]), prediction=pred)
+            # no candidate is less likely to touch than the user's command (already within
+            # the margin, say): the depth of the mean paths tells them apart
+            try:
+                shallower = _shallower(check, batch.pose, low, cost, config.depth_tolerance)
+            except ValueError as exc:
+                return Decision(Why.CHECK_FAILED, f"depth of the candidates failed: {exc}",
+                                user, p_user=p_user, solve_s=time.perf_counter() - start,
+                                prediction=pred)
+            if shallower is None:  # the user's command goes no deeper (backing away, say):
+                # overriding would only pin the chair there; the user's command passes
+                return Decision(why, f"{words}, and none does better than the user's "
+                                f"command (p {p_user:.3f})", user, p_user=p_user,
+                                solve_s=time.perf_counter() - start,
+                                candidates=int(commands.shape[0]), prediction=pred)
+            best, d_user, d_best = shallower
+            words = (f"{words}; the user's command goes {d_user:.2f} m deep, this "
+                     f"{d_best:.2f} m")
     elapsed = time.perf_counter() - start
     if best == 0 and why is Why.INTERVENING:  # cannot happen: row 0 is the user's (unsafe)
         return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,

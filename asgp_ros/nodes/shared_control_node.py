@@ -174,6 +174,9 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
           "board's neutral) nothing is commanded", 0.0, 0.45),
     _spec("progress_weight", 0.5, "weight of forward progress given up (per m^2) against the "
           "command change squared", 0.0, 100.0),
+    _spec("depth_tolerance", 0.02, "when every candidate is as likely to touch as the user's "
+          "command, the user's is replaced only by one whose mean path goes this much (m) "
+          "less deep into the obstacles", 0.0, 0.5),
     _spec("obstacles", "laser", "obstacle source: 'laser' (scan_topic), 'grid' (map_topic) "
           "or 'both'"),
     _spec("joy_topic", topics.JOY, "the user's joystick (sensor_msgs/Joy)"),
@@ -260,6 +263,7 @@ class SharedControlParams:
     threshold: float
     neutral_deadband: float
     progress_weight: float
+    depth_tolerance: float
     obstacles: str
     joy_topic: str
     joy_axes: str
@@ -330,6 +334,7 @@ class SharedControlParams:
         return SharedControlConfig(threshold=self.threshold,
                                    neutral_deadband=self.neutral_deadband,
                                    progress_weight=self.progress_weight,
+                                   depth_tolerance=self.depth_tolerance,
                                    heading_uncertainty=self.heading_uncertainty)
 
     def memory(self) -> MemoryConfig | None:
@@ -881,15 +886,7 @@ class SharedControlNode(Node):
             if self._grid is not None and pred.origin is not None:
                 origin = (float(pred.origin[0]), float(pred.origin[1]), float(pred.origin[2]))
                 checks.append(collision.grid_check(self._grid, self.footprint, origin=origin))
-            if not checks:
-                return None
-            if len(checks) == 1:
-                return checks[0]
-
-            def both(pose: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                (s0, w0), (s1, w1) = checks[0](pose, cov), checks[1](pose, cov)
-                return np.maximum(s0, s1), np.maximum(w0, w1)
-            return both
+            return collision.PathCheck.either(checks) if checks else None
 
         return build
 
