@@ -1062,3 +1062,49 @@ def test_a_new_output_never_moves_over_what_appeared_at_the_last_moment(
     dst.rmdir() if directory else dst.unlink()
     fileio._rename_no_replace(src, dst)
     assert dst.exists() and not src.exists()
+
+
+_KILLED_WRITER = """
+import sys, time
+from pathlib import Path
+from asgp_ros.common.fileio import atomic_path
+final = Path(sys.argv[1])
+with atomic_path(final, directory=True) as tmp:
+    tmp.mkdir()
+    (tmp / "part").write_bytes(b"x" * 1000)
+    (final.parent / "started").write_text("1")
+    while True:
+        time.sleep(1.0)
+"""
+
+
+def test_the_temporary_of_a_killed_run_is_named_by_the_next_run_there(tmp_path, caplog):
+    """A run killed while writing its output (SIGKILL, power: no clean-up runs) leaves a
+    hidden temporary, a bag's worth of disk; the next run writing there names it, and
+    leaves it (a run writing it now would be using it)."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-c", _KILLED_WRITER, str(out)])
+    try:
+        deadline = time.monotonic() + 60.0
+        while not (tmp_path / "started").exists():
+            assert proc.poll() is None and time.monotonic() < deadline, "the writer never wrote"
+            time.sleep(0.02)
+    finally:
+        proc.kill()
+        proc.wait()
+    stray = fnmatch.filter(os.listdir(tmp_path), ".run.*.tmp")
+    assert len(stray) == 1
+    # a file and a directory of names that only look alike are no temporaries of it
+    (tmp_path / ".run.0123456789ab.tmp").write_text("a file")
+    (tmp_path / ".run.nothex.tmp").mkdir()
+    (tmp_path / ".runs.0123456789ab.tmp").mkdir()
+    assert main(["simulate", "--minutes", "0.1", "--out", str(out)]) == 0
+    said = caplog.text
+    assert f"{tmp_path / stray[0]} is the temporary of {out}" in said, said
+    assert said.count("is the temporary of") == 1
+    assert (tmp_path / stray[0] / "run" / "part").exists()  # kept
+    # one that holds the output it was replacing (killed between the two renames)
+    (tmp_path / stray[0] / ".replaced").mkdir()
+    caplog.clear()
+    assert main(["simulate", "--minutes", "0.1", "--out", str(out), "--force"]) == 0
+    assert "holds the one it was replacing" in caplog.text

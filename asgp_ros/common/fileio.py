@@ -15,6 +15,7 @@ import ctypes
 import errno
 import functools
 import json
+import logging
 import multiprocessing
 import multiprocessing.pool
 import multiprocessing.process
@@ -590,6 +591,8 @@ def _fsync_tree(path: Path) -> None:
 #: The name atomic_path gives the aside copy of a directory it replaces, in its temporary.
 _REPLACED = ".replaced"
 
+_log = logging.getLogger(__name__)
+
 
 def _temporary_directory(parent: Path, final: Path) -> Path:
     """``tempfile.mkdtemp`` next to ``final`` (``.<name>.<random>.tmp``), noted first in the
@@ -902,7 +905,30 @@ def check_output(path: str | os.PathLike[str], kind: OutputKind, *,
     """
     out = _check_output(path, kind, inputs, force, option)
     _approved[_output_key(out)] = _identity(out)  # all the commit may replace there
+    for stray in stray_temporaries(out):
+        aside = " (it holds the one it was replacing: move that back)" if os.path.lexists(
+            stray / _REPLACED) else ""
+        _log.warning("%s is the temporary of %s that a killed run left (SIGKILL, power) or a "
+                     "run writing it now is using%s; it is kept: delete it if no run is",
+                     stray, out, aside)
     return out
+
+
+def stray_temporaries(final: str | os.PathLike[str]) -> list[Path]:
+    """The temporaries of :func:`atomic_path` beside ``final`` (``.NAME.<12 hex>.tmp``
+    directories): a run writing it killed where it could not remove its own, or a run
+    writing it now."""
+    final = Path(final)
+    parent = final.parent if str(final.parent) else Path(".")
+    found = []
+    with contextlib.suppress(OSError):
+        for entry in os.scandir(parent):
+            middle = entry.name[len(final.name) + 2:-len(".tmp")]
+            if (entry.name.startswith(f".{final.name}.") and entry.name.endswith(".tmp")
+                    and len(middle) == 12 and all(c in "0123456789abcdef" for c in middle)
+                    and entry.is_dir(follow_symlinks=False)):
+                found.append(parent / entry.name)
+    return sorted(found)
 
 
 def _check_output(path: str | os.PathLike[str], kind: OutputKind,
