@@ -269,6 +269,34 @@ def test_stale_joystick_stops_prediction():
     assert not r.ok and r.reason == Reason.STALE_JOYSTICK
 
 
+def _ok_after_silence(silent: str, lead: float) -> float:
+    """Joystick at 20 Hz and VO at 5 Hz, fed with the clock at arrival, the stamps of the
+    ``silent`` stream ``lead`` s ahead of it; that stream falls silent at 110 s on the clock
+    (the other goes on): how long predictions stayed ok after its last arrival."""
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=5))  # timeouts 0.5 s
+    last_ok = 110.0
+    for i in range(1, 300):
+        now = 100.0 + 0.05 * i
+        joy_lead, vo_lead = (lead, 0.0) if silent == "joy" else (0.0, lead)
+        if not (silent == "joy" and now > 110.0):
+            assert pred.feed_joy(now + joy_lead, (0.5 + 0.3 * math.sin(now), 0.1), now=now)
+        if i % 4 == 1 and not (silent == "vo" and now > 110.0):
+            assert pred.feed_vo(now + vo_lead, (0.4 + 0.2 * math.sin(now - 0.3), 0.05),
+                                now=now)
+        if now > 110.0 and pred.predict(now).ok:
+            last_ok = now
+    return last_ok - 110.0
+
+
+@pytest.mark.parametrize("silent", ["joy", "vo"])
+def test_a_stream_stamped_ahead_of_the_clock_is_stale_a_timeout_after_it_fell_silent(silent):
+    """An unsynchronised sender's stamps 0.9 s ahead of the clock (admitted: under
+    reset_jump_s) kept a silent stick driving paths for 1.4 s, not joy_timeout_s: its age
+    was measured from its stamps. It ages from its last arrival now."""
+    assert 0.0 < _ok_after_silence(silent, 0.0) <= 0.5 + 1e-9
+    assert 0.0 < _ok_after_silence(silent, 0.9) <= 0.5 + 1e-9
+
+
 def test_vo_tracking_loss_stops_prediction():
     pred, (jt, _, vt, _) = _fed(1010.0)
     now = max(jt[-1], vt[-1])

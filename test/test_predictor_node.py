@@ -1811,3 +1811,33 @@ def test_no_stale_path_after_a_small_clock_step_back(rclpy_context, model_file, 
             assert "stepped back" in h.node.predictor.last_reset_detail
     finally:
         h.close()
+
+
+def _drive_with_a_lead(h: Harness, t_from: float, t_to: float, joy_lead: float,
+                       joy_until: float) -> None:
+    for i in range(round((t_to - t_from) / 0.1)):
+        t = t_from + 0.1 * (i + 1)
+        h.clock(t)
+        if t <= joy_until + 1e-9:
+            h.joy(t + joy_lead, 0.5 + 0.3 * math.sin(t), 0.4 * math.cos(0.5 * t))
+        if i % 2 == 1:
+            h.clock(t + 0.03)
+            h.vo(t + 0.03, 0.45 + 0.25 * math.sin(t - 0.3), 0.3 * math.cos(0.5 * t))
+        for _ in range(3):
+            h.executor.spin_once(timeout_sec=0.005)
+
+
+def test_a_joystick_stamped_ahead_of_the_clock_stops_the_paths_a_timeout_after_it(
+        rclpy_context, model_file):
+    """Stamps 0.9 s ahead of the node's clock (another machine's, unsynchronised): paths
+    held the silent stick's last command for 0.9 s more than joy_timeout_s (0.5 s)."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False})
+    try:
+        _drive_with_a_lead(h, 100.0, 110.0, 0.9, 110.0)
+        assert h.paths
+        n = len(h.paths)
+        _drive_with_a_lead(h, 110.0, 113.0, 0.9, 110.0)  # silent from 110.0 s (clock)
+        late = [round(_t0(p), 2) for p in h.paths[n:]]
+        assert all(t <= 110.5 + 1e-9 for t in late), late
+    finally:
+        h.close()

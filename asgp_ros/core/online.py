@@ -472,6 +472,10 @@ class Predictor:
         # resampled under ``_learn_config``), the override times then, the complete steps
         self._to_learn: tuple[Resampled | RawStreams, FloatArray, int] | None = None
         self._last_now = -math.inf
+        # when each stream was last heard from: the newest of its samples' stamps, each
+        # taken no later than the clock at its arrival (when known): a stream stamped ahead
+        # of the clock ages from its last arrival, not from its stamps
+        self._heard = {"joystick": -math.inf, "VO": -math.inf}
         self._stepped_until = -math.inf  # the clock before its last step back
         self.last_reset_detail = ""
 
@@ -554,6 +558,7 @@ class Predictor:
         self._plans = []
         self._overrides.clear()
         self._last_now = -math.inf
+        self._heard = dict.fromkeys(self._heard, -math.inf)
         self.stats.resets += 1
         self.last_reset_detail = detail
         if self._adapter is not None:
@@ -621,6 +626,10 @@ class Predictor:
             return False
         return True
 
+    def _note_heard(self, what: str, t: float, now: float | None) -> None:
+        heard = t if now is None or not math.isfinite(now) else min(t, now)
+        self._heard[what] = max(self._heard[what], heard)
+
     def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray,
                  now: float | None = None) -> bool:
         """Add a joystick sample (forward, turn) at time t.
@@ -646,6 +655,7 @@ class Predictor:
             return False
         if not self._admit(t, "joystick", now):
             return False
+        self._note_heard("joystick", t, now)
         self.stats.joy_samples += 1
         self.stats.out_of_order += self._joy.add(t, values)
         self.stats.dropped_overflow += self._joy.prune(self.config.buffer_s)
@@ -675,6 +685,7 @@ class Predictor:
             return False
         if not self._admit(t, "VO", now):
             return False
+        self._note_heard("VO", t, now)
         self.stats.vo_samples += 1
         self.stats.out_of_order += self._vo.add(t, (v, w, 1.0 if ok else 0.0))
         self.stats.dropped_overflow += self._vo.prune(self.config.buffer_s)
@@ -917,11 +928,14 @@ class Predictor:
             return reset
         if not self._joy or not self._vo:
             return Prediction(False, Reason.NO_INPUT, "waiting for joystick and VO samples")
-        joy_age = now - self._joy.newest
+        # the age of a stream: since its newest sample's stamp, or since that sample
+        # arrived when it was stamped ahead of the clock (an unsynchronised sender's stick
+        # gone silent drove paths for the lead's length more)
+        joy_age = now - min(self._joy.newest, self._heard["joystick"])
         if joy_age > cfg.joy_timeout_s:
             return Prediction(False, Reason.STALE_JOYSTICK,
                               f"joystick is {joy_age:.2f} s old (limit {cfg.joy_timeout_s} s)")
-        vo_age = now - self._vo.newest
+        vo_age = now - min(self._vo.newest, self._heard["VO"])
         if vo_age > cfg.vo_timeout_s:
             return Prediction(False, Reason.STALE_VO,
                               f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")
