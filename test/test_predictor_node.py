@@ -1841,3 +1841,35 @@ def test_a_joystick_stamped_ahead_of_the_clock_stops_the_paths_a_timeout_after_i
         assert all(t <= 110.5 + 1e-9 for t in late), late
     finally:
         h.close()
+
+
+def test_a_path_reaching_past_2038_is_refused_not_a_crash(rclpy_context, model_file):
+    """Inputs stamped in the last seconds a message stamp holds (int32 seconds, 2038; a
+    bag's bogus stamps): a path whose last poses lie beyond it raised out of the VO callback
+    and ended the node. It is refused, with the reason."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False, "horizon_steps": 20})
+    try:
+        start = conv.MAX_STAMP_S - 6.0
+        h.drive(start, start + 5.5)  # every input stamped before the end, the paths not
+        assert h.paths
+        result = h.node._last_result
+        assert result.reason == Reason.INVALID_TIME and "2038" in result.detail, result
+    finally:
+        h.close()
+
+
+def test_the_ellipses_are_cleared_whatever_stops_the_paths(rclpy_context, model_file):
+    """A frozen VO (vo_stale_repeat) stops the paths, which the watchdog's cheap status
+    does not see: the last path's ellipses stayed in RViz."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False})
+    try:
+        h.drive(100.0, 102.0)
+        h.spin_until(lambda: h.paths and h.markers, what="paths and ellipses")
+        h.drive(102.0, 105.0, vel=lambda t: (0.42, 0.11))  # the VO frozen on one reading
+        for _ in range(30):
+            h.executor.spin_once(timeout_sec=0.01)
+        assert h.node._last_result.reason == Reason.VO_STALE_REPEAT
+        assert _t0(h.paths[-1]) < 103.0  # the paths stopped
+        assert [m.action for m in h.markers[-1].markers] == [Marker.DELETEALL]
+    finally:
+        h.close()

@@ -344,10 +344,14 @@ def path_cdr(poses: ArrayLike, times: ArrayLike, frame_id: str, stamp: float) ->
     return bytes(out)
 
 
+#: The last second a message's stamp holds (builtin_interfaces/Time's int32 seconds: 2038).
+MAX_STAMP_S = 2**31 - 1
+
+
 def _cdr_stamp(t: float) -> bytes:
     """builtin_interfaces/Time of ``t`` s as :func:`seconds_to_stamp` makes it, in CDR."""
     stamp = seconds_to_stamp(t)
-    if stamp.sec > 2**31 - 1:
+    if stamp.sec > MAX_STAMP_S:
         raise ValueError(f"cannot stamp {t} s: beyond a message's int32 seconds")
     return struct.pack("<iI", stamp.sec, stamp.nanosec)
 

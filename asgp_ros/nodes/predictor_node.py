@@ -748,7 +748,14 @@ class PredictorNode(Node):
             self.get_logger().error(f"prediction failed at step {step}: {result.detail}",
                                     throttle_duration_sec=5.0)
         predicted = time.perf_counter()
+        if result.ok and result.times[-1] >= conv.MAX_STAMP_S + 1:
+            # a clock (or a bag's stamps) within a horizon of 2038: no message can stamp it
+            result = replace(result, ok=False, reason=Reason.INVALID_TIME,
+                             detail=f"the path ends at {result.times[-1]:.1f} s, beyond a "
+                                    "message stamp's int32 seconds (2038)")
         self._last_result = result
+        if not result.ok:  # paths stopped: the last one's ellipses go (RViz), whatever why
+            self._clear_markers(now)
         if not result.ok or (self._published_step is not None
                              and result.step <= self._published_step):
             self._learn()
@@ -797,6 +804,7 @@ class PredictorNode(Node):
             if result.origin is None:
                 self._last_result = replace(result, ok=False, reason=Reason.NO_POSE,
                                             detail="no odometry pose at the prediction time")
+                self._clear_markers(result.t0)
                 return None
             pose, cov = online.to_frame(pose, cov, result.origin)
             frame = p.odom_frame
