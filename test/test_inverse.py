@@ -126,6 +126,23 @@ def test_bad_input_is_refused(gp_model):
         solve(gp_model, jp, vp, target, jerk=-1.0)
     with pytest.raises(ValueError, match="reference"):
         solve(gp_model, jp, vp, target, reference=np.zeros((4, 2)), reference_weight=1.0)
+    # complex numbers: their imaginary part was dropped with a warning (but in target_xy)
+    for name, kw in (("joy_past", {}), ("vel_past", {}), ("reference", {}), ("init", {})):
+        args = dict(joy_past=jp, vel_past=vp, reference=None, init=None) | kw
+        args[name] = (jp if name == "joy_past" else vp if name == "vel_past"
+                      else np.zeros((5, 2))) + 0j
+        with pytest.raises(ValueError, match=f"{name} must be real"):
+            solve(gp_model, args["joy_past"], args["vel_past"], target,
+                  reference=args["reference"], init=args["init"])
+    # a reference beyond the stick's range (it saturated the solution); a weight beyond
+    # any meaning (1.7e308 overflowed the solver: an infinite cost, the start kept)
+    with pytest.raises(ValueError, match="reference holds a command beyond"):
+        solve(gp_model, jp, vp, target, reference=np.full((5, 2), 50.0), reference_weight=1.0)
+    for name in ("jerk", "effort", "reference_weight"):
+        with pytest.raises(ValueError, match=name):
+            solve(gp_model, jp, vp, target, **{name: 1.7e308})
+        with pytest.raises(ValueError, match=name):
+            solve(gp_model, jp, vp, target, **{name: "1"})
 
 
 def test_the_predictor_solves_on_its_live_buffers():
@@ -140,3 +157,49 @@ def test_the_predictor_solves_on_its_live_buffers():
     np.testing.assert_allclose(window.pose, res.pose)
     stale, none = pred.solve_inverse(held.pose[:, :2], now + 5.0)
     assert not stale.ok and none is None
+    # the window is the solution's path as predict gives it: every documented field
+    assert window.ellipses.shape == (6, 3) and window.vel.shape == (6, 2)
+    assert window.vel_cov.shape == (6, 2, 2) and window.pose_cov.shape == (6, 3, 3)
+    np.testing.assert_allclose(window.pos_cov, res.pos_cov, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(window.joy_future, res.joystick)
+
+
+def test_the_inverse_of_a_model_beyond_physics_is_refused_as_its_prediction_is():
+    """solve_inverse gave an ok window moving 2e5 m in 0.2 s from a model that predict()
+    refused (model_out_of_range)."""
+    import dataclasses
+
+    from test_predictor import (
+        LAGS,
+        LinearChannel,
+        arrival_order,
+        feed,
+        linear_model,
+        make_streams,
+    )
+
+    from asgp_ros.core.online import Predictor, PredictorConfig, Reason
+
+    jt, joy, vt, vel = make_streams(duration=10.0)
+    for channels in ((LinearChannel(np.zeros(2 * LAGS + 1), b=1e6), LinearChannel(
+            np.zeros(2 * LAGS + 1))), (linear_model().channels[0], LinearChannel(
+                np.zeros(2 * LAGS + 1), var=1e6))):
+        model = dataclasses.replace(linear_model(), channels=channels)
+        pred = Predictor(model, PredictorConfig(horizon_steps=5))
+        for ev in arrival_order(jt, joy, vt, vel):
+            feed(pred, ev)
+        window, res = pred.solve_inverse(np.zeros((5, 2)), jt[-1])
+        assert not window.ok and window.reason == Reason.MODEL_OUT_OF_RANGE and res is None
+
+
+def test_the_inverse_window_has_the_odometry_origin():
+    from test_predictor import _fed
+
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=6)
+    now = max(jt[-1], vt[-1])
+    for t in np.arange(now - 3.0, now, 0.1):
+        pred.feed_pose(t, 1.0 + t - now, 2.0, 0.3)
+    held = pred.predict(now)
+    window, _ = pred.solve_inverse(held.pose[:, :2], now)
+    assert held.origin is not None and window.origin is not None
+    np.testing.assert_allclose(window.origin, held.origin)

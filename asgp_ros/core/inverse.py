@@ -77,8 +77,21 @@ class InverseResult:
     method: str
 
 
+#: Largest weight of a penalty: beyond it a weight says nothing more (a 1e6 weight already
+#: rules the cost) and its squares overflow the solver (1.7e308 gave an infinite cost).
+MAX_WEIGHT = 1e9
+
+
+def _real(name: str, a: ArrayLike) -> FloatArray:
+    """``a`` as float64, refusing complex numbers (their imaginary part was dropped with a
+    warning)."""
+    if np.iscomplexobj(a):
+        raise ValueError(f"{name} must be real numbers, got complex ones")
+    return np.asarray(a, dtype=np.float64)
+
+
 def _window(name: str, a: ArrayLike, s: int) -> FloatArray:
-    arr = np.asarray(a, dtype=np.float64)
+    arr = _real(name, a)
     if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < s:
         raise ValueError(f"{name} must be [s, 2] with s >= {s} (the model's lags), got "
                          f"{arr.shape}")
@@ -190,9 +203,7 @@ def solve(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike, target_x
     s = model.feature_config.lags
     jp = _window("joy_past", joy_past, s)
     vp = _window("vel_past", vel_past, s)
-    if np.iscomplexobj(target_xy):
-        raise ValueError("target_xy must be real positions, got complex numbers")
-    target = np.asarray(target_xy, dtype=np.float64)
+    target = _real("target_xy", target_xy)
     if target.ndim != 2 or target.shape[1] != 2 or not 1 <= target.shape[0] <= 200:
         raise ValueError(f"target_xy must be [k, 2] with 1 <= k <= 200, got {target.shape}")
     if not np.all(np.isfinite(target)):
@@ -206,13 +217,16 @@ def solve(model: MotionModel, joy_past: ArrayLike, vel_past: ArrayLike, target_x
         seed = _whole("seed", seed, 0, (1 << 63) - 1)
     k = target.shape[0]
     for name, w in (("jerk", jerk), ("effort", effort), ("reference_weight", reference_weight)):
-        if not (math.isfinite(w) and w >= 0.0):
-            raise ValueError(f"{name} must be a finite weight >= 0, got {w}")
-    ref = np.zeros((k, 2)) if reference is None else np.asarray(reference, dtype=np.float64)
+        if not (isinstance(w, int | float | np.integer | np.floating)
+                and math.isfinite(w) and 0.0 <= w <= MAX_WEIGHT):
+            raise ValueError(f"{name} must be a weight in [0, {MAX_WEIGHT:g}], got {w!r}")
+    ref = np.zeros((k, 2)) if reference is None else _real("reference", reference)
     if ref.shape != (k, 2) or not np.all(np.isfinite(ref)):
         raise ValueError(f"reference must be finite [k, 2] = [{k}, 2], got {ref.shape}")
+    if not np.all(joy_in_range(ref)):
+        raise ValueError("reference holds a command beyond the stick's range [-1, 1]")
     u0 = np.clip(np.repeat(jp[-1:], k, axis=0) if init is None
-                 else np.asarray(init, dtype=np.float64), -1.0, 1.0)
+                 else _real("init", init), -1.0, 1.0)
     if u0.shape != (k, 2) or not np.all(np.isfinite(u0)):
         raise ValueError(f"init must be finite [k, 2] = [{k}, 2]")
     if method not in METHODS:

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -260,7 +260,7 @@ class Prediction:
         pose: [k, 3] (x, y, theta) in the base frame at t0.
         pos_cov: [k, 2, 2] covariance of (x, y).
         pose_cov: [k, 3, 3] covariance of (x, y, theta) (``pos_cov`` is its top-left
-            block); empty when the prediction has none (an inverse solution).
+            block).
         ellipses: [k, 3] 95% position ellipse (semi-major, semi-minor, angle of the major
             axis from x), from ``pos_cov``.
         vel: [k, 2] predicted (v, omega) at t0 + dt .. t0 + k dt, the times of ``times``
@@ -1080,12 +1080,14 @@ class Predictor:
         finally:
             if learn:
                 self.learn()
-        k = result.joystick.shape[0]
-        window = Prediction(True, Reason.OK, "inverse", t0=t0, step=step, dt=self.dt,
-                            times=t0 + self.dt * np.arange(1, k + 1), pose=result.pose,
-                            pos_cov=result.pos_cov, joy_future=result.joystick,
-                            joy_past=joy_past, vel_past=vel_past)
-        return window, result
+        # the solution's path as ``predict`` gives it (its uncertainty, ellipses, odometry
+        # origin), and the same refusal of a model predicting beyond physics
+        futures = result.joystick[None]
+        window = self._result(step, t0, joy_past, vel_past, futures,
+                              self._rollout(joy_past, vel_past, futures), False, batch=False)
+        if not window.ok:
+            return window, None
+        return replace(window, detail="inverse"), result
 
     def predict_batch(self, candidates: FloatArray, now: float, *, learn: bool = True
                       ) -> Prediction:
