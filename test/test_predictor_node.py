@@ -1873,3 +1873,28 @@ def test_the_ellipses_are_cleared_whatever_stops_the_paths(rclpy_context, model_
         assert [m.action for m in h.markers[-1].markers] == [Marker.DELETEALL]
     finally:
         h.close()
+
+
+def test_a_horizon_changed_at_runtime_is_the_one_adaptation_checks(rclpy_context, model_file):
+    """horizon_steps set from 100 to 5 at runtime while adapting: the paths had 5 steps,
+    the adaptation went on checking 100-step predictions, and checked none (its ellipses
+    uncalibrated); a longer horizon set at runtime grows the buffer with it."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": True, "horizon_steps": 100})
+    try:
+        assert h.node.set_parameters([Parameter("horizon_steps", value=5)])[0].successful
+        assert h.node.predictor.config.horizon_steps == 5
+        h.drive(100.0, 112.0)
+        h.clock(h.now + 0.3)
+        for _ in range(30):
+            h.executor.spin_once(timeout_sec=0.01)
+        values = conv.diagnostic_values(h.node.diagnostic_status())
+        assert len(h.paths[-1].poses) == 5
+        assert int(values["adapt_checked"]) > 0, values  # 12 s of 1 s paths
+        buffer_5 = h.node.predictor.config.buffer_s
+        assert h.node.set_parameters([Parameter("horizon_steps", value=150)])[0].successful
+        assert h.node.predictor.config.buffer_s > buffer_5 >= h.node.params.buffer_s
+        assert h.node.predictor._adapter.horizon_steps == 150
+        short = h.node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
+        assert not short.successful and "at least" in short.reason
+    finally:
+        h.close()

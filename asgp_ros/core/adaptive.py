@@ -409,6 +409,16 @@ class ModelAdapter:
         self._coverage_one = math.nan
         self._last_check_s = 0.0
 
+    def set_horizon(self, horizon_steps: int) -> None:
+        """Check predictions of ``horizon_steps`` from now on (the predictor's horizon
+        changed at runtime): what was learnt is kept, and the pending checks are made at
+        the new horizon (a check rolls its snapshot's posterior out again, at any k)."""
+        k = int(horizon_steps)
+        if not 1 <= k <= 200:
+            raise AdaptError(f"horizon_steps must be in [1, 200], got {horizon_steps}")
+        self.horizon_steps = k
+        self._choice.lag = k
+
     @staticmethod
     def default_settle_steps(model: MotionModel) -> int:
         """Steps after which a grid step's stale-VO flag no longer changes (plus one), and
@@ -425,10 +435,11 @@ class ModelAdapter:
         """The newest grid index absorbed or judged (None before the first)."""
         return self._absorbed_to
 
-    def history_steps(self) -> int:
-        """Grid steps of history the adapter needs in each resampled window."""
-        return (self.base.lags + self.horizon_steps + self.settle_steps
-                + self.settings.update_steps + 1)
+    def history_steps(self, horizon_steps: int | None = None) -> int:
+        """Grid steps of history the adapter needs in each resampled window (at its
+        horizon, or at ``horizon_steps``)."""
+        k = self.horizon_steps if horizon_steps is None else int(horizon_steps)
+        return self.base.lags + k + self.settle_steps + self.settings.update_steps + 1
 
     @staticmethod
     def history_steps_for(model: MotionModel, settings: AdaptSettings,

@@ -482,11 +482,22 @@ class Predictor:
     @property
     def config(self) -> PredictorConfig:
         """The settings; a new one (a node's parameters changed at runtime) also sizes the
-        buffers' cap on rows for its ``buffer_s`` (``MAX_SAMPLE_RATE_HZ`` per second)."""
+        buffers' cap on rows for its ``buffer_s`` (``MAX_SAMPLE_RATE_HZ`` per second), and
+        an adapting predictor's adaptation to its horizon (ValueError: a buffer shorter
+        than the history adaptation needs at that horizon, :meth:`buffer_for`)."""
         return self._config
 
     @config.setter
     def config(self, config: PredictorConfig) -> None:
+        if self._adapter is not None:
+            # the adaptation checks the predictions of the new horizon (at another it
+            # checked none, and the ellipses went uncalibrated); its history grows with it
+            need = ((self._adapter.history_steps(config.horizon_steps) + 2)
+                    / float(self._model.resample_config.rate_hz))
+            if config.buffer_s < need:
+                raise ValueError(f"buffer_s {config.buffer_s} s is shorter than the "
+                                 f"{need:.1f} s of history adaptation needs")
+            self._adapter.set_horizon(config.horizon_steps)
         self._config = config
         rows = self._buffer_rows(config)
         for buf in (self._joy, self._vo, self._pose):

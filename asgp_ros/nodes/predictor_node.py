@@ -495,10 +495,13 @@ class PredictorNode(Node):
                     raise ValueError(f"{name} is read at start-up: restart the node to change it")
                 changes[name] = check_value(SPECS[name], value)
             candidate = replace(self.params, **{_field(k): v for k, v in changes.items()})
-            if "buffer_s" in changes and candidate.buffer_s < self.predictor.min_buffer_s:
-                raise ValueError(f"buffer_s must be at least {self.predictor.min_buffer_s:.1f}"
-                                 " s while adapting")
-            candidate.predictor_config(self.model.resample_config.rate_hz)
+            rate = self.model.resample_config.rate_hz
+            need = Predictor.buffer_for(self.model, candidate.steps(rate),
+                                        self.predictor.adapt_settings, 0.0)
+            if "buffer_s" in changes and candidate.buffer_s < need:
+                raise ValueError(f"buffer_s must be at least {need:.1f} s while adapting (at "
+                                 f"a horizon of {candidate.steps(rate)} steps)")
+            candidate.predictor_config(rate)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
@@ -509,8 +512,10 @@ class PredictorNode(Node):
         if not changes:
             return
         self.params = replace(self.params, **{_field(k): v for k, v in changes.items()})
-        self.predictor.config = self.params.predictor_config(
-            self.model.resample_config.rate_hz, self.predictor.min_buffer_s)
+        rate = self.model.resample_config.rate_hz
+        # adapting, a longer horizon needs a longer history: the buffer grows with it
+        self.predictor.config = self.params.predictor_config(rate, Predictor.buffer_for(
+            self.model, self.params.steps(rate), self.predictor.adapt_settings, 0.0))
         self.get_logger().info(f"parameters changed: {changes}")
 
     # ---- input -----------------------------------------------------------------------
