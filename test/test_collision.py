@@ -131,38 +131,63 @@ def test_scan_and_grid_agree_on_the_same_wall():
     assert C.grid_check(unknown, unknown_is_obstacle=False)(*one(0.0))[1][0] == 0.0
 
 
-def _depth_by_brute_force(points: np.ndarray, pose: np.ndarray, fp: C.Footprint) -> float:
-    """Deepest point inside the rectangle over the poses [k, 3], every point tested."""
-    deepest = 0.0
-    for x, y, yaw in pose:
-        dx, dy = points[:, 0] - x, points[:, 1] - y
-        qx = math.cos(yaw) * dx + math.sin(yaw) * dy - fp.offset
-        qy = math.cos(yaw) * dy - math.sin(yaw) * dx
-        inside = np.minimum(0.5 * fp.length - np.abs(qx), 0.5 * fp.width - np.abs(qy))
-        deepest = max(deepest, float(inside.max(initial=0.0)))
-    return deepest
+def _inside_by_brute_force(points: np.ndarray, x: float, y: float, yaw: float,
+                           fp: C.Footprint) -> np.ndarray:
+    """Every point's depth inside the rectangle at (x, y, yaw), 0 outside."""
+    dx, dy = points[:, 0] - x, points[:, 1] - y
+    qx = math.cos(yaw) * dx + math.sin(yaw) * dy - fp.offset
+    qy = math.cos(yaw) * dy - math.sin(yaw) * dx
+    return np.maximum(np.minimum(0.5 * fp.length - np.abs(qx), 0.5 * fp.width - np.abs(qy)),
+                      0.0)
 
 
-def test_the_depth_of_a_mean_path_is_how_far_the_obstacles_stand_inside_its_footprint():
+def _deepening_by_brute_force(points: np.ndarray, pose: np.ndarray, origin, fp) -> float:
+    """Deepest a point goes past its depth at ``origin`` over the poses [k, 3]."""
+    now = _inside_by_brute_force(points, *origin, fp)
+    return max(0.0, max(float((_inside_by_brute_force(points, *p, fp) - now).max())
+                        for p in pose))
+
+
+def test_the_deepening_of_a_mean_path_is_how_much_deeper_the_obstacles_go():
     fld = C.DistanceField.from_scan(wall_scan(2.0))
-    depth = C.footprint_depth(fld, np.array([[[1.0, 0.0, 0.0], [1.5, 0.0, 0.0]],
-                                             [[1.3, 0.0, 0.0], [1.3, 0.0, 0.0]],
-                                             [[1.5, 0.0, math.pi / 2], [1.7, 0.0, math.pi / 2]]]))
-    # the front 0.1 m past the wall; 0.1 m short of it; side on, 0.35 + 0.05 m past it
-    np.testing.assert_allclose(depth, [0.1, 0.0, 0.05], atol=2e-3)
-    assert C.footprint_depth(fld, np.array([[1.0, 0.0, 0.0]])).shape == (1,)
+    paths = np.array([[[1.0, 0.0, 0.0], [1.5, 0.0, 0.0]],
+                      [[1.3, 0.0, 0.0], [1.3, 0.0, 0.0]],
+                      [[1.5, 0.0, math.pi / 2], [1.7, 0.0, math.pi / 2]]])
+    # the chair now far from the wall: the front 0.1 m past it; 0.1 m short of it; side on,
+    # 0.35 + 0.05 m past it
+    np.testing.assert_allclose(C.footprint_deepening(fld, paths), [0.1, 0.0, 0.05], atol=2e-3)
+    assert C.footprint_deepening(fld, np.array([[1.0, 0.0, 0.0]])).shape == (1,)
+    # the chair now 5 cm into the wall (the paths' origin): standing or backing away takes
+    # it no deeper; 5 cm more forward does, by 5 cm
+    near = C.DistanceField.from_scan(wall_scan(0.55))
+    np.testing.assert_allclose(C.footprint_deepening(near, np.array(
+        [[[0.0, 0.0, 0.0]], [[-0.2, 0.0, 0.0]], [[0.05, 0.0, 0.0]]])), [0.0, 0.0, 0.05],
+        atol=2e-3)
     # the scanner's mount and the chair's motion since the scan move the wall as they
     # move the probability's
     moved = C.scan_check(wall_scan(2.0), mount=(0.3, 0.0, 0.0), base_motion=(0.2, 0.0, 0.0))
-    assert moved.depth(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.0, abs=2e-3)
-    assert moved.depth(np.array([[[1.6, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=2e-3)
+    assert moved.deepening(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.0, abs=2e-3)
+    assert moved.deepening(np.array([[[1.6, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=2e-3)
     with pytest.raises(C.CollisionError):
-        C.footprint_depth(fld, np.array([[[np.nan, 0.0, 0.0]]]))
+        C.footprint_deepening(fld, np.array([[[np.nan, 0.0, 0.0]]]))
     with pytest.raises(C.CollisionError):
-        C.footprint_depth(fld, np.zeros((2, 3, 2)))
+        C.footprint_deepening(fld, np.zeros((2, 3, 2)))
 
 
-def test_the_depth_matches_a_brute_force_test_of_every_point():
+def test_what_the_chair_touches_in_front_hides_no_new_contact_behind():
+    """The nose 6 cm into a wall now: a turn that sweeps a rear corner 5 cm into a cabinet
+    behind is 5 cm of deepening, though no point goes deeper than the nose's 6 cm."""
+    front = np.stack([np.full(200, 0.54), np.linspace(-2.0, 2.0, 200)], axis=1)
+    cabinet = np.stack([np.linspace(-2.0, -0.3, 200), np.full(200, 0.35 + 0.05 - 0.05)], 1)
+    fld = _field_from_points(np.concatenate([front, cabinet]), res=0.02)
+    fp = C.DEFAULT_FOOTPRINT
+    sweep = np.array([[[-0.02, 0.0, 0.0], [-0.02, 0.05, 0.0]]])  # 5 cm to the left
+    got = C.footprint_deepening(fld, sweep, fp)[0]
+    want = _deepening_by_brute_force(fld.points, sweep[0], (0.0, 0.0, 0.0), fp)
+    assert got == pytest.approx(want, abs=1e-9) and got == pytest.approx(0.05, abs=1e-3)
+
+
+def test_the_deepening_matches_a_brute_force_test_of_every_point():
     rng = np.random.default_rng(4)
     fp = C.Footprint(1.1, 0.65, 0.15)
     for trial in range(20):
@@ -170,31 +195,32 @@ def test_the_depth_matches_a_brute_force_test_of_every_point():
         fld = _field_from_points(pts, res=0.05)
         pose = np.concatenate([rng.uniform(-1.5, 1.5, (3, 6, 2)),
                                rng.uniform(-4.0, 4.0, (3, 6, 1))], axis=-1)
-        got = C.footprint_depth(fld, pose, fp, transform=(0.2, -0.1, 0.3))
+        got = C.footprint_deepening(fld, pose, fp, transform=(0.2, -0.1, 0.3))
         R = np.array([[math.cos(0.3), -math.sin(0.3)], [math.sin(0.3), math.cos(0.3)]])
         moved = np.concatenate([pose[..., :2] @ R.T + [0.2, -0.1], pose[..., 2:] + 0.3], -1)
-        want = [_depth_by_brute_force(pts, moved[b], fp) for b in range(3)]
+        want = [_deepening_by_brute_force(pts, moved[b], (0.2, -0.1, 0.3), fp)
+                for b in range(3)]
         np.testing.assert_allclose(got, want, atol=1e-9, err_msg=f"trial {trial}")
 
 
-def test_a_grid_checks_depth_with_the_footprint_grown_by_half_a_cell():
+def test_a_grid_checks_deepening_with_the_footprint_grown_by_half_a_cell():
     res, n = 0.05, 200
     data = np.zeros((n, n), np.int8)
     data[:, round((2.0 + 5.0) / res)] = 100  # cell centres at x = 2.025
     check = C.grid_check(C.Grid(data, res, (-5.0, -5.0, 0.0)))
     # the front at 1.5 + 0.6 + 0.025 (half a cell) reaches 0.1 past the centres
-    assert check.depth(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=1e-9)
-    assert check.depth(np.array([[[1.35, 0.0, 0.0]]]))[0] == 0.0
-    # with a scan: the larger of the two depths, and of the two probabilities
+    assert check.deepening(np.array([[[1.5, 0.0, 0.0]]]))[0] == pytest.approx(0.1, abs=1e-9)
+    assert check.deepening(np.array([[[1.35, 0.0, 0.0]]]))[0] == 0.0
+    # with a scan: the larger of the two deepenings, and of the two probabilities
     scan = C.scan_check(wall_scan(1.9))
     both = C.PathCheck.either([scan, check])
     assert isinstance(both, C.PathCheck)
     pose = np.array([[[1.5, 0.0, 0.0]]])
-    assert both.depth(pose)[0] == pytest.approx(0.2, abs=2e-3)
+    assert both.deepening(pose)[0] == pytest.approx(0.2, abs=2e-3)
     cov = np.eye(2)[None, None] * 0.05**2
     np.testing.assert_array_equal(both(pose, cov)[1], np.maximum(scan(pose, cov)[1],
                                                                   check(pose, cov)[1]))
-    # a check that cannot give depths makes the pair one that gives none
+    # a check that cannot give deepenings makes the pair one that gives none
     plain = C.PathCheck.either([scan, lambda p, c: (np.zeros(p.shape[:2]), np.zeros(1))])
     assert not isinstance(plain, C.PathCheck)
     assert C.PathCheck.either([scan]) is scan

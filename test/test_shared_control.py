@@ -11,6 +11,7 @@ import pytest
 from scipy.stats import norm
 from test_predictor import linear_model
 
+from asgp_ros.core import collision
 from asgp_ros.core.collision import PathCheck
 from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.shared_control import (
@@ -99,16 +100,17 @@ def test_no_safe_command_sends_the_least_likely_or_lets_the_user_back_away():
 
 
 def wall_with_depth(distance: float) -> PathCheck:
-    """``wall_ahead`` that also gives the mean paths' depth past the wall."""
+    """``wall_ahead`` that also gives how much deeper than now the mean paths go past it."""
+    now = max(0.0, HALF_LENGTH - distance)
     return PathCheck(wall_ahead(distance), lambda pose: np.maximum(
-        0.0, (pose[..., 0] + HALF_LENGTH - distance).max(axis=-1)))
+        0.0, (pose[..., 0] + HALF_LENGTH - distance).max(axis=-1) - now))
 
 
 def test_within_the_margin_a_command_into_the_wall_is_stopped_and_backing_away_passes():
     """Every candidate certain to touch (the chair within its margin of the wall): the layer
     let the user's command pass, pushing on into the wall (an offline drive's one contact:
-    reversing while turning swung a corner into the furniture). The depth of the mean
-    paths tells the candidates apart now; backing away still passes."""
+    reversing while turning swung a corner into the furniture). How much deeper than now
+    the mean paths go tells the candidates apart now; backing away still passes."""
     pred, now = driving(forward=0.3)
     user = np.array([0.3, 0.0])
     wall = HALF_LENGTH - 0.05  # already 5 cm in
@@ -119,9 +121,9 @@ def test_within_the_margin_a_command_into_the_wall_is_stopped_and_backing_away_p
     # the command sent goes no more than depth_tolerance deeper than the shallowest
     cands = candidate_commands(user, CONFIG)
     batch = pred.predict_batch(np.repeat(cands[:, None, :], 10, axis=1), now)
-    depth = wall_with_depth(wall).depth(batch.pose)
+    deeper = wall_with_depth(wall).deepening(batch.pose)
     sent = int(np.flatnonzero(np.all(np.isclose(cands, d.command), axis=1))[0])
-    assert depth[sent] <= depth.min() + CONFIG.depth_tolerance < depth[0]
+    assert deeper[sent] <= deeper.min() + CONFIG.depth_tolerance < deeper[0]
     # a tolerance wider than the difference: the user's command passes, as before
     loose = SharedControlConfig(depth_tolerance=0.5)
     assert decide(pred, now, user, wall_with_depth(wall), loose).command is None
@@ -131,7 +133,7 @@ def test_within_the_margin_a_command_into_the_wall_is_stopped_and_backing_away_p
     # reversing away from a wall 30 cm in, every path certain to touch (a check that says
     # so): no candidate is shallower than backing away; the user's command passes
     certain = PathCheck(lambda pose, cov: (np.ones(pose.shape[:2]), np.ones(pose.shape[0])),
-                        wall_with_depth(HALF_LENGTH - 0.3).depth)
+                        wall_with_depth(HALF_LENGTH - 0.3).deepening)
     pred, now = driving(forward=-0.3)
     d = decide(pred, now, np.array([-0.3, 0.0]), certain, CONFIG)
     assert d.why is Why.NO_SAFE_COMMAND and d.command is None and "user" in d.detail
@@ -144,6 +146,7 @@ def test_within_the_margin_a_command_into_the_wall_is_stopped_and_backing_away_p
 def test_a_depth_that_fails_never_intervenes():
     pred, now = driving(forward=0.3)
     for bad in (lambda pose: np.full(pose.shape[0], np.nan), lambda pose: np.zeros(2),
+                lambda pose: np.full(pose.shape[0], -0.1),
                 lambda pose: (_ for _ in ()).throw(ValueError("broken"))):
         d = decide(pred, now, np.array([0.3, 0.0]),
                    PathCheck(wall_ahead(HALF_LENGTH - 0.05), bad), CONFIG)
@@ -521,3 +524,98 @@ def test_the_audits_map_check_places_the_prediction_by_the_true_pose():
     far = x_lo + 0.6 + 0.5  # the back 0.5 m from the opposite furniture
     assert at(far, math.pi) == 1.0 and at(far, 0.0) == 0.0
     assert 0.0 < at(x_hi - 0.6 - 1.05, 0.0) < 1.0  # the last step at the margin's edge
+
+
+FOOTPRINT_M = 0.05  # the node's default margin
+
+
+def seg_scan(segments, beams: int = 720, too_close=()) -> collision.Scan:
+    """A 360-degree scan at the base origin of line segments [((x1, y1), (x2, y2))]; beams
+    listed in ``too_close`` read -inf (REP-117: too close to measure)."""
+    fov = 2 * math.pi * (beams - 1) / beams
+    a0, inc = -fov / 2, fov / (beams - 1)
+    ang = a0 + inc * np.arange(beams)
+    d = np.stack([np.cos(ang), np.sin(ang)], 1)
+    r = np.full(beams, np.inf)
+    for (x1, y1), (x2, y2) in segments:
+        ex, ey = x2 - x1, y2 - y1
+        den = -d[:, 0] * ey + d[:, 1] * ex
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (-x1 * ey + y1 * ex) / den
+            u = (d[:, 0] * y1 - d[:, 1] * x1) / den
+        hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+        r = np.where(hit & (t < r), t, r)
+    r = np.where(r > 8.0, np.inf, r)
+    r[list(too_close)] = -np.inf
+    return collision.Scan(r, a0, inc, 0.05, 8.0)
+
+
+def _grown() -> collision.Footprint:
+    return collision.DEFAULT_FOOTPRINT.grown(FOOTPRINT_M)
+
+
+@pytest.mark.parametrize("user", [(0.0, 0.5), (0.3, 0.0), (0.2, 0.6), (0.3, 0.03)])
+def test_in_a_closed_loop_the_layer_never_takes_the_chair_into_the_wall(user):
+    """The chair moved by the model's first predicted step of what it was sent, the layer
+    deciding every 0.2 s from a scan of a wall its grown nose is 3 cm into, the user holding
+    a command into it. With every candidate certain, the first rule replaced a turn on the
+    spot by a slow turn within 2 cm of the shallowest candidate's depth, measured again from
+    each step's place: the layer's own command ratcheted the chair's real footprint 3 cm
+    into the wall. Judged by how much deeper than now each path goes, it does not."""
+    wall_x = 0.62  # world frame; the grown nose at 0.65
+    pred, now = driving(forward=0.0)
+    pose = np.zeros(3)
+    k = pred.config.horizon_steps
+    rng = np.random.default_rng(0)
+    corners = np.array([[0.6, 0.35], [0.6, -0.35], [-0.6, 0.35], [-0.6, -0.35]])
+    layer_drove = 0
+    for _ in range(40):
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        # the wall in the chair's frame: the line x_world = wall_x
+        ends = [np.array([wall_x, y]) - pose[:2] for y in (-5.0, 5.0)]
+        body = [((c * e[0] + s * e[1], -s * e[0] + c * e[1])) for e in ends]
+        d = decide(pred, now, np.array(user), collision.scan_check(
+            seg_scan([(body[0], body[1])]), _grown()), CONFIG)
+        applied = np.array(user) if d.command is None else d.command
+        layer_drove += d.command is not None
+        step = pred.predict(now, joy_future=np.repeat(applied[None], k, 0))
+        dx, dy, dth = step.pose[0]
+        pose = pose + np.array([c * dx - s * dy, s * dx + c * dy, dth])
+        for t in np.arange(now + 1 / 30, now + 0.2 + 1e-9, 1 / 30):
+            pred.feed_joy(t, tuple(applied))
+        for t in (now + 0.1, now + 0.2):
+            pred.feed_vo(t, step.vel[0] + rng.normal(0.0, 1e-3, 2))
+        now += 0.2
+        R = np.array([[math.cos(pose[2]), -math.sin(pose[2])],
+                      [math.sin(pose[2]), math.cos(pose[2])]])
+        real = float((corners @ R.T + pose[:2])[:, 0].max() - wall_x)
+        assert real <= 0.0, f"the real footprint {real:.3f} m into the wall ({d.detail})"
+    assert layer_drove > 0
+
+
+def test_a_corner_swept_into_furniture_behind_is_seen_whatever_touches_in_front():
+    """The nose 5.9 cm into the margin of the furniture ahead, every candidate certain: a
+    reversing turn (seed 10's command) sweeping a rear corner into a cabinet behind passed,
+    the front's depth hiding the new contact (a path's depth was one maximum over every
+    point). Each point against its own depth now, it is replaced; and one beam too close
+    to measure (-inf, a point deep inside the footprint) no longer turns the rule off."""
+    user = np.array([-0.49, -0.55])
+    rear = ((-2.5, 0.83), (-0.75, 0.83))  # a cabinet behind, on the left
+    for nose, too_close in ((0.03, ()), (0.059, ()), (0.03, (180,))):
+        front = 0.65 - nose
+        check = collision_scan_check(seg_scan([((front, -3.0), (front, 3.0)), rear],
+                                              too_close=too_close))
+        pred, now = driving(forward=0.0)
+        d = decide(pred, now, user, check, CONFIG)
+        assert d.p_user == pytest.approx(1.0)
+        assert d.why is Why.NO_SAFE_COMMAND and d.command is not None, (nose, d.detail)
+    # reversing straight out passes
+    pred, now = driving(forward=0.0)
+    front = 0.65 - 0.059
+    d = decide(pred, now, np.array([-0.5, 0.0]), collision_scan_check(
+        seg_scan([((front, -3.0), (front, 3.0)), rear])), CONFIG)
+    assert d.command is None, d.detail
+
+
+def collision_scan_check(scan):
+    return collision.scan_check(scan, _grown())

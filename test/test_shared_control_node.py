@@ -376,12 +376,11 @@ def test_a_stick_gone_neutral_while_deciding_is_what_the_status_says(harness):
     send = node._send_override
     armed = [False]
 
-    def send_after_a_neutral_read() -> None:
+    def send_after_a_neutral_read() -> str | None:
         if armed[0]:  # as if the read in _send_override took a neutral sample
             armed[0] = False
             node._user = (node._user[0], np.zeros(2))
-            node._stop_overriding()
-        send()
+        return send()
 
     node._send_override = send_after_a_neutral_read
     h.clock(104.2)
@@ -1644,3 +1643,40 @@ def test_the_mean_change_is_kept_in_constant_memory(harness):
     assert not growing, growing
     diag = conv.diagnostic_values(h.node.diagnostic_status())
     assert float(diag["mean_change"]) == pytest.approx(np.mean(changes), abs=1e-3)
+
+
+def test_a_decision_older_than_hold_s_is_not_sent_and_the_status_says_why(harness,
+                                                                          monkeypatch):
+    """A decision that took longer than hold_s (a dense scan on a loaded CPU) is rightly
+    not sent; the status blamed a neutral stick, with the stick held at 0.3."""
+    from asgp_ros.nodes import shared_control_node as scn
+
+    h = harness()
+    h.drive(100.0, 103.0, fwd=0.3, wall=20.0)
+    node, real_now, lag = h.node, h.node._now, [0.0]
+    node._now = lambda: None if (t := real_now()) is None else t + lag[0]
+    real_decide = scn.decide
+
+    def slow_decide(*args, **kwargs):
+        out = real_decide(*args, **kwargs)
+        lag[0] = 0.5  # the clock ran on while the decision was made (> hold_s 0.35)
+        return out
+
+    real_decide_now = node._decide_now
+
+    def decide_now(now):
+        try:
+            real_decide_now(now)
+        finally:
+            lag[0] = 0.0
+
+    monkeypatch.setattr(scn, "decide", slow_decide)
+    node._decide_now = decide_now
+    sent = len(h.overrides)
+    h.drive(103.0, 104.0, fwd=0.3, wall=0.7)  # the stick at 0.3 throughout
+    assert len(h.overrides) == sent
+    messages = [s.message for s in h.status[-5:]]
+    assert not any("neutral" in m for m in messages), messages
+    # (no stick sample came in the half second the decision took: it is stale too)
+    acted = [m for m in messages if not m.startswith("clear")]
+    assert acted and all("went stale" in m or "beyond hold_s" in m for m in acted), messages

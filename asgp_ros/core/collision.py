@@ -100,7 +100,7 @@ BoolArray = NDArray[np.bool_]
 
 __all__ = ["DEFAULT_FOOTPRINT", "CollisionError", "Contact", "DistanceField", "Footprint",
            "Grid", "PathCheck", "Scan", "constant_twist_motion", "contact_probability",
-           "footprint_depth", "grid_check", "inverse_pose", "scan_check"]
+           "footprint_deepening", "grid_check", "inverse_pose", "scan_check"]
 
 #: Sobol points per step (a power of two); the probability resolution is 1 / SAMPLES.
 SAMPLES = 256
@@ -128,7 +128,7 @@ _EXACT_WORK = 1 << 22  # method "auto": the exact test up to this many sample-po
 _CHUNK = 1 << 16  # elements of an intermediate array of the exact test (0.5 MB of float64)
 _BOX_CHUNK = 1 << 22  # (heading bin, point) pairs of the raster's box marking per pass
 _EPS_M = 1e-7  # boxes grown by this (m): round-off never turns a contact into a miss
-_DEPTH_POSES = 64  # poses per pass of footprint_depth (each with at most 8192 points in reach)
+_DEPTH_POSES = 64  # poses per pass of footprint_deepening (each with at most 8192 points in reach)
 
 
 class CollisionError(ValueError):
@@ -1206,19 +1206,25 @@ within [B])``: :func:`contact_probability` of paths in the base frame (a 3x3 cov
 (x, y, yaw) samples the heading too)."""
 
 
-def footprint_depth(fld: DistanceField, pose: FloatArray,
-                    footprint: Footprint = DEFAULT_FOOTPRINT,
-                    transform: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> FloatArray:
-    """[B] how deep the obstacles stand inside the footprint along each mean path (m): the
-    largest, over the path's poses and the obstacle points, of a point's distance inside
-    the rectangle (to its nearest edge), 0 when no point is inside at any pose.
+def footprint_deepening(fld: DistanceField, pose: FloatArray,
+                        footprint: Footprint = DEFAULT_FOOTPRINT,
+                        transform: tuple[float, float, float] = (0.0, 0.0, 0.0)
+                        ) -> FloatArray:
+    """[B] how much deeper (m) any obstacle point goes inside the footprint along each mean
+    path than it stands inside the footprint at the paths' origin (the chair now): over the
+    path's poses and the obstacle points, the largest of a point's depth inside the
+    rectangle (its distance to the nearest edge; 0 outside) less its depth now; 0 when no
+    point goes deeper.
 
     No uncertainty: the mean poses only. Where every path is certain to touch (the chair
     already stands within its margin of a wall, say), probabilities cannot tell the paths
-    apart, and this can: a path that backs away keeps the depth the chair has now, one
-    that swings a corner into the wall deepens it. The rectangle is grown as
-    :func:`contact_probability` grows it (``fld.grow + fld.merge``); off a scan's window
-    there are no points, and nothing counts there.
+    apart, and this can: a path that backs away or stands takes no point deeper, one that
+    swings a corner into the wall, or into other furniture, does. Each point is measured
+    against its own depth now, so that what the chair already touches in front hides no
+    new contact behind, and a command is judged against where the chair is (a step after
+    step of small deepenings is each judged from the chair's new place, and each counts).
+    The rectangle is grown as :func:`contact_probability` grows it (``fld.grow +
+    fld.merge``); off a scan's window there are no points, and nothing counts there.
 
     Args:
         fld: the obstacles.
@@ -1236,9 +1242,9 @@ def footprint_depth(fld: DistanceField, pose: FloatArray,
         raise CollisionError(f"paths must be [B, k, 3], got {P.shape}")
     P, _ = _check_inputs(P, np.zeros((*P.shape[:2], 2, 2)), transform)
     B, k = P.shape[:2]
-    depth = np.zeros(B * k)
+    deeper = np.zeros(B * k)
     if fld._tree is None or not P.size:
-        return depth.reshape(B, k).max(axis=1) if k else np.zeros(B)
+        return np.zeros(B)
     R, t = _pose_matrix(transform)
     xy = (P[..., :2] @ R.T + t).reshape(-1, 2)
     yaw = (P[..., 2] + transform[2]).reshape(-1)
@@ -1246,6 +1252,23 @@ def footprint_depth(fld: DistanceField, pose: FloatArray,
     rect = _Rect(footprint.offset - 0.5 * footprint.length - grow,
                  footprint.offset + 0.5 * footprint.length + grow,
                  0.5 * footprint.width + grow)
+
+    def inside(o: FloatArray, at_xy: FloatArray, at_yaw: FloatArray) -> FloatArray:
+        """Depth of points ``o`` [m, 2] inside the rectangle at poses [m] (<= 0 outside)."""
+        c, s = np.cos(at_yaw), np.sin(at_yaw)
+        dx, dy = o[:, 0] - at_xy[:, 0], o[:, 1] - at_xy[:, 1]
+        qx, qy = c * dx + s * dy, np.abs(c * dy - s * dx)
+        out: FloatArray = np.minimum(np.minimum(qx - rect.x_lo, rect.x_hi - qx),
+                                     rect.half_w - qy)
+        return out
+
+    # each point's depth now (the paths' origin, the base frame at t0)
+    now_xy = np.array([t])
+    held = np.asarray(fld.neighbours(now_xy, np.array([rect.reach + 1e-9]))[0], dtype=np.intp)
+    depth_now = np.zeros(fld.points.shape[0])
+    if held.size:
+        depth_now[held] = np.maximum(inside(fld.points[held], np.repeat(now_xy, held.size, 0),
+                                            np.full(held.size, transform[2])), 0.0)
     # the covering discs farther from every obstacle than their radius (with the field's
     # raster error, two cells) hold no point: only the other poses are searched
     centres = footprint.centres()[:, 0]
@@ -1260,37 +1283,34 @@ def footprint_depth(fld: DistanceField, pose: FloatArray,
         if not counts.any():
             continue
         which = np.repeat(rows, counts)
-        o = fld.points[np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp,
-                                   count=int(counts.sum()))]
-        c, s = np.cos(yaw[which]), np.sin(yaw[which])
-        dx, dy = o[:, 0] - xy[which, 0], o[:, 1] - xy[which, 1]
-        qx, qy = c * dx + s * dy, np.abs(c * dy - s * dx)
-        inside = np.minimum(np.minimum(qx - rect.x_lo, rect.x_hi - qx), rect.half_w - qy)
-        np.maximum.at(depth, which, np.maximum(inside, 0.0))
-    return depth.reshape(B, k).max(axis=1) if k else np.zeros(B)
+        index = np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp,
+                            count=int(counts.sum()))
+        depth = np.maximum(inside(fld.points[index], xy[which], yaw[which]), 0.0)
+        np.maximum.at(deeper, which, depth - depth_now[index])
+    return deeper.reshape(B, k).max(axis=1) if k else np.zeros(B)
 
 
 class PathCheck:
-    """A :data:`CollisionCheck` (called as one) that also gives :func:`footprint_depth` of
-    the mean paths (``depth(pose [B, k, 3]) -> [B]``) against the same obstacles: the
-    shared-control layer's tie-break among paths all certain to touch."""
+    """A :data:`CollisionCheck` (called as one) that also gives :func:`footprint_deepening`
+    of the mean paths (``deepening(pose [B, k, 3]) -> [B]``) against the same obstacles:
+    the shared-control layer's tie-break among paths all certain to touch."""
 
     def __init__(self, probability: CollisionCheck,
-                 depth: Callable[[FloatArray], FloatArray]) -> None:
+                 deepening: Callable[[FloatArray], FloatArray]) -> None:
         self._probability = probability
-        self._depth = depth
+        self._deepening = deepening
 
     def __call__(self, pose: FloatArray, cov: FloatArray) -> tuple[FloatArray, FloatArray]:
         return self._probability(pose, cov)
 
-    def depth(self, pose: FloatArray) -> FloatArray:
-        """[B] :func:`footprint_depth` of paths [B, k, 3] in the base frame."""
-        return self._depth(pose)
+    def deepening(self, pose: FloatArray) -> FloatArray:
+        """[B] :func:`footprint_deepening` of paths [B, k, 3] in the base frame."""
+        return self._deepening(pose)
 
     @staticmethod
     def either(checks: Sequence[CollisionCheck]) -> CollisionCheck:
         """One check of several obstacle sources (a scan and a map): the larger of their
-        probabilities, and of their depths when every one of them gives a depth."""
+        probabilities, and of their deepenings when every one of them gives one."""
         if not checks:
             raise ValueError("either() needs at least one check")
         if len(checks) == 1:
@@ -1306,10 +1326,10 @@ class PathCheck:
             return probability
         with_depth = cast(tuple[PathCheck, ...], parts)
 
-        def depth(pose: FloatArray) -> FloatArray:
-            return functools.reduce(np.maximum, [c.depth(pose) for c in with_depth])
+        def deepening(pose: FloatArray) -> FloatArray:
+            return functools.reduce(np.maximum, [c.deepening(pose) for c in with_depth])
 
-        return PathCheck(probability, depth)
+        return PathCheck(probability, deepening)
 
 
 def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
@@ -1343,7 +1363,7 @@ def scan_check(scan: Scan, footprint: Footprint = DEFAULT_FOOTPRINT,
         c = contact_probability(fld, pose, cov, footprint, transform)
         return c.per_step, c.within
 
-    return PathCheck(check, lambda pose: footprint_depth(fld, pose, footprint, transform))
+    return PathCheck(check, lambda pose: footprint_deepening(fld, pose, footprint, transform))
 
 
 def grid_check(grid: Grid | DistanceField, footprint: Footprint = DEFAULT_FOOTPRINT,
@@ -1369,4 +1389,4 @@ def grid_check(grid: Grid | DistanceField, footprint: Footprint = DEFAULT_FOOTPR
         c = contact_probability(fld, pose, cov, footprint, transform)
         return c.per_step, c.within
 
-    return PathCheck(check, lambda pose: footprint_depth(fld, pose, footprint, transform))
+    return PathCheck(check, lambda pose: footprint_deepening(fld, pose, footprint, transform))

@@ -24,13 +24,17 @@ searches for the least intrusive replacement:
   with the least motion among equals (stopping is always a candidate), and the decision
   says ``no_safe_command``;
 * if even that is no less likely than the user's command (the chair already touches, or
-  stands within the margin, and every candidate is certain to touch, say), the mean paths'
-  depth into the obstacles decides (when the check gives one, as the scan and map checks
-  of :mod:`asgp_ros.core.collision` do: :class:`~asgp_ros.core.collision.PathCheck`): a
-  user's command that goes ``depth_tolerance`` deeper than the shallowest candidate (into
-  the wall, or swinging a corner into it) is replaced by the cheapest candidate within
-  ``depth_tolerance`` of the shallowest (``no_safe_command``); otherwise the user's
-  command passes (backing away, say): overriding would only pin the chair there.
+  stands within the margin, and every candidate is certain to touch, say), how much deeper
+  than now the mean paths take the obstacles into the footprint decides (when the check
+  gives that, as the scan and map checks of :mod:`asgp_ros.core.collision` do:
+  :class:`~asgp_ros.core.collision.PathCheck`): a user's command that takes any obstacle
+  point more than ``depth_tolerance`` deeper than the least-deepening candidate does (on
+  into the wall, or swinging a corner into it or into other furniture) is replaced by the
+  cheapest candidate within ``depth_tolerance`` of the least (``no_safe_command``);
+  otherwise the user's command passes (backing away, say): overriding would only pin the
+  chair there. Each step judges from where the chair is then: by its mean prediction, no
+  command passed or sent deepens a contact by more than ``depth_tolerance`` beyond what the
+  least-deepening candidate (stopping, say) would over the horizon.
 
 Safety rules, whatever the numbers say:
 
@@ -106,10 +110,12 @@ class SharedControlConfig:
             the heading is sampled with the position (a turning chair's corners sweep);
             False: the position covariance and the mean heading.
         depth_tolerance: when no candidate is less likely to touch than the user's command
-            (every one certain, say), a candidate replaces it only if its mean path goes at
-            least this much (m) less deep into the obstacles
-            (:func:`~asgp_ros.core.collision.footprint_depth`), and candidates within this
-            of the shallowest count as equally deep.
+            (every one certain, say), the user's command passes if its mean path takes the
+            obstacles no more than this (m) deeper into the footprint than the chair has
+            them now, or than the least-deepening candidate does
+            (:func:`~asgp_ros.core.collision.footprint_deepening`); else the cheapest
+            candidate within this of the least is sent. Prediction noise, and the most a
+            held command may deepen a contact by over the horizon.
     """
 
     threshold: float = 0.05
@@ -118,7 +124,7 @@ class SharedControlConfig:
     turn_offsets: tuple[float, ...] = (0.0, -0.15, 0.15, -0.3, 0.3, -0.5, 0.5, -0.8, 0.8)
     progress_weight: float = 0.5
     heading_uncertainty: bool = True
-    depth_tolerance: float = 0.02
+    depth_tolerance: float = 0.002
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.threshold) and 0.0 < self.threshold < 1.0):
@@ -234,25 +240,34 @@ def candidate_commands(user: FloatArray, config: SharedControlConfig) -> FloatAr
     return grid[np.sort(first)]
 
 
-def _shallower(check: CollisionCheck, pose: FloatArray, low: NDArray[np.intp],
-               cost: FloatArray, tolerance: float) -> tuple[int, float, float] | None:
+def _least_deepening(check: CollisionCheck, pose: FloatArray, low: NDArray[np.intp],
+                     cost: FloatArray, tolerance: float) -> tuple[int, float, float] | None:
     """Among the candidates ``low`` (as likely to touch as the user's command, row 0 of the
-    paths ``pose`` [C, k, 3]), the cheapest whose mean path goes into the obstacles at least
-    ``tolerance`` less deep than the user's and no more than ``tolerance`` deeper than the
-    shallowest (:func:`~asgp_ros.core.collision.footprint_depth`), with the user's depth and
-    its own; None when there is none, or the check cannot tell depths."""
+    paths ``pose`` [C, k, 3]), the cheapest whose mean path takes the obstacles no more
+    than ``tolerance`` deeper into the footprint than the least-deepening one does
+    (:func:`~asgp_ros.core.collision.footprint_deepening`), with the user's deepening and
+    its own; None when the user's command itself takes them no more than ``tolerance``
+    deeper than that, or the check cannot tell."""
     if not isinstance(check, PathCheck):
         return None
-    depth = np.asarray(check.depth(pose), dtype=np.float64)
-    if depth.shape != (pose.shape[0],) or not np.all(np.isfinite(depth)):
-        raise ValueError(f"the check gave depths {depth.shape} for {pose.shape[0]} paths, "
-                         "or non-finite ones")
-    shallowest = float(depth[low].min())
-    if depth[0] - shallowest <= tolerance:
+
+    def deepening(paths: FloatArray) -> FloatArray:
+        got = np.asarray(check.deepening(paths), dtype=np.float64)
+        if got.shape != (paths.shape[0],) or not np.all(np.isfinite(got)) or np.any(got < 0):
+            raise ValueError(f"the check gave deepenings {got.shape} for {paths.shape[0]} "
+                             "paths, or non-finite or negative ones")
+        return got
+
+    user = float(deepening(pose[:1])[0])
+    if user <= tolerance:  # none goes less deep than 0: the common case, one path's cost
         return None
-    near = low[depth[low] <= shallowest + tolerance]
+    deeper = deepening(pose[low])
+    least = float(deeper.min())
+    if user <= least + tolerance:
+        return None
+    near = low[deeper <= least + tolerance]
     best = int(near[np.argmin(cost[near])])
-    return best, float(depth[0]), float(depth[best])
+    return best, user, float(deeper[np.flatnonzero(low == best)[0]])
 
 
 def decide(predictor: Predictor, now: float, user: FloatArray,
@@ -340,9 +355,10 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
         why, words = Why.NO_SAFE_COMMAND, "no candidate is below the threshold"
         if p_all[best] >= min(p_user, float(p_all[0])) - 1e-9:
             # no candidate is less likely to touch than the user's command (already within
-            # the margin, say): the depth of the mean paths tells them apart
+            # the margin, say): how much deeper the mean paths go tells them apart
             try:
-                shallower = _shallower(check, batch.pose, low, cost, config.depth_tolerance)
+                shallower = _least_deepening(check, batch.pose, low, cost,
+                                             config.depth_tolerance)
             except ValueError as exc:
                 return Decision(Why.CHECK_FAILED, f"depth of the candidates failed: {exc}",
                                 user, p_user=p_user, solve_s=time.perf_counter() - start,
@@ -354,8 +370,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
                                 solve_s=time.perf_counter() - start,
                                 candidates=int(commands.shape[0]), prediction=pred)
             best, d_user, d_best = shallower
-            words = (f"{words}; the user's command goes {d_user:.2f} m deep, this "
-                     f"{d_best:.2f} m")
+            words = (f"{words}; the user's command goes {d_user:.3f} m deeper, this "
+                     f"{d_best:.3f} m")
     elapsed = time.perf_counter() - start
     if best == 0 and why is Why.INTERVENING:  # cannot happen: row 0 is the user's (unsafe)
         return Decision(Why.CLEAR, f"p = {p_user:.3f}", user, p_user=p_user,

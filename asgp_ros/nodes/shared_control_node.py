@@ -163,6 +163,8 @@ def _spec(name: str, default: Any, text: str, low: float | None = None,
     return ParamSpec(name, default, text, low, high)
 
 
+_WENT_NEUTRAL = "the stick went neutral before the override was sent"
+
 #: The layer's own parameters (SharedControlParams); the node also takes adapt.*.
 LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("model_path", "", "model file from `asgp train` (required)"),
@@ -174,9 +176,9 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
           "board's neutral) nothing is commanded", 0.0, 0.45),
     _spec("progress_weight", 0.5, "weight of forward progress given up (per m^2) against the "
           "command change squared", 0.0, 100.0),
-    _spec("depth_tolerance", 0.02, "when every candidate is as likely to touch as the user's "
-          "command, the user's is replaced only by one whose mean path goes this much (m) "
-          "less deep into the obstacles", 0.0, 0.5),
+    _spec("depth_tolerance", 0.002, "when every candidate is as likely to touch as the "
+          "user's command: how much deeper (m) than the least-deepening candidate the user's "
+          "command may take an obstacle into the footprint and still pass", 0.0, 0.5),
     _spec("obstacles", "laser", "obstacle source: 'laser' (scan_topic), 'grid' (map_topic) "
           "or 'both'"),
     _spec("joy_topic", topics.JOY, "the user's joystick (sensor_msgs/Joy)"),
@@ -918,13 +920,15 @@ class SharedControlNode(Node):
         if decision.solve_s > 0.0:
             self._solve_ms.append(1e3 * decision.solve_s)
         if decision.intervening:
-            self._send_override()
+            why_not = self._send_override()
             if self._decision is None:
-                # the stick read before the send (it came while this decision was made) is
-                # neutral: nothing was sent, and the status says so
+                # dropped before it was sent (the stick read before the send, which came
+                # while this decision was made, is neutral or stale; or the decision took
+                # longer than hold_s): nothing was sent, and the status says why
+                neutral = why_not == _WENT_NEUTRAL
                 decision = dataclasses.replace(
-                    decision, why=Why.NEUTRAL, command=None, p_command=math.nan, change=0.0,
-                    detail="the stick went neutral before the override was sent")
+                    decision, why=Why.NEUTRAL if neutral else Why.STALE_INPUT, command=None,
+                    p_command=math.nan, change=0.0, detail=why_not or "not sent")
                 self._decision = decision
         if decision.intervening:
             if not self._was_intervening:  # a new intervention begins
@@ -966,27 +970,35 @@ class SharedControlNode(Node):
         if self._decision is not None and self._decision.intervening:
             self._decision = None
 
-    def _send_override(self) -> None:
+    def _send_override(self) -> str | None:
+        """Send the decision's override, or say why not (None: sent)."""
         # the joystick waiting first: an override is never sent after a neutral stick that
         # has arrived (read before now: every sample read later arrived after this send)
         self.polled.drain()
         now = self._now()
         d = self._decision
         if now is None or d is None or d.command is None:
-            return
+            return "no clock, or nothing to send"
         user = self._user
-        if (user is None or not -JOY_LEAD_S <= now - user[0] <= self.params.joy_timeout_s
-                or is_neutral(user[1], BOARD_NEUTRAL)
-                or not 0.0 <= now - self._decision_t <= self.params.hold_s):
-            self._stop_overriding()  # (a decision "ahead" of the clock: it went back)
-            return
+        why_not = None
+        if user is None or not -JOY_LEAD_S <= now - user[0] <= self.params.joy_timeout_s:
+            why_not = "the stick went stale before the override was sent"
+        elif is_neutral(user[1], BOARD_NEUTRAL):
+            why_not = _WENT_NEUTRAL
+        elif not 0.0 <= now - self._decision_t <= self.params.hold_s:
+            # (a decision "ahead" of the clock: it went back)
+            why_not = (f"the decision is {now - self._decision_t:.2f} s old, beyond hold_s "
+                       f"({self.params.hold_s:g} s): not sent")
+        if why_not is not None:
+            self._stop_overriding()
+            return why_not
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
             # the user moved the stick since the decision: judged again with it (from the
             # timer; inside a decision, a sample read by the drain above waits for the next
             # send), never the old decision sent again
             if not self._deciding:
                 self._decide(now)
-            return
+            return "the stick moved since the decision: judged again"
         self.override_pub.publish(conv.joy_from_sample(now, float(d.command[0]),
                                                        float(d.command[1])))
         self._sent, self._sent_t = d.command, now
@@ -994,6 +1006,7 @@ class SharedControlNode(Node):
         # an adapting predictor learns nothing from the steps an override may have driven
         # (training's rule for a bag's overrides): what the board applied is only modelled
         self.predictor.feed_override(now, now)
+        return None
 
     def _status(self, d: Decision) -> DiagnosticStatus:
         values = {
