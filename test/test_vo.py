@@ -146,6 +146,11 @@ def test_options_and_camera_matrix_are_validated():
         VisualOdometry(np.eye(2))
     with pytest.raises(ValueError, match="pinhole"):
         VisualOdometry(np.zeros((3, 3)))
+    # 6 inliers leave a 6-parameter motion no degree of freedom for its covariance: an
+    # estimate from exactly 6 divided by zero and ended vo_node with a traceback
+    with pytest.raises(ValueError, match="min_inliers must be >= 7"):
+        VOOptions(min_inliers=6)
+    VOOptions(min_inliers=7)
 
 
 # ---- rendered motions ----------------------------------------------------------------------

@@ -147,6 +147,10 @@ def test_parameter_validation_names_the_problem():
         vo_node_params({"vo.min_depth": 7.0})
     with pytest.raises(ValueError, match="color_topic"):
         vo_node_params({"color_topic": ""})
+    with pytest.raises(ValueError, match="base_frame"):  # blank
+        vo_node_params({"base_frame": "  "})
+    with pytest.raises(ValueError, match="must differ"):  # every odom read base -> base
+        vo_node_params({"odom_frame": "base_link", "base_frame": "base_link"})
     p = vo_node_params({"camera_yaw": 0.0, "vo.max_depth": 4.0})
     assert p.extrinsic.yaw == 0.0 and p.vo_options["max_depth"] == 4.0
 
@@ -398,6 +402,48 @@ def test_stamps_going_back_restart_the_odometry_and_a_repeated_pair_is_ignored(
         h.close()
 
 
+def test_a_camera_clock_stepped_back_less_than_a_second_gives_no_false_twist(
+        rclpy_context, frames):
+    """The camera's clock steps back 0.4 s (under _JUMP_BACK_S: no restart). The pairs at or
+    before the last one processed are ignored; the first one past it was tracked against a
+    frame 7 periods older and its motion divided by one period: a twist of 1.4 m/s for
+    0.2 m/s, with a covariance calling it certain. It restarts tracking, pose held, now."""
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+
+    def send(k, t):
+        img, depth = images[k]
+        h.send(t, camera.image_from_array(0.0, img, "camera"),
+               camera.image_from_array(0.0, depth, "camera"))
+
+    try:
+        h.connect(K)
+        t0, back = 100.0, 6 / 15.0
+        for k in range(4):
+            send(k, t0 + drive.t[k])
+        assert len(h.twists) == 3
+        for k in range(4, 10):  # at or before the last pair processed: ignored
+            img, depth = images[k]
+            c = camera.image_from_array(0.0, img, "camera")
+            d = camera.image_from_array(0.0, depth, "camera")
+            c.header.stamp = d.header.stamp = conv.seconds_to_stamp(t0 + drive.t[k] - back)
+            n = h.node.stats["not_newer"]
+            h.color.publish(c)
+            h.depth.publish(d)
+            assert h.spin_until(lambda n=n: h.node.stats["not_newer"] > n)
+        for k in range(10, 14):
+            send(k, t0 + drive.t[k] - back)
+        assert h.node.stats["resyncs"] == 1 and len(h.twists) == 6  # k = 10: a reference
+        for m in h.twists[3:]:
+            assert m.twist.linear.x == pytest.approx(0.4, abs=0.05), m.twist
+        _, _, ok, (x, y, _) = conv.odometry_to_sample(h.odoms[-1])
+        # the pose held through the restart (frames 0-3 then 10-13: 0.16 m), not reset to
+        # the origin (0.08 m); the motion of frames 3-10 is unknown
+        assert ok and math.hypot(x, y) == pytest.approx(0.16, abs=0.02)
+    finally:
+        h.close()
+
+
 def _msgs(images, k, colour_frame="camera", depth_frame="camera"):
     img, depth = images[k]
     return (camera.image_from_array(0.0, img, colour_frame),
@@ -445,6 +491,39 @@ def test_a_pair_stamped_before_the_epoch_or_ahead_of_the_clock_is_refused(
         _, _, ok, (x, y, _) = conv.odometry_to_sample(h.odoms[-1])
         dist = math.hypot(drive.x[7] - drive.x[0], drive.y[7] - drive.y[0])
         assert ok and math.hypot(x, y) == pytest.approx(dist, abs=0.03)  # not restarted
+    finally:
+        h.close()
+
+
+@pytest.mark.ros
+def test_pairs_refused_from_the_start_are_said_not_waited_for(rclpy_context, frames):
+    """Every pair refused from the first (a camera on its own clock, an hour ahead): the
+    diagnostics said "waiting for colour/depth pairs" forever; and a pair stamped past a
+    message's int32 seconds (2038) is refused whatever the node's clock (at 0 under
+    use_sim_time before /clock, its twist went out stamped 1901)."""
+    from builtin_interfaces.msg import Time
+
+    K, _, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        c, d = _msgs(images, 0)
+        c.header.stamp = d.header.stamp = Time(sec=2**31 - 1, nanosec=999_999_999)
+        h.color.publish(c)
+        h.depth.publish(d)
+        assert h.spin_until(lambda: h.node.stats["bad_input"] == 1)
+        assert "int32" in h.node.last_result.message
+        now = h.node.get_clock().now().nanoseconds * 1e-9
+        c, d = _msgs(images, 1)
+        c.header.stamp = d.header.stamp = conv.seconds_to_stamp(now + 3600.0)
+        h.color.publish(c)
+        h.depth.publish(d)
+        assert h.spin_until(lambda: h.node.stats["bad_input"] == 2)
+        h.diags.clear()
+        assert h.spin_until(lambda: any(
+            level == 2 and "every colour/depth pair refused" in msg
+            and "after this node's clock" in msg for level, msg, _ in _levels(h.diags)), 5.0)
+        assert not h.twists
     finally:
         h.close()
 
@@ -534,6 +613,9 @@ def test_node_refuses_runtime_changes_and_bad_start_values(rclpy_context):
     with pytest.raises(ValueError, match="max_depth"):
         VONode(context=rclpy_context,
                parameter_overrides=[Parameter("vo.min_depth", value=7.0)])
+    with pytest.raises(ValueError, match="min_inliers"):  # 6: a covariance divided by zero
+        VONode(context=rclpy_context,
+               parameter_overrides=[Parameter("vo.min_inliers", value=6)])
 
 
 @pytest.mark.ros

@@ -107,9 +107,13 @@ class VONode(Node):
         self._elapsed: collections.deque[float] = collections.deque(maxlen=100)
         self.stats = {"frames": 0, "tracked": 0, "lost": 0, "bad_input": 0, "dropped": 0,
                       "twists": 0, "resets": 0, "camera_info_errors": 0, "not_newer": 0,
-                      "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0}
+                      "colour_images": 0, "depth_images": 0, "evicted": 0, "frozen": 0,
+                      "resyncs": 0}
         self._last_colour: Image | None = None  # the last processed colour image
         self._behind: list[float] = []  # stamps of the pairs in a row far behind the last
+        # a pair came stamped before the last processed one (the camera's clock stepped
+        # back, a pair delivered late): the next pair's motion spans an unknown time
+        self._resync = False
         self._back_images = 0  # images in a row stamped far behind the newest buffered one
         # when camera_info last changed (time.monotonic), the newest few
         self._info_changes: collections.deque[float] = collections.deque(maxlen=100)
@@ -257,13 +261,23 @@ class VONode(Node):
                 self.vo.reset()
                 self.planar.reset()
                 self.stats["resets"] += 1
+                self._resync = False
             else:  # an old or repeated pair (or one stray pair stamped far back: it reset
                 # the odometry to the origin mid-drive): counted, the diagnostics say so if
                 # it lasts
                 self.stats["not_newer"] += 1
                 self._not_newer_since_processed += 1
+                # behind (not a repeat): the camera's clock may have stepped back, and the
+                # first pair past the last stamp came longer after the last frame than its
+                # stamp says (0.4 s back gave a twist of 1.4 m/s for 0.2 m/s, with a
+                # covariance that called it certain)
+                self._resync |= stamp < self._last_stamp
                 return
         self._behind = []
+        if self._resync:  # that pair's motion is over an unknown time: no twist from it
+            self._resync = False
+            self.vo.restart()
+            self.stats["resyncs"] += 1
         self._last_stamp = stamp
         self._not_newer_since_processed = 0
         self._last_processed_wall = time.monotonic()
@@ -325,6 +339,9 @@ class VONode(Node):
         camera stamping with another clock, or one glitched frame)."""
         if stamp < 0.0:
             return f"image stamp {stamp:.3f} s is before the clock's epoch"
+        if stamp >= conv.MAX_STAMP_S + 1:  # (the node's clock at 0: no other check)
+            return (f"image stamp {stamp:.3f} s is beyond a message stamp's int32 seconds "
+                    "(2038): its twist could not be stamped")
         now = self.get_clock().now().nanoseconds * 1e-9
         if now > 0.0 and stamp > now + _AHEAD_S:
             return (f"image stamped {stamp - now:.3f} s after this node's clock (is the "
@@ -360,6 +377,10 @@ class VONode(Node):
                                    f"{self._info_problem}")
         elif self.vo is None:
             level, msg = "WARN", f"waiting for camera_info on {p.camera_info_topic}"
+        elif (r is None or age is None) and self._last_problem:
+            # every pair so far refused (a camera on its own clock, say): not "waiting"
+            level, msg = "ERROR", (f"every colour/depth pair refused, the last one: "
+                                   f"{self._last_problem}: no twist published")
         elif r is None or age is None:
             level, msg = "WARN", (f"waiting for colour/depth pairs on {p.color_topic} "
                                   f"({n['colour_images']} received), {p.depth_topic} "

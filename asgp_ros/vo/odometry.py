@@ -179,8 +179,12 @@ class VOOptions:
                 raise ValueError(f"VO option {name} must be >= 1, got {getattr(self, name)!r}")
         if self.num_levels > 5:
             raise ValueError(f"num_levels must be <= 5, got {self.num_levels}")
-        if self.min_inliers < 6 or self.min_features_for_estimate < 6:
-            raise ValueError("min_inliers and min_features_for_estimate must be >= 6")
+        if self.min_features_for_estimate < 6:
+            raise ValueError("min_features_for_estimate must be >= 6")
+        if self.min_inliers < 7:
+            # a motion of 6 parameters from 6 inliers leaves no degree of freedom for its
+            # covariance (the cluster-robust small-sample factor divides by n - 6)
+            raise ValueError(f"min_inliers must be >= 7, got {self.min_inliers}")
         if self.match_ratio > 1.0:
             raise ValueError(f"match_ratio must be in (0, 1], got {self.match_ratio}")
         if self.max_depth <= self.min_depth:
@@ -848,6 +852,8 @@ class VisualOdometry:
             return _RejectedError(status, message, num_inliers=n, num_matches=nmatch,
                                   error=err)
 
+        if n < 7:  # (min_inliers is at least 7) no degree of freedom left for a covariance
+            raise reject(Status.INSUFFICIENT_INLIERS, f"{n} inliers: a covariance needs 7")
         # acceptance test: translation std of sigma^2 H^-1 with sigma^2 >= 0.05 level px^2
         dof4 = max(1, 4 * n - 6)
         try:

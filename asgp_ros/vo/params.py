@@ -71,7 +71,7 @@ _VO_DESCRIPTIONS = {
                                  0.0, 1.0),
     "min_features_for_estimate": ("fewer features with depth -> insufficient_features",
                                   6, 10000),
-    "min_inliers": ("fewer inliers -> insufficient_inliers", 6, 10000),
+    "min_inliers": ("fewer inliers -> insufficient_inliers (a covariance needs 7)", 7, 10000),
     "outlier_reprojection_threshold": ("level px: larger reprojection error -> outlier",
                                        0.05, 20.0),
     "max_mean_reprojection_error": ("level px: larger mean inlier error -> "
@@ -124,8 +124,10 @@ def vo_node_params(values: Mapping[str, object]) -> VONodeParams:
     v = check_values(PARAMS, values)
     for name in ("color_topic", "depth_topic", "camera_info_topic", "base_frame",
                  "odom_frame"):
-        if not v[name]:
+        if not str(v[name]).strip():
             raise ValueError(f"{name} must not be empty")
+    if v["odom_frame"] == v["base_frame"]:
+        raise ValueError(f"odom_frame and base_frame must differ, both are {v['base_frame']!r}")
     options = {spec.name[3:]: v[spec.name] for spec in VO_PARAMS}
     VOOptions(**options)  # cross-field checks (raises ValueError naming the option)
     return VONodeParams(
