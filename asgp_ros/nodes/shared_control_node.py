@@ -989,7 +989,7 @@ class SharedControlNode(Node):
             # (a decision "ahead" of the clock: it went back)
             why_not = (f"the decision is {now - self._decision_t:.2f} s old, beyond hold_s "
                        f"({self.params.hold_s:g} s): not sent")
-        if why_not is not None:
+        if why_not is not None or user is None:
             self._stop_overriding()
             return why_not
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
