@@ -64,6 +64,8 @@ def _cases(tmp_path):
     bad_yaml = tmp_path / "bad.yaml"
     bad_yaml.write_text('/**:\n  ros__parameters:\n    horizon_s: [1.0, "a"\n')
     model = ["-p", f"model_path:={MODEL}"]
+    typo_yaml = tmp_path / "typo.yaml"
+    typo_yaml.write_text("/**:\n  ros__parameters:\n    footprint_widht: 0.9\n")
     return {
         # rcl opened the FIFO in rclpy.init with SIGINT and SIGTERM held: unkillable
         "fifo": ("vo_node", ["--params-file", str(fifo)], "not a regular file"),
@@ -82,6 +84,11 @@ def _cases(tmp_path):
         "topic_vo": ("vo_node", ["-p", "color_topic:=1color"], "color_topic"),
         "poll": ("predictor_node", [*model, "-p", "joy_poll_period_s:=1e-9"],
                  "joy_poll_period_s must be 0"),
+        # a misspelt key left its setting at the default with a warning: the axis not
+        # inverted for 'inverted', a 0.7 m footprint checked for 'footprint_widht'
+        "typo_bridge": ("serial_bridge_node", ["-p", "inverted:=true"], "misspelt?): inverted"),
+        "typo_file": ("shared_control_node", [*model, "--params-file", str(typo_yaml)],
+                      "misspelt?): footprint_widht"),
     }
 
 

@@ -1209,12 +1209,14 @@ def test_the_layer_adapts_learns_after_acting_and_not_from_its_own_overrides(har
     # (which has no buffer_s) sizes its predictor's buffer for it
     long = harness(**{"adapt.enabled": True, "horizon_s": 10.0})
     assert long.node.predictor.config.buffer_s >= long.node.predictor.min_buffer_s > 10.0
-    # a misspelt key is not silently a default: the node names it (and logs it)
+    # a misspelt key is not silently a default (it was, with one warning): the node does
+    # not start, naming it
     from asgp_ros.nodes.parameters import unknown_overrides
 
-    typo = harness(**{"adapt.enable": False, "adapt.halflife_s": 3.0})
-    assert typo.node.predictor.adaptation is not None
-    assert unknown_overrides(typo.node) == ["adapt.enable", "adapt.halflife_s"]
+    with pytest.raises(StartupError, match=r"misspelt\?\): adapt\.enable, adapt\.halflife_s"):
+        harness(**{"adapt.enable": False, "adapt.halflife_s": 3.0})
+    with pytest.raises(StartupError, match="footprint_widht"):
+        harness(footprint_widht=0.9)
     on = harness()
     assert on.node.predictor.adaptation is not None
     assert unknown_overrides(on.node) == []

@@ -58,8 +58,10 @@ def declare(node: Node, specs: Iterable[ParamSpec]) -> dict[str, object]:
                                  f"name ({problem})")
     unknown = unknown_overrides(node)
     if unknown:
-        node.get_logger().warning(
-            f"ignoring parameters this node does not have (misspelt?): {', '.join(unknown)}")
+        # a misspelt key left its setting at the default with one warning: a footprint
+        # checked 0.7 m wide for footprint_widht 0.9, an axis not inverted for inverted
+        raise ValueError(f"parameters this node does not have (misspelt?): "
+                         f"{', '.join(unknown)}; it does not start with them")
     return values
 
 
