@@ -62,6 +62,29 @@ def test_open_retries_until_the_port_appears(board):
                                                   LinkState.STOPPED]
 
 
+def test_a_second_link_on_the_same_board_is_refused_as_in_use(board):
+    """A second bridge on the same port (another launch's namespace, the default port) read
+    half of the frames and handshook over the first: /joy fell from 100 to 46 Hz and both
+    logs filled with "port lost". The port is opened exclusively: the second waits,
+    saying the port is in use, and the first keeps every frame."""
+    board.start()
+    first, second = Recorder(), Recorder()
+    with LinkManager(LinkConfig(board.port), on_sample=first.sample,
+                     on_state=first.state) as one:
+        assert one.wait_for_state(LinkState.CONNECTED, 10.0)
+        with LinkManager(LinkConfig(board.port), on_sample=second.sample,
+                         on_state=second.state) as two:
+            assert wait_until(lambda: two.stats().open_failures >= 2, 5.0)
+            assert "in use by another program" in two.stats().last_error
+            assert two.state == LinkState.CONNECTING and not second.samples
+            n = len(first.samples)
+            time.sleep(0.3)
+            assert one.state == LinkState.CONNECTED and len(first.samples) > n
+        # the first gone, the second takes the port
+    with LinkManager(LinkConfig(board.port), on_sample=second.sample) as two:
+        assert two.wait_for_state(LinkState.CONNECTED, 10.0)
+
+
 def test_unplug_and_replug_reconnects(board):
     board.start()
     rec = Recorder()

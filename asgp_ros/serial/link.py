@@ -11,6 +11,7 @@ override and mode commands through :meth:`LinkManager.send_override` /
 from __future__ import annotations
 
 import enum
+import errno
 import logging
 import termios
 import threading
@@ -389,13 +390,20 @@ class LinkManager:
         delay = self.config.reconnect_min
         while not self._stop.is_set():
             try:
+                # exclusive (flock): a second bridge on the same board (another launch's
+                # namespace) read half of the frames and handshook over this one's
                 ser = serial.Serial(self.config.port, self.config.baud,
-                                    timeout=self.config.read_timeout, write_timeout=0.2)
+                                    timeout=self.config.read_timeout, write_timeout=0.2,
+                                    exclusive=True)
             except OPEN_ERRORS as exc:
+                in_use = getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK)
                 with self._lock:
                     self._open_failures += 1
-                    self._last_error = f"open failed: {exc}"
-                self._set_state(LinkState.CONNECTING, f"cannot open {self.config.port}")
+                    self._last_error = (
+                        "open failed: the port is in use by another program (a second bridge "
+                        "on this board?)" if in_use else f"open failed: {exc}")
+                self._set_state(LinkState.CONNECTING, f"cannot open {self.config.port}"
+                                + (": in use by another program" if in_use else ""))
                 self._stop.wait(delay)
                 delay = min(2.0 * delay, self.config.reconnect_max)
                 continue
