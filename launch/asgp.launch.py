@@ -17,6 +17,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 PACKAGE = "asgp_ros"
@@ -24,6 +25,12 @@ PACKAGE = "asgp_ros"
 
 def _config(name: str) -> PathJoinSubstitution:
     return PathJoinSubstitution([FindPackageShare(PACKAGE), "config", name])
+
+
+def _text(name: str) -> ParameterValue:
+    """A launch argument given to a node as a string, never read as YAML (a model path
+    ``chair #2.npz`` was cut at the '#', one named ``run: 2.npz`` aborted the launch)."""
+    return ParameterValue(LaunchConfiguration(name), value_type=str)
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -50,7 +57,7 @@ def generate_launch_description() -> LaunchDescription:
             name="serial_bridge_node",
             namespace=namespace,
             # never use_sim_time: the bridge drives a real board in real time (it refuses it)
-            parameters=[_config("bridge.yaml"), {"port": LaunchConfiguration("port")}],
+            parameters=[_config("bridge.yaml"), {"port": _text("port")}],
             condition=IfCondition(LaunchConfiguration("use_bridge")),
             output="screen",
         ),
@@ -69,7 +76,7 @@ def generate_launch_description() -> LaunchDescription:
             name="predictor_node",
             namespace=namespace,
             parameters=[_config("predictor.yaml"), common,
-                        {"model_path": LaunchConfiguration("model_path")}],
+                        {"model_path": _text("model_path")}],
             output="screen",
         ),
         Node(
@@ -78,7 +85,7 @@ def generate_launch_description() -> LaunchDescription:
             name="shared_control_node",
             namespace=namespace,
             parameters=[_config("shared_control.yaml"), common,
-                        {"model_path": LaunchConfiguration("model_path")}],
+                        {"model_path": _text("model_path")}],
             condition=IfCondition(LaunchConfiguration("use_shared_control")),
             output="screen",
         ),

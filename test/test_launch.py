@@ -97,6 +97,28 @@ def test_executables_and_parameter_files_exist(repo_root, launch_name):
             assert "ros__parameters" in section, f"config/{y}: no ros__parameters"
 
 
+def test_string_arguments_reach_the_nodes_as_strings(repo_root):
+    """launch_ros reads a bare LaunchConfiguration in a node's parameters as YAML: a model
+    path ``chair #2.npz`` reached the node as ``chair``, ``run: 2.npz`` aborted the launch.
+    Every argument given as a node parameter goes through ``_text`` (a ParameterValue of
+    value_type str)."""
+    tree = ast.parse((repo_root / "launch" / "asgp.launch.py").read_text())
+    checked = 0
+    for call in _node_calls(tree):
+        for d in ast.walk(_kw(call, "parameters")):
+            if not isinstance(d, ast.Dict):
+                continue
+            for key, value in zip(d.keys, d.values, strict=True):
+                if isinstance(key, ast.Constant) and key.value in ("model_path", "port"):
+                    assert isinstance(value, ast.Call) and isinstance(value.func, ast.Name) \
+                        and value.func.id == "_text", ast.unparse(value)
+                    checked += 1
+    assert checked == 3
+    text = ast.unparse(next(f for f in tree.body if isinstance(f, ast.FunctionDef)
+                            and f.name == "_text"))
+    assert "ParameterValue(LaunchConfiguration(name), value_type=str)" in text
+
+
 def test_predictor_yaml_matches_the_node_parameters(repo_root):
     pytest.importorskip("rclpy")
     from asgp_ros.nodes.predictor_node import SPECS, PredictorNodeParams
