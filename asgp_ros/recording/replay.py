@@ -24,6 +24,7 @@ import functools
 import importlib
 import importlib.util
 import logging
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -121,6 +122,10 @@ class ReplayConfig:
 
 #: ROS 2 time has int32 seconds: the first bag time it cannot carry (2038-01-19).
 _MAX_ROS_TIME_NS = (1 << 31) * 1_000_000_000
+#: How often (s) a replay publishing /clock looks for another publisher of it.
+CLOCK_CHECK_S = 0.5
+#: The shortest pass of a loop (s of wall time): a bag of one message looped at full speed.
+MIN_LOOP_PASS_S = 0.5
 
 
 def _is_interface_package(pkg: str) -> bool:
@@ -339,6 +344,7 @@ class BagReplayer:
             self.close()
             raise
         self._clock_pub: Publisher | None = None
+        self._clock_checked = -math.inf  # time.monotonic() of the last look for another clock
 
     def __enter__(self) -> BagReplayer:
         return self
@@ -477,15 +483,27 @@ class BagReplayer:
 
         if self._clock_pub is None:
             return
+        if time.monotonic() - self._clock_checked >= CLOCK_CHECK_S:
+            self._clock_checked = time.monotonic()
+            if self.node.count_publishers("/clock") > 1:
+                # a second replay on the domain: a predictor following /clock saw 604 jumps
+                # back in 9 s, restarted its buffers 39 times and published no path
+                raise ReplayError(
+                    "another node publishes /clock on this domain (a second asgp replay, "
+                    "ros2 bag play --clock, a simulator): the nodes following /clock would "
+                    "see time jump back and forth; stopped (--no-clock leaves /clock to it)")
         msg = Clock()
         msg.clock.sec = int(t_ns // 1_000_000_000)
         msg.clock.nanosec = int(t_ns % 1_000_000_000)
         self._clock_pub.publish(msg)
 
-    def _sleep_until(self, wall_target: float, wall_start: float, t_first: int) -> bool:
-        """Sleep until ``wall_target`` ticking /clock; False if asked to stop."""
+    def _sleep_until(self, wall_target: float, wall_start: float, t_first: int,
+                     tick_clock: bool = True) -> bool:
+        """Sleep until ``wall_target`` ticking /clock (unless ``tick_clock`` is False);
+        False if asked to stop."""
         cfg = self.config
-        tick = 1.0 / cfg.clock_rate_hz if cfg.publish_clock and cfg.clock_rate_hz > 0 else None
+        tick = (1.0 / cfg.clock_rate_hz
+                if tick_clock and cfg.publish_clock and cfg.clock_rate_hz > 0 else None)
         while True:
             if self.should_stop():
                 return False
@@ -564,10 +582,15 @@ class BagReplayer:
             if missing:
                 LOG.info("no subscriber yet on: %s", ", ".join(missing))
         while True:
+            started = time.monotonic()
             if not self.play_once():
                 return  # stopped: leave at once
             if not self.config.loop:
                 break
+            # a pass lasts at least MIN_LOOP_PASS_S: a bag of one message looped 49,590
+            # times in 3 s, each a message, a /clock jump back and a log line
+            if not self._sleep_until(started + MIN_LOOP_PASS_S, started, 0, tick_clock=False):
+                return
             LOG.info("end of bag: looping (the clock jumps back)")
         from rclpy.duration import Duration
 
