@@ -309,6 +309,33 @@ def test_replay_paces_the_messages_by_their_recorded_times_over_the_rate(
     # a tick's bag time is the wall time since the start times the rate
     np.testing.assert_allclose((bag_times - T0_NS) / 1e9, (walls - 1000.0) * 2.0, atol=1e-6)
     assert len(ticks) > 40  # 100 Hz of wall time between the messages, and one per message
+    # from --start, reading each message taking 2 ms (a large bag): the messages played are
+    # paced from the first one played (the reading past the start went into the pacing,
+    # and the first messages after it went out in a burst)
+    sent.clear()
+    node = rclpy.create_node("paced_replay_start", context=rclpy_context)
+    try:
+        skip = 5
+        config = ReplayConfig(rate=2.0, wait_subscribers_s=0.0, publish_clock=False,
+                              topics=("/joy",), start_s=(skip * PERIOD_NS - 1) / 1e9)
+        with BagReplayer(bag, config, node) as player:
+            player.create_publishers()
+            for topic in player.topics.values():
+                topic.publisher = Recorder(topic.name)
+            read = player.reader.messages
+
+            def slow(*args, **kwargs):
+                for item in read(*args, **kwargs):
+                    fake.now += 0.002
+                    yield item
+
+            player.reader.messages = slow
+            assert player.play_once()
+    finally:
+        node.destroy_node()
+    joy = np.array([t for name, t in sent if name == "/joy"])
+    assert len(joy) == N_MSGS - skip
+    np.testing.assert_allclose(np.diff(joy), PERIOD_NS / 1e9 / 2.0, atol=0.0021)
 
 
 @pytest.mark.e2e

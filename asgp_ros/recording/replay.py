@@ -550,7 +550,9 @@ class BagReplayer:
             if t_ns < t_bag0 + skip_ns:
                 continue
             if t_first is None:
-                t_first = t_ns
+                # paced from here: the time spent reading past --start went into the pacing,
+                # and the first messages after it went out in a burst (0.06-0.23 s)
+                t_first, wall_start = t_ns, time.monotonic()
             target = wall_start + (t_ns - t_first) / 1e9 / self.config.rate
             if not self._sleep_until(target, wall_start, t_first):
                 return False
