@@ -480,6 +480,15 @@ def test_a_pair_stamped_before_the_epoch_or_ahead_of_the_clock_is_refused(
         h.depth.publish(d)
         assert h.spin_until(lambda: h.node.stats["bad_input"] == bad + 2)
         assert "after this node's clock" in h.node.last_result.message
+        # one glitched pair 0.4 s ahead (it was tracked: its twist 0.03 m/s for 0.2)
+        c, d = _msgs(images, 4)
+        now = h.node.get_clock().now().nanoseconds * 1e-9
+        c.header.stamp = d.header.stamp = conv.seconds_to_stamp(now + 0.4)
+        h.color.publish(c)
+        h.depth.publish(d)
+        assert h.spin_until(lambda: h.node.stats["bad_input"] == bad + 3)
+        assert "after this node's clock" in h.node.last_result.message
+        bad += 1
         # while only such pairs come (a camera on its own clock), the diagnostics say why
         h.diags.clear()
         assert h.spin_until(lambda: any(

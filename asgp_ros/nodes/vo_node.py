@@ -60,8 +60,11 @@ _JUMP_BACK_S = 1.0  # stamps going back more than this (bag restart) reset the o
 _JUMP_BACK_PAIRS = 3  # ... once this many pairs in a row came on the new timeline
 _INFO_CHANGES_WINDOW_S = 10.0  # camera_info changes this recent are said while initialising
 #: A pair stamped more than this after the node's clock is refused: one such pair, tracked,
-#: would make every later (correct) pair look stamped back in time and reset the odometry.
-_AHEAD_S = 1.0
+#: would make every later (correct) pair look stamped back in time and reset the odometry,
+#: and its own twist divided a frame's motion by the lead (0.4 s ahead: 0.03 m/s for 0.2).
+#: As the other nodes' leads (a camera stamps with the host's clock at capture: behind it;
+#: ``ros2 bag play --clock HZ`` lags by 1 / HZ).
+_AHEAD_S = 0.1
 
 
 class VONode(Node):
