@@ -167,28 +167,12 @@ def test_the_predictor_solves_on_its_live_buffers():
 def test_the_inverse_of_a_model_beyond_physics_is_refused_as_its_prediction_is():
     """solve_inverse gave an ok window moving 2e5 m in 0.2 s from a model that predict()
     refused (model_out_of_range)."""
-    import dataclasses
+    from test_predictor import beyond_physics_predictors
 
-    from test_predictor import (
-        LAGS,
-        LinearChannel,
-        arrival_order,
-        feed,
-        linear_model,
-        make_streams,
-    )
+    from asgp_ros.core.online import Reason
 
-    from asgp_ros.core.online import Predictor, PredictorConfig, Reason
-
-    jt, joy, vt, vel = make_streams(duration=10.0)
-    for channels in ((LinearChannel(np.zeros(2 * LAGS + 1), b=1e6), LinearChannel(
-            np.zeros(2 * LAGS + 1))), (linear_model().channels[0], LinearChannel(
-                np.zeros(2 * LAGS + 1), var=1e6))):
-        model = dataclasses.replace(linear_model(), channels=channels)
-        pred = Predictor(model, PredictorConfig(horizon_steps=5))
-        for ev in arrival_order(jt, joy, vt, vel):
-            feed(pred, ev)
-        window, res = pred.solve_inverse(np.zeros((5, 2)), jt[-1])
+    for pred, now in beyond_physics_predictors():
+        window, res = pred.solve_inverse(np.zeros((5, 2)), now)
         assert not window.ok and window.reason == Reason.MODEL_OUT_OF_RANGE and res is None
 
 

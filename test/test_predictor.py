@@ -713,10 +713,9 @@ def test_a_longer_buffer_set_at_runtime_moves_the_cap():
     assert len(pred._joy) <= math.ceil(2.0 * online.MAX_SAMPLE_RATE_HZ)
 
 
-def test_a_model_that_predicts_beyond_physics_gives_no_path():
-    """A model (loaded before its file was checked, or far outside its data) predicting
-    speeds beyond any wheelchair's, or variances beyond them squared: no path, reason
-    model_out_of_range, never a path of 1e6 m/s."""
+def beyond_physics_predictors():
+    """(predictor, now): fed predictors of two models far outside physics, one predicting
+    speeds of 1e6 m/s, one variances of 1e6."""
     jt, joy, vt, vel = make_streams(duration=10.0)
     for channels in ((LinearChannel(np.zeros(2 * LAGS + 1), b=1e6), LinearChannel(
             np.zeros(2 * LAGS + 1))), (linear_model().channels[0], LinearChannel(
@@ -725,10 +724,18 @@ def test_a_model_that_predicts_beyond_physics_gives_no_path():
         pred = Predictor(model, PredictorConfig(horizon_steps=5))
         for ev in arrival_order(jt, joy, vt, vel):
             feed(pred, ev)
-        r = pred.predict(jt[-1])
+        yield pred, jt[-1]
+
+
+def test_a_model_that_predicts_beyond_physics_gives_no_path():
+    """A model (loaded before its file was checked, or far outside its data) predicting
+    speeds beyond any wheelchair's, or variances beyond them squared: no path, reason
+    model_out_of_range, never a path of 1e6 m/s."""
+    for pred, now in beyond_physics_predictors():
+        r = pred.predict(now)
         assert not r.ok and r.reason == Reason.MODEL_OUT_OF_RANGE, r
         assert r.pose.shape == (0, 3)
-        batch = pred.predict_batch(np.zeros((3, 5, 2)), jt[-1])
+        batch = pred.predict_batch(np.zeros((3, 5, 2)), now)
         assert not batch.ok and batch.reason == Reason.MODEL_OUT_OF_RANGE
 
 
