@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -66,6 +67,11 @@ def _cases(tmp_path):
     model = ["-p", f"model_path:={MODEL}"]
     typo_yaml = tmp_path / "typo.yaml"
     typo_yaml.write_text("/**:\n  ros__parameters:\n    footprint_widht: 0.9\n")
+    node_key_yaml = tmp_path / "node_key.yaml"
+    node_key_yaml.write_text("/**/shared_contrl_node:\n  ros__parameters:\n    "
+                             "threshold: 0.2\n")
+    empty_yaml = tmp_path / "empty.yaml"
+    empty_yaml.write_text("# nothing\n")
     return {
         # rcl opened the FIFO in rclpy.init with SIGINT and SIGTERM held: unkillable
         "fifo": ("vo_node", ["--params-file", str(fifo)], "not a regular file"),
@@ -89,6 +95,14 @@ def _cases(tmp_path):
         "typo_bridge": ("serial_bridge_node", ["-p", "inverted:=true"], "misspelt?): inverted"),
         "typo_file": ("shared_control_node", [*model, "--params-file", str(typo_yaml)],
                       "misspelt?): footprint_widht"),
+        # a params file that sets nothing for the node (its name misspelt, another node's
+        # file, an empty one): rcl applied none of it, and the node ran on every default
+        "node_key": ("shared_control_node", [*model, "--params-file", str(node_key_yaml)],
+                     "has no section for this node (/shared_control_node)"),
+        "other_file": ("vo_node", ["--params-file", str(Path("config/predictor.yaml"))],
+                       "has no section for this node (/vo_node)"),
+        "empty_file": ("predictor_node", [*model, "--params-file", str(empty_yaml)],
+                       "sections are none"),
     }
 
 

@@ -254,6 +254,56 @@ def ros_args_problem(argv: list[str]) -> str | None:
     return None
 
 
+def _ros_file_arguments(argv: list[str], option: str) -> list[str]:
+    """The values of ``option`` among ``argv``'s ROS arguments (after ``--ros-args``)."""
+    found, inside = [], False
+    for i, arg in enumerate(argv):
+        if arg == "--ros-args":
+            inside = True
+        elif arg == "--":
+            inside = False
+        elif inside and arg == option and i + 1 < len(argv):
+            found.append(argv[i + 1])
+    return found
+
+
+def _node_key_matches(key: str, fqn: str) -> bool:
+    """Whether a params file's top-level ``key`` applies to the node ``fqn`` (rcl's rules:
+    ``/**`` any namespaces, ``*`` one name; a key without a namespace is the node's name in
+    the root namespace)."""
+    want = [t for t in str(key).split("/") if t]
+    have = [t for t in fqn.split("/") if t]
+
+    def match(i: int, j: int) -> bool:
+        if i == len(want):
+            return j == len(have)
+        if want[i] == "**":
+            return any(match(i + 1, k) for k in range(j, len(have) + 1))
+        return j < len(have) and want[i] in ("*", have[j]) and match(i + 1, j + 1)
+
+    return match(0, 0)
+
+
+def params_file_problem(argv: list[str], fqn: str) -> str | None:
+    """Why a ``--params-file`` given to the node ``fqn`` sets nothing for it, or None: no
+    top-level key of the file applies to the node (a misspelt node name,
+    ``/**/shared_contrl_node``; a file of another node), or the file is empty. rcl applies
+    no section then, without a word, and the node ran on every default."""
+    import yaml
+
+    for path in _ros_file_arguments(argv, "--params-file"):
+        try:
+            with open(path, encoding="utf-8") as fh:
+                data = yaml.safe_load(fh)
+        except (OSError, ValueError, yaml.YAMLError) as exc:
+            return f"--params-file {path}: {' '.join(str(exc).split())}"
+        keys = list(data) if isinstance(data, dict) else []
+        if not any(_node_key_matches(k, fqn) for k in keys):
+            return (f"--params-file {path} has no section for this node ({fqn}): its "
+                    f"sections are {keys or 'none'}")
+    return None
+
+
 def settle_garbage_collector() -> None:
     """Collect the start-up's garbage, then exempt every object left (the modules, the
     model, the node) from Python's cyclic garbage collector for good (``gc.freeze``).
@@ -308,6 +358,11 @@ def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
                 return 1
             except interrupted:
                 return 0
+            problem = params_file_problem(sys.argv if args is None else args,
+                                          node.get_fully_qualified_name())
+            if problem is not None:
+                logger.fatal(f"refusing to start: {problem}")
+                return 1
             executor.add_node(node)
             settle_garbage_collector()
             stops.spin(executor)
