@@ -132,3 +132,35 @@ def test_bad_start_up_arguments_are_refused_in_one_line(repo_root, tmp_path):
         assert procs[name].returncode == 1, (name, out)
         assert "Traceback" not in out, (name, out)
         assert "refusing to start" in out and reason in out, (name, out)
+
+
+def test_a_params_file_is_matched_to_the_node_as_rcl_does(tmp_path):
+    """Keys with wildcards, a namespace's nested form, another node's file, an empty one."""
+    from asgp_ros.nodes.runtime import params_file_problem
+
+    def problem(text: str, fqn: str) -> str | None:
+        f = tmp_path / "p.yaml"
+        f.write_text(text)
+        return params_file_problem(["node", "--ros-args", "--params-file", str(f)], fqn)
+
+    ok = {"/**:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
+          "/**/predictor_node:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
+          "chair1:\n  predictor_node:\n    ros__parameters:\n      a: 1\n":
+              "/chair1/predictor_node",
+          "/*/predictor_node:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
+          "predictor_node:\n  ros__parameters:\n    a: 1\n": "/predictor_node",
+          # a bare name at the top: read leniently, as in any namespace
+          "predictor_node:\n  ros__parameters:\n    b: 1\n": "/chair1/predictor_node"}
+    for text, fqn in ok.items():
+        assert problem(text, fqn) is None, text
+    bad = {"/**/predictor_nod:\n  ros__parameters:\n    a: 1\n": "/predictor_node",
+           "chair2:\n  predictor_node:\n    ros__parameters:\n      a: 1\n":
+               "/chair1/predictor_node",
+           "vo_node:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
+           "": "/predictor_node"}
+    for text, fqn in bad.items():
+        assert "has no section for this node" in (problem(text, fqn) or ""), text
+    # no params file, or one after "--" (the program's own): nothing to check
+    assert params_file_problem(["node"], "/predictor_node") is None
+    assert params_file_problem(["node", "--ros-args", "--", "--params-file", "x"],
+                               "/predictor_node") is None

@@ -43,7 +43,7 @@ import stat
 import sys
 import threading
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
 import rclpy
@@ -297,11 +297,26 @@ def params_file_problem(argv: list[str], fqn: str) -> str | None:
                 data = yaml.safe_load(fh)
         except (OSError, ValueError, yaml.YAMLError) as exc:
             return f"--params-file {path}: {' '.join(str(exc).split())}"
-        keys = list(data) if isinstance(data, dict) else []
+        keys = list(_node_sections(data)) if isinstance(data, dict) else []
         if not any(_node_key_matches(k, fqn) for k in keys):
             return (f"--params-file {path} has no section for this node ({fqn}): its "
                     f"sections are {keys or 'none'}")
     return None
+
+
+def _node_sections(data: dict[object, object], prefix: str = "") -> Iterator[str]:
+    """The node names of a params file's sections (the keys above each
+    ``ros__parameters``, a namespace's nested ones joined: ``chair1: {predictor_node:
+    ...}`` is ``/chair1/predictor_node``)."""
+    for key, value in data.items():
+        if key == "ros__parameters":
+            yield prefix or "/"
+        elif isinstance(value, dict):
+            name = str(key).strip("/")
+            # a bare node name at the top: taken as in any namespace (the lenient reading:
+            # a file is never refused for a section rcl might apply)
+            bare = not prefix and not str(key).startswith("/") and "ros__parameters" in value
+            yield from _node_sections(value, f"/**/{name}" if bare else f"{prefix}/{name}")
 
 
 def settle_garbage_collector() -> None:
