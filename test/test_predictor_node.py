@@ -1898,3 +1898,20 @@ def test_a_horizon_changed_at_runtime_is_the_one_adaptation_checks(rclpy_context
         assert not short.successful and "at least" in short.reason
     finally:
         h.close()
+
+
+def test_predictions_slower_than_their_period_are_a_warning(rclpy_context, model_file):
+    """uncertainty 'mc' over a 40 s horizon took 950 ms a path at 5 Hz, and the diagnostics
+    said OK: the paths fell behind unsaid. Predictions whose median time exceeds the time
+    between paths are a WARN naming it."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False})
+    try:
+        h.drive(100.0, 103.0)
+        status = h.node.diagnostic_status()
+        assert status.level == DiagnosticStatus.OK, status.message
+        h.node._predict_ms.extend([950.0] * 20)  # as such predictions measured
+        status = h.node.diagnostic_status()
+        assert status.level == DiagnosticStatus.WARN
+        assert "longer than the 200 ms between paths" in status.message, status.message
+    finally:
+        h.close()

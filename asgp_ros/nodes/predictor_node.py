@@ -916,7 +916,16 @@ class PredictorNode(Node):
                                                      self._adapt_unavailable))
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
-        level, message = self.qos_watch.escalate("OK" if result.ok else "WARN", message)
+        level = "OK" if result.ok else "WARN"
+        recent = list(self._predict_ms)[-20:]
+        period_ms = 1e3 * self.every_n * self.predictor.dt
+        if len(recent) >= 5 and float(np.median(recent)) > period_ms:
+            # (uncertainty 'mc' over a 40 s horizon took 950 ms a path, at 5 Hz)
+            level = "WARN"
+            message += (f"; a prediction takes {float(np.median(recent)):.0f} ms, longer than "
+                        f"the {period_ms:.0f} ms between paths: they fall behind (a long "
+                        "horizon, uncertainty 'mc'?)")
+        level, message = self.qos_watch.escalate(level, message)
         return conv.diagnostic_status(f"{self.get_name()}: prediction", level, message,
                                       hardware_id=self.params.model_path, values=values)
 
