@@ -160,6 +160,10 @@ def test_a_params_file_is_matched_to_the_node_as_rcl_does(tmp_path):
            "": "/predictor_node"}
     for text, fqn in bad.items():
         assert "has no section for this node" in (problem(text, fqn) or ""), text
+    # nested 2,000 levels deep (rcl reads it): one line, not yaml's RecursionError
+    deep = "".join("  " * i + f"k{i}:\n" for i in range(2000))
+    deep += "  " * 2000 + "ros__parameters:\n" + "  " * 2001 + "a: 1\n"
+    assert "nested too deeply" in (problem(deep, "/predictor_node") or "")
     # no params file, or one after "--" (the program's own): nothing to check
     assert params_file_problem(["node"], "/predictor_node") is None
     assert params_file_problem(["node", "--ros-args", "--", "--params-file", "x"],

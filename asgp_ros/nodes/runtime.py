@@ -268,9 +268,8 @@ def _ros_file_arguments(argv: list[str], option: str) -> list[str]:
 
 
 def _node_key_matches(key: str, fqn: str) -> bool:
-    """Whether a params file's top-level ``key`` applies to the node ``fqn`` (rcl's rules:
-    ``/**`` any namespaces, ``*`` one name; a key without a namespace is the node's name in
-    the root namespace)."""
+    """Whether a params file's section ``key`` (a node name, from :func:`_node_sections`)
+    applies to the node ``fqn`` (rcl's rules: ``/**`` any namespaces, ``*`` one name)."""
     want = [t for t in str(key).split("/") if t]
     have = [t for t in fqn.split("/") if t]
 
@@ -286,7 +285,7 @@ def _node_key_matches(key: str, fqn: str) -> bool:
 
 def params_file_problem(argv: list[str], fqn: str) -> str | None:
     """Why a ``--params-file`` given to the node ``fqn`` sets nothing for it, or None: no
-    top-level key of the file applies to the node (a misspelt node name,
+    section of the file applies to the node (a misspelt node name,
     ``/**/shared_contrl_node``; a file of another node), or the file is empty. rcl applies
     no section then, without a word, and the node ran on every default."""
     import yaml
@@ -295,6 +294,8 @@ def params_file_problem(argv: list[str], fqn: str) -> str | None:
         try:
             with open(path, encoding="utf-8") as fh:
                 data = yaml.safe_load(fh)
+        except RecursionError:  # (yaml's parser recurses per level: 2,000 levels)
+            return f"--params-file {path}: nested too deeply to read"
         except (OSError, ValueError, yaml.YAMLError) as exc:
             return f"--params-file {path}: {' '.join(str(exc).split())}"
         keys = list(_node_sections(data)) if isinstance(data, dict) else []
@@ -304,19 +305,23 @@ def params_file_problem(argv: list[str], fqn: str) -> str | None:
     return None
 
 
-def _node_sections(data: dict[object, object], prefix: str = "") -> Iterator[str]:
+def _node_sections(data: dict[object, object]) -> Iterator[str]:
     """The node names of a params file's sections (the keys above each
     ``ros__parameters``, a namespace's nested ones joined: ``chair1: {predictor_node:
-    ...}`` is ``/chair1/predictor_node``)."""
-    for key, value in data.items():
-        if key == "ros__parameters":
-            yield prefix or "/"
-        elif isinstance(value, dict):
-            name = str(key).strip("/")
-            # a bare node name at the top: taken as in any namespace (the lenient reading:
-            # a file is never refused for a section rcl might apply)
-            bare = not prefix and not str(key).startswith("/") and "ros__parameters" in value
-            yield from _node_sections(value, f"/**/{name}" if bare else f"{prefix}/{name}")
+    ...}`` is ``/chair1/predictor_node``), walked without recursion."""
+    stack: list[tuple[dict[object, object], str]] = [(data, "")]
+    while stack:
+        level, prefix = stack.pop()
+        for key, value in level.items():
+            if key == "ros__parameters":
+                yield prefix or "/"
+            elif isinstance(value, dict):
+                name = str(key).strip("/")
+                # a bare node name at the top: taken as in any namespace (the lenient
+                # reading: a file is never refused for a section rcl might apply)
+                bare = (not prefix and not str(key).startswith("/")
+                        and "ros__parameters" in value)
+                stack.append((value, f"/**/{name}" if bare else f"{prefix}/{name}"))
 
 
 def settle_garbage_collector() -> None:
