@@ -24,6 +24,7 @@ from asgp_ros.core import collision
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.shared_control import SharedControlConfig, decide
+from asgp_ros.sim.lidar import cast_to_segments
 
 ROOT = Path(__file__).resolve().parents[1]
 USER = np.array([-0.49, -0.55])  # reversing while turning
@@ -34,17 +35,7 @@ def scan_of(segments, beams: int) -> collision.Scan:
     """A 360-degree scan at the base origin of line segments."""
     fov = 2 * math.pi * (beams - 1) / beams
     a0, inc = -fov / 2, fov / (beams - 1)
-    ang = a0 + inc * np.arange(beams)
-    d = np.stack([np.cos(ang), np.sin(ang)], 1)
-    r = np.full(beams, np.inf)
-    for (x1, y1), (x2, y2) in segments:
-        ex, ey = x2 - x1, y2 - y1
-        den = -d[:, 0] * ey + d[:, 1] * ex
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (-x1 * ey + y1 * ex) / den
-            u = (d[:, 0] * y1 - d[:, 1] * x1) / den
-        hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
-        r = np.where(hit & (t < r), t, r)
+    r = cast_to_segments(a0 + inc * np.arange(beams), segments)
     return collision.Scan(np.where(r > 8.0, np.inf, r), a0, inc, 0.05, 8.0)
 
 

@@ -312,6 +312,16 @@ def test_an_erroneous_sector_is_never_read_as_a_way_through():
     assert C.erroneous_beam_points(wall_scan(1.5)).shape == (0, 2)
 
 
+def test_ranges_to_line_segments():
+    from asgp_ros.sim.lidar import cast_to_segments
+
+    ang = np.array([0.0, 0.3, math.pi / 2, math.pi, -0.3])
+    r = cast_to_segments(ang, [((2.0, -1.0), (2.0, 1.0)), ((3.0, -5.0), (3.0, 5.0))])
+    np.testing.assert_allclose(r[[0, 1, 4]], 2.0 / np.cos(ang[[0, 1, 4]]))  # the nearer
+    assert np.all(np.isinf(r[[2, 3]]))  # along the wall's line, and away from both
+    assert np.isinf(cast_to_segments(np.array([0.0]), [((-1.0, 0.0), (-1.0, 1.0))])[0])
+
+
 def test_simulated_scanner_ranges_match_the_room():
     room = Room()
     cfg = LidarConfig(noise_sd=0.0, dropout=0.0, mount=(0.0, 0.0, 0.0))

@@ -20,6 +20,7 @@ from asgp_ros.core.shared_control import (
     candidate_commands,
     decide,
 )
+from asgp_ros.sim.lidar import cast_to_segments
 
 HALF_LENGTH = 0.6  # front of the footprint ahead of the base frame's origin (m)
 
@@ -534,17 +535,7 @@ def seg_scan(segments, beams: int = 720, too_close=()) -> collision.Scan:
     listed in ``too_close`` read -inf (REP-117: too close to measure)."""
     fov = 2 * math.pi * (beams - 1) / beams
     a0, inc = -fov / 2, fov / (beams - 1)
-    ang = a0 + inc * np.arange(beams)
-    d = np.stack([np.cos(ang), np.sin(ang)], 1)
-    r = np.full(beams, np.inf)
-    for (x1, y1), (x2, y2) in segments:
-        ex, ey = x2 - x1, y2 - y1
-        den = -d[:, 0] * ey + d[:, 1] * ex
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = (-x1 * ey + y1 * ex) / den
-            u = (d[:, 0] * y1 - d[:, 1] * x1) / den
-        hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
-        r = np.where(hit & (t < r), t, r)
+    r = cast_to_segments(a0 + inc * np.arange(beams), segments)
     r = np.where(r > 8.0, np.inf, r)
     r[list(too_close)] = -np.inf
     return collision.Scan(r, a0, inc, 0.05, 8.0)

@@ -1253,22 +1253,16 @@ def footprint_deepening(fld: DistanceField, pose: FloatArray,
                  footprint.offset + 0.5 * footprint.length + grow,
                  0.5 * footprint.width + grow)
 
-    def inside(o: FloatArray, at_xy: FloatArray, at_yaw: FloatArray) -> FloatArray:
-        """Depth of points ``o`` [m, 2] inside the rectangle at poses [m] (<= 0 outside)."""
+    def depth(o: FloatArray, at_xy: FloatArray, at_yaw: FloatArray | float) -> FloatArray:
+        """Depth of points ``o`` [m, 2] inside the rectangle at poses ``at_xy`` [m, 2] or
+        [2], ``at_yaw`` [m] or scalar; 0 outside."""
         c, s = np.cos(at_yaw), np.sin(at_yaw)
-        dx, dy = o[:, 0] - at_xy[:, 0], o[:, 1] - at_xy[:, 1]
+        dx, dy = o[:, 0] - at_xy[..., 0], o[:, 1] - at_xy[..., 1]
         qx, qy = c * dx + s * dy, np.abs(c * dy - s * dx)
-        out: FloatArray = np.minimum(np.minimum(qx - rect.x_lo, rect.x_hi - qx),
-                                     rect.half_w - qy)
+        out: FloatArray = np.maximum(np.minimum(np.minimum(qx - rect.x_lo, rect.x_hi - qx),
+                                                rect.half_w - qy), 0.0)
         return out
 
-    # each point's depth now (the paths' origin, the base frame at t0)
-    now_xy = np.array([t])
-    held = np.asarray(fld.neighbours(now_xy, np.array([rect.reach + 1e-9]))[0], dtype=np.intp)
-    depth_now = np.zeros(fld.points.shape[0])
-    if held.size:
-        depth_now[held] = np.maximum(inside(fld.points[held], np.repeat(now_xy, held.size, 0),
-                                            np.full(held.size, transform[2])), 0.0)
     # the covering discs farther from every obstacle than their radius (with the field's
     # raster error, two cells) hold no point: only the other poses are searched
     centres = footprint.centres()[:, 0]
@@ -1285,8 +1279,10 @@ def footprint_deepening(fld: DistanceField, pose: FloatArray,
         which = np.repeat(rows, counts)
         index = np.fromiter(itertools.chain.from_iterable(found), dtype=np.intp,
                             count=int(counts.sum()))
-        depth = np.maximum(inside(fld.points[index], xy[which], yaw[which]), 0.0)
-        np.maximum.at(deeper, which, depth - depth_now[index])
+        o = fld.points[index]
+        # each point against its own depth at the paths' origin (the chair now)
+        np.maximum.at(deeper, which, depth(o, xy[which], yaw[which])
+                      - depth(o, t, transform[2]))
     return deeper.reshape(B, k).max(axis=1) if k else np.zeros(B)
 
 

@@ -492,8 +492,7 @@ class Predictor:
         if self._adapter is not None:
             # the adaptation checks the predictions of the new horizon (at another it
             # checked none, and the ellipses went uncalibrated); its history grows with it
-            need = ((self._adapter.history_steps(config.horizon_steps) + 2)
-                    / float(self._model.resample_config.rate_hz))
+            need = self._history_s(config.horizon_steps)
             if config.buffer_s < need:
                 raise ValueError(f"buffer_s {config.buffer_s} s is shorter than the "
                                  f"{need:.1f} s of history adaptation needs")
@@ -533,7 +532,13 @@ class Predictor:
         """The shortest ``config.buffer_s`` this predictor works with (longer to adapt)."""
         if self._adapter is None:
             return 1.0
-        return (self._adapter.history_steps() + 2) / float(self._model.resample_config.rate_hz)
+        return self._history_s()
+
+    def _history_s(self, horizon_steps: int | None = None) -> float:
+        """The buffer (s) adaptation needs, at its horizon or at ``horizon_steps``."""
+        assert self._adapter is not None
+        steps = self._adapter.history_steps(horizon_steps)
+        return (steps + 2) / float(self._model.resample_config.rate_hz)
 
     @property
     def adaptation(self) -> AdapterStats | None:
@@ -941,12 +946,12 @@ class Predictor:
             return Prediction(False, Reason.NO_INPUT, "waiting for joystick and VO samples")
         # the age of a stream: since its newest sample's stamp, or since that sample
         # arrived when it was stamped ahead of the clock (an unsynchronised sender's stick
-        # gone silent drove paths for the lead's length more)
-        joy_age = now - min(self._joy.newest, self._heard["joystick"])
+        # gone silent drove paths for the lead's length more): ``_heard``
+        joy_age = now - self._heard["joystick"]
         if joy_age > cfg.joy_timeout_s:
             return Prediction(False, Reason.STALE_JOYSTICK,
                               f"joystick is {joy_age:.2f} s old (limit {cfg.joy_timeout_s} s)")
-        vo_age = now - min(self._vo.newest, self._heard["VO"])
+        vo_age = now - self._heard["VO"]
         if vo_age > cfg.vo_timeout_s:
             return Prediction(False, Reason.STALE_VO,
                               f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")

@@ -265,9 +265,8 @@ def _least_deepening(check: CollisionCheck, pose: FloatArray, low: NDArray[np.in
     least = float(deeper.min())
     if user <= least + tolerance:
         return None
-    near = low[deeper <= least + tolerance]
-    best = int(near[np.argmin(cost[near])])
-    return best, user, float(deeper[np.flatnonzero(low == best)[0]])
+    pick = int(np.argmin(np.where(deeper <= least + tolerance, cost[low], np.inf)))
+    return int(low[pick]), user, float(deeper[pick])
 
 
 def decide(predictor: Predictor, now: float, user: FloatArray,

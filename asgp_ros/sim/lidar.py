@@ -96,6 +96,25 @@ def cast_to_box(origin: FloatArray, angles: FloatArray,
     return np.minimum(tx, ty)
 
 
+def cast_to_segments(angles: FloatArray,
+                     segments: list[tuple[tuple[float, float], tuple[float, float]]]
+                     ) -> FloatArray:
+    """Distance from the origin along ``angles`` [n] to the nearest of the line
+    ``segments`` [((x1, y1), (x2, y2)), ...] (inf where none is hit): a wall, a cabinet's
+    side, in the scanner's frame."""
+    d = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    r = np.full(angles.shape, math.inf)
+    for (x1, y1), (x2, y2) in segments:
+        ex, ey = x2 - x1, y2 - y1
+        den = -d[:, 0] * ey + d[:, 1] * ex
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (-x1 * ey + y1 * ex) / den
+            u = (d[:, 0] * y1 - d[:, 1] * x1) / den
+        hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+        r = np.where(hit & (t < r), t, r)
+    return r
+
+
 class Lidar:
     """The scanner on the chair in ``room``; ``scan(x, y, theta)`` -> :class:`ScanArrays`."""
 
