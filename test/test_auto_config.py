@@ -324,16 +324,21 @@ def test_a_held_out_part_of_a_parked_chair_chooses_nothing() -> None:
     assert any("tell the candidates apart" in m for m in said)
 
 
+@pytest.mark.parametrize(("scale", "said"), [
+    (1e6, "beyond the physical limits squared"),
+    (1e-9, "its variance calibration shrinks the predicted variance")])
 def test_a_calibration_that_makes_the_model_refused_is_not_applied(
-        chair: list[Series], monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+        chair: list[Series], monkeypatch: pytest.MonkeyPatch, tmp_path, scale: float,
+        said: str) -> None:
     """On very noisy odometry the fitted map (its omega scale 28) made the model predict
     variances beyond a wheelchair's: `asgp train` wrote, and said it wrote, a file that
     every command then refused. The map is not applied (said), and save_model never writes
-    a model that load_model refuses."""
+    a model that load_model refuses. The same for a map that claims a certainty the model
+    does not have (MAX_CALIBRATION_SHRINK)."""
     from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
     from asgp_ros.learning import training
 
-    huge = VarianceCalibration(scale=(1e6, 1e6))
+    huge = VarianceCalibration(scale=(scale, scale))
     real = training.calibrate
 
     def calibrate(*args, **kwargs):  # type: ignore[no-untyped-def]
@@ -344,7 +349,8 @@ def test_a_calibration_that_makes_the_model_refused_is_not_applied(
     model = train_auto(chair[:1], AutoOptions(seed=3, **SMALL))  # type: ignore[arg-type]
     assert model.calibration.is_identity
     cal = model.meta["calibration"]
-    assert not cal["applied"] and "beyond a wheelchair's limits" in cal["reason"]
+    assert not cal["applied"] and cal["reason"].startswith(
+        "not applied: a model file with it is refused (") and said in cal["reason"]
     save_model(tmp_path / "m.npz", model)
     load_model(tmp_path / "m.npz")
     bad = dataclasses.replace(model, calibration=huge)

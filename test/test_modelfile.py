@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import zipfile
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from asgp_ros.core import modelfile
+from asgp_ros.core.calibration import VarianceCalibration
 from asgp_ros.core.features import FeatureConfig, design_matrix
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.models import ModelKind, MotionModel, register_kind
@@ -670,3 +672,42 @@ def test_a_model_files_strings_cannot_forge_lines_of_asgp_info(tmp_path, capsys)
     out = capsys.readouterr().out
     assert "\x1b" not in out
     assert sum(line.startswith("variance calibration:") for line in out.splitlines()) == 1
+
+
+@pytest.mark.parametrize(("cal", "match"), [
+    ({"scale": [0.0, 0.0], "floor": [0.0, 0.0]}, "erases the predicted variance of v"),
+    ({"scale": [1.0, 1e-9], "floor": [0.0, 0.0]}, "shrinks the predicted variance of omega"),
+    ({"scale": [1e-6, 1e-6], "floor": [0.0, 0.0], "speed_factors": [1e-6]}, "shrinks"),
+    # a regime that a probe from rest never reaches (speeds below 0) is checked too
+    ({"scale": [1.0, 1.0], "floor": [0.0, 0.0], "speed_edges": [0.0],
+      "speed_factors": [1e-6, 1.0]}, "of v in speed regime 0"),
+])
+def test_a_calibration_claiming_a_certainty_the_model_lacks_is_refused(
+        model: MotionModel, saved: Path, cal: dict[str, Any], match: str) -> None:
+    """Each number within its range, a calibration of scale 0 loaded and drew every 95 %
+    ellipse as a point while the chair drove (the shared-control layer reads them as
+    contact probabilities): the map may shrink the model's own variance at most
+    MAX_CALIBRATION_SHRINK-fold, in every regime."""
+    def change(m: dict[str, Any]) -> None:
+        m["calibration"] = {"speed_edges": [], "speed_factors": [1.0], **cal}
+
+    rewrite(saved, edit_meta(change))
+    err = expect_error(saved, f"not a wheelchair's model: its variance calibration .*{match}")
+    assert "\n" not in str(err)
+    with pytest.raises(ModelFileError, match="certainty"):  # nor written
+        save_model(saved.parent / "again.npz", dataclasses.replace(
+            model, calibration=VarianceCalibration.from_dict(
+                {"speed_edges": [], "speed_factors": [1.0], **cal})))
+
+
+def test_a_calibration_that_shrinks_within_the_bound_or_inflates_loads(
+        model: MotionModel, tmp_path: Path) -> None:
+    """The bound is on shrinking: a map that inflates (as FITC's under-estimate needs), one
+    that shrinks a hundredfold, and one made of a floor alone load and predict with it."""
+    for i, cal in enumerate((
+            VarianceCalibration(scale=(3.0, 2.0), floor=(1e-4, 1e-4)),
+            VarianceCalibration(scale=(0.01, 0.01), floor=(0.0, 0.0)),
+            VarianceCalibration(scale=(0.0, 0.0), floor=(1e-3, 1e-3)))):
+        path = tmp_path / f"m{i}.npz"
+        save_model(path, dataclasses.replace(model, calibration=cal))
+        assert load_model(path).calibration == cal

@@ -636,4 +636,53 @@ def probe_problem(model: MotionModel) -> str | None:
             out = rollout(model, np.zeros((s, 2)), np.zeros((s, 2)), future)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         return f"it does not predict from rest ({exc})"
-    return out.problem()
+    problem = out.problem()
+    if problem is None and not model.calibration.is_identity:
+        problem = _calibration_shrink_problem(model, future)
+    return problem
+
+
+#: The most a variance calibration may shrink the variance the model itself predicts, in
+#: any channel and speed regime: a fitted map corrects an under-estimate (FITC's), so a
+#: map that claims a thousandth of the model's variance is a damaged or hostile file (a
+#: scale of 0 drew every ellipse as a point while the chair drove at 0.5 m/s, and the
+#: shared-control layer reads those covariances as contact probabilities).
+MAX_CALIBRATION_SHRINK = 1e3
+
+
+def _calibration_shrink_problem(model: MotionModel, future: np.ndarray) -> str | None:
+    """Why the model's variance calibration claims a certainty the model does not have
+    (:data:`MAX_CALIBRATION_SHRINK`), or None: the map applied, in each of its speed
+    regimes, to the one-step variances the model predicts over the probe's rollouts (the
+    regimes a probe from rest would not reach are checked too)."""
+    import dataclasses
+
+    from asgp_ros.core.rollout import rollout
+
+    s = model.lags
+    raw_model = dataclasses.replace(model, calibration=VarianceCalibration())
+    try:
+        with np.errstate(all="ignore"):
+            raw = rollout(raw_model, np.zeros((s, 2)), np.zeros((s, 2)), future)
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        return f"it does not predict from rest without its calibration ({exc})"
+    var = np.diagonal(raw.vel_cov, axis1=-2, axis2=-1).reshape(-1, 2)
+    var = var[np.all(np.isfinite(var) & (var > 0.0), axis=1)]
+    if var.size == 0:
+        return None  # the model predicts no variance: the map changes nothing
+    cal = model.calibration
+    scale, floor = np.asarray(cal.scale), np.asarray(cal.floor)
+    for regime, factor in enumerate(cal.speed_factors):
+        with np.errstate(divide="ignore"):
+            shrink = var / ((var * scale + floor) * factor)  # inf where it erases it
+        worst = float(np.max(shrink))
+        if not worst <= MAX_CALIBRATION_SHRINK:
+            channel = ("v", "omega")[int(np.argmax(np.max(shrink, axis=0)))]
+            where = f" in speed regime {regime}" if len(cal.speed_factors) > 1 else ""
+            how = ("erases the predicted variance of " + channel + where
+                   if math.isinf(worst) else
+                   f"shrinks the predicted variance of {channel}{where} {worst:.3g}-fold "
+                   f"(at most {MAX_CALIBRATION_SHRINK:g})")
+            return f"its variance calibration {how}: it would claim a certainty the model " \
+                   "does not have"
+    return None

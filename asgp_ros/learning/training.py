@@ -634,9 +634,9 @@ def train_auto(
             and probe_problem(dataclasses.replace(model, calibration=VarianceCalibration())) \
             is None:
         # a map fitted on very noisy odometry (its omega scale 28) made the model predict
-        # variances beyond a wheelchair's: a file that load_model refuses
-        reason = (f"not applied: with it the model predicts beyond a wheelchair's limits "
-                  f"({problem})")
+        # variances beyond a wheelchair's, one on a degenerate held-out part could shrink
+        # the model's own variance beyond MAX_CALIBRATION_SHRINK: files load_model refuses
+        reason = f"not applied: a model file with it is refused ({problem})"
         report("calibrate", reason)
         cal_meta = {**cal_meta, "applied": False, "reason": reason}
         model = dataclasses.replace(model, calibration=VarianceCalibration())
