@@ -16,6 +16,7 @@ The result is a ``core.models.MotionModel`` whose meta records a training-data s
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
 import logging
 import math
@@ -153,6 +154,21 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
     return out
 
 
+def canonical_order(series: Sequence[Series]) -> list[Series]:
+    """The series in an order of their data alone (a digest of each grid's times, joystick,
+    velocities and validity), not of the order the recordings were given in: the rows are
+    stacked, subsampled and split in this order, so ``asgp train A B`` and ``asgp train B
+    A`` fit and choose the same model (they chose s = 6 and s = 4)."""
+    def key(s: Series) -> bytes:
+        h = hashlib.sha256()
+        for a in (s.res.t, s.res.joy, s.res.vel, s.res.valid):
+            arr = np.ascontiguousarray(a)
+            h.update(str((arr.dtype.str, arr.shape)).encode())
+            h.update(arr.tobytes())
+        return h.digest()
+    return sorted(series, key=key)
+
+
 def design(series: Sequence[Series], channel: int, feature_config: Any) -> tuple[np.ndarray,
                                                                                  np.ndarray]:
     """Stacked design matrix X [N, D] and targets y [N] of one channel over all series."""
@@ -233,6 +249,7 @@ def train(
     opts.validate()
     if not series:
         raise TrainingError("no training recordings")
+    given, series = series, canonical_order(series)
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
     kind = get_kind(opts.kind)
     if opts.kind == "asgp":
@@ -250,7 +267,7 @@ def train(
         channels.append(model)
         infos[CHANNELS[c]] = info
     meta = {
-        "training_data": data_summary(series, rows),
+        "training_data": data_summary(given, rows),
         "training": {
             "kind": opts.kind,
             "lags": fc.lags,
@@ -557,6 +574,7 @@ def train_auto(
     opts.validate()
     if not series:
         raise TrainingError("no training recordings")
+    given, series = series, canonical_order(series)
     check_signals(series)
     report = progress or (lambda ch, msg: log.info("%s: %s", ch, msg))
     rc = resample_config if resample_config is not None else ResampleConfig()
@@ -581,7 +599,7 @@ def train_auto(
         search.table.append({"candidate": None, "stage": "check", "skipped":
                              f"no held-out segment holds {case_lags} past samples and "
                              f"{opts.horizons_s[0]} s ahead"})
-        return _fallback(series, opts, rc, search.table, report)
+        return _fallback(given, opts, rc, search.table, report)
     if usable != opts.horizons_s:
         report("select", f"the held-out data are too short for the horizons "
                          f"{[h for h in opts.horizons_s if h not in usable]} s; scoring "
@@ -596,10 +614,10 @@ def train_auto(
                              f"{MIN_SELECTION_MOVING_CASES} that tell the candidates apart "
                              "(the chair stands through most of the held-out part, the end "
                              "of each recording)"})
-        return _fallback(series, opts, rc, search.table, report)
+        return _fallback(given, opts, rc, search.table, report)
     chosen = search.run(structures)
     if chosen is None:
-        return _fallback(series, opts, rc, search.table, report)
+        return _fallback(given, opts, rc, search.table, report)
     assert search.best is not None
     report("select", f"chosen: {chosen.name} (held-out mean success "
                      f"{100 * search.best['score']:.1f}%)")
@@ -640,7 +658,7 @@ def train_auto(
         report("calibrate", reason)
         cal_meta = {**cal_meta, "applied": False, "reason": reason}
         model = dataclasses.replace(model, calibration=VarianceCalibration())
-    meta = _automatic_meta(series, opts, chosen, infos, search.table, case_lags, seconds,
+    meta = _automatic_meta(given, opts, chosen, infos, search.table, case_lags, seconds,
                            cal_meta)
     return dataclasses.replace(model, meta=meta)
 
