@@ -291,6 +291,41 @@ def test_a_short_recording_keeps_the_trained_calibration(
     assert "the same recording" in capsys.readouterr().err and not again.exists()
 
 
+def test_a_recording_trained_on_is_told_from_anywhere_and_in_a_copy(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """The model file kept the bags' paths as typed: trained on `short` from one directory,
+    the same bag adapted to from another (its absolute path), or a copy of it, was not told,
+    and with --trained-weight 1 its rows were absorbed a second time in silence. The file
+    keeps each bag's real path and content now."""
+    import shutil
+
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    assert main(["simulate", "--surface", "carpet", "--minutes", "0.5", "--seed", "6",
+                 "--out", "short", "--no-truth"]) == 0
+    assert main(["train", "--lags", "2", "--coupled", "--inducing-v", "20", "--inducing-w",
+                 "20", "--max-iter", "20", "--no-calibration", "short", "--out",
+                 "trained.npz"]) == 0
+    shutil.copytree(work / "short", tmp_path / "copy")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    capsys.readouterr()
+    for i, bag in enumerate((work / "short", tmp_path / "copy", Path("../work/short"))):
+        assert main(["adapt", str(work / "trained.npz"), str(bag), "--out", f"a{i}.npz",
+                     "--trained-weight", "1", "--no-calibration"]) == 0
+        assert f"warning: {bag} is one of the recordings" in capsys.readouterr().out
+    # another recording is not one of them
+    assert main(["simulate", "--surface", "carpet", "--minutes", "0.5", "--seed", "7",
+                 "--out", "other", "--no-truth"]) == 0
+    capsys.readouterr()
+    assert main(["adapt", str(work / "trained.npz"), "other", "--out", "b.npz",
+                 "--no-calibration"]) == 0
+    assert "one of the recordings" not in capsys.readouterr().out
+
+
 def test_blocks_and_refusals(floors: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     """Rows are absorbed in blocks of bounded size, with the same posterior as one block;
     when every row is refused (here all beyond a tiny max_distance), nothing is written as

@@ -19,7 +19,7 @@ from asgp_ros.learning.adapting import (
     adapt_model,
     check_adaptable,
 )
-from asgp_ros.recording.bags import same_recording
+from asgp_ros.recording.bags import is_recording, same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -65,11 +65,21 @@ def _adaptations(record: object) -> list[object]:
               if isinstance(r, dict)), record.get("data")]
 
 
-def _recordings(*records: object) -> set[str]:
-    """The real paths of the existing bags named by data records (a model file's
-    ``training_data``, an adaptation's ``data``; any shape in a foreign file)."""
-    return {os.path.realpath(b) for data in records for b in _bag_names(data)
-            if os.path.exists(b)}
+def _recordings(*records: object) -> list[object]:
+    """What identifies the recordings of data records (a model file's ``training_data``,
+    an adaptation's ``data``; any shape in a foreign file), for
+    :func:`asgp_ros.recording.bags.is_recording`: their ``recordings`` (real path and
+    content), or, in a file written before those were kept, the real paths of the bags
+    they name that exist from here."""
+    out: list[object] = []
+    for data in records:
+        kept = data.get("recordings") if isinstance(data, dict) else None
+        if isinstance(kept, list):
+            out.extend(kept)
+        else:
+            out.extend({"path": os.path.realpath(b)} for b in _bag_names(data)
+                       if os.path.exists(b))
+    return out
 
 
 def _minutes(data: object) -> str:
@@ -141,13 +151,13 @@ def run(args: argparse.Namespace) -> int:
     trained_on = _recordings(model.meta.get("training_data"))
     adapted_to = _recordings(*_adaptations(model.meta.get("adaptation")))
     for bag in args.bags:
-        here = os.path.realpath(bag)
-        if here in trained_on or here in adapted_to:
+        trained, adapted = is_recording(bag, trained_on), is_recording(bag, adapted_to)
+        if trained or adapted:
             print(f"warning: {bag} is one of the recordings {args.model} was "
-                  f"{'trained on' if here in trained_on else 'adapted to'}: its rows are in "
+                  f"{'trained on' if trained else 'adapted to'}: its rows are in "
                   "the posterior already"
                   + (" and count twice with --trained-weight 1"
-                     if args.trained_weight > 0.0 or here in adapted_to else ""), flush=True)
+                     if args.trained_weight > 0.0 or adapted else ""), flush=True)
     # learnt under the held-chair rule even where the model predicts without it
     series = read_series_or_fail(args.bags, args,
                                  resample_config=learning_config(model.resample_config))

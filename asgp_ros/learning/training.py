@@ -20,6 +20,7 @@ import hashlib
 import itertools
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -142,6 +143,10 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
     segments = sum(len(s.res.segments()) for s in series)
     out: dict[str, Any] = {
         "bags": [s.name for s in series],
+        # the real path and content of each (asgp adapt tells a bag trained on, from any
+        # directory, and its copies); empty for data not read from a path
+        "recordings": [bags.recording_identity(s.name) if os.path.exists(s.name) else {}
+                       for s in series],
         "grid_samples": grid,
         "valid_samples": valid,
         "segments": segments,

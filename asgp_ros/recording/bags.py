@@ -289,6 +289,22 @@ def _recording_keys(path: str | os.PathLike[str]) -> list[tuple[object, ...]]:
     return keys
 
 
+def recording_identity(path: str | os.PathLike[str]) -> dict[str, str]:
+    """What identifies the recording ``path`` names, for a model file's record of its
+    training data: its real path and the digest of its storage files (a copy, or the bag
+    named from another directory, is found by it: :func:`is_recording`)."""
+    return {str(k[0]): str(k[1]) for k in _recording_keys(path)}
+
+
+def is_recording(path: str | os.PathLike[str], identities: Collection[object]) -> bool:
+    """Whether ``path`` is one of the recordings ``identities`` describe (records of
+    :func:`recording_identity`; anything else in them, from a foreign file, matches
+    nothing)."""
+    keys = set(_recording_keys(path))
+    return any(isinstance(ident, dict) and any(
+        (k, v) in keys for k, v in ident.items() if isinstance(v, str)) for ident in identities)
+
+
 def same_recording(paths: Collection[str | os.PathLike[str]]) -> tuple[str, str] | None:
     """The first two of ``paths`` that are one recording (the same bag given twice, by a
     symbolic link, its storage file or a copy), or None. Training or testing on a
