@@ -151,13 +151,13 @@ def run(args: argparse.Namespace) -> int:
     trained_on = _recordings(model.meta.get("training_data"))
     adapted_to = _recordings(*_adaptations(model.meta.get("adaptation")))
     for bag in args.bags:
-        trained, adapted = is_recording(bag, trained_on), is_recording(bag, adapted_to)
-        if trained or adapted:
+        was_trained, was_adapted = is_recording(bag, trained_on), is_recording(bag, adapted_to)
+        if was_trained or was_adapted:
             print(f"warning: {bag} is one of the recordings {args.model} was "
-                  f"{'trained on' if trained else 'adapted to'}: its rows are in "
+                  f"{'trained on' if was_trained else 'adapted to'}: its rows are in "
                   "the posterior already"
                   + (" and count twice with --trained-weight 1"
-                     if args.trained_weight > 0.0 or adapted else ""), flush=True)
+                     if args.trained_weight > 0.0 or was_adapted else ""), flush=True)
     # learnt under the held-chair rule even where the model predicts without it
     series = read_series_or_fail(args.bags, args,
                                  resample_config=learning_config(model.resample_config))
