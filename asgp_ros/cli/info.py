@@ -43,8 +43,12 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
     hs = [h for h in cal["by_horizon"] if h != "cases"]
     applied = cal.get("applied", True)
     cv = "cross-validated" if cal.get("cross_validated") else "in-sample"
+    still = cal.get("still_cases")
+    at_rest = (f"; {still} held-out cases in which neither the chair nor its prediction "
+               "moved 10 cm are not counted" if isinstance(still, int)
+               and not isinstance(still, bool) and still > 0 else "")
     lines = ([] if applied else [f"calibration {cal['reason']}"]) + [
-             f"held-out coverage of the 95% ellipse, raw -> calibrated ({cv}), %:",
+             f"held-out coverage of the 95% ellipse, raw -> calibrated ({cv}), %{at_rest}:",
              f"  {'':<28} {'cases':>6}  " + "  ".join(f"{h + ' s':>13}" for h in hs)]
 
     def row(name: str, t: dict[str, Any]) -> str:
