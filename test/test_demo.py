@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -689,7 +690,9 @@ def test_demo_leaves_no_processes_and_stops_on_ctrl_c(demo_run, tmp_path):
 def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, monkeypatch):
     """``asgp demo --force`` over a complete demo, then Ctrl-C before the drive: report.md
     became one of a 0 s drive and run_bag held nothing recoverable. The earlier demo is
-    set aside and put back; a demo that drove replaces it; a failure puts it back too."""
+    set aside and put back; only a complete demo replaces it. One that failed without
+    driving (its nodes not up within --startup-timeout: exit 1), or was stopped during the
+    drive, deleted it: it is put back now, that run's output kept beside it."""
     from asgp_ros.common.fileio import write_marker
     from asgp_ros.demo import orchestrator
 
@@ -708,8 +711,20 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
 
     def drove(opts, into, state, say):
         (into / "report.md").write_text("the new demo\n")
+        state.drive_start_wall = 1.0
+        return 0
+
+    def stopped_driving(opts, into, state, say):
+        (into / "report.md").write_text("stopped early\n")
         state.stopped_by, state.drive_start_wall = "SIGINT", 1.0
         return 130
+
+    def never_up(opts, into, state, say):
+        (into / "report.md").write_text("a 0 s drive: no node came up\n")
+        return 1
+
+    def asides() -> list[Path]:
+        return sorted(tmp_path.glob("demo.unfinished.*"))
 
     def failed(opts, into, state, say):
         (into / "report.md").write_text("half\n")
@@ -723,8 +738,17 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
     with pytest.raises(DemoError):
         orchestrator.run_demo(opts, said.append)
     assert (out / "report.md").read_text() == "the earlier demo\n"
+    for run, rc, text in ((never_up, 1, "a 0 s drive: no node came up\n"),
+                          (stopped_driving, 130, "stopped early\n")):
+        monkeypatch.setattr(orchestrator, "_run_in", run)
+        said.clear()
+        assert orchestrator.run_demo(opts, said.append) == rc
+        assert (out / "report.md").read_text() == "the earlier demo\n"
+        assert (asides()[-1] / "report.md").read_text() == text
+        assert any("did not complete" in line and str(asides()[-1]) in line for line in said)
+        shutil.rmtree(asides()[-1])
     monkeypatch.setattr(orchestrator, "_run_in", drove)
-    assert orchestrator.run_demo(opts, said.append) == 130
+    assert orchestrator.run_demo(opts, said.append) == 0
     assert (out / "report.md").read_text() == "the new demo\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["demo", "m.npz"]  # nothing aside
     # a new directory that a failed run made, with nothing in it, is not left behind
@@ -739,7 +763,7 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
     (aside / "report.md").write_text("the killed run's earlier demo\n")
     said.clear()
     monkeypatch.setattr(orchestrator, "_run_in", drove)
-    assert orchestrator.run_demo(opts, said.append) == 130
+    assert orchestrator.run_demo(opts, said.append) == 0
     assert any(str(aside) in line and "kept" in line for line in said), said
     assert (aside / "report.md").read_text() == "the killed run's earlier demo\n"
 

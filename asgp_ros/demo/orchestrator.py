@@ -371,7 +371,9 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     except OutputError as exc:
         raise DemoError(str(exc)) from exc
     # An earlier demo there (--force, or its model reused) is set aside, not written over:
-    # it is removed once this one has driven, and put back if it is stopped before that.
+    # it is removed once this one is complete (it drove, every node produced output, not
+    # stopped early), and put back otherwise (this run's output beside it, unless it was
+    # stopped before the drive).
     for stray in sorted(out.parent.glob(f".{glob.escape(out.name)}.previous.*")):
         # set aside by a run killed (SIGKILL, power) before it could put it back or remove it
         say(f"{stray} holds an earlier demo that a killed run set aside; it is kept (move it "
@@ -394,10 +396,20 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
         if previous is None and out.is_dir() and set(os.listdir(out)) <= {MARKER_NAME}:
             shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
         raise
-    if previous is not None and state.stopped_by and state.drive_start_wall is None:
+    if previous is None:
+        return rc
+    if state.stopped_by and state.drive_start_wall is None:
         _put_back(out, previous)
         say(f"stopped before the drive: the earlier demo in {out} is kept")
-    elif previous is not None:
+    elif rc != 0 or state.stopped_by or state.drive_start_wall is None:
+        # an existing demo is replaced only by a complete one: a run that failed (a node
+        # never came up, or produced nothing) or was stopped early deleted a good demo
+        aside = out.with_name(f"{out.name}.unfinished.{os.urandom(4).hex()}")
+        os.rename(out, aside)
+        os.rename(previous, out)
+        say(f"this run did not complete (exit {rc}): the earlier demo in {out} is kept, "
+            f"and this run's output is in {aside}")
+    else:
         shutil.rmtree(previous, ignore_errors=True)
     return rc
 
