@@ -361,3 +361,47 @@ def test_quick_resumes_the_dataset_an_interrupted_run_began(tmp_path, monkeypatc
     with pytest.raises(ResumedError):
         run_module.run(data, tmp_path / "out", quick=True)
     assert built == [data]
+
+
+def test_a_dataset_rebuild_that_did_not_finish_is_never_reproduced(tmp_path, monkeypatch):
+    """`asgp dataset --force --scale` of another size, stopped half-way, left the old
+    manifest beside a mix of bags of both: `asgp reproduce` used them, stating the old
+    scale. The manifest says the dataset is unfinished until the run ends; reproduce
+    refuses such a dataset, naming the command that finishes it, and --quick says that
+    the bags are another dataset's (it said 'use --force', which is about the report)."""
+    import json
+
+    from asgp_ros.common.fileio import write_marker
+    from asgp_ros.learning import dataset as dataset_module
+    from asgp_ros.learning.dataset import DatasetError, build_dataset
+    from asgp_ros.learning.reproduce import data as data_module
+    from asgp_ros.learning.reproduce.run import run
+
+    data = tmp_path / "ds"
+    data.mkdir()
+    write_marker(data, "dataset")
+    (data / "manifest.json").write_text(json.dumps({"format": "asgp_ros.dataset", "scale": 1.0,
+                                                    "seed": 0, "bags": []}))
+
+    def stopped(job):  # the first bag, then the run stops (a signal, a full disk)
+        raise RuntimeError("stopped")
+
+    monkeypatch.setattr(dataset_module, "_make", stopped)
+    with pytest.raises(DatasetError, match="stopped"):
+        build_dataset(data, scale=0.05, seed=3, force=True)
+    manifest = json.loads((data / "manifest.json").read_text())
+    assert manifest["unfinished"] is True and manifest["scale"] == 0.05
+    with pytest.raises(ReproduceError, match=r"did not finish \(`asgp dataset --scale 0.05 "
+                                             r"--seed 3`\): run it again"):
+        run(data, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+    def another_datasets_bags(path, **kwargs):
+        raise DatasetError(f"{path}/tile/tile_01 exists and is not this dataset's bag; use "
+                           "--force to replace it")
+
+    monkeypatch.setattr(data_module, "build_dataset", another_datasets_bags)
+    with pytest.raises(ReproduceError, match=r"holds a dataset that did not finish \(`asgp "
+                                             r"dataset --scale 0.05 --seed 3`\), not the "
+                                             r"small one --quick makes"):
+        run(data, tmp_path / "out", quick=True)

@@ -186,6 +186,16 @@ def build_dataset(out: str | os.PathLike[str], *, scale: float = 1.0, seed: int 
     root = check_output(out, DATASET_DIR)
     root.mkdir(parents=True, exist_ok=True)
     write_marker(root, "dataset")  # from here on an interrupted run resumes here
+    # Until this run ends the directory is not the dataset an earlier manifest described:
+    # `--force` with another --scale, stopped half-way, left the old manifest beside a mix
+    # of bags of both, and `asgp reproduce` used them, stating the old scale.
+    try:
+        atomic_write_text(root / "manifest.json", json.dumps(
+            {"format": "asgp_ros.dataset", "version": MANIFEST_VERSION, "unfinished": True,
+             "seed": seed, "scale": scale, "storage": storage, "bags": []}, indent=2) + "\n")
+    except OSError as exc:
+        raise DatasetError(f"{root / 'manifest.json'}: cannot be written: "
+                           f"{exc.strerror or exc}") from exc
     bags = plan(seed, scale)
     jobs_args = [(str(root), b, storage, force) for b in bags]
     start = time.perf_counter()

@@ -124,6 +124,20 @@ def read_manifest(data: Path) -> dict[str, Any] | None:
     return manifest
 
 
+def unfinished_dataset(manifest: dict[str, Any] | None) -> bool:
+    """Whether a manifest is the one ``asgp dataset`` writes while it runs (the bags are not
+    all made, or are of another dataset)."""
+    return manifest is not None and manifest.get("unfinished") is True
+
+
+def dataset_options(manifest: dict[str, Any] | None) -> str:
+    """' (--scale X --seed Y)' of an unfinished dataset's manifest, or ''."""
+    opts = [f"--{k} {manifest[k]}" for k in ("scale", "seed")
+            if manifest is not None and isinstance(manifest.get(k), int | float)
+            and not isinstance(manifest.get(k), bool)]
+    return f" (`asgp dataset {' '.join(opts)}`)" if opts else ""
+
+
 def _manifest_problem(manifest: Any) -> str | None:
     if not isinstance(manifest, dict):
         return "not a JSON object"
@@ -148,6 +162,18 @@ def build_quick_dataset(data: Path, scale: float = QUICK_SCALE, *,
     build_dataset`, as ``asgp dataset --out DATA --scale SCALE --jobs 2``)."""
     log.info("building a small dataset (scale %s) in %s", scale, data)
     try:
+        earlier = read_manifest(data) if data.is_dir() else None
+    except ReproduceError:
+        earlier = None
+    try:
         return build_dataset(data, scale=scale, jobs=2, progress=progress)
     except (DatasetError, OutputError, ValueError) as exc:
+        if unfinished_dataset(earlier) and earlier is not None \
+                and earlier.get("scale") != scale:
+            # its bags are another dataset's: `reproduce --force` is about the report
+            raise ReproduceError(
+                f"{data} holds a dataset that did not finish{dataset_options(earlier)}, "
+                f"not the small one --quick makes (--scale {scale:g}): finish it with "
+                f"`asgp dataset --out {data}` and its options, or give --data another "
+                "directory") from exc
         raise ReproduceError(f"building a dataset in {data} failed: {exc}") from exc

@@ -31,10 +31,12 @@ from asgp_ros.learning.dataset import BuiltDataset, manifest_topics
 from asgp_ros.learning.dataset import Progress as DatasetProgress
 from asgp_ros.learning.reproduce.data import (
     build_quick_dataset,
+    dataset_options,
     discover,
     discover_safe,
     read_manifest,
     split,
+    unfinished_dataset,
 )
 from asgp_ros.learning.reproduce.jobs import (
     JobContext,
@@ -88,13 +90,18 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     t_start = time.perf_counter()
     st = Settings.for_mode(quick, jobs, seed)
     data = Path(data)
-    # a new dataset, or one an interrupted run began (its marker, no manifest yet): resumed
-    unfinished = (data.is_dir() and read_marker(data) == "dataset"
-                  and not (data / "manifest.json").exists())
+    # a new dataset, or one an interrupted run began (its marker, and no manifest or one
+    # saying it is unfinished): --quick resumes it, else it is refused
+    unfinished = data.is_dir() and read_marker(data) == "dataset" and (
+        not (data / "manifest.json").exists() or unfinished_dataset(read_manifest(data)))
     if quick and (not data.is_dir() or not any(discover_safe(data).values()) or unfinished):
         built = build_quick_dataset(data, progress=dataset_progress)
         if dataset_built is not None:
             dataset_built(built)
+    elif unfinished:
+        raise ReproduceError(f"{data} is a dataset whose `asgp dataset` run did not finish"
+                             f"{dataset_options(read_manifest(data))}: run it again to "
+                             "finish it (the bags made are kept)")
     manifest = read_manifest(data)
     found = discover(data)
     twice = same_recording([p for bags in found.values() for p in bags])
