@@ -405,3 +405,32 @@ def test_a_dataset_rebuild_that_did_not_finish_is_never_reproduced(tmp_path, mon
                                              r"dataset --scale 0.05 --seed 3`\), not the "
                                              r"small one --quick makes"):
         run(data, tmp_path / "out", quick=True)
+
+
+def test_adaptation_claims_on_cells_without_cases_are_not_checked():
+    """With one-minute bags no case falls after the 60 s mark: a cell without cases counted
+    as 0 %, and the report said 'holds (every cell)' of one claim and 'does not hold' of
+    two, decided on nothing. Such cells are not checked, and a claim none checks says so."""
+    from asgp_ros.learning.reproduce.claims import _adaptation_claims
+    from asgp_ros.learning.reproduce.report import _verdict
+
+    empty = {"hit": None, "covered": None, "hit_plain": None}
+    rows = [{"train": "Tile", "test": "Carpet", "from_s": 60.0, "matched": False,
+             "across": True, "own": {"1.0": 0.95, "2.0": 0.80},
+             "horizons": {"1.0": dict(empty), "2.0": dict(empty)}},
+            {"train": "Tile", "test": "Tile", "from_s": 60.0, "matched": True,
+             "across": False, "own": {"1.0": 0.99, "2.0": 0.97},
+             "horizons": {"1.0": dict(empty), "2.0": dict(empty)}}]
+    claims = _adaptation_claims(rows, ["1.0", "2.0"])
+    assert len(claims) == 3
+    for c in claims:
+        assert c["holds"] is None and "not checked" in c["evidence"], c
+        assert _verdict(c["holds"]) == "**not checked**"
+    # cells with cases are checked, the others named as not
+    rows[0]["horizons"]["2.0"] = {"hit": 0.70, "covered": 0.93, "hit_plain": 0.5}
+    rows[1]["horizons"]["1.0"] = {"hit": 0.99, "covered": 0.95, "hit_plain": 0.99}
+    near, covered, worse = _adaptation_claims(rows, ["1.0", "2.0"])
+    assert near["holds"] is False and near["evidence"].startswith("Tile/Carpet 2.0 s: 70.0%")
+    assert "1 of 2 cells without cases (from 60 s into each test bag) not checked" \
+        in near["evidence"]
+    assert covered["holds"] is True and worse["holds"] is True

@@ -121,7 +121,7 @@ def _adaptation_section(s: dict[str, Any], hk: list[str]) -> list[str]:
         L.append(f"| {row['train']} | {row['test']} | " + " | ".join(cells) + " |")
     L.append("")
     for c in ad["claims"]:
-        L.append(f"- {'**holds**' if c['holds'] else '**does not hold**'} (issue 12): "
+        L.append(f"- {_verdict(c['holds'])} (issue 12): "
                  f"{c['claim']} ({c['evidence']}).")
     L.append("\nAdaptation state at the end of each test bag: steps absorbed, steps refused "
              "(not valid training rows), the posterior published, the online variance scale per "
@@ -259,7 +259,7 @@ def _claims_section(s: dict[str, Any]) -> list[str]:
          "for the automatic ASGP, as trained and adapting online (the nodes' default); "
          "\"does not hold\" is reported as it is.\n"]
     for c in s["claims"]:
-        L.append(f"- {'**holds**' if c['holds'] else '**does not hold**'} "
+        L.append(f"- {_verdict(c['holds'])} "
                  f"({c['source']}): {c['claim']} ({c['evidence']}).")
     L.append("")
     return L
@@ -343,3 +343,9 @@ def _closing_sections(s: dict[str, Any]) -> list[str]:
                  f"{rows} | {mdl['train_seconds']:.1f} | {mdl['eval_seconds']:.1f} |")
     L.append("\nAll figures: `results.json`; tables: `tables.json`.\n")
     return L
+
+
+def _verdict(holds: bool | None) -> str:
+    """A claim's verdict in the report (None: no case checked it)."""
+    return "**not checked**" if holds is None else "**holds**" if holds else \
+        "**does not hold**"
