@@ -216,10 +216,12 @@ def _protocol_section(s: dict[str, Any], hk: list[str]) -> list[str]:
              f"{100 * s['settings']['threshold_m']:.0f} cm against the path integrated "
              "(trapezoidal unicycle) from the recorded VO; horizons "
              + ", ".join(f"{h} s" for h in hk) + f" (k = round(h x 5 Hz)); {read_at}.")
-    L.append(f"- Identical case sets for all models: a test step counts when "
-             f"{s['settings']['case_lags']} past samples (the largest s of the models) and k "
-             "future samples lie in one valid segment; each model uses its own last s of the "
-             "past samples.")
+    L.append(f"- Identical case sets for all models but 'ASGP + adapt': a test step counts "
+             f"when {s['settings']['case_lags']} past samples (the largest s of the models) "
+             "and k future samples lie in one valid segment; each model uses its own last s "
+             "of the past samples. 'ASGP + adapt' is scored on those steps less the ones its "
+             "online predictor made no prediction for (results.json, 'missing'): fewer cases "
+             "than each table's 'Cases' line.")
     L.append("- Tables: Table I = tested on Tile, Table II = tested on Carpet, Table III = "
              "tested on Hybrid; rows = train set x model; cells = success rate (%) / median "
              "error (cm). 'vs GT' = success rate against the simulator's ground truth.\n")
