@@ -1108,3 +1108,61 @@ def test_the_temporary_of_a_killed_run_is_named_by_the_next_run_there(tmp_path, 
     caplog.clear()
     assert main(["simulate", "--minutes", "0.1", "--out", str(out), "--force"]) == 0
     assert "holds the one it was replacing" in caplog.text
+
+
+_ORPHAN_SCRIPT = r"""
+import os, sys, time
+from asgp_ros.common.fileio import worker_pool, interruptible_imap
+
+def task(i):
+    os.write(1, f"worker {os.getpid()}\n".encode())  # one write: the two never interleave
+    time.sleep(30.0)
+    open(sys.argv[1] + "." + str(i), "w").close()
+    return i
+
+if __name__ == "__main__":
+    with worker_pool(2) as pool:
+        for _ in interruptible_imap(pool, task, range(4)):
+            pass
+"""
+
+
+def test_pool_workers_end_with_a_parent_killed_outright(tmp_path):
+    """`asgp reproduce` killed by SIGKILL (the OOM killer, a cancelled job) ran no clean-up:
+    its workers went on with the queue for a minute, both cores busy, then printed
+    BrokenPipeError tracebacks. The kernel sends them the stop signal when the parent
+    dies (PR_SET_PDEATHSIG)."""
+    script = tmp_path / "orphans.py"
+    script.write_text(_ORPHAN_SCRIPT)
+    proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / "done")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    workers: set[int] = set()
+    try:
+        assert proc.stdout is not None
+        while len(workers) < 2:  # both workers at their tasks
+            line = proc.stdout.readline()
+            assert line, proc.stderr.read() if proc.stderr else ""
+            workers.add(int(line.split()[1]))
+        proc.kill()
+        proc.wait(10.0)
+        deadline = time.monotonic() + 10.0
+        while any(_running(w) for w in workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not [w for w in workers if _running(w)]
+        assert not list(tmp_path.glob("done.*"))
+    finally:
+        proc.kill()
+        proc.wait(10.0)
+        for w in workers:
+            if _running(w):
+                os.kill(w, signal.SIGKILL)
+
+
+def _running(pid: int) -> bool:
+    """A process that exists and is not a zombie."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return len(fields) == 2 and fields[1].split()[:1] not in ([], ["Z"])

@@ -191,8 +191,28 @@ def quiet_worker_exit() -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
 
 
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+
+
+def die_with_parent(parent: int) -> bool:
+    """Ask the kernel for SIGTERM when this process's parent dies (``prctl(PR_SET_PDEATHSIG)``,
+    Linux; a warning on stderr where it fails), and whether the parent ``parent`` is still
+    there (it may have died before the request)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        print(f"warning: prctl(PR_SET_PDEATHSIG) failed: {os.strerror(ctypes.get_errno())}",
+              file=sys.stderr)
+    return os.getppid() == parent
+
+
 def _start_pool_worker(initializer: Callable[..., object] | None,
-                       initargs: tuple[Any, ...]) -> None:
+                       initargs: tuple[Any, ...], parent: int) -> None:
+    # A parent killed outright (SIGKILL, the OOM killer) ran no clean-up: its workers went
+    # on with the queue, both cores busy for a minute, writing into a temporary nobody
+    # would commit, then printed BrokenPipeError tracebacks. The SIGTERM the kernel sends
+    # them now is the stop signal of quiet_worker_exit (blocked until it is in place).
+    if not die_with_parent(parent):
+        os._exit(128 + signal.SIGTERM)
     quiet_worker_exit()
     if initializer is not None:
         initializer(*initargs)
@@ -268,7 +288,7 @@ def worker_pool(processes: int, initializer: Callable[..., object] | None = None
                 mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
                 try:
                     pool = ctx.Pool(processes, initializer=_start_pool_worker,
-                                    initargs=(initializer, initargs))
+                                    initargs=(initializer, initargs, os.getpid()))
                 finally:
                     signal.pthread_sigmask(signal.SIG_SETMASK, mask)
             yield pool

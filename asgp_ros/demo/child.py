@@ -15,14 +15,12 @@ it was.
 
 from __future__ import annotations
 
-import ctypes
 import faulthandler
 import importlib
-import os
 import signal
 import sys
 
-PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+from asgp_ros.common.fileio import die_with_parent
 
 
 def main() -> int:
@@ -32,11 +30,7 @@ def main() -> int:
         return 2
     parent = int(sys.argv[1])
     module, function = sys.argv[2].split(":", 1)
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
-        print(f"warning: prctl(PR_SET_PDEATHSIG) failed: {os.strerror(ctypes.get_errno())}",
-              file=sys.stderr)
-    if os.getppid() != parent:
+    if not die_with_parent(parent):
         print(f"the demo (pid {parent}) is gone; not starting {module}", file=sys.stderr)
         return 1
     faulthandler.register(signal.SIGUSR1, all_threads=True)
