@@ -345,6 +345,30 @@ def test_report_gives_the_model_and_the_ellipses_coverage():
     assert math.isnan(rows[0]["online_cases_coverage"])
 
 
+def test_a_model_at_another_rate_is_scored_at_its_horizons(tmp_path):
+    """With a 2.5 Hz model the report's 'holding the command instead: 1 s 77.8%, 1.4 s
+    68.2%' was computed at 1.2 and 1.6 s (asgp evaluate's horizons on that grid), and the
+    online rows of 1.0 and 1.4 s had n = 0 (no pose there). The demo scores every column at
+    the horizons the model's grid has, named as they are."""
+    from asgp_ros.cli import main
+    from asgp_ros.core.modelfile import load_model
+    from asgp_ros.demo.report import demo_horizons, offline_cases, offline_held, success_table
+
+    bag, path = tmp_path / "drive", tmp_path / "m25.npz"
+    assert main(["simulate", "--minutes", "0.5", "--seed", "4", "--out", str(bag)]) == 0
+    assert main(["train", str(bag), "--paper", "--rate", "2.5", "--max-iter", "10",
+                 "--out", str(path)]) == 0
+    model = load_model(path)
+    assert demo_horizons(model) == (1.2, 1.6, 2.0)
+    held, cases = offline_held(bag, model), offline_cases(bag, model)
+    assert list(held) == list(cases) == ["1.2", "1.6", "2.0"]
+    assert all(v["cases"] > 0 for v in held.values())
+    score = OnlineScore(demo_horizons(model))
+    rows = success_table(score, None, cases, 0.4, held)
+    assert [r["horizon_s"] for r in rows] == [1.2, 1.6, 2.0]
+    assert all(r["offline_held_n"] == held[horizon_key(r["horizon_s"])]["cases"] for r in rows)
+
+
 def test_truth_track_unwraps_and_interpolates():
     tr = TruthTrack()
     tr.add(0.0, 0.0, 0.0, math.pi - 0.1)

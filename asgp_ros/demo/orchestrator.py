@@ -49,13 +49,14 @@ from asgp_ros.common.fileio import (
     check_output,
     write_marker,
 )
+from asgp_ros.core.metrics import HORIZONS_S
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
 from asgp_ros.core.models import MotionModel
 from asgp_ros.core.scan_match import VELOCITY_SOURCES
 from asgp_ros.demo.common import DemoError, RunState
-from asgp_ros.demo.monitor import format_status
+from asgp_ros.demo.monitor import OnlineScore, format_status
 from asgp_ros.demo.processes import ProcessGroup
-from asgp_ros.demo.report import write_report
+from asgp_ros.demo.report import demo_horizons, write_report
 from asgp_ros.learning.training import (
     HOLDOUT_FRACTION,
     AutoOptions,
@@ -427,7 +428,8 @@ def _run_in(opts: DemoOptions, out: Path, state: RunState, say: Printer) -> int:
     model, motion_model = _demo_model(opts, out, state, say)  # 1. the model
     env = _enter_domain(state.domain_id, say)  # 2. environment of this process and the nodes
     bag_final = out / "run_bag"
-    monitor, group = _run_nodes(opts, out, model, env, state.domain_id, bag_final, state, say)
+    monitor, group = _run_nodes(opts, out, model, env, state.domain_id, bag_final, state, say,
+                                demo_horizons(motion_model))
     _check_components(monitor, group, state)  # 3. what every component produced
     return _report(out, state, monitor, motion_model, bag_final, env, say)  # 4. the report
 
@@ -463,8 +465,8 @@ def _enter_domain(domain: int, say: Printer) -> dict[str, str]:
 
 
 def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], domain: int,
-               bag_final: Path, state: RunState, say: Printer
-               ) -> tuple[MonitorNode, ProcessGroup]:
+               bag_final: Path, state: RunState, say: Printer,
+               horizons: tuple[float, ...] = HORIZONS_S) -> tuple[MonitorNode, ProcessGroup]:
     """Start the monitor (which records the bag) and the nodes, drive, and stop them all,
     whatever happens; each node's CPU time, lifetime, exit code and stop signal go to
     ``state``, the recorded bag to ``bag_final``."""
@@ -479,7 +481,7 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
     cpu_before = _self_cpu()
     t_mon = time.monotonic()
     try:
-        started = monitor, executor, _ = _start_monitor(domain, bag_tmp)
+        started = monitor, executor, _ = _start_monitor(domain, bag_tmp, horizons)
         others = _nodes_already_there(monitor, executor)
         if others:  # another demo (or anything) on this domain: each would score the other
             raise DemoError(f"ROS_DOMAIN_ID {domain} is in use (nodes "
@@ -566,7 +568,7 @@ def _foreign_publishers(monitor: MonitorNode) -> list[str]:
     return [topic for topic in PRODUCERS if monitor.count_publishers(topic) > 1]
 
 
-def _start_monitor(domain: int, bag_tmp: Path
+def _start_monitor(domain: int, bag_tmp: Path, horizons: tuple[float, ...] = HORIZONS_S
                    ) -> tuple[MonitorNode, SingleThreadedExecutor, Context]:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -580,7 +582,7 @@ def _start_monitor(domain: int, bag_tmp: Path
     rclpy.init(args=[], context=context, domain_id=domain,
                signal_handler_options=SignalHandlerOptions.NO)
     recorder = BagRecorder(bag_tmp)
-    node = MonitorNode(recorder=recorder, context=context)
+    node = MonitorNode(recorder=recorder, score=OnlineScore(horizons), context=context)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     return node, executor, context

@@ -53,6 +53,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+def demo_horizons(model: MotionModel) -> tuple[float, ...]:
+    """The horizons a demo scores with ``model``: the paper's, where its grid has them
+    (``asgp evaluate``'s rule: a 2.5 Hz model is scored at 1.2, 1.6 and 2.0 s; its paths
+    have no pose at 1.0 s, and the figures held there were labelled 1.0 s)."""
+    return metrics.scored_horizons(HORIZONS_S, float(model.resample_config.rate_hz))
+
+
 def offline_cases(bag: Path, model: MotionModel) -> dict[str, set[int]]:
     """Grid index of t0 (= t_{t-1}) of every offline evaluation case, per horizon key."""
     series = read_series([str(bag)], resample_config=model.resample_config,
@@ -60,7 +67,7 @@ def offline_cases(bag: Path, model: MotionModel) -> dict[str, set[int]]:
     rate = float(model.resample_config.rate_hz)
     lags = int(model.feature_config.lags)
     out: dict[str, set[int]] = {}
-    for h in HORIZONS_S:
+    for h in demo_horizons(model):
         k = metrics.horizon_steps([h], rate)[0]  # (as evaluation rounds it)
         cases: set[int] = set()
         for s in series:
@@ -82,7 +89,7 @@ def offline_held(bag: Path, model: MotionModel) -> dict[str, dict[str, float]]:
     rate = float(model.resample_config.rate_hz)
     s = int(model.feature_config.lags)
     out: dict[str, dict[str, float]] = {}
-    for h in HORIZONS_S:
+    for h in demo_horizons(model):
         k = metrics.horizon_steps([h], rate)[0]  # (as evaluation rounds it)
         errors = []
         for ser in series:
@@ -112,7 +119,7 @@ def success_table(score: OnlineScore, evaluation: dict[str, Any] | None,
     """One row per horizon: online (all, on offline cases) and offline (truth, VO, and
     truth with the held command)."""
     rows = []
-    for h in HORIZONS_S:
+    for h in score.horizons:
         key = horizon_key(h)
         rate, n = score.success(h)
         err = score.errors(h)
@@ -398,7 +405,7 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     ae = fig.add_subplot(gs[1, 1])
     _drive_panel(ax, monitor, room, t, truth, paths)
     _zoom_panel(az, monitor, t, truth, paths)
-    _error_panel(ae, t, paths)
+    _error_panel(ae, t, paths, monitor.score.horizons)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
@@ -416,7 +423,7 @@ def _draw_paths(axis: Axes, monitor: MonitorNode, recs: list[PathRecord], ellips
         assert p0 is not None  # the paths drawn are those with a true pose at t0
         c, s = math.cos(p0[2]), math.sin(p0[2])
         xy = rec.pose[:, :2] @ np.array([[c, s], [-s, c]]) + p0[:2]
-        ok = rec.errors.get(horizon_key(HORIZONS_S[0]))
+        ok = rec.errors.get(horizon_key(monitor.score.horizons[0]))
         colour = "tab:green" if ok is not None and ok <= THRESHOLD_M else (
             "tab:red" if ok is not None else "tab:gray")
         axis.plot(np.r_[p0[0], xy[:, 0]], np.r_[p0[1], xy[:, 1]], "-", color=colour,
@@ -481,13 +488,14 @@ def _zoom_panel(az: Axes, monitor: MonitorNode, t: np.ndarray, truth: np.ndarray
         az.set_xlabel("x (m)")
 
 
-def _error_panel(ae: Axes, t: np.ndarray, paths: list[PathRecord]) -> None:
-    """The online prediction error at the shortest and the longest horizon (1.0 and 2.0 s)
-    against time, and the 10 cm line."""
+def _error_panel(ae: Axes, t: np.ndarray, paths: list[PathRecord],
+                 horizons: tuple[float, ...]) -> None:
+    """The online prediction error at the shortest and the longest horizon (1.0 and 2.0 s
+    at 5 Hz) against time, and the 10 cm line."""
     t_start = t[0] if t.size else 0.0
     top = 30.0
-    for key, colour in ((horizon_key(HORIZONS_S[0]), "tab:purple"),
-                        (horizon_key(HORIZONS_S[-1]), "tab:orange")):
+    for key, colour in ((horizon_key(horizons[0]), "tab:purple"),
+                        (horizon_key(horizons[-1]), "tab:orange")):
         tt = [p.t0 - t_start for p in paths if key in p.errors]
         ee = [min(100 * p.errors[key], top) for p in paths if key in p.errors]
         ae.plot(tt, ee, ".", ms=2.5, color=colour, label=f"error at {key} s")
