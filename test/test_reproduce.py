@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import shutil
 from pathlib import Path
 from types import MappingProxyType, SimpleNamespace
 
@@ -44,6 +45,13 @@ def test_split_follows_the_paper_layout(tmp_path):
     assert [p.name for p in test["Tile"]] == ["tile_01", "tile_02"]
     assert "tile_01" not in [p.name for p in train["Tile"]]
     assert len(train["Tile"]) == 6
+    # the manifest's test bags gone from the dataset: the last two of the others were
+    # tested on (bags the manifest keeps for training), and Both was 2 + 3 bags
+    for name in ("tile_01", "tile_02"):
+        shutil.rmtree(tmp_path / "tile" / name)
+    with pytest.raises(ReproduceError, match="holds out tile/tile_01, tile/tile_02 for "
+                                             "testing, and the dataset has no such bag"):
+        split(discover(tmp_path), manifest)
 
 
 def _cells(rates: dict[str, float], coverage: float | None = None) -> list[dict]:
@@ -434,3 +442,25 @@ def test_adaptation_claims_on_cells_without_cases_are_not_checked():
     assert "1 of 2 cells without cases (from 60 s into each test bag) not checked" \
         in near["evidence"]
     assert covered["holds"] is True and worse["holds"] is True
+
+
+def test_the_report_says_when_the_automatic_asgp_is_not_calibrated():
+    """A dataset of one-minute bags gives each train set too little held-out data for a
+    calibration: results.json gave the reason, and the report said only that the model
+    was calibrated on its held-out part."""
+    from asgp_ros.learning.reproduce.report import _automatic_section
+
+    why = "118 held-out cases, fewer than the 300 a calibration needs (record longer)"
+    model = {"kind": "asgp", "train": "Tile",
+             "selection": {"chosen": {"lags": 4, "coupled": True, "inducing": [20, 20]},
+                           "candidates": [{}], "seconds": {"selection": 1.0,
+                                                           "final_fit": 1.0}},
+             "calibration": {"fitted": False, "reason": why}}
+    text = "\n".join(_automatic_section({"models": [model],
+                                         "settings": {"horizons_s": [1.0, 2.0]}}))
+    assert f"- Tile: the ASGP is not calibrated: {why}" in text
+    assert "| not calibrated | not calibrated |" in text
+    model["calibration"] = {"fitted": True, "by_horizon": {}}
+    text = "\n".join(_automatic_section({"models": [model],
+                                         "settings": {"horizons_s": [1.0, 2.0]}}))
+    assert "not calibrated" not in text

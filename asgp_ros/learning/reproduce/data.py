@@ -70,6 +70,16 @@ def split(bags: dict[str, list[Path]], manifest: dict[str, Any] | None = None
     if manifest is not None:
         held_out = {Path(b["path"]).name for b in manifest.get("bags", [])
                     if b.get("split") == "test"}
+        # a test bag the manifest names, gone from the dataset: the last two of the others
+        # were tested on, bags the manifest keeps for training, without a word
+        missing = sorted(Path(b["path"]).as_posix() for b in manifest.get("bags", [])
+                         if b.get("split") == "test" and _surface(b["path"]) in ("tile", "carpet")
+                         and Path(b["path"]).name not in {p.name for p in
+                                                          bags.get(_surface(b["path"]), [])})
+        if missing:
+            raise ReproduceError(f"the dataset's manifest holds out {', '.join(missing)} for "
+                                 "testing, and the dataset has no such bag: put them back, or "
+                                 "make the dataset again (`asgp dataset`)")
     tile, carpet, hybrid = bags["tile"], bags["carpet"], bags["hybrid"]
     problems = []
     for name, lst, need in (("tile", tile, 4), ("carpet", carpet, 4), ("hybrid", hybrid, 1)):
@@ -93,6 +103,12 @@ def split(bags: dict[str, list[Path]], manifest: dict[str, Any] | None = None
              "Both": tile_train[:half_t] + carpet_train[:half_c]}
     test = {"Tile": tile_test, "Carpet": carpet_test, "Hybrid": hybrid[-2:]}
     return train, test
+
+
+def _surface(path: str) -> str:
+    """The surface directory of a manifest's bag path ('tile/tile_07' -> 'tile')."""
+    parts = Path(path).parts
+    return parts[0] if len(parts) > 1 else ""
 
 
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
