@@ -457,6 +457,19 @@ def test_a_demo_stopped_before_its_nodes_spoke_blames_none_of_them():
         assert len(state.errors) == silent, state.errors
 
 
+@pytest.mark.parametrize(("by", "rc"), [("SIGINT", 130), ("SIGTERM", 143), ("SIGHUP", 129)])
+def test_a_stopped_demo_exits_as_every_command(monkeypatch, by, rc):
+    """128 + the signal, as every asgp command: SIGHUP (the terminal closed) gave 143."""
+    from types import SimpleNamespace
+
+    from asgp_ros.demo import orchestrator
+
+    monkeypatch.setattr(orchestrator, "write_report", lambda *a: {})
+    state = orchestrator.RunState(options={}, domain_id=1, stopped_by=by)
+    assert orchestrator._report(Path("out"), state, SimpleNamespace(), None,  # type: ignore[arg-type]
+                                Path("bag"), {}, lambda _: None) == rc
+
+
 def test_child_environment_isolates_the_demo():
     env = child_env(42)
     assert env["ROS_DOMAIN_ID"] == "42"

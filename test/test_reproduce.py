@@ -103,6 +103,9 @@ def test_issue_11_targets_are_checked_for_the_model_as_trained_and_adapting():
 def test_missing_or_incomplete_dataset_is_refused(tmp_path, capsys):
     with pytest.raises(ReproduceError, match="does not exist"):
         discover(tmp_path / "nope")
+    os.mkfifo(tmp_path / "fifo")  # it said "does not exist"
+    with pytest.raises(ReproduceError, match="fifo is a FIFO, not a directory"):
+        discover(tmp_path / "fifo")
     data = tmp_path / "data"
     _touch_bags(data, {"tile": 8, "carpet": 2})
     with pytest.raises(ReproduceError, match=r"2 carpet bag.*0 hybrid"):

@@ -539,7 +539,8 @@ def _report(out: Path, state: RunState, monitor: MonitorNode, motion_model: Moti
         return 1
     if state.stopped_by:
         say(f"stopped early by {state.stopped_by}")
-        return 130 if state.stopped_by == "SIGINT" else 143
+        # 130 / 143 / 129, as every command (SIGHUP, its terminal closed, gave 143)
+        return 128 + int(getattr(signal.Signals, state.stopped_by, signal.SIGTERM))
     return 0
 
 

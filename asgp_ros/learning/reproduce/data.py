@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from asgp_ros.common.fileio import OutputError
+from asgp_ros.common.fileio import OutputError, describe_kind
 from asgp_ros.core.modelfile import loads_bounded, open_regular_file
 from asgp_ros.learning.dataset import LAYOUT, BuiltDataset, DatasetError, build_dataset
 from asgp_ros.learning.dataset import Progress as DatasetProgress
@@ -40,7 +40,9 @@ def discover(data: str | os.PathLike[str]) -> dict[str, list[Path]]:
     """Bags per surface in DIR/{tile,carpet,hybrid}/, sorted by name."""
     root = Path(data)
     if not root.is_dir():
-        raise ReproduceError(f"dataset directory {root} does not exist (make one with "
+        what = ("does not exist" if not os.path.lexists(root)
+                else f"is {describe_kind(root)}, not a directory")
+        raise ReproduceError(f"dataset directory {root} {what} (make one with "
                              "`asgp dataset --out DIR`)")
     out = {}
     for surface in SURFACES:
