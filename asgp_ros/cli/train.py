@@ -179,9 +179,16 @@ def run(args: argparse.Namespace) -> int:
     if cal.get("fitted") and not cal.get("applied", True):
         print(f"calibration {cal['reason']}")
     elif cal.get("fitted"):
-        print(f"calibrated on {cal['cases']} held-out cases: 95% ellipse coverage "
-              f"{100 * cal['raw_coverage']:.1f}% raw -> {100 * cal['coverage']:.1f}% "
-              "(asgp info MODEL shows it per horizon, regime and bag)")
+        # the pooled figure after the map is the map's own fit (95.0 % by construction):
+        # what it says of data it was not fitted on is the cross-validated one per horizon
+        cv = "cross-validated" if cal.get("cross_validated") else "in-sample"
+        per_h = [f"{h} s {100 * c['raw']:.1f}% -> {100 * c['calibrated']:.1f}%"
+                 for h, c in (cal.get("by_horizon") or {}).items()
+                 if isinstance(c, dict) and c.get("raw") is not None
+                 and c.get("calibrated") is not None]
+        print(f"calibrated on {cal['cases']} held-out cases; 95% ellipse coverage raw -> "
+              f"calibrated ({cv}): {', '.join(per_h) or '-'} (asgp info MODEL shows it per "
+              "regime and bag)")
     elif cal.get("reason"):
         print(f"not calibrated: {cal['reason']}")
     return 0
