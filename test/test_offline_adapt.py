@@ -317,13 +317,17 @@ def test_a_recording_trained_on_is_told_from_anywhere_and_in_a_copy(
         assert main(["adapt", str(work / "trained.npz"), str(bag), "--out", f"a{i}.npz",
                      "--trained-weight", "1", "--no-calibration"]) == 0
         assert f"warning: {bag} is one of the recordings" in capsys.readouterr().out
-    # another recording is not one of them
+    # another recording is not one of them, nor is one saved where the trained one was
+    # (recorded again with --force: it matched on its path alone)
     assert main(["simulate", "--surface", "carpet", "--minutes", "0.5", "--seed", "7",
                  "--out", "other", "--no-truth"]) == 0
-    capsys.readouterr()
-    assert main(["adapt", str(work / "trained.npz"), "other", "--out", "b.npz",
-                 "--no-calibration"]) == 0
-    assert "one of the recordings" not in capsys.readouterr().out
+    assert main(["simulate", "--surface", "carpet", "--minutes", "0.5", "--seed", "8",
+                 "--out", str(work / "short"), "--no-truth", "--force"]) == 0
+    for i, bag in enumerate(("other", str(work / "short"))):
+        capsys.readouterr()
+        assert main(["adapt", str(work / "trained.npz"), bag, "--out", f"b{i}.npz",
+                     "--no-calibration"]) == 0
+        assert "one of the recordings" not in capsys.readouterr().out
 
 
 def test_blocks_and_refusals(floors: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:

@@ -299,10 +299,17 @@ def recording_identity(path: str | os.PathLike[str]) -> dict[str, str]:
 def is_recording(path: str | os.PathLike[str], identities: Collection[object]) -> bool:
     """Whether ``path`` is one of the recordings ``identities`` describe (records of
     :func:`recording_identity`; anything else in them, from a foreign file, matches
-    nothing)."""
-    keys = set(_recording_keys(path))
-    return any(isinstance(ident, dict) and any(
-        (k, v) in keys for k, v in ident.items() if isinstance(v, str)) for ident in identities)
+    nothing). Where both have a content digest, the content decides: a new recording saved
+    where a trained one was is not that one, and a copy elsewhere is; else the real path."""
+    mine = recording_identity(path)
+
+    def same(ident: object) -> bool:
+        if not isinstance(ident, dict):
+            return False
+        key = "content" if isinstance(ident.get("content"), str) and "content" in mine \
+            else "path"
+        return isinstance(ident.get(key), str) and ident.get(key) == mine.get(key)
+    return any(same(ident) for ident in identities)
 
 
 def same_recording(paths: Collection[str | os.PathLike[str]]) -> tuple[str, str] | None:
