@@ -784,10 +784,30 @@ def test_a_forced_demo_stopped_before_it_drove_keeps_the_earlier_one(tmp_path, m
         assert (asides()[-1] / "report.md").read_text() == text
         assert any("did not complete" in line and str(asides()[-1]) in line for line in said)
         shutil.rmtree(asides()[-1])
+    # Ctrl-C while the report of a run that drove was written: its drive was deleted
+    def interrupted_report(opts, into, state, say):
+        (into / "run_bag").mkdir()
+        state.drive_start_wall = 1.0
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(orchestrator, "_run_in", interrupted_report)
+    with pytest.raises(KeyboardInterrupt):
+        orchestrator.run_demo(opts, said.append)
+    assert (out / "report.md").read_text() == "the earlier demo\n"
+    assert (asides()[-1] / "run_bag").is_dir()
+    shutil.rmtree(asides()[-1])
     monkeypatch.setattr(orchestrator, "_run_in", drove)
     assert orchestrator.run_demo(opts, said.append) == 0
     assert (out / "report.md").read_text() == "the new demo\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["demo", "m.npz"]  # nothing aside
+    # a name whose set-aside names do not fit a file name: refused before anything moves
+    long = tmp_path / ("d" * (orchestrator.MAX_DEMO_NAME_BYTES + 1))
+    long.mkdir()
+    write_marker(long, "demo")
+    with pytest.raises(DemoError, match="at most 235 for a demo"):
+        orchestrator.run_demo(DemoOptions(out=long, force=True, model=model), said.append)
+    assert sorted(p.name for p in long.iterdir()) == [".asgp-output"]
+    shutil.rmtree(long)
     # a new directory that a failed run made, with nothing in it, is not left behind
     monkeypatch.setattr(orchestrator, "_run_in", lambda *a: (_ for _ in ()).throw(
         DemoError("no model")))

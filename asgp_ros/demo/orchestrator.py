@@ -361,6 +361,11 @@ def _status_line(mon: MonitorNode, elapsed: float, total: float) -> str:
     return format_status(elapsed, total, rates, vo_state, latency, mon.score)
 
 
+#: The longest name of a demo's output directory: the names it is kept under beside itself
+#: (``.NAME.previous.<8 hex>``, ``NAME.unfinished.<8 hex>``) must fit a file name's 255 bytes.
+MAX_DEMO_NAME_BYTES = 255 - len(".unfinished.") - 8
+
+
 def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     """Run the demo (module docstring); returns the exit code (0 = every node produced
     output and the report was written)."""
@@ -371,6 +376,11 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
                            inputs=[opts.model] if opts.model is not None else [])
     except OutputError as exc:
         raise DemoError(str(exc)) from exc
+    if len(os.fsencode(out.name)) > MAX_DEMO_NAME_BYTES:
+        # found only once the earlier demo had been set aside, when this run's could not be
+        raise DemoError(f"--out {out}: a name of {len(os.fsencode(out.name))} bytes; at most "
+                        f"{MAX_DEMO_NAME_BYTES} for a demo (an earlier demo there, and an "
+                        "unfinished run, are kept beside it as NAME.unfinished.<8 hex>)")
     # An earlier demo there (--force, or its model reused) is set aside, not written over:
     # it is removed once this one is complete (it drove, every node produced output, not
     # stopped early), and put back otherwise (this run's output beside it, unless it was
@@ -392,8 +402,13 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
         if reuse and previous is not None and (previous / "model.npz").is_file():
             shutil.copy2(previous / "model.npz", out / "model.npz")
         rc = _run_in(opts, out, state, say)
-    except BaseException:
-        _put_back(out, previous)
+    except BaseException as exc:
+        if state.drive_start_wall is not None:
+            # interrupted after it drove (Ctrl-C while the report was written): this run's
+            # drive is kept, beside the earlier demo (it was deleted with the rest)
+            _set_aside(out, previous, f"stopped ({type(exc).__name__})", say)
+        else:
+            _put_back(out, previous)
         if previous is None and out.is_dir() and set(os.listdir(out)) <= {MARKER_NAME}:
             shutil.rmtree(out, ignore_errors=True)  # made by this run, and nothing in it
         raise
@@ -405,11 +420,7 @@ def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     elif rc != 0 or state.stopped_by or state.drive_start_wall is None:
         # an existing demo is replaced only by a complete one: a run that failed (a node
         # never came up, or produced nothing) or was stopped early deleted a good demo
-        aside = out.with_name(f"{out.name}.unfinished.{os.urandom(4).hex()}")
-        os.rename(out, aside)
-        os.rename(previous, out)
-        say(f"this run did not complete (exit {rc}): the earlier demo in {out} is kept, "
-            f"and this run's output is in {aside}")
+        _set_aside(out, previous, f"exit {rc}", say)
     else:
         shutil.rmtree(previous, ignore_errors=True)
     return rc
@@ -421,6 +432,17 @@ def _put_back(out: Path, previous: Path | None) -> None:
         return
     shutil.rmtree(out, ignore_errors=True)
     os.rename(previous, out)
+
+
+def _set_aside(out: Path, previous: Path | None, why: str, say: Printer) -> None:
+    """The earlier demo back where it was, this run's output beside it (both kept)."""
+    if previous is None:
+        return
+    aside = out.with_name(f"{out.name}.unfinished.{os.urandom(4).hex()}")
+    os.rename(out, aside)
+    os.rename(previous, out)
+    say(f"this run did not complete ({why}): the earlier demo in {out} is kept, and this "
+        f"run's output is in {aside}")
 
 
 def _run_in(opts: DemoOptions, out: Path, state: RunState, say: Printer) -> int:
