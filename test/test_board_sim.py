@@ -373,6 +373,28 @@ def test_asgp_board_monitor_prints_a_calibration_block(tmp_path, capsys, rest_co
         assert abs(v["neutral"] - fw.ADC_NEUTRAL) <= 20, (axis, v)
 
 
+@pytest.mark.parametrize(("push", "said"), [
+    (0.0, "the stick was not pushed to its extremes"),
+    (0.15, "was the stick pushed all the way?")])
+def test_asgp_board_monitor_tells_a_stick_not_pushed_to_its_extremes(tmp_path, capsys, push,
+                                                                      said):
+    """A stick left at rest while the monitor ran: its ADC noise made the extremes (512 /
+    510 / 513), printed as an ordinary block without a word, which the bridge took (joy
+    jumped between +1 and -0.5 at rest). Pushed a little only: every fuller push would read
+    as full deflection."""
+    from asgp_ros.cli import main
+
+    def stick(t: float) -> tuple[float, float]:
+        return (0.0, 0.0) if t < 1.5 else (push * math.copysign(1.0, math.sin(8.0 * t)),
+                                           push * math.copysign(1.0, math.cos(8.0 * t)))
+
+    with SimulatedBoard(stick, link_path=tmp_path / "joy") as board:
+        assert main(["board", "--monitor", board.port, "--duration", "3"]) == 0
+    err = capsys.readouterr().err
+    for axis in ("forward", "turn"):
+        assert f"warning: {axis}: " in err and said in err, err
+
+
 def test_asgp_board_monitor_without_a_board_fails_with_a_message(tmp_path, capsys):
     from asgp_ros.cli import main
 

@@ -101,9 +101,20 @@ def test_a_host_zero_outside_the_boards_neutral_window_is_refused():
     problem = board_neutral_problem(wide, BOARD)
     assert "joy reads 0 from 492 to 532 counts" in problem and "at most 0.039" in problem
     assert board_neutral_problem(AxisCalibration(dead_zone=0.039), BOARD) is None
+    # a stick never moved while the monitor ran: its noise made the extremes, joy jumped
+    # between +1 and -0.5 at rest and every override fell in the board's neutral
+    still = AxisCalibration(neutral=512.0, minimum=510.0, maximum=513.0)
+    assert "not pushed to its extremes" in board_neutral_problem(still, BOARD)
+    assert "not pushed to its extremes" in board_neutral_problem(
+        AxisCalibration(neutral=512.0, minimum=100.0, maximum=520.0), BOARD)
+    assert board_neutral_problem(
+        AxisCalibration(neutral=512.0, minimum=100.0, maximum=521.0, dead_zone=0.0),
+        BOARD) is None
     defaults = {spec.name: spec.default for spec in PARAMS}
     for bad, words in (({"calibration.forward.neutral": 525.0}, "rests at 525"),
-                       ({"calibration.turn.dead_zone": 0.1}, "joy reads 0")):
+                       ({"calibration.turn.dead_zone": 0.1}, "joy reads 0"),
+                       ({"calibration.turn.minimum": 510.0, "calibration.turn.maximum": 513.0},
+                        "not pushed to its extremes")):
         with pytest.raises(ValueError, match=words) as err:
             bridge_params({**defaults, **bad})
         assert str(err.value).startswith(f"calibration.{next(iter(bad)).split('.')[1]}:")

@@ -147,11 +147,33 @@ def _monitor(args: argparse.Namespace) -> int:
         try:
             cal = AxisCalibration(neutral=round(neutral, 1), minimum=low, maximum=high)
         except ValueError as exc:  # the stick was not pushed both ways, say
-            problems.append(f"{axis}: {exc}")
+            problems.append(f"{axis}: the stick was not pushed to its extremes ({exc}); run "
+                            "the monitor again and move it fully forward, back, left and "
+                            "right")
             continue
         if (problem := board_neutral_problem(cal, BOARD_CALIBRATION[i])) is not None:
             problems.append(f"{axis}: {problem}")
+        elif (short := _short_side(cal)) is not None:
+            problems.append(f"{axis}: {short}")
     for problem in problems:
         # the bridge refuses this calibration: said here, where it is measured
         print(f"warning: {problem}", file=sys.stderr, flush=True)
     return 0
+
+
+#: A side of an axis the stick was pushed less than this fraction of the way from its rest
+#: to the ADC's end (0 or 1023) is told: a stick's travel spans most of it, and a
+#: calibration of a short push reads every fuller push as full deflection.
+SHORT_SIDE = 0.25
+
+
+def _short_side(cal: AxisCalibration) -> str | None:
+    """Why one side of a measured axis looks like a stick not pushed all the way, or None."""
+    top = 1023.0
+    for side, span, room in (("maximum", cal.maximum - cal.neutral, top - cal.neutral),
+                             ("minimum", cal.neutral - cal.minimum, cal.neutral)):
+        if room > 0 and span < SHORT_SIDE * room:
+            return (f"the {side} is {span:.0f} counts from the rest, {100 * span / room:.0f} % "
+                    "of the way to the ADC's end: was the stick pushed all the way? (each "
+                    "fuller push would read as full deflection)")
+    return None

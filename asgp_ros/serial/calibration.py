@@ -101,7 +101,8 @@ class JoystickCalibration:
 
 
 def board_neutral_problem(host: AxisCalibration, board: AxisCal) -> str | None:
-    """Why the host's zero does not lie inside the board's neutral window, or None.
+    """Why the host's zero does not lie inside the board's neutral window, or its extremes
+    not beyond it, or None.
 
     The firmware reads a stick within ``adc_deadband`` counts of its compiled
     ``adc_neutral`` (``config.h``) as neutral: it drives nothing there, and a neutral stick
@@ -119,6 +120,13 @@ def board_neutral_problem(host: AxisCalibration, board: AxisCal) -> str | None:
                 "board drives the chair, and a neutral stick cannot stop an override; set "
                 "ASGP_ADC_NEUTRAL (and its mirror in asgp_ros/serial/safety.py) to the "
                 "stick's rest and flash the board again")
+    if host.minimum >= lo_ok or host.maximum <= hi_ok:
+        # a stick never moved while the monitor ran: its noise made the extremes (512 /
+        # 510 / 513), joy jumped between +1 and -0.5 at rest, every push read as full, and
+        # every override fell inside the board's neutral: a stop
+        return (f"the extremes {host.minimum:g} and {host.maximum:g} counts are not both "
+                f"beyond {window}: the stick was not pushed to its extremes; run the "
+                "monitor again and move the stick fully forward, back, left and right")
     zero_hi = math.floor(host.neutral + host.dead_zone * (host.maximum - host.neutral) + 1e-9)
     zero_lo = math.ceil(host.neutral - host.dead_zone * (host.neutral - host.minimum) - 1e-9)
     if zero_lo < lo_ok or zero_hi > hi_ok:
