@@ -1185,6 +1185,16 @@ def test_the_memory_is_on_by_default_and_carried_by_scan_matching(harness):
     grid = SharedControlParams(**(defaults | {"obstacles": "grid", "vo_type": "odometry"}))
     assert grid.memory() is None
     assert SharedControlParams(**(defaults | {"memory_s": 0.0})).memory() is None
+    # memory_odom_topic set alone (as README's advice for better odometry read) was ignored
+    # in silence: the default scan matching carried the memory, no subscription was made
+    wheel = {"memory_odom_topic": "wheel/odom"}
+    for other in ({}, {"memory_odometry": "dead_reckoning", "memory_s": 0.0},
+                  {"memory_odometry": "dead_reckoning", "obstacles": "grid",
+                   "vo_type": "odometry"}):
+        with pytest.raises(ValueError, match="memory_odom_topic 'wheel/odom' is read only "
+                                             "with memory_odometry 'dead_reckoning'"):
+            SharedControlParams(**(defaults | wheel | other))
+    SharedControlParams(**(defaults | wheel | {"memory_odometry": "dead_reckoning"}))
 
 
 def test_the_memory_can_be_turned_off(harness):

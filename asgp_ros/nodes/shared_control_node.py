@@ -317,6 +317,16 @@ class SharedControlParams:
         if self.memory_odometry not in MEMORY_ODOMETRY:
             raise ValueError(f"memory_odometry must be one of {MEMORY_ODOMETRY}, got "
                              f"{self.memory_odometry!r}")
+        if self.memory_odom_topic.strip() and (self.memory_odometry != "dead_reckoning"
+                                               or self.memory_s == 0.0
+                                               or self.obstacles == "grid"):
+            # read only by dead reckoning of a laser's memory: set alone, it was ignored in
+            # silence (README's advice for better odometry named the topic only)
+            raise ValueError(
+                f"memory_odom_topic {self.memory_odom_topic!r} is read only with "
+                "memory_odometry 'dead_reckoning', memory_s > 0 and obstacles 'laser' or "
+                f"'both' (here {self.memory_odometry!r}, {self.memory_s:g} s, "
+                f"{self.obstacles!r}): set those, or leave memory_odom_topic empty")
         if self.scan_nan not in SCAN_NAN:
             raise ValueError(f"scan_nan must be one of {SCAN_NAN}, got {self.scan_nan!r}")
         if self.velocity_source not in VELOCITY_SOURCES:
