@@ -399,6 +399,11 @@ def test_a_dataset_rebuild_that_did_not_finish_is_never_reproduced(tmp_path, mon
 
     monkeypatch.setattr(dataset_module, "_make", stopped)
     with pytest.raises(DatasetError, match="stopped"):
+        build_dataset(data, scale=0.05, seed=3, force=True, storage="sqlite3")
+    assert json.loads((data / "manifest.json").read_text())["storage"] == "sqlite3"
+    with pytest.raises(ReproduceError, match=r"--seed 3 --storage sqlite3`"):
+        run(data, tmp_path / "out")
+    with pytest.raises(DatasetError, match="stopped"):
         build_dataset(data, scale=0.05, seed=3, force=True)
     manifest = json.loads((data / "manifest.json").read_text())
     assert manifest["unfinished"] is True and manifest["scale"] == 0.05

@@ -153,6 +153,9 @@ def dataset_options(manifest: dict[str, Any] | None) -> str:
     opts = [f"--{k} {manifest[k]}" for k in ("scale", "seed")
             if manifest is not None and isinstance(manifest.get(k), int | float)
             and not isinstance(manifest.get(k), bool)]
+    storage = manifest.get("storage") if manifest is not None else None
+    if isinstance(storage, str) and storage != "mcap" and storage.isidentifier():
+        opts.append(f"--storage {storage}")  # resumed in another, its bags are refused
     return f" (`asgp dataset {' '.join(opts)}`)" if opts else ""
 
 
