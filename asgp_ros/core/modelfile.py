@@ -677,7 +677,7 @@ def _calibration_shrink_problem(model: MotionModel, future: np.ndarray) -> str |
             shrink = var / ((var * scale + floor) * factor)  # inf where it erases it
         worst = float(np.max(shrink))
         if not worst <= MAX_CALIBRATION_SHRINK:
-            channel = ("v", "omega")[int(np.argmax(np.max(shrink, axis=0)))]
+            channel = CHANNELS[int(np.argmax(np.max(shrink, axis=0)))]
             where = f" in speed regime {regime}" if len(cal.speed_factors) > 1 else ""
             how = ("erases the predicted variance of " + channel + where
                    if math.isinf(worst) else
