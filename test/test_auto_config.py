@@ -319,6 +319,13 @@ def test_a_held_out_part_of_a_parked_chair_does_not_calibrate(auto_model) -> Non
     assert report["fitted"] and report["cases"] > MIN_CALIBRATION_CASES
     alone, _ = calibrate(auto_model, [Series("drive", drive)], opts, auto_model.lags)
     assert not alone.is_identity and cal == alone
+    assert report["still_cases"] > 300
+    # a chair driven slowly (the stick held off neutral, 3 cm/s) is no parked chair
+    creeping = _resampled(np.tile([0.04, 0.0], (T, 1)),
+                          np.tile([0.03, 0.0], (T, 1)) + 1e-3 * rng.standard_normal((T, 2)))
+    _, report = calibrate(auto_model, [Series("drive", drive), Series("creep", creeping)],
+                          opts, auto_model.lags)
+    assert report["still_cases"] == 0
 
 
 def test_a_held_out_part_of_a_parked_chair_chooses_nothing() -> None:

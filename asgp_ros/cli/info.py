@@ -44,8 +44,9 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
     applied = cal.get("applied", True)
     cv = "cross-validated" if cal.get("cross_validated") else "in-sample"
     still = cal.get("still_cases")
-    at_rest = (f"; {still} held-out cases in which neither the chair nor its prediction "
-               "moved 10 cm are not counted" if isinstance(still, int)
+    at_rest = (f"; {still} held-out cases of the chair parked (the stick at neutral, "
+               "neither the chair nor its prediction moved 10 cm) are not counted"
+               if isinstance(still, int)
                and not isinstance(still, bool) and still > 0 else "")
     lines = ([] if applied else [f"calibration {cal['reason']}"]) + [
              f"held-out coverage of the 95% ellipse, raw -> calibrated ({cv}), %{at_rest}:",

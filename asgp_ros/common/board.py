@@ -13,3 +13,7 @@ WATCHDOG_MS = 200
 #: The serial bridge writes a ``joy_override`` to the board until this long (s) after the
 #: earlier of its stamp and its arrival (the default of its ``override_timeout``).
 OVERRIDE_TIMEOUT_S = 0.15
+#: The board's neutral rule, in deflection units: its joystick reading is 0 per mille within
+#: the ADC deadband (firmware/asgp_bridge/safety.h, rule 2), and an override never drives
+#: the chair then. Half a per mille: the smallest reading the board reports is 1.
+BOARD_NEUTRAL = 0.5e-3

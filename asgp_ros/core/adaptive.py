@@ -103,6 +103,7 @@ import numpy as np
 import scipy.special
 from numpy.typing import NDArray
 
+from asgp_ros.common.board import BOARD_NEUTRAL
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.calibration import FACTOR_RANGE
 from asgp_ros.core.features import design_matrix
@@ -625,8 +626,9 @@ class ModelAdapter:
     def _rollouts(self, res: Resampled, cases: list[tuple[int, _Snapshot]]
                   ) -> list[tuple[Any, ...]] | None:
         """Per case: (error [2 experts, k, 2], d2 [2, k], one-step error [2, 2] and its
-        variances [2, 2], predicted positions [2, k, 2]), from batched rollouts; None if a
-        rollout failed."""
+        variances [2, 2], predicted positions [2, k, 2], the stick at the board's neutral
+        over the past and future windows), from batched rollouts; None if a rollout
+        failed."""
         k, s = self.horizon_steps, self.base.lags
         joy, vel = np.asarray(res.joy), np.asarray(res.vel)
         idx = np.array([i for i, _ in cases])
@@ -661,7 +663,9 @@ class ModelAdapter:
             e1 = np.stack([vel[i + 1] - r[2][0] for r in rows])  # [2, 2]
             var1 = np.stack([np.diagonal(r[3][0]) for r in rows])  # [2, 2]
             pred = np.stack([r[0][:, :2] for r in rows])  # [2, k, 2]
-            per_case.append((err, d2, e1, var1, pred))
+            quiet = bool(np.all(np.abs(jp[n]) <= BOARD_NEUTRAL)
+                         and np.all(np.abs(jf[n]) <= BOARD_NEUTRAL))
+            per_case.append((err, d2, e1, var1, pred, quiet))
         return per_case
 
     def _check_case(self, speed: float, snap: _Snapshot, out: tuple[Any, ...],
@@ -705,15 +709,19 @@ class ModelAdapter:
 
 
 def _still(out: tuple[Any, ...]) -> bool:
-    """Whether a checked prediction is of a chair that stayed put: the measured path and
-    both posteriors' predicted paths all within the success distance (``THRESHOLD_M``) of
-    where they started. Such a case says nothing of how wrong a moving chair's prediction
-    gets: a stop of a few minutes with the nodes running checked thousands of them, every
-    ellipse held, the slow regime's scale fell to its minimum (the choice test switched on
-    error differences of 1e-10 m^2), and when the user drove off the 95 % ellipses held
-    65-85 % of the positions for two minutes. The training calibration counts only cases
-    that move the chair, for the same reason."""
-    err, pred = out[0], out[4]
+    """Whether a checked prediction is of a parked chair: the stick at the board's neutral
+    over the whole case (nothing commanded), and the measured path and both posteriors'
+    predicted paths within the success distance (``THRESHOLD_M``) of where they started.
+    Such a case says nothing of how wrong a driven chair's prediction gets: a stop of a few
+    minutes with the nodes running checked thousands of them, every ellipse held, the slow
+    regime's scale fell to its minimum (the choice test switched on error differences of
+    1e-10 m^2), and when the user drove off the 95 % ellipses held 65-85 % of the positions
+    for two minutes. A chair driven slowly (the stick off neutral) is checked however
+    little it moves, and one moved with the stick at neutral (pushed, on a slope) too. The
+    training calibration leaves out the same cases."""
+    err, pred, quiet = out[0], out[4], out[5]
+    if not quiet:
+        return False
     measured = pred[0] + err[0]  # the reference path, from either posterior's error
     return bool(np.max(np.hypot(measured[:, 0], measured[:, 1])) < THRESHOLD_M
                 and np.max(np.hypot(pred[..., 0], pred[..., 1])) < THRESHOLD_M)

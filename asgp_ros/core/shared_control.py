@@ -59,7 +59,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from asgp_ros.common.board import OVERRIDE_TIMEOUT_S, WATCHDOG_MS
+from asgp_ros.common.board import BOARD_NEUTRAL, OVERRIDE_TIMEOUT_S, WATCHDOG_MS
 from asgp_ros.core.collision import PathCheck
 from asgp_ros.core.online import Prediction, Predictor
 from asgp_ros.core.streams import joy_problem
@@ -187,11 +187,6 @@ def is_neutral(command: FloatArray, deadband: float) -> bool:
     """Both deflections within the deadband."""
     return bool(np.all(np.abs(command) <= deadband))
 
-
-#: The board's neutral rule, in deflection units: its joystick reading is 0 per mille within
-#: the ADC deadband (firmware/asgp_bridge/safety.h, rule 2), and an override never drives
-#: the chair then. Half a per mille: the smallest reading the board reports is 1.
-BOARD_NEUTRAL = 0.5e-3
 
 #: How long the board drives with an override frame after it (s): its watchdog
 #: (``ASGP_WATCHDOG_MS``, firmware/asgp_bridge/config.h).

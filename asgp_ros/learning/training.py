@@ -28,6 +28,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
+from asgp_ros.common.board import BOARD_NEUTRAL
 from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
@@ -875,8 +876,9 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     in time (the first and second half of each recording's held-out part); each half is
     scored with the map fitted on the other, so no figure is scored on the data its map
     was fitted on. The map stored is fitted on both halves. Fitted, judged and reported
-    on the cases in which the chair or its prediction gets the success distance from where
-    it started (``still_cases`` counts the others).
+    on all but the parked cases (``still_cases``): the stick at the board's neutral
+    throughout, and neither the chair nor its prediction got the success distance from
+    where it started.
     """
     steps = metrics.horizon_steps(list(opts.horizons_s), model.rate_hz)
     cases = _held_out_cases(model, held, case_lags, max(steps))
@@ -888,8 +890,8 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     # wrong a moving chair's prediction gets: fitted on a held-out part of the chair parked
     # (a recorder left running), the map shrank the variance 600,000-fold, and on driving
     # the ellipses held 1-2 % of the positions. Only cases that move the chair count
-    # towards the minimum, and the map is fitted on the cases in which the chair or its
-    # prediction moves (as the online calibration checks them): ten minutes parked among
+    # towards the minimum, and the map is fitted on all but the parked cases (as the
+    # online calibration checks them): ten minutes parked among
     # thirty of driving took the slow regime's factor from 1.16 to 0.65, and on other
     # drives the ellipses of the chair starting from rest held 84 % instead of 90 %.
     moving = int(np.count_nonzero(cases.reach >= opts.threshold_m))
@@ -899,7 +901,10 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
             f"cm or more, fewer than the {MIN_CALIBRATION_CASES} a calibration needs: the "
             "chair stands through most of the held-out part (the end of each recording); "
             "record longer, or end the recordings while driving")
-    fitted = (cases.reach >= opts.threshold_m) | (cases.pred_reach >= opts.threshold_m)
+    # the parked cases: nothing commanded (the stick at the board's neutral throughout),
+    # and neither the chair nor its prediction moved the success distance
+    fitted = ~cases.quiet | (cases.reach >= opts.threshold_m) \
+        | (cases.pred_reach >= opts.threshold_m)
     fit = cases.fit(fitted)
     cal = fit.calibration
     cov_cv, cross_validated = _cross_validated_covariances(cases, cal, fitted)
@@ -959,13 +964,14 @@ class _HeldOutCases(NamedTuple):
     K: int
     reach: np.ndarray  # [N] farthest the chair got from the case's start (m), by the VO
     pred_reach: np.ndarray  # [N] farthest the predicted path got from the start (m)
+    quiet: np.ndarray  # [N] the stick at the board's neutral over the past and the future
 
     def subset(self, mask: np.ndarray) -> _HeldOutCases:
         """The cases of ``mask``."""
         return _HeldOutCases(self.parts[:, mask], self.err[mask],
                              [n for n, m in zip(self.names, mask, strict=True) if m],
                              self.speed[mask], self.change[mask], self.half[mask], self.K,
-                             self.reach[mask], self.pred_reach[mask])
+                             self.reach[mask], self.pred_reach[mask], self.quiet[mask])
 
     def fit(self, mask: np.ndarray) -> CalibrationFit:
         """The variance map fitted on the cases of ``mask`` (all their steps)."""
@@ -984,8 +990,8 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
     calibration of the BASIS (linearised propagation) and compared with the path
     integrated from the recorded VO."""
     dt = 1.0 / model.rate_hz
-    parts_l, err_l, names, speed_l, change_l, half_l, reach_l, pred_l = \
-        [], [], [], [], [], [], [], []
+    parts_l, err_l, names, speed_l, change_l, half_l, reach_l, pred_l, quiet_l = \
+        [], [], [], [], [], [], [], [], []
     for s in held:
         idx = metrics.case_indices(s.res.segment, case_lags, K)
         if idx.size == 0:
@@ -1003,6 +1009,9 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
         err_l.append(ref[..., :2] - pose[..., :2])  # [N, K, 2]
         reach_l.append(np.max(np.hypot(ref[..., 0], ref[..., 1]), axis=1))
         pred_l.append(np.max(np.hypot(pose[..., 0], pose[..., 1]), axis=1))
+        stick = metrics.windows(s.res.joy, idx, -model.lags, model.lags + K)
+        quiet_l.append(np.all(np.abs(np.nan_to_num(stick, nan=1.0)) <= BOARD_NEUTRAL,
+                              axis=(1, 2)))
         names.extend([s.name] * idx.size)
         speed_l.append(np.abs(s.res.vel[idx - 1, 0]))
         future = metrics.windows(s.res.joy, idx, -1, K + 1)  # [N, K+1, 2]
@@ -1013,7 +1022,7 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
     return _HeldOutCases(np.concatenate(parts_l, axis=1), np.concatenate(err_l), names,
                          np.concatenate(speed_l), np.concatenate(change_l),
                          np.concatenate(half_l), K, np.concatenate(reach_l),
-                         np.concatenate(pred_l))
+                         np.concatenate(pred_l), np.concatenate(quiet_l))
 
 
 def _cross_validated_covariances(cases: _HeldOutCases, cal: VarianceCalibration,

@@ -89,6 +89,7 @@ from sensor_msgs.msg import Joy, LaserScan
 from threadpoolctl import threadpool_limits
 
 from asgp_ros.common import topics
+from asgp_ros.common.board import BOARD_NEUTRAL
 from asgp_ros.common.paramspec import ParamSpec, check_values
 from asgp_ros.core import collision
 from asgp_ros.core.modelfile import ModelFileError, load_model
@@ -101,7 +102,6 @@ from asgp_ros.core.scan_match import (
     memory_odometers,
 )
 from asgp_ros.core.shared_control import (
-    BOARD_NEUTRAL,
     OVERRIDE_APPLIED_S,
     CollisionCheck,
     Decision,
