@@ -13,7 +13,7 @@ import numpy as np
 
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_integer, cli_number
-from asgp_ros.serial.calibration import AxisCalibration, board_neutral_problem
+from asgp_ros.serial.calibration import ADC_MAX, AxisCalibration, board_neutral_problem
 from asgp_ros.serial.link import JoystickSample, LinkConfig, LinkManager, LinkState
 from asgp_ros.serial.params import BOARD_CALIBRATION
 from asgp_ros.serial.protocol import Status
@@ -162,15 +162,14 @@ def _monitor(args: argparse.Namespace) -> int:
 
 
 #: A side of an axis the stick was pushed less than this fraction of the way from its rest
-#: to the ADC's end (0 or 1023) is told: a stick's travel spans most of it, and a
+#: to the ADC's end (0 or ADC_MAX) is told: a stick's travel spans most of it, and a
 #: calibration of a short push reads every fuller push as full deflection.
 SHORT_SIDE = 0.25
 
 
 def _short_side(cal: AxisCalibration) -> str | None:
     """Why one side of a measured axis looks like a stick not pushed all the way, or None."""
-    top = 1023.0
-    for side, span, room in (("maximum", cal.maximum - cal.neutral, top - cal.neutral),
+    for side, span, room in (("maximum", cal.maximum - cal.neutral, ADC_MAX - cal.neutral),
                              ("minimum", cal.neutral - cal.minimum, cal.neutral)):
         if room > 0 and span < SHORT_SIDE * room:
             return (f"the {side} is {span:.0f} counts from the rest, {100 * span / room:.0f} % "
