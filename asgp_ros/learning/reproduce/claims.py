@@ -232,6 +232,8 @@ def _adaptation_claims(rows: list[dict[str, Any]], hk: list[str]) -> list[dict[s
         note = (f"; {unscored} of {len(cells)} cells without cases (from "
                 f"{cells[0][0]['from_s']:g} s into each test bag) not checked"
                 if unscored else "")
+        if not cells:
+            return {"claim": text, "holds": None, "evidence": "no horizon: not checked"}
         if not scored:
             return {"claim": text, "holds": None,
                     "evidence": f"no case from {cells[0][0]['from_s']:g} s into any test bag "
