@@ -320,6 +320,13 @@ def test_a_held_out_part_of_a_parked_chair_does_not_calibrate(auto_model) -> Non
     alone, _ = calibrate(auto_model, [Series("drive", drive)], opts, auto_model.lags)
     assert not alone.is_identity and cal == alone
     assert report["still_cases"] > 300
+    # an undeadzoned stick reads a few thousandths at rest (one ADC count: 1/205): parked
+    # too (under a rule of the exact neutral the slow factor became 0.002, applied)
+    counted = _resampled(rng.choice([-1.0, 0.0, 1.0], size=(T, 2)) / 205.0,
+                         1e-4 * rng.standard_normal((T, 2)))
+    again, _ = calibrate(auto_model, [Series("drive", drive), Series("parked", counted)],
+                         opts, auto_model.lags)
+    assert again == alone
     # a chair driven slowly (the stick held off neutral, 3 cm/s) is no parked chair
     creeping = _resampled(np.tile([0.04, 0.0], (T, 1)),
                           np.tile([0.03, 0.0], (T, 1)) + 1e-3 * rng.standard_normal((T, 2)))

@@ -44,8 +44,9 @@ def coverage_lines(cal: dict[str, Any]) -> list[str]:
     applied = cal.get("applied", True)
     cv = "cross-validated" if cal.get("cross_validated") else "in-sample"
     still = cal.get("still_cases")
-    at_rest = (f"; {still} held-out cases of the chair parked (the stick at neutral, "
-               "neither the chair nor its prediction moved 10 cm) are not counted"
+    at_rest = (f"; {still} held-out cases of the chair parked (the stick in the board's "
+               "neutral window, neither the chair nor its prediction moved 10 cm) are not "
+               "counted"
                if isinstance(still, int)
                and not isinstance(still, bool) and still > 0 else "")
     lines = ([] if applied else [f"calibration {cal['reason']}"]) + [

@@ -103,7 +103,7 @@ import numpy as np
 import scipy.special
 from numpy.typing import NDArray
 
-from asgp_ros.common.board import BOARD_NEUTRAL
+from asgp_ros.common.board import NEUTRAL_WINDOW
 from asgp_ros.core.adapt import AdaptConfig, AdaptError, OnlinePosterior
 from asgp_ros.core.calibration import FACTOR_RANGE
 from asgp_ros.core.features import design_matrix
@@ -626,8 +626,8 @@ class ModelAdapter:
     def _rollouts(self, res: Resampled, cases: list[tuple[int, _Snapshot]]
                   ) -> list[tuple[Any, ...]] | None:
         """Per case: (error [2 experts, k, 2], d2 [2, k], one-step error [2, 2] and its
-        variances [2, 2], predicted positions [2, k, 2], the stick at the board's neutral
-        over the past and future windows), from batched rollouts; None if a rollout
+        variances [2, 2], predicted positions [2, k, 2], the stick within the board's
+        neutral window over the past and future windows), from batched rollouts; None if a rollout
         failed."""
         k, s = self.horizon_steps, self.base.lags
         joy, vel = np.asarray(res.joy), np.asarray(res.vel)
@@ -663,8 +663,8 @@ class ModelAdapter:
             e1 = np.stack([vel[i + 1] - r[2][0] for r in rows])  # [2, 2]
             var1 = np.stack([np.diagonal(r[3][0]) for r in rows])  # [2, 2]
             pred = np.stack([r[0][:, :2] for r in rows])  # [2, k, 2]
-            quiet = bool(np.all(np.abs(jp[n]) <= BOARD_NEUTRAL)
-                         and np.all(np.abs(jf[n]) <= BOARD_NEUTRAL))
+            quiet = bool(np.all(np.abs(jp[n]) <= NEUTRAL_WINDOW)
+                         and np.all(np.abs(jf[n]) <= NEUTRAL_WINDOW))
             per_case.append((err, d2, e1, var1, pred, quiet))
         return per_case
 
@@ -709,16 +709,18 @@ class ModelAdapter:
 
 
 def _still(out: tuple[Any, ...]) -> bool:
-    """Whether a checked prediction is of a parked chair: the stick at the board's neutral
-    over the whole case (nothing commanded), and the measured path and both posteriors'
-    predicted paths within the success distance (``THRESHOLD_M``) of where they started.
+    """Whether a checked prediction is of a parked chair: the stick within the board's
+    neutral window over the whole case (``NEUTRAL_WINDOW``: nothing commanded, though an
+    undeadzoned joystick reads a few thousandths), and the measured path and both
+    posteriors' predicted paths within the success distance (``THRESHOLD_M``) of where they
+    started.
     Such a case says nothing of how wrong a driven chair's prediction gets: a stop of a few
     minutes with the nodes running checked thousands of them, every ellipse held, the slow
     regime's scale fell to its minimum (the choice test switched on error differences of
     1e-10 m^2), and when the user drove off the 95 % ellipses held 65-85 % of the positions
-    for two minutes. A chair driven slowly (the stick off neutral) is checked however
-    little it moves, and one moved with the stick at neutral (pushed, on a slope) too. The
-    training calibration leaves out the same cases."""
+    for two minutes. A chair driven slowly (the stick beyond the window) is checked however
+    little it moves, and one moved 10 cm or more with the stick within it (pushed, on a
+    slope) too. The training calibration leaves out the same cases."""
     err, pred, quiet = out[0], out[4], out[5]
     if not quiet:
         return False

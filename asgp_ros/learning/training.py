@@ -28,7 +28,7 @@ from typing import Any, NamedTuple, cast
 
 import numpy as np
 
-from asgp_ros.common.board import BOARD_NEUTRAL
+from asgp_ros.common.board import NEUTRAL_WINDOW
 from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
@@ -876,9 +876,9 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
     in time (the first and second half of each recording's held-out part); each half is
     scored with the map fitted on the other, so no figure is scored on the data its map
     was fitted on. The map stored is fitted on both halves. Fitted, judged and reported
-    on all but the parked cases (``still_cases``): the stick at the board's neutral
-    throughout, and neither the chair nor its prediction got the success distance from
-    where it started.
+    on all but the parked cases (``still_cases``): the stick within the board's neutral
+    window throughout, and neither the chair nor its prediction got the success distance
+    from where it started.
     """
     steps = metrics.horizon_steps(list(opts.horizons_s), model.rate_hz)
     cases = _held_out_cases(model, held, case_lags, max(steps))
@@ -901,8 +901,8 @@ def calibrate(model: MotionModel, held: Sequence[Series], opts: AutoOptions, cas
             f"cm or more, fewer than the {MIN_CALIBRATION_CASES} a calibration needs: the "
             "chair stands through most of the held-out part (the end of each recording); "
             "record longer, or end the recordings while driving")
-    # the parked cases: nothing commanded (the stick at the board's neutral throughout),
-    # and neither the chair nor its prediction moved the success distance
+    # the parked cases: nothing commanded (the stick within the board's neutral window
+    # throughout), and neither the chair nor its prediction moved the success distance
     fitted = ~cases.quiet | (cases.reach >= opts.threshold_m) \
         | (cases.pred_reach >= opts.threshold_m)
     fit = cases.fit(fitted)
@@ -964,7 +964,7 @@ class _HeldOutCases(NamedTuple):
     K: int
     reach: np.ndarray  # [N] farthest the chair got from the case's start (m), by the VO
     pred_reach: np.ndarray  # [N] farthest the predicted path got from the start (m)
-    quiet: np.ndarray  # [N] the stick at the board's neutral over the past and the future
+    quiet: np.ndarray  # [N] the stick within the board's neutral window, past and future
 
     def subset(self, mask: np.ndarray) -> _HeldOutCases:
         """The cases of ``mask``."""
@@ -1010,7 +1010,7 @@ def _held_out_cases(model: MotionModel, held: Sequence[Series], case_lags: int, 
         reach_l.append(np.max(np.hypot(ref[..., 0], ref[..., 1]), axis=1))
         pred_l.append(np.max(np.hypot(pose[..., 0], pose[..., 1]), axis=1))
         stick = metrics.windows(s.res.joy, idx, -model.lags, model.lags + K)
-        quiet_l.append(np.all(np.abs(np.nan_to_num(stick, nan=1.0)) <= BOARD_NEUTRAL,
+        quiet_l.append(np.all(np.abs(np.nan_to_num(stick, nan=1.0)) <= NEUTRAL_WINDOW,
                               axis=(1, 2)))
         names.extend([s.name] * idx.size)
         speed_l.append(np.abs(s.res.vel[idx - 1, 0]))
