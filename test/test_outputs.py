@@ -1132,6 +1132,8 @@ def test_pool_workers_end_with_a_parent_killed_outright(tmp_path):
     its workers went on with the queue for a minute, both cores busy, then printed
     BrokenPipeError tracebacks. The kernel sends them the stop signal when the parent
     dies (PR_SET_PDEATHSIG)."""
+    from asgp_ros.common.fileio import _process_ended as ended
+
     script = tmp_path / "orphans.py"
     script.write_text(_ORPHAN_SCRIPT)
     proc = subprocess.Popen([sys.executable, str(script), str(tmp_path / "done")],
@@ -1146,23 +1148,13 @@ def test_pool_workers_end_with_a_parent_killed_outright(tmp_path):
         proc.kill()
         proc.wait(10.0)
         deadline = time.monotonic() + 10.0
-        while any(_running(w) for w in workers) and time.monotonic() < deadline:
+        while any(not ended(w) for w in workers) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert not [w for w in workers if _running(w)]
+        assert not [w for w in workers if not ended(w)]
         assert not list(tmp_path.glob("done.*"))
     finally:
         proc.kill()
         proc.wait(10.0)
         for w in workers:
-            if _running(w):
+            if not ended(w):
                 os.kill(w, signal.SIGKILL)
-
-
-def _running(pid: int) -> bool:
-    """A process that exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rsplit(")", 1)
-    except (FileNotFoundError, ProcessLookupError):
-        return False
-    return len(fields) == 2 and fields[1].split()[:1] not in ([], ["Z"])
