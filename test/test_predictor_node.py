@@ -1768,6 +1768,38 @@ def _path_end(path: Path) -> float:
     return math.hypot(p.x, p.y)
 
 
+def test_reset_jump_s_changed_at_runtime_reaches_the_measured_joystick(rclpy_context,
+                                                                       model_file):
+    """``reset_jump_s`` lowered to 0.5 s at runtime, then the clock steps back 0.8 s: the
+    predictor restarts its buffers, and the board's measured output stamped after the step
+    feeds them. The bookkeeping of ``joy_applied`` kept the start-up 1.0 s and took those
+    samples for repeats of ones already fed: no joystick reached the predictor (``joy`` is
+    not fed while ``joy_applied`` arrives) until the clock had caught up."""
+    h = Harness(rclpy_context, model_file)
+    pub = h.test.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
+    node = h.node
+
+    def applied(t: float, fwd: float) -> None:
+        h.clock(t)
+        n = node.polled.taken
+        pub.publish(conv.joy_from_sample(t, fwd, 0.0))
+        h.spin_until(lambda: node.polled.taken > n, what="joy_applied")
+
+    try:
+        h.drive(100.0, 103.0)
+        h.spin_until(lambda: node.count_subscribers("joy_applied") > 0, what="discovery")
+        assert node.set_parameters([Parameter("reset_jump_s", value=0.5)])[0].successful
+        applied(103.1, 0.2)
+        applied(102.3, 0.6)  # the clock stepped back 0.8 s
+        stamps, values = node.predictor._joy.arrays()
+        assert round(float(stamps[-1]), 6) == 102.3
+        assert round(float(values[-1][0]), 6) == 0.6
+        assert node.predictor.stats.resets >= 1
+        assert node._joy_source.measured_samples == 2
+    finally:
+        h.close()
+
+
 @pytest.mark.parametrize("step", [0.0, 0.9])
 def test_no_stale_path_after_a_small_clock_step_back(rclpy_context, model_file, step):
     """The clock steps back 0.9 s (less than reset_jump_s: NTP setting a clock that ran

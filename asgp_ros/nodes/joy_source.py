@@ -53,7 +53,10 @@ def check_topics(resolve: Callable[[str], str], **names: str) -> None:
 class JoySource:
     """The bookkeeping of the two streams; times in seconds."""
 
-    def __init__(self, reset_jump_s: float) -> None:
+    def __init__(self, reset_jump_s: Callable[[], float]) -> None:
+        """``reset_jump_s``: the node's present ``reset_jump_s`` (a runtime parameter: read
+        at each sample, so that a change reaches this bookkeeping as it reaches the
+        predictor's buffers)."""
         self.reset_jump_s = reset_jump_s
         self.measured_arrival = -math.inf  # node clock of the newest joy_applied
         self.last_fed = -math.inf          # stamp of the newest sample fed
@@ -68,7 +71,7 @@ class JoySource:
         ``joy`` already fed that stamp; a stamp far back is a clock jump, and is fed)."""
         if now is not None:
             self.measured_arrival = now
-        return not self.last_fed - self.reset_jump_s < t <= self.last_fed
+        return not self.last_fed - self.reset_jump_s() < t <= self.last_fed
 
     def fed(self, t: float, measured: bool) -> None:
         self.last_fed = t

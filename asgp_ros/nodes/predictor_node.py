@@ -392,7 +392,7 @@ class PredictorNode(Node):
         # the overrides as the serial bridge takes them (on this node's clock)
         self._gate = OverrideGate()
         self._joy_overridden = 0  # joystick samples replaced by an override
-        self._joy_source = JoySource(p.reset_jump_s)
+        self._joy_source = JoySource(lambda: self.predictor.config.reset_jump_s)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # endpoints without rclpy's per-endpoint event handlers, their peers checked at the

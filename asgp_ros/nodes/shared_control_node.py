@@ -446,7 +446,7 @@ class SharedControlNode(Node):
         self._resets_seen = 0  # the predictor's buffer resets, as last seen
         # the newest override sent and when (node clock), for what the board applies
         self._sent_t = -math.inf
-        self._joy_source = JoySource(self.predictor.config.reset_jump_s)
+        self._joy_source = JoySource(lambda: self.predictor.config.reset_jump_s)
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
         self._interventions = 0  # interventions (runs of decisions that changed the command)
