@@ -758,3 +758,46 @@ def test_replay_refuses_rows_left_in_a_write_ahead_log(rclpy_context, sim_bags, 
     (bag / (db.name + "-wal")).write_bytes(b"\0" * 64)
     with pytest.raises(ReplayError, match="bag repair"):
         _play(rclpy_context, bag, "replay_wal")
+
+
+def test_a_recording_whose_clock_stepped_back_is_not_played_interleaved(rclpy_context,
+                                                                        sim_bags, tmp_path):
+    """The clock stepped back 30 s half-way through the recording (the rows after it written
+    30 s earlier in time): played by time, two drives went out interleaved on one /clock,
+    the joystick out of its order hundreds of times, without a word. Refused, saying why."""
+    import shutil
+
+    from asgp_ros.recording.replay import ReplayError
+
+    bag = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / "stepped"))
+    _sql(bag, "update messages set timestamp = timestamp - ? where id > "
+         "(select count(*) / 2 from messages)", 30 * 10**9)
+    with pytest.raises(ReplayError, match="clock stepped back 1 time"):
+        _play(rclpy_context, bag, "replay_stepped")
+
+
+def test_a_gap_of_decades_in_the_bag_times_is_not_waited_out(rclpy_context, sim_bags,
+                                                             tmp_path):
+    """The first messages recorded before NTP set the clock (bag times in 1970): the replay
+    waited the 53 years to the next one (19 days at rate 1000). A gap of more than
+    MAX_WAIT_GAP_S of bag time is played on at once."""
+    import shutil
+
+    import rclpy
+
+    from asgp_ros.recording.replay import BagReplayer
+
+    whole = _play(rclpy_context, sim_bags["sqlite3"], "replay_no_gap")
+    bag = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / "boot1970"))
+    _sql(bag, "update messages set timestamp = timestamp - ? where id <= 10",
+         1_600_000_000 * 10**9)
+    deadline = time.monotonic() + 60.0
+    node = rclpy.create_node("replay_gap", context=rclpy_context)
+    try:
+        config = ReplayConfig(rate=1000.0, wait_subscribers_s=0.0, publish_clock=False)
+        with BagReplayer(bag, config, node,
+                         should_stop=lambda: time.monotonic() > deadline) as player:
+            player.run()
+            assert player.published == whole
+    finally:
+        node.destroy_node()

@@ -17,7 +17,14 @@ from typing import Any
 from asgp_ros.cli import CommandError, one_line
 from asgp_ros.cli._argtypes import number
 from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, bag_inputs, check_output
-from asgp_ros.recording.bags import BagError, recover_bag, repair_bag, topic_stats
+from asgp_ros.recording.bags import (
+    BagError,
+    clock_parts,
+    clock_steps_text,
+    recover_bag,
+    repair_bag,
+    topic_stats,
+)
 
 GAPS_LISTED = 10
 """Gaps listed per topic by ``asgp bag info`` (the rest are counted)."""
@@ -102,11 +109,19 @@ def info_lines(stats: list[Any], damage: Any) -> list[str]:
 
 def run_info(args: argparse.Namespace) -> int:
     try:
-        recovered = recover_bag(args.bag, topics=())  # times only: no message data
+        # times only (no message data), in the order written: a clock stepped back shows
+        recovered = recover_bag(args.bag, topics=(), record_order=True)
     except BagError as exc:
         raise CommandError(str(exc)) from exc
+    times = [m[1] for m in recovered.messages]
+    parts = clock_parts(times)
+    recovered.messages.sort(key=lambda m: m[1])
     for line in info_lines(topic_stats(recovered, args.gap_factor), recovered.damage):
         print(one_line(line))  # the bag's topic names: a newline or escape forged rows
+    if parts.size and parts[-1]:
+        print(one_line(f"clock:    {clock_steps_text(times, parts)} : sorted by time its "
+                       f"{int(parts[-1]) + 1} parts interleave (the rates and gaps above); "
+                       "asgp train and evaluate read them one after the other"))
     return 0
 
 

@@ -353,35 +353,99 @@ def _stamp_ns(msg: Any) -> int:
 #: A message stamped this much (s) longer before it was recorded than its stream's median
 #: latency is a stale reading delivered late: it is dropped, as the live predictor refuses
 #: a sample stamped ``reset_jump_s`` (1 s) behind the newest (a clock step moves the bag
-#: time and the stamps together, and keeps the latency).
+#: time and the stamps together, and keeps the latency). One stamped this much *after* the
+#: stream's usual latency says would have it (a stamp the recorder's clock had not reached)
+#: is no time of the message: its bag time is used. A stream whose median latency differs
+#: from the joystick's by more than this is stamped on another clock than the recorder's (a
+#: camera computer not synchronised): its bag times are used.
 MAX_EXTRA_LATENCY = 1.0
+
+#: A bag time this much (s) behind the messages written before it, in the order the
+#: recorder wrote them, with the messages after it staying behind (the medians of the
+#: :data:`_STEP_WINDOW` messages on either side differ by as much: one stray time is no
+#: step), is the recorder's clock stepped back: NTP setting a laptop's clock that ran
+#: ahead. Sorted by time, as every reader sorts a bag, the two timelines interleave.
+CLOCK_STEP_BACK_S = 0.5
+_STEP_WINDOW = 5
+#: The parts of a recording whose clock stepped back are read one after another; a later
+#: part that would overlap the one before is moved forward to start this long (s) after it
+#: ends (a gap: the resampler joins nothing across it).
+PART_GAP_S = 10.0
+
+
+def clock_parts(times_ns: Sequence[int] | NDArray[np.int64]) -> NDArray[np.int64]:
+    """The part of the recording each message belongs to, given the bag times of all its
+    messages in the order they were written: a new part starts where the recorder's clock
+    stepped back (:data:`CLOCK_STEP_BACK_S`)."""
+    t = np.asarray(times_ns, dtype=np.int64).reshape(-1)
+    parts = np.zeros(t.size, dtype=np.int64)
+    tol = round(CLOCK_STEP_BACK_S * 1e9)
+    for i in np.flatnonzero(t[1:] < t[:-1] - tol) + 1:
+        before, after = t[max(0, i - _STEP_WINDOW):i], t[i:i + _STEP_WINDOW]
+        if min(before.size, after.size) >= 3 and np.median(after) < np.median(before) - tol:
+            parts[i:] += 1
+    return parts
+
+
+def clock_steps_text(times_ns: Sequence[int] | NDArray[np.int64],
+                     parts: NDArray[np.int64]) -> str:
+    """What :func:`clock_parts` found, in a sentence (times in record order)."""
+    t = np.asarray(times_ns, dtype=np.int64).reshape(-1)
+    starts = np.flatnonzero(np.diff(parts)) + 1
+    steps = "; ".join(f"{(t[i - 1] - t[i]) * 1e-9:.1f} s at bag time {t[i - 1] * 1e-9:.3f} "
+                      f"(message {i + 1} as written)" for i in starts[:5])
+    more = f" and {starts.size - 5} more" if starts.size > 5 else ""
+    return (f"the recorder's clock stepped back {starts.size} time(s) during the recording "
+            f"({steps}{more})")
+
+
+def _lead(latency: float) -> str:
+    return f"{abs(latency):.3f} s {'before' if latency >= 0 else 'after'}"
 
 
 def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray[np.int64],
-                  max_skew: float, source: str) -> tuple[FloatArray, BoolArray]:
+                  max_skew: float, source: str, reference: float | None = None
+                  ) -> tuple[FloatArray, BoolArray, float | None]:
     """Header stamps where valid, bag time (minus the median latency) elsewhere, seconds;
-    and which messages are stale (MAX_EXTRA_LATENCY), to be dropped."""
+    which messages are stale (MAX_EXTRA_LATENCY), to be dropped; and the median latency
+    (bag time - stamp, s; None without valid stamps).
+
+    ``reference``: the joystick's median latency (the serial bridge stamps on the
+    recorder's computer); a stream whose own differs by more than MAX_EXTRA_LATENCY is read
+    on its bag times minus the reference."""
     bag = bag_ns.astype(np.float64) * 1e-9
     fresh = np.ones(bag.shape, dtype=bool)
     if stamp_ns is None:
-        return bag, fresh
+        return bag, fresh, None
     stamp = stamp_ns.astype(np.float64) * 1e-9
     valid = (stamp_ns > 0) & (np.abs(stamp - bag) <= max_skew)
     if not valid.any():
         log.warning("%s: %s has no valid header stamps; using bag time", source, name)
-        return bag, fresh
+        return bag, fresh, None
     if not valid.all():
         log.warning("%s: %s: %d of %d header stamps invalid (zero or > %.1f s from bag "
                     "time); using bag time for those", source, name, int((~valid).sum()),
                     valid.size, max_skew)
     latency = float(np.median(bag[valid] - stamp[valid]))
+    if reference is not None and abs(latency - reference) > MAX_EXTRA_LATENCY:
+        log.warning("%s: %s is stamped %s its recording times, the joystick %s: its "
+                    "stamps are not on the recorder's clock (a computer not synchronised); "
+                    "its bag times are used", source, name, _lead(latency), _lead(reference))
+        return bag - reference, fresh, reference
+    ahead = valid & (bag - stamp < latency - MAX_EXTRA_LATENCY)
+    if ahead.any():
+        log.warning("%s: %s: %d of %d messages stamped more than %.1f s later than their "
+                    "recording times say (a stamp the clock had not reached); using bag "
+                    "time for those", source, name, int(ahead.sum()), ahead.size,
+                    MAX_EXTRA_LATENCY)
+        valid &= ~ahead
     fresh = ~(valid & (bag - stamp - latency > MAX_EXTRA_LATENCY))
     if not fresh.all():
         log.warning("%s: %s: %d of %d messages stamped more than %.1f s before they were "
                     "recorded, beyond the usual %.3f s (stale readings delivered late); "
                     "they are dropped", source, name, int((~fresh).sum()), fresh.size,
                     MAX_EXTRA_LATENCY, latency)
-    return np.where(valid, stamp, bag - latency), fresh
+    return np.where(valid, stamp, bag - latency), fresh, latency
 
 
 def _topics_listing(reader: Any) -> str:
@@ -408,7 +472,9 @@ def _connections(reader: Any, topic: str, allowed: tuple[str, ...], what: str,
 
 
 def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[Any, ...]],
-             source: str) -> tuple[list[int], list[tuple[Any, ...]]]:
+             source: str) -> tuple[list[int], list[tuple[Any, ...]], list[int]]:
+    """The bag times, extracted rows and parts of the recording (:func:`clock_parts`; all
+    0 from a reader that does not tell them) of the messages of ``conns``."""
     bag_ns: list[int] = []
     rows: list[tuple[Any, ...]] = []
     try:
@@ -426,7 +492,9 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     except Exception as exc:  # rosbags raises several types for damaged data
         raise _DamagedDataError(f"{source}: corrupt or truncated bag: "
                        f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
-    return bag_ns, rows
+    parts_of = getattr(reader, "message_parts", None)
+    parts = list(parts_of(conns)) if parts_of is not None else [0] * len(rows)
+    return bag_ns, rows, parts
 
 
 def _warn_no_override_topic(reader: Any, topic: str, source: str) -> None:
@@ -481,6 +549,29 @@ def _open_reader(path: str | os.PathLike[str], topics: Collection[str] | None = 
             f"not text ({_one_line(repr(odd[0].topic))[:60]} "
             f"[{_one_line(repr(odd[0].msgtype))[:60]}])"), topics)
     return reader
+
+
+def _in_record_order(path: str | os.PathLike[str], reader: Any,
+                     topics: Collection[str]) -> Any:
+    """``reader``; or, when the recorder's clock stepped back during the recording
+    (:func:`clock_parts`), a reader over a scan of the bag in the order it was written,
+    which tells each message's part: rosbags sorts a bag by time, and the two timelines
+    would interleave. (A scan reader is in that order already.)"""
+    from rosbags.typesys import Stores, get_typestore
+
+    if getattr(reader, "recovered", None) is not None:
+        return reader
+    try:
+        written = recover_bag(path, topics=(), record_order=True)  # the times only
+    except BagError:  # what rosbags opens and the scan cannot read: not checked
+        return reader
+    parts = clock_parts([m[1] for m in written.messages])
+    if not (parts.size and parts[-1]):
+        return reader
+    reader.close()
+    recovered = recover_bag(path, topics, record_order=True)
+    return _RecoveredReader(recovered, get_typestore(
+        Stores.ROS1_NOETIC if recovered.ros1 else Stores.ROS2_JAZZY))
 
 
 def unapplied_log(bag: Path) -> Path | None:
@@ -561,12 +652,12 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
             return (_stamp_ns(msg), p.position.x, p.position.y,
                     float(quaternion_to_yaw(q.x, q.y, q.z, q.w)), tw.linear.x, tw.angular.z)
 
-        jb, jr = _collect(reader, joy_conns, joy_row, source)
-        vb, vr = _collect(reader, tw_conns, twist_row, source)
-        tb, tr = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [])
+        joy = _collect(reader, joy_conns, joy_row, source)
+        vel = _collect(reader, tw_conns, twist_row, source)
+        truth = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [], [])
         try:
-            ob, orows = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),), source)
-                         if ov_conns else ([], []))
+            overrides = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),),
+                                  source) if ov_conns else ([], [], []))
         except (BagError, _DamagedDataError) as exc:
             raise type(exc)(
                 f"{exc} (in the overrides, {override_topic}: without them the steps they "
@@ -574,9 +665,67 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
                 f"none)") from exc
         if override_topic and not ov_conns:
             _warn_no_override_topic(reader, override_topic, source)
-        return jb, jr, vb, vr, tb, tr, tw_conns, ob, orows
+        return joy, vel, truth, tw_conns, overrides
     finally:
         reader.close()
+
+
+@dataclass(frozen=True)
+class _Stream:
+    """One topic's messages as read: header stamps (None: the type has none), bag times
+    (ns) and parts of the recording (:func:`clock_parts`)."""
+
+    name: str
+    stamp_ns: NDArray[np.int64] | None
+    bag_ns: NDArray[np.int64]
+    parts: NDArray[np.int64]
+
+
+def _stream_times(streams: list[_Stream], max_skew: float, source: str
+                  ) -> list[tuple[FloatArray, BoolArray]]:
+    """Each stream's times (s) and which of its messages are fresh (:func:`_choose_times`),
+    part by part of the recording; the first stream, the joystick, gives the others their
+    reference latency. A part that would overlap the ones before it (the recorder's clock
+    stepped back, and the stamps with it) is moved forward to start :data:`PART_GAP_S`
+    after them, so that no two timelines interleave; one whose stamps go on from the part
+    before (only the recorder's clock stepped) stays where its stamps put it."""
+    n_parts = 1 + max((int(s.parts.max()) for s in streams if s.parts.size), default=0)
+    times = [np.zeros(s.bag_ns.size) for s in streams]
+    fresh = [np.ones(s.bag_ns.size, dtype=bool) for s in streams]
+    end = -np.inf
+    last = [-np.inf] * len(streams)  # each stream's newest time in the parts before
+    for p in range(n_parts):
+        reference: float | None = None
+        lo, hi = np.inf, -np.inf
+        overlaps = False
+        for k, s in enumerate(streams):
+            sel = s.parts == p
+            if not sel.any():
+                continue
+            name = s.name if n_parts == 1 else f"{s.name} (part {p + 1} of {n_parts})"
+            t, f, latency = _choose_times(
+                name, None if s.stamp_ns is None else s.stamp_ns[sel], s.bag_ns[sel],
+                max_skew, source, reference if k else None)
+            if k == 0:
+                reference = latency
+            times[k][sel], fresh[k][sel] = t, f
+            if f.any():
+                lo, hi = min(lo, float(t[f].min())), max(hi, float(t[f].max()))
+                overlaps |= float(t[f].min()) <= last[k]
+        if overlaps:
+            shift = end + PART_GAP_S - lo
+            for k, s in enumerate(streams):
+                times[k][s.parts == p] += shift
+            hi += shift
+            log.warning("%s: part %d of the recording overlaps the part before it in time: "
+                        "read %.3f s later, %.0f s after that part's end", source, p + 1,
+                        shift, PART_GAP_S)
+        end = max(end, hi)
+        for k, s in enumerate(streams):
+            sel = (s.parts == p) & fresh[k]
+            if sel.any():
+                last[k] = max(last[k], float(times[k][sel].max()))
+    return list(zip(times, fresh, strict=True))
 
 
 def read_streams(
@@ -613,7 +762,7 @@ def read_streams(
         joy_axes = JoyAxes()
     axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
     wanted = [t for t in (joy_topic, twist_topic, truth_topic, override_topic) if t]
-    reader = _open_reader(path, wanted)
+    reader = _in_record_order(path, _open_reader(path, wanted), wanted)
     recovered = getattr(reader, "recovered", None)
     source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
     try:
@@ -625,7 +774,7 @@ def read_streams(
         reader = _open_recovered(path, exc, wanted)
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
                                  override_topic)
-    jb, jr, vb, vr, tb, tr, tw_conns, ob, orows = collected
+    (jb, jr, jp), (vb, vr, vp), (tb, tr, tp), tw_conns, (ob, orows, op) = collected
 
     for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
         if not rows:
@@ -633,13 +782,22 @@ def read_streams(
     j = np.asarray(jr, dtype=np.float64).reshape(-1, 3)
     v = np.asarray(vr, dtype=np.float64).reshape(-1, 4)
     has_header = tw_conns[0].msgtype != "geometry_msgs/msg/Twist"
-    joy_t, keep = _choose_times(joy_topic, np.asarray([r[0] for r in jr], dtype=np.int64),
-                                np.asarray(jb, dtype=np.int64), max_stamp_skew, source)
+
+    def stream(name: str, rows: list[tuple[Any, ...]], bag_ns: list[int], parts: list[int],
+               header: bool = True) -> _Stream:
+        return _Stream(name, np.asarray([r[0] for r in rows], dtype=np.int64) if header
+                       else None, np.asarray(bag_ns, dtype=np.int64),
+                       np.asarray(parts, dtype=np.int64))
+
+    streams = [stream(joy_topic, jr, jb, jp), stream(twist_topic, vr, vb, vp, has_header)]
+    if tr:
+        streams.append(stream(truth_topic or "", tr, tb, tp))
+    if orows:
+        streams.append(stream(override_topic or "", orows, ob, op))
+    timed = _stream_times(streams, max_stamp_skew, source)
+    (joy_t, keep), (vel_t, keep_v) = timed[0], timed[1]
     joy_t, j = joy_t[keep], j[keep]
-    vel_t, keep = _choose_times(
-        twist_topic, np.asarray([r[0] for r in vr], dtype=np.int64) if has_header else None,
-        np.asarray(vb, dtype=np.int64), max_stamp_skew, source)
-    vel_t, v = vel_t[keep], v[keep]
+    vel_t, v = vel_t[keep_v], v[keep_v]
     for name, topic, rows in (("joystick", joy_topic, j), ("velocity", twist_topic, v)):
         if not rows.shape[0]:
             raise BagError(f"{source}: every message of the {name} topic {topic!r} is stale")
@@ -647,16 +805,12 @@ def read_streams(
     truth = np.zeros((0, 5))
     if tr:
         ta = np.asarray(tr, dtype=np.float64).reshape(-1, 6)
-        truth_t, keep = _choose_times(truth_topic or "",
-                                      np.asarray([r[0] for r in tr], np.int64),
-                                      np.asarray(tb, dtype=np.int64), max_stamp_skew, source)
+        truth_t, keep = timed[2]
         truth_t, truth = truth_t[keep], ta[keep, 1:]
     override_t = np.zeros(0)
     if orows:
         # an override is kept whatever its latency: it says the joystick did not drive
-        override_t, _ = _choose_times(override_topic or "",
-                                      np.asarray([r[0] for r in orows], np.int64),
-                                      np.asarray(ob, dtype=np.int64), max_stamp_skew, source)
+        override_t = timed[-1][0]
     for name, topic, bad, n in (
             ("joystick", joy_topic, int(np.count_nonzero(~joy_in_range(j[:, 1:]))), j.shape[0]),
             ("velocity", twist_topic, int(np.count_nonzero(~vel_in_range(v[:, 1:3]))),
@@ -826,7 +980,8 @@ class RecoveredBag:
 
     Attributes:
         connections: the connections, ``connections[i].id == i``.
-        messages: (connection id, bag time ns, serialised message) in bag-time order.
+        messages: (connection id, bag time ns, serialised message) in bag-time order
+            (with ``record_order``, in the order they were written).
         ros1: the messages are ROS 1 serialised (else CDR).
         custom_data: a ROS 2 bag's custom metadata, when metadata.yaml survived.
         damage: what was found and lost.
@@ -1726,7 +1881,8 @@ def _storage_files(path: str | os.PathLike[str]) -> tuple[Path, str, list[Path],
 
 
 def recover_bag(path: str | os.PathLike[str],
-                topics: Collection[str] | None = None) -> RecoveredBag:
+                topics: Collection[str] | None = None, *,
+                record_order: bool = False) -> RecoveredBag:
     """Every complete message of a bag, read without its index (for a damaged bag).
 
     mcap: the records of the data section in order (a cut chunk gives its complete
@@ -1741,6 +1897,8 @@ def recover_bag(path: str | os.PathLike[str],
         topics: keep the bytes of these topics' messages only (the others are listed with
             their times and empty data, so that a camera bag is not held in memory); None
             keeps everything.
+        record_order: the messages in the order they were written (the storage files in
+            their order, each file's records in theirs), not sorted by bag time.
 
     Raises:
         BagError: not a bag, or nothing recoverable (no connection found).
@@ -1766,7 +1924,8 @@ def recover_bag(path: str | os.PathLike[str],
     if not connections:
         found = "; ".join(problems + [p for s in scans for p in s.problems]) or "no data"
         raise BagError(f"{bag}: nothing recoverable: no complete connection record ({found})")
-    messages.sort(key=lambda m: m[1])  # stable: file order within one time
+    if not record_order:
+        messages.sort(key=lambda m: m[1])  # stable: file order within one time
     times = [m[1] for m in messages]
     n_expected = (expected_messages if expected_messages is not None
                   else sum(s.expected_messages or 0 for s in scans) or None)
@@ -1879,12 +2038,24 @@ def _merge_scans(scans: list[_Scan]) -> tuple[list[RecoveredConnection],
 
 
 class _RecoveredReader:
-    """The part of rosbags' AnyReader that :func:`read_streams` uses, over a scan."""
+    """The part of rosbags' AnyReader that :func:`read_streams` uses, over a scan in record
+    order (:func:`recover_bag`). The messages come in bag-time order, unless the recorder's
+    clock stepped back during the recording (:func:`clock_parts`): then in the order they
+    were written, and :meth:`message_parts` tells each one's part."""
 
     def __init__(self, recovered: RecoveredBag, typestore: Any) -> None:
         self.recovered = recovered
         self.connections = recovered.connections
         self.typestore = _typestore_for(recovered, typestore)
+        times = [m[1] for m in recovered.messages]
+        self.parts = clock_parts(times)
+        if self.parts.size and self.parts[-1]:
+            log.warning("%s: %s: sorted by time its %d parts would interleave; they are "
+                        "read one after another, each on its own times",
+                        recovered.damage.bag, clock_steps_text(times, self.parts),
+                        int(self.parts[-1]) + 1)
+        else:
+            recovered.messages.sort(key=lambda m: m[1])  # stable: file order within a time
 
     def messages(self, connections: Sequence[RecoveredConnection]
                  ) -> Any:
@@ -1892,6 +2063,13 @@ class _RecoveredReader:
         for cid, ns, data in self.recovered.messages:
             if cid in wanted:
                 yield self.connections[cid], ns, data
+
+    def message_parts(self, connections: Sequence[RecoveredConnection]) -> Any:
+        """The parts of the messages :meth:`messages` gives for ``connections``, in order."""
+        wanted = {c.id for c in connections}
+        for (cid, _ns, _data), part in zip(self.recovered.messages, self.parts, strict=True):
+            if cid in wanted:
+                yield int(part)
 
     def deserialize(self, raw: bytes, msgtype: str) -> Any:
         if self.recovered.ros1:
@@ -1926,7 +2104,7 @@ def _open_recovered(path: str | os.PathLike[str], why: BagError,
     from rosbags.typesys import Stores, get_typestore
 
     try:
-        recovered = recover_bag(path, topics)
+        recovered = recover_bag(path, topics, record_order=True)
     except BagError as exc:
         raise BagError(f"{why}; {exc}" if str(exc) not in str(why) else str(why)) from exc
     damage = recovered.damage
@@ -2007,7 +2185,16 @@ def repair_bag(path: str | os.PathLike[str], out: str | os.PathLike[str],
     """
     from rosbags.typesys import Stores, get_typestore
 
-    recovered = recover_bag(path)
+    recovered = recover_bag(path, record_order=True)
+    parts = clock_parts([m[1] for m in recovered.messages])
+    stepped = bool(parts.size and parts[-1])
+    if stepped:  # the order written is kept: sorted by time the parts would interleave
+        log.warning("%s: %s: the copy keeps the order its messages were written in (sorted "
+                    "by time its parts would interleave)",
+                    recovered.damage.bag, clock_steps_text([m[1] for m in recovered.messages],
+                                                           parts))
+    else:
+        recovered.messages.sort(key=lambda m: m[1])  # stable: file order within one time
     out = Path(out)
     src = recovered.damage.storage
     if storage is None:
@@ -2026,7 +2213,7 @@ def repair_bag(path: str | os.PathLike[str], out: str | os.PathLike[str],
         connections=[(c.topic, c.msgtype) for c in recovered.connections],
         messages=[(ns, cid, data) for cid, ns, data in recovered.messages],
         custom_data=recovered.custom_data, typestore=store)
-    write_bag(out, content, storage=storage)
+    write_bag(out, content, storage=storage, in_order=stepped)
     return recovered
 
 
@@ -2106,6 +2293,8 @@ def write_bag(
     path: str | os.PathLike[str],
     content: BagContent | BagSource,
     storage: str = "mcap",
+    *,
+    in_order: bool = False,
 ) -> Path:
     """Write messages as a bag, atomically and reproducibly.
 
@@ -2117,6 +2306,9 @@ def write_bag(
             recording: :meth:`asgp_ros.sim.simulate.Recording.bag_content`).
         storage: "mcap" (default) or "sqlite3" for ROS 2, "ros1" for a ROS 1 bag (chosen
             automatically for a ``.bag`` path).
+        in_order: write the messages in the order given, not sorted by bag time (a
+            recording whose clock stepped back: the order it was written in alone tells its
+            parts apart, :func:`clock_parts`).
 
     Returns:
         The path written.
@@ -2148,7 +2340,8 @@ def write_bag(
         raise BagError(f"{path}: cannot write a message with the bag time "
                        f"{_one_line(repr(bad))[:30]} ns in a {storage} bag: its times run "
                        f"from 0 to {limit * 1e-9:.4g} s")
-    order = sorted(range(len(records)), key=lambda i: (records[i][0], i))
+    order = (range(len(records)) if in_order
+             else sorted(range(len(records)), key=lambda i: (records[i][0], i)))
     try:
         with atomic_path(path, directory=not ros1) as tmp:
             if ros1:

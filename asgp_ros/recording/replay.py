@@ -34,7 +34,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from asgp_ros.common.topics import is_override as is_command
-from asgp_ros.recording.bags import BagError, resolve_bag, unapplied_log
+from asgp_ros.recording.bags import (
+    BagError,
+    clock_parts,
+    clock_steps_text,
+    recover_bag,
+    resolve_bag,
+    unapplied_log,
+)
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
 # (for REPLAY_RANGES) and must stay fast, and rclpy is an optional dependency.
@@ -126,6 +133,10 @@ _MAX_ROS_TIME_NS = (1 << 31) * 1_000_000_000
 CLOCK_CHECK_S = 0.5
 #: The shortest pass of a loop (s of wall time): a bag of one message looped at full speed.
 MIN_LOOP_PASS_S = 0.5
+#: A gap of more than this (s of bag time) between two messages is not waited out: the
+#: replay goes on at once, /clock jumping over it (a first minute recorded before NTP set
+#: the clock, in 1970, waited 56 years).
+MAX_WAIT_GAP_S = 60.0
 
 
 def _is_interface_package(pkg: str) -> bool:
@@ -326,6 +337,19 @@ class BagReplayer:
             raise ReplayError(f"{self.path}: cannot open the bag (corrupt or truncated): "
                               f"{_one_line(exc)}") from exc
         self.reader: AnyReader = reader
+        try:
+            written = recover_bag(self.path, topics=(), record_order=True)  # the times
+        except BagError:  # what rosbags opens and the scan cannot read: not checked
+            written = None
+        if written is not None:
+            times = [m[1] for m in written.messages]
+            parts = clock_parts(times)
+            if parts.size and parts[-1]:
+                self.close()
+                raise ReplayError(f"{self.path}: {clock_steps_text(times, parts)}: played by "
+                                  "time, as every player plays a bag, its parts would "
+                                  "interleave (two drives on one /clock); not played. asgp "
+                                  "train and evaluate read them one after the other")
         end = reader.end_time
         if end >= _MAX_ROS_TIME_NS:
             self.close()
@@ -529,6 +553,7 @@ class BagReplayer:
         t_bag0: int | None = None
         wall_start = time.monotonic()
         t_first: int | None = None
+        t_last = 0
         messages = self.reader.messages(connections=connections)
         while True:
             try:
@@ -549,10 +574,15 @@ class BagReplayer:
                 t_bag0 = t_ns
             if t_ns < t_bag0 + skip_ns:
                 continue
-            if t_first is None:
+            if t_first is None or t_ns - t_last > MAX_WAIT_GAP_S * 1e9:
                 # paced from here: the time spent reading past --start went into the pacing,
                 # and the first messages after it went out in a burst (0.06-0.23 s)
+                if t_first is not None:
+                    LOG.warning("a gap of %.1f s in the bag's times (%.3f .. %.3f s) is not "
+                                "waited out: played on at once", (t_ns - t_last) * 1e-9,
+                                t_last * 1e-9, t_ns * 1e-9)
                 t_first, wall_start = t_ns, time.monotonic()
+            t_last = t_ns
             target = wall_start + (t_ns - t_first) / 1e9 / self.config.rate
             if not self._sleep_until(target, wall_start, t_first):
                 return False

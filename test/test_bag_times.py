@@ -1,0 +1,208 @@
+"""Recordings whose clock was not well behaved, read for training and scoring: the laptop's
+clock stepped back during the recording (NTP setting a clock that ran ahead: the bag times
+and the stamps step together, or the recorder's alone), a camera computer whose clock is
+not the laptop's, a stray time. Every reader sorts a bag by time, so two timelines after a
+step back were interleaved into one and trained on without a word."""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from asgp_ros.recording import bags
+from asgp_ros.recording.bags import PART_GAP_S, clock_parts, read_streams, write_bag
+from asgp_ros.sim.simulate import simulate
+
+S = 1_000_000_000
+STORE = get_typestore(Stores.ROS2_JAZZY)
+TOPICS = ("/joy", "/vo/twist")
+
+#: (topic, bag time ns, stamp ns, seconds into the recording) -> (bag time, stamp)
+Retime = Callable[[str, int, int, float], tuple[int, int]]
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory) -> Path:
+    return write_bag(tmp_path_factory.mktemp("times") / "clean", simulate("tile", 1.5, 3))
+
+
+def _rewrite(src: Path, dst: Path, storage: str, retime: Retime) -> Path:
+    """``src`` written again in its order (as a recorder writes: SQLite row ids, mcap
+    records), each message's bag time and header stamp as ``retime`` says."""
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with AnyReader([src], default_typestore=STORE) as r, \
+            Writer(dst, version=9, storage_plugin=plugin) as w:
+        conns = [c for c in r.connections if c.topic in TOPICS]
+        out = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=STORE) for c in conns}
+        t0 = None
+        for c, t, raw in r.messages(connections=conns):
+            t0 = t if t0 is None else t0
+            msg = r.deserialize(raw, c.msgtype)
+            stamp = msg.header.stamp.sec * S + msg.header.stamp.nanosec
+            log_ns, stamp_ns = retime(c.topic, t, stamp, (t - t0) / S)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(int(stamp_ns), S)
+            w.write(out[c.topic], int(log_ns), bytes(STORE.serialize_cdr(msg, c.msgtype)))
+    return dst
+
+
+def _step(at_s: float, by_s: float, *, log: bool = True, stamp: bool = True,
+          topic: str | None = None) -> Retime:
+    d = round(by_s * S)
+
+    def retime(name: str, t: int, s: int, rel: float) -> tuple[int, int]:
+        moved = rel >= at_s and (topic is None or name == topic)
+        return t + d * (moved and log), s + d * (moved and stamp)
+    return retime
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("back_s", [30.0, 300.0])
+def test_a_clock_stepped_back_is_read_as_two_parts_one_after_the_other(
+        clean, tmp_path, caplog, storage, back_s):
+    """The clock (bag times and stamps) steps back 30 s / 5 min a minute in: sorted by time,
+    the minute before and the half minute after were interleaved (the joystick at twice its
+    rate, jumping between two drives). Read in the order written, the two parts follow one
+    another, PART_GAP_S apart, with every sample in its order and no sample lost."""
+    ref = read_streams(clean)
+    bag = _rewrite(clean, tmp_path / "stepped", storage, _step(60.0, -back_s))
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(bag)
+    said = re.search(r"clock stepped back 1 time\(s\) during the recording \(([0-9.]+) s",
+                     caplog.text)
+    assert said and abs(float(said.group(1)) - back_s) < 1.0, caplog.text
+    np.testing.assert_array_equal(got.joy, ref.joy)
+    np.testing.assert_array_equal(got.vel, ref.vel)
+    gaps = np.diff(got.joy_t)
+    assert np.count_nonzero(gaps > 1.0) == 1
+    assert PART_GAP_S <= gaps.max() < PART_GAP_S + 1.0
+    # each part keeps its own times: the first exactly, the second moved as one
+    first = ref.joy_t < ref.joy_t[0] + 60.0
+    np.testing.assert_array_equal(got.joy_t[first], ref.joy_t[first])
+    shift = got.joy_t[~first] - ref.joy_t[~first]
+    assert np.ptp(shift) < 1e-6
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_the_recorders_clock_alone_stepped_back_loses_nothing(clean, tmp_path, caplog,
+                                                               storage):
+    """Only the recorder's clock steps back 5 s (the bridge and VO stamped on a clock that
+    did not): the first minute was dropped as "stale readings delivered late" (judged by one
+    latency for the whole recording). Each part is judged on its own latency: every sample
+    is kept, on its own stamp."""
+    ref = read_streams(clean)
+    bag = _rewrite(clean, tmp_path / "recorder", storage, _step(60.0, -5.0, stamp=False))
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(bag)
+    assert "stale" not in caplog.text
+    np.testing.assert_array_equal(got.joy_t, ref.joy_t)
+    np.testing.assert_array_equal(got.vel_t, ref.vel_t)
+    np.testing.assert_array_equal(got.joy, ref.joy)
+
+
+@pytest.mark.parametrize("retime", [_step(0.0, -3.0, log=False, topic="/vo/twist"),
+                                    _step(0.0, 3.0, log=False, topic="/vo/twist")],
+                         ids=["behind", "ahead"])
+def test_a_stream_stamped_on_another_computers_clock_is_read_on_its_bag_times(
+        clean, tmp_path, caplog, retime):
+    """The VO stamped 3 s behind (or ahead of) the laptop's clock, within the 10 s a stamp
+    may lie from its bag time: used as it was, the chair's velocity was learnt 3 s away from
+    the stick that drove it, without a word. Its latency is compared with the joystick's
+    (stamped on the recorder's computer): off by more than MAX_EXTRA_LATENCY, its bag times
+    are used, less the joystick's latency."""
+    ref = read_streams(clean)
+    bag = _rewrite(clean, tmp_path / "camera", "mcap", retime)
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(bag)
+    assert "not on the recorder's clock" in caplog.text
+    assert got.vel_t.shape == ref.vel_t.shape
+    assert np.max(np.abs(got.vel_t - ref.vel_t)) < 0.2
+
+
+def test_a_stamp_the_clock_had_not_reached_is_not_used(clean, tmp_path, caplog):
+    """A few VO messages stamped 4 s after they were recorded (a stamp the clock had not
+    reached) were placed 4 s in the future; their bag times are used."""
+    ref = read_streams(clean)
+
+    def retime(name: str, t: int, s: int, rel: float) -> tuple[int, int]:
+        return t, s + 4 * S * (name == "/vo/twist" and 30.0 <= rel < 31.0)
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(_rewrite(clean, tmp_path / "ahead", "mcap", retime))
+    assert "stamped more than 1.0 s later" in caplog.text
+    assert np.max(np.abs(got.vel_t - ref.vel_t)) < 0.2
+
+
+def test_stray_times_are_no_clock_step():
+    """One message logged in 1970 or in 2100 among the others, or a step back in the last
+    two messages, is no step of the recorder's clock; a step back followed by more is."""
+    t = np.arange(100, dtype=np.int64) * (S // 10) + 1_700_000_000 * S
+    assert not clock_parts(t).any()
+    for stray in (0, 4_100_000_000 * S):
+        odd = t.copy()
+        odd[50] = stray
+        assert not clock_parts(odd).any()
+    jitter = t + np.random.default_rng(0).integers(-S // 5, S // 5, t.size)  # 0.2 s
+    assert not clock_parts(jitter).any()
+    stepped = t.copy()
+    stepped[60:] -= 30 * S
+    parts = clock_parts(stepped)
+    assert parts[:60].tolist() == [0] * 60 and parts[60:].tolist() == [1] * 40
+    late = t.copy()
+    late[98:] -= 30 * S
+    assert not clock_parts(late).any()
+
+
+def test_the_scan_reads_what_rosbags_reads_when_the_clock_did_not_step(clean, monkeypatch):
+    """A recording whose clock never stepped back is read by rosbags, as before; the check
+    reads the bag times alone."""
+    scanned: list[object] = []
+    real = bags.recover_bag
+
+    def spy(*args: object, **kwargs: object) -> bags.RecoveredBag:
+        scanned.append(kwargs.get("topics"))
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+    monkeypatch.setattr(bags, "recover_bag", spy)
+    read_streams(clean)
+    assert scanned == [()]
+
+
+def test_the_held_out_part_is_the_last_fifth_of_the_data_across_a_clock_step_forward(
+        clean, tmp_path):
+    """The clock steps forward 5 minutes half-way through a 1.5-minute recording: cut on
+    the grid's span, the "last 20 %" held out 78 % of the data."""
+    from asgp_ros.learning.training import read_series, split_holdout
+
+    bag = _rewrite(clean, tmp_path / "forward", "mcap", _step(45.0, 300.0))
+    for series in (read_series([str(clean)]), read_series([str(bag)])):
+        train_part, held = split_holdout(series, 0.2)
+        n_train = int(train_part[0].res.valid.sum())
+        n_held = int(held[0].res.valid.sum())
+        assert abs(n_held / (n_train + n_held) - 0.2) < 0.01
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_bag_info_says_the_clock_stepped_back_and_repair_keeps_the_order(
+        clean, tmp_path, capsys, storage):
+    """`asgp bag info` called a bag whose clock stepped back 30 s "intact" at 32.7 Hz of a
+    30 Hz joystick, without a word; `asgp bag repair` wrote it sorted by time, which erased
+    the only record of its two parts. Info says so; the repaired copy keeps the order its
+    messages were written in, and reads as the original does."""
+    from asgp_ros.cli import main
+
+    bag = _rewrite(clean, tmp_path / "stepped", storage, _step(60.0, -30.0))
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "clock:    the recorder's clock stepped back 1 time(s)" in capsys.readouterr().out
+    out = tmp_path / "repaired"
+    assert main(["bag", "repair", str(bag), str(out)]) == 0
+    assert main(["bag", "info", str(out)]) == 0
+    assert "stepped back 1 time(s)" in capsys.readouterr().out
+    a, b = read_streams(bag), read_streams(out)
+    np.testing.assert_array_equal(a.joy_t, b.joy_t)
+    np.testing.assert_array_equal(a.vel, b.vel)
