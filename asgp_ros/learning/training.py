@@ -446,7 +446,9 @@ def slice_resampled(res: Resampled, start: int, stop: int) -> Resampled:
 
 def split_holdout(series: Sequence[Series], fraction: float
                   ) -> tuple[list[Series], list[Series]]:
-    """(training, held-out): each recording cut in time, its last ``fraction`` held out.
+    """(training, held-out): each recording cut in time, its last ``fraction`` held out:
+    of its valid grid points (a gap in the recording, a clock stepped forward a day, holds
+    no data: cut on the grid's span, it moved the held-out share to 36-67 %).
 
     The pieces share no grid sample, so no held-out row (nor any sample of its window)
     is ever a training row: rows are built inside each piece (``design_matrix`` never
@@ -455,7 +457,9 @@ def split_holdout(series: Sequence[Series], fraction: float
     train_part, held = [], []
     for s in series:
         n = len(s.res)
-        cut = math.floor((1.0 - fraction) * n)
+        valid = np.flatnonzero(s.res.valid)
+        cut = (int(valid[math.floor((1.0 - fraction) * valid.size)])
+               if valid.size and fraction > 0.0 else math.floor((1.0 - fraction) * n))
         train_part.append(Series(s.name, slice_resampled(s.res, 0, cut)))
         held.append(Series(s.name, slice_resampled(s.res, cut, n)))
     return train_part, held
