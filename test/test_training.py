@@ -104,6 +104,10 @@ def test_cli_train_and_evaluate(bags, tmp_path, capsys):
     assert rc == 0
     table = capsys.readouterr().out
     assert "1.4 s" in table and "cov95" in table
+    assert "warning" not in table
+    # scored on its own training recording, the model is told so (in-sample figures)
+    assert main(["evaluate", str(model), bags["train"]]) == 0
+    assert "is one of the recordings" in capsys.readouterr().out
     result = json.loads(out_json.read_text())
     assert result["model"] == str(model)
     assert set(result["horizons"]) == {"1.0", "1.4", "2.0"}
