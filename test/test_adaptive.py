@@ -23,7 +23,12 @@ from asgp_ros.core.online import Predictor, PredictorConfig
 from asgp_ros.core.resample import ResampleConfig, resample
 from asgp_ros.core.sparse_gp import SparseGP
 from asgp_ros.core.streams import RawStreams
-from asgp_ros.learning.evaluation import TestSeries, _replay_series, evaluate_adaptive
+from asgp_ros.learning.evaluation import (
+    TestSeries,
+    _replay_series,
+    evaluate_adaptive,
+    evaluate_model,
+)
 
 # the VO below samples the velocity at its stamps (not frame-interval means): read as such
 RC = ResampleConfig(rate_hz=5.0, vel_stamp="frame")
@@ -699,6 +704,15 @@ def test_adaptive_evaluation_scores_both_on_the_same_cases(model: MotionModel) -
         assert a.coverage_95 is not None and p.coverage_95 is not None
     assert ev.timeline["t"].min() >= 60.0
     assert ev.adapted.model.endswith("+ adapt")
+    # the cases the online predictor made no prediction for, per horizon: the offline
+    # evaluation's less the adapting one's (it counted steps that were cases at no
+    # horizon scored, and the whole bag whatever skip_s)
+    offline = evaluate_model(model, [TestSeries("switch", res, s)], [1.0, 2.0])
+    whole = evaluate_adaptive(model, [TestSeries("switch", res, s)], [1.0, 2.0])
+    for key in ("1.0", "2.0"):
+        assert whole.missing[key] == (offline.horizons[key].vo.cases
+                                      - whole.adapted.horizons[key].vo.cases)
+        assert 0 <= ev.missing[key] <= whole.missing[key]
     with pytest.raises(Exception, match="raw streams"):
         evaluate_adaptive(model, [TestSeries("no raw", res)], [1.0])
 

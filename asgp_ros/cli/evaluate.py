@@ -192,9 +192,11 @@ def _run_adaptive(args: argparse.Namespace, model: object, tests: list[TestSerie
         print(f"{ts.name}: {state['rows_absorbed']} steps absorbed, {state['steps_refused']} "
               f"refused, variance scale {scales}, published at the end: {state['published']} "
               f"({state['switches']} change(s) of the published posterior)")
-    if ev.missing:
-        print(f"{ev.missing} case(s) of the offline evaluation got no online prediction "
-              "(the replayed predictor refused: stale or lost VO at the live edge)")
+    if any(ev.missing.values()):
+        print(" / ".join(str(n) for n in ev.missing.values()) + " case(s) at "
+              + " / ".join(f"{h} s" for h in ev.missing) + " of the offline evaluation got "
+              "no online prediction (the replayed predictor refused: stale or lost VO at the "
+              "live edge)")
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
     return 0

@@ -368,7 +368,9 @@ class AdaptiveEvaluation:
     plain: ModelEvaluation
     timeline: dict[str, Any]
     adaptation: list[dict[str, Any]]
-    missing: int  # cases of the offline evaluation the online predictor refused
+    #: per horizon, the cases of the offline evaluation (from ``skip_s`` on) the online
+    #: predictor made no prediction for
+    missing: dict[str, int]
 
     def to_json(self) -> dict[str, object]:
         return {"adapted": self.adapted.to_json(), "plain": self.plain.to_json(),
@@ -451,7 +453,7 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
     return {"idx": np.asarray(out["idx"], dtype=np.int64),
             "pose": np.asarray(out["pose"]).reshape(-1, k_max, 3),
             "cov": np.asarray(out["cov"]).reshape(-1, k_max, 2, 2),
-            "scale": np.asarray(out["scale"]), "missing": len(starts) - len(out["idx"]),
+            "scale": np.asarray(out["scale"]),
             "adaptation": describe(stats) if stats is not None else {}}
 
 
@@ -520,11 +522,20 @@ def evaluate_adaptive(
                                threshold_m=float(threshold_m), test=[ts.name for ts in series],
                                horizons=horizons)
 
+    # the cases of the offline evaluation, at each horizon from skip_s on, that the online
+    # predictor made no prediction for
+    missing = {}
+    for h, k in scored:
+        offline = 0
+        for ts in series:
+            idx = metrics.case_indices(ts.res.segment, need, k)
+            offline += int(np.count_nonzero(ts.res.t[idx - 1] - ts.res.t[0] >= skip_s))
+        missing[horizon_key(h)] = offline - horizons_a[horizon_key(h)].vo.cases
     label = name or str(model.kind)
     return AdaptiveEvaluation(
         adapted=evaluation(f"{label} + adapt", horizons_a), plain=evaluation(label, horizons_p),
         timeline=timeline, adaptation=[rep["adaptation"] for rep in replays],
-        missing=sum(int(rep["missing"]) for rep in replays))
+        missing=missing)
 
 
 def _timeline_of_cases(series: Sequence[TestSeries], replays: list[dict[str, Any]],
