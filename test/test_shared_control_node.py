@@ -1374,6 +1374,90 @@ def test_a_moved_stick_is_judged_again_not_sent_the_old_override(harness):
     assert not [(cmd, user) for cmd, user in sends if user < 0.0 and cmd > 0.0], sends
 
 
+def _triangle(phase: float, amp: float = 0.6, step: float = 0.12) -> float:
+    """A triangle wave in [-amp, amp] advancing ``step`` per unit of ``phase``."""
+    period = 4 * amp / step
+    ph = (phase % period) / period
+    return amp * (4 * ph - 1) if ph < 0.5 else amp * (3 - 4 * ph)
+
+
+@pytest.mark.parametrize("hand_moves", [False, True], ids=["hand-steady", "hand-moving"])
+def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, monkeypatch,
+                                                                    hand_moves):
+    """The chair drives at a wall 1.2 m ahead; the layer intervenes while the user sweeps
+    the turn (2.4 deflection/s, a live demo's hand). Each decision takes time, in which the
+    stick moves on by more than STICK_CHANGE: the send found the stick moved and sent
+    nothing, the next decision the same, so no override went out for as long as the hand
+    moved (live: 1.4 s), the status saying 'intervening', and the board drove the user's
+    stick into the furniture. Now the decision's command is sent scaled to the newest stick
+    (never further forward than it, stopped if it was pulled back)."""
+    from asgp_ros.nodes import shared_control_node as scn
+
+    h = harness()
+    _intervene(h)
+    node = h.node
+    real_decide = scn.decide
+    state = {"phase": 0.0, "t": 104.0}
+
+    def slow_decide(*args, **kwargs):
+        d = real_decide(*args, **kwargs)
+        state["phase"] += 0.5 if hand_moves else 0.0  # the hand during the solve
+        h.joy_pub.publish(conv.joy_from_sample(state["t"], 0.8, _triangle(state["phase"])))
+        time.sleep(0.03)  # in the node's reader before the send drains it
+        return d
+
+    monkeypatch.setattr(scn, "decide", slow_decide)
+    sent_before, statuses_before = len(h.overrides), len(h.status)
+    sends: list[tuple[float, float]] = []
+    publish = node.override_pub.publish
+
+    def record(msg):
+        sends.append((float(msg.axes[0]), float(node._user[1][0])))
+        publish(msg)
+    node.override_pub.publish = record
+    rng = np.random.default_rng(1)
+    for i in range(40):  # 2 s at 20 Hz
+        t = 104.0 + 0.05 * (i + 1)
+        state["phase"] += 1.0
+        state["t"] = t
+        h.x += 0.05 * 0.5
+        h.clock(t)
+        h.joy_pub.publish(conv.joy_from_sample(t, 0.8, _triangle(state["phase"])))
+        h.spin_until(lambda t=t: node._user is not None and node._user[0] >= t - 1e-9,
+                     what="joy")
+        if i % 4 == 3:
+            n = node._vo_messages
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, 0.5 + rng.normal(0, 0.003),
+                                                            0.0))
+            h.spin_until(lambda n=n: node._vo_messages > n, what="vo")
+        if i % 2 == 1:
+            seen = h._scan_state()
+            h.scan_pub.publish(wall_scan_msg(t, 1.2))
+            h.spin_until(lambda s=seen: h._scan_state() != s, what="scan")
+        _spin(h, 3)
+    _spin(h)
+    whys = [conv.diagnostic_values(st).get("why") for st in h.status[statuses_before:]]
+    assert whys.count("intervening") > 10, whys
+    # an override at least every hold_s (0.35 s) of the 2 s
+    assert len(h.overrides) - sent_before >= 2.0 / 0.35
+    assert not [(cmd, user) for cmd, user in sends if cmd > user + 1e-6], sends
+    within = int(conv.diagnostic_values(node.diagnostic_status())["overrides_within_stick"])
+    assert (within > 0) == hand_moves
+
+
+def test_a_command_sent_for_a_moved_stick_goes_no_further_than_it():
+    from asgp_ros.nodes.shared_control_node import within_stick
+
+    c = np.array([0.4, -0.3])
+    np.testing.assert_allclose(within_stick(c, np.array([0.8, 0.5])), c)  # pushed further
+    np.testing.assert_allclose(within_stick(c, np.array([0.2, 0.0])), [0.2, -0.15])
+    np.testing.assert_allclose(within_stick(c, np.array([-0.5, 0.1])), [0.0, 0.0])
+    np.testing.assert_allclose(within_stick(c, np.array([0.0, 0.3])), [0.0, 0.0])
+    np.testing.assert_allclose(within_stick(-c, np.array([-0.2, 0.0])), [-0.2, 0.15])
+    np.testing.assert_allclose(within_stick(np.array([0.0, 0.5]), np.array([0.3, -0.2])),
+                               [0.0, 0.5])  # a turn on the spot: no forward to bound
+
+
 def test_a_stale_or_out_of_order_scan_is_refused(harness):
     """A scan stamped 5 s back (a buffered or replayed one on the topic) replaced the fresh
     one, restarted the scan matching and emptied the obstacle memory, and the diagnostics

@@ -154,6 +154,21 @@ JOY_LEAD_S = 0.1
 STICK_CHANGE = 0.05
 
 
+def within_stick(command: np.ndarray, stick: np.ndarray) -> np.ndarray:
+    """A decision's command scaled down (both axes alike: the same arc, no further along
+    it) to go no further forward or back than the user's newest stick, and stopped where
+    the stick no longer drives that way (pulled back, or let go to neutral): what is sent
+    when the stick moved while the decision was made (the next decision judges the new
+    stick; not sending at all left the board to the user's stick, driving into the
+    obstacle, for as long as the hand kept moving)."""
+    fwd, now = float(command[0]), float(stick[0])
+    if fwd == 0.0:
+        return np.asarray(command, dtype=np.float64).copy()
+    if fwd * now <= 0.0:
+        return np.zeros(2)
+    return np.asarray(command, dtype=np.float64) * min(1.0, abs(now) / abs(fwd))
+
+
 class StartupError(Exception):
     """The node cannot start (bad model file, inconsistent parameters)."""
 
@@ -449,6 +464,7 @@ class SharedControlNode(Node):
         self._joy_source = JoySource(lambda: self.predictor.config.reset_jump_s)
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
+        self._sent_within_stick = 0  # sent scaled to a stick that moved during the decision
         self._interventions = 0  # interventions (runs of decisions that changed the command)
         self._was_intervening = False
         self._decisions = 0
@@ -1002,16 +1018,20 @@ class SharedControlNode(Node):
         if why_not is not None or user is None:
             self._stop_overriding()
             return why_not
+        command = d.command
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
-            # the user moved the stick since the decision: judged again with it (from the
-            # timer; inside a decision, a sample read by the drain above waits for the next
-            # send), never the old decision sent again
+            # the user moved the stick since the decision: from the timer, judged again with
+            # it, never the old decision sent again; inside the decision (the stick moved
+            # while it was made), its command goes no further than the newest stick, and the
+            # next decision judges that stick
             if not self._deciding:
                 self._decide(now)
-            return "the stick moved since the decision: judged again"
-        self.override_pub.publish(conv.joy_from_sample(now, float(d.command[0]),
-                                                       float(d.command[1])))
-        self._sent, self._sent_t = d.command, now
+                return "the stick moved since the decision: judged again"
+            command = within_stick(command, user[1])
+            self._sent_within_stick += 1
+        self.override_pub.publish(conv.joy_from_sample(now, float(command[0]),
+                                                       float(command[1])))
+        self._sent, self._sent_t = command, now
         self._overrides_sent += 1
         # an adapting predictor learns nothing from the steps an override may have driven
         # (training's rule for a bag's overrides): what the board applied is only modelled
@@ -1044,6 +1064,7 @@ class SharedControlNode(Node):
             "decisions": str(self._decisions),
             "interventions": str(self._interventions),
             "overrides_sent": str(self._overrides_sent),
+            "overrides_within_stick": str(self._sent_within_stick),
             "overriding_s": f"{self._overrides_sent / self.params.override_rate_hz:.2f}",
             "mean_change": (f"{self._change_sum / self._change_count:.3f}"
                             if self._change_count else "0"),
