@@ -1381,16 +1381,21 @@ def _triangle(phase: float, amp: float = 0.6, step: float = 0.12) -> float:
     return amp * (4 * ph - 1) if ph < 0.5 else amp * (3 - 4 * ph)
 
 
-@pytest.mark.parametrize("hand_moves", [False, True], ids=["hand-steady", "hand-moving"])
+@pytest.mark.parametrize(("hand_moves", "solve_s"), [(False, 0.0), (True, 0.0), (True, 0.06)],
+                         ids=["hand-steady", "hand-moving", "hand-moving-slow-decisions"])
 def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, monkeypatch,
-                                                                    hand_moves):
+                                                                    hand_moves, solve_s):
     """The chair drives at a wall 1.2 m ahead; the layer intervenes while the user sweeps
     the turn (2.4 deflection/s, a live demo's hand). Each decision takes time, in which the
     stick moves on by more than STICK_CHANGE: the send found the stick moved and sent
     nothing, the next decision the same, so no override went out for as long as the hand
     moved (live: 1.4 s), the status saying 'intervening', and the board drove the user's
     stick into the furniture. Now the decision's command is sent scaled to the newest stick
-    (never further forward than it, stopped if it was pulled back)."""
+    (never further forward than it, stopped if it was pulled back).
+
+    With decisions of 60 ms, judging the moved stick at every tick of the override timer
+    takes the node's whole time (live: its inputs refused as stale on arrival, the layer
+    letting go); those decisions wait for half of it now, the overrides still going out."""
     from asgp_ros.nodes import shared_control_node as scn
 
     h = harness()
@@ -1401,6 +1406,7 @@ def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, mo
 
     def slow_decide(*args, **kwargs):
         d = real_decide(*args, **kwargs)
+        time.sleep(solve_s)
         state["phase"] += 0.5 if hand_moves else 0.0  # the hand during the solve
         h.joy_pub.publish(conv.joy_from_sample(state["t"], 0.8, _triangle(state["phase"])))
         time.sleep(0.03)  # in the node's reader before the send drains it
@@ -1437,12 +1443,15 @@ def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, mo
         _spin(h, 3)
     _spin(h)
     whys = [conv.diagnostic_values(st).get("why") for st in h.status[statuses_before:]]
-    assert whys.count("intervening") > 10, whys
+    assert whys.count("intervening") >= 8, whys  # (at least the steps: 5 Hz)
     # an override at least every hold_s (0.35 s) of the 2 s
     assert len(h.overrides) - sent_before >= 2.0 / 0.35
     assert not [(cmd, user) for cmd, user in sends if cmd > user + 1e-6], sends
-    within = int(conv.diagnostic_values(node.diagnostic_status())["overrides_within_stick"])
-    assert (within > 0) == hand_moves
+    values = conv.diagnostic_values(node.diagnostic_status())
+    if hand_moves:
+        assert int(values["overrides_within_stick"]) > 0
+    if solve_s:  # (the harness's clock runs faster than the wall: a bound, not a rate)
+        assert int(values["decisions_deferred"]) > 0
 
 
 def test_a_command_sent_for_a_moved_stick_goes_no_further_than_it():

@@ -491,6 +491,9 @@ class SharedControlNode(Node):
         self._poses_other_frame = 0  # odometry poses not taken: another parent frame
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
+        self._decided_at = -math.inf  # monotonic time the last decision ended
+        self._decide_s = 0.0  # how long it took (s)
+        self._decisions_deferred = 0  # optional decisions left for later (_may_decide)
 
         reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -932,10 +935,27 @@ class SharedControlNode(Node):
 
     def _decide(self, now: float) -> None:
         self._deciding = True
+        start = time.monotonic()
         try:
             self._decide_now(now)
         finally:
             self._deciding = False
+            self._decided_at = time.monotonic()
+            self._decide_s = self._decided_at - start
+
+    def _may_decide(self) -> bool:
+        """Whether a stick moved since the decision may be judged again now (the override
+        timer, 20 Hz): only after as long as the last decision took has passed since it
+        ended, so that at most half the node's time goes to judging a moving hand; until
+        then the decision's command is sent scaled to the stick (:func:`within_stick`).
+        Decisions of 0.1 s at every tick of a moving hand and every scan left the executor
+        behind its own inputs (scans refused as 0.3-0.45 s stale on arrival, VO stale: the
+        layer let go in the middle of interventions). Steps, scans, the watchdog and an
+        obstacle source lost always decide."""
+        if time.monotonic() - self._decided_at >= self._decide_s:
+            return True
+        self._decisions_deferred += 1
+        return False
 
     def _decide_now(self, now: float) -> None:
         user = self._user[1] if self._user is not None else np.full(2, np.nan)
@@ -1022,9 +1042,9 @@ class SharedControlNode(Node):
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
             # the user moved the stick since the decision: from the timer, judged again with
             # it, never the old decision sent again; inside the decision (the stick moved
-            # while it was made), its command goes no further than the newest stick, and the
-            # next decision judges that stick
-            if not self._deciding:
+            # while it was made), or with the layer busy deciding (_may_decide), its command
+            # goes no further than the newest stick, and a later decision judges that stick
+            if not self._deciding and self._may_decide():
                 self._decide(now)
                 return "the stick moved since the decision: judged again"
             command = within_stick(command, user[1])
@@ -1065,6 +1085,7 @@ class SharedControlNode(Node):
             "interventions": str(self._interventions),
             "overrides_sent": str(self._overrides_sent),
             "overrides_within_stick": str(self._sent_within_stick),
+            "decisions_deferred": str(self._decisions_deferred),
             "overriding_s": f"{self._overrides_sent / self.params.override_rate_hz:.2f}",
             "mean_change": (f"{self._change_sum / self._change_count:.3f}"
                             if self._change_count else "0"),
