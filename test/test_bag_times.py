@@ -206,3 +206,120 @@ def test_bag_info_says_the_clock_stepped_back_and_repair_keeps_the_order(
     a, b = read_streams(bag), read_streams(out)
     np.testing.assert_array_equal(a.joy_t, b.joy_t)
     np.testing.assert_array_equal(a.vel, b.vel)
+
+
+def _messages(src: Path) -> list[tuple[str, str, int, bytes]]:
+    with AnyReader([src], default_typestore=STORE) as r:
+        conns = [c for c in r.connections if c.topic in TOPICS]
+        return [(c.topic, c.msgtype, t, bytes(raw))
+                for c, t, raw in r.messages(connections=conns)]
+
+
+def _write_in_order(dst: Path, msgs: list[tuple[str, str, int, bytes]],
+                    storage: str = "mcap") -> Path:
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(dst, version=9, storage_plugin=plugin) as w:
+        conns: dict[str, object] = {}
+        for topic, msgtype, t, raw in msgs:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=STORE)
+            w.write(conns[topic], int(t), raw)
+    return dst
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_bag_written_topic_by_topic_is_no_clock_step(clean, tmp_path, caplog, capsys,
+                                                       storage):
+    """A valid bag written one topic after another (a conversion script): its order of
+    records goes back at each topic's start, which was read as the clock stepping back
+    (the topics read as parts, asgp bag info saying so). A step must show in the most
+    frequent topic's own messages."""
+    from asgp_ros.cli import main
+
+    msgs = sorted(_messages(clean), key=lambda m: TOPICS.index(m[0]))  # stable
+    bag = _write_in_order(tmp_path / "by_topic", msgs, storage)
+    ref = read_streams(clean)
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(bag)
+    assert "stepped back" not in caplog.text
+    np.testing.assert_array_equal(got.joy_t, ref.joy_t)
+    np.testing.assert_array_equal(got.vel_t, ref.vel_t)
+    assert main(["bag", "info", str(bag)]) == 0
+    assert "stepped back" not in capsys.readouterr().out
+
+
+def test_a_killed_split_recording_is_read_in_the_order_of_its_files(clean, tmp_path,
+                                                                     caplog):
+    """A recording split into 12 files and killed before its metadata.yaml: the files were
+    taken in the order of their names as text (rec_10, rec_11 before rec_2), a step back of
+    the clock; they are taken by their numbers."""
+    import shutil
+
+    msgs = _messages(clean)
+    bag = tmp_path / "rec"
+    bag.mkdir()
+    per = -(-len(msgs) // 12)
+    for i in range(12):
+        part = _write_in_order(tmp_path / f"p{i}", msgs[i * per:(i + 1) * per])
+        shutil.move(str(next(part.glob("*.mcap"))), bag / f"rec_{i}.mcap")
+    ref = read_streams(clean)
+    with caplog.at_level(logging.WARNING):
+        got = read_streams(bag)
+    assert "stepped back" not in caplog.text
+    np.testing.assert_array_equal(got.joy_t, ref.joy_t)
+
+
+def test_a_stray_storage_file_beside_an_intact_bag_is_not_read(clean, tmp_path):
+    """An older recording's .mcap left in an intact bag's directory (metadata.yaml lists
+    only the bag's own file): the clock check scanned every storage file, took the stray
+    one's times for a step back, and read the other drive into the bag as its second
+    part. An intact bag is what its metadata.yaml lists."""
+    import shutil
+
+    other = write_bag(tmp_path / "other", simulate("carpet", 0.5, 4))
+    bag = Path(shutil.copytree(clean, tmp_path / "bag"))
+    shutil.copy(next(other.glob("*.mcap")), bag / "zz_backup.mcap")
+    np.testing.assert_array_equal(read_streams(bag).joy_t, read_streams(clean).joy_t)
+
+
+def test_a_stream_without_stamps_follows_the_joystick_across_a_recorder_step(clean,
+                                                                             tmp_path):
+    """The recorder's clock alone steps back 5 s; the VO is a plain Twist (no header: read
+    on its bag times). The joystick went on on its stamps while the VO, on bag times, fell
+    5 s behind it in the second part; now a stream without stamps is read on the
+    joystick's clock (its bag times less the joystick's latency)."""
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Twist as Twist
+    from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3 as Vector3
+
+    msgs = []
+    for topic, msgtype, t, raw in _messages(clean):
+        if topic == "/vo/twist":
+            m = STORE.deserialize_cdr(raw, msgtype)
+            tw = Twist(linear=Vector3(x=m.twist.linear.x, y=0.0, z=0.0),
+                       angular=Vector3(x=0.0, y=0.0, z=m.twist.angular.z))
+            msgtype, raw = "geometry_msgs/msg/Twist", bytes(
+                STORE.serialize_cdr(tw, "geometry_msgs/msg/Twist"))
+        msgs.append((topic, msgtype, t, raw))
+    plain = _write_in_order(tmp_path / "plain", msgs)
+    t0 = msgs[0][2]
+    stepped = _write_in_order(tmp_path / "stepped", [
+        (topic, msgtype, t - 5 * S * (t - t0 >= 60 * S), raw)
+        for topic, msgtype, t, raw in msgs])
+    ref, got = read_streams(plain), read_streams(stepped)
+    np.testing.assert_array_equal(got.joy_t, ref.joy_t)
+    np.testing.assert_allclose(got.vel_t, ref.vel_t, atol=0.05)
+
+
+def test_the_times_of_an_sqlite_bag_are_read_from_the_database_in_the_order_written(
+        clean, tmp_path):
+    """The clock check reads an SQLite bag's rows by id from the database (a scan of the
+    pages follows every camera image's overflow pages): the same order and times as the
+    scan of its records."""
+    from asgp_ros.recording.bags import recover_bag, written_times
+
+    bag = _rewrite(clean, tmp_path / "stepped", "sqlite3", _step(60.0, -30.0))
+    quick = written_times(bag)
+    scan = recover_bag(bag, topics=(), record_order=True).messages
+    assert [t for _, t, _ in quick] == [t for _, t, _ in scan]
+    assert bags.message_parts(quick).tolist() == bags.message_parts(scan).tolist()
+    assert bags.message_parts(quick)[-1] == 1

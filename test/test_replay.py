@@ -762,18 +762,25 @@ def test_replay_refuses_rows_left_in_a_write_ahead_log(rclpy_context, sim_bags, 
 
 def test_a_recording_whose_clock_stepped_back_is_not_played_interleaved(rclpy_context,
                                                                         sim_bags, tmp_path):
-    """The clock stepped back 30 s half-way through the recording (the rows after it written
-    30 s earlier in time): played by time, two drives went out interleaved on one /clock,
-    the joystick out of its order hundreds of times, without a word. Refused, saying why."""
+    """The clock stepped back 5 s half-way through a 15 s recording (the rows after it
+    written 5 s earlier in time): played by time, two drives went out interleaved on one
+    /clock, the joystick out of its order hundreds of times, without a word. Refused,
+    saying why; stepped back further than the part before it lasted, the two parts do not
+    overlap, and play one after the other."""
     import shutil
 
     from asgp_ros.recording.replay import ReplayError
 
     bag = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / "stepped"))
     _sql(bag, "update messages set timestamp = timestamp - ? where id > "
-         "(select count(*) / 2 from messages)", 30 * 10**9)
+         "(select count(*) / 2 from messages)", 5 * 10**9)
     with pytest.raises(ReplayError, match="clock stepped back 1 time"):
         _play(rclpy_context, bag, "replay_stepped")
+    apart = Path(shutil.copytree(sim_bags["sqlite3"], tmp_path / "apart"))
+    _sql(apart, "update messages set timestamp = timestamp - ? where id > "
+         "(select count(*) / 2 from messages)", 30 * 10**9)
+    assert _play(rclpy_context, apart, "replay_apart") == _play(
+        rclpy_context, sim_bags["sqlite3"], "replay_whole")
 
 
 def test_a_gap_of_decades_in_the_bag_times_is_not_waited_out(rclpy_context, sim_bags,

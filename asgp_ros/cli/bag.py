@@ -19,8 +19,8 @@ from asgp_ros.cli._argtypes import number
 from asgp_ros.common.fileio import ROS1_BAG, ROS2_BAG, bag_inputs, check_output
 from asgp_ros.recording.bags import (
     BagError,
-    clock_parts,
     clock_steps_text,
+    message_parts,
     recover_bag,
     repair_bag,
     topic_stats,
@@ -114,12 +114,12 @@ def run_info(args: argparse.Namespace) -> int:
     except BagError as exc:
         raise CommandError(str(exc)) from exc
     times = [m[1] for m in recovered.messages]
-    parts = clock_parts(times)
+    parts = message_parts(recovered.messages)
     recovered.messages.sort(key=lambda m: m[1])
     for line in info_lines(topic_stats(recovered, args.gap_factor), recovered.damage):
         print(one_line(line))  # the bag's topic names: a newline or escape forged rows
     if parts.size and parts[-1]:
-        print(one_line(f"clock:    {clock_steps_text(times, parts)} : sorted by time its "
+        print(one_line(f"clock:    {clock_steps_text(times, parts)}: sorted by time its "
                        f"{int(parts[-1]) + 1} parts interleave (the rates and gaps above); "
                        "asgp train and evaluate read them one after the other"))
     return 0

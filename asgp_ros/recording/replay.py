@@ -36,11 +36,11 @@ import numpy as np
 from asgp_ros.common.topics import is_override as is_command
 from asgp_ros.recording.bags import (
     BagError,
-    clock_parts,
     clock_steps_text,
-    recover_bag,
+    message_parts,
     resolve_bag,
     unapplied_log,
+    written_times,
 )
 
 # rosbags and rclpy are imported where they are used: `asgp --help` imports this module
@@ -121,6 +121,20 @@ class ReplayConfig:
         twice = sorted({src for src in sources if sources.count(src) > 1})
         if twice:
             raise ValueError(f"{', '.join(twice)} remapped more than once")
+
+
+def _parts_overlap(times: np.ndarray, parts: np.ndarray) -> bool:
+    """Whether two parts of a recording (:func:`asgp_ros.recording.bags.clock_parts`)
+    overlap in bag time: played by time they would interleave (parts that do not, two
+    recordings appended one after the other, play one after the other)."""
+    spans = sorted((int(times[parts == k].min()), int(times[parts == k].max()))
+                   for k in range(int(parts[-1]) + 1) if np.any(parts == k))
+    end = -1
+    for lo, hi in spans:
+        if lo <= end:
+            return True
+        end = max(end, hi)
+    return False
 
 
 # --------------------------------------------------------------------------------------
@@ -338,13 +352,13 @@ class BagReplayer:
                               f"{_one_line(exc)}") from exc
         self.reader: AnyReader = reader
         try:
-            written = recover_bag(self.path, topics=(), record_order=True)  # the times
+            written = written_times(self.path)
         except BagError:  # what rosbags opens and the scan cannot read: not checked
             written = None
         if written is not None:
-            times = [m[1] for m in written.messages]
-            parts = clock_parts(times)
-            if parts.size and parts[-1]:
+            times = [m[1] for m in written]
+            parts = message_parts(written)
+            if parts.size and parts[-1] and _parts_overlap(np.asarray(times), parts):
                 self.close()
                 raise ReplayError(f"{self.path}: {clock_steps_text(times, parts)}: played by "
                                   "time, as every player plays a bag, its parts would "
