@@ -323,3 +323,16 @@ def test_the_times_of_an_sqlite_bag_are_read_from_the_database_in_the_order_writ
     assert [t for _, t, _ in quick] == [t for _, t, _ in scan]
     assert bags.message_parts(quick).tolist() == bags.message_parts(scan).tolist()
     assert bags.message_parts(quick)[-1] == 1
+
+
+def test_a_first_minute_recorded_in_1970_is_refused_naming_the_gap(clean, tmp_path):
+    """The first 30 s recorded before NTP set the clock (bag times and stamps in 1970): the
+    grid over 54 years was refused as "850000 ... grid points", which named no cause."""
+    from asgp_ros.learning.training import read_series
+
+    def retime(name: str, t: int, s: int, rel: float) -> tuple[int, int]:
+        back = 1_690_000_000 * S * (rel < 30.0)
+        return t - back, s - back
+    bag = _rewrite(clean, tmp_path / "boot", "mcap", retime)
+    with pytest.raises(Exception, match="longest gap is 1690000000 s without a sample"):
+        read_series([str(bag)])

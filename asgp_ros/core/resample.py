@@ -498,7 +498,15 @@ def resample(streams: RawStreams, config: ResampleConfig | None = None) -> Resam
     vel_t, vel, vel_ok = vel_t[keep_v], streams.vel[keep_v], streams.vel_ok[keep_v]
 
     if joy_t.size and vel_t.size:
-        k = grid_indices(max(joy_t[0], vel_t[0]), min(joy_t[-1], vel_t[-1]), cfg.rate_hz)
+        try:
+            k = grid_indices(max(joy_t[0], vel_t[0]), min(joy_t[-1], vel_t[-1]), cfg.rate_hz)
+        except ValueError as exc:  # a span of days: name the gap that makes it
+            both = np.sort(np.concatenate([joy_t, vel_t]))
+            i = int(np.argmax(np.diff(both))) if both.size > 1 else 0
+            raise ValueError(
+                f"{exc}: its longest gap is {both[i + 1] - both[i]:.0f} s without a sample "
+                f"({both[i]:.3f} .. {both[i + 1]:.3f} s; a clock set forward during the "
+                "recording, e.g. by NTP after a first minute recorded in 1970?)") from exc
     else:
         k = np.zeros(0, dtype=np.int64)
     t = k / cfg.rate_hz
