@@ -18,7 +18,10 @@ from asgp_ros.core.shared_control import (
     SharedControlConfig,
     Why,
     candidate_commands,
+    check_covariance,
     decide,
+    judge_moved_stick,
+    within_stick,
 )
 from asgp_ros.sim.lidar import cast_to_segments
 
@@ -610,3 +613,60 @@ def test_a_corner_swept_into_furniture_behind_is_seen_whatever_touches_in_front(
 
 def collision_scan_check(scan):
     return collision.scan_check(scan, _grown())
+
+
+def _post_check(px: float, py: float, half: float):
+    """A cabinet's front face and sides, in the base frame."""
+    return collision_scan_check(seg_scan([((px, py - half), (px, py + half)),
+                                          ((px, py - half), (px + 0.3, py - half)),
+                                          ((px, py + half), (px + 0.3, py + half))]))
+
+
+def _p_held(pred, now, command, check) -> float:
+    k = pred.config.horizon_steps
+    b = pred.predict_batch(np.repeat(np.asarray(command, float)[None, None, :], k, axis=1),
+                           now, learn=False)
+    return float(check(b.pose, check_covariance(b, CONFIG))[1][0])
+
+
+def test_a_stick_moved_while_deciding_gets_only_what_is_judged_with_it():
+    """The layer steers round a cabinet corner; while it decided, the user slowed to 0.4 and
+    steered the layer's way. The decision's command scaled down (turn and forward alike,
+    the first version) swept the corner (p 0.13 where the user's stick alone was 0): what
+    is sent for a moved stick is judged with it, and the stick passes when it is clear."""
+    pred, now = driving(0.8, 0.0)
+    check = _post_check(1.6, -0.4, 0.1)
+    d = decide(pred, now, np.array([0.8, 0.0]), check, CONFIG, learn=False)
+    assert d.why is Why.INTERVENING and d.command[1] != 0.0, d
+    stick = np.array([0.4, d.command[1]])
+    judged = judge_moved_stick(pred, now, d, stick, CONFIG, lambda _p: check)
+    sent = stick if judged.command is None else judged.command
+    assert _p_held(pred, now, sent, check) <= max(CONFIG.threshold,
+                                                  _p_held(pred, now, stick, check))
+    if judged.command is not None:
+        assert judged.command[0] <= stick[0] + 1e-12
+
+
+@pytest.mark.parametrize(("fwd", "turn", "wall"), [(0.3, 0.6, 0.8), (0.5, 0.4, 0.9)])
+def test_a_stick_pulled_back_while_deciding_is_not_pinned_at_the_wall(fwd, turn, wall):
+    """Near a wall the decision turns on the spot; while it was made the user pulled the
+    stick back to reverse away: the turn on the spot was sent unchanged (pinning the chair,
+    p 0.3-0.6) where the stick backing away is clear. It passes."""
+    pred, now = driving(fwd, turn)
+    check = collision_scan_check(seg_scan([((wall, -3.0), (wall, 3.0))]))
+    d = decide(pred, now, np.array([fwd, turn]), check, CONFIG, learn=False)
+    assert d.command is not None and d.command[0] == 0.0, d
+    judged = judge_moved_stick(pred, now, d, np.array([-0.5, 0.0]), CONFIG,
+                               lambda _p: check)
+    assert judged.why is Why.CLEAR and judged.command is None, judged
+    # a stick barely touched is only ever stopped, never steered
+    barely = judge_moved_stick(pred, now, d, np.array([0.03, 0.0]), CONFIG,
+                               lambda _p: check)
+    assert barely.command is None or not np.any(barely.command), barely
+    # a forward decision bounded to a slower stick keeps its turn, its forward no more
+    np.testing.assert_allclose(within_stick(np.array([0.5, -0.3]), np.array([0.2, 0.4])),
+                               [0.2, -0.3])
+    np.testing.assert_allclose(within_stick(np.array([0.5, -0.3]), np.array([-0.2, 0.0])),
+                               [0.0, -0.3])
+    np.testing.assert_allclose(within_stick(np.array([-0.5, 0.3]), np.array([-0.2, 0.0])),
+                               [-0.2, 0.3])

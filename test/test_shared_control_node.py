@@ -1390,8 +1390,8 @@ def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, mo
     stick moves on by more than STICK_CHANGE: the send found the stick moved and sent
     nothing, the next decision the same, so no override went out for as long as the hand
     moved (live: 1.4 s), the status saying 'intervening', and the board drove the user's
-    stick into the furniture. Now the decision's command is sent scaled to the newest stick
-    (never further forward than it, stopped if it was pulled back).
+    stick into the furniture. Now the newest stick is judged at once (it, the decision's
+    command within it, stopping: judge_moved_stick), and what is judged is sent.
 
     With decisions of 60 ms, judging the moved stick at every tick of the override timer
     takes the node's whole time (live: its inputs refused as stale on arrival, the layer
@@ -1449,22 +1449,70 @@ def test_a_stick_moving_while_the_layer_decides_still_gets_overrides(harness, mo
     assert not [(cmd, user) for cmd, user in sends if cmd > user + 1e-6], sends
     values = conv.diagnostic_values(node.diagnostic_status())
     if hand_moves:
-        assert int(values["overrides_within_stick"]) > 0
+        assert int(values["moved_stick_judgements"]) > 0
     if solve_s:  # (the harness's clock runs faster than the wall: a bound, not a rate)
         assert int(values["decisions_deferred"]) > 0
 
 
-def test_a_command_sent_for_a_moved_stick_goes_no_further_than_it():
-    from asgp_ros.nodes.shared_control_node import within_stick
+def test_a_stick_pulled_back_while_deciding_is_judged_and_said(harness, monkeypatch):
+    """Intervening before a wall; while the next decision is made the user pulls the stick
+    back (-0.6). The decision's forward command was sent scaled to a stop (pinning the
+    chair where backing away is clear), and the status said 'intervening' with the
+    decision's command. The pulled-back stick is judged at once: clear, nothing is sent,
+    and the status says so."""
+    from asgp_ros.nodes import shared_control_node as scn
 
-    c = np.array([0.4, -0.3])
-    np.testing.assert_allclose(within_stick(c, np.array([0.8, 0.5])), c)  # pushed further
-    np.testing.assert_allclose(within_stick(c, np.array([0.2, 0.0])), [0.2, -0.15])
-    np.testing.assert_allclose(within_stick(c, np.array([-0.5, 0.1])), [0.0, 0.0])
-    np.testing.assert_allclose(within_stick(c, np.array([0.0, 0.3])), [0.0, 0.0])
-    np.testing.assert_allclose(within_stick(-c, np.array([-0.2, 0.0])), [-0.2, 0.15])
-    np.testing.assert_allclose(within_stick(np.array([0.0, 0.5]), np.array([0.3, -0.2])),
-                               [0.0, 0.5])  # a turn on the spot: no forward to bound
+    h = harness()
+    _intervene(h)
+    node = h.node
+    real_decide = scn.decide
+    state = {"armed": True, "pending": False, "status": None}
+
+    def decide_then_pull_back(*args, **kwargs):
+        d = real_decide(*args, **kwargs)
+        if state["armed"] and d.command is not None:
+            state["armed"], state["pending"] = False, True
+            h.joy_pub.publish(conv.joy_from_sample(104.1, -0.6, 0.0))
+            time.sleep(0.05)  # in the node's reader before the send drains it
+        return d
+
+    monkeypatch.setattr(scn, "decide", decide_then_pull_back)
+    sends = []
+    publish, status_publish = node.override_pub.publish, node.status_pub.publish
+
+    def record(msg):
+        sends.append((float(msg.axes[0]), float(node._user[1][0])))
+        publish(msg)
+
+    def record_status(msg):
+        if state["pending"]:
+            state["pending"], state["status"] = False, conv.diagnostic_values(msg)
+        status_publish(msg)
+    node.override_pub.publish, node.status_pub.publish = record, record_status
+    h.clock(104.1)
+    h.joy_pub.publish(conv.joy_from_sample(104.1, 0.8, 0.0))
+    h.spin_until(lambda: node._user[0] >= 104.1 - 1e-9, what="joy")
+    seen = h._scan_state()
+    h.scan_pub.publish(wall_scan_msg(104.1, 1.55))  # judged at once while intervening
+    h.spin_until(lambda: h._scan_state() != seen, what="scan")
+    h.spin_until(lambda: state["status"] is not None, what="the decision's status")
+    _spin(h)
+    assert not [s for s in sends if s[1] < 0.0], sends  # none for the reversed stick
+    st = state["status"]
+    assert st["why"] == "clear" and float(st["user_forward"]) == pytest.approx(-0.6), st
+    assert st["command_forward"] == ""
+
+
+def test_a_decision_deferred_is_counted_once_however_many_ticks_it_waits():
+    from types import SimpleNamespace
+
+    from asgp_ros.nodes.shared_control_node import SharedControlNode
+
+    node = SimpleNamespace(_decided_at=time.monotonic(), _decide_s=10.0,
+                           _decisions_deferred=0, _deferred_counted=False)
+    assert not SharedControlNode._may_decide(node)  # type: ignore[arg-type]
+    assert not SharedControlNode._may_decide(node)  # type: ignore[arg-type]
+    assert node._decisions_deferred == 1
 
 
 def test_a_stale_or_out_of_order_scan_is_refused(harness):

@@ -374,3 +374,70 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
                     command=commands[best].copy(), p_user=p_user,
                     p_command=float(p_all[best]), change=float(change[best]),
                     solve_s=elapsed, candidates=int(commands.shape[0]), prediction=pred)
+
+
+def within_stick(command: FloatArray, stick: FloatArray) -> FloatArray:
+    """A decision's command with its forward part no further forward or back than the
+    user's newest stick (zero where the stick no longer drives that way: pulled back, or let
+    go), its turn as decided (scaled down with the forward, the turn built up while the
+    chair coasted straighter than the decision predicted)."""
+    out = np.asarray(command, dtype=np.float64).reshape(2).copy()
+    fwd, now = float(out[0]), float(np.asarray(stick, dtype=np.float64).reshape(2)[0])
+    out[0] = 0.0 if fwd * now <= 0.0 else math.copysign(min(abs(fwd), abs(now)), fwd)
+    return out
+
+
+def judge_moved_stick(predictor: Predictor, now: float, decision: Decision,
+                      stick: FloatArray, config: SharedControlConfig,
+                      check_for: Callable[[Prediction], CollisionCheck | None]) -> Decision:
+    """What to send for a stick that moved since ``decision`` was made (while it was made,
+    or while the layer was too busy to decide again), judged against that stick at once:
+    the stick itself, the decision's command within it (:func:`within_stick`) and stopping,
+    held over the horizon as :func:`decide` holds them (one batch of three paths, no
+    search). The stick passes if it is clear; else the first of the other two that is;
+    else the least likely to touch of the three (the stick's: it passes). A stick within
+    ``neutral_deadband`` is only ever stopped. Never sends a command judged against an
+    older stick: one pulled back was pinned by the decision's turn on the spot, and a
+    turn scaled down with the forward swept a corner the decision had steered around."""
+    stick = np.asarray(stick, dtype=np.float64).reshape(2)
+    problem = joy_problem(float(stick[0]), float(stick[1]))
+    if problem is not None:
+        return Decision(Why.STALE_INPUT, f"the user's command: {problem}", stick)
+    if is_neutral(stick, BOARD_NEUTRAL):
+        return Decision(Why.NEUTRAL, "the stick is neutral: nothing is commanded", stick)
+    if decision.command is None:
+        return Decision(Why.CHECK_FAILED, "no command decided", stick)
+    start = time.perf_counter()
+    bounded = (np.zeros(2) if is_neutral(stick, config.neutral_deadband)
+               else within_stick(decision.command, stick))
+    commands = np.array([stick, bounded, [0.0, 0.0]])
+    futures = np.repeat(commands[:, None, :], predictor.config.horizon_steps, axis=1)
+    try:
+        batch = predictor.predict_batch(futures, now, learn=False)
+        if not batch.ok:
+            raise ValueError(f"{batch.reason}: {batch.detail}")
+        check = check_for(batch)
+        if check is None:
+            return Decision(Why.NO_OBSTACLES, "no fresh scan or map", stick)
+        _, p = check(batch.pose, check_covariance(batch, config))
+    except ValueError as exc:
+        return Decision(Why.CHECK_FAILED, f"the moved stick: {exc}", stick,
+                        solve_s=time.perf_counter() - start)
+    p = np.where(np.isfinite(p), p, 1.0)
+    elapsed = time.perf_counter() - start
+    words = "the stick moved while the layer decided: judged again with it"
+    if p[0] <= config.threshold:
+        return Decision(Why.CLEAR, f"{words}, clear (p = {p[0]:.3f})", stick,
+                        p_user=float(p[0]), solve_s=elapsed, candidates=3)
+    clear = [i for i in (1, 2) if p[i] <= config.threshold]
+    best = clear[0] if clear else int(np.argmin(p))
+    if best == 0:  # nothing does better than the stick: it passes
+        return Decision(Why.NO_SAFE_COMMAND, f"{words}; nothing less likely to touch than "
+                        f"the stick (p {p[0]:.3f})", stick, p_user=float(p[0]),
+                        solve_s=elapsed, candidates=3)
+    return Decision(Why.INTERVENING if clear else Why.NO_SAFE_COMMAND,
+                    f"{words}: p {p[0]:.3f} -> {p[best]:.3f}", stick,
+                    command=commands[best].copy(), p_user=float(p[0]),
+                    p_command=float(p[best]),
+                    change=float(np.linalg.norm(commands[best] - stick)), solve_s=elapsed,
+                    candidates=3)

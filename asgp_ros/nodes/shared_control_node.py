@@ -110,6 +110,7 @@ from asgp_ros.core.shared_control import (
     applied_command,
     decide,
     is_neutral,
+    judge_moved_stick,
 )
 from asgp_ros.core.streams import joy_problem
 from asgp_ros.nodes import adaptation as adapt_params
@@ -152,21 +153,6 @@ JOY_LEAD_S = 0.1
 #: forward push went on after the user pulled the stick back (0.05: above an ADC's noise
 #: and a steady hand's tremor, which would only cost a decision).
 STICK_CHANGE = 0.05
-
-
-def within_stick(command: np.ndarray, stick: np.ndarray) -> np.ndarray:
-    """A decision's command scaled down (both axes alike: the same arc, no further along
-    it) to go no further forward or back than the user's newest stick, and stopped where
-    the stick no longer drives that way (pulled back, or let go to neutral): what is sent
-    when the stick moved while the decision was made (the next decision judges the new
-    stick; not sending at all left the board to the user's stick, driving into the
-    obstacle, for as long as the hand kept moving)."""
-    fwd, now = float(command[0]), float(stick[0])
-    if fwd == 0.0:
-        return np.asarray(command, dtype=np.float64).copy()
-    if fwd * now <= 0.0:
-        return np.zeros(2)
-    return np.asarray(command, dtype=np.float64) * min(1.0, abs(now) / abs(fwd))
 
 
 class StartupError(Exception):
@@ -464,7 +450,8 @@ class SharedControlNode(Node):
         self._joy_source = JoySource(lambda: self.predictor.config.reset_jump_s)
         self._sent: np.ndarray | None = None
         self._overrides_sent = 0
-        self._sent_within_stick = 0  # sent scaled to a stick that moved during the decision
+        self._moved_judged = 0  # sticks judged at once, moved since the decision
+        self._deferred_counted = False  # a decision deferred since the last one was taken
         self._interventions = 0  # interventions (runs of decisions that changed the command)
         self._was_intervening = False
         self._decisions = 0
@@ -942,6 +929,7 @@ class SharedControlNode(Node):
             self._deciding = False
             self._decided_at = time.monotonic()
             self._decide_s = self._decided_at - start
+            self._deferred_counted = False
 
     def _may_decide(self) -> bool:
         """Whether a stick moved since the decision may be judged again now (the override
@@ -954,7 +942,9 @@ class SharedControlNode(Node):
         obstacle source lost always decide."""
         if time.monotonic() - self._decided_at >= self._decide_s:
             return True
-        self._decisions_deferred += 1
+        if not self._deferred_counted:  # one deferred decision, however many ticks it waits
+            self._decisions_deferred += 1
+            self._deferred_counted = True
         return False
 
     def _decide_now(self, now: float) -> None:
@@ -967,6 +957,8 @@ class SharedControlNode(Node):
             self._solve_ms.append(1e3 * decision.solve_s)
         if decision.intervening:
             why_not = self._send_override()
+            if self._decision is not None and self._decision is not decision:
+                decision = self._decision  # the stick moved: judged again with it
             if self._decision is None:
                 # dropped before it was sent (the stick read before the send, which came
                 # while this decision was made, is neutral or stale; or the decision took
@@ -1038,17 +1030,20 @@ class SharedControlNode(Node):
         if why_not is not None or user is None:
             self._stop_overriding()
             return why_not
-        command = d.command
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
-            # the user moved the stick since the decision: from the timer, judged again with
-            # it, never the old decision sent again; inside the decision (the stick moved
-            # while it was made), or with the layer busy deciding (_may_decide), its command
-            # goes no further than the newest stick, and a later decision judges that stick
+            # the user moved the stick since the decision: never the old decision sent again.
+            # From the timer, decided again; inside the decision (the stick moved while it
+            # was made), or with the layer busy deciding (_may_decide), judged at once with
+            # the newest stick: it, the decision's command within it, or stopping
             if not self._deciding and self._may_decide():
                 self._decide(now)
                 return "the stick moved since the decision: judged again"
-            command = within_stick(command, user[1])
-            self._sent_within_stick += 1
+            d = self._judge_moved(now, d, user[1])
+            if d.command is None:
+                self._stop_overriding()
+                return f"the stick moved: {d.why.value}: {d.detail}"
+        command = d.command
+        assert command is not None  # (checked above, and by the judgement)
         self.override_pub.publish(conv.joy_from_sample(now, float(command[0]),
                                                        float(command[1])))
         self._sent, self._sent_t = command, now
@@ -1057,6 +1052,26 @@ class SharedControlNode(Node):
         # (training's rule for a bag's overrides): what the board applied is only modelled
         self.predictor.feed_override(now, now)
         return None
+
+    def _judge_moved(self, now: float, d: Decision, stick: np.ndarray) -> Decision:
+        """``judge_moved_stick`` for a stick that moved since ``d``: its result becomes the
+        decision (from now, for the newest stick), said in the status when the timer asked
+        (a decision publishes its own)."""
+        judged = judge_moved_stick(self.predictor, now, d, stick, self.config,
+                                   self._check_for(now))
+        self._moved_judged += 1
+        if judged.solve_s > 0.0:
+            self._solve_ms.append(1e3 * judged.solve_s)
+        self._decision, self._decision_t = judged, now
+        if not self._deciding:
+            if judged.intervening and not self._was_intervening:
+                self._interventions += 1
+            if judged.intervening:
+                self._change_sum += judged.change
+                self._change_count += 1
+            self._was_intervening = judged.intervening
+            self.status_pub.publish(self._status(judged))
+        return judged
 
     def _status(self, d: Decision) -> DiagnosticStatus:
         values = {
@@ -1084,7 +1099,7 @@ class SharedControlNode(Node):
             "decisions": str(self._decisions),
             "interventions": str(self._interventions),
             "overrides_sent": str(self._overrides_sent),
-            "overrides_within_stick": str(self._sent_within_stick),
+            "moved_stick_judgements": str(self._moved_judged),
             "decisions_deferred": str(self._decisions_deferred),
             "overriding_s": f"{self._overrides_sent / self.params.override_rate_hz:.2f}",
             "mean_change": (f"{self._change_sum / self._change_count:.3f}"
