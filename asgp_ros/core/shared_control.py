@@ -376,6 +376,11 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
                     solve_s=elapsed, candidates=int(commands.shape[0]), prediction=pred)
 
 
+#: The user's stick scaled by these (both axes: its path, slower) are the gentle candidates
+#: for a stick that moved while the layer decided (:func:`judge_moved_stick`).
+MOVED_STICK_SLOWER = (0.75, 0.5, 0.25)
+
+
 def within_stick(command: FloatArray, stick: FloatArray) -> FloatArray:
     """A decision's command with its forward part no further forward or back than the
     user's newest stick (zero where the stick no longer drives that way: pulled back, or let
@@ -392,13 +397,14 @@ def judge_moved_stick(predictor: Predictor, now: float, decision: Decision,
                       check_for: Callable[[Prediction], CollisionCheck | None]) -> Decision:
     """What to send for a stick that moved since ``decision`` was made (while it was made,
     or while the layer was too busy to decide again), judged against that stick at once:
-    the stick itself, the decision's command within it (:func:`within_stick`) and stopping,
-    held over the horizon as :func:`decide` holds them (one batch of three paths, no
-    search). The stick passes if it is clear; else the first of the other two that is;
-    else the least likely to touch of the three (the stick's: it passes). A stick within
-    ``neutral_deadband`` is only ever stopped. Never sends a command judged against an
-    older stick: one pulled back was pinned by the decision's turn on the spot, and a
-    turn scaled down with the forward swept a corner the decision had steered around."""
+    the stick itself, the stick slowed (:data:`MOVED_STICK_SLOWER`), the decision's command
+    within it (:func:`within_stick`) and stopping, held over the horizon as :func:`decide`
+    holds them (one batch of six paths, no search). The stick passes if it is clear; else
+    the clear one that changes it least; else the least likely to touch (the stick's: it
+    passes). A stick within ``neutral_deadband`` is only ever stopped. Never sends a
+    command judged against an older stick: one pulled back was pinned by the decision's
+    turn on the spot, and a turn scaled down with the forward swept a corner the decision
+    had steered around."""
     stick = np.asarray(stick, dtype=np.float64).reshape(2)
     problem = joy_problem(float(stick[0]), float(stick[1]))
     if problem is not None:
@@ -408,9 +414,11 @@ def judge_moved_stick(predictor: Predictor, now: float, decision: Decision,
     if decision.command is None:
         return Decision(Why.CHECK_FAILED, "no command decided", stick)
     start = time.perf_counter()
-    bounded = (np.zeros(2) if is_neutral(stick, config.neutral_deadband)
-               else within_stick(decision.command, stick))
-    commands = np.array([stick, bounded, [0.0, 0.0]])
+    if is_neutral(stick, config.neutral_deadband):
+        commands = np.array([stick, [0.0, 0.0]])
+    else:  # the stick, slowed (gently first), the decision within it, stopping
+        commands = np.array([stick, *(f * stick for f in MOVED_STICK_SLOWER),
+                             within_stick(decision.command, stick), [0.0, 0.0]])
     futures = np.repeat(commands[:, None, :], predictor.config.horizon_steps, axis=1)
     try:
         batch = predictor.predict_batch(futures, now, learn=False)
@@ -425,19 +433,23 @@ def judge_moved_stick(predictor: Predictor, now: float, decision: Decision,
                         solve_s=time.perf_counter() - start)
     p = np.where(np.isfinite(p), p, 1.0)
     elapsed = time.perf_counter() - start
+    n = int(commands.shape[0])
     words = "the stick moved while the layer decided: judged again with it"
     if p[0] <= config.threshold:
         return Decision(Why.CLEAR, f"{words}, clear (p = {p[0]:.3f})", stick,
-                        p_user=float(p[0]), solve_s=elapsed, candidates=3)
-    clear = [i for i in (1, 2) if p[i] <= config.threshold]
-    best = clear[0] if clear else int(np.argmin(p))
+                        p_user=float(p[0]), solve_s=elapsed, candidates=n)
+    change = np.linalg.norm(commands - stick, axis=1)
+    clear = np.flatnonzero(p <= config.threshold)
+    # the least change of the clear ones; none clear: the least likely to touch (then the
+    # least change)
+    best = (int(clear[np.argmin(change[clear])]) if clear.size
+            else int(np.lexsort((change, p))[0]))
     if best == 0:  # nothing does better than the stick: it passes
         return Decision(Why.NO_SAFE_COMMAND, f"{words}; nothing less likely to touch than "
                         f"the stick (p {p[0]:.3f})", stick, p_user=float(p[0]),
-                        solve_s=elapsed, candidates=3)
-    return Decision(Why.INTERVENING if clear else Why.NO_SAFE_COMMAND,
+                        solve_s=elapsed, candidates=n)
+    return Decision(Why.INTERVENING if clear.size else Why.NO_SAFE_COMMAND,
                     f"{words}: p {p[0]:.3f} -> {p[best]:.3f}", stick,
                     command=commands[best].copy(), p_user=float(p[0]),
-                    p_command=float(p[best]),
-                    change=float(np.linalg.norm(commands[best] - stick)), solve_s=elapsed,
-                    candidates=3)
+                    p_command=float(p[best]), change=float(change[best]), solve_s=elapsed,
+                    candidates=n)
