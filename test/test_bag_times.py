@@ -177,7 +177,7 @@ def test_the_held_out_part_is_the_last_fifth_of_the_data_across_a_clock_step_for
         clean, tmp_path):
     """The clock steps forward 5 minutes half-way through a 1.5-minute recording: cut on
     the grid's span, the "last 20 %" held out 78 % of the data."""
-    from asgp_ros.learning.training import read_series, split_holdout
+    from asgp_ros.learning.training import data_summary, read_series, split_holdout
 
     bag = _rewrite(clean, tmp_path / "forward", "mcap", _step(45.0, 300.0))
     for series in (read_series([str(clean)]), read_series([str(bag)])):
@@ -185,6 +185,9 @@ def test_the_held_out_part_is_the_last_fifth_of_the_data_across_a_clock_step_for
         n_train = int(train_part[0].res.valid.sum())
         n_held = int(held[0].res.valid.sum())
         assert abs(n_held / (n_train + n_held) - 0.2) < 0.01
+        # the training data's duration leaves the 5 minutes without a sample out (it read
+        # 6.5 minutes for a drive of 1.5)
+        assert 88.0 < data_summary(series)["duration_s"] < 90.5
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

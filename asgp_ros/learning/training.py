@@ -153,11 +153,28 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
         "segments": segments,
         "stale_fraction": float(stale / grid) if grid else 0.0,
         "overridden_samples": overridden,
-        "duration_s": float(sum(s.res.t[-1] - s.res.t[0] for s in series if s.res.t.size)),
+        "duration_s": float(sum(_recorded_s(s) for s in series)),
     }
     if rows is not None:
         out["training_rows"] = int(rows)
     return out
+
+
+#: A stretch this long (s) without any joystick or velocity sample is no recording time
+#: (a clock set forward, a recorder paused): training data's duration leaves it out.
+RECORDING_GAP_S = 10.0
+
+
+def _recorded_s(s: Series) -> float:
+    """How long a recording's samples span, its gaps of more than RECORDING_GAP_S left out
+    (a 6-minute drive with the clock set forward a day read 1446 minutes); the grid's span
+    for a series without its raw streams."""
+    raw = s.raw
+    if raw is not None and raw.joy_t.size + raw.vel_t.size > 1:
+        t = np.sort(np.concatenate([raw.joy_t, raw.vel_t]))
+        dt = np.diff(t)
+        return float(dt[dt <= RECORDING_GAP_S].sum())
+    return float(s.res.t[-1] - s.res.t[0]) if s.res.t.size else 0.0
 
 
 def canonical_order(series: Sequence[Series]) -> list[Series]:
