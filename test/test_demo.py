@@ -636,6 +636,14 @@ def test_demo_runs_end_to_end(demo_run):
     assert shared["solve_p50_ms"] not in ("n/a", "nan")
     assert "## Shared control" in (out / "report.md").read_text()
     assert (out / "logs" / "shared_control.log").exists()
+    # the run's bag holds the layer's decisions and the scans they were made on (a contact
+    # could not be traced from it)
+    assert msgs["scan"] > 0 and msgs["shared_control/status"] > 0
+    from asgp_ros.recording.bags import bag_topics
+
+    recorded = bag_topics(out / "run_bag")
+    assert recorded["/scan"] == "sensor_msgs/msg/LaserScan"
+    assert recorded["/shared_control/status"] == "diagnostic_msgs/msg/DiagnosticStatus"
     assert msgs["joy"] > 50 * 20  # ~100 Hz for 24 s
     assert msgs["predicted_path"] > 40  # ~5 Hz
     # the hardware counts the plans it published (its last diagnostics, a moment before the

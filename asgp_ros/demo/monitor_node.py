@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
@@ -30,7 +30,7 @@ from rclpy.serialization import deserialize_message
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
-from sensor_msgs.msg import CameraInfo, Joy
+from sensor_msgs.msg import CameraInfo, Joy, LaserScan
 from trajectory_msgs.msg import JointTrajectory
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -47,8 +47,9 @@ from asgp_ros.nodes import conversions as conv
 log = logging.getLogger(__name__)
 
 #: Topics the monitor records and counts without reading them (the bridge's 100 Hz
-#: ``joy_applied``).
-COUNTED_ONLY = frozenset({topics.JOY_APPLIED})
+#: ``joy_applied``; with ``--shared-control`` the laser and the layer's decisions, so that a
+#: contact can be traced to the decisions before it from the run's own bag).
+COUNTED_ONLY = frozenset({topics.JOY_APPLIED, topics.SCAN, topics.SHARED_CONTROL_STATUS})
 
 #: topic -> (message class, ROS 2 type name, recorded in the bag)
 TOPICS: dict[str, tuple[type, str, bool]] = {
@@ -62,6 +63,9 @@ TOPICS: dict[str, tuple[type, str, bool]] = {
     topics.JOY_PLAN: (JointTrajectory, "trajectory_msgs/msg/JointTrajectory", True),
     topics.JOY_OVERRIDE: (Joy, "sensor_msgs/msg/Joy", True),
     topics.DIAGNOSTICS: (DiagnosticArray, "diagnostic_msgs/msg/DiagnosticArray", True),
+    topics.SCAN: (LaserScan, "sensor_msgs/msg/LaserScan", True),
+    topics.SHARED_CONTROL_STATUS: (DiagnosticStatus, "diagnostic_msgs/msg/DiagnosticStatus",
+                                   True),
     topics.CAMERA_INFO: (CameraInfo, "sensor_msgs/msg/CameraInfo", False),
 }
 
