@@ -611,7 +611,7 @@ def written_times(path: str | os.PathLike[str]) -> list[tuple[int, int, bytes]]:
     """(connection, bag time, b"") of every message of an intact bag (the storage files its
     metadata.yaml lists), in the order written: SQLite's rows by id from the database
     itself (a scan of its pages follows every image's overflow pages: 4.6 s for a 1.5 GB
-    camera bag, 0.1 s this way), other storages from a scan of the records."""
+    camera bag that rosbags opens in 0.4 s), other storages from a scan of the records."""
     bag, storage, files, _listing = _storage_files(path, listed_only=True)
     if storage != "sqlite3":
         return recover_bag(path, topics=(), record_order=True, listed_only=True).messages
