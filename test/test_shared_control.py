@@ -670,3 +670,26 @@ def test_a_stick_pulled_back_while_deciding_is_not_pinned_at_the_wall(fwd, turn,
                                [0.0, -0.3])
     np.testing.assert_allclose(within_stick(np.array([-0.5, 0.3]), np.array([-0.2, 0.0])),
                                [-0.2, 0.3])
+
+
+def test_a_moved_stick_gets_the_clear_command_that_changes_it_least():
+    """Driving at a wall: the stick moved while the layer decided. Of the candidates
+    judged with it (the stick slowed, the decision within it, stopping), the clear one
+    that changes the stick least is sent (stopping made every such intervention a large
+    change)."""
+    from asgp_ros.core.shared_control import MOVED_STICK_SLOWER
+
+    pred, now = driving(0.8, 0.0)
+    check = collision_scan_check(seg_scan([((1.5, -3.0), (1.5, 3.0))]))
+    d = decide(pred, now, np.array([0.8, 0.0]), check, CONFIG, learn=False)
+    assert d.intervening, d
+    stick = np.array([0.8, 0.15])
+    judged = judge_moved_stick(pred, now, d, stick, CONFIG, lambda _p: check)
+    candidates = [stick * f for f in MOVED_STICK_SLOWER]
+    candidates += [within_stick(d.command, stick), np.zeros(2)]
+    clear = [c for c in candidates if _p_held(pred, now, c, check) <= CONFIG.threshold]
+    assert _p_held(pred, now, stick, check) > CONFIG.threshold and clear
+    assert judged.why is Why.INTERVENING and judged.command is not None, judged
+    least = min(float(np.linalg.norm(c - stick)) for c in clear)
+    assert judged.change == pytest.approx(least)
+    assert least < float(np.linalg.norm(stick))  # gentler than stopping
