@@ -296,12 +296,14 @@ def recording_identity(path: str | os.PathLike[str]) -> dict[str, str]:
     return {str(k[0]): str(k[1]) for k in _recording_keys(path)}
 
 
-def is_recording(path: str | os.PathLike[str], identities: Collection[object]) -> bool:
-    """Whether ``path`` is one of the recordings ``identities`` describe (records of
+def is_recording(path: str | os.PathLike[str] | dict[str, str],
+                 identities: Collection[object]) -> bool:
+    """Whether ``path`` (or the :func:`recording_identity` of one, read once for several
+    questions) is one of the recordings ``identities`` describe (records of
     :func:`recording_identity`; anything else in them, from a foreign file, matches
     nothing). Where both have a content digest, the content decides: a new recording saved
     where a trained one was is not that one, and a copy elsewhere is; else the real path."""
-    mine = recording_identity(path)
+    mine = path if isinstance(path, dict) else recording_identity(path)
 
     def same(ident: object) -> bool:
         if not isinstance(ident, dict):
@@ -371,6 +373,9 @@ _STEP_WINDOW = 5
 #: part that would overlap the one before is moved forward to start this long (s) after it
 #: ends (a gap: the resampler joins nothing across it).
 PART_GAP_S = 10.0
+#: The warnings of reading each part are given for this many parts (a recording of
+#: thousands of steps would say thousands of lines).
+_PARTS_SAID = 3
 
 
 def clock_parts(times_ns: Sequence[int] | NDArray[np.int64],
@@ -436,15 +441,16 @@ def _lead(latency: float) -> str:
 
 
 def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray[np.int64],
-                  max_skew: float, source: str, reference: float | None = None
-                  ) -> tuple[FloatArray, BoolArray, float | None]:
+                  max_skew: float, source: str, reference: float | None = None,
+                  warn: bool = True) -> tuple[FloatArray, BoolArray, float | None]:
     """Header stamps where valid, bag time (minus the median latency) elsewhere, seconds;
     which messages are stale (MAX_EXTRA_LATENCY), to be dropped; and the median latency
     (bag time - stamp, s; None without valid stamps).
 
     ``reference``: the joystick's median latency (the serial bridge stamps on the
     recorder's computer); a stream whose own differs by more than MAX_EXTRA_LATENCY is read
-    on its bag times minus the reference."""
+    on its bag times minus the reference. ``warn``: say what was done (False: silently)."""
+    say = log.warning if warn else log.debug
     bag = bag_ns.astype(np.float64) * 1e-9
     fresh = np.ones(bag.shape, dtype=bool)
     on_bag = bag - reference if reference is not None else bag  # (the joystick's clock)
@@ -453,28 +459,28 @@ def _choose_times(name: str, stamp_ns: NDArray[np.int64] | None, bag_ns: NDArray
     stamp = stamp_ns.astype(np.float64) * 1e-9
     valid = (stamp_ns > 0) & (np.abs(stamp - bag) <= max_skew)
     if not valid.any():
-        log.warning("%s: %s has no valid header stamps; using bag time", source, name)
+        say("%s: %s has no valid header stamps; using bag time", source, name)
         return on_bag, fresh, None
     if not valid.all():
-        log.warning("%s: %s: %d of %d header stamps invalid (zero or > %.1f s from bag "
+        say("%s: %s: %d of %d header stamps invalid (zero or > %.1f s from bag "
                     "time); using bag time for those", source, name, int((~valid).sum()),
                     valid.size, max_skew)
     latency = float(np.median(bag[valid] - stamp[valid]))
     if reference is not None and abs(latency - reference) > MAX_EXTRA_LATENCY:
-        log.warning("%s: %s is stamped %s its recording times, the joystick %s: its "
+        say("%s: %s is stamped %s its recording times, the joystick %s: its "
                     "stamps are not on the recorder's clock (a computer not synchronised); "
                     "its bag times are used", source, name, _lead(latency), _lead(reference))
         return bag - reference, fresh, reference
     ahead = valid & (bag - stamp < latency - MAX_EXTRA_LATENCY)
     if ahead.any():
-        log.warning("%s: %s: %d of %d messages stamped more than %.1f s later than their "
+        say("%s: %s: %d of %d messages stamped more than %.1f s later than their "
                     "recording times say (a stamp the clock had not reached); using bag "
                     "time for those", source, name, int(ahead.sum()), ahead.size,
                     MAX_EXTRA_LATENCY)
         valid &= ~ahead
     fresh = ~(valid & (bag - stamp - latency > MAX_EXTRA_LATENCY))
     if not fresh.all():
-        log.warning("%s: %s: %d of %d messages stamped more than %.1f s before they were "
+        say("%s: %s: %d of %d messages stamped more than %.1f s before they were "
                     "recorded, beyond the usual %.3f s (stale readings delivered late); "
                     "they are dropped", source, name, int((~fresh).sum()), fresh.size,
                     MAX_EXTRA_LATENCY, latency)
@@ -756,6 +762,7 @@ def _stream_times(streams: list[_Stream], max_skew: float, source: str
     fresh = [np.ones(s.bag_ns.size, dtype=bool) for s in streams]
     end = -np.inf
     last = [-np.inf] * len(streams)  # each stream's newest time in the parts before
+    moved, shift = 0, 0.0
     for p in range(n_parts):
         reference: float | None = None
         joy_on_bag = False  # the joystick read on bag times: so is every stream of a part
@@ -768,7 +775,7 @@ def _stream_times(streams: list[_Stream], max_skew: float, source: str
             name = s.name if n_parts == 1 else f"{s.name} (part {p + 1} of {n_parts})"
             stamps = None if s.stamp_ns is None or (k and joy_on_bag) else s.stamp_ns[sel]
             t, f, latency = _choose_times(name, stamps, s.bag_ns[sel], max_skew, source,
-                                          reference if k else None)
+                                          reference if k else None, warn=p < _PARTS_SAID)
             if k == 0:
                 reference = latency
                 # after a step of the recorder's clock alone, stamps and bag times differ
@@ -784,14 +791,19 @@ def _stream_times(streams: list[_Stream], max_skew: float, source: str
             for k, s in enumerate(streams):
                 times[k][s.parts == p] += shift
             hi += shift
-            log.warning("%s: part %d of the recording overlaps the part before it in time: "
-                        "read %.3f s later, %.0f s after that part's end", source, p + 1,
-                        shift, PART_GAP_S)
+            moved += 1
         end = max(end, hi)
         for k, s in enumerate(streams):
             sel = (s.parts == p) & fresh[k]
             if sel.any():
                 last[k] = max(last[k], float(times[k][sel].max()))
+    if moved:  # one line, however many parts (a bag of 6,000 steps said 6,000)
+        log.warning("%s: %d of the recording's %d parts overlapped the parts before them in "
+                    "time: each read %.0f s after their end (the last %.3f s later than its "
+                    "bag times)", source, moved, n_parts, PART_GAP_S, shift)
+    if n_parts > _PARTS_SAID:
+        log.warning("%s: %d parts: the warnings of reading each were given for the first %d "
+                    "only", source, n_parts, _PARTS_SAID)
     return list(zip(times, fresh, strict=True))
 
 
