@@ -12,6 +12,7 @@ from asgp_ros.cli._argtypes import number
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
 from asgp_ros.common.fileio import MODEL_FILE, bag_inputs, check_output
 from asgp_ros.core.modelfile import ModelFileError, load_model, save_model
+from asgp_ros.core.models import MotionModel
 from asgp_ros.core.resample import learning_config
 from asgp_ros.learning.adapting import (
     AdaptingError,
@@ -19,7 +20,7 @@ from asgp_ros.learning.adapting import (
     adapt_model,
     check_adaptable,
 )
-from asgp_ros.recording.bags import is_recording, same_recording
+from asgp_ros.recording.bags import is_recording, recording_identity, same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -89,6 +90,18 @@ def _minutes(data: object) -> str:
     return f"{seconds / 60:.1f}"
 
 
+def learnt_from(model: MotionModel, bag: str) -> str | None:
+    """"trained on" or "adapted to" when ``bag`` is one of the recordings ``model`` learnt
+    from (its model file's records), else None; the bag's identity (a digest of its
+    storage) is read once."""
+    mine = recording_identity(bag)
+    if is_recording(mine, _recordings(model.meta.get("training_data"))):
+        return "trained on"
+    if is_recording(mine, _recordings(*_adaptations(model.meta.get("adaptation")))):
+        return "adapted to"
+    return None
+
+
 def _bag_names(data: object) -> list[str]:
     """The bags a data record names (a foreign file's record may be of any shape)."""
     bags = data.get("bags") if isinstance(data, dict) else None
@@ -148,16 +161,14 @@ def run(args: argparse.Namespace) -> int:
     except (AdaptingError, ModelFileError) as exc:
         raise CommandError(f"{args.model}: {exc}" if isinstance(exc, AdaptingError)
                            else str(exc)) from exc
-    trained_on = _recordings(model.meta.get("training_data"))
-    adapted_to = _recordings(*_adaptations(model.meta.get("adaptation")))
     for bag in args.bags:
-        was_trained, was_adapted = is_recording(bag, trained_on), is_recording(bag, adapted_to)
-        if was_trained or was_adapted:
-            print(f"warning: {bag} is one of the recordings {args.model} was "
-                  f"{'trained on' if was_trained else 'adapted to'}: its rows are in "
-                  "the posterior already"
+        learnt = learnt_from(model, bag)
+        if learnt is not None:
+            print(f"warning: {bag} is one of the recordings {args.model} was {learnt}: its "
+                  "rows are in the posterior already"
                   + (" and count twice with --trained-weight 1"
-                     if args.trained_weight > 0.0 or was_adapted else ""), flush=True)
+                     if args.trained_weight > 0.0 or learnt == "adapted to" else ""),
+                  flush=True)
     # learnt under the held-chair rule even where the model predicts without it
     series = read_series_or_fail(args.bags, args,
                                  resample_config=learning_config(model.resample_config))

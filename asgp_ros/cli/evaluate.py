@@ -9,7 +9,7 @@ from typing import Any
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
-from asgp_ros.cli.adapt import _adaptations, _recordings
+from asgp_ros.cli.adapt import learnt_from
 from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, bag_inputs, check_output
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
@@ -27,7 +27,7 @@ from asgp_ros.learning.evaluation import (
     evaluate_adaptive,
     evaluate_model,
 )
-from asgp_ros.recording.bags import is_recording, same_recording
+from asgp_ros.recording.bags import same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -130,13 +130,11 @@ def run(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except (ModelFileError, OSError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    trained_on = _recordings(model.meta.get("training_data"))
-    adapted_to = _recordings(*_adaptations(model.meta.get("adaptation")))
     for bag in args.bags:  # scored on the data it learnt, a model looks better than it is
-        if is_recording(bag, trained_on) or is_recording(bag, adapted_to):
-            print(f"warning: {bag} is one of the recordings {args.model} was "
-                  f"{'trained on' if is_recording(bag, trained_on) else 'adapted to'}: "
-                  "its scores are not a test on data the model has not seen", flush=True)
+        learnt = learnt_from(model, bag)
+        if learnt is not None:
+            print(f"warning: {bag} is one of the recordings {args.model} was {learnt}: its "
+                  "scores are not a test on data the model has not seen", flush=True)
     series = read_series_or_fail(args.bags, args, resample_config=model.resample_config,
                                  truth=args.truth)
     tests = [TestSeries(s.name, s.res, s.raw) for s in series]
