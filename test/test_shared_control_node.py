@@ -149,6 +149,13 @@ class Harness:
                     msg.ranges = first
                 self.scan_pub.publish(msg)
                 self.spin_until(lambda s=seen: self._scan_state() != s, what="scan")
+        self.settle()
+
+    def settle(self) -> None:
+        """Until the decisions the inputs so far asked for are made (at the executor's
+        turn after them)."""
+        n = self.node
+        self.spin_until(lambda: not (n._step_wanted or n._scan_wanted), what="decisions")
 
     def _scan_state(self) -> tuple[object, int, int, int, int]:
         """What a scan changes in the node: the stored scan, or a refusal's count."""
@@ -1833,3 +1840,82 @@ def test_a_decision_older_than_hold_s_is_not_sent_and_the_status_says_why(harnes
     # (no stick sample came in the half second the decision took: it is stale too)
     acted = [m for m in messages if not m.startswith("clear")]
     assert acted and all("went stale" in m or "beyond hold_s" in m for m in acted), messages
+
+
+def test_slow_decisions_do_not_starve_the_layers_inputs(rclpy_context, model_file,  # noqa: F811
+                                                        monkeypatch):
+    """On the system clock, inputs at their real rates (joystick 20 Hz, VO 5 Hz, scans
+    10 Hz), a wall 1.6 m ahead after 2 s, and every intervening decision taking 0.1 s (a
+    loaded 2-core laptop). Each VO step and each scan decided in its own callback: 1.5 s
+    of deciding a second, the executor fell behind its inputs, the scans it reached were
+    stale, and the layer let go in the middle of the intervention ('no fresh scan or map',
+    8 times in 5 s). The decisions asked for are made once the waiting inputs are read."""
+    import threading
+
+    import rclpy
+    from geometry_msgs.msg import TwistStamped
+
+    from asgp_ros.nodes import shared_control_node as scn
+
+    node = SharedControlNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("laser_x", value=LASER_X),
+        Parameter("joy_poll_period_s", value=0.005)])
+    feeder = rclpy.create_node("sc_feeder", context=rclpy_context)
+    probe = rclpy.create_node("sc_probe", context=rclpy_context)
+    executor = SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    executor.add_node(probe)
+    joy = feeder.create_publisher(Joy, "joy", qos_profile_sensor_data)
+    vo = feeder.create_publisher(TwistStamped, "vo/twist", qos_profile_sensor_data)
+    scan = feeder.create_publisher(LaserScan, "scan", qos_profile_sensor_data)
+    whys: list[str] = []
+    probe.create_subscription(DiagnosticStatus, "shared_control/status",
+                              lambda m: whys.append(conv.diagnostic_values(m)["why"]),
+                              QoSProfile(depth=200))
+    deadline = time.monotonic() + 10.0
+    while not all(p.get_subscription_count() > 0 for p in (joy, vo, scan)):
+        assert time.monotonic() < deadline, "discovery"
+        executor.spin_once(timeout_sec=0.01)
+    real_decide = scn.decide
+
+    def slow_decide(*args, **kwargs):
+        d = real_decide(*args, **kwargs)
+        if d.command is not None:
+            time.sleep(0.1)
+        return d
+
+    monkeypatch.setattr(scn, "decide", slow_decide)
+    stop = threading.Event()
+
+    def feed() -> None:
+        rng = np.random.default_rng(0)
+        start, i = time.monotonic(), 0
+        while not stop.is_set():
+            now = node.get_clock().now().nanoseconds * 1e-9
+            joy.publish(conv.joy_from_sample(now, 0.8, 0.0))
+            if i % 4 == 0:
+                vo.publish(conv.twist_stamped_from_sample(now, 0.5 + rng.normal(0, 0.003), 0.0))
+            if i % 2 == 0:
+                scan.publish(wall_scan_msg(now, 20.0 if i < 40 else 1.6))
+            i += 1
+            time.sleep(max(0.0, start + 0.05 * i - time.monotonic()))
+
+    thread = threading.Thread(target=feed)
+    thread.start()
+    try:
+        end = time.monotonic() + 6.0
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+    finally:
+        stop.set()
+        thread.join()
+        executor.shutdown()
+        feeder.destroy_node()
+        probe.destroy_node()
+    values = conv.diagnostic_values(node.diagnostic_status())
+    node.destroy_node()
+    assert "intervening" in whys, whys
+    after = whys[whys.index("intervening"):]
+    assert after.count("intervening") >= 15, after
+    assert not [w for w in after if w in ("stale_input", "no_obstacle_source")], after
+    assert values["scans_old"] == "0", values
