@@ -148,18 +148,21 @@ def test_a_params_file_is_matched_to_the_node_as_rcl_does(tmp_path):
           "chair1:\n  predictor_node:\n    ros__parameters:\n      a: 1\n":
               "/chair1/predictor_node",
           "/*/predictor_node:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
-          "predictor_node:\n  ros__parameters:\n    a: 1\n": "/predictor_node",
-          # a bare name at the top: read leniently, as in any namespace
-          "predictor_node:\n  ros__parameters:\n    b: 1\n": "/chair1/predictor_node"}
+          "predictor_node:\n  ros__parameters:\n    a: 1\n": "/predictor_node"}
     for text, fqn in ok.items():
         assert problem(text, fqn) is None, text
     bad = {"/**/predictor_nod:\n  ros__parameters:\n    a: 1\n": "/predictor_node",
            "chair2:\n  predictor_node:\n    ros__parameters:\n      a: 1\n":
                "/chair1/predictor_node",
            "vo_node:\n  ros__parameters:\n    a: 1\n": "/chair1/predictor_node",
-           "": "/predictor_node"}
+           "": "/predictor_node",
+           # a bare name at the top is the node in / only (rcl applied none of it under
+           # /chair1: the node ran on its defaults without a word)
+           "predictor_node:\n  ros__parameters:\n    b: 1\n": "/chair1/predictor_node"}
     for text, fqn in bad.items():
         assert "has no section for this node" in (problem(text, fqn) or ""), text
+    assert "'/**/predictor_node' is the node in any namespace" in problem(
+        "predictor_node:\n  ros__parameters:\n    b: 1\n", "/chair1/predictor_node")
     # nested 2,000 levels deep (rcl reads it): one line, not yaml's RecursionError
     deep = "".join("  " * i + f"k{i}:\n" for i in range(2000))
     deep += "  " * 2000 + "ros__parameters:\n" + "  " * 2001 + "a: 1\n"
@@ -168,3 +171,36 @@ def test_a_params_file_is_matched_to_the_node_as_rcl_does(tmp_path):
     assert params_file_problem(["node"], "/predictor_node") is None
     assert params_file_problem(["node", "--ros-args", "--", "--params-file", "x"],
                                "/predictor_node") is None
+
+
+@pytest.mark.ros
+def test_a_node_takes_its_own_dump_back(rclpy_context, repo_root):
+    """A start-up parameter set to the value it has was refused ('restart the node to
+    change it'), so the node's own dump given back with one runtime change (``ros2 param
+    load``, or atomically) was refused whole. A change is still refused."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes.predictor_node import PredictorNode
+    from asgp_ros.nodes.shared_control_node import SharedControlNode
+    from asgp_ros.nodes.vo_node import VONode
+
+    model = str(repo_root / MODEL)
+    for make, runtime in ((PredictorNode, ("vo_timeout_s", 0.8)),
+                          (SharedControlNode, None), (VONode, None)):
+        overrides = [] if make is VONode else [Parameter("model_path", value=model)]
+        node = make(context=rclpy_context, parameter_overrides=overrides)
+        try:
+            dump = [node.get_parameter(name) for name in sorted(node._parameters)
+                    if not node.describe_parameter(name).read_only]  # (rclpy's own)
+            if runtime is not None:
+                dump = [Parameter(runtime[0], value=runtime[1]) if p.name == runtime[0] else p
+                        for p in dump]
+            result = node.set_parameters_atomically(dump)
+            assert result.successful, (make.__name__, result.reason)
+            if runtime is not None:
+                assert node.get_parameter(runtime[0]).value == runtime[1]
+            name = "model_path" if make is not VONode else "color_topic"
+            changed = node.set_parameters([Parameter(name, value="/elsewhere")])[0]
+            assert not changed.successful and "read at start-up" in changed.reason
+        finally:
+            node.destroy_node()

@@ -1947,3 +1947,78 @@ def test_predictions_slower_than_their_period_are_a_warning(rclpy_context, model
         assert "longer than the 200 ms between paths" in status.message, status.message
     finally:
         h.close()
+
+
+# ---- from an attack on the diagnostics: each a false value found, now a regression test --
+
+
+def test_an_input_rate_falls_once_the_input_stops():
+    """joy_rate_hz read 17.2 Hz three seconds after the last joystick message: the rate was
+    taken over the span of the arrivals kept, not up to now."""
+    from asgp_ros.nodes.predictor_node import _RateMeter
+
+    meter = _RateMeter(window_s=5.0)
+    for i in range(41):  # 20 Hz for 2 s
+        meter.tick(100.0 + 0.05 * i)
+    assert meter.rate(102.0) == pytest.approx(20.0, rel=0.03)
+    assert meter.rate(105.0) < 10.0  # 3 s of silence: 40 arrivals in 5 s
+    assert meter.rate(107.5) == 0.0  # all out of the window
+
+
+def test_input_ages_are_the_staleness_rules(rclpy_context, model_file):
+    """A joystick stamped 0.9 s ahead of the clock goes silent: the status said 'joystick
+    is 0.83 s old' and joy_age_s -0.070 (its stamp's age). The ages are those the staleness
+    rule counts: from the arrival of a sample stamped ahead."""
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False})
+    try:
+        _drive_with_a_lead(h, 100.0, 105.0, 0.9, 105.0)
+        _drive_with_a_lead(h, 105.0, 105.8, 0.9, 105.0)  # silent from 105.0 s
+        status = h.node.diagnostic_status()
+        values = conv.diagnostic_values(status)
+        assert values["reason"] == "stale_joystick"
+        assert float(values["joy_age_s"]) == pytest.approx(0.8, abs=0.06), status.message
+        assert f"{float(values['joy_age_s']):.2f}" in status.message
+        assert 0.0 <= float(values["vo_age_s"]) <= 0.2
+    finally:
+        h.close()
+
+
+def test_no_ellipses_and_no_coverage_claimed_without_an_uncertainty(rclpy_context,
+                                                                    model_file):
+    """uncertainty 'none': the node published ellipses of no size as the 95 % ellipses,
+    and adapt_coverage_95 0.777 (the linear ellipses' coverage) beside them."""
+    h = Harness(rclpy_context, model_file, uncertainty="none",
+                **{"adapt.enabled": True, "adapt.half_life_s": 10.0})
+    try:
+        h.drive(100.0, 112.0)
+        assert h.paths
+        added = [m for arr in h.markers for m in arr.markers if m.action == Marker.ADD]
+        assert not added
+        values = conv.diagnostic_values(h.node.diagnostic_status())
+        assert int(values["adapt_checked"]) > 0
+        assert values["adapt_coverage_95"].startswith("n/a"), values["adapt_coverage_95"]
+    finally:
+        h.close()
+
+
+def test_coverage_after_a_reset_is_not_the_old_posteriors(rclpy_context, model_file):
+    """~/reset_adaptation: adapt_coverage_95 and adapt_coverage_one_step still gave the
+    reset posterior's coverage (0.365 / 0.413) beside the trained model at scale 1."""
+    from std_srvs.srv import Trigger
+
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": True,
+                                              "adapt.half_life_s": 10.0})
+    try:
+        h.drive(100.0, 112.0, vel=lambda t: (0.3 + 0.2 * math.sin(t - 0.3),
+                                             0.2 * math.cos(0.5 * t)))
+        before = conv.diagnostic_values(h.node.diagnostic_status())
+        assert before["adapt_coverage_95"] != "nan"
+        client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")
+        h.spin_until(client.service_is_ready, what="reset service")
+        future = client.call_async(Trigger.Request())
+        h.spin_until(future.done, what="reset reply")
+        assert future.result().success
+        after = conv.diagnostic_values(h.node.diagnostic_status())
+        assert after["adapt_coverage_95"] == after["adapt_coverage_one_step"] == "nan", after
+    finally:
+        h.close()

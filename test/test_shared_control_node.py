@@ -1919,3 +1919,75 @@ def test_slow_decisions_do_not_starve_the_layers_inputs(rclpy_context, model_fil
     assert after.count("intervening") >= 15, after
     assert not [w for w in after if w in ("stale_input", "no_obstacle_source")], after
     assert values["scans_old"] == "0", values
+
+
+# ---- from an attack on the diagnostics: each a false value found, now a regression test --
+
+
+def test_no_safe_command_is_a_warning_in_the_diagnostics_too(harness):
+    """Every candidate likely to touch: shared_control/status said WARN, /diagnostics OK
+    for the same decision."""
+    h = harness()
+    h.drive(100.0, 103.0, fwd=0.3, wall=20.0)
+    h.drive(103.0, 104.0, fwd=0.3, wall=0.3)
+    assert h.last()["why"] == "no_safe_command", h.last()
+    assert h.status[-1].level == DiagnosticStatus.WARN
+    assert h.node.diagnostic_status().level == DiagnosticStatus.WARN
+
+
+def test_a_stick_released_while_intervening_is_said_not_starting(harness):
+    """The user lets go while the layer intervenes: the diagnostics said 'no decision
+    yet', why 'starting', after dozens of decisions."""
+    h = harness()
+    _intervene(h)
+    h.joy_pub.publish(conv.joy_from_sample(104.0, 0.0, 0.0))
+    stats = h.node.predictor.stats
+    n = stats.joy_samples
+    h.spin_until(lambda: stats.joy_samples > n, what="neutral joy")
+    status = h.node.diagnostic_status()
+    values = conv.diagnostic_values(status)
+    assert values["why"] == "neutral_stick", (status.message, values["why"])
+    assert "override stopped" in status.message
+
+
+def test_the_scan_value_says_a_silent_laser_is_stale(harness):
+    """Scans stopped for 2 s: why 'no_obstacle_source', and 'scan: received'."""
+    h = harness(scan_timeout_s=0.3)
+    h.drive(100.0, 103.0, wall=1.6)
+    h.drive(103.0, 105.0, wall=1.6, scan=False)
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["why"] == "no_obstacle_source"
+    assert values["scan"].startswith("stale: the last taken 2.0"), values["scan"]
+
+
+def test_overriding_s_is_the_time_the_overrides_cover(harness):
+    """overriding_s (the demo report's time overriding, and from it the share of the
+    drive untouched) was overrides_sent / override_rate_hz: 3.5 s in 2 s of intervening,
+    an override being sent at each decision too, besides the 20 Hz timer."""
+    h = harness()
+    _intervene(h)
+    before = float(conv.diagnostic_values(h.node.diagnostic_status())["overriding_s"])
+    sent = h.node._overrides_sent
+    h.drive(104.0, 106.0, wall=1.6)  # 2 s more
+    assert h.last()["why"] == "intervening"
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert int(values["overrides_sent"]) - sent > 2.0 * h.node.params.override_rate_hz
+    assert 1.5 <= float(values["overriding_s"]) - before <= 2.0 + 0.05
+
+
+def test_overrides_that_reach_no_one_are_an_error(harness):
+    """override_topic misspelt (or no bridge running): the layer intervened before a wall,
+    counted its overrides as sent, and its diagnostics said OK."""
+    h = harness()
+    h.drive(100.0, 103.0, wall=20.0)
+    assert h.node.diagnostic_status().level == DiagnosticStatus.OK
+    (sub,) = [s for s in h.test.subscriptions if s.topic_name == "/joy_override"]
+    h.test.destroy_subscription(sub)  # the bridge gone
+    h.spin_until(lambda: h.node.override_pub.get_subscription_count() == 0, what="no reader")
+    status = h.node.diagnostic_status()
+    assert status.level == DiagnosticStatus.WARN and "nothing subscribes" in status.message
+    h.drive(103.0, 104.5, wall=1.6)
+    assert h.last()["why"] == "intervening"
+    status = h.node.diagnostic_status()
+    assert status.level == DiagnosticStatus.ERROR, status.message
+    assert conv.diagnostic_values(status)["override_subscribers"] == "0"

@@ -832,3 +832,23 @@ def test_no_event_handler_per_endpoint_and_an_unmatched_peer_is_reported(rclpy_c
         assert "cannot be matched" not in _levels(h.diags)[-1][1]
     finally:
         h.close()
+
+
+@pytest.mark.ros
+def test_a_stopped_camera_says_stale_not_the_last_twist(rclpy_context, frames):
+    """The camera stops: ERROR 'no colour/depth pair ... no twist published', while the
+    values said status 'ok' with the last twist's v and omega."""
+    K, drive, images = frames
+    h = _Harness(rclpy_context)
+    try:
+        h.connect(K)
+        for k, (img, depth) in enumerate(images[:6]):
+            mm = np.rint(depth * 1000).astype(np.uint16)
+            h.send(100.0 + drive.t[k], camera.image_from_array(0.0, img, "camera"),
+                   camera.image_from_array(0.0, mm, "camera"))
+        h.spin_until(lambda: False, h.node.params.stale_timeout_s + 0.6)  # silent
+        level, message, values = _levels(h.diags)[-1]
+        assert level == 2 and "no twist published" in message
+        assert values.get("status") == "stale" and "v" not in values, values
+    finally:
+        h.close()

@@ -494,6 +494,7 @@ class ModelAdapter:
             online.reset()
         self._log_scales = np.zeros_like(self._log_scales)
         self._errors = np.full(2, np.nan)
+        self._coverage = self._coverage_one = math.nan  # (of the posterior before)
         if self.settings.coverage is not None and self.settings.select:
             self._published = TRAINED
         self._choice = self._new_choice()

@@ -846,6 +846,12 @@ class Predictor:
         t, v, w, ok = self._vo.newest_row()
         return None if ok < 0.5 else (float(t), float(v), float(w))
 
+    def input_ages(self, now: float) -> tuple[float, float]:
+        """(joystick age, VO age) at ``now`` (s), as the staleness rule of :meth:`status`
+        counts them: since the newest sample's stamp, or its arrival when it was stamped
+        ahead of the clock; inf before the first."""
+        return now - self._heard["joystick"], now - self._heard["VO"]
+
     def newest_stamps(self) -> tuple[float, float]:
         """(newest joystick stamp, newest VO stamp); -inf when empty."""
         return self._joy.newest, self._vo.newest

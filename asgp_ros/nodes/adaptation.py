@@ -91,10 +91,12 @@ def describe(values: Mapping[str, Any], settings: AdaptSettings | None) -> str:
             f"{'on' if settings.coverage is not None else 'off'}")
 
 
-def diagnostic_values(adaptation: AdapterStats | None, unavailable: str = ""
-                      ) -> dict[str, str]:
+def diagnostic_values(adaptation: AdapterStats | None, unavailable: str = "",
+                      ellipses: bool = True) -> dict[str, str]:
     """The diagnostics' key-values of a predictor's adaptation ('adapt': on or off; with
-    ``unavailable``, why a model asked to adapt does not, see :func:`make_predictor`)."""
+    ``unavailable``, why a model asked to adapt does not, see :func:`make_predictor`).
+    ``ellipses`` False: the node publishes no ellipses (uncertainty 'none'), so no
+    coverage of them is claimed."""
     if adaptation is None:
         return {"adapt": "off", **({"adapt_unavailable": unavailable} if unavailable else {})}
     return {
@@ -112,7 +114,8 @@ def diagnostic_values(adaptation: AdapterStats | None, unavailable: str = ""
                            if math.isfinite(adaptation.choice_t)
                            else "no test yet (too few checks, or no spread)"),
         "adapt_switches": str(adaptation.switches),
-        "adapt_coverage_95": f"{adaptation.coverage:.3f}",
+        "adapt_coverage_95": f"{adaptation.coverage:.3f}" if ellipses
+        else "n/a (uncertainty 'none': no ellipses)",
         "adapt_coverage_one_step": f"{adaptation.coverage_one_step:.3f}",
         "adapt_last_update_ms": f"{1e3 * adaptation.last_update_s:.3f}",
         "adapt_last_check_ms": f"{1e3 * adaptation.last_check_s:.3f}",

@@ -99,6 +99,12 @@ def sim_time_change(node: Node, params: Iterable[Parameter]) -> str | None:
     return None
 
 
+def is_change(node: Node, prm: Parameter) -> bool:
+    """Whether setting ``prm`` changes the node's value (a set to the value it has, a
+    ``ros2 param load`` of the node's own dump, changes nothing and is not refused)."""
+    return not node.has_parameter(prm.name) or prm.value != node.get_parameter(prm.name).value
+
+
 def refuse_at_runtime(node: Node, names: Container[str], who: str
                       ) -> Callable[[list[Parameter]], SetParametersResult]:
     """An on-set-parameters callback for a node whose parameters ``names`` are all read at
@@ -107,7 +113,7 @@ def refuse_at_runtime(node: Node, names: Container[str], who: str
     def callback(params: list[Parameter]) -> SetParametersResult:
         why = sim_time_change(node, params)
         for prm in params:
-            if why is None and prm.name in names:
+            if why is None and prm.name in names and is_change(node, prm):
                 why = f"{prm.name} is read at start-up: restart {who} to change it"
         return SetParametersResult(successful=why is None, reason=why or "")
     return callback

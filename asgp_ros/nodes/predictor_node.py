@@ -91,7 +91,7 @@ from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
-from asgp_ros.nodes.parameters import declare, sim_time_change
+from asgp_ros.nodes.parameters import declare, is_change, sim_time_change
 from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
@@ -316,11 +316,14 @@ class _RateMeter:
             self.times.popleft()
 
     def rate(self, now: float) -> float:
+        """The arrivals' rate, measured up to ``now``: it falls once they stop (over the
+        span of the arrivals kept, it read the old rate until the last left the window)."""
         while self.times and self.times[0] < now - self.window_s:
             self.times.popleft()
         if len(self.times) < 2:
             return 0.0
-        return (len(self.times) - 1) / max(self.times[-1] - self.times[0], 1e-9)
+        return (len(self.times) - 1) / max(now - self.times[0], self.times[-1] - self.times[0],
+                                           1e-9)
 
 
 class PredictorNode(Node):
@@ -486,7 +489,8 @@ class PredictorNode(Node):
         why = sim_time_change(self, params)
         if why is not None:
             return SetParametersResult(successful=False, reason=why)
-        changes = {prm.name: prm.value for prm in params if prm.name in SPECS}
+        changes = {prm.name: prm.value for prm in params
+                   if prm.name in SPECS and (SPECS[prm.name].runtime or is_change(self, prm))}
         if not changes:
             return SetParametersResult(successful=True)
         try:
@@ -826,13 +830,16 @@ class PredictorNode(Node):
             self._markers_shown = True
             self._markers_made += 1
             self._ellipses_ms.append(1e3 * (time.perf_counter() - path_out))
-        else:  # publish_uncertainty switched off: the last path's ellipses go too
+        else:  # publish_uncertainty switched off (or 'none'): the last path's ellipses go
             self._clear_markers(result.t0)
         return path_out
 
     def _making_ellipses(self) -> bool:
-        """Ellipses are made for each path: publish_uncertainty, and something subscribes."""
-        return self.params.publish_uncertainty and self.marker_pub.get_subscription_count() > 0
+        """Ellipses are made for each path: publish_uncertainty, an uncertainty propagated
+        (with 'none' the covariances are zero: no 95 % ellipse is known), and something
+        subscribes."""
+        return self.params.publish_uncertainty and self.params.uncertainty != "none" \
+            and self.marker_pub.get_subscription_count() > 0
 
     def _clear_markers(self, stamp: float) -> None:
         """Clear the ellipses last sent (in RViz), once."""
@@ -867,21 +874,22 @@ class PredictorNode(Node):
         if result.ok and now is not None:  # the inputs may have gone bad since that path
             result = self.predictor.status(now) or result
         stats = self.predictor.stats
-        joy_newest, vo_newest = self.predictor.newest_stamps()
+        joy_age, vo_age = self.predictor.input_ages(now) if now is not None \
+            else (math.inf, math.inf)
         lat = np.asarray(self._latency_ms)
         wall = time.monotonic()
         if not self._making_ellipses():  # ellipses_p99_ms: nan, not a past viewer's times
             self._ellipses_ms.clear()
 
-        def age(newest: float) -> str:
-            return "inf" if now is None or not math.isfinite(newest) else f"{now - newest:.3f}"
+        def age(seconds: float) -> str:
+            return f"{seconds:.3f}" if math.isfinite(seconds) else "inf"
 
         values = {
             "reason": result.reason.value,
             "joy_rate_hz": f"{self._joy_rate.rate(wall):.1f}",
             "vo_rate_hz": f"{self._vo_rate.rate(wall):.1f}",
-            "joy_age_s": age(joy_newest),
-            "vo_age_s": age(vo_newest),
+            "joy_age_s": age(joy_age),
+            "vo_age_s": age(vo_age),
             "last_latency_ms": f"{lat[-1]:.3f}" if lat.size else "nan",
             "latency_p99_ms": _p99(self._latency_ms),
             "predict_p99_ms": _p99(self._predict_ms),
@@ -912,8 +920,9 @@ class PredictorNode(Node):
             "joy_waits": str(self._joy_waits),
             "joy_wait_timeouts": str(self._joy_wait_timeouts),
         }
-        values.update(adapt_params.diagnostic_values(self.predictor.adaptation,
-                                                     self._adapt_unavailable))
+        values.update(adapt_params.diagnostic_values(
+            self.predictor.adaptation, self._adapt_unavailable,
+            ellipses=self.params.uncertainty != "none"))
         message = (f"predicting (t0 {result.t0:.2f} s)" if result.ok
                    else f"no path: {result.reason}: {result.detail}")
         level = "OK" if result.ok else "WARN"

@@ -300,8 +300,11 @@ def params_file_problem(argv: list[str], fqn: str) -> str | None:
             return f"--params-file {path}: {' '.join(str(exc).split())}"
         keys = list(_node_sections(data)) if isinstance(data, dict) else []
         if not any(_node_key_matches(k, fqn) for k in keys):
+            name = fqn.rsplit("/", 1)[-1]
+            hint = (f" ('{name}' is the node in / only: '/**/{name}' is the node in any "
+                    "namespace)" if f"/{name}" in keys else "")
             return (f"--params-file {path} has no section for this node ({fqn}): its "
-                    f"sections are {keys or 'none'}")
+                    f"sections are {keys or 'none'}{hint}")
     return None
 
 
@@ -316,12 +319,9 @@ def _node_sections(data: dict[object, object]) -> Iterator[str]:
             if key == "ros__parameters":
                 yield prefix or "/"
             elif isinstance(value, dict):
-                name = str(key).strip("/")
-                # a bare node name at the top: taken as in any namespace (the lenient
-                # reading: a file is never refused for a section rcl might apply)
-                bare = (not prefix and not str(key).startswith("/")
-                        and "ros__parameters" in value)
-                stack.append((value, f"/**/{name}" if bare else f"{prefix}/{name}"))
+                # (a bare node name at the top is the node in / only, as rcl applies it:
+                # under a namespace the node ran on its defaults without a word)
+                stack.append((value, f"{prefix}/{str(key).strip('/')}"))
 
 
 def settle_garbage_collector() -> None:

@@ -46,7 +46,7 @@ from sensor_msgs.msg import Joy
 from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
-from asgp_ros.nodes.parameters import declare
+from asgp_ros.nodes.parameters import declare, is_change
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.serial import status as board_status
 from asgp_ros.serial.calibration import board_permille, host_deflection
@@ -130,7 +130,7 @@ class SerialBridgeNode(Node):
         for p in changes:
             if p.name == "use_sim_time" and p.value:
                 return SetParametersResult(successful=False, reason=SIM_TIME_REFUSED)
-            if p.name in SPECS and not SPECS[p.name].runtime:
+            if p.name in SPECS and not SPECS[p.name].runtime and is_change(self, p):
                 return SetParametersResult(
                     successful=False,
                     reason=f"{p.name} is read at start-up: restart the node to change it")

@@ -449,6 +449,11 @@ class SharedControlNode(Node):
         self._map_ready = self.create_guard_condition(self._install_map)
         self._decision: Decision | None = None
         self._decision_t = -math.inf  # node clock of the decision
+        # what the diagnostics say while no decision is held: the last one, its override
+        # stopped since (the stick went neutral or stale; None before the first decision)
+        self._stopped: Decision | None = None
+        self._overriding_s = 0.0  # the time the overrides sent cover (node clock)
+        self._override_until = -math.inf  # ... up to here (the last send + its period)
         self._last_step: int | None = None
         self._resets_seen = 0  # the predictor's buffer resets, as last seen
         # the newest override sent and when (node clock), for what the board applies
@@ -581,7 +586,8 @@ class SharedControlNode(Node):
             # stamped ahead of the clock is of the timeline before the clock stepped back.
             self._user = (t, user)
         if is_neutral(user, BOARD_NEUTRAL):
-            self._stop_overriding()  # now (read before every override), not at the next decision
+            # now (read before every override), not at the next decision
+            self._stop_overriding(Why.NEUTRAL, "the stick went neutral: the override stopped")
         if not self._joy_source.measured(now):  # else the board's output feeds
             self._feed_joy(t, self._applied(user, now), measured=False, now=now)
 
@@ -1060,9 +1066,15 @@ class SharedControlNode(Node):
 
     # ---- output -------------------------------------------------------------------------
 
-    def _stop_overriding(self) -> None:
-        if self._decision is not None and self._decision.intervening:
+    def _stop_overriding(self, why: Why = Why.STALE_INPUT, detail: str = "") -> None:
+        """No override is sent from now until a decision intervenes again; the diagnostics
+        say ``why``, ``detail`` (not 'no decision yet')."""
+        d = self._decision
+        if d is not None and d.intervening:
             self._decision = None
+            self._stopped = dataclasses.replace(
+                d, why=why, command=None, p_command=math.nan, change=0.0,
+                detail=detail or "the override stopped")
 
     def _send_override(self) -> str | None:
         """Send the decision's override, or say why not (None: sent)."""
@@ -1084,7 +1096,8 @@ class SharedControlNode(Node):
             why_not = (f"the decision is {now - self._decision_t:.2f} s old, beyond hold_s "
                        f"({self.params.hold_s:g} s): not sent")
         if why_not is not None or user is None:
-            self._stop_overriding()
+            self._stop_overriding(Why.NEUTRAL if why_not == _WENT_NEUTRAL else Why.STALE_INPUT,
+                                  why_not or "")
             return why_not
         if float(np.max(np.abs(user[1] - d.user))) > STICK_CHANGE:
             # the user moved the stick since the decision: never the old decision sent again.
@@ -1104,6 +1117,11 @@ class SharedControlNode(Node):
                                                        float(command[1])))
         self._sent, self._sent_t = command, now
         self._overrides_sent += 1
+        # each override holds until the next, at most a period of the timer: the time
+        # covered (overrides_sent / rate counted the sends at decisions too: 3.5 s in 2 s)
+        period = 1.0 / self.params.override_rate_hz
+        self._overriding_s += max(0.0, now + period - max(now, self._override_until))
+        self._override_until = now + period
         # an adapting predictor learns nothing from the steps an override may have driven
         # (training's rule for a bag's overrides): what the board applied is only modelled
         self.predictor.feed_override(now, now)
@@ -1142,13 +1160,14 @@ class SharedControlNode(Node):
             "solve_ms": f"{1e3 * d.solve_s:.2f}",
             "candidates": str(d.candidates),
         }
-        level = "OK" if d.why in (Why.CLEAR, Why.NEUTRAL, Why.INTERVENING) else "WARN"
-        return conv.diagnostic_status(f"{self.get_name()}: decision", level,
+        return conv.diagnostic_status(f"{self.get_name()}: decision", _level(d.why),
                                       f"{d.why.value}: {d.detail}", values=values)
 
     def diagnostic_status(self) -> DiagnosticStatus:
-        d = self._decision
+        d = self._decision or self._stopped
         why = d.why.value if d is not None else "starting"
+        now = self._now()
+        scan_age = 0.0 if self._scan is None or now is None else now - self._scan[1].stamp
         solve = np.asarray(self._solve_ms)
         values = {
             "why": why,
@@ -1158,12 +1177,15 @@ class SharedControlNode(Node):
             "moved_stick_judgements": str(self._moved_judged),
             "decisions_deferred": str(self._decisions_deferred),
             "decisions_merged": str(self._decisions_merged),
-            "overriding_s": f"{self._overrides_sent / self.params.override_rate_hz:.2f}",
+            "overriding_s": f"{self._overriding_s:.2f}",
             "mean_change": (f"{self._change_sum / self._change_count:.3f}"
                             if self._change_count else "0"),
             "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
-            "scan": self._scan_problem or ("none" if self._scan is None else "received"),
+            "scan": self._scan_problem or (
+                "none" if self._scan is None
+                else f"stale: the last taken {scan_age:.2f} s ago"
+                if not scan_age <= self.params.scan_timeout_s else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
             "scans_frozen": str(self._scans_frozen),
@@ -1195,10 +1217,16 @@ class SharedControlNode(Node):
                                              self._adapt_unavailable),
             "qos_mismatch": self.qos_watch.summary(),
         }
-        stale = d is not None and d.why in (Why.STALE_INPUT, Why.NO_OBSTACLES,
-                                            Why.CHECK_FAILED)
         message = "no decision yet" if d is None else f"{d.why.value}: {d.detail}"
-        level = "WARN" if stale or d is None else "OK"
+        level = "WARN" if d is None else _level(d.why)
+        listeners = self.override_pub.get_subscription_count()
+        values["override_subscribers"] = str(listeners)
+        if listeners == 0:  # (a misspelt override_topic: OK, 'intervening', and no effect)
+            # ERROR while it would be intervening, else WARN at least
+            level = "ERROR" if self._was_intervening or level == "ERROR" else "WARN"
+            message = (f"nothing subscribes to {self.override_pub.topic_name}: no override "
+                       "reaches the board (the bridge not running, or override_topic "
+                       f"misspelt?); {message}")
         if self._second_frame is not None:  # no laser until a restart: set laser_frame
             level, message = "ERROR", self._scan_problem
         level, message = self.qos_watch.escalate(level, message)
@@ -1212,6 +1240,14 @@ class SharedControlNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [self.diagnostic_status()]
         self.diag_pub.publish(msg)
+
+
+def _level(why: Why) -> str:
+    """A decision's level: OK when the layer judged and acted (clear, a neutral stick,
+    intervening); WARN when it could not judge (stale or missing input, a failed check) or
+    no command is clear of obstacles (``no_safe_command``: every candidate likely to
+    touch)."""
+    return "OK" if why in (Why.CLEAR, Why.NEUTRAL, Why.INTERVENING) else "WARN"
 
 
 def main(args: list[str] | None = None) -> int:

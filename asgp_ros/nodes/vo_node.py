@@ -413,13 +413,16 @@ class VONode(Node):
             level = _LEVEL[r.status]
             msg = f"tracking lost ({r.status.value}): {r.message}; no twist published"
         values: dict[str, object] = dict(self.stats)
-        values["status"] = r.status.value if r is not None else "none"
+        # the last pair's result, and its twist only while it is the one published: with no
+        # pair for stale_timeout_s the status is 'stale' (it said 'ok' with the old twist)
+        stale = age is not None and age > p.stale_timeout_s
+        values["status"] = "none" if r is None else "stale" if stale else r.status.value
         if r is not None:
             values.update({"features": r.num_features, "matches": r.num_matches,
                            "inliers": r.num_inliers,
                            "reprojection_error_px": float(r.reprojection_error),
                            "keyframe_changed": r.keyframe_changed})
-            if r.ok and r.twist is not None:
+            if r.ok and r.twist is not None and not stale:
                 values["v"], values["omega"] = float(r.twist[0]), float(r.twist[1])
         if self._elapsed:
             values["process_ms_mean"] = 1e3 * float(np.mean(self._elapsed))
