@@ -397,7 +397,6 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
     if raw is None:
         raise EvaluationError(f"{ts.name}: adaptive evaluation needs the raw streams")
     pred = Predictor(model, config, adapt=settings)
-    k0 = int(res.k[0])
     starts = set(metrics.case_indices(res.segment, need, 1).tolist())
     joy_future_all = np.asarray(res.joy, dtype=np.float64)
     over_t = np.asarray(raw.override_t, dtype=np.float64)
@@ -423,8 +422,10 @@ def _replay_series(model: Any, ts: TestSeries, k_max: int, need: int, settings: 
         if step is None or step == last_step:
             continue
         last_step = step
-        i = step - k0  # grid index of L in res
-        if not 0 <= i < joy_future_all.shape[0]:
+        # the index in res of L, or of the point before it where the grid leaves out a
+        # silence (L is then no case's start, and any finite future serves the learning)
+        i = int(np.searchsorted(res.k, step, side="right")) - 1
+        if i < 0 or step > res.k[-1]:
             continue
         future = joy_future_all[i + 1:i + 1 + k_max]
         if future.shape[0] == 0:
