@@ -9,8 +9,10 @@ import sys
 import numpy as np
 import pytest
 
+from asgp_ros.core import resample as resample_module
 from asgp_ros.core.features import FeatureConfig, design_matrix
 from asgp_ros.core.resample import (
+    GRID_SILENCE_S,
     RESAMPLE_RANGES,
     ResampleConfig,
     exclude_overridden,
@@ -523,6 +525,80 @@ def test_grid_indices_refuses_instead_of_hanging(call: str) -> None:
         f"try:\n    {call}\nexcept ValueError as exc:\n    print('refused:', exc)\n")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.startswith("refused:"), proc.stdout
+
+
+def silent_recording(silence_s: float) -> RawStreams:
+    """The messy recording with nothing from either stream for ``silence_s`` after 25 s:
+    its second part (a stale run, a tracking failure) moved later by ``silence_s``."""
+    s = messy_recording()
+    jt = s.joy_t + silence_s * (s.joy_t > 25.0)
+    vt = s.vel_t + silence_s * (s.vel_t > 25.0)
+    return RawStreams(joy_t=jt, joy=s.joy, vel_t=vt, vel=s.vel, vel_ok=s.vel_ok)
+
+
+@pytest.mark.parametrize("rate", [0.5, 5.0, 100.0])
+@pytest.mark.parametrize("silence_s", [GRID_SILENCE_S + 0.1, 60.0, 20 * 86400.0])
+def test_a_silence_has_no_grid_points_but_its_first_and_last(monkeypatch, rate: float,
+                                                             silence_s: float) -> None:
+    """Every point inside a silence is invalid: the grid leaves them out (a 20-day gap was
+    8.6 million points at 5 Hz), keeping the first and the last, and every point it keeps
+    is as the grid over the whole span has it: the rows and the cases are the same."""
+    s = silent_recording(silence_s)
+    cfg = ResampleConfig(rate_hz=rate)
+    res = resample(s, cfg)
+    monkeypatch.setattr(resample_module, "GRID_SILENCE_S", math.inf)
+    full = resample(s, cfg) if silence_s < 3600.0 else None
+    monkeypatch.undo()
+
+    jumps = np.flatnonzero(np.diff(res.k) > 1)
+    assert len(res) <= 46.0 * rate + 4  # the data's 46 s, not the silence
+    assert jumps.size == (1 if silence_s * rate > 3 else 0)
+    for j in jumps:  # the points kept on either side of what is left out: inside, invalid
+        assert 24.0 < res.t[j] < res.t[j + 1] < 26.0 + silence_s
+        assert res.gap[j] and res.gap[j + 1] and not (res.valid[j] or res.valid[j + 1])
+    if full is None:
+        return
+    keep = np.isin(full.k, res.k)
+    assert keep.sum() == len(res)
+    assert not full.valid[~keep].any()
+    for name in ("t", "k", "joy", "vel", "valid", "stale", "tracking_lost", "gap",
+                 "segment", "truth_valid", "overridden"):
+        np.testing.assert_array_equal(getattr(res, name), getattr(full, name)[keep], name)
+    for lags in (1, 4):
+        for c in (0, 1):
+            X, y, idx = design_matrix(res, c, FeatureConfig(lags=lags))
+            Xf, yf, idxf = design_matrix(full, c, FeatureConfig(lags=lags))
+            np.testing.assert_array_equal(X, Xf)
+            np.testing.assert_array_equal(y, yf)
+            np.testing.assert_array_equal(res.k[idx], full.k[idxf])
+
+
+def test_windows_across_a_silence_equal_the_whole_recording() -> None:
+    """The window property holds across a silence: a window holding it leaves out the same
+    points, one starting after it begins at its end."""
+    s = silent_recording(86400.0)
+    whole = resample(s)
+    for a, b in [(20.0, 86400.0 + 30.0), (86400.0 + 25.0, 86400.0 + 40.0), (0.0, 1e6)]:
+        part = resample(window(s, a, b))
+        iw, ip = common(whole.k, part.k)
+        assert ip.size == len(part) > 0
+        for name in ("t", "joy", "vel", "gap", "tracking_lost"):
+            np.testing.assert_array_equal(getattr(part, name), getattr(whole, name)[iw], name)
+
+
+def test_grid_indices_leave_out_the_inside_of_silences() -> None:
+    np.testing.assert_array_equal(
+        grid_indices(0.0, 10.0, 1.0, np.array([[2.0, 8.0]])), [0, 1, 2, 3, 7, 8, 9, 10])
+    np.testing.assert_array_equal(  # the first and last strictly inside are kept
+        grid_indices(0.0, 10.0, 1.0, np.array([[1.5, 8.5]])), [0, 1, 2, 8, 9, 10])
+    np.testing.assert_array_equal(  # three points inside: only the middle one goes
+        grid_indices(0.0, 10.0, 1.0, np.array([[1.5, 4.5], [5.0, 6.0]])),
+        [0, 1, 2, 4, 5, 6, 7, 8, 9, 10])
+    k = grid_indices(1.7e9, 1.7e9 + 60.0 + 20 * 86400.0, 5.0,
+                     np.array([[1.7e9 + 30.0, 1.7e9 + 30.0 + 20 * 86400.0]]))
+    assert k.size == 2 + 2 * 151 and np.all(np.diff(k) > 0)
+    with pytest.raises(ValueError, match="outside its silences"):
+        grid_indices(0.0, 1e8, 5.0, np.array([[1.0, 2.0], [3.0, 4.0]]))
 
 
 def test_grid_indices_is_exact_near_the_range_limit() -> None:
