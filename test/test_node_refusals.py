@@ -204,3 +204,37 @@ def test_a_node_takes_its_own_dump_back(rclpy_context, repo_root):
             assert not changed.successful and "read at start-up" in changed.reason
         finally:
             node.destroy_node()
+
+
+@pytest.mark.ros
+def test_a_bad_joy_axes_parameter_is_named_as_the_parameter(rclpy_context, repo_root):
+    """The nodes' joy_axes refusal named the command line's --joy-axes."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes.predictor_node import PredictorNode
+    from asgp_ros.nodes.predictor_node import StartupError as PredictorStartupError
+    from asgp_ros.nodes.shared_control_node import SharedControlNode
+    from asgp_ros.nodes.shared_control_node import StartupError as LayerStartupError
+
+    overrides = [Parameter("model_path", value=str(repo_root / MODEL)),
+                 Parameter("joy_axes", value="0,x")]
+    for make, error in ((PredictorNode, PredictorStartupError),
+                        (SharedControlNode, LayerStartupError)):
+        with pytest.raises(error) as info:
+            make(context=rclpy_context, parameter_overrides=overrides)
+        assert "joy_axes '0,x'" in str(info.value) and "--joy-axes" not in str(info.value)
+
+
+@pytest.mark.ros
+def test_a_path_topic_whose_ellipses_topic_is_too_long_is_refused(rclpy_context, repo_root):
+    """A path_topic of 245 characters is a valid name; '<it>/uncertainty' is not: the
+    ellipses' publisher raised from rclpy, naming neither, and left the node half made."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes.predictor_node import PredictorNode, StartupError
+
+    long_name = "p" * 245
+    with pytest.raises(StartupError, match="parameter path_topic: the ellipses' topic"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=str(repo_root / MODEL)),
+            Parameter("path_topic", value=long_name)])

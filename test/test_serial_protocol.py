@@ -239,6 +239,7 @@ def test_bridge_yaml_matches_declared_parameters(repo_root):
     ({"reconnect_min": 1.0, "reconnect_max": 0.5}, "reconnect_max"),
     ({"heartbeat_timeout": 0.1, "heartbeat_period": 0.2}, "heartbeat_timeout"),
     ({"port": ""}, "port"),
+    ({"port": " "}, "port"),
     ({"calibration.forward.invert": 1}, "invert"),
     ({"override_timeout": math.nan}, "override_timeout"),
     # written at the rate's ticks only: 6 Hz with 0.02 s sent 4 of 40 overrides

@@ -91,7 +91,12 @@ from asgp_ros.nodes import adaptation as adapt_params
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
-from asgp_ros.nodes.parameters import declare, is_change, sim_time_change
+from asgp_ros.nodes.parameters import (
+    declare,
+    is_change,
+    sim_time_change,
+    topic_name_problem,
+)
 from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
@@ -186,7 +191,7 @@ class PredictorNodeParams:
             raise ValueError(f"path_frame must be 'base' or 'odom', got {self.path_frame!r}")
         if self.path_frame == "odom" and self.vo_type != "odometry":
             raise ValueError("path_frame 'odom' needs odometry poses: set vo_type to 'odometry'")
-        parse_joy_axes(self.joy_axes)
+        parse_joy_axes(self.joy_axes, "joy_axes")
         if not (math.isfinite(self.diagnostics_period_s)
                 and 0.1 <= self.diagnostics_period_s <= 60.0):
             raise ValueError(
@@ -350,13 +355,18 @@ class PredictorNode(Node):
             check_topics(self.resolve_topic_name, joy_topic=self.params.joy_topic,
                          applied_topic=self.params.applied_topic,
                          override_topic=self.params.override_topic)
+            ellipses = f"{self.params.path_topic}/uncertainty"
+            if (problem := topic_name_problem(self.resolve_topic_name, ellipses)) is not None:
+                # (a valid path_topic of 245 characters: its ellipses' topic is too long)
+                raise ValueError(f"parameter path_topic: the ellipses' topic {ellipses!r} is "
+                                 f"not a valid topic name ({problem})")
         except (ValueError, TypeError) as exc:
             raise StartupError(f"invalid parameters: {exc}") from exc
         p = self.params
 
         self.model = self._load_model(p.model_path)
         rate = float(self.model.resample_config.rate_hz)
-        self.joy_axes = parse_joy_axes(p.joy_axes)
+        self.joy_axes = parse_joy_axes(p.joy_axes, "joy_axes")
         try:
             self.every_n = p.decimation(rate)
             k = p.steps(rate)

@@ -346,7 +346,7 @@ class SharedControlParams:
             raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
         if (problem := period_problem("joy_poll_period_s", self.joy_poll_period_s)) is not None:
             raise ValueError(problem)
-        parse_joy_axes(self.joy_axes)
+        parse_joy_axes(self.joy_axes, "joy_axes")
         self.config()
 
     def config(self) -> SharedControlConfig:
@@ -404,7 +404,7 @@ class SharedControlNode(Node):
         # model, so that a refused model file is reported without waiting for them)
         collision.prepare()
         rate = float(self.model.resample_config.rate_hz)
-        self.joy_axes = parse_joy_axes(p.joy_axes)
+        self.joy_axes = parse_joy_axes(p.joy_axes, "joy_axes")
         try:
             k = horizon_steps(p.horizon_s, rate)
             self.predictor, self._adapt_unavailable = adapt_params.make_predictor(

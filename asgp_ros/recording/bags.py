@@ -138,8 +138,9 @@ class JoyAxes:
 _AXIS_RE = re.compile(r"^\s*([+-]?)\s*(\d+)\s*$")
 
 
-def parse_joy_axes(spec: str) -> JoyAxes:
-    """Parse the ``--joy-axes`` syntax ``FWD,TURN``.
+def parse_joy_axes(spec: str, name: str = "--joy-axes") -> JoyAxes:
+    """Parse the ``--joy-axes`` syntax ``FWD,TURN`` (``name``: the option or parameter
+    that gave it, for the error).
 
     Each of FWD and TURN is an index into ``Joy.axes``, optionally prefixed with ``-`` to
     flip its sign. ``"0,1"`` (the default, as published by this package's bridge) means
@@ -148,20 +149,20 @@ def parse_joy_axes(spec: str) -> JoyAxes:
     """
     parts = spec.split(",")
     if len(parts) != 2:
-        raise ValueError(f"--joy-axes {spec!r}: expected FWD,TURN such as '0,1' or '1,-0'")
+        raise ValueError(f"{name} {spec!r}: expected FWD,TURN such as '0,1' or '1,-0'")
     parsed = []
     for part in parts:
         m = _AXIS_RE.match(part)
         if m is None:
             raise ValueError(
-                f"--joy-axes {spec!r}: {part!r} is not an axis index with an optional '-'"
+                f"{name} {spec!r}: {part!r} is not an axis index with an optional '-'"
             )
         parsed.append((int(m.group(2)), -1.0 if m.group(1) == "-" else 1.0))
     (f, fs), (t, ts) = parsed
     try:
         return JoyAxes(forward=f, turn=t, forward_sign=fs, turn_sign=ts)
     except ValueError as exc:
-        raise ValueError(f"--joy-axes {spec!r}: {exc}") from None
+        raise ValueError(f"{name} {spec!r}: {exc}") from None
 
 
 # ----------------------------------------------------------------------------- reading

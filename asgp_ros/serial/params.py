@@ -122,7 +122,7 @@ def bridge_params(values: Mapping[str, object]) -> BridgeParams:
             "went stale between two would never be sent")
     if v["heartbeat_timeout"] <= v["heartbeat_period"]:
         raise ValueError("parameter heartbeat_timeout must exceed heartbeat_period")
-    if not v["port"]:
+    if not v["port"].strip():  # (" ": a port that never opens, retried for ever)
         raise ValueError("parameter port is empty")
     return BridgeParams(
         port=v["port"], baud=v["baud"], frame_id=v["frame_id"],
