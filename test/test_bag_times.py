@@ -188,6 +188,11 @@ def test_the_held_out_part_is_the_last_fifth_of_the_data_across_a_clock_step_for
         # the training data's duration leaves the 5 minutes without a sample out (it read
         # 6.5 minutes for a drive of 1.5)
         assert 88.0 < data_summary(series)["duration_s"] < 90.5
+        # so does the reproduction's summary of its bags
+        from asgp_ros.learning.reproduce.summary import _data
+
+        (minutes,) = [d["minutes"] for d in _data({"b": series[0]}).values()]
+        assert 88.0 / 60 < minutes < 90.5 / 60
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])

@@ -153,7 +153,7 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
         "segments": segments,
         "stale_fraction": float(stale / grid) if grid else 0.0,
         "overridden_samples": overridden,
-        "duration_s": float(sum(_recorded_s(s) for s in series)),
+        "duration_s": float(sum(recorded_s(s) for s in series)),
     }
     if rows is not None:
         out["training_rows"] = int(rows)
@@ -165,7 +165,7 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
 RECORDING_GAP_S = 10.0
 
 
-def _recorded_s(s: Series) -> float:
+def recorded_s(s: Series) -> float:
     """How long a recording's samples span, its gaps of more than RECORDING_GAP_S left out
     (a 6-minute drive with the clock set forward a day read 1446 minutes); the grid's span
     for a series without its raw streams."""

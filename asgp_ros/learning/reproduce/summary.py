@@ -20,7 +20,7 @@ from asgp_ros.learning.reproduce.claims import (
 from asgp_ros.learning.reproduce.jobs import auto_options
 from asgp_ros.learning.reproduce.protocol import TEST_SETS, Settings, case_lags
 from asgp_ros.learning.reproduce.tables import tables
-from asgp_ros.learning.training import PAPER_OPTIONS, Series
+from asgp_ros.learning.training import PAPER_OPTIONS, Series, recorded_s
 
 PAPER_NOTE = ("Our data are simulated (`asgp dataset`: a simulated chair, VO and drivers); "
               "the 'paper' columns are the published figures of Fan et al. (ICRA 2018), "
@@ -77,8 +77,9 @@ def _settings(results: list[dict[str, Any]], st: Settings) -> dict[str, Any]:
 
 
 def _data(series: dict[str, Series]) -> dict[str, Any]:
-    """Per bag: minutes, valid and stale fractions, segments, mean |v|."""
-    return {Path(p).name: {"minutes": round(float(s.res.t[-1] - s.res.t[0]) / 60, 2),
+    """Per bag: minutes (its gaps of more than RECORDING_GAP_S left out, as training's
+    duration), valid and stale fractions of its grid points, segments, mean |v|."""
+    return {Path(p).name: {"minutes": round(recorded_s(s) / 60, 2),
                            "valid_fraction": round(float(np.mean(s.res.valid)), 4),
                            "stale_fraction": round(float(np.mean(s.res.stale)), 4),
                            "segments": len(s.res.segments()),
