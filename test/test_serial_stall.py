@@ -105,3 +105,24 @@ def test_a_stall_beyond_the_silence_limit_reopens_and_drops_the_backlog(tmp_path
     assert any(t > t_stop and state == "connecting" for t, state in states), states
     late = during[:, 0] - during[:, 1]
     assert not np.any(late > 0.1), "a sample of the backlog delivered as the present"
+
+
+def test_a_stall_before_the_reads_clock_does_not_clamp_the_next_backlog():
+    """The reader stalls after finding nothing more waiting and before reading its clock
+    (a busy host stops it anywhere; CI caught it once: 50 samples of a 0.5 s stall on one
+    stamp). That late time was the bound of the next read, and its backlog, all of it
+    older, was clamped onto it. The bound is taken before the check now."""
+    from asgp_ros.serial.link import LinkConfig, LinkManager
+
+    class Port:
+        in_waiting = 0
+
+    link = LinkManager(LinkConfig(port="unused"))
+    times = iter([1.0, 1.5,   # the check; the read's time, after a 0.5 s stall
+                  1.6, 1.6])  # the next read (the stall's backlog): its check and time
+    link._clock = lambda: next(times)
+    link._rx_floor = 0.9  # (the previous read's)
+    _, t_rx, t_before = link._drain(Port(), b"a")
+    assert (t_rx, t_before) == (1.5, 0.9)
+    _, t_rx, t_before = link._drain(Port(), b"backlog")
+    assert t_rx == 1.6 and t_before == 1.0  # not 1.5: the backlog came from 1.0 on

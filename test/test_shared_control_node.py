@@ -1960,6 +1960,17 @@ def test_the_scan_value_says_a_silent_laser_is_stale(harness):
     assert values["scan"].startswith("stale: the last taken 2.0"), values["scan"]
 
 
+def test_the_scan_value_says_a_scan_ahead_of_the_clock_gone_back_is_not_used(harness):
+    """/clock steps back 54 s and the laser is silent: the scan held is not used (stamped
+    ahead of the clock), and 'scan' said 'received'."""
+    h = harness(scan_timeout_s=0.3)
+    h.drive(100.0, 104.0, wall=1.6)
+    h.drive(50.0, 52.0, wall=1.6, scan=False)
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["why"] == "no_obstacle_source"
+    assert values["scan"].startswith("the last taken is stamped 5"), values["scan"]
+
+
 def test_overriding_s_is_the_time_the_overrides_cover(harness):
     """overriding_s (the demo report's time overriding, and from it the share of the
     drive untouched) was overrides_sent / override_rate_hz: 3.5 s in 2 s of intervening,

@@ -1182,10 +1182,14 @@ class SharedControlNode(Node):
                             if self._change_count else "0"),
             "solve_p50_ms": f"{np.percentile(solve, 50):.2f}" if solve.size else "nan",
             "solve_p99_ms": f"{np.percentile(solve, 99):.2f}" if solve.size else "nan",
+            # the scan held, as _check_for judges it: fresh, or too old, or stamped ahead
+            # of the clock (it went back: a bag played again, an NTP step)
             "scan": self._scan_problem or (
                 "none" if self._scan is None
                 else f"stale: the last taken {scan_age:.2f} s ago"
-                if not scan_age <= self.params.scan_timeout_s else "received"),
+                if scan_age > self.params.scan_timeout_s
+                else f"the last taken is stamped {-scan_age:.2f} s ahead of the clock "
+                "(it went back)" if scan_age < -SCAN_LEAD_S else "received"),
             "scans_ahead_of_clock": str(self._scans_ahead),
             "scans_repeated": str(self._scans_repeated),
             "scans_frozen": str(self._scans_frozen),

@@ -250,6 +250,8 @@ class LinkManager:
         self._last_sample_t = -float("inf")
         self._last_heartbeat_t = -float("inf")
         self._last_rx_t = -float("inf")
+        # no byte of the next read came before this time (see _drain)
+        self._rx_floor = -float("inf")
 
     # -- public API --------------------------------------------------------------------
 
@@ -445,7 +447,7 @@ class LinkManager:
             self._ser = ser
         self._begin_handshake(f"opened {cfg.port}")
         t_open = self._clock()
-        self._last_rx_t = t_open
+        self._last_rx_t = self._rx_floor = t_open
         t_beat = -float("inf")
         while not self._stop.is_set():
             now = self._clock()
@@ -485,20 +487,37 @@ class LinkManager:
                 self._set_state(LinkState.CONNECTING, "silent board or stalled reader, "
                                                       "reopening")
                 return
-            # all that the OS holds now, as one: a stall ends inside the read above, which
-            # returned one byte, and the OS hands over at most 4 KiB a read
-            for _ in range(MAX_DRAIN_READS):
-                waiting = ser.in_waiting
-                if not waiting:
-                    break
-                data += ser.read(waiting)
-            t_rx = self._clock()
-            t_before, self._last_rx_t = self._last_rx_t, t_rx
+            data, t_rx, t_before = self._drain(ser, data)
             with self._lock:
                 frames = self._parser.feed(data)
             for frame, t in zip(frames, self._arrival_times(frames, t_rx, t_before),
                                 strict=True):
                 self._handle(frame, t)
+
+    def _drain(self, ser: serial.Serial, data: bytes) -> tuple[bytes, float, float]:
+        """(``data`` and all that the OS holds now, as one read; its time; the time before
+        which none of its bytes came). A stall ends inside the read before this, which
+        returned one byte, and the OS hands over at most 4 KiB a read.
+
+        The last bound is taken before the check that found nothing more waiting, not
+        after the read's time: a reader stalled between that check and its clock (a busy
+        host stops it anywhere) took that late time as the bound of the next read, and the
+        whole backlog of the stall was clamped onto one stamp."""
+        floor: float | None = None
+        for _ in range(MAX_DRAIN_READS):
+            t_check = self._clock()
+            waiting = ser.in_waiting
+            if not waiting:
+                floor = t_check  # what comes next arrived after this
+                break
+            data += ser.read(waiting)
+        t_rx = self._clock()
+        t_before = self._rx_floor
+        self._last_rx_t = t_rx
+        # (with bytes still waiting after the last read, they may be older than it: the
+        # bound stays)
+        self._rx_floor = floor if floor is not None else t_before
+        return data, t_rx, t_before
 
     def _arrival_times(self, frames: list[proto.Frame], t_rx: float, t_before: float
                        ) -> list[float]:
