@@ -2022,3 +2022,23 @@ def test_coverage_after_a_reset_is_not_the_old_posteriors(rclpy_context, model_f
         assert after["adapt_coverage_95"] == after["adapt_coverage_one_step"] == "nan", after
     finally:
         h.close()
+
+
+def test_a_negative_clock_message_is_refused_not_the_end_of_the_node(rclpy_context,
+                                                                      model_file):
+    """A /clock message of -5 s (a bag with bogus stamps played): rclpy's clock
+    subscription raised inside the executor, and the node stopped."""
+    from builtin_interfaces.msg import Time as TimeMsg
+
+    h = Harness(rclpy_context, model_file, **{"adapt.enabled": False})
+    try:
+        h.drive(100.0, 104.0)
+        n = len(h.paths)
+        h.clock_pub.publish(Clock(clock=TimeMsg(sec=-5, nanosec=0)))
+        for _ in range(20):
+            h.executor.spin_once(timeout_sec=0.01)  # (raised ValueError here)
+        assert h.node.get_clock().now().nanoseconds == round(104.03 * 1e9)
+        h.drive(104.0, 106.0)
+        assert len(h.paths) > n
+    finally:
+        h.close()

@@ -54,6 +54,7 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
+from rosgraph_msgs.msg import Clock as ClockMsg
 
 if TYPE_CHECKING:
     from asgp_ros.core.online import Predictor
@@ -164,8 +165,32 @@ def pacing_clock(node: Node) -> Clock:
     it, and rcl moves them on when /clock jumps (a bag played again).
     """
     if node.get_parameter("use_sim_time").value:
+        guard_sim_clock(node)
         return node.get_clock()
     return Clock(clock_type=ClockType.STEADY_TIME)
+
+
+def guard_sim_clock(node: Node) -> None:
+    """Refuse a ``/clock`` message that is no time (negative seconds: a player of a bag
+    with bogus stamps, a stray publisher) before rclpy's own clock subscription reads it:
+    rclpy raised on it inside the executor, and the node stopped. Logged, and the clock
+    stays where it was. (With ``use_sim_time``; the nodes refuse to switch it at runtime.)"""
+    sub = getattr(getattr(node, "_time_source", None), "_clock_sub", None)
+    if sub is None or getattr(sub, "_asgp_guarded", False):
+        return
+    take = sub.callback
+    logger = node.get_logger()
+
+    def checked(msg: ClockMsg) -> None:
+        if msg.clock.sec < 0:
+            logger.error(f"/clock {msg.clock.sec} s refused: a negative time (a bag with "
+                         "bogus stamps played, a stray publisher?); the clock stays",
+                         throttle_duration_sec=5.0)
+            return
+        take(msg)
+
+    sub.callback = checked
+    sub._asgp_guarded = True
 
 
 #: A node's clock read going back by more than this is a step (read at each callback, a
