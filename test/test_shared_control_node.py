@@ -2002,3 +2002,55 @@ def test_overrides_that_reach_no_one_are_an_error(harness):
     status = h.node.diagnostic_status()
     assert status.level == DiagnosticStatus.ERROR, status.message
     assert conv.diagnostic_values(status)["override_subscribers"] == "0"
+
+
+# ---- from an attack on units, frames and signs: each a break found, now a test ----------
+
+
+def _drive_turning(h, t_from: float, t_to: float, raw_fwd: float, raw_turn: float,
+                   wall: float) -> None:
+    """As Harness.drive, with the stick's raw turn axis ``raw_turn`` on joy."""
+    stats = h.node.predictor.stats
+    rng = np.random.default_rng(int(t_from * 10))
+    for i in range(round((t_to - t_from) / 0.05)):
+        t = t_from + 0.05 * (i + 1)
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, raw_fwd, raw_turn))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 == 3:
+            n = h.node._vo_messages
+            h.vo_pub.publish(conv.twist_stamped_from_sample(
+                t, 0.9 * raw_fwd + rng.normal(0, 0.003), rng.normal(0, 0.003)))
+            h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+        if i % 2 == 1:
+            seen = h._scan_state()
+            h.scan_pub.publish(wall_scan_msg(t, wall))
+            h.spin_until(lambda s=seen: h._scan_state() != s, what="scan")
+    h.settle()
+
+
+def test_overrides_are_written_in_the_convention_of_joy(harness):
+    """joy_axes '0,-1' (this joy reads + right): the user turns left (joy -0.2) towards a
+    wall; the layer kept the turn, +0.2 left in its own units, and wrote it as joy +0.2,
+    which the bridge (its joy's units) drove as a right turn."""
+    h = harness(joy_axes="0,-1")
+    _drive_turning(h, 100.0, 103.0, 0.8, -0.2, wall=20.0)
+    assert h.overrides == []
+    _drive_turning(h, 103.0, 104.0, 0.8, -0.2, wall=1.6)
+    last = h.last()
+    assert last["why"] == "intervening" and h.overrides, last
+    assert float(last["user_turn"]) == pytest.approx(0.2)
+    command_turn = float(last["command_turn"])
+    assert command_turn > 0.0  # (left, as the user's)
+    assert float(h.overrides[-1].axes[1]) == pytest.approx(-command_turn, abs=1e-3)
+
+
+def test_an_override_is_read_and_written_through_joy_axes():
+    from asgp_ros.recording.bags import parse_joy_axes
+
+    for spec in ("0,1", "0,-1", "1,0", "-2,0"):
+        axes = parse_joy_axes(spec)
+        msg = conv.joy_from_sample(1.0, 0.6, -0.25, axes=axes)
+        assert conv.joy_to_override(msg, axes) == pytest.approx((0.6, -0.25))
+        assert conv.joy_command(msg, axes)[1] == pytest.approx([0.6, -0.25])

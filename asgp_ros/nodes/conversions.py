@@ -77,12 +77,21 @@ def joy_command(msg: Joy, axes: JoyAxes) -> tuple[float, NDArray[np.float64]]:
     return t, np.array([axes.forward_sign * fwd, axes.turn_sign * turn])
 
 
-def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "") -> Joy:
-    """(stamp s, forward, turn) -> sensor_msgs/Joy with axes [forward, turn]."""
+def joy_from_sample(t: float, forward: float, turn: float, frame_id: str = "",
+                    axes: JoyAxes | None = None) -> Joy:
+    """(stamp s, forward, turn) -> sensor_msgs/Joy with axes [forward, turn], or laid out
+    and signed as ``axes`` says (the inverse of :func:`joy_command`: an override written
+    in the convention of the ``joy`` it changes)."""
     msg = Joy()
     msg.header.stamp = seconds_to_stamp(t)
     msg.header.frame_id = frame_id
-    msg.axes = [float(forward), float(turn)]
+    if axes is None:
+        msg.axes = [float(forward), float(turn)]
+    else:
+        values = [0.0] * (max(axes.forward, axes.turn) + 1)
+        values[axes.forward] = axes.forward_sign * float(forward)
+        values[axes.turn] = axes.turn_sign * float(turn)
+        msg.axes = values
     return msg
 
 
@@ -439,17 +448,23 @@ def ellipses_from_markers(msg: MarkerArray) -> FloatArray:
 # Serial bridge: joystick overrides in, diagnostics out
 
 
-def joy_to_override(msg: Joy) -> tuple[float, float]:
-    """sensor_msgs/Joy on ``joy_override`` -> (forward, turn) deflections in [-1, 1].
+def joy_to_override(msg: Joy, axes: JoyAxes | None = None) -> tuple[float, float]:
+    """sensor_msgs/Joy on ``joy_override`` -> (forward, turn) deflections in [-1, 1]: axes
+    [forward, turn] (the bridge's own), or read as ``axes`` says (a node's ``joy_axes``:
+    the overrides are in the convention of the ``joy`` they change).
 
     Raises:
-        ValueError: fewer than 2 axes, a non-finite value or one outside [-1, 1] (an
-            override is refused, never clipped: a bad command is a bug upstream).
+        ValueError: too few axes, a non-finite value or one outside [-1, 1] (an override
+            is refused, never clipped: a bad command is a bug upstream).
     """
-    axes = msg.axes
-    if len(axes) < 2:
-        raise ValueError(f"joy_override needs axes [forward, turn], got {len(axes)} axes")
-    fwd, turn = float(axes[0]), float(axes[1])
+    a = axes or JoyAxes()
+    values = msg.axes
+    need = max(a.forward, a.turn) + 1
+    if len(values) < need:
+        raise ValueError(f"joy_override needs {need} axes (forward {a.forward}, turn "
+                         f"{a.turn}), got {len(values)} axes")
+    fwd = a.forward_sign * float(values[a.forward])
+    turn = a.turn_sign * float(values[a.turn])
     for name, v in (("forward", fwd), ("turn", turn)):
         if not (math.isfinite(v) and -1.0 <= v <= 1.0):
             raise ValueError(f"joy_override {name} deflection {v} is not in [-1, 1]")

@@ -618,7 +618,8 @@ class PredictorNode(Node):
         # (read after now: every sample read later arrived after it, on either clock)
         self.polled.drain()
         try:  # what the bridge writes to the board: it refuses the same messages, so a
-            command = conv.joy_to_override(msg)  # malformed one never drove the chair
+            # malformed one never drove the chair (read as joy is: joy_axes)
+            command = conv.joy_to_override(msg, self.joy_axes)
         except ValueError as exc:
             self._bad_messages += 1
             self.get_logger().warning(f"ignoring {self.params.override_topic}: {exc}",

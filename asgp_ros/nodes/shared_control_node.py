@@ -1113,8 +1113,10 @@ class SharedControlNode(Node):
                 return f"the stick moved: {d.why.value}: {d.detail}"
         command = d.command
         assert command is not None  # (checked above, and by the judgement)
+        # in the convention of the joy it changes (joy_axes), as the bridge reads it: with
+        # joy_axes '0,-1' a left turn kept was written as a right one
         self.override_pub.publish(conv.joy_from_sample(now, float(command[0]),
-                                                       float(command[1])))
+                                                       float(command[1]), axes=self.joy_axes))
         self._sent, self._sent_t = command, now
         self._overrides_sent += 1
         # each override holds until the next, at most a period of the timer: the time
