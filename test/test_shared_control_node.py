@@ -770,8 +770,8 @@ def test_a_map_as_the_obstacle_source(harness):
     say why)."""
     h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
     assert h.node.velocity.describe() == "vo"
-    _publish_map(h, wall_map_msg(None))
-    h.drive(100.0, 103.0)
+    _publish_map(h, wall_map_msg(None, frame="/odom"))  # ('odom', as tf2 reads it: it was
+    h.drive(100.0, 103.0)                               # refused as another frame)
     assert h.last()["why"] == "clear" and h.overrides == []
     assert conv.diagnostic_values(h.node.diagnostic_status())["map"] == "received"
     # a wall 1.2 m ahead of the chair's front (x = 2.16 m at 103 s): the chair's path

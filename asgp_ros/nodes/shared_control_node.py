@@ -826,7 +826,8 @@ class SharedControlNode(Node):
 
     def _on_map(self, msg: OccupancyGrid) -> None:
         self._map_generation += 1  # a map being read is superseded by this one
-        if msg.header.frame_id and msg.header.frame_id != self.params.odom_frame:
+        frame = conv.frame_name(msg.header.frame_id)  # ('/odom' is 'odom', as in tf2)
+        if frame and frame != conv.frame_name(self.params.odom_frame):
             self._drop_map(f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
                            f"{self.params.odom_frame!r}")
             return
