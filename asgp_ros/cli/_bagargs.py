@@ -35,6 +35,10 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
                         help="sensor_msgs/Joy overrides sent to the chair (%(default)s): where "
                              "a bag has them, the grid points they may have driven are not "
                              "used (the joystick is not what drove the chair); '' reads none")
+    parser.add_argument("--base-frame", default="base_link",
+                        help="the chair's frame (%(default)s): a velocity message's twist in "
+                             "another (a camera's) is not the chair's forward and turn rates, "
+                             "and is read as a lost sample, as the nodes refuse it")
     if truth:
         parser.add_argument("--truth-topic", default=BAG_GROUND_TRUTH,
                             help="ground-truth nav_msgs/Odometry topic for --truth "
@@ -56,7 +60,8 @@ def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
                 [path], resample_config=resample_config, joy_topic=args.joy_topic,
                 twist_topic=args.twist_topic,
                 truth_topic=getattr(args, "truth_topic", None) if truth else None,
-                joy_axes=args.joy_axes, override_topic=args.override_topic))
+                joy_axes=args.joy_axes, override_topic=args.override_topic,
+                base_frame=args.base_frame))
         except (BagError, ValueError, OSError, KeyError) as exc:
             msg = str(exc)
             raise CommandError(msg if str(path) in msg else f"{path}: {msg}") from exc

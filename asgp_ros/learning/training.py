@@ -114,6 +114,7 @@ def read_series(
     truth_topic: str | None = None,
     joy_axes: Any = None,
     override_topic: str | None = BAG_JOY_OVERRIDE,
+    base_frame: str = "base_link",
 ) -> list[Series]:
     """Read bags and resample them onto the grid (raises the bag reader's errors).
 
@@ -124,7 +125,7 @@ def read_series(
     out = []
     for path in paths:
         kwargs: dict[str, Any] = {"joy_topic": joy_topic, "twist_topic": twist_topic,
-                                  "override_topic": override_topic}
+                                  "override_topic": override_topic, "base_frame": base_frame}
         if truth_topic is not None:
             kwargs["truth_topic"] = truth_topic
         if joy_axes is not None:

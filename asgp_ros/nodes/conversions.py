@@ -26,6 +26,7 @@ from asgp_ros.core import collision, streams
 from asgp_ros.core.online import MAX_PLAN_STEPS
 from asgp_ros.core.quaternion import quaternion_to_yaw, yaw_to_quaternion
 from asgp_ros.recording.bags import JoyAxes
+from asgp_ros.recording.bags import velocity_frame_problem as bags_velocity_frame_problem
 
 FloatArray = NDArray[np.float64]
 
@@ -136,13 +137,11 @@ def velocity_frame(msg: TwistStamped | Odometry) -> str:
 
 def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
     """Why a twist in ``frame`` cannot be read as the chair's forward and turn rates
-    (linear.x, angular.z of ``base_frame``), or None: an empty frame is taken as the base's,
-    another frame (a camera's, whose x is not forward) is refused."""
-    if not frame_name(frame) or frame_name(frame) == frame_name(base_frame):
-        return None
-    return (f"VO twists in frame {frame!r} refused: their linear.x and angular.z are the "
-            f"chair's forward and turn rates only in base_frame {base_frame!r} (set "
-            "base_frame if that is the chair's frame)")
+    (linear.x, angular.z of ``base_frame``), or None: the bags' rule
+    (:func:`asgp_ros.recording.bags.velocity_frame_problem`), in a node's words."""
+    problem = bags_velocity_frame_problem(frame, base_frame)
+    return None if problem is None else \
+        f"VO {problem} (set base_frame if that is the chair's frame)"
 
 
 class VelocityFrameCheck:

@@ -49,6 +49,7 @@ import bz2
 import contextlib
 import hashlib
 import logging
+import math
 import mmap
 import os
 import re
@@ -673,11 +674,23 @@ def _unfinished_ros2_bag(path: str | os.PathLike[str]) -> bool:
         return False
 
 
+def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
+    """Why a twist in ``frame`` cannot be read as the chair's forward and turn rates
+    (linear.x, angular.z of ``base_frame``), or None: an empty frame is taken as the base's,
+    another frame (a camera's, whose x is not forward) is refused. Frames are compared as
+    tf2 reads them, without a leading slash."""
+    if not frame.lstrip("/") or frame.lstrip("/") == base_frame.lstrip("/"):
+        return None
+    return (f"twists in frame {frame!r} refused: their linear.x and angular.z are the "
+            f"chair's forward and turn rates only in base_frame {base_frame!r}")
+
+
 def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
-                 truth_topic: str | None, axes: JoyAxes, override_topic: str | None = None
-                 ) -> tuple[Any, ...]:
+                 truth_topic: str | None, axes: JoyAxes, override_topic: str | None = None,
+                 base_frame: str = "base_link") -> tuple[Any, ...]:
     """The raw rows of the joystick, velocity, ground-truth and (when the bag has it)
-    override topics (closes ``reader``)."""
+    override topics (closes ``reader``). Twists in another frame than ``base_frame`` are
+    lost samples, counted (``velocity_frame_problem``), as the nodes refuse them."""
     try:
         joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
         tw_conns = _connections(reader, twist_topic, TWIST_TYPES, "velocity", source)
@@ -701,12 +714,21 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
             return (_stamp_ns(msg), axes.forward_sign * float(a[axes.forward]),
                     axes.turn_sign * float(a[axes.turn]))
 
+        foreign: dict[str, int] = {}  # twists in another frame than base_frame, by frame
+
         def twist_row(msg: Any, msgtype: str) -> tuple[Any, ...]:
             """(stamp, v, omega, 1.0 tracked / 0.0 lost): a twist with covariance says
             tracking was lost as the nodes read it (vo_node's lost frames: zero, variance
-            ODOM_LOST_VARIANCE), or a lost frame's zero would be learnt as the chair's."""
+            ODOM_LOST_VARIANCE), or a lost frame's zero would be learnt as the chair's; a
+            twist in another frame is lost (a backward camera's: read as the chair's, a
+            forward drive was learnt as a reverse one)."""
             if msgtype == "geometry_msgs/msg/Twist":
                 return (0, msg.linear.x, msg.angular.z, 1.0)
+            frame = str(msg.child_frame_id if msgtype == "nav_msgs/msg/Odometry"
+                        else msg.header.frame_id)
+            if velocity_frame_problem(frame, base_frame) is not None:
+                foreign[frame] = foreign.get(frame, 0) + 1
+                return (_stamp_ns(msg), math.nan, math.nan, 0.0)
             if msgtype == "geometry_msgs/msg/TwistStamped":
                 return (_stamp_ns(msg), msg.twist.linear.x, msg.twist.angular.z, 1.0)
             tw, cov = msg.twist.twist, msg.twist.covariance
@@ -723,6 +745,15 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
 
         joy = _collect(reader, joy_conns, joy_row, source)
         vel = _collect(reader, tw_conns, twist_row, source)
+        if foreign:
+            n, frames = sum(foreign.values()), ", ".join(map(repr, sorted(foreign)))
+            problem = (f"{source}: {n} of {len(vel[1])} twists on {twist_topic} are in "
+                       f"frame {frames}, not base_frame {base_frame!r}: their linear.x and "
+                       "angular.z are not the chair's forward and turn rates")
+            if n == len(vel[1]):
+                raise BagError(f"{problem}; --base-frame names the chair's frame if that is "
+                               "it")
+            log.warning("%s; they are read as lost samples", problem)
         truth = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [], [])
         try:
             overrides = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),),
@@ -816,6 +847,7 @@ def read_streams(
     joy_axes: JoyAxes | str | None = None,
     max_stamp_skew: float = 10.0,
     override_topic: str | None = BAG_JOY_OVERRIDE,
+    base_frame: str = "base_link",
 ) -> RawStreams:
     """Read the joystick, velocity (and optional ground-truth) streams of a bag.
 
@@ -831,6 +863,9 @@ def read_streams(
             layer's, a planner's), if the bag has the topic: their times become
             ``RawStreams.override_t``, around which the resampler refuses the joystick (it
             is not what drove the chair); None or '' to read none.
+        base_frame: the chair's frame: a velocity message's twist in another (a camera's
+            frame; the header's frame of a TwistStamped, the child frame of an Odometry;
+            an empty one is taken as the chair's) is a lost sample, as the nodes refuse it.
 
     Returns:
         RawStreams with times in seconds on the bag's clock (header stamps where valid).
@@ -847,13 +882,13 @@ def read_streams(
     source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
     try:
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
-                                 override_topic)
+                                 override_topic, base_frame)
     except _DamagedDataError as exc:  # the index opened, the data behind it are damaged
         if recovered is not None:
             raise
         reader = _open_recovered(path, exc, wanted)
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
-                                 override_topic)
+                                 override_topic, base_frame)
     (jb, jr, jp), (vb, vr, vp), (tb, tr, tp), tw_conns, (ob, orows, op) = collected
 
     for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
