@@ -2054,3 +2054,46 @@ def test_an_override_is_read_and_written_through_joy_axes():
         msg = conv.joy_from_sample(1.0, 0.6, -0.25, axes=axes)
         assert conv.joy_to_override(msg, axes) == pytest.approx((0.6, -0.25))
         assert conv.joy_command(msg, axes)[1] == pytest.approx([0.6, -0.25])
+
+
+def _drive_odometry(h, t_from: float, t_to: float, x_true: float, offset: float,
+                    pose_var: float, fwd: float = 0.8) -> float:
+    """The joystick at 20 Hz; vo/odom at 5 Hz as vo_node publishes it: the pose ``offset``
+    behind the chair's true x, its covariance ``pose_var``; the true x at the end."""
+    stats = h.node.predictor.stats
+    rng = np.random.default_rng(int(t_from * 10))
+    for i in range(round((t_to - t_from) / 0.05)):
+        t = t_from + 0.05 * (i + 1)
+        x_true += 0.05 * 0.9 * fwd
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 == 3:
+            n = h.node._vo_messages
+            h.odom_pub.publish(conv.odometry_with_covariance(
+                t, x_true - offset, 0.0, 0.0, np.eye(3) * pose_var,
+                0.9 * fwd + rng.normal(0.0, 0.003), 0.0, np.eye(6) * 1e-4))
+            h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+    h.settle()
+    return x_true
+
+
+def test_a_map_is_dropped_when_the_odometry_re_initialises(harness):
+    """obstacles 'grid': the VO loses tracking and re-initialises; vo_node held its pose
+    while the chair moved (1 m here) and added 1 m^2 to the pose's variance. The map, placed
+    with that pose, put a wall 1.2 m ahead of the chair 1 m further on: judged clear, p 0,
+    diagnostics OK. The jump drops the map: no obstacle source, and the diagnostics say why."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    x = _drive_odometry(h, 100.0, 102.0, 0.0, 0.0, 1e-4)
+    wall_x = x + 0.5 + 1.0 + 0.6 + 1.2  # 1.2 m ahead of the front after 0.5 s and the gap
+    _publish_map(h, wall_map_msg(wall_x))
+    x = _drive_odometry(h, 102.0, 102.5, x, 0.0, 1e-4)
+    assert h.last()["why"] == "clear"
+    x += 1.0  # the tracking gap: the chair moved 1 m, the pose held
+    _drive_odometry(h, 102.5, 103.1, x, 1.0, 1.0 + 1e-4)
+    last = h.last()
+    assert last["why"] == "no_obstacle_source", last
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert "re-initialised" in values["map"] and values["odometry_reinitialised"] == "1"

@@ -156,6 +156,10 @@ JOY_LEAD_S = 0.1
 #: forward push went on after the user pulled the stick back (0.05: above an ADC's noise
 #: and a steady hand's tremor, which would only cost a decision).
 STICK_CHANGE = 0.05
+#: A rise of an odometry pose's variance (x, y or yaw; m^2 or rad^2) by this much from one
+#: message to the next is a re-initialisation (vo_node adds 1.0 after a tracking loss):
+#: far above what one step of dead reckoning adds.
+POSE_JUMP_VARIANCE = 0.25
 #: Before a decision, at most this many messages of each of the VO, odometry and scan
 #: topics are read (their queues' depth, the sensor-data QoS's).
 INPUT_QUEUE = 5
@@ -487,6 +491,8 @@ class SharedControlNode(Node):
         self._scans_two_frames = 0  # scans of the first frame refused since then
         self._scans_old = 0  # scans refused as stale on arrival or out of order
         self._poses_other_frame = 0  # odometry poses not taken: another parent frame
+        self._pose_variance: np.ndarray | None = None  # the last pose's x, y, yaw variance
+        self._pose_jumps = 0  # re-initialisations of the odometry seen (_note_pose_variance)
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
         self._decided_at = -math.inf  # monotonic time the last decision ended
@@ -658,11 +664,33 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
                                       throttle_duration_sec=5.0)
         elif ok:
+            self._note_pose_variance(msg)
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
         if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok, now=now):
             self._want_decision(step=True)
+
+    def _note_pose_variance(self, msg: Odometry) -> None:
+        """A pose whose variance (x, y or yaw) rose at once by POSE_JUMP_VARIANCE or more
+        is of a new alignment: the odometry re-initialised after a tracking loss (vo_node
+        holds its pose through the gap while the chair moves, and adds 1 m^2 and 1 rad^2).
+        The map held, placed with the poses before, would put its walls where the chair
+        was (a wall 1.2 m ahead was judged clear): dropped, until a new map comes."""
+        cov = msg.pose.covariance
+        var = np.array([cov[0], cov[7], cov[35]], dtype=np.float64)
+        if not np.all(np.isfinite(var) & (var >= 0.0)):
+            return
+        before, self._pose_variance = self._pose_variance, var
+        if before is None or not np.any(var - before >= POSE_JUMP_VARIANCE):
+            return
+        self._pose_jumps += 1
+        if self._grid is not None or self._map_reading:
+            self._map_generation += 1  # (a map being read was placed with the old poses)
+            self._drop_map(f"the odometry's pose variance rose by {np.max(var - before):.2f} "
+                           "at once (it re-initialised after a tracking loss: its poses are "
+                           "of a new alignment): the map, placed with the poses before, is "
+                           "dropped until a new one comes")
 
     def _on_memory_odom(self, msg: Odometry) -> None:
         now = self._now()
@@ -1198,6 +1226,7 @@ class SharedControlNode(Node):
             "scans_frozen": str(self._scans_frozen),
             "scans_old": str(self._scans_old),
             "poses_other_frame": str(self._poses_other_frame),
+            "odometry_reinitialised": str(self._pose_jumps),
             "laser_frame": "none yet" if self._laser_frame is None
             else self._laser_frame or "(empty frame_id)",
             "scans_other_frame": str(self._scans_other_frame),
