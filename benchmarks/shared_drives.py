@@ -63,10 +63,10 @@ MARGIN = 0.05
 P_BINS = (0.0, 0.01, 0.05, 0.2, 0.5, 0.9, 1.0)
 
 
-def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool, str]
+def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool, str, float]
          ) -> dict[str, Any]:
     (path, seed, mode, minutes, fov, memory_s, audit, vo_scale, velocity_source,
-     vo_losses, surface) = task
+     vo_losses, surface, camera_yaw) = task
     memory_mode = mode in ("memory", "scan memory", "adapting")
     # the default scanner, or another field of view at its angular resolution (4 beams/deg)
     lidar = None if fov == LidarConfig().fov_deg else LidarConfig(fov_deg=fov,
@@ -80,7 +80,7 @@ def _one(task: tuple[str, int, str, float, float, float, bool, float, str, bool,
                        else "scan_matching", margin=MARGIN, audit=audit,
                        vo_noise=(vo_scale * VO_NOISE[0], vo_scale * VO_NOISE[1]),
                        velocity_source=velocity_source if mode != "none" else "vo",
-                       vo_losses=vo_losses, surface=surface,
+                       vo_losses=vo_losses, surface=surface, camera_yaw=camera_yaw,
                        adapt=AdaptSettings() if mode == "adapting" else None)
     return result.summary() | {"seed": seed, "mode": mode, "events": result.contact_events,
                                "audit": [(r.p_user, r.intervened, r.clearance_m, r.touched,
@@ -130,6 +130,10 @@ def main(argv: list[str]) -> int:
                     help="the VO never loses tracking (by default it does, in episodes at "
                          "the floor's rate and when the camera faces something nearer than "
                          "its minimum depth)")
+    ap.add_argument("--camera-yaw", type=float, default=0.0,
+                    help="where the VO's camera looks, from the chair's forward (rad): 0, "
+                         "forward (default: the worst case, losses as the chair heads for "
+                         "something); the package's camera looks backward, 3.1416")
     ap.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile",
                     help="the floor driven on (its room, chair and VO losses): a model "
                          "trained on another floor shows what adapting does")
@@ -137,7 +141,8 @@ def main(argv: list[str]) -> int:
     if not (np.isfinite(args.vo_noise) and 0.0 <= args.vo_noise <= 100.0):
         ap.error(f"--vo-noise must be in [0, 100], got {args.vo_noise}")
     tasks = [(args.model, seed, mode, args.minutes, args.fov, args.memory_s, args.audit,
-              args.vo_noise, args.velocity_source, not args.no_vo_losses, args.surface)
+              args.vo_noise, args.velocity_source, not args.no_vo_losses, args.surface,
+              args.camera_yaw)
              for seed in args.seeds for mode in args.modes]
     with multiprocessing.Pool(args.jobs) as pool:
         rows = pool.map(_one, tasks)
@@ -145,7 +150,7 @@ def main(argv: list[str]) -> int:
           f"{args.fov:g} deg, "
           f"memory {args.memory_s:g} s, VO noise x {args.vo_noise:g}, the layer's velocity "
           f"from {args.velocity_source}, VO losses "
-          f"{'off' if args.no_vo_losses else 'on'}")
+          f"{'off' if args.no_vo_losses else 'on'} (camera at {args.camera_yaw:g} rad)")
     print("seed | mode            | contacts | interventions | intervening (s) | mean change "
           "| untouched | deepest (m) | solve p50 / p99 ms")
     for r in rows:

@@ -393,6 +393,15 @@ def test_the_offline_vo_loses_tracking_as_a_camera_does():
     assert not _camera_blind(scan(np.inf), mount)  # no returns: open space, not a wall
     assert not _camera_blind(scan(2.0, side=0.1), mount)  # a wall beside, none ahead
     assert _camera_blind(scan(2.0, side=0.1), (0.3, 0.0, np.pi / 2))  # a camera facing it
+    # a camera looking backward (the package's) is not blinded by a wall ahead, and is by
+    # one behind (the scanner here seeing all round)
+    round_angles = np.linspace(-np.pi, np.pi, 721, endpoint=False)
+    behind = np.where(np.abs(round_angles) > np.pi - 0.4, 0.8 * VO_MIN_DEPTH_M, 5.0)
+    ahead = np.where(np.abs(round_angles) < 0.4, 0.8 * VO_MIN_DEPTH_M, 5.0)
+    inc = float(round_angles[1] - round_angles[0])
+    assert not _camera_blind(Scan(ahead, -np.pi, inc, 0.05, 8.0), mount, camera_yaw=np.pi)
+    assert _camera_blind(Scan(behind, -np.pi, inc, 0.05, 8.0), mount, camera_yaw=np.pi)
+    assert _camera_blind(Scan(ahead, -np.pi, inc, 0.05, 8.0), mount)
 
 
 def test_with_the_vo_lost_auto_keeps_the_layers_input_fresh(chair_model):

@@ -15,7 +15,9 @@ same seed with the layer on and off:
   (with ``vo_losses``): in episodes of 0.5-3 s at the recordings' rate for the floor
   (:class:`~asgp_ros.sim.sensors.SensorParams`), and whenever the camera faces something
   nearer than an RGB-D camera's minimum depth (``VO_MIN_DEPTH_M`` over the central
-  ``VO_VIEW_RAD`` of the scan), and then reports nothing; it decides at every model grid step
+  ``VO_VIEW_RAD`` of the scan, the camera looking forward unless ``camera_yaw`` says
+  otherwise: the worst case, losses as the chair heads for a wall; the package's camera looks
+  backward), and then reports nothing; it decides at every model grid step
   (:func:`asgp_ros.core.shared_control.decide`), and while it intervenes its override is
   written to the board every 50 ms, as the bridge does.
 
@@ -277,10 +279,13 @@ def _lost_at(episodes: FloatArray) -> Callable[[float], bool]:
     return lost
 
 
-def _camera_blind(scan: collision.Scan, mount: tuple[float, float, float]) -> bool:
-    """Whether the camera (looking forward, about at the scanner) sees mostly nearer than
-    ``VO_MIN_DEPTH_M`` across ``VO_VIEW_RAD``: no depth, no features, no VO."""
-    angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.size) + mount[2]
+def _camera_blind(scan: collision.Scan, mount: tuple[float, float, float],
+                  camera_yaw: float = 0.0) -> bool:
+    """Whether the camera (looking ``camera_yaw`` from the chair's forward, about at the
+    scanner) sees mostly nearer than ``VO_MIN_DEPTH_M`` across ``VO_VIEW_RAD``, as the
+    scanner sees that way: no depth, no features, no VO."""
+    angles = (scan.angle_min + scan.angle_increment * np.arange(scan.ranges.size) + mount[2]
+              - camera_yaw)
     view = np.abs(np.remainder(angles + math.pi, 2.0 * math.pi) - math.pi) <= VO_VIEW_RAD / 2
     near = scan.ranges[view]
     near = np.where(np.isfinite(near), near, np.inf)  # dropouts: no return, far
@@ -358,22 +363,25 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
           memory_odometry: str = "scan_matching", audit: bool = False,
           vo_noise: tuple[float, float] = VO_NOISE,
           velocity_source: str = "auto", vo_losses: bool = True,
-          adapt: AdaptSettings | None = None) -> DriveResult:
+          adapt: AdaptSettings | None = None, camera_yaw: float = 0.0) -> DriveResult:
     """One drive (module docstring); the same ``seed`` gives the same user and floor.
     ``memory``: the layer remembers earlier scans (as the node by default, 10 s; None: the
     newest scan alone), carried along by matching the scans (:mod:`asgp_ros.core.scan_match`,
     ``memory_odometry`` "scan_matching", the node's default) or by dead reckoning of the VO's
     twists ("dead_reckoning"). ``audit``: check the decisions against the plant (module
-    docstring; slower). ``vo_noise``: the frame-to-frame VO's noise (m/s, rad/s, one
-    standard deviation per twist). ``velocity_source``: where the layer's predictor takes the
-    velocity from, as ``shared_control_node``'s ``velocity_source``
-    (:class:`~asgp_ros.core.scan_match.VelocitySelector`): "auto" (the matched scans'
-    twists, the VO's while they do not match), "vo" or "scan_matching". ``vo_losses``: the
-    VO loses tracking (module docstring); False: never. ``adapt``: the layer's predictor
-    adapts online (``shared_control_node``'s ``adapt.*``): it learns after each decision,
-    nothing from the steps the layer's overrides drove (each is fed to it as it goes to the
-    board, at the next step; the node feeds it before learning, and learning takes only
-    steps 0.8 s old or more, so the two learn the same)."""
+    docstring; slower). ``vo_noise``: the frame-to-frame VO's noise (m/s, rad/s, one standard
+    deviation per twist). ``velocity_source``: where the layer's predictor takes the velocity
+    from, as ``shared_control_node``'s ``velocity_source``
+    (:class:`~asgp_ros.core.scan_match.VelocitySelector`): "auto" (the matched scans' twists,
+    the VO's while they do not match), "vo" or "scan_matching". ``vo_losses``: the VO loses
+    tracking (module docstring); False: never. ``camera_yaw``: where the VO's camera looks,
+    from the chair's forward (rad): 0, forward, is the worst case for the layer, the losses
+    coming as the chair heads for something; the package's camera
+    (``vo.extrinsics.DEFAULT_EXTRINSIC``, config/vo.yaml) looks backward, pi. ``adapt``: the
+    layer's predictor adapts online (``shared_control_node``'s ``adapt.*``): it learns after
+    each decision, nothing from the steps the layer's overrides drove (each is fed to it as it
+    goes to the board, at the next step; the node feeds it before learning, and learning takes
+    only steps 0.8 s old or more, so the two learn the same)."""
     if velocity_source not in VELOCITY_SOURCES:
         raise ValueError(f"velocity_source must be one of {VELOCITY_SOURCES}, got "
                          f"{velocity_source!r}")
@@ -457,7 +465,7 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
                 elif scan_memory is not None and scan_odometer is not None:
                     extra = scan_memory.add(scan, scan_pose, scan_odometer.epoch)
                 if vo_losses:
-                    camera_blind = _camera_blind(scan, mount)
+                    camera_blind = _camera_blind(scan, mount, camera_yaw)
                 if velocity_odometer is not None:  # as the node: the matched interval's twist
                     give, twist = velocity.scan(t, velocity_odometer.last_twist)
                     if give and twist is None:
