@@ -6,6 +6,7 @@ exceptions do."""
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import hashlib
 import json
@@ -1158,3 +1159,30 @@ def test_pool_workers_end_with_a_parent_killed_outright(tmp_path):
         for w in workers:
             if not ended(w):
                 os.kill(w, signal.SIGKILL)
+
+
+def test_a_nohup_command_outlives_the_hangup(tmp_path, repo_root):
+    """`nohup asgp simulate ... &`, then the session ends and the shell sends its jobs
+    SIGHUP, which nohup set to be ignored: the command replaced that with its own handler,
+    ended (129) and wrote no bag. An inherited SIG_IGN is kept. (SIGHUP is sent every
+    0.1 s until the command ends, so that some come after its start-up.)"""
+    bag = tmp_path / "bag"
+    env = {**os.environ, "PYTHONPATH": str(repo_root)}
+    proc = subprocess.Popen(["nohup", sys.executable, "-m", "asgp_ros.cli", "simulate",
+                             "--minutes", "20", "--out", str(bag)], env=env, cwd=tmp_path,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300.0
+    cmdline = Path(f"/proc/{proc.pid}/cmdline")
+    while b"asgp_ros.cli" not in cmdline.read_bytes():  # nohup has set SIG_IGN and exec'd
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.01)
+    hangups = 0
+    while proc.poll() is None and time.monotonic() < deadline:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(proc.pid, signal.SIGHUP)
+            hangups += 1
+        time.sleep(0.1)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, (proc.returncode, err[-300:])
+    assert hangups > 10
+    assert bag.is_dir()

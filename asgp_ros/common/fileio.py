@@ -72,7 +72,8 @@ def raise_on_termination() -> None:
 
     A repeated SIGTERM while the clean-up runs is ignored, so that a supervisor that sends
     it twice does not cut the clean-up short; a repeated Ctrl-C interrupts as usual. An
-    inherited SIG_IGN for SIGINT (a background job) is kept.
+    inherited SIG_IGN is kept: SIGINT for a background job, SIGHUP under ``nohup`` (a
+    nohup'ed ``asgp simulate`` was ended when its session closed, its bag not written).
 
     An exception raised by a signal handler is lost when the signal lands in code whose
     exceptions Python discards (an at-fork hook, a ``__del__``): long waits therefore also
@@ -90,10 +91,9 @@ def raise_on_termination() -> None:
         if first:
             raise Terminated(signum)
 
-    for sig in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, handler)
-    if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
-        signal.signal(signal.SIGINT, handler)
+    for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, handler)
 
 
 @contextlib.contextmanager
@@ -182,7 +182,8 @@ def quiet_worker_exit() -> None:
     sys.unraisablehook = unraisable
     _worker[0] = True
     for sig in _STOP_SIGNALS:
-        signal.signal(sig, handler)
+        if signal.getsignal(sig) is not signal.SIG_IGN:  # (the parent's: nohup's SIGHUP)
+            signal.signal(sig, handler)
     # A worker is forked inside the parent's signals_deferred() block, with the parent's
     # handler: a stop signal that arrived before this initialiser was only recorded.
     _deferring[0] = 0

@@ -275,7 +275,8 @@ class _Stop:
 
     def install(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-            self._old[sig] = signal.signal(sig, self._handler)
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # (kept: nohup, a background
+                self._old[sig] = signal.signal(sig, self._handler)  # job's SIGINT)
 
     def restore(self) -> None:
         for sig, old in self._old.items():
