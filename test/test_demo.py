@@ -880,3 +880,38 @@ def test_a_demo_that_recorded_nothing_leaves_no_bag(rclpy_context, tmp_path):
     executor.add_node(node)
     orchestrator._stop_monitor(node, executor, rclpy_context, partial, final)
     assert not final.exists() and not partial.exists()
+
+
+_HANGUP_PROBE = r"""
+import os, pty, signal, sys
+from asgp_ros.demo.orchestrator import Status, _Stop
+
+master, slave = pty.openpty()
+os.dup2(slave, 1)
+os.dup2(slave, 2)
+stop = _Stop()
+stop.install()
+status = Status()
+status.show("driving", force=True)
+os.close(master)  # the terminal is gone: a write to it fails (EIO)
+signal.raise_signal(signal.SIGHUP)
+status.show("stopping", force=True)
+status.end()
+print("said after the hang-up", flush=True)
+sys.stderr.write("and on stderr\n")
+stop.restore()
+sys.exit(0 if stop.reason == "SIGHUP" else 3)
+"""
+
+
+def test_the_demos_terminal_closing_is_a_clean_stop_not_an_error(repo_root):
+    """The demo's terminal closed during the drive (an ssh session dropped): its status
+    line's next write failed (EIO) and cut the stop short: nodes not stopped in order, the
+    bag not closed (nothing recoverable), no report. After SIGHUP what it says goes to
+    /dev/null, and the stop goes on."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _HANGUP_PROBE], cwd=repo_root,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-500:]

@@ -24,6 +24,7 @@ Sequence:
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import logging
 import math
@@ -285,6 +286,16 @@ class _Stop:
     def _handler(self, signum: int, _frame: FrameType | None) -> None:
         if not self.reason:
             self.reason = signal.Signals(signum).name
+        if signum == signal.SIGHUP:
+            # the terminal closed (an ssh session dropped): a write to it now fails (EIO),
+            # and the first, the status line's, cut the stop short: the nodes not stopped
+            # in order, the bag not closed (nothing recoverable), no report. What the demo
+            # says from here on goes nowhere; what it writes to OUT is all there.
+            with contextlib.suppress(OSError):
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, 1)
+                os.dup2(devnull, 2)
+                os.close(devnull)
 
     def __bool__(self) -> bool:
         return bool(self.reason)
@@ -330,6 +341,10 @@ class Status:
         self._width = 0
 
     def show(self, line: str, force: bool = False) -> None:
+        with contextlib.suppress(OSError):  # (a reader gone: see _tolerant)
+            self._show(line, force)
+
+    def _show(self, line: str, force: bool) -> None:
         now = time.monotonic()
         period = 1.0 if self.tty else 10.0
         if not force and now - self._last < period:
@@ -345,9 +360,10 @@ class Status:
 
     def end(self) -> None:
         if self.tty and self._width:
-            self.stream.write("\n")
-            self.stream.flush()
             self._width = 0
+            with contextlib.suppress(OSError):
+                self.stream.write("\n")
+                self.stream.flush()
 
 
 def _status_line(mon: MonitorNode, elapsed: float, total: float) -> str:
@@ -367,10 +383,21 @@ def _status_line(mon: MonitorNode, elapsed: float, total: float) -> str:
 MAX_DEMO_NAME_BYTES = 255 - len(".unfinished.") - 8
 
 
+def _tolerant(say: Printer) -> Printer:
+    """``say``, whose failure to write (stdout a pipe whose reader is gone: ``asgp demo |
+    tee`` with tee killed) is no failure of the demo: the stop, the bag and the report go
+    on."""
+    def tolerant(line: str) -> None:
+        with contextlib.suppress(OSError):
+            say(line)
+    return tolerant
+
+
 def run_demo(opts: DemoOptions, say: Printer = print) -> int:
     """Run the demo (module docstring); returns the exit code (0 = every node produced
     output and the report was written)."""
     opts.validate()
+    say = _tolerant(say)
     reuse = opts.model is None and not opts.train  # OUT/model.npz of an earlier run
     try:
         out = check_output(opts.out, DEMO_DIR, force=opts.force or reuse,
