@@ -915,3 +915,41 @@ def test_the_demos_terminal_closing_is_a_clean_stop_not_an_error(repo_root):
     proc = subprocess.run([sys.executable, "-c", _HANGUP_PROBE], cwd=repo_root,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr[-500:]
+
+
+@pytest.mark.ros
+def test_the_hardware_nodes_board_link_goes_when_its_start_up_is_cut_short(
+        rclpy_context, tmp_path, monkeypatch):
+    """The demo's hardware node started its board (a pty and a link to it at ``port``),
+    then built its room (a second): a Ctrl-C or SIGTERM then left the link behind, pointing
+    at whichever pty next took its number. The board starts last now, and a stop right after
+    it takes the link down."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.demo import hardware
+    from asgp_ros.demo.simhw import SimulatedHardware
+
+    port = tmp_path / "joystick"
+    real_start = SimulatedHardware.start_board
+    order: list[str] = []
+
+    def start_then_ctrl_c(self):
+        order.append("board")
+        real_start(self)
+        assert port.is_symlink()
+        raise KeyboardInterrupt  # a Ctrl-C as the board came up
+
+    monkeypatch.setattr(SimulatedHardware, "start_board", start_then_ctrl_c)
+    real_timer = hardware.HardwareNode.create_timer
+
+    def timer(self, *args, **kwargs):
+        order.append("timer")
+        return real_timer(self, *args, **kwargs)
+
+    monkeypatch.setattr(hardware.HardwareNode, "create_timer", timer)
+    with pytest.raises(KeyboardInterrupt):
+        hardware.HardwareNode(context=rclpy_context, parameter_overrides=[
+            Parameter("port", value=str(port)), Parameter("width", value=64),
+            Parameter("height", value=48)])
+    assert not os.path.lexists(port)
+    assert order[-1] == "board"  # after the rest of the start-up

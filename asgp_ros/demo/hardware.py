@@ -186,8 +186,6 @@ class HardwareNode(Node):
             HardwareConfig(seed=p.seed, surface=p.surface, width=p.width, height=p.height,
                            inattention=p.inattention),
             link_path=p.port or None)
-        port = self.hw.start_board()
-        self.get_logger().info(f"simulated joystick board on {port}")
         self.hw.renderer  # build the textured room now, not in the first frame  # noqa: B018
 
         sensor = qos_profile_sensor_data
@@ -232,6 +230,15 @@ class HardwareNode(Node):
         if p.scan_rate_hz > 0.0:
             self.create_timer(1.0 / p.scan_rate_hz, self._on_scan)
         self.create_timer(p.diagnostics_period_s, self._publish_diagnostics)
+        # the board (its pty and the link to it) last, and taken down if the start-up is cut
+        # short: a signal while the room was built left the link behind, pointing at
+        # whichever pty next took its number (and `asgp board --link` then refused it)
+        try:
+            port = self.hw.start_board()
+            self.get_logger().info(f"simulated joystick board on {port}")
+        except BaseException:
+            self.hw.stop()
+            raise
 
     # ---- start-up --------------------------------------------------------------------
 
