@@ -953,3 +953,16 @@ def test_the_hardware_nodes_board_link_goes_when_its_start_up_is_cut_short(
             Parameter("height", value=48)])
     assert not os.path.lexists(port)
     assert order[-1] == "board"  # after the rest of the start-up
+
+
+def test_an_offline_evaluation_that_overruns_its_time_is_a_demo_error(tmp_path):
+    """`asgp evaluate` of the drive taking longer than the demo gives it (a long drive on a
+    loaded laptop, a child stuck on I/O) raised TimeoutExpired: a traceback, and the drive's
+    report was not written. It is one of the evaluation's failures, which the report says."""
+    import os
+
+    from asgp_ros.demo.common import evaluate_bag
+
+    with pytest.raises(DemoError, match="asgp evaluate took more than"):
+        evaluate_bag(tmp_path / "model.npz", tmp_path / "bag", tmp_path / "e.json",
+                     dict(os.environ), timeout_s=0.001)

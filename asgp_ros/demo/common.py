@@ -34,6 +34,10 @@ class RunState:
     stop_signals: dict[str, str] = field(default_factory=dict)
 
 
+def _text(data: str | bytes | None) -> str:
+    return data.decode(errors="replace") if isinstance(data, bytes) else data or ""
+
+
 def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
                  timeout_s: float = 300.0) -> dict[str, Any]:
     """``asgp evaluate MODEL BAG --truth --json OUT --force`` in a subprocess; its JSON.
@@ -44,8 +48,12 @@ def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
     """
     argv = [sys.executable, "-m", "asgp_ros.cli", "evaluate", str(model), str(bag), "--truth",
             "--json", str(out_json), "--force"]
-    proc = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s,
-                          check=False)
+    try:
+        proc = subprocess.run(argv, env=env, capture_output=True, text=True,
+                              timeout=timeout_s, check=False)
+    except subprocess.TimeoutExpired as exc:  # (a traceback, and the report was not written)
+        raise DemoError(f"asgp evaluate took more than {timeout_s:g} s (stopped): "
+                        f"{_text(exc.stderr).strip()[-500:]}") from exc
     if proc.returncode != 0:
         raise DemoError(f"asgp evaluate failed ({proc.returncode}): "
                         f"{(proc.stderr or proc.stdout).strip()[-2000:]}")
