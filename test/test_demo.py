@@ -966,3 +966,21 @@ def test_an_offline_evaluation_that_overruns_its_time_is_a_demo_error(tmp_path):
     with pytest.raises(DemoError, match="asgp evaluate took more than"):
         evaluate_bag(tmp_path / "model.npz", tmp_path / "bag", tmp_path / "e.json",
                      dict(os.environ), timeout_s=0.001)
+
+
+def test_a_node_stopped_while_python_starts_exits_cleanly(tmp_path):
+    """A Ctrl-C as the demo started its nodes: each child got SIGINT during Python's start
+    (0.7 s of imports, before the node's handlers): a KeyboardInterrupt in an import, a
+    traceback, exit code 1, and the demo blamed the node. The children start with the stop
+    signals held; one that came before the node began ends the child with 0."""
+    import os
+    import signal
+
+    from asgp_ros.demo.processes import ProcessGroup
+
+    group = ProcessGroup(dict(os.environ), tmp_path / "logs")
+    child = group.start("predictor", "asgp_ros.nodes.predictor_node:main", [])
+    os.kill(child.pid, signal.SIGINT)  # at once: Python is starting
+    assert child.proc.wait(timeout=60) == 0, child.log_path.read_text()[-800:]
+    assert "stopped (SIGINT) before asgp_ros.nodes.predictor_node started" in \
+        child.log_path.read_text()

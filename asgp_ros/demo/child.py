@@ -7,6 +7,12 @@ checks that the parent is still there (it may have died before the request), the
 ``FUNCTION()`` with ``sys.argv = [MODULE, *ARGS]`` (how a console script runs) and exits
 with its return value.
 
+The demo starts it with SIGINT and SIGTERM blocked: a stop that comes while Python starts
+and the node's module is imported (about 0.7 s, before the node has its own handlers) is
+held, and then ends the child with exit code 0 before the node starts (Python's own
+SIGINT raised KeyboardInterrupt in the middle of an import: a traceback and exit code 1,
+which the demo took for the node's failure).
+
 SIGUSR1 writes the stack of every thread to stderr (the node's log) and nothing else
 (:mod:`faulthandler`, which needs no lock and works while the main thread is stuck in C
 code): the demo sends it before killing a node that did not stop, so the log says where
@@ -34,10 +40,21 @@ def main() -> int:
         print(f"the demo (pid {parent}) is gone; not starting {module}", file=sys.stderr)
         return 1
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    stopped: list[int] = []
+    for sig in _STOPS:  # until the node's own (a stop meanwhile is only noted)
+        signal.signal(sig, lambda signum, _frame: stopped.append(signum))
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
     sys.argv = [module, *sys.argv[3:]]
     entry = getattr(importlib.import_module(module), function)
+    if stopped:
+        print(f"stopped ({signal.Signals(stopped[0]).name}) before {module} started",
+              file=sys.stderr)
+        return 0
     rc = entry()
     return int(rc or 0)
+
+
+_STOPS = (signal.SIGINT, signal.SIGTERM)
 
 
 if __name__ == "__main__":

@@ -538,6 +538,8 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
                             f"{', '.join(others[:5])}{', ...' if len(others) > 5 else ''}); "
                             "choose another with --domain-id")
         for name, entry, args in node_commands(opts, model.resolve(), port):
+            if stop:  # (a Ctrl-C while the monitor started: no node to stop at once)
+                break
             group.start(name, entry, args)
         say(f"started {', '.join(c.name for c in group.children)} (logs in {out / 'logs'}); "
             f"board on {port}")

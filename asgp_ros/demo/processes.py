@@ -107,10 +107,18 @@ class ProcessGroup:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         argv = [sys.executable, "-m", "asgp_ros.demo.child", str(os.getpid()), entry, *args]
+        # the child starts with the stop signals blocked (the mask is inherited through
+        # exec): demo.child takes one sent while Python starts as a stop before the node
+        # began, not a KeyboardInterrupt in an import (asgp_ros.demo.child)
+        stops = {signal.SIGINT, signal.SIGTERM}
         with open(log_path, "wb") as fh:
-            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=fh,
-                                    stderr=subprocess.STDOUT, env=self.env,
-                                    start_new_session=True)
+            mask = signal.pthread_sigmask(signal.SIG_BLOCK, stops)
+            try:
+                proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=fh,
+                                        stderr=subprocess.STDOUT, env=self.env,
+                                        start_new_session=True)
+            finally:
+                signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         child = Child(name, argv, log_path, proc)
         self.children.append(child)
         log.debug("started %s (pid %d): %s", name, proc.pid, " ".join(argv))
