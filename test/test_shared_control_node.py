@@ -2097,3 +2097,29 @@ def test_a_map_is_dropped_when_the_odometry_re_initialises(harness):
     assert last["why"] == "no_obstacle_source", last
     values = conv.diagnostic_values(h.node.diagnostic_status())
     assert "re-initialised" in values["map"] and values["odometry_reinitialised"] == "1"
+
+
+def test_an_upside_down_laser_is_read_mirrored(harness):
+    """A laser mounted upside down (rolled by pi) has no yaw that describes it: a wall on
+    the chair's right, which it reports at positive angles, was placed on the left."""
+    msg = wall_scan_msg(100.0, 1.0)
+    a0, inc = float(msg.angle_min), float(msg.angle_increment)
+    ranges = np.full(len(msg.ranges), np.inf)
+    beams = a0 + inc * np.arange(ranges.size)
+    ranges[np.abs(beams - 1.2) < 0.05] = 0.8  # a post at +1.2 rad in the laser's own frame
+    msg.ranges = ranges.tolist()
+    for upside_down, side in ((False, 1.0), (True, -1.0)):
+        scan = conv.scan_from_msg(msg, upside_down=upside_down)
+        angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.size)
+        at = angles[np.isfinite(scan.ranges)]
+        assert at.size and np.all(np.abs(at - side * 1.2) < 0.06), (upside_down, at)
+    h = harness(laser_upside_down=True)
+    assert h.node.params.laser_upside_down
+    h.clock(100.0)
+    seen = h._scan_state()
+    msg.header.stamp = conv.seconds_to_stamp(100.0)
+    h.scan_pub.publish(msg)
+    h.spin_until(lambda: h._scan_state() != seen, what="scan")
+    held = h.node._scan[1]
+    angles = held.angle_min + held.angle_increment * np.arange(held.ranges.size)
+    assert np.all(np.abs(angles[np.isfinite(held.ranges)] + 1.2) < 0.06)

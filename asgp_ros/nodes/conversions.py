@@ -643,10 +643,14 @@ def odometry_with_covariance(t: float, x: float, y: float, yaw: float, pose_cov:
 # Shared control: LaserScan, OccupancyGrid
 
 
-def scan_from_msg(msg: LaserScan, nan_is_free: bool = False) -> collision.Scan:
+def scan_from_msg(msg: LaserScan, nan_is_free: bool = False,
+                  upside_down: bool = False) -> collision.Scan:
     """sensor_msgs/LaserScan -> :class:`asgp_ros.core.collision.Scan` (stamp in seconds).
     ``nan_is_free``: a NaN range is read as +inf, nothing in range (a source that reports
-    no return as NaN); by default NaN is an erroneous reading (REP-117).
+    no return as NaN); by default NaN is an erroneous reading (REP-117). ``upside_down``:
+    the laser is mounted upside down (its frame rolled by pi about its x axis): a beam at
+    angle a in its frame is at -a in an upright one, so the scan is mirrored (read as it
+    is, a wall on the right was placed on the left).
 
     Raises:
         ValueError (:class:`~asgp_ros.core.collision.CollisionError`): no beams, more than
@@ -655,8 +659,11 @@ def scan_from_msg(msg: LaserScan, nan_is_free: bool = False) -> collision.Scan:
     ranges = np.asarray(msg.ranges, dtype=np.float64)
     if nan_is_free:
         ranges = np.where(np.isnan(ranges), np.inf, ranges)
-    return collision.Scan(ranges, float(msg.angle_min),
-                          float(msg.angle_increment), float(msg.range_min),
+    angle_min, increment = float(msg.angle_min), float(msg.angle_increment)
+    if upside_down and ranges.size:  # beam i at -(angle_min + i inc), the last one first
+        ranges = ranges[::-1].copy()
+        angle_min = -(angle_min + increment * (ranges.size - 1))
+    return collision.Scan(ranges, angle_min, increment, float(msg.range_min),
                           float(msg.range_max), stamp_to_seconds(msg.header.stamp))
 
 

@@ -226,6 +226,8 @@ LAYER_PARAMS: tuple[ParamSpec, ...] = (
     _spec("laser_x", 0.3, "laser position in the base frame, x (m)", -5.0, 5.0),
     _spec("laser_y", 0.0, "laser position in the base frame, y (m)", -5.0, 5.0),
     _spec("laser_yaw", 0.0, "laser yaw in the base frame (rad)", -math.pi, math.pi),
+    _spec("laser_upside_down", False, "the laser is mounted upside down (rolled by pi about "
+          "its x axis, laser_yaw where its x points): its scans are mirrored"),
     _spec("footprint_length", collision.DEFAULT_FOOTPRINT.length,
           "chair footprint length along x (m)", 0.1, 5.0),
     _spec("footprint_width", collision.DEFAULT_FOOTPRINT.width,
@@ -298,6 +300,7 @@ class SharedControlParams:
     laser_x: float
     laser_y: float
     laser_yaw: float
+    laser_upside_down: bool
     footprint_length: float
     footprint_width: float
     footprint_offset: float
@@ -712,7 +715,8 @@ class SharedControlNode(Node):
         if now is None:
             return
         try:
-            scan = conv.scan_from_msg(msg, nan_is_free=self.params.scan_nan == "no_return")
+            scan = conv.scan_from_msg(msg, nan_is_free=self.params.scan_nan == "no_return",
+                                      upside_down=self.params.laser_upside_down)
         except ValueError as exc:
             self._bad_messages += 1
             self._refuse_scan(f"malformed scan: {exc}")
