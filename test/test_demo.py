@@ -984,3 +984,55 @@ def test_a_node_stopped_while_python_starts_exits_cleanly(tmp_path):
     assert child.proc.wait(timeout=60) == 0, child.log_path.read_text()[-800:]
     assert "stopped (SIGINT) before asgp_ros.nodes.predictor_node started" in \
         child.log_path.read_text()
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_node_stopped_after_its_import_and_before_its_handlers_stops(tmp_path, sig):
+    """A stop that came after demo.child's check of the stops held during the import and
+    before the node's own handlers was noted by a handler nothing read: the node ran on
+    (the demo waited 6 s and warned; a SIGTERM from the kernel when the demo died left it
+    running with no parent). The stop signals stay held until the node's handlers are in
+    place, which take it."""
+    import os
+    import time
+
+    from asgp_ros.demo.processes import ProcessGroup
+
+    (tmp_path / "entry_signalled.py").write_text(
+        "import os, signal\n"
+        "from asgp_ros.nodes import vo_node\n\n"
+        "def main():\n"
+        f"    os.kill(os.getpid(), signal.{sig})  # after the import, before its handlers\n"
+        "    return vo_node.main()\n")
+    env = child_env(int(os.environ.get("ROS_DOMAIN_ID", "0")))
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), env.get("PYTHONPATH", "")])
+    group = ProcessGroup(env, tmp_path / "logs")
+    child = group.start("vo", "entry_signalled:main", [])
+    try:
+        deadline = time.monotonic() + 30.0
+        while not group.reap(child):
+            assert time.monotonic() < deadline, child.log_path.read_text()[-600:]
+            time.sleep(0.05)
+        assert child.returncode == 0, child.log_path.read_text()[-600:]
+    finally:
+        group.stop_all()
+
+
+def test_a_hang_up_mutes_a_terminal_not_a_log_file(tmp_path):
+    """`asgp demo > demo.log 2>&1`, then SIGHUP: its output went to /dev/null whatever it
+    was, and the log lost its last lines (the report's paths, the errors)."""
+    import subprocess
+    import sys
+
+    probe = (
+        "import os, signal, sys\n"
+        "from asgp_ros.demo.orchestrator import _Stop\n"
+        "stop = _Stop(); stop.install()\n"
+        "signal.raise_signal(signal.SIGHUP)\n"
+        "stop.restore()\n"
+        "print('after the hang-up', flush=True)\n")
+    log = tmp_path / "demo.log"
+    with open(log, "w") as fh:
+        subprocess.run([sys.executable, "-c", probe], stdout=fh, stderr=subprocess.STDOUT,
+                       check=True, timeout=60)
+    assert "after the hang-up" in log.read_text()

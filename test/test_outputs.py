@@ -11,6 +11,7 @@ import fnmatch
 import hashlib
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -1173,7 +1174,10 @@ def test_a_nohup_command_outlives_the_hangup(tmp_path, repo_root):
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300.0
     cmdline = Path(f"/proc/{proc.pid}/cmdline")
-    while b"asgp_ros.cli" not in cmdline.read_bytes():  # nohup has set SIG_IGN and exec'd
+    # until nohup has set SIG_IGN and exec'd python (before, the command line is the
+    # forked test's, then nohup's, which names asgp_ros.cli too)
+    while (parts := cmdline.read_bytes().split(b"\0"))[0] == b"nohup" \
+            or b"asgp_ros.cli" not in parts:
         assert time.monotonic() < deadline and proc.poll() is None
         time.sleep(0.01)
     hangups = 0
@@ -1186,3 +1190,40 @@ def test_a_nohup_command_outlives_the_hangup(tmp_path, repo_root):
     assert proc.returncode == 0, (proc.returncode, err[-300:])
     assert hangups > 10
     assert bag.is_dir()
+
+
+def _catches(pid: int, sig: int) -> bool:
+    """Whether process ``pid`` has a handler for ``sig`` (its /proc status's SigCgt)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (sig - 1) & 1)
+    return False
+
+
+def test_a_command_whose_terminal_closes_ends_with_129(tmp_path, repo_root):
+    """The terminal of a running `asgp simulate` closes (an ssh session dropped): its
+    clean-up ran, then its 'terminated' line to the dead terminal raised EIO out of main:
+    a traceback and exit 1, not 129."""
+    import pty
+
+    env = {**os.environ, "PYTHONPATH": str(repo_root)}
+    argv = [sys.executable, "-m", "asgp_ros.cli", "simulate", "--minutes", "120", "--out",
+            "bag"]
+    pid, fd = pty.fork()
+    if pid == 0:  # (the child: a session of its own, the pty its terminal)
+        os.chdir(tmp_path)
+        os.execve(argv[0], argv, env)
+    try:
+        deadline = time.monotonic() + 60.0
+        # exec'd (the forked child has this process's handlers until then), and its
+        # handlers in place
+        while b"asgp_ros.cli" not in Path(f"/proc/{pid}/cmdline").read_bytes() \
+                or not _catches(pid, signal.SIGHUP):
+            assert time.monotonic() < deadline
+            with contextlib.suppress(OSError):
+                os.read(fd, 4096) if select.select([fd], [], [], 0.01)[0] else None
+    finally:
+        os.close(fd)  # the terminal hangs up: SIGHUP to its session
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 129
+    assert os.listdir(tmp_path) == []  # (its temporaries gone)

@@ -2088,15 +2088,26 @@ def test_a_map_is_dropped_when_the_odometry_re_initialises(harness):
     _publish_map(h, wall_map_msg(None))
     x = _drive_odometry(h, 100.0, 102.0, 0.0, 0.0, 1e-4)
     wall_x = x + 0.5 + 1.0 + 0.6 + 1.2  # 1.2 m ahead of the front after 0.5 s and the gap
-    _publish_map(h, wall_map_msg(wall_x))
+    old_map = wall_map_msg(wall_x)
+    old_map.header.stamp = conv.seconds_to_stamp(102.0)  # made with the poses before
+    _publish_map(h, old_map)
     x = _drive_odometry(h, 102.0, 102.5, x, 0.0, 1e-4)
     assert h.last()["why"] == "clear"
     x += 1.0  # the tracking gap: the chair moved 1 m, the pose held
-    _drive_odometry(h, 102.5, 103.1, x, 1.0, 1.0 + 1e-4)
+    x = _drive_odometry(h, 102.5, 103.1, x, 1.0, 1.0 + 1e-4)
     last = h.last()
     assert last["why"] == "no_obstacle_source", last
     values = conv.diagnostic_values(h.node.diagnostic_status())
     assert "re-initialised" in values["map"] and values["odometry_reinitialised"] == "1"
+    # the mapper sends the same map again (stamped before the re-initialisation): it was
+    # installed again, and the wall judged clear again
+    _publish_map(h, old_map)
+    assert h.node._grid is None and "before the odometry re-initialised" in h.node._grid_problem
+    # a map of the new alignment (stamped after) is taken
+    new_map = wall_map_msg(wall_x - 1.0)
+    new_map.header.stamp = conv.seconds_to_stamp(103.1)
+    _publish_map(h, new_map)
+    assert h.node._grid is not None
 
 
 def test_an_upside_down_laser_is_read_mirrored(harness):

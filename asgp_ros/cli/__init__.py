@@ -135,25 +135,44 @@ def main(argv: Sequence[str] | None = None) -> int:
         _silence_stdout()
         return EXIT_BROKEN_PIPE
     except (CommandError, OutputError) as exc:
-        print(f"error: {one_line(str(exc))}", file=sys.stderr)
+        _tell(f"error: {one_line(str(exc))}")
         return 2
     except OSError as exc:
         # A file system failure the command did not foresee (disk full, permission denied):
         # the user needs the path and the reason, not a traceback.
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: {one_line(f'{where}{exc.strerror or exc}')}", file=sys.stderr)
+        _tell(f"error: {one_line(f'{where}{exc.strerror or exc}')}")
         return 2
     except MemoryError:
         # numpy names the array it could not allocate; the user needs what to do
-        print(f"error: out of memory in asgp {args.command}: fewer or shorter inputs, or "
-              "shorter horizons, need less", file=sys.stderr)
+        _tell(f"error: out of memory in asgp {args.command}: fewer or shorter inputs, or "
+              "shorter horizons, need less")
         return 2
     except Terminated as exc:
-        print(f"terminated ({one_line(str(exc))})", file=sys.stderr)
+        _tell(f"terminated ({one_line(str(exc))})")
         return 128 + exc.signum
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        _tell("interrupted")
         return 130
+
+
+def _tell(line: str) -> None:
+    """The command's last word, on stderr; none when stderr cannot take it (its terminal
+    closed: the SIGHUP that ended the command left it failing with EIO, and the exit was a
+    traceback and 1, not 129)."""
+    try:
+        print(line, file=sys.stderr)
+    except OSError:
+        _silence_stderr()
+
+
+def _silence_stderr() -> None:
+    """Standard error to /dev/null (its buffer's flush at exit would fail again)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stderr.fileno())
+    except (OSError, ValueError, AttributeError):  # not a real file (tests, embedding)
+        pass
 
 
 if __name__ == "__main__":

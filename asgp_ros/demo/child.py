@@ -7,11 +7,13 @@ checks that the parent is still there (it may have died before the request), the
 ``FUNCTION()`` with ``sys.argv = [MODULE, *ARGS]`` (how a console script runs) and exits
 with its return value.
 
-The demo starts it with SIGINT and SIGTERM blocked: a stop that comes while Python starts
-and the node's module is imported (about 0.7 s, before the node has its own handlers) is
-held, and then ends the child with exit code 0 before the node starts (Python's own
-SIGINT raised KeyboardInterrupt in the middle of an import: a traceback and exit code 1,
-which the demo took for the node's failure).
+The demo starts it with SIGINT and SIGTERM blocked, and they stay so until the node's own
+handlers are in place (``nodes.runtime.StopSignals``, or rclpy's in the demo's hardware
+node): a stop that comes while Python starts and the node's module is imported (about
+0.7 s) is held; one held when the import is done ends the child with exit code 0 before the
+node starts, one that comes after it is the node's (Python's own SIGINT raised
+KeyboardInterrupt in the middle of an import: a traceback and exit code 1, which the demo
+took for the node's failure; one noted by a handler of this module after it was lost).
 
 SIGUSR1 writes the stack of every thread to stderr (the node's log) and nothing else
 (:mod:`faulthandler`, which needs no lock and works while the main thread is stuck in C
@@ -40,14 +42,11 @@ def main() -> int:
         print(f"the demo (pid {parent}) is gone; not starting {module}", file=sys.stderr)
         return 1
     faulthandler.register(signal.SIGUSR1, all_threads=True)
-    stopped: list[int] = []
-    for sig in _STOPS:  # until the node's own (a stop meanwhile is only noted)
-        signal.signal(sig, lambda signum, _frame: stopped.append(signum))
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOPS)
     sys.argv = [module, *sys.argv[3:]]
     entry = getattr(importlib.import_module(module), function)
-    if stopped:
-        print(f"stopped ({signal.Signals(stopped[0]).name}) before {module} started",
+    held = signal.sigpending() & set(_STOPS)
+    if held:
+        print(f"stopped ({signal.Signals(min(held)).name}) before {module} started",
               file=sys.stderr)
         return 0
     rc = entry()

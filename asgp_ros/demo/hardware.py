@@ -35,6 +35,7 @@ Run: ``python -m asgp_ros.demo.hardware --ros-args -p port:=/tmp/asgp_joystick``
 from __future__ import annotations
 
 import math
+import signal
 import sys
 import threading
 import time
@@ -424,6 +425,9 @@ def main(args: list[str] | None = None,
     "publisher's context is invalid"). After a shutdown that is the stop it looks like,
     not a crash (as in vo_node and predictor_node)."""
     rclpy.init(args=args)
+    # a stop held while the process started (the demo starts it with the stop signals
+    # blocked, asgp_ros.demo.child) is taken now, by rclpy's handlers
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
     node: HardwareNode | None = None
     try:
         node = node_class()

@@ -35,7 +35,7 @@ import signal
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from types import FrameType
@@ -267,14 +267,52 @@ def _self_cpu() -> float:
 
 # ------------------------------------------------------------------------------------ run
 
+def _terminals() -> tuple[int, ...]:
+    """Which of standard output and error are a terminal (asked before a hang-up: after it,
+    a closed terminal may no longer say it is one)."""
+    return tuple(fd for fd in (1, 2) if os.isatty(fd))
+
+
+def _mute_terminal(fds: tuple[int, ...]) -> None:
+    """After a hang-up (the terminal closed: an ssh session dropped) a write to it fails
+    (EIO), and the first, the status line's, cut the demo's stop short: the nodes not
+    stopped in order, the bag not closed (nothing recoverable), no report. Those of
+    standard output and error that were a terminal (``fds``) go to /dev/null from here on
+    (a log file they were sent to keeps what follows); what the demo writes to OUT is all
+    there."""
+    with contextlib.suppress(OSError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        for fd in fds:
+            os.dup2(devnull, fd)
+        os.close(devnull)
+
+
+@contextlib.contextmanager
+def _hangup_tolerated() -> Iterator[None]:
+    """A hang-up outside the drive's own stop handling (:class:`_Stop`: while the nodes are
+    stopped, the bag closed, the report written) mutes the terminal and lets the demo finish
+    (it was a Terminated half-way: no report)."""
+    if signal.getsignal(signal.SIGHUP) is signal.SIG_IGN:
+        yield
+        return
+    fds = _terminals()
+    previous = signal.signal(signal.SIGHUP, lambda _signum, _frame: _mute_terminal(fds))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
 class _Stop:
     """Signal handlers: the first Ctrl-C (or SIGTERM) asks for a clean stop."""
 
     def __init__(self) -> None:
         self.reason = ""
         self._old: dict[int, _SignalHandler] = {}
+        self._terminals: tuple[int, ...] = ()
 
     def install(self) -> None:
+        self._terminals = _terminals()
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             if signal.getsignal(sig) is not signal.SIG_IGN:  # (kept: nohup, a background
                 self._old[sig] = signal.signal(sig, self._handler)  # job's SIGINT)
@@ -287,15 +325,7 @@ class _Stop:
         if not self.reason:
             self.reason = signal.Signals(signum).name
         if signum == signal.SIGHUP:
-            # the terminal closed (an ssh session dropped): a write to it now fails (EIO),
-            # and the first, the status line's, cut the stop short: the nodes not stopped
-            # in order, the bag not closed (nothing recoverable), no report. What the demo
-            # says from here on goes nowhere; what it writes to OUT is all there.
-            with contextlib.suppress(OSError):
-                devnull = os.open(os.devnull, os.O_WRONLY)
-                os.dup2(devnull, 1)
-                os.dup2(devnull, 2)
-                os.close(devnull)
+            _mute_terminal(self._terminals)
 
     def __bool__(self) -> bool:
         return bool(self.reason)
@@ -478,10 +508,11 @@ def _run_in(opts: DemoOptions, out: Path, state: RunState, say: Printer) -> int:
     model, motion_model = _demo_model(opts, out, state, say)  # 1. the model
     env = _enter_domain(state.domain_id, say)  # 2. environment of this process and the nodes
     bag_final = out / "run_bag"
-    monitor, group = _run_nodes(opts, out, model, env, state.domain_id, bag_final, state, say,
-                                demo_horizons(motion_model))
-    _check_components(monitor, group, state)  # 3. what every component produced
-    return _report(out, state, monitor, motion_model, bag_final, env, say)  # 4. the report
+    with _hangup_tolerated():  # (the drive's stop handling, inside, takes SIGHUP as a stop)
+        monitor, group = _run_nodes(opts, out, model, env, state.domain_id, bag_final, state,
+                                    say, demo_horizons(motion_model))
+        _check_components(monitor, group, state)  # 3. what every component produced
+        return _report(out, state, monitor, motion_model, bag_final, env, say)  # 4. report
 
 
 def _demo_model(opts: DemoOptions, out: Path, state: RunState, say: Printer

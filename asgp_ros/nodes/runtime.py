@@ -93,6 +93,9 @@ class StopSignals:
         self._previous_fd = signal.set_wakeup_fd(self._write.fileno(),
                                                  warn_on_full_buffer=False)
         self._previous = {sig: signal.signal(sig, self._on_signal) for sig in _SIGNALS}
+        # a stop held while the process started (the demo starts its nodes with the stop
+        # signals blocked, asgp_ros.demo.child) is taken now, by these handlers
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -496,6 +496,7 @@ class SharedControlNode(Node):
         self._poses_other_frame = 0  # odometry poses not taken: another parent frame
         self._pose_variance: np.ndarray | None = None  # the last pose's x, y, yaw variance
         self._pose_jumps = 0  # re-initialisations of the odometry seen (_note_pose_variance)
+        self._reinitialised_t = -math.inf  # the stamp of the pose that showed the last one
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
         self._decided_at = -math.inf  # monotonic time the last decision ended
@@ -667,14 +668,14 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
                                       throttle_duration_sec=5.0)
         elif ok:
-            self._note_pose_variance(msg)
+            self._note_pose_variance(msg, t)
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
         if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok, now=now):
             self._want_decision(step=True)
 
-    def _note_pose_variance(self, msg: Odometry) -> None:
+    def _note_pose_variance(self, msg: Odometry, t: float) -> None:
         """A pose whose variance (x, y or yaw) rose at once by POSE_JUMP_VARIANCE or more
         is of a new alignment: the odometry re-initialised after a tracking loss (vo_node
         holds its pose through the gap while the chair moves, and adds 1 m^2 and 1 rad^2).
@@ -688,6 +689,7 @@ class SharedControlNode(Node):
         if before is None or not np.any(var - before >= POSE_JUMP_VARIANCE):
             return
         self._pose_jumps += 1
+        self._reinitialised_t = t
         if self._grid is not None or self._map_reading:
             self._map_generation += 1  # (a map being read was placed with the old poses)
             self._drop_map(f"the odometry's pose variance rose by {np.max(var - before):.2f} "
@@ -862,6 +864,16 @@ class SharedControlNode(Node):
         if frame and frame != conv.frame_name(self.params.odom_frame):
             self._drop_map(f"map in frame {msg.header.frame_id!r}, the chair's poses are in "
                            f"{self.params.odom_frame!r}")
+            return
+        stamp = conv.stamp_to_seconds(msg.header.stamp)
+        now = self._now()
+        if now is not None and now < self._reinitialised_t:
+            self._reinitialised_t = -math.inf  # (the clock went back: another timeline)
+        if 0.0 < stamp < self._reinitialised_t:
+            # the map dropped at the re-initialisation, sent again (a mapper re-publishing
+            # what it has): of the poses before it, it put the walls where the chair was
+            self._drop_map(f"a map stamped {self._reinitialised_t - stamp:.2f} s before the "
+                           "odometry re-initialised (of the poses before it): refused")
             return
         cells = int(msg.info.width) * int(msg.info.height)
         if cells > MAX_MAP_CELLS:
