@@ -1950,25 +1950,19 @@ def test_a_stick_released_while_intervening_is_said_not_starting(harness):
     assert "override stopped" in status.message
 
 
-def test_the_scan_value_says_a_silent_laser_is_stale(harness):
-    """Scans stopped for 2 s: why 'no_obstacle_source', and 'scan: received'."""
+@pytest.mark.parametrize(("then", "said"), [
+    ((103.0, 105.0), "stale: the last taken 2.0"),
+    ((50.0, 52.0), "the last taken is stamped 5")], ids=["silent", "clock-back"])
+def test_the_scan_value_says_why_the_scan_held_is_not_used(harness, then, said):
+    """The laser goes silent for 2 s (or /clock steps back 54 s and it is silent): why
+    'no_obstacle_source', and 'scan: received'. The scan held is stale, or stamped ahead
+    of the clock, and the value says so."""
     h = harness(scan_timeout_s=0.3)
-    h.drive(100.0, 103.0, wall=1.6)
-    h.drive(103.0, 105.0, wall=1.6, scan=False)
+    h.drive(100.0, 104.0 if then[0] < 100.0 else 103.0, wall=1.6)
+    h.drive(*then, wall=1.6, scan=False)
     values = conv.diagnostic_values(h.node.diagnostic_status())
     assert values["why"] == "no_obstacle_source"
-    assert values["scan"].startswith("stale: the last taken 2.0"), values["scan"]
-
-
-def test_the_scan_value_says_a_scan_ahead_of_the_clock_gone_back_is_not_used(harness):
-    """/clock steps back 54 s and the laser is silent: the scan held is not used (stamped
-    ahead of the clock), and 'scan' said 'received'."""
-    h = harness(scan_timeout_s=0.3)
-    h.drive(100.0, 104.0, wall=1.6)
-    h.drive(50.0, 52.0, wall=1.6, scan=False)
-    values = conv.diagnostic_values(h.node.diagnostic_status())
-    assert values["why"] == "no_obstacle_source"
-    assert values["scan"].startswith("the last taken is stamped 5"), values["scan"]
+    assert values["scan"].startswith(said), values["scan"]
 
 
 def test_overriding_s_is_the_time_the_overrides_cover(harness):
