@@ -133,7 +133,8 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--camera-yaw", type=float, default=0.0,
                     help="where the VO's camera looks, from the chair's forward (rad): 0, "
                          "forward (default: the worst case, losses as the chair heads for "
-                         "something); the package's camera looks backward, 3.1416")
+                         "something); the package's camera looks backward, 3.1416, which "
+                         "the scans tell of only with --fov 360")
     ap.add_argument("--surface", choices=("tile", "carpet", "hybrid"), default="tile",
                     help="the floor driven on (its room, chair and VO losses): a model "
                          "trained on another floor shows what adapting does")

@@ -402,6 +402,17 @@ def test_the_offline_vo_loses_tracking_as_a_camera_does():
     assert not _camera_blind(Scan(ahead, -np.pi, inc, 0.05, 8.0), mount, camera_yaw=np.pi)
     assert _camera_blind(Scan(behind, -np.pi, inc, 0.05, 8.0), mount, camera_yaw=np.pi)
     assert _camera_blind(Scan(ahead, -np.pi, inc, 0.05, 8.0), mount)
+    # a camera looking where the scanner does not was never blinded: refused (the default
+    # 270-degree scanner and a backward camera), as a camera_yaw that is no angle
+    from asgp_ros.sim.lidar import LidarConfig
+    from asgp_ros.sim.shared_drive import _camera_in_view, drive
+
+    assert _camera_in_view(0.0, LidarConfig()) and _camera_in_view(1.5, LidarConfig())
+    assert not _camera_in_view(np.pi, LidarConfig())
+    assert _camera_in_view(np.pi, LidarConfig(fov_deg=360.0, beams=1440))
+    for yaw in (np.pi, np.nan):
+        with pytest.raises(ValueError, match="camera_yaw"):
+            drive(None, 60.0, 0, layer=True, camera_yaw=yaw)  # type: ignore[arg-type]
 
 
 def test_with_the_vo_lost_auto_keeps_the_layers_input_fresh(chair_model):

@@ -279,6 +279,17 @@ def _lost_at(episodes: FloatArray) -> Callable[[float], bool]:
     return lost
 
 
+def _camera_in_view(camera_yaw: float, lidar: LidarConfig) -> bool:
+    """Whether the scanner's field of view holds the camera's whole view
+    (``VO_VIEW_RAD`` around ``camera_yaw``)."""
+    if not math.isfinite(camera_yaw):
+        return False
+    if lidar.fov_deg >= 360.0:
+        return True
+    off = abs(math.remainder(camera_yaw - lidar.mount[2], 2.0 * math.pi))
+    return off + VO_VIEW_RAD / 2 <= math.radians(lidar.fov_deg) / 2
+
+
 def _camera_blind(scan: collision.Scan, mount: tuple[float, float, float],
                   camera_yaw: float = 0.0) -> bool:
     """Whether the camera (looking ``camera_yaw`` from the chair's forward, about at the
@@ -388,6 +399,13 @@ def drive(model: MotionModel, seconds: float, seed: int, *, layer: bool,
     if not (len(vo_noise) == 2 and all(math.isfinite(x) and 0.0 <= x <= 10.0
                                        for x in vo_noise)):
         raise ValueError(f"vo_noise must be two numbers in [0, 10], got {vo_noise!r}")
+    scanner_config = lidar or LidarConfig()
+    if vo_losses and not _camera_in_view(camera_yaw, scanner_config):
+        # (its losses are read from the scans: a view no beam covers was never blinded)
+        raise ValueError(f"camera_yaw {camera_yaw!r}: the camera's view ({VO_VIEW_RAD:.2f} "
+                         f"rad wide) is not within the scanner's {scanner_config.fov_deg:g} "
+                         "degrees, whose scans tell when it is blinded (a scanner seeing all "
+                         "round, fov 360, covers a backward camera)")
     config = config or SharedControlConfig()
     room = room_for_surface(surface)
     ss = np.random.SeedSequence([seed, 21])
