@@ -734,3 +734,68 @@ def test_twists_in_a_camera_frame_are_not_read_as_the_chairs(tmp_path, caplog):
     assert np.count_nonzero(~got.vel_ok) >= len(got.vel_ok) // 10 - 1
     assert got.vel.shape == ref.vel.shape  # the others as they were, none negated
     np.testing.assert_array_equal(got.vel[got.vel_ok], ref.vel[got.vel_ok])
+
+
+def _map_message(store):
+    """A 2 x 2 map (for the latched-topic tests)."""
+    t = store.types
+    stamp = t["builtin_interfaces/msg/Time"](sec=1_700_000_000, nanosec=0)
+    extra = {"seq": 0} if "seq" in t["std_msgs/msg/Header"].__dataclass_fields__ else {}
+    header = t["std_msgs/msg/Header"](stamp=stamp, frame_id="odom", **extra)
+    pose = t["geometry_msgs/msg/Pose"](
+        position=t["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+    info = t["nav_msgs/msg/MapMetaData"](
+        map_load_time=t["builtin_interfaces/msg/Time"](sec=0, nanosec=0), resolution=0.05,
+        width=2, height=2, origin=pose)
+    return t["nav_msgs/msg/OccupancyGrid"](header=header, info=info,
+                                           data=np.zeros(4, dtype=np.int8))
+
+
+@pytest.mark.parametrize("ros1", [False, True], ids=["ros2", "ros1"])
+def test_a_repaired_copy_keeps_a_latched_topic_latched(tmp_path, ros1):
+    """`asgp bag repair` of a bag whose /map was recorded latched (ROS 2: offered transient
+    local; ROS 1: latching): the copy lost it, and a replay of the copy published the map
+    volatile, which the layer (subscribing transient local) never got."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.typesys import Stores, get_typestore
+
+    from asgp_ros.recording.bags import repair_bag
+    from asgp_ros.recording.replay import _is_transient_local
+
+    def latched(path: Path) -> dict[str, bool]:
+        with AnyReader([path]) as r:
+            return {c.topic: _is_transient_local(c) for c in r.connections}
+
+    kind = "nav_msgs/msg/OccupancyGrid"
+    if ros1:
+        store = get_typestore(Stores.ROS1_NOETIC)
+        src = tmp_path / "rec.bag"
+        with Writer1(src) as w:
+            c = w.add_connection("/map", kind, typestore=store, latching=1)
+            w.write(c, 1_700_000_000_000_000_000,
+                    store.serialize_ros1(_map_message(store), kind))
+    else:
+        store = get_typestore(Stores.ROS2_JAZZY)
+        qos = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE,
+                  QosDurability.TRANSIENT_LOCAL, QosTime(0, 0), QosTime(0, 0),
+                  QosLiveliness.AUTOMATIC, QosTime(0, 0), False)
+        src = tmp_path / "rec"
+        with Writer2(src, version=9) as w:
+            c = w.add_connection("/map", kind, typestore=store, offered_qos_profiles=[qos])
+            w.write(c, 1_700_000_000_000_000_000,
+                    store.serialize_cdr(_map_message(store), kind))
+    assert latched(src) == {"/map": True}
+    out = tmp_path / ("fixed.bag" if ros1 else "fixed")
+    repair_bag(src, out)
+    assert latched(out) == {"/map": True}

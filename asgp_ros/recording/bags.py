@@ -2336,12 +2336,39 @@ def repair_bag(path: str | os.PathLike[str], out: str | os.PathLike[str],
         raise BagError(f"{out}: a ROS 2 bag is a directory; give a name without .bag")
     store = _typestore_for(recovered, get_typestore(
         Stores.ROS1_NOETIC if recovered.ros1 else Stores.ROS2_JAZZY))
+    offered = _offered_qos(path, recovered.ros1)
     content = BagContent(
         connections=[(c.topic, c.msgtype) for c in recovered.connections],
         messages=[(ns, cid, data) for cid, ns, data in recovered.messages],
-        custom_data=recovered.custom_data, typestore=store)
+        custom_data=recovered.custom_data, typestore=store,
+        qos={c.id: offered[c.topic] for c in recovered.connections if c.topic in offered})
     write_bag(out, content, storage=storage, in_order=stepped)
     return recovered
+
+
+def _offered_qos(path: str | os.PathLike[str], ros1: bool) -> dict[str, Any]:
+    """By topic, how a bag's connections were offered, as its index tells (rosbags): a
+    ROS 2 topic's offered QoS profiles, a ROS 1 topic's latching flag; empty when the index
+    does not open (a damaged bag: its copy is offered with the defaults). A repaired copy
+    lost them: a latched map replayed from it was volatile, and never reached the layer."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    out: dict[str, Any] = {}
+    try:
+        with AnyReader([resolve_bag(path)], default_typestore=get_typestore(
+                Stores.ROS1_NOETIC if ros1 else Stores.ROS2_JAZZY)) as reader:
+            for c in reader.connections:
+                ext = getattr(c, "ext", None)
+                latching = getattr(ext, "latching", None)
+                if ros1 and latching:
+                    out.setdefault(c.topic, int(latching))
+                profiles = getattr(ext, "offered_qos_profiles", None)
+                if not ros1 and isinstance(profiles, list) and profiles:
+                    out.setdefault(c.topic, profiles)
+    except Exception:  # rosbags raises many types for a damaged index: the defaults
+        return {}
+    return out
 
 
 # ----------------------------------------------------------------------------- writing
@@ -2358,12 +2385,16 @@ class BagContent:
         custom_data: ``custom_data`` of a ROS 2 bag's metadata (not stored in a ROS 1 bag).
         typestore: a rosbags typestore that knows every message type (None: the standard
             store of the format).
+        qos: by connection index, how it was offered: a ROS 2 connection's offered QoS
+            profiles (rosbags ``Qos``), a ROS 1 connection's ``latching`` flag (a replay
+            publishes a latched topic, a map, so that a late subscriber gets it).
     """
 
     connections: Sequence[tuple[str, str]]
     messages: Sequence[tuple[int, int, bytes]]
     custom_data: Mapping[str, str] = field(default_factory=dict)
     typestore: Any = None
+    qos: Mapping[int, Any] = field(default_factory=dict)
 
 
 class BagSource(Protocol):
@@ -2475,8 +2506,9 @@ def write_bag(
                 from rosbags.rosbag1 import Writer as Writer1
 
                 with Writer1(tmp) as w1:
-                    conns1 = [w1.add_connection(t, m, typestore=store)
-                              for t, m in content.connections]
+                    conns1 = [w1.add_connection(t, m, typestore=store,
+                                                latching=content.qos.get(i))
+                              for i, (t, m) in enumerate(content.connections)]
                     for i in order:
                         ts, c, data = records[i]
                         w1.write(conns1[c], ts, data)
@@ -2487,8 +2519,9 @@ def write_bag(
                 with Writer(tmp, version=9, storage_plugin=plugin) as w2:
                     for key, value in content.custom_data.items():
                         w2.set_custom_data(key, value)
-                    conns2 = [w2.add_connection(t, m, typestore=store)
-                              for t, m in content.connections]
+                    conns2 = [w2.add_connection(t, m, typestore=store,
+                                                offered_qos_profiles=content.qos.get(i, ()))
+                              for i, (t, m) in enumerate(content.connections)]
                     for i in order:
                         ts, c, data = records[i]
                         w2.write(conns2[c], ts, data)
