@@ -407,8 +407,9 @@ def test_a_dataset_rebuild_that_did_not_finish_is_never_reproduced(tmp_path, mon
         build_dataset(data, scale=0.05, seed=3, force=True)
     manifest = json.loads((data / "manifest.json").read_text())
     assert manifest["unfinished"] is True and manifest["scale"] == 0.05
-    with pytest.raises(ReproduceError, match=r"did not finish \(`asgp dataset --scale 0.05 "
-                                             r"--seed 3`\): run it again"):
+    # the command to run again, with its --out (it said none: argparse refused it)
+    with pytest.raises(ReproduceError, match=r"did not finish \(`asgp dataset --out \S+ "
+                                             r"--scale 0.05 --seed 3`\): run it again"):
         run(data, tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
@@ -472,3 +473,21 @@ def test_the_report_says_when_the_automatic_asgp_is_not_calibrated():
     text = "\n".join(_automatic_section({"models": [model],
                                          "settings": {"horizons_s": [1.0, 2.0]}}))
     assert "not calibrated" not in text
+
+
+def test_a_fallback_asgp_is_reported_not_a_crash():
+    """A train set on which no candidate of the automatic ASGP could be scored on the
+    held-out data: the fallback model records no 'chosen' and no times, and the report
+    raised KeyError after the whole run (a traceback, nothing written)."""
+    from asgp_ros.learning.reproduce import report
+
+    selection = {"fallback": "18 held-out cases move the chair 10 cm or more in 2 s",
+                 "candidates": [{"stage": "lags", "skipped": "too few cases"}],
+                 "holdout_fraction": 0.2, "budget_s": 180.0}
+    summary = {"models": [{"kind": "asgp", "train": "Carpet", "lags": 4,
+                           "selection": selection,
+                           "calibration": {"fitted": False, "reason": "no candidate"}}],
+               "settings": {"horizons_s": [1.0, 1.4, 2.0]}}
+    lines = report._automatic_section(summary)
+    row = next(line for line in lines if line.startswith("| Carpet"))
+    assert "fallback: 18 held-out cases" in row and row.count("not calibrated") == 3

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shlex
 from pathlib import Path
 from typing import Any
 
@@ -148,14 +149,17 @@ def unfinished_dataset(manifest: dict[str, Any] | None) -> bool:
     return manifest is not None and manifest.get("unfinished") is True
 
 
-def dataset_options(manifest: dict[str, Any] | None) -> str:
-    """' (--scale X --seed Y)' of an unfinished dataset's manifest, or ''."""
+def dataset_options(manifest: dict[str, Any] | None, data: Path | None = None) -> str:
+    """' (`asgp dataset --out DATA --scale X --seed Y`)' of an unfinished dataset's manifest
+    (with ``data``, the command that finishes it as it is: it said no --out), or ''."""
     opts = [f"--{k} {manifest[k]}" for k in ("scale", "seed")
             if manifest is not None and isinstance(manifest.get(k), int | float)
             and not isinstance(manifest.get(k), bool)]
     storage = manifest.get("storage") if manifest is not None else None
     if isinstance(storage, str) and storage != "mcap" and storage.isidentifier():
         opts.append(f"--storage {storage}")  # resumed in another, its bags are refused
+    if opts and data is not None:
+        opts.insert(0, f"--out {shlex.quote(str(data))}")
     return f" (`asgp dataset {' '.join(opts)}`)" if opts else ""
 
 

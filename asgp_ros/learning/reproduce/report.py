@@ -57,7 +57,14 @@ def _automatic_section(s: dict[str, Any]) -> list[str]:
          "|" + "---|" * (7 + len(hk))]
     for m in auto:
         sel, cal = m["selection"], m.get("calibration") or {}
-        chosen = sel["chosen"]
+        chosen = sel.get("chosen")
+        if chosen is None:  # no candidate could be scored: the fallback trained (no
+            # 'chosen', no times: the report raised KeyError after the whole run)
+            L.append(f"| {m['train']} | {m.get('lags', '')} | fallback: "
+                     f"{' '.join(str(sel.get('fallback', 'no candidate')).split())} | | "
+                     f"{len(sel.get('candidates', []))} | | | "
+                     + " | ".join("not calibrated" for _ in hk) + " |")
+            continue
         by_h = cal.get("by_horizon") or {}
 
         def cov(h: str, by_h: dict[str, Any] = by_h, fitted: bool = bool(cal.get("fitted"))

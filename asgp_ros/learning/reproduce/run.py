@@ -100,7 +100,7 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
             dataset_built(built)
     elif unfinished:
         raise ReproduceError(f"{data} is a dataset whose `asgp dataset` run did not finish"
-                             f"{dataset_options(read_manifest(data))}: run it again to "
+                             f"{dataset_options(read_manifest(data), data)}: run it again to "
                              "finish it (the bags made are kept)")
     manifest = read_manifest(data)
     found = discover(data)
