@@ -238,3 +238,25 @@ def test_a_path_topic_whose_ellipses_topic_is_too_long_is_refused(rclpy_context,
         PredictorNode(context=rclpy_context, parameter_overrides=[
             Parameter("model_path", value=str(repo_root / MODEL)),
             Parameter("path_topic", value=long_name)])
+
+
+@pytest.mark.ros
+def test_the_advice_to_read_odometry_names_its_topic_too(rclpy_context, repo_root):
+    """path_frame 'odom' (the predictor) or a map (the layer) need odometry poses: the
+    refusal said to set vo_type to 'odometry', and a node doing just that subscribed to
+    vo/twist for Odometry. It names vo_topic too, and the advice followed starts the node."""
+    from rclpy.parameter import Parameter
+
+    from asgp_ros.nodes import predictor_node, shared_control_node
+
+    model = Parameter("model_path", value=str(repo_root / MODEL))
+    for make, refused, asked in (
+            (predictor_node.PredictorNode, predictor_node.StartupError,
+             Parameter("path_frame", value="odom")),
+            (shared_control_node.SharedControlNode, shared_control_node.StartupError,
+             Parameter("obstacles", value="grid"))):
+        with pytest.raises(refused, match="vo_topic to the odometry's topic"):
+            make(context=rclpy_context, parameter_overrides=[model, asked])
+        make(context=rclpy_context, parameter_overrides=[
+            model, asked, Parameter("vo_type", value="odometry"),
+            Parameter("vo_topic", value="vo/odom")]).destroy_node()

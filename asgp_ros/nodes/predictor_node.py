@@ -190,7 +190,9 @@ class PredictorNodeParams:
         if self.path_frame not in ("base", "odom"):
             raise ValueError(f"path_frame must be 'base' or 'odom', got {self.path_frame!r}")
         if self.path_frame == "odom" and self.vo_type != "odometry":
-            raise ValueError("path_frame 'odom' needs odometry poses: set vo_type to 'odometry'")
+            raise ValueError("path_frame 'odom' needs odometry poses: set vo_type to 'odometry' "
+                             "and vo_topic to the odometry's topic (vo_node publishes it on "
+                             f"{topics.VO_ODOM})")
         parse_joy_axes(self.joy_axes, "joy_axes")
         if not (math.isfinite(self.diagnostics_period_s)
                 and 0.1 <= self.diagnostics_period_s <= 60.0):

@@ -350,7 +350,9 @@ class SharedControlParams:
             raise ValueError("velocity_source 'scan_matching' needs the laser: set obstacles "
                              "to 'laser' or 'both'")
         if self.obstacles != "laser" and self.vo_type != "odometry":
-            raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry'")
+            raise ValueError("a map needs the chair's pose in it: set vo_type to 'odometry' and "
+                             "vo_topic to the odometry's topic (vo_node publishes it on "
+                             f"{topics.VO_ODOM})")
         if (problem := period_problem("joy_poll_period_s", self.joy_poll_period_s)) is not None:
             raise ValueError(problem)
         parse_joy_axes(self.joy_axes, "joy_axes")
