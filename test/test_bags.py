@@ -705,7 +705,7 @@ def test_twists_in_a_camera_frame_are_not_read_as_the_chairs(tmp_path, caplog):
     clean = write_bag(tmp_path / "clean", simulate("tile", 1.0, 3))
     ref = read_streams(clean)
 
-    def rewrite(dst, camera) -> Path:
+    def rewrite(dst, camera, frame=lambda n: "camera_link") -> Path:
         with AnyReader([clean], default_typestore=store) as r, Writer(dst, version=9) as w:
             conns = [c for c in r.connections if c.topic in ("/joy", "/vo/twist")]
             out = {c.topic: w.add_connection(c.topic, c.msgtype, typestore=store)
@@ -715,7 +715,7 @@ def test_twists_in_a_camera_frame_are_not_read_as_the_chairs(tmp_path, caplog):
                 if c.topic == "/vo/twist":
                     msg = r.deserialize(raw, c.msgtype)
                     if camera(n):
-                        msg.header.frame_id = "camera_link"
+                        msg.header.frame_id = frame(n)
                         msg.twist.linear.x = -msg.twist.linear.x
                     n += 1
                     raw = bytes(store.serialize_cdr(msg, c.msgtype))
@@ -727,6 +727,12 @@ def test_twists_in_a_camera_frame_are_not_read_as_the_chairs(tmp_path, caplog):
         read_streams(every)
     as_camera = read_streams(every, base_frame="camera_link")  # (said to be the chair's)
     np.testing.assert_allclose(as_camera.vel[:, 0], -ref.vel[:, 0])
+    # a twist in a distinct, long frame each: the error names a few, not all (it was as
+    # long as the bag)
+    many = rewrite(tmp_path / "many", lambda n: True, frame=lambda n: f"cam_{n}_" + "x" * 500)
+    with pytest.raises(BagError, match="other frames") as info:
+        read_streams(many)
+    assert len(str(info.value)) < 1000
     some = rewrite(tmp_path / "some", lambda n: n % 10 == 0)
     with caplog.at_level(logging.WARNING):
         got = read_streams(some)

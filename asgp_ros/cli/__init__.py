@@ -19,7 +19,7 @@ import pkgutil
 import sys
 import threading
 from collections.abc import Sequence
-from typing import NoReturn
+from typing import NoReturn, TextIO
 
 from asgp_ros import __version__
 from asgp_ros.common.fileio import (
@@ -51,12 +51,12 @@ def one_line(text: str) -> str:
 EXIT_BROKEN_PIPE = 141
 
 
-def _silence_stdout() -> None:
-    """Point standard output at /dev/null, so that the interpreter's final flush of a
-    closed pipe prints nothing."""
+def _silence(stream: TextIO) -> None:
+    """Point ``stream`` (standard output or error) at /dev/null, so that the interpreter's
+    final flush of a closed pipe or terminal prints nothing and fails nothing."""
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        os.dup2(devnull, stream.fileno())
     except (OSError, ValueError, AttributeError):  # not a real file (tests, embedding)
         pass
 
@@ -132,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         forget_approved_outputs()  # an earlier command's in this process are not this one's
         return int(args.func(args) or 0)
     except BrokenPipeError:
-        _silence_stdout()
+        _silence(sys.stdout)
         return EXIT_BROKEN_PIPE
     except (CommandError, OutputError) as exc:
         _tell(f"error: {one_line(str(exc))}")
@@ -163,16 +163,7 @@ def _tell(line: str) -> None:
     try:
         print(line, file=sys.stderr)
     except OSError:
-        _silence_stderr()
-
-
-def _silence_stderr() -> None:
-    """Standard error to /dev/null (its buffer's flush at exit would fail again)."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stderr.fileno())
-    except (OSError, ValueError, AttributeError):  # not a real file (tests, embedding)
-        pass
+        _silence(sys.stderr)
 
 
 if __name__ == "__main__":

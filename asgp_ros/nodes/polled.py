@@ -40,6 +40,7 @@ from typing import Any
 from rclpy.callback_groups import CallbackGroup
 from rclpy.clock import Clock, ROSClock
 from rclpy.clock_type import ClockType
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile
 from rclpy.subscription import Subscription
@@ -57,6 +58,24 @@ DEPTH = 1000
 #: to 0.35 ms, so at most 7 % of a core. A shorter one woke it at every spin (1e-9 s: an
 #: idle node took 66-97 % of a core), for nothing a callback per message (0) would not give.
 MIN_PERIOD_S = 0.005
+
+
+def take_waiting(sub: Subscription, limit: int) -> list[tuple[Any, dict[str, Any]]] | None:
+    """The messages waiting in ``sub``'s queue, oldest first, with their message info,
+    at most ``limit`` (rclpy's executor takes one a wake-up; a sender faster than the reads
+    cannot keep a caller taking); None once the subscription is destroyed (the node is
+    shutting down)."""
+    taken: list[tuple[Any, dict[str, Any]]] = []
+    try:
+        with sub.handle:
+            while len(taken) < limit:
+                got = sub.handle.take_message(sub.msg_type, sub.raw)
+                if got is None:
+                    break
+                taken.append(got)
+    except InvalidHandle:
+        return None
+    return taken
 
 
 def period_problem(name: str, period_s: float, high: float = 1.0) -> str | None:
@@ -157,16 +176,11 @@ class PolledInputs:
         taken: list[tuple[int, int, Any, Handler]] = []
         for polled in self._polled:
             sub = polled.sub
-            count = 0
-            with sub.handle:
-                while count < DEPTH:
-                    got = sub.handle.take_message(sub.msg_type, sub.raw)
-                    if got is None:
-                        break
-                    msg, info = got
-                    received = int(info.get("received_timestamp", 0) or 0)
-                    taken.append((received, len(taken), msg, polled.handler))
-                    count += 1
+            waiting = take_waiting(sub, DEPTH) or []
+            for msg, info in waiting:
+                received = int(info.get("received_timestamp", 0) or 0)
+                taken.append((received, len(taken), msg, polled.handler))
+            count = len(waiting)
             if count >= DEPTH:
                 self.full_queues += 1
                 self._node.get_logger().warning(

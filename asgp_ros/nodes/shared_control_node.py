@@ -79,7 +79,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import TwistStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -121,7 +120,7 @@ from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.joy_source import JoySource, check_topics
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
-from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
+from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem, take_waiting
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.recording.bags import parse_joy_axes
 
@@ -996,15 +995,11 @@ class SharedControlNode(Node):
         decision asked for."""
         self.polled.drain()
         for sub, callback in self._inputs:
-            for _ in range(INPUT_QUEUE):  # (at most a queue's worth: a sender faster than
-                try:                      # the reads cannot keep the decision waiting)
-                    with sub.handle:
-                        got = sub.handle.take_message(sub.msg_type, sub.raw)
-                except InvalidHandle:  # (destroyed: the node is shutting down)
-                    return
-                if got is None:
-                    break
-                callback(got[0])
+            waiting = take_waiting(sub, INPUT_QUEUE)
+            if waiting is None:  # (destroyed: the node is shutting down)
+                return
+            for msg, _info in waiting:
+                callback(msg)
         step, scan = self._step_wanted, self._scan_wanted
         self._step_wanted = self._scan_wanted = False
         now = self._now()

@@ -39,6 +39,7 @@ from asgp_ros.common import topics
 from asgp_ros.nodes import conversions as conv
 from asgp_ros.nodes import runtime
 from asgp_ros.nodes.parameters import declare, refuse_at_runtime
+from asgp_ros.nodes.polled import take_waiting
 from asgp_ros.nodes.qos_watch import QosWatch
 from asgp_ros.vo.odometry import Status, VisualOdometry, VOResult
 from asgp_ros.vo.params import PARAMS, SPECS, VONodeParams, vo_node_params
@@ -228,12 +229,9 @@ class VONode(Node):
         each: with pairs queued behind a slow frame it processed them oldest first (each
         about 5 frame periods late at 15 Hz) instead of only the newest."""
         for sub, handler in self._image_subs:
-            with sub.handle:
-                for _ in range(_BUFFER):  # (the QoS keeps fewer: a bound, not a limit)
-                    got = sub.handle.take_message(sub.msg_type, sub.raw)
-                    if got is None:
-                        break
-                    handler(got[0])
+            # (the QoS keeps fewer than _BUFFER: a bound, not a limit)
+            for msg, _info in take_waiting(sub, _BUFFER) or []:
+                handler(msg)
 
     def _process_newest(self) -> None:
         if self.vo is None:

@@ -681,8 +681,9 @@ def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
     tf2 reads them, without a leading slash."""
     if not frame.lstrip("/") or frame.lstrip("/") == base_frame.lstrip("/"):
         return None
-    return (f"twists in frame {frame!r} refused: their linear.x and angular.z are the "
-            f"chair's forward and turn rates only in base_frame {base_frame!r}")
+    return (f"twists in frame {_one_line(repr(frame))[:60]} refused: their linear.x and "
+            "angular.z are the chair's forward and turn rates only in base_frame "
+            f"{base_frame!r}")
 
 
 def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
@@ -746,7 +747,12 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
         joy = _collect(reader, joy_conns, joy_row, source)
         vel = _collect(reader, tw_conns, twist_row, source)
         if foreign:
-            n, frames = sum(foreign.values()), ", ".join(map(repr, sorted(foreign)))
+            # the most frequent frames, each cut short (a bag's frames are its writer's: one
+            # in a distinct frame per message made an error as long as the bag)
+            common = sorted(foreign, key=lambda f: (-foreign[f], f))
+            frames = ", ".join(_one_line(repr(f))[:40] for f in common[:3]) + (
+                f" and {len(common) - 3} other frames" if len(common) > 3 else "")
+            n = sum(foreign.values())
             problem = (f"{source}: {n} of {len(vel[1])} twists on {twist_topic} are in "
                        f"frame {frames}, not base_frame {base_frame!r}: their linear.x and "
                        "angular.z are not the chair's forward and turn rates")
