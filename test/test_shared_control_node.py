@@ -2066,7 +2066,7 @@ def _drive_odometry(h, t_from: float, t_to: float, x_true: float, offset: float,
         if i % 4 == 3:
             n = h.node._vo_messages
             h.odom_pub.publish(conv.odometry_with_covariance(
-                t, x_true - offset, 0.0, 0.0, np.eye(3) * pose_var,
+                t, x_true - offset, 0.0, 0.0, np.diag(np.full(3, pose_var)),
                 0.9 * fwd + rng.normal(0.0, 0.003), 0.0, np.eye(6) * 1e-4))
             h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
     h.settle()
@@ -2128,3 +2128,41 @@ def test_an_upside_down_laser_is_read_mirrored(harness):
     held = h.node._scan[1]
     angles = held.angle_min + held.angle_increment * np.arange(held.ranges.size)
     assert np.all(np.abs(angles[np.isfinite(held.ranges)] + 1.2) < 0.06)
+
+
+def test_a_pose_said_lost_by_a_variance_that_is_no_number_drops_the_map(harness):
+    """A source that marks its tracking loss with an infinite pose variance, then returns
+    to a small one, re-initialised as surely as vo_node's +1 m^2: the rise was not seen (a
+    non-finite variance was skipped, the old baseline kept) and the map, placed with the
+    poses before, kept a wall 1.2 m ahead judged clear. Now dropped at the loss; a map
+    stamped before the return is refused, one after it taken. A source whose variance is
+    never a number (-1, 'unknown') keeps its map."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    x = _drive_odometry(h, 100.0, 102.0, 0.0, 0.0, 1e-4)
+    wall_x = x + 0.5 + 1.0 + 0.6 + 1.2
+    old_map = wall_map_msg(wall_x)
+    old_map.header.stamp = conv.seconds_to_stamp(102.0)
+    _publish_map(h, old_map)
+    x = _drive_odometry(h, 102.0, 102.5, x, 0.0, 1e-4)
+    assert h.last()["why"] == "clear"
+    x = _drive_odometry(h, 102.5, 102.7, x, 0.0, math.inf)  # lost: the pose held
+    assert h.node._grid is None and "lost its pose" in h.node._grid_problem
+    x += 1.0
+    x = _drive_odometry(h, 102.7, 103.3, x, 1.0, 1e-4)  # back, 1 m off its old alignment
+    assert h.last()["why"] == "no_obstacle_source", h.last()
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["odometry_reinitialised"] == "1"
+    _publish_map(h, old_map)
+    assert h.node._grid is None and "before the odometry re-initialised" in h.node._grid_problem
+    new_map = wall_map_msg(wall_x - 1.0)
+    new_map.header.stamp = conv.seconds_to_stamp(103.3)
+    _publish_map(h, new_map)
+    assert h.node._grid is not None
+
+    unknown = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(unknown, wall_map_msg(None))
+    _drive_odometry(unknown, 100.0, 101.0, 0.0, 0.0, -1.0)
+    assert unknown.node._grid is not None
+    assert conv.diagnostic_values(unknown.node.diagnostic_status())[
+        "odometry_reinitialised"] == "0"

@@ -498,6 +498,7 @@ class SharedControlNode(Node):
         self._pose_variance: np.ndarray | None = None  # the last pose's x, y, yaw variance
         self._pose_jumps = 0  # re-initialisations of the odometry seen (_note_pose_variance)
         self._reinitialised_t = -math.inf  # the stamp of the pose that showed the last one
+        self._pose_lost = False  # the last pose's variance was not a number, after finite ones
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
         self._decided_at = -math.inf  # monotonic time the last decision ended
@@ -681,22 +682,42 @@ class SharedControlNode(Node):
         is of a new alignment: the odometry re-initialised after a tracking loss (vo_node
         holds its pose through the gap while the chair moves, and adds 1 m^2 and 1 rad^2).
         The map held, placed with the poses before, would put its walls where the chair
-        was (a wall 1.2 m ahead was judged clear): dropped, until a new map comes."""
+        was (a wall 1.2 m ahead was judged clear): dropped, until a new map comes.
+
+        A source that marks the loss with a variance that is not a number (infinite, NaN or
+        negative) after finite ones has lost its pose: the map is dropped then, and the
+        first finite variance after is a new alignment (maps stamped before it refused). A
+        source that never gives a finite variance never drops a map by this rule."""
         cov = msg.pose.covariance
         var = np.array([cov[0], cov[7], cov[35]], dtype=np.float64)
         if not np.all(np.isfinite(var) & (var >= 0.0)):
+            if self._pose_variance is not None:
+                self._pose_variance, self._pose_lost = None, True
+                self._drop_reinitialised(
+                    "the odometry's pose variance is not a finite number (it lost its pose)")
             return
         before, self._pose_variance = self._pose_variance, var
-        if before is None or not np.any(var - before >= POSE_JUMP_VARIANCE):
+        if before is None:
+            if self._pose_lost:  # the first pose after a loss: a new alignment
+                self._pose_lost = False
+                self._pose_jumps += 1
+                self._reinitialised_t = t
+                self._drop_reinitialised("the odometry's pose came back after a loss (its "
+                                         "poses are of a new alignment)")
+            return
+        if not np.any(var - before >= POSE_JUMP_VARIANCE):
             return
         self._pose_jumps += 1
         self._reinitialised_t = t
+        self._drop_reinitialised(f"the odometry's pose variance rose by "
+                                 f"{np.max(var - before):.2f} at once (it re-initialised after "
+                                 "a tracking loss: its poses are of a new alignment)")
+
+    def _drop_reinitialised(self, why: str) -> None:
         if self._grid is not None or self._map_reading:
             self._map_generation += 1  # (a map being read was placed with the old poses)
-            self._drop_map(f"the odometry's pose variance rose by {np.max(var - before):.2f} "
-                           "at once (it re-initialised after a tracking loss: its poses are "
-                           "of a new alignment): the map, placed with the poses before, is "
-                           "dropped until a new one comes")
+            self._drop_map(f"{why}: the map, placed with the poses before, is dropped until "
+                           "a new one comes")
 
     def _on_memory_odom(self, msg: Odometry) -> None:
         now = self._now()
