@@ -335,3 +335,39 @@ def test_the_clock_is_not_switched_while_a_node_runs(rclpy_context, tmp_path, mo
             assert node.get_parameter(name).value != 0.07
     finally:
         node.destroy_node()
+
+
+@pytest.mark.parametrize("module", list(NODES))
+def test_a_negative_clock_is_refused_by_every_node(rclpy_context, tmp_path, module):
+    """With use_sim_time, a /clock of -5 s (a bag with bogus stamps played) raised inside
+    rclpy's own clock subscription and stopped the node: each node refuses it, and its
+    clock stays where it was."""
+    from builtin_interfaces.msg import Time as TimeMsg
+    from rosgraph_msgs.msg import Clock as ClockMsg
+
+    node = _build(module, rclpy_context, tmp_path, True)
+    probe = rclpy.create_node("clock_probe", context=rclpy_context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    executor.add_node(probe)
+    pub = probe.create_publisher(ClockMsg, "/clock", 10)
+    try:
+        def at(sec: int) -> bool:
+            pub.publish(ClockMsg(clock=TimeMsg(sec=sec, nanosec=0)))
+            deadline = time.monotonic() + HANG_S
+            while time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.01)  # (raised ValueError here)
+                if node.get_clock().now().nanoseconds == sec * 10**9:
+                    return True
+            return False
+
+        assert at(100)
+        pub.publish(ClockMsg(clock=TimeMsg(sec=-5, nanosec=0)))
+        for _ in range(30):
+            executor.spin_once(timeout_sec=0.01)
+        assert node.get_clock().now().nanoseconds == 100 * 10**9
+        assert at(101)
+    finally:
+        executor.shutdown()
+        probe.destroy_node()
+        node.destroy_node()

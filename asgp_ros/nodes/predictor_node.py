@@ -442,6 +442,7 @@ class PredictorNode(Node):
         if p.override_topic.strip():
             watch.subscription(Joy, p.override_topic, self._on_override,
                                qos_profile_sensor_data)
+        runtime.guard_sim_clock(self)
         pacing = runtime.pacing_clock(self)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
         self.diag_timer = self.create_timer(p.diagnostics_period_s, self._publish_diagnostics,

@@ -168,7 +168,6 @@ def pacing_clock(node: Node) -> Clock:
     it, and rcl moves them on when /clock jumps (a bag played again).
     """
     if node.get_parameter("use_sim_time").value:
-        guard_sim_clock(node)
         return node.get_clock()
     return Clock(clock_type=ClockType.STEADY_TIME)
 
@@ -177,7 +176,8 @@ def guard_sim_clock(node: Node) -> None:
     """Refuse a ``/clock`` message that is no time (negative seconds: a player of a bag
     with bogus stamps, a stray publisher) before rclpy's own clock subscription reads it:
     rclpy raised on it inside the executor, and the node stopped. Logged, and the clock
-    stays where it was. (With ``use_sim_time``; the nodes refuse to switch it at runtime.)"""
+    stays where it was. (With ``use_sim_time``; the nodes refuse to switch it at runtime,
+    so each node calls this once, at start-up, after its parameters are read.)"""
     sub = getattr(getattr(node, "_time_source", None), "_clock_sub", None)
     if sub is None or getattr(sub, "_asgp_guarded", False):
         return

@@ -543,6 +543,7 @@ class SharedControlNode(Node):
         self._decision_wanted = self.create_guard_condition(self._decide_wanted)
         if p.obstacles in ("grid", "both"):
             watch.subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
+        runtime.guard_sim_clock(self)
         pacing = runtime.pacing_clock(self)
         self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
         self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)

@@ -97,6 +97,7 @@ class VONode(Node):
              self._on_depth))
         watch.subscription(CameraInfo, p.camera_info_topic, self._on_info,
                            qos_profile_sensor_data)
+        runtime.guard_sim_clock(self)
         self.create_timer(p.diagnostics_period_s, self._on_diagnostics_timer,
                           clock=runtime.pacing_clock(self))
 
