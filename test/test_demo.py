@@ -968,6 +968,38 @@ def test_an_offline_evaluation_that_overruns_its_time_is_a_demo_error(tmp_path):
                      dict(os.environ), timeout_s=0.001)
 
 
+def test_the_offline_evaluation_has_time_in_proportion_to_the_drive(tmp_path, monkeypatch):
+    """A fixed 300 s stopped the evaluation of a long drive (about 1 s a minute: a 10-hour
+    demo's needs ten minutes), and its report lost the offline rows: the time given grows
+    with the minutes driven."""
+    import types
+
+    from asgp_ros.common import topics
+    from asgp_ros.demo import report
+    from asgp_ros.demo.common import RunState
+
+    given: list[float] = []
+
+    class SeenError(Exception):
+        pass
+
+    def evaluate(model, bag, out_json, env, timeout_s=300.0):
+        given.append(timeout_s)
+        raise SeenError
+
+    monkeypatch.setattr(report, "evaluate_bag", evaluate)
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    monitor = types.SimpleNamespace(counts={topics.PREDICTED_PATH: 1, topics.VO_TWIST: 1})
+    model = types.SimpleNamespace(resample_config=types.SimpleNamespace(rate_hz=5.0))
+    for hours in (0.05, 10.0):
+        state = RunState(options={}, domain_id=0, model_path="m.npz",
+                         drive_seconds=hours * 3600.0)
+        with pytest.raises(SeenError):
+            report.write_report(tmp_path, state, monitor, model, bag, {}, lambda _: None)
+    assert given[0] >= 300.0 and given[1] >= 300.0 + 5.0 * 600.0  # 5 s a minute, at least
+
+
 def test_a_node_stopped_while_python_starts_exits_cleanly(tmp_path):
     """A Ctrl-C as the demo started its nodes: each child got SIGINT during Python's start
     (0.7 s of imports, before the node's handlers): a KeyboardInterrupt in an import, a

@@ -38,8 +38,20 @@ def _text(data: str | bytes | None) -> str:
     return data.decode(errors="replace") if isinstance(data, bytes) else data or ""
 
 
+#: The offline evaluation of a drive may take this long, plus EVALUATE_S_PER_MINUTE for each
+#: minute driven, before it is stopped: about 1 s a minute on an idle laptop (a fixed 300 s
+#: stopped a 10-hour drive's evaluation, which needs about ten minutes, and lost its report).
+EVALUATE_TIMEOUT_S = 300.0
+EVALUATE_S_PER_MINUTE = 10.0
+
+
+def evaluate_timeout(drive_seconds: float) -> float:
+    """How long the offline evaluation of ``drive_seconds`` of driving may take."""
+    return EVALUATE_TIMEOUT_S + EVALUATE_S_PER_MINUTE * max(drive_seconds, 0.0) / 60.0
+
+
 def evaluate_bag(model: Path, bag: Path, out_json: Path, env: dict[str, str],
-                 timeout_s: float = 300.0) -> dict[str, Any]:
+                 timeout_s: float = EVALUATE_TIMEOUT_S) -> dict[str, Any]:
     """``asgp evaluate MODEL BAG --truth --json OUT --force`` in a subprocess; its JSON.
 
     ``--force``: ``out_json`` lies in the demo's own output directory, which the demo has

@@ -38,7 +38,7 @@ from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import MotionModel, get_kind
 from asgp_ros.core.rollout import rollout
-from asgp_ros.demo.common import DemoError, RunState, evaluate_bag
+from asgp_ros.demo.common import DemoError, RunState, evaluate_bag, evaluate_timeout
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware
 from asgp_ros.learning.training import read_series
@@ -519,7 +519,8 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
             monitor.counts.get(topics.VO_TWIST, 0):
         say("evaluating the recorded bag offline: asgp evaluate --truth ...")
         try:
-            evaluation = evaluate_bag(Path(state.model_path), bag, out / "evaluate.json", env)
+            evaluation = evaluate_bag(Path(state.model_path), bag, out / "evaluate.json", env,
+                                      evaluate_timeout(state.drive_seconds))
             written["offline evaluation"] = out / "evaluate.json"
             cases = offline_cases(bag, model)
             held = offline_held(bag, model)
