@@ -249,20 +249,51 @@ def test_paths_come_again_after_the_clock_is_set_back(repo_root, tmp_path):
         probe.close()
 
 
-def _build(module: str, context, tmp_path: Path, sim_time: bool):
+def _build(module: str, context, tmp_path: Path, sim_time: bool, namespace: str = ""):
     from rclpy.parameter import Parameter
 
     from asgp_ros.nodes import predictor_node, serial_bridge_node, shared_control_node, vo_node
     base = [Parameter("use_sim_time", value=sim_time)]
     if module == "serial_bridge_node":  # a port that never opens: the node still runs
-        return serial_bridge_node.SerialBridgeNode(context=context, parameter_overrides=[
-            *base, Parameter("port", value=str(tmp_path / "no_such_port"))])
+        return serial_bridge_node.SerialBridgeNode(
+            context=context, namespace=namespace, parameter_overrides=[
+                *base, Parameter("port", value=str(tmp_path / "no_such_port"))])
     if module == "vo_node":
-        return vo_node.VONode(context=context, parameter_overrides=base)
+        return vo_node.VONode(context=context, namespace=namespace, parameter_overrides=base)
     cls = (predictor_node.PredictorNode if module == "predictor_node"
            else shared_control_node.SharedControlNode)
-    return cls(context=context, parameter_overrides=[
+    return cls(context=context, namespace=namespace, parameter_overrides=[
         *base, Parameter("model_path", value=str(Path(__file__).parents[1] / MODEL))])
+
+
+@pytest.mark.parametrize("module", [*NODES, "serial_bridge_node"])
+def test_a_namespaced_node_is_told_apart_on_the_one_diagnostics_topic(rclpy_context,
+                                                                     tmp_path, module):
+    """Two chairs' stacks in /chair1 and /chair2: each node published on its namespace's
+    diagnostics (nothing reached /diagnostics, where an aggregator listens) under a name
+    without the namespace (the two chairs' predictors were one entry: one chair's ERROR
+    overwritten by the other's OK). Now /diagnostics, each name after the namespace."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    node = _build(module, rclpy_context, tmp_path, False, namespace="chair1")
+    probe = rclpy.create_node("diagnostics_probe", context=rclpy_context)
+    executor = rclpy.executors.SingleThreadedExecutor(context=rclpy_context)
+    executor.add_node(node)
+    executor.add_node(probe)
+    heard: list[DiagnosticArray] = []
+    probe.create_subscription(DiagnosticArray, "/diagnostics", heard.append, 10)
+    try:
+        deadline = time.monotonic() + HANG_S
+        while not heard and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        assert heard, "nothing on /diagnostics"
+        label = "serial_bridge" if module == "serial_bridge_node" else module
+        names = [st.name for st in heard[0].status]
+        assert names and all(n.startswith(f"chair1/{label}: ") for n in names), names
+    finally:
+        executor.shutdown()
+        probe.destroy_node()
+        node.destroy_node()
 
 
 @pytest.mark.parametrize("sim_time", [False, True], ids=["system_time", "sim_time"])

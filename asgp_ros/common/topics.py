@@ -26,8 +26,10 @@ VO_ODOM = "vo/odom"
 PREDICTED_PATH = "predicted_path"
 #: visualization_msgs/MarkerArray: position covariance ellipses (predictor ->).
 PREDICTED_PATH_UNCERTAINTY = PREDICTED_PATH + "/uncertainty"
-#: diagnostic_msgs/DiagnosticArray (all nodes).
-DIAGNOSTICS = "diagnostics"
+#: diagnostic_msgs/DiagnosticArray (all nodes): absolute, as ROS's diagnostic_updater
+#: publishes it, so that one aggregator hears every namespace's nodes (their status names
+#: carry the namespace: ``runtime.status_name``).
+DIAGNOSTICS = "/diagnostics"
 #: sensor_msgs/LaserScan: the chair's 2-D laser scanner (-> shared control).
 SCAN = "scan"
 #: nav_msgs/OccupancyGrid: the map, in the odometry frame (-> shared control).

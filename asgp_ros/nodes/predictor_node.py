@@ -949,7 +949,8 @@ class PredictorNode(Node):
                         f"the {period_ms:.0f} ms between paths: they fall behind (a long "
                         "horizon, uncertainty 'mc'?)")
         level, message = self.qos_watch.escalate(level, message)
-        return conv.diagnostic_status(f"{self.get_name()}: prediction", level, message,
+        return conv.diagnostic_status(
+            runtime.status_name(self, f"{self.get_name()}: prediction"), level, message,
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:

@@ -172,6 +172,15 @@ def pacing_clock(node: Node) -> Clock:
     return Clock(clock_type=ClockType.STEADY_TIME)
 
 
+def status_name(node: Node, label: str) -> str:
+    """The name of a node's DiagnosticStatus: ``label`` (``"<node>: <what>"``), after the
+    node's namespace when it has one (``chair1/predictor_node: prediction``). Two chairs'
+    stacks in their namespaces publish on the one /diagnostics, where an aggregator keeps a
+    status per name: without it one chair's ERROR was overwritten by the other's OK."""
+    namespace = node.get_namespace().strip("/")
+    return f"{namespace}/{label}" if namespace else label
+
+
 def guard_sim_clock(node: Node) -> None:
     """Refuse a ``/clock`` message that is no time (negative seconds: a player of a bag
     with bogus stamps, a stray publisher) before rclpy's own clock subscription reads it:

@@ -285,7 +285,7 @@ class SerialBridgeNode(Node):
             msg = f"handshake again: {st.last_error}"
         level, msg = self.qos_watch.escalate(level, msg)
         return conv.diagnostic_status(
-            "serial_bridge: link", level, msg, st.port, {
+            runtime.status_name(self, "serial_bridge: link"), level, msg, st.port, {
                 "state": st.state.value, "reason": self._last_state_reason,
                 "connects": st.connects, "reconnects": st.reconnects,
                 "open_failures": st.open_failures, "firmware": st.firmware,
@@ -324,7 +324,8 @@ class SerialBridgeNode(Node):
                       "out_forward": s.out_forward, "out_turn": s.out_turn}
         values.update({"joy_published": self._published, "joy_withheld": self._withheld,
                        **counts})
-        return conv.diagnostic_status("serial_bridge: joystick", level, msg, st.port, values)
+        return conv.diagnostic_status(runtime.status_name(self, "serial_bridge: joystick"),
+                                      level, msg, st.port, values)
 
     def _override_status(self, st: LinkStats) -> DiagnosticStatus:
         now = time.monotonic()
@@ -352,7 +353,7 @@ class SerialBridgeNode(Node):
                 "WARN", f"refused: joy_override arrives "
                         f"{gate.refusal(self.params.override_timeout)}; the user drives")
         return conv.diagnostic_status(
-            "serial_bridge: override", verdict.level,
+            runtime.status_name(self, "serial_bridge: override"), verdict.level,
             f"{verdict.message} (board mode {board_mode})", st.port, {
                 "fresh": fresh, "overrides_sent": st.overrides_sent,
                 "overrides_refused": self._override_rejected,

@@ -1226,7 +1226,8 @@ class SharedControlNode(Node):
             "solve_ms": f"{1e3 * d.solve_s:.2f}",
             "candidates": str(d.candidates),
         }
-        return conv.diagnostic_status(f"{self.get_name()}: decision", _level(d.why),
+        return conv.diagnostic_status(
+            runtime.status_name(self, f"{self.get_name()}: decision"), _level(d.why),
                                       f"{d.why.value}: {d.detail}", values=values)
 
     def diagnostic_status(self) -> DiagnosticStatus:
@@ -1301,7 +1302,8 @@ class SharedControlNode(Node):
         if self._second_frame is not None:  # no laser until a restart: set laser_frame
             level, message = "ERROR", self._scan_problem
         level, message = self.qos_watch.escalate(level, message)
-        return conv.diagnostic_status(f"{self.get_name()}: shared control", level, message,
+        return conv.diagnostic_status(
+            runtime.status_name(self, f"{self.get_name()}: shared control"), level, message,
                                       hardware_id=self.params.model_path, values=values)
 
     def _publish_diagnostics(self) -> None:

@@ -438,7 +438,9 @@ class VONode(Node):
                                   "colour camera")
         values["qos_mismatch"] = self.qos_watch.summary()
         level, msg = self.qos_watch.escalate(level, msg)
-        status = conv.diagnostic_status("vo_node: tracking", level, msg, p.color_topic, values)
+        status = conv.diagnostic_status(
+            runtime.status_name(self, f"{self.get_name()}: tracking"), level, msg,
+            p.color_topic, values)
         self._diag_pub.publish(conv.diagnostic_array(
             self.get_clock().now().nanoseconds * 1e-9, [status]))
 
