@@ -81,6 +81,9 @@ class Harness:
         self.status: list[DiagnosticStatus] = []
         self.x = 0.0  # the chair's odometry x (m), integrated by drive()
         t.create_subscription(Joy, "joy_override", self.overrides.append, QoSProfile(depth=100))
+        # (the bridge this node plays publishes what the board applied: the layer counts
+        # such a reader of its overrides as a bridge)
+        self.bridge_applied = t.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
         t.create_subscription(DiagnosticStatus, "shared_control/status", self.status.append,
                               QoSProfile(depth=100))
         # the publishers of the node's inputs (with obstacles 'grid' it has no laser, with
@@ -1996,6 +1999,38 @@ def test_overrides_that_reach_no_one_are_an_error(harness):
     status = h.node.diagnostic_status()
     assert status.level == DiagnosticStatus.ERROR, status.message
     assert conv.diagnostic_values(status)["override_subscribers"] == "0"
+
+
+def test_a_reader_of_the_overrides_that_is_no_bridge_is_not_counted_as_one(harness):
+    """The layer in /chair1, the bridge in / (its override topic left in the namespace):
+    the predictor that the launch file starts beside it reads /chair1/joy_override too, and
+    the layer counted it: OK, 'intervening', while no override reached the board. A reader
+    counts as a bridge when it also publishes joy_applied, as serial_bridge_node does."""
+    h = harness()
+    h.drive(100.0, 103.0, wall=20.0)
+    assert h.node.diagnostic_status().level == DiagnosticStatus.OK
+    assert conv.diagnostic_values(h.node.diagnostic_status())["override_bridges"] == "1"
+    from rclpy import create_node
+
+    reader = create_node("predictor_node", namespace="chair1", context=h.test.context)
+    reader.create_subscription(Joy, "/joy_override", lambda _: None, 10)
+    h.executor.add_node(reader)
+    (sub,) = [s for s in h.test.subscriptions if s.topic_name == "/joy_override"]
+    h.test.destroy_subscription(sub)  # the bridge's gone; the predictor still reads
+    h.test.destroy_publisher(h.bridge_applied)
+    h.spin_until(lambda: h.node._override_readers()[:2] == (1, 0), what="the reader alone")
+    status = h.node.diagnostic_status()
+    assert status.level == DiagnosticStatus.WARN, status.message
+    assert "no bridge subscribes" in status.message and "/chair1/predictor_node" in \
+        status.message
+    h.drive(103.0, 104.5, wall=1.6)
+    assert h.last()["why"] == "intervening"
+    status = h.node.diagnostic_status()
+    assert status.level == DiagnosticStatus.ERROR, status.message
+    values = conv.diagnostic_values(status)
+    assert values["override_subscribers"] == "1" and values["override_bridges"] == "0"
+    h.executor.remove_node(reader)
+    reader.destroy_node()
 
 
 # ---- from an attack on units, frames and signs: each a break found, now a test ----------

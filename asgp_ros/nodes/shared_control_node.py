@@ -525,9 +525,11 @@ class SharedControlNode(Node):
         # every override sent (a neutral stick read there stops it)
         self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
         self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        self._applied_sub = None
         if p.applied_topic.strip():
-            self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
-                                     qos_profile_sensor_data)
+            self._applied_sub = self.polled.subscription(Joy, p.applied_topic,
+                                                         self._on_joy_applied,
+                                                         qos_profile_sensor_data)
         inputs: list[tuple[Any, str, Callable[[Any], None]]] = []
         if p.vo_type == "twist":
             inputs.append((TwistStamped, p.vo_topic, self._on_twist))
@@ -1291,20 +1293,46 @@ class SharedControlNode(Node):
         }
         message = "no decision yet" if d is None else f"{d.why.value}: {d.detail}"
         level = "WARN" if d is None else _level(d.why)
-        listeners = self.override_pub.get_subscription_count()
+        listeners, bridges, others = self._override_readers()
         values["override_subscribers"] = str(listeners)
-        if listeners == 0:  # (a misspelt override_topic: OK, 'intervening', and no effect)
+        values["override_bridges"] = str(bridges)
+        if bridges == 0:  # (a misspelt override_topic: OK, 'intervening', and no effect)
             # ERROR while it would be intervening, else WARN at least
             level = "ERROR" if self._was_intervening or level == "ERROR" else "WARN"
-            message = (f"nothing subscribes to {self.override_pub.topic_name}: no override "
-                       "reaches the board (the bridge not running, or override_topic "
-                       f"misspelt?); {message}")
+            if listeners == 0:
+                message = (f"nothing subscribes to {self.override_pub.topic_name}: no override "
+                           "reaches the board (the bridge not running, or override_topic "
+                           f"misspelt?); {message}")
+            else:
+                assert self._applied_sub is not None
+                message = (f"no bridge subscribes to {self.override_pub.topic_name} (none of "
+                           f"its subscribers, {others}, publishes "
+                           f"{self._applied_sub.topic_name}, as the serial bridge does): no "
+                           "override reaches the board (the bridge not running, or in another "
+                           f"namespace, or override_topic misspelt?); {message}")
         if self._second_frame is not None:  # no laser until a restart: set laser_frame
             level, message = "ERROR", self._scan_problem
         level, message = self.qos_watch.escalate(level, message)
         return conv.diagnostic_status(
             runtime.status_name(self, f"{self.get_name()}: shared control"), level, message,
                                       hardware_id=self.params.model_path, values=values)
+
+    def _override_readers(self) -> tuple[int, int, str]:
+        """(the override topic's subscribers, those of them that are a bridge, the others'
+        names). A bridge is a subscriber that also publishes ``applied_topic``, what the
+        board applied, as serial_bridge_node does: any reader counted before (the predictor,
+        which reads the overrides too, a bag recorder), and the layer said OK while its
+        overrides reached no board. Without ``applied_topic`` every subscriber counts."""
+        readers = self.get_subscriptions_info_by_topic(self.override_pub.topic_name)
+        if self._applied_sub is None:
+            return len(readers), len(readers), ""
+        reporting = {(e.node_namespace, e.node_name) for e in
+                     self.get_publishers_info_by_topic(self._applied_sub.topic_name)}
+        bridges = [e for e in readers if (e.node_namespace, e.node_name) in reporting]
+        others = sorted({f"{e.node_namespace.rstrip('/')}/{e.node_name}" for e in readers
+                         if (e.node_namespace, e.node_name) not in reporting})
+        return len(readers), len(bridges), ", ".join(others[:3]) + (
+            f" and {len(others) - 3} more" if len(others) > 3 else "")
 
     def _publish_diagnostics(self) -> None:
         self.polled.drain()
