@@ -157,7 +157,7 @@ class MonitorNode(Node):
     def _callback(self, topic: str, cls: type, record: bool) -> Callable[[bytes], None]:
         # a topic recorded and counted only is never deserialised; every other has a handler
         handler = (None if topic in COUNTED_ONLY
-                   else getattr(self, "_on_" + topic.replace("/", "_")))
+                   else getattr(self, "_on_" + topic.strip("/").replace("/", "_")))
         bag_topic = topics.in_bag(topic)
 
         def on_message(data: bytes) -> None:
