@@ -483,3 +483,40 @@ def test_a_device_that_never_answers_the_handshake_is_an_error_with_a_reason(har
             assert "HELLO" in msg and "echo" in msg and "baud" in msg, msg
         finally:
             os.unlink(link)
+
+
+def test_overrides_are_refused_while_a_second_chair_shares_the_graph(harness):
+    """Two chairs started without a namespace on one ROS domain: each bridge took the one
+    layer's overrides and drove its own chair with them, every status OK. While another
+    node of the bridge's full name, or another publisher of its joy, is on the graph, every
+    override is refused, the board goes back to the user, and the override status is an
+    ERROR that says why; once it has gone, overrides drive again."""
+    from rclpy import create_node
+
+    h = harness(lambda t: (0.5, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: len(h.joy) > 5, 10.0)
+    push = lambda: h.override_pub.publish(Joy(axes=[-0.25, 0.6]))  # noqa: E731
+    assert h.spin_until(lambda: h.board.output.override_active, 5.0, each=push)
+    for make in (lambda: create_node("serial_bridge_node", context=h.node.context),
+                 lambda: create_node("other_chair", context=h.node.context)):
+        other = make()
+        if other.get_name() == "other_chair":
+            other.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        h.executor.add_node(other)
+        assert h.spin_until(lambda: not h.board.output.override_active, 5.0, each=push)
+        assert h.spin_until(lambda: (st := _override_status(h)) is not None
+                            and st.level == DiagnosticStatus.ERROR, 5.0, each=push)
+        message = _override_status(h).message
+        assert ("other node(s) named /serial_bridge_node" in message
+                if other.get_name() == "serial_bridge_node"
+                else "other publisher(s) of /joy" in message), message
+        sent = h.node.link.stats().overrides_sent
+        h.spin_for(0.5, each=push)
+        assert h.node.link.stats().overrides_sent == sent  # nothing written to the board
+        assert not h.board.output.override_active
+        assert int(conv.diagnostic_values(_override_status(h))["overrides_refused_crowd"]) > 0
+        h.executor.remove_node(other)
+        other.destroy_node()
+        assert h.spin_until(lambda: h.board.output.override_active, 10.0, each=push)
+        assert h.spin_until(lambda: _override_status(h).level == DiagnosticStatus.OK, 5.0,
+                            each=push)

@@ -27,6 +27,7 @@ guard condition and publish diagnostics at once.
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import threading
 import time
@@ -75,6 +76,10 @@ _LEVEL = {
 #: Why the bridge never follows /clock: it drives a real board in real time, and an override
 #: is written to the chair only while fresh by its stamp; on a replay's clock, the overrides
 #: of a replayed bag (or of a layer judging replayed scans) would be fresh.
+#: How often (s, at most) the bridge looks at the graph for a second node of its name or a
+#: second publisher of its joy topic before taking an override (a graph query each time).
+CROWD_CHECK_S = 0.5
+
 SIM_TIME_REFUSED = ("use_sim_time must be false: the bridge drives a real board in real time, "
                     "and on a replayed /clock a replayed or replay-driven joy_override would "
                     "look fresh (replaying a bag into the other nodes: leave the bridge out, "
@@ -107,6 +112,9 @@ class SerialBridgeNode(Node):
         self._diag_levels: tuple[object, ...] = ()  # levels of the last diagnostics published
         self._gate = OverrideGate()
         self._override_rejected = 0
+        self._crowd = ""  # why overrides are refused while others are on the graph
+        self._crowd_checked = -math.inf  # (time.monotonic() of the last look)
+        self._crowd_refused = 0
         self._last_state_reason = ""
         self._published = 0
         self._withheld = 0                 # samples without a reading (ADC_FAULT)
@@ -206,6 +214,11 @@ class SerialBridgeNode(Node):
             self._override_rejected += 1
             self.get_logger().warn(f"override refused: {exc}", throttle_duration_sec=1.0)
             return
+        if self._check_crowd(time.monotonic()):
+            self._crowd_refused += 1
+            self.get_logger().error(f"joy_override refused: {self._crowd}",
+                                    throttle_duration_sec=5.0)
+            return
         stamp = conv.stamp_to_seconds(msg.header.stamp) or None  # zero: unstamped
         if not self._gate.offer(command, stamp, time.monotonic(), self._clock_s(),
                                 self.params.override_timeout):
@@ -216,6 +229,35 @@ class SerialBridgeNode(Node):
     def _clock_s(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
+    def _check_crowd(self, now: float) -> str:
+        """Why no override may drive this chair while the graph holds what it holds, or "":
+        another node of this bridge's full name (a second chair's stack started without a
+        namespace on this ROS domain: each bridge took the one layer's overrides and drove
+        its own chair with them, every status OK), or another publisher of this bridge's
+        joy topic (a second chair's bridge, a bag replayed: a layer reading it judges a mix
+        of sticks). Looked at once per CROWD_CHECK_S."""
+        if now - self._crowd_checked < CROWD_CHECK_S:
+            return self._crowd
+        self._crowd_checked = now
+        me = (self.get_name(), self.get_namespace())
+        twins = sum(1 for entry in self.get_node_names_and_namespaces() if entry == me) - 1
+        joy = self._joy_pub.topic_name
+        others = self.count_publishers(joy) - 1
+        was, self._crowd = self._crowd, ""
+        if twins > 0:
+            self._crowd = (f"{twins} other node(s) named {self.get_fully_qualified_name()} on "
+                           "this ROS domain (a second chair started without a namespace, or a "
+                           "second bridge?): each would drive its chair with these overrides; "
+                           "give each chair a namespace or a ROS_DOMAIN_ID of its own")
+        elif others > 0:
+            self._crowd = (f"{others} other publisher(s) of {joy} (a second chair's bridge, a "
+                           "bag replayed?): the layer would judge a mix of sticks")
+        if self._crowd and not was:
+            self.get_logger().error(f"overrides refused: {self._crowd}")
+        elif was and not self._crowd:
+            self.get_logger().info("overrides taken again: the graph is this chair's alone")
+        return self._crowd
+
     def _send_override(self) -> None:
         # the board's mode as its samples report it, not as we last asked: the board may
         # have reset it (HOST_LOST, a restart), and then the next override needs MODE first
@@ -223,6 +265,9 @@ class SerialBridgeNode(Node):
         now = time.monotonic()
         age = self._gate.age(now)
         command = self._gate.fresh(now, self._clock_s(), self.params.override_timeout)
+        if command is not None and self._check_crowd(now):
+            command = None  # (and the board back to the user at once, below)
+            age = math.inf
         if command is not None:
             if board_mode != Mode.OVERRIDE:
                 self.link.set_mode(Mode.OVERRIDE)
@@ -238,6 +283,7 @@ class SerialBridgeNode(Node):
 
     def _on_diagnostics_timer(self) -> None:
         self.qos_watch.check()  # the peers, from the graph (here only, not from the reader)
+        self._check_crowd(time.monotonic())
         self._publish_diagnostics()
 
     def _publish_diagnostics(self, only_if_levels_change: bool = False) -> None:
@@ -352,6 +398,9 @@ class SerialBridgeNode(Node):
             verdict = board_status.Verdict(
                 "WARN", f"refused: joy_override arrives "
                         f"{gate.refusal(self.params.override_timeout)}; the user drives")
+        if self._crowd:
+            verdict = board_status.Verdict("ERROR", f"every override refused: {self._crowd}; "
+                                                    "the user drives")
         return conv.diagnostic_status(
             runtime.status_name(self, "serial_bridge: override"), verdict.level,
             f"{verdict.message} (board mode {board_mode})", st.port, {
@@ -359,6 +408,7 @@ class SerialBridgeNode(Node):
                 "overrides_refused": self._override_rejected,
                 "overrides_stale": gate.refused_stale,
                 "overrides_out_of_order": gate.refused_older, "board_mode": board_mode,
+                "overrides_refused_crowd": self._crowd_refused,
                 "status": flags,
             })
 
