@@ -167,10 +167,14 @@ def test_on_a_simulated_clock_a_message_never_arrives_before_the_previous_drain(
             rig.inputs.drain()
             _set_clock(rig, t)
             rig.got.clear()
+            sent = time.monotonic()
             rig.publish("a", 0.0)
             time.sleep(0.1)
             rig.drain_until(1)
-            assert rig.got[0][2].now == pytest.approx(want, abs=0.03), (previous, t)
+            # (a loaded machine drains late: the message is older by then, by wall clock)
+            late = max(time.monotonic() - sent - 0.1, 0.0)
+            low = max(want - late, previous) if t >= previous else want - late
+            assert low - 0.03 <= rig.got[0][2].now <= want + 0.03, (previous, t, late)
     finally:
         rig.close()
 
