@@ -207,6 +207,42 @@ def test_bad_frames_are_ignored_and_reported(make_board, connect):
     assert link.state == LinkState.CONNECTED
 
 
+@pytest.mark.parametrize(("noise_bytes", "expected_active"),
+                         [(40, []), (8, [185, 195, 205])],
+                         ids=["line-never-quiet", "parked-then-quiet"])
+def test_an_override_behind_line_noise_drives_only_while_fresh_by_its_own_last_byte(
+        noise_bytes, expected_active):
+    """Three bytes of noise claiming a 39-byte frame (A5 5A 20), the host's last override
+    right behind them (its last byte at 10 ms), then one byte of line noise every 19 ms:
+    the line is never idle for RX_IDLE_MS, and the override is found only when the 39 bytes
+    are in (485 ms, the candidate rejected) or after the line goes quiet (the idle expiry at
+    185 ms). It was timed by the newest byte, not its own last one, and drove the chair until
+    675 ms, or 355 ms: up to 665 ms after its last byte. Each frame is timed by its own last
+    byte: found 475 ms late the override is stale and the user drives; found 175 ms late it
+    drives for the 25 ms left (the mirror of the firmware: test_firmware.py runs the C)."""
+    board = fw.BoardLogic(lambda frame: None)
+    stick = (700, 512)
+    user = (board.cal[0].adc_to_permille(stick[0]), board.cal[1].adc_to_permille(stick[1]))
+    board.rx(proto.encode(proto.SetMode(proto.Mode.OVERRIDE), 1), 0)
+    board.tick(stick, 5)
+    last_byte_ms = 10
+    board.rx(bytes.fromhex("a55a20") + proto.encode(proto.Override(900, 0), 2), last_byte_ms)
+    noise_at = {last_byte_ms + 19 * (k + 1) for k in range(noise_bytes)}
+    active = []
+    for t in range(last_byte_ms + 1, 1000):
+        if t in noise_at:
+            board.rx(b"\x11", t)
+        if t % 10 == 5:
+            out = board.tick(stick, t)
+            if proto.Status.OVERRIDE_ACTIVE in out.status:
+                active.append(t)
+                assert out.out_pm == (900, 0)
+            else:
+                assert out.out_pm == user and proto.Status.WATCHDOG in out.status, (t, out)
+    assert all(t - last_byte_ms < fw.WATCHDOG_MS for t in active), active
+    assert active == expected_active
+
+
 def test_host_silent_for_1s_resets_the_mode(make_board):
     board = make_board(lambda t: (0.5, 0.0))
     with serial.Serial(board.port, 115200, timeout=0.1) as raw:

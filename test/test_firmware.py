@@ -5,6 +5,7 @@ real AVR build for the ATmega2560."""
 from __future__ import annotations
 
 import itertools
+import math
 import os
 import random
 import re
@@ -225,6 +226,7 @@ class SimavrBoard:
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, text=True)
         self.dac: list[tuple[float, str, int]] = []  # (wall time, channel, code)
+        self.dac_sim: list[tuple[float, str, int]] = []  # (simulated ms, channel, code)
         self.port = ""
         deadline = time.monotonic() + 10.0
         while not self.port and time.monotonic() < deadline:
@@ -241,6 +243,7 @@ class SimavrBoard:
             parts = line.split()
             if parts and parts[0] == "dac":
                 self.dac.append((time.monotonic(), parts[1], int(parts[2])))
+                self.dac_sim.append((float(parts[3]), parts[1], int(parts[2])))
 
     def code(self, channel: str) -> int:
         return next(c for _, ch, c in reversed(self.dac) if ch == channel)
@@ -393,6 +396,50 @@ def test_an_override_behind_line_noise_is_never_applied_late(host_build):
     assert min(active) >= 10 + fw.RX_IDLE_MS and max(active) < 10 + fw.WATCHDOG_MS, active
 
 
+def _parked_behind_noise(noise_bytes: int) -> tuple[list[str], list[int]]:
+    """The board's commands: MODE override, then three bytes of noise claiming a 39-byte
+    frame (A5 5A 20) with the host's last override (900, 0) right behind them, its last byte
+    at 10 ms, then one byte of line noise every 19 ms (never idle for RX_IDLE_MS) and ticks
+    every 10 ms with the user's stick pushed; and the ticks' times."""
+    commands = [f"rx 0 {proto.encode(proto.SetMode(1), 1).hex()}", "tick 5 700 512",
+                f"rx 10 a55a20{_override(900, 0, 2)}"]
+    noise_at = {10 + 19 * (k + 1) for k in range(noise_bytes)}
+    ticks = []
+    for t in range(11, 1000):
+        if t in noise_at:
+            commands.append(f"rx {t} 11")
+        if t % 10 == 5:
+            commands.append(f"tick {t} 700 512")
+            ticks.append(t)
+    return commands, ticks
+
+
+@pytest.mark.parametrize(("noise_bytes", "expected_active"),
+                         [(40, []), (8, [185, 195, 205])],
+                         ids=["line-never-quiet", "parked-then-quiet"])
+def test_c_board_times_an_override_behind_line_noise_by_its_own_last_byte(
+        host_build, noise_bytes, expected_active):
+    """The override behind A5 5A 20 was found when the trickle of noise completed the 39
+    claimed bytes (485 ms) or when the line went quiet (the idle expiry at 185 ms), and was
+    timed by the newest byte, not its own last one (10 ms): it drove the chair until 675 ms,
+    or 355 ms. Each frame is timed by its own last byte (board.c, frame_end_ms): found 475 ms
+    late the override is stale and the user drives; 175 ms late, it drives 25 ms more."""
+    commands, ticks = _parked_behind_noise(noise_bytes)
+    outs = [line.split()[1:] for line in _tool(host_build, commands) if line.startswith("O ")]
+    active = [t for t, o in zip(ticks, outs[1:], strict=True)
+              if int(o[0]) & proto.Status.OVERRIDE_ACTIVE]
+    assert all(t - 10 < fw.WATCHDOG_MS for t in active), active
+    assert active == expected_active
+    user = outs[0][1:3]  # the user's codes: the tick before the override
+    assert all(o[1:3] == (["2785", "2048"] if t in active else user)
+               for t, o in zip(ticks, outs[1:], strict=True))
+
+
+@pytest.mark.parametrize("noise_bytes", [40, 24, 8, 0])
+def test_c_and_mirror_agree_on_an_override_behind_line_noise(host_build, noise_bytes):
+    _both(host_build, _parked_behind_noise(noise_bytes)[0])
+
+
 def test_one_version_a_tick_whatever_the_hellos(host_build):
     """Each HELLO was answered at once: a host sending 1000 a second (8 kB/s, within the
     link) kept the firmware's loop writing VERSION frames into a full UART, the AVR
@@ -465,6 +512,68 @@ def test_compiled_firmware_keeps_the_user_in_charge_under_a_hello_flood(avr_buil
         codes = {c for t, ch, c in board.dac if ch == "A" and t >= t0}
         assert sent > 500 and restarts == 0 and codes <= {user_code}, (sent, restarts, codes)
         assert len(samples) >= 60, len(samples)  # simulated time is paced to real time
+    finally:
+        stop.set()
+        reader.join(1.0)
+        os.close(fd)
+        board.close()
+
+
+@pytest.mark.firmware
+@pytest.mark.slow
+@NO_AVR
+@NO_SIMAVR
+def test_compiled_firmware_drops_an_override_found_late_behind_line_noise(avr_build, simavr):
+    """The real firmware image: an override (500, 0), three bytes of noise claiming a
+    39-byte frame (A5 5A 20) and the host's last override (900, 0) in one write, then one
+    byte of line noise every 10 ms (never idle for 20 ms). The 39 claimed bytes were in 250 ms
+    later, the last override was found then, timed by that byte, and the DAC showed it until
+    460 ms after the first one came up (measured before the fix). Timed by its own last byte
+    it is stale when found, and the user's stick drives. Judged on the simulated clock: the
+    DAC showed the last override no later than 200 ms (and a tick) after the first one."""
+    import tty
+
+    board = SimavrBoard(simavr, avr_build / "asgp_bridge.elf",
+                        3000, 2500)  # the user holds the stick half forward
+    fd = os.open(board.port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    tty.setraw(fd)
+    stop = threading.Event()
+
+    def drain() -> None:  # the board's frames are not read here; keep its UART flowing
+        while not stop.is_set():
+            try:
+                os.read(fd, 4096)
+            except (BlockingIOError, OSError):
+                time.sleep(0.005)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    first_code = fw.DAC_NEUTRAL + round(500 * fw.DAC_SPAN / 1000)
+    last_code = fw.DAC_NEUTRAL + round(900 * fw.DAC_SPAN / 1000)
+    try:
+        # passthrough of the user's stick
+        assert _wait(lambda: any(ch == "A" and c > fw.DAC_NEUTRAL + 300
+                                 for _, ch, c in board.dac), 10.0)
+        user_code = board.code("A")
+        os.write(fd, proto.encode(proto.SetMode(proto.Mode.OVERRIDE), 0))
+        time.sleep(0.05)
+        n_before = len(board.dac_sim)
+        os.write(fd, proto.encode(proto.Override(500, 0), 1) + b"\xa5\x5a\x20"
+                 + proto.encode(proto.Override(900, 0), 2))
+        t_sent = time.monotonic()
+        while time.monotonic() < t_sent + 0.6:
+            time.sleep(0.01)
+            os.write(fd, b"\x11")
+        time.sleep(0.5)
+        events = [(t, c) for t, ch, c in board.dac_sim[n_before:] if ch == "A"]
+        t_first = next(t for t, c in events if c == first_code)
+        # when the DAC showed the last override: from each change to it to the next change
+        shown = [(t - t_first, next((t2 for t2, _ in events[i + 1:]), math.inf) - t_first)
+                 for i, (t, c) in enumerate(events) if c == last_code]
+        print(f"last override on the DAC (simulated ms after the first one): {shown}")
+        # its last byte came within 2 ms of the first override's; a tick is 10 ms
+        assert all(end <= fw.WATCHDOG_MS + 15 for _, end in shown), shown
+        assert board.code("A") == user_code
     finally:
         stop.set()
         reader.join(1.0)

@@ -320,6 +320,10 @@ class StreamParser:
         self.frames_ok = 0
         self.crc_errors = 0
         self.bytes_dropped = 0
+        # for each frame the last feed or expire returned, in order: how many bytes came
+        # after its last byte (0: it ended with the newest byte); the board times each
+        # frame by its own last byte with it (``frame_end_ms`` in the firmware)
+        self.behind: list[int] = []
 
     @property
     def pending(self) -> int:
@@ -336,6 +340,7 @@ class StreamParser:
         the line went idle, its rest is not coming): drops one byte and rescans, as for a
         bad CRC; returns the complete frames found. Call again while bytes are held."""
         if not self._buf:
+            self.behind = []
             return []
         del self._buf[:1]
         self.bytes_dropped += 1
@@ -346,6 +351,7 @@ class StreamParser:
         buf = self._buf
         buf += data
         frames: list[Frame] = []
+        self.behind = []
         start = 0
         n = len(buf)
         while True:
@@ -379,6 +385,7 @@ class StreamParser:
             frames.append(Frame(buf[start + 3], buf[start + 4],
                                 bytes(buf[start + HEADER_LEN:start + HEADER_LEN + length])))
             self.frames_ok += 1
+            self.behind.append(n - start - total)  # the buffer ends with the newest byte
             start += total
         del buf[:start]
         return frames

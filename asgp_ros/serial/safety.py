@@ -17,6 +17,7 @@ byte-identical output. The rules (docs/serial_protocol.md, "Safety rules"):
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -239,6 +240,9 @@ class BoardLogic:
         self.tick_count = 0
         self.pending_version = False
         self.last_rx_ms = 0
+        # when each of the last MAX_FRAME bytes came (``rx_ms``): a frame is timed by its
+        # own last byte, however late the parser finds it
+        self.rx_ms: deque[int] = deque(maxlen=proto.MAX_FRAME)
         # heartbeats at the firmware's 5 Hz whatever the simulated rate (every 20 ticks at
         # 100 Hz: at 10 Hz, every 20 ticks let the host's 0.6 s supervision go stale)
         self.heartbeat_every = max(1, round(self.sample_rate_hz * HEARTBEAT_EVERY
@@ -256,12 +260,19 @@ class BoardLogic:
         if data:
             self.last_rx_ms = now_ms & _U32
         for byte in data:  # byte by byte, so a CRC error is reported like the firmware does
+            self.rx_ms.append(now_ms & _U32)
             crc_before = self.parser.crc_errors
             frames = self.parser.feed(bytes((byte,)))
             if self.parser.crc_errors != crc_before:
                 self._report(ErrorCode.BAD_CRC, 0)
-            for f in frames:
-                self._handle(f, now_ms)
+            self._handle_all(frames)
+
+    def _handle_all(self, frames: list[proto.Frame]) -> None:
+        """The frames the parser just returned, each timed by its own last byte
+        (``frame_end_ms``): not by the byte that completed, or the tick that gave up, the
+        candidate in front of it, up to 39 bytes (at 19 ms each) later."""
+        for f, behind in zip(frames, self.parser.behind, strict=True):
+            self._handle(f, self.rx_ms[-1 - behind])
 
     def _handle(self, f: proto.Frame, now_ms: int) -> None:
         if f.type not in _EXPECTED_LEN:
@@ -314,10 +325,9 @@ class BoardLogic:
 
     def _expire(self) -> None:
         """The partial frame held is given up (``expire_rx``): frames found behind it are
-        acted on, timed by the last byte received."""
+        acted on, each timed by its own last byte."""
         crc_before = self.parser.crc_errors
         while self.parser.pending:
-            for f in self.parser.expire():
-                self._handle(f, self.last_rx_ms)
+            self._handle_all(self.parser.expire())
         if self.parser.crc_errors != crc_before:
             self._report(ErrorCode.BAD_CRC, 0)

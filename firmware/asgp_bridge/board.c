@@ -84,17 +84,32 @@ static void handle(asgp_board_t *b, const asgp_frame_t *f, uint32_t now_ms)
     }
 }
 
+/* When the last byte of the frame the parser just returned came: the parser.n bytes it
+ * still holds all came after it (the buffer is always the newest bytes received), so it is
+ * the (parser.n + 1)th newest byte, at most ASGP_MAX_FRAME - ASGP_HEADER_LEN - ASGP_CRC_LEN
+ * back: still in the ring. Not the time of the byte that completed (or of the tick that gave
+ * up) the candidate in front of it: that is up to 39 bytes, at 19 ms each, later. */
+static uint32_t frame_end_ms(const asgp_board_t *b)
+{
+    uint8_t back = (uint8_t)(b->parser.n + 1u);
+    uint8_t i = (uint8_t)(b->rx_head >= back ? b->rx_head - back
+                                             : b->rx_head + ASGP_MAX_FRAME - back);
+    return b->rx_ms[i];
+}
+
 void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms)
 {
     asgp_frame_t f;
     b->last_rx_ms = now_ms;
+    b->rx_ms[b->rx_head] = now_ms;
+    b->rx_head = (uint8_t)(b->rx_head + 1u == ASGP_MAX_FRAME ? 0u : b->rx_head + 1u);
     uint16_t crc_before = b->parser.crc_errors;
     int got = asgp_parser_feed(&b->parser, byte, &f);
     if (b->parser.crc_errors != crc_before) {
         report(b, ASGP_ERR_BAD_CRC, 0);
     }
     while (got) {
-        handle(b, &f, now_ms);
+        handle(b, &f, frame_end_ms(b));
         got = asgp_parser_next(&b->parser, &f);
     }
 }
@@ -106,7 +121,7 @@ static void expire_rx(asgp_board_t *b)
     while (b->parser.n > 0) {
         int got = asgp_parser_expire(&b->parser, &f);
         while (got) {
-            handle(b, &f, b->last_rx_ms);
+            handle(b, &f, frame_end_ms(b));
             got = asgp_parser_next(&b->parser, &f);
         }
     }

@@ -30,6 +30,11 @@ typedef struct {
     uint16_t tick_count;
     uint8_t pending_version; /* a HELLO came: VERSION goes out at the next tick (one) */
     uint32_t last_rx_ms;     /* when the last byte came */
+    /* when each of the last ASGP_MAX_FRAME bytes came (a ring; rx_head is where the next
+     * byte's time goes): a frame is timed by its own last byte, however late the parser
+     * finds it (behind a partial frame that more bytes rejected, or that went idle) */
+    uint32_t rx_ms[ASGP_MAX_FRAME];
+    uint8_t rx_head;
     asgp_write_fn write;
     void *write_ctx;
 } asgp_board_t;
@@ -40,7 +45,8 @@ void asgp_board_init(asgp_board_t *b, asgp_write_fn write, void *ctx);
 void asgp_board_rx(asgp_board_t *b, uint8_t byte, uint32_t now_ms);
 /* One control tick (ASGP_SAMPLE_RATE_HZ): returns the output to write to the DAC. A partial
  * frame idle for ASGP_RX_IDLE_MS is given up first (frames found behind it are acted on,
- * timed by their last byte: an override behind line noise is never applied late). */
+ * each timed by its own last byte, as every frame is: an override behind line noise never
+ * drives the chair ASGP_WATCHDOG_MS or more after its last byte came). */
 const asgp_output_t *asgp_board_tick(asgp_board_t *b, const int16_t raw[2], uint32_t now_ms);
 
 #ifdef __cplusplus
