@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from asgp_ros.cli import CommandError
 from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
 from asgp_ros.core.resample import ResampleConfig
-from asgp_ros.learning.training import Series, read_series
+from asgp_ros.learning.training import Series, read_series, repeated_series
 from asgp_ros.recording.bags import BagError, parse_joy_axes
 
 
@@ -48,7 +48,9 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
 def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
                         resample_config: ResampleConfig | None = None, truth: bool = False
                         ) -> list[Series]:
-    """Read and resample bags; any reader error becomes a CommandError naming the bag.
+    """Read and resample bags; any reader error becomes a CommandError naming the bag, and
+    so do two that are one recording as their messages tell (a copy, repaired or
+    converted, or one cut short: :func:`asgp_ros.learning.training.repeated_series`).
 
     ``--joy-axes`` is passed on as given ("FWD,TURN", '-' flips a sign): the bag reader
     parses it.
@@ -65,4 +67,7 @@ def read_series_or_fail(paths: Sequence[str], args: argparse.Namespace, *,
         except (BagError, ValueError, OSError, KeyError) as exc:
             msg = str(exc)
             raise CommandError(msg if str(path) in msg else f"{path}: {msg}") from exc
+    twice = repeated_series(out)
+    if twice is not None:  # its rows or cases would count twice
+        raise CommandError(twice)
     return out

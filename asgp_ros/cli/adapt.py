@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Mapping
 from typing import Any
 
 from asgp_ros.cli import CommandError
@@ -20,7 +21,8 @@ from asgp_ros.learning.adapting import (
     adapt_model,
     check_adaptable,
 )
-from asgp_ros.recording.bags import is_recording, recording_identity, same_recording
+from asgp_ros.learning.training import series_identity
+from asgp_ros.recording.bags import find_recording, recording_identity, same_recording
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -69,9 +71,9 @@ def _adaptations(record: object) -> list[object]:
 def _recordings(*records: object) -> list[object]:
     """What identifies the recordings of data records (a model file's ``training_data``,
     an adaptation's ``data``; any shape in a foreign file), for
-    :func:`asgp_ros.recording.bags.is_recording`: their ``recordings`` (real path and
-    content), or, in a file written before those were kept, the real paths of the bags
-    they name that exist from here."""
+    :func:`asgp_ros.recording.bags.find_recording`: their ``recordings`` (real path,
+    storage and, since they were kept, messages), or, in a file written before those were
+    kept, the real paths of the bags they name that exist from here."""
     out: list[object] = []
     for data in records:
         kept = data.get("recordings") if isinstance(data, dict) else None
@@ -90,16 +92,31 @@ def _minutes(data: object) -> str:
     return f"{seconds / 60:.1f}"
 
 
-def learnt_from(model: MotionModel, bag: str) -> str | None:
-    """"trained on" or "adapted to" when ``bag`` is one of the recordings ``model`` learnt
-    from (its model file's records), else None; the bag's identity (a digest of its
-    storage) is read once."""
-    mine = recording_identity(bag)
-    if is_recording(mine, _recordings(model.meta.get("training_data"))):
-        return "trained on"
-    if is_recording(mine, _recordings(*_adaptations(model.meta.get("adaptation")))):
-        return "adapted to"
+def learnt_from(model: MotionModel, bag: str | Mapping[str, Any]) -> tuple[str, str] | None:
+    """("trained on" or "adapted to", "same" or "start") when ``bag`` (or its identity,
+    with the digests of its messages as read: :func:`series_identity`) is one of the
+    recordings ``model`` learnt from (its model file's records), or shares its start with
+    one (one is the other cut short), else None. A record of a model file written before
+    the messages' digests were kept tells a byte-for-byte copy, not a repaired or
+    converted one (:func:`asgp_ros.recording.bags.find_recording`)."""
+    mine = bag if isinstance(bag, Mapping) else recording_identity(bag)
+    for verb, records in (("trained on", _recordings(model.meta.get("training_data"))),
+                          ("adapted to", _recordings(*_adaptations(
+                              model.meta.get("adaptation"))))):
+        how = find_recording(mine, records)
+        if how is not None:
+            return verb, how
     return None
+
+
+def learnt_text(bag: str, model_path: str, learnt: tuple[str, str]) -> str:
+    """What :func:`learnt_from` found, in words: "BAG is one of the recordings MODEL was
+    trained on", or that it begins as one of them does."""
+    verb, how = learnt
+    if how == "same":
+        return f"{bag} is one of the recordings {model_path} was {verb}"
+    return (f"{bag} begins with the same messages as one of the recordings {model_path} was "
+            f"{verb} (one is the other cut short)")
 
 
 def _bag_names(data: object) -> list[str]:
@@ -161,17 +178,17 @@ def run(args: argparse.Namespace) -> int:
     except (AdaptingError, ModelFileError) as exc:
         raise CommandError(f"{args.model}: {exc}" if isinstance(exc, AdaptingError)
                            else str(exc)) from exc
-    for bag in args.bags:
-        learnt = learnt_from(model, bag)
-        if learnt is not None:
-            print(f"warning: {bag} is one of the recordings {args.model} was {learnt}: its "
-                  "rows are in the posterior already"
-                  + (" and count twice with --trained-weight 1"
-                     if args.trained_weight > 0.0 or learnt == "adapted to" else ""),
-                  flush=True)
     # learnt under the held-chair rule even where the model predicts without it
     series = read_series_or_fail(args.bags, args,
                                  resample_config=learning_config(model.resample_config))
+    for bag, s in zip(args.bags, series, strict=True):  # told by the messages read
+        learnt = learnt_from(model, series_identity(s))
+        if learnt is not None:
+            print(f"warning: {learnt_text(bag, args.model, learnt)}: its rows are in the "
+                  "posterior already"
+                  + (" and count twice with --trained-weight 1"
+                     if args.trained_weight > 0.0 or learnt[0] == "adapted to" else ""),
+                  flush=True)
 
     def progress(stage: str, message: str) -> None:
         print(f"[adapt {stage}] {message}", flush=True)

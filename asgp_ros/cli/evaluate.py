@@ -9,7 +9,7 @@ from typing import Any
 from asgp_ros.cli import CommandError
 from asgp_ros.cli._argtypes import cli_number, integer
 from asgp_ros.cli._bagargs import add_topic_args, read_series_or_fail
-from asgp_ros.cli.adapt import learnt_from
+from asgp_ros.cli.adapt import learnt_from, learnt_text
 from asgp_ros.common.fileio import SCORES_JSON, atomic_write_text, bag_inputs, check_output
 from asgp_ros.core.adapt import AdaptConfig, AdaptError
 from asgp_ros.core.adaptive import (
@@ -27,6 +27,7 @@ from asgp_ros.learning.evaluation import (
     evaluate_adaptive,
     evaluate_model,
 )
+from asgp_ros.learning.training import series_identity
 from asgp_ros.recording.bags import same_recording
 
 
@@ -130,13 +131,15 @@ def run(args: argparse.Namespace) -> int:
         model = load_model(args.model)
     except (ModelFileError, OSError, ValueError) as exc:
         raise CommandError(str(exc)) from exc
-    for bag in args.bags:  # scored on the data it learnt, a model looks better than it is
-        learnt = learnt_from(model, bag)
-        if learnt is not None:
-            print(f"warning: {bag} is one of the recordings {args.model} was {learnt}: its "
-                  "scores are not a test on data the model has not seen", flush=True)
     series = read_series_or_fail(args.bags, args, resample_config=model.resample_config,
                                  truth=args.truth)
+    # scored on the data it learnt, a model looks better than it is: told by the messages
+    # read (a repaired or converted copy too), or the storage for an older model file
+    for bag, s in zip(args.bags, series, strict=True):
+        learnt = learnt_from(model, series_identity(s))
+        if learnt is not None:
+            print(f"warning: {learnt_text(bag, args.model, learnt)}: its scores are not a "
+                  "test on data the model has not seen", flush=True)
     tests = [TestSeries(s.name, s.res, s.raw) for s in series]
     if args.adapt:
         return _run_adaptive(args, model, tests)

@@ -30,8 +30,9 @@ about a wheelchair: the resampler drops it as it drops a non-finite one, and the
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -170,6 +171,9 @@ class RawStreams:
         override_t: [No] times at which an override command (``joy_override``) was sent
             to the chair, or empty: around them the joystick is not what drove the chair
             (:mod:`asgp_ros.core.resample`, "Validity").
+        digests: by topic, digests of the messages read from a bag (what identifies the
+            recording in any storage: :func:`asgp_ros.recording.bags.recording_identity`);
+            empty for data not read from a bag.
     """
 
     joy_t: FloatArray
@@ -181,6 +185,7 @@ class RawStreams:
     truth: FloatArray = field(default_factory=lambda: np.zeros((0, 5)))
     source: str = ""
     override_t: FloatArray = field(default_factory=lambda: np.zeros(0))
+    digests: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         joy_t, joy = _as_series("joystick", self.joy_t, self.joy, 2)

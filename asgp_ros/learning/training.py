@@ -145,10 +145,9 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
     segments = sum(len(s.res.segments()) for s in series)
     out: dict[str, Any] = {
         "bags": [s.name for s in series],
-        # the real path and content of each (asgp adapt tells a bag trained on, from any
-        # directory, and its copies); empty for data not read from a path
-        "recordings": [bags.recording_identity(s.name) if os.path.exists(s.name) else {}
-                       for s in series],
+        # the real path, storage and messages of each (asgp adapt and evaluate tell a bag
+        # trained on, from any directory, and its copies, repaired or converted too)
+        "recordings": [series_identity(s) for s in series],
         "grid_samples": grid,
         "valid_samples": valid,
         "segments": segments,
@@ -159,6 +158,24 @@ def data_summary(series: Sequence[Series], rows: int | None = None) -> dict[str,
     if rows is not None:
         out["training_rows"] = int(rows)
     return out
+
+
+def series_identity(s: Series) -> dict[str, Any]:
+    """What identifies the recording ``s`` was read from
+    (:func:`asgp_ros.recording.bags.recording_identity`, with the digests of the messages
+    read); empty for data not read from a bag."""
+    digests = getattr(s.raw, "digests", None) or {}
+    if os.path.exists(s.name):
+        return bags.recording_identity(s.name, digests)
+    return {"messages": {str(t): dict(d) for t, d in digests.items()}} if digests else {}
+
+
+def repeated_series(series: Sequence[Series]) -> str | None:
+    """Why ``series`` are not each a different recording (two read from one recording, a
+    copy of it, repaired or converted, or from copies of which one was cut short: its rows
+    would count twice, or a model would be tested on its own data), naming both; None."""
+    twice = bags.repeated_recording([(s.name, series_identity(s)) for s in series])
+    return None if twice is None else bags.repeated_text(twice)
 
 
 #: A stretch this long (s) without any joystick or velocity sample is no recording time

@@ -258,8 +258,9 @@ def resolve_bag(path: str | os.PathLike[str]) -> Path:
 
 def _content_digest(files: list[Path]) -> str:
     """A digest of the storage files' sizes and of their first and last MiB: the same for a
-    copy, different for another recording (its messages' data differ) without reading a
-    whole bag."""
+    byte-for-byte copy, different for another recording (its messages' data differ)
+    without reading a whole bag. A repaired or converted copy has other bytes: the
+    messages' digests (:func:`message_digests`) tell it."""
     h = hashlib.sha256()
     for f in files:
         with open(f, "rb") as fh:
@@ -272,11 +273,99 @@ def _content_digest(files: list[Path]) -> str:
     return h.hexdigest()
 
 
+#: The fewest messages of a topic a digest of its start covers: a topic's digests are of
+#: its first 16, 32, 64, ... messages and of all of them (:func:`message_digests`).
+HEAD_MESSAGES = 16
+
+
+def message_digests(bag_ns: Sequence[int], digests: Sequence[bytes]) -> dict[str, Any]:
+    """What identifies one topic's messages as read: their bag times and each message's
+    digest (of its type and serialised bytes), sorted by (time, digest), so that the order
+    a reader gives messages of one time in does not count. ``{"n": count, "all": digest
+    of them all, "heads": digests of the first HEAD_MESSAGES * 2**i}``: a copy cut short
+    holds the other's first messages (:func:`recording_relation`). A repair keeps the
+    times and bytes, and so does a conversion between mcap and sqlite3."""
+    n = len(bag_ns)
+    t = np.asarray(bag_ns, dtype=np.int64).reshape(-1)
+    d = np.frombuffer(b"".join(digests), dtype="S16")
+    if n > 1 and not bool(np.all(t[1:] > t[:-1])):  # else in order already
+        order = np.lexsort((d, t))
+        t, d = t[order], d[order]
+    rec = np.empty(n, dtype=[("t", ">i8"), ("d", "S16")])
+    rec["t"], rec["d"] = t, d
+    buf = rec.tobytes()
+    size = rec.dtype.itemsize
+    h = hashlib.sha256()
+    heads: list[str] = []
+    done, k = 0, HEAD_MESSAGES
+    while k <= n:
+        h.update(buf[size * done:size * k])
+        heads.append(h.hexdigest()[:16])  # 64 bits: a model file keeps them per bag
+        done, k = k, 2 * k
+    h.update(buf[size * done:])
+    return {"n": n, "all": h.hexdigest()[:32], "heads": heads}
+
+
+def _topic_digests(ident: Mapping[str, Any]) -> dict[str, tuple[int, str, list[str]]]:
+    """The well-formed message digests of an identity, by topic, of topics with messages
+    (a foreign file's record may be of any shape: nothing else counts)."""
+    out: dict[str, tuple[int, str, list[str]]] = {}
+    msgs = ident.get("messages")
+    if not isinstance(msgs, dict):
+        return out
+    for topic, d in msgs.items():
+        if not isinstance(d, dict):
+            continue
+        n, full, heads = d.get("n"), d.get("all"), d.get("heads")
+        if isinstance(n, int) and not isinstance(n, bool) and n > 0 and isinstance(full, str) \
+                and isinstance(heads, list) and all(isinstance(x, str) for x in heads):
+            out[str(topic)] = (n, full, heads)
+    return out
+
+
+def recording_relation(a: Mapping[str, Any], b: Mapping[str, Any]
+                       ) -> Literal["same", "start", "other"] | None:
+    """How the recordings of two :func:`recording_identity` records relate by the
+    messages read from both, on the topics both have messages on: "same" (every message
+    alike: a copy, repaired, or converted between mcap and sqlite3), "start" (on every
+    such topic one holds the other's first messages, at least HEAD_MESSAGES: a copy cut
+    short, a repair of an unfinished copy), "other"; None when no topic was read from both
+    (a record without messages' digests: older model files)."""
+    ta, tb = _topic_digests(a), _topic_digests(b)
+    common = sorted(ta.keys() & tb.keys())
+    if not common:
+        return None
+    if all(ta[t][:2] == tb[t][:2] for t in common):
+        return "same"
+    for t in common:
+        (na, _, ha), (nb, _, hb) = ta[t], tb[t]
+        i = (min(na, nb) // HEAD_MESSAGES).bit_length() - 1
+        if not (0 <= i < min(len(ha), len(hb))) or ha[i] != hb[i]:
+            return "other"
+    return "start"
+
+
+def _match(mine: Mapping[str, Any], ident: object) -> Literal["same", "start"] | None:
+    """"same" or "start" when ``ident`` describes the recording ``mine`` does or one
+    sharing its start, else None. The messages decide where both have them; else, where
+    both have a digest of the storage files, those (a new recording saved where a trained
+    one was is not that one, and a byte-for-byte copy elsewhere is); else the real path."""
+    if not isinstance(ident, dict):
+        return None
+    relation = recording_relation(mine, ident)
+    if relation is not None:
+        return None if relation == "other" else relation
+    key = "content" if isinstance(ident.get("content"), str) and "content" in mine \
+        else "path"
+    return "same" if isinstance(ident.get(key), str) and ident.get(key) == mine.get(key) \
+        else None
+
+
 def _recording_keys(path: str | os.PathLike[str]) -> list[tuple[object, ...]]:
-    """What identifies the recording ``path`` names: its real path (a symbolic link or a
-    storage file stands for its bag), and a digest of its storage files (a copy of it is
-    the same recording; two simulated bags may start at one time and hold as many
-    messages in files of one size, so metadata alone cannot tell)."""
+    """What identifies the recording ``path`` names before it is read: its real path (a
+    symbolic link or a storage file stands for its bag), and a digest of its storage files
+    (a byte-for-byte copy of it is the same recording; two simulated bags may start at one
+    time and hold as many messages in files of one size, so metadata alone cannot tell)."""
     try:
         bag = resolve_bag(path)
     except BagError:
@@ -291,36 +380,49 @@ def _recording_keys(path: str | os.PathLike[str]) -> list[tuple[object, ...]]:
     return keys
 
 
-def recording_identity(path: str | os.PathLike[str]) -> dict[str, str]:
+def recording_identity(path: str | os.PathLike[str],
+                       messages: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """What identifies the recording ``path`` names, for a model file's record of its
-    training data: its real path and the digest of its storage files (a copy, or the bag
-    named from another directory, is found by it: :func:`is_recording`)."""
-    return {str(k[0]): str(k[1]) for k in _recording_keys(path)}
+    training data: its real path, the digest of its storage files, and, once its messages
+    were read, their digests by topic (``messages``: :attr:`RawStreams.digests`), which a
+    repaired or converted copy shares (:func:`find_recording`)."""
+    out: dict[str, Any] = {str(k[0]): str(k[1]) for k in _recording_keys(path)}
+    if messages:
+        out["messages"] = {str(t): dict(d) for t, d in messages.items()}
+    return out
 
 
-def is_recording(path: str | os.PathLike[str] | dict[str, str],
-                 identities: Collection[object]) -> bool:
+def find_recording(path: str | os.PathLike[str] | Mapping[str, Any],
+                   identities: Collection[object]) -> Literal["same", "start"] | None:
     """Whether ``path`` (or the :func:`recording_identity` of one, read once for several
     questions) is one of the recordings ``identities`` describe (records of
     :func:`recording_identity`; anything else in them, from a foreign file, matches
-    nothing). Where both have a content digest, the content decides: a new recording saved
-    where a trained one was is not that one, and a copy elsewhere is; else the real path."""
-    mine = path if isinstance(path, dict) else recording_identity(path)
+    nothing): "same", "start" (it and one of them share their first messages: one is a
+    copy of the other cut short), or None (:func:`recording_relation`)."""
+    mine = path if isinstance(path, Mapping) else recording_identity(path)
+    found = {_match(mine, ident) for ident in identities}
+    return "same" if "same" in found else ("start" if "start" in found else None)
 
-    def same(ident: object) -> bool:
-        if not isinstance(ident, dict):
-            return False
-        key = "content" if isinstance(ident.get("content"), str) and "content" in mine \
-            else "path"
-        return isinstance(ident.get(key), str) and ident.get(key) == mine.get(key)
-    return any(same(ident) for ident in identities)
+
+def repeated_recording(named: Sequence[tuple[str, Mapping[str, Any]]]
+                       ) -> tuple[str, str, Literal["same", "start"]] | None:
+    """The first two of ``named`` ((name, :func:`recording_identity`)) that are one
+    recording, or share their start (:func:`find_recording`), with how; or None."""
+    for j, (name, ident) in enumerate(named):
+        for earlier, other in named[:j]:
+            how = _match(ident, dict(other))
+            if how is not None:
+                return earlier, name, how
+    return None
 
 
 def same_recording(paths: Collection[str | os.PathLike[str]]) -> tuple[str, str] | None:
     """The first two of ``paths`` that are one recording (the same bag given twice, by a
-    symbolic link, its storage file or a copy), or None. Training or testing on a
-    recording twice counts its rows twice, and one in both a train and a test set tests a
-    model on its own data."""
+    symbolic link, its storage file or a byte-for-byte copy), or None, from what tells
+    them before they are read; a repaired or converted copy is told once they are
+    (:func:`repeated_recording` of their identities with the messages' digests). Training
+    or testing on a recording twice counts its rows twice, and one in both a train and a
+    test set tests a model on its own data."""
     seen: dict[tuple[object, ...], str] = {}
     for p in paths:
         keys = _recording_keys(p)
@@ -330,6 +432,18 @@ def same_recording(paths: Collection[str | os.PathLike[str]]) -> tuple[str, str]
         for key in keys:
             seen[key] = str(p)
     return None
+
+
+def repeated_text(twice: tuple[str, str, str], advice: bool = True) -> str:
+    """The refusal of a recording given twice (:func:`repeated_recording`), naming both
+    (and, with ``advice``, what to give instead)."""
+    first, second, how = twice
+    if how == "same":
+        return (f"{second}: the same recording as {first} (the same messages: a copy, "
+                "repaired or converted)" + ("; give each once" if advice else ""))
+    return (f"{second}: begins with the same messages as {first} (one is the other cut "
+            "short: a copy of an unfinished recording, or a repair of one)"
+            + ("; give the longer one alone" if advice else ""))
 
 
 def _check_ros1_magic(p: Path) -> None:
@@ -513,11 +627,15 @@ def _connections(reader: Any, topic: str, allowed: tuple[str, ...], what: str,
 
 
 def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[Any, ...]],
-             source: str) -> tuple[list[int], list[tuple[Any, ...]], list[int]]:
+             source: str
+             ) -> tuple[list[int], list[tuple[Any, ...]], list[int], dict[str, Any]]:
     """The bag times, extracted rows and parts of the recording (:func:`clock_parts`; all
-    0 from a reader that does not tell them) of the messages of ``conns``."""
+    0 from a reader that does not tell them) of the messages of ``conns``, and their
+    digests (:func:`message_digests`: taken as they are read, not in a second pass)."""
     bag_ns: list[int] = []
     rows: list[tuple[Any, ...]] = []
+    digests: list[bytes] = []
+    typed: dict[str, Any] = {}  # a digest of each message type, to go on from
     try:
         for conn, timestamp, raw in reader.messages(connections=conns):
             if not (isinstance(timestamp, int) and 0 <= timestamp < 2**63):
@@ -528,6 +646,13 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
             msg = reader.deserialize(raw, conn.msgtype)
             bag_ns.append(int(timestamp))
             rows.append(extract(msg, conn.msgtype))
+            base = typed.get(conn.msgtype)
+            if base is None:
+                base = typed[conn.msgtype] = hashlib.blake2b(
+                    conn.msgtype.encode() + b"\0", digest_size=16)
+            d = base.copy()
+            d.update(raw)
+            digests.append(d.digest())
     except BagError:
         raise
     except Exception as exc:  # rosbags raises several types for damaged data
@@ -535,7 +660,7 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
                        f"{_one_line(f'{type(exc).__name__}: {exc}')}") from exc
     parts_of = getattr(reader, "message_parts", None)
     parts = list(parts_of(conns)) if parts_of is not None else [0] * len(rows)
-    return bag_ns, rows, parts
+    return bag_ns, rows, parts, message_digests(bag_ns, digests)
 
 
 def _warn_no_override_topic(reader: Any, topic: str, source: str) -> None:
@@ -760,10 +885,11 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
                 raise BagError(f"{problem}; --base-frame names the chair's frame if that is "
                                "it")
             log.warning("%s; they are read as lost samples", problem)
-        truth = _collect(reader, tr_conns, truth_row, source) if tr_conns else ([], [], [])
+        truth = (_collect(reader, tr_conns, truth_row, source) if tr_conns
+                 else ([], [], [], {}))
         try:
             overrides = (_collect(reader, ov_conns, lambda msg, _t: (_stamp_ns(msg),),
-                                  source) if ov_conns else ([], [], []))
+                                  source) if ov_conns else ([], [], [], {}))
         except (BagError, _DamagedDataError) as exc:
             raise type(exc)(
                 f"{exc} (in the overrides, {override_topic}: without them the steps they "
@@ -895,7 +1021,10 @@ def read_streams(
         reader = _open_recovered(path, exc, wanted)
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
                                  override_topic, base_frame)
-    (jb, jr, jp), (vb, vr, vp), (tb, tr, tp), tw_conns, (ob, orows, op) = collected
+    (jb, jr, jp, jd), (vb, vr, vp, vd), (tb, tr, tp, td), tw_conns, (ob, orows, op, od) = \
+        collected
+    digests = {topic: d for topic, d in ((joy_topic, jd), (twist_topic, vd),
+                                         (truth_topic, td), (override_topic, od)) if topic and d}
 
     for name, topic, rows in (("joystick", joy_topic, jr), ("velocity", twist_topic, vr)):
         if not rows:
@@ -943,7 +1072,7 @@ def read_streams(
     try:
         return RawStreams(joy_t=joy_t, joy=j[:, 1:], vel_t=vel_t, vel=v[:, 1:3],
                           vel_ok=v[:, 3] > 0.5, truth_t=truth_t, truth=truth, source=source,
-                          override_t=override_t)
+                          override_t=override_t, digests=digests)
     except ValueError as exc:
         raise BagError(f"{source}: {exc}") from exc
 

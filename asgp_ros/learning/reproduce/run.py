@@ -59,8 +59,13 @@ from asgp_ros.learning.reproduce.protocol import (
 )
 from asgp_ros.learning.reproduce.report import markdown
 from asgp_ros.learning.reproduce.summary import summarise
-from asgp_ros.learning.training import Series
-from asgp_ros.recording.bags import BagError, same_recording
+from asgp_ros.learning.training import Series, series_identity
+from asgp_ros.recording.bags import (
+    BagError,
+    repeated_recording,
+    repeated_text,
+    same_recording,
+)
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +116,10 @@ def run(data: str | os.PathLike[str], out: str | os.PathLike[str], *, quick: boo
     train_paths, test_paths = split(found, manifest)
     t_data = time.perf_counter()
     series = _read_dataset(manifest, train_paths, test_paths, st.jobs)
+    again = repeated_recording([(name, series_identity(s)) for name, s in series.items()])
+    if again is not None:  # a repaired or converted copy, told by its messages
+        raise ReproduceError(f"{repeated_text(again, advice=False)}: a dataset holds each "
+                             "recording once")
     t_read = time.perf_counter()
 
     with atomic_path(out, directory=True, replace=force) as tmp:
