@@ -6,7 +6,7 @@ import argparse
 from collections.abc import Sequence
 
 from asgp_ros.cli import CommandError
-from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_GROUND_TRUTH, BAG_JOY, BAG_VO_TWIST, JOY_OVERRIDE
 from asgp_ros.core.resample import ResampleConfig
 from asgp_ros.learning.training import Series, read_series, repeated_series
 from asgp_ros.recording.bags import BagError, parse_joy_axes
@@ -31,8 +31,10 @@ def add_topic_args(parser: argparse.ArgumentParser, *, truth: bool = False) -> N
     parser.add_argument("--joy-axes", default=None, metavar="FWD,TURN", type=_joy_axes,
                         help="Joy.axes indices of the forward and turn deflection, '-' flips a "
                              "sign: '0,1' (default), '1,-0', ...")
-    parser.add_argument("--override-topic", default=BAG_JOY_OVERRIDE,
-                        help="sensor_msgs/Joy overrides sent to the chair (%(default)s): where "
+    parser.add_argument("--override-topic", default=JOY_OVERRIDE,
+                        help="sensor_msgs/Joy overrides sent to the chair (%(default)s, a "
+                             "relative name, is taken in --joy-topic's namespace: "
+                             "/joy_override, /chair2/joy_override beside /chair2/joy): where "
                              "a bag has them, the grid points they may have driven are not "
                              "used (the joystick is not what drove the chair); '' reads none")
     parser.add_argument("--base-frame", default="base_link",

@@ -56,6 +56,21 @@ def in_bag(name: str) -> str:
     return name if name.startswith("/") else "/" + name
 
 
+def namespace_of(topic: str) -> str:
+    """The namespace of an absolute topic name: ``/chair2`` for ``/chair2/joy``, ``/`` for
+    ``/joy``."""
+    return in_bag(topic).rsplit("/", 1)[0] or "/"
+
+
+def beside(topic: str, name: str) -> str:
+    """``name`` resolved as a node in ``topic``'s namespace resolves it: a relative name
+    beside ``topic`` (``joy_override`` beside ``/chair2/joy`` is ``/chair2/joy_override``),
+    an absolute one as it is."""
+    if name.startswith("/"):
+        return name
+    return namespace_of(topic).rstrip("/") + "/" + name
+
+
 #: The bag topics the offline commands read by default (``asgp train``, ``evaluate``, ...).
 BAG_JOY = in_bag(JOY)
 BAG_VO_TWIST = in_bag(VO_TWIST)

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple, cast
 import numpy as np
 
 from asgp_ros.common.board import NEUTRAL_WINDOW
-from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST
+from asgp_ros.common.topics import BAG_JOY, BAG_VO_TWIST, JOY_OVERRIDE
 from asgp_ros.core import metrics
 from asgp_ros.core.calibration import (
     BASIS,
@@ -113,13 +113,14 @@ def read_series(
     twist_topic: str = BAG_VO_TWIST,
     truth_topic: str | None = None,
     joy_axes: Any = None,
-    override_topic: str | None = BAG_JOY_OVERRIDE,
+    override_topic: str | None = JOY_OVERRIDE,
     base_frame: str = "base_link",
 ) -> list[Series]:
     """Read bags and resample them onto the grid (raises the bag reader's errors).
 
-    The overrides on ``override_topic`` (when a bag has it; None or '' for none) make the
-    grid points they may have driven invalid (:mod:`asgp_ros.core.resample`, "Validity").
+    The overrides on ``override_topic`` (when a bag has it; None or '' for none; a relative
+    name is resolved in ``joy_topic``'s namespace) make the grid points they may have driven
+    invalid (:mod:`asgp_ros.core.resample`, "Validity").
     """
     config = resample_config if resample_config is not None else ResampleConfig()
     out = []

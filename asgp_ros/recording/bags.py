@@ -67,7 +67,14 @@ import yaml
 from numpy.typing import NDArray
 
 from asgp_ros.common.fileio import ROS1_MAGIC, atomic_path
-from asgp_ros.common.topics import BAG_JOY, BAG_JOY_OVERRIDE, BAG_VO_TWIST, is_override
+from asgp_ros.common.topics import (
+    BAG_JOY,
+    BAG_VO_TWIST,
+    JOY_OVERRIDE,
+    beside,
+    is_override,
+    namespace_of,
+)
 from asgp_ros.core.modelfile import file_type_problem, loads_bounded, regular_file_problem
 from asgp_ros.core.quaternion import quaternion_to_yaw
 from asgp_ros.core.streams import RawStreams, joy_in_range, twist_tracked, vel_in_range
@@ -663,17 +670,28 @@ def _collect(reader: Any, conns: list[Any], extract: Callable[[Any, str], tuple[
     return bag_ns, rows, parts, message_digests(bag_ns, digests)
 
 
-def _warn_no_override_topic(reader: Any, topic: str, source: str) -> None:
+def _warn_no_override_topic(reader: Any, topic: str, joy_topic: str, default: bool,
+                            source: str) -> None:
     """Say so when the override topic asked for is not in the bag but another one may be
-    (a namespaced recording), or when it was not the default (a typo)."""
+    (a namespaced recording), or when it was not the default (a typo). Another is named as
+    the one to read only when it is the one override topic in the joystick's namespace or
+    below it: a two-chair recording's other chair's overrides are not this chair's."""
     others = sorted({c.topic for c in reader.connections
                      if isinstance(c.topic, str) and c.topic != topic
                      and is_override(c.topic)})
     if others:
-        log.warning("%s: no override topic %s, but the bag has %s: --override-topic %s "
-                    "reads it (its steps are then not trained on)", source, topic,
-                    ", ".join(others), others[0])
-    elif topic != BAG_JOY_OVERRIDE:
+        space = namespace_of(joy_topic).rstrip("/") + "/"
+        near = [o for o in others if o.startswith(space)]
+        if len(near) == 1:
+            log.warning("%s: no override topic %s, but the bag has %s: --override-topic %s "
+                        "reads it (its steps are then not trained on)", source, topic,
+                        ", ".join(others), near[0])
+        else:
+            log.warning("%s: no override topic %s; the bag has %s, %s the joystick %s's "
+                        "namespace: not read (--override-topic names the one sent to the "
+                        "chair of --joy-topic)", source, topic, ", ".join(others),
+                        "more than one in" if near else "none in", joy_topic)
+    elif not default:
         log.warning("%s: override topic %s not found; the bag has: %s", source, topic,
                     _topics_listing(reader))
 
@@ -813,9 +831,11 @@ def velocity_frame_problem(frame: str, base_frame: str) -> str | None:
 
 def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
                  truth_topic: str | None, axes: JoyAxes, override_topic: str | None = None,
-                 base_frame: str = "base_link") -> tuple[Any, ...]:
+                 base_frame: str = "base_link", default_override: bool = False
+                 ) -> tuple[Any, ...]:
     """The raw rows of the joystick, velocity, ground-truth and (when the bag has it)
-    override topics (closes ``reader``). Twists in another frame than ``base_frame`` are
+    override topics (closes ``reader``; ``default_override``: the override topic is the
+    default, not said when missing). Twists in another frame than ``base_frame`` are
     lost samples, counted (``velocity_frame_problem``), as the nodes refuse them."""
     try:
         joy_conns = _connections(reader, joy_topic, JOY_TYPES, "joystick", source)
@@ -896,7 +916,8 @@ def _read_topics(reader: Any, source: str, joy_topic: str, twist_topic: str,
                 f"drove cannot be told apart; --override-topic '' reads the bag as if it had "
                 f"none)") from exc
         if override_topic and not ov_conns:
-            _warn_no_override_topic(reader, override_topic, source)
+            _warn_no_override_topic(reader, override_topic, joy_topic, default_override,
+                                    source)
         return joy, vel, truth, tw_conns, overrides
     finally:
         reader.close()
@@ -978,7 +999,7 @@ def read_streams(
     truth_topic: str | None = None,
     joy_axes: JoyAxes | str | None = None,
     max_stamp_skew: float = 10.0,
-    override_topic: str | None = BAG_JOY_OVERRIDE,
+    override_topic: str | None = JOY_OVERRIDE,
     base_frame: str = "base_link",
 ) -> RawStreams:
     """Read the joystick, velocity (and optional ground-truth) streams of a bag.
@@ -994,7 +1015,11 @@ def read_streams(
         override_topic: ``sensor_msgs/Joy`` overrides sent to the chair (the shared-control
             layer's, a planner's), if the bag has the topic: their times become
             ``RawStreams.override_t``, around which the resampler refuses the joystick (it
-            is not what drove the chair); None or '' to read none.
+            is not what drove the chair); None or '' to read none. A relative name is
+            resolved in ``joy_topic``'s namespace (:func:`~asgp_ros.common.topics.beside`):
+            the default, ``joy_override``, is ``/joy_override`` beside ``/joy`` and
+            ``/chair2/joy_override`` beside ``/chair2/joy`` (the overrides of the chair
+            whose joystick is read, in a recording of several).
         base_frame: the chair's frame: a velocity message's twist in another (a camera's
             frame; the header's frame of a TwistStamped, the child frame of an Odometry;
             an empty one is taken as the chair's) is a lost sample, as the nodes refuse it.
@@ -1008,19 +1033,22 @@ def read_streams(
     if joy_axes is None:
         joy_axes = JoyAxes()
     axes = parse_joy_axes(joy_axes) if isinstance(joy_axes, str) else joy_axes
+    if override_topic:
+        override_topic = beside(joy_topic, override_topic)
+    default_override = override_topic == beside(joy_topic, JOY_OVERRIDE)
     wanted = [t for t in (joy_topic, twist_topic, truth_topic, override_topic) if t]
     reader = _in_record_order(path, _open_reader(path, wanted), wanted)
     recovered = getattr(reader, "recovered", None)
     source = recovered.damage.bag if recovered is not None else str(resolve_bag(path))
     try:
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
-                                 override_topic, base_frame)
+                                 override_topic, base_frame, default_override)
     except _DamagedDataError as exc:  # the index opened, the data behind it are damaged
         if recovered is not None:
             raise
         reader = _open_recovered(path, exc, wanted)
         collected = _read_topics(reader, source, joy_topic, twist_topic, truth_topic, axes,
-                                 override_topic, base_frame)
+                                 override_topic, base_frame, default_override)
     (jb, jr, jp, jd), (vb, vr, vp, vd), (tb, tr, tp, td), tw_conns, (ob, orows, op, od) = \
         collected
     digests = {topic: d for topic, d in ((joy_topic, jd), (twist_topic, vd),
