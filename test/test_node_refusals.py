@@ -37,6 +37,52 @@ def test_ros_args_problem_names_a_params_file_rcl_could_not_open(tmp_path):
     assert ros_args_problem(["node", "--ros-args", "--", "--params-file", str(fifo)]) is None
 
 
+def test_ros_args_problem_names_an_invalid_namespace_or_node_name():
+    """A remap of the node's namespace or name to an invalid one, said in one line with
+    what is wrong; another node's rule, topic remaps and valid names pass."""
+    def problem(rule: str) -> str | None:
+        return ros_args_problem(["node", "--ros-args", "-r", rule], "vo_node")
+
+    assert "must not end with a '/'" in problem("__ns:=/chair1/")
+    assert "(__ns:=/chair1?)" in problem("__ns:=/chair1/")
+    assert "(__ns:=/chair1?)" in problem("__ns:=chair1")
+    assert "repeated '/'" in problem("__ns:=//chair")
+    assert "token that starts with a number" in problem("__ns:=/1chair")
+    assert "'1abc' is not a valid node name" in problem("__node:=1abc")
+    assert "'a/b' is not a valid node name" in problem("__name:=a/b")
+    assert "'/x/' is not a valid namespace" in problem("vo_node:__ns:=/x/")
+    assert "'/x/' is not a valid namespace" in ros_args_problem(
+        ["node", "--ros-args", "--remap", "__ns:=/x/"])
+    for fine in ("__ns:=/", "__ns:=/chair1", "__ns:=/a/b_2", "__node:=vo2",
+                 "other_node:__ns:=/x/", "joy:=/chair1/joy", "/a:=b/"):
+        assert problem(fine) is None, fine
+    assert ros_args_problem(["node", "-r", "__ns:=/x/"]) is None  # not a ROS argument
+
+
+def test_a_node_rcl_cannot_create_is_refused_in_one_line(repo_root):
+    """rcl's refusal to create the node (a name rcl's argument parser let through) is a
+    one-line refusal, rcl's source locations cut; any other RuntimeError of a start-up stays
+    a traceback."""
+    script = """if True:
+        import sys
+        from rclpy.impl.implementation_singleton import rclpy_implementation as impl
+        from asgp_ros.nodes import runtime
+
+        def build():
+            raise impl.RCLError(sys.argv[1])
+
+        sys.exit(runtime.run(build, ["x"], name="x", refused=()))
+    """
+    said = "error creating node: invalid node namespace: it is bad"
+    out = subprocess.run([sys.executable, "-c", script, said + ", at /project/src/x.c:68"],
+                         cwd=repo_root, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1, out
+    assert "Traceback" not in out.stderr and f"refusing to start: {said}\n" in out.stderr
+    out = subprocess.run([sys.executable, "-c", script, "something else"], cwd=repo_root,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "Traceback" in out.stderr, out
+
+
 def test_a_horizon_beyond_the_steps_of_a_path_names_horizon_s():
     """A 25 Hz model's 10 s (horizon_s within its range) was refused as 'horizon_steps
     ... got 250', a parameter the shared-control node does not have."""
@@ -103,6 +149,21 @@ def _cases(tmp_path):
                        "has no section for this node (/vo_node)"),
         "empty_file": ("predictor_node", [*model, "--params-file", str(empty_yaml)],
                        "sections are none"),
+        # a namespace ending in '/': rcl's parser took it, and the node's creation raised
+        # (a traceback from each node: "node name must not start with a number"); other bad
+        # names were refused in rcl's parser's words ("Expected lexeme type (18)")
+        **{f"ns_slash_{node}": (node, [*model, "-r", "__ns:=/chair1/"],
+                                "-r __ns:=/chair1/: '/chair1/' is not a valid namespace: "
+                                "namespace must not end with a '/'")
+           for node in ("predictor_node", "vo_node", "serial_bridge_node",
+                        "shared_control_node")},
+        "ns_this_node": ("predictor_node", [*model, "-r", "predictor_node:__ns:=/chair1/"],
+                         "'/chair1/' is not a valid namespace"),
+        "ns_relative": ("serial_bridge_node", ["-r", "__ns:=chair1"],
+                        "'chair1' is not a valid namespace: namespace must be absolute"),
+        "node_digit": ("vo_node", ["-r", "__node:=1abc"],
+                       "'1abc' is not a valid node name: node name must not start with a "
+                       "number"),
     }
 
 

@@ -54,6 +54,8 @@ from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import ok, try_shutdown
+from rclpy.validate_namespace import validate_namespace
+from rclpy.validate_node_name import validate_node_name
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 if TYPE_CHECKING:
@@ -267,17 +269,60 @@ def init(args: list[str] | None = None) -> None:
 _FILE_ARGUMENTS = ("--params-file", "--log-config-file")
 
 
-def ros_args_problem(argv: list[str]) -> str | None:
+def _name_remap_problem(rule: str, node: str | None) -> str | None:
+    """Why a remap of the node's namespace or name (``-r __ns:=/chair1/``, ``-r
+    __node:=1abc``; ``NODE:__ns:=...`` for the node ``node`` only) names no valid
+    namespace or node name, in one line, or None. rcl's own words were its parser's
+    ("Couldn't parse remap rule: '-r __ns:=chair1'. Error: Expected lexeme type 19, got 18
+    at index 6") or, for a namespace ending in '/', which its parser lets through, a
+    traceback from the node's creation saying "node name must not start with a number"."""
+    lhs, sep, value = rule.partition(":=")
+    prefix, _, key = lhs.rpartition(":")
+    if not sep or (prefix and node is not None and prefix != node):
+        return None  # not a rule, or another node's
+    check: Callable[[str], object]
+    if key == "__ns":
+        what, check = "namespace", validate_namespace
+    elif key in ("__node", "__name"):
+        what, check = "node name", validate_node_name
+    else:
+        return None
+    try:
+        check(value)
+    except NameValidationException as exc:
+        reason = str(exc).split("\n", 1)[0].removeprefix(f"Invalid {what}: ").rstrip(":")
+        fixed = "/" + "/".join(t for t in value.split("/") if t)
+        hint = (f" ({key}:={fixed}?)" if key == "__ns" and fixed not in ("/", value)
+                and _valid(validate_namespace, fixed) else "")
+        return f"-r {rule}: {value!r} is not a valid {what}: {reason}{hint}"
+    return None
+
+
+def _valid(check: Callable[[str], object], name: str) -> bool:
+    try:
+        check(name)
+    except NameValidationException:
+        return False
+    return True
+
+
+def ros_args_problem(argv: list[str], node: str | None = None) -> str | None:
     """Why rcl cannot be given ``argv``'s ROS arguments, in one line, or None: a
     ``--params-file`` (or ``--log-config-file``) that is not a readable regular file. rcl
     opens it at ``rclpy.init``: a FIFO blocked there with SIGINT and SIGTERM held back
-    (:func:`init`) until killed, and a missing file failed with a traceback."""
+    (:func:`init`) until killed, and a missing file failed with a traceback. Or a remap of
+    the namespace or the name of the node ``node`` (or of every node) to an invalid one
+    (:func:`_name_remap_problem`)."""
     inside = False
     for i, arg in enumerate(argv):
         if arg == "--ros-args":
             inside = True
         elif arg == "--":
             inside = False
+        elif inside and arg in ("-r", "--remap") and i + 1 < len(argv):
+            problem = _name_remap_problem(argv[i + 1], node)
+            if problem is not None:
+                return problem
         elif inside and arg in _FILE_ARGUMENTS and i + 1 < len(argv):
             path = argv[i + 1]
             try:
@@ -393,7 +438,7 @@ def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
     """
     logger = rclpy.logging.get_logger(name)
     with StopSignals() as stops:
-        problem = ros_args_problem(sys.argv if args is None else args)
+        problem = ros_args_problem(sys.argv if args is None else args, name)
         if problem is None:
             try:
                 init(args)
@@ -412,6 +457,15 @@ def run(build: Callable[[], Node], args: list[str] | None, *, name: str,
             except refusals as exc:
                 # (rclpy's own: use_sim_time:=1 given to Node.__init__, say)
                 logger.fatal(f"refusing to start: {' '.join(str(exc).split())}")
+                return 1
+            except RuntimeError as exc:
+                # rclpy's RCLError from rcl_node_init: a name or namespace rcl's argument
+                # parser took and the node's creation refused (those ros_args_problem
+                # knows are said before); anything else stays a traceback
+                words = " ".join(str(exc).split()).split(", at /")[0]
+                if not words.startswith("error creating node"):
+                    raise
+                logger.fatal(f"refusing to start: {words}")
                 return 1
             except interrupted:
                 return 0
