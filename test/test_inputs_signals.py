@@ -349,7 +349,7 @@ def test_vo_node_exits_on_signals_in_every_state(repo_root, rclpy_context, camer
     node = NodeProcess(repo_root, VO)
     cam = _Camera(rclpy_context, *camera) if state == "tracking" else None
     try:
-        node.wait_for("VO on camera/color/image_raw")
+        node.wait_for("VO on /camera/color/image_raw")
         if cam is not None:
             cam.until(lambda: len(cam.twists) >= 3, 60.0, "VO twists")
         code = node.stop(sig, while_waiting=cam.step if cam else lambda: None)

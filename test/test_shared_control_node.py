@@ -623,7 +623,7 @@ def test_scans_in_two_frames_with_laser_frame_unset_are_all_refused(harness):
     diag = h.node.diagnostic_status()
     values = conv.diagnostic_values(diag)
     assert diag.level == DiagnosticStatus.ERROR and "set laser_frame" in diag.message
-    assert values["scan"].startswith("scans in two frames on scan ('rear_laser', 'laser')")
+    assert values["scan"].startswith("scans in two frames on /scan ('rear_laser', 'laser')")
     assert values["scans_other_frame"] == "11" and values["scans_two_frames"] == "19"
 
 

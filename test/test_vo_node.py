@@ -784,9 +784,9 @@ def test_vo_node_process_starts_with_the_shipped_config(repo_root, tmp_path):
         while time.monotonic() < deadline:
             line = proc.stdout.readline()
             out += line
-            if "VO on camera/color/image_raw" in line or proc.poll() is not None:
+            if "VO on /camera/color/image_raw" in line or proc.poll() is not None:
                 break
-        assert "VO on camera/color/image_raw" in out, out
+        assert "VO on /camera/color/image_raw" in out, out
     finally:
         proc.send_signal(signal.SIGINT)
         try:

@@ -77,6 +77,23 @@ def topic_name_problem(resolve: Callable[[str], str], name: str) -> str | None:
     return None
 
 
+def topic_beside(resolve: Callable[..., str], topic: str, suffix: str) -> str:
+    """The topic ``<topic>/<suffix>`` (a publisher's second topic: the path's ellipses) as
+    a node is to use it: beside the name ``topic`` resolves to, namespace and remaps
+    applied (a path remapped to ``/viz/path`` has its ellipses on
+    ``/viz/path/uncertainty``: they stayed on the parameter's ``<ns>/predicted_path/...``),
+    unless ``<topic>/<suffix>`` is remapped itself. ``resolve``: the node's
+    ``resolve_topic_name``; ``topic`` must resolve."""
+    own = f"{topic}/{suffix}"
+    try:
+        remapped = resolve(own)
+        if remapped != resolve(own, only_expand=True):
+            return remapped
+    except RuntimeError:  # (rclpy's RCLError: a name too long, said by the caller's check)
+        pass
+    return f"{resolve(topic).rstrip('/')}/{suffix}"
+
+
 def unknown_overrides(node: Node) -> list[str]:
     """Parameters given to ``node`` (a params file, ``-p``, ``parameter_overrides``) that it
     has not declared: rclpy ignores them silently, and a misspelt one (``adapt.enable``)

@@ -95,6 +95,7 @@ from asgp_ros.nodes.parameters import (
     declare,
     is_change,
     sim_time_change,
+    topic_beside,
     topic_name_problem,
 )
 from asgp_ros.nodes.polled import Arrival, PolledInputs, period_problem
@@ -357,7 +358,9 @@ class PredictorNode(Node):
             check_topics(self.resolve_topic_name, joy_topic=self.params.joy_topic,
                          applied_topic=self.params.applied_topic,
                          override_topic=self.params.override_topic)
-            ellipses = f"{self.params.path_topic}/uncertainty"
+            # beside the path as remapped ('-r predicted_path:=/viz/path' moves both)
+            ellipses = topic_beside(self.resolve_topic_name, self.params.path_topic,
+                                    "uncertainty")
             if (problem := topic_name_problem(self.resolve_topic_name, ellipses)) is not None:
                 # (a valid path_topic of 245 characters: its ellipses' topic is too long)
                 raise ValueError(f"parameter path_topic: the ellipses' topic {ellipses!r} is "
@@ -414,11 +417,15 @@ class PredictorNode(Node):
         # diagnostics period instead (qos_watch: the handlers cost CPU at every message)
         self.qos_watch = watch = QosWatch(self)
         self.path_pub = watch.publisher(Path, p.path_topic, reliable)
-        self.marker_pub = watch.publisher(MarkerArray, f"{p.path_topic}/uncertainty", reliable)
+        self.marker_pub = watch.publisher(MarkerArray, ellipses, reliable)
         self.diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS, reliable)
         # the joystick topics at the board's 100 Hz: read in batches (polled)
         self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
-        self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # the topics as the node uses them (namespace and remaps applied), by parameter: what
+        # it says names these (the parameters' own names were said under a remap)
+        self._topic: dict[str, str] = {"path_topic": self.path_pub.topic_name}
+        self._topic["joy_topic"] = self.polled.subscription(
+            Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data).topic_name
         # the quick reads of a step waiting for the joystick (_await_joystick); one at a time
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # (none when the batches come every tick anyway: each wait would end in a timeout)
@@ -430,18 +437,21 @@ class PredictorNode(Node):
         self._joy_waits = 0
         self._joy_wait_timeouts = 0
         if p.applied_topic.strip():
-            self.polled.subscription(Joy, p.applied_topic, self._on_joy_applied,
-                                     qos_profile_sensor_data)
+            self._topic["applied_topic"] = self.polled.subscription(
+                Joy, p.applied_topic, self._on_joy_applied, qos_profile_sensor_data
+            ).topic_name
         if p.vo_type == "twist":
-            watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
-                               qos_profile_sensor_data)
+            vo_sub = watch.subscription(TwistStamped, p.vo_topic, self._on_twist,
+                                        qos_profile_sensor_data)
         else:
-            watch.subscription(Odometry, p.vo_topic, self._on_odometry,
-                               qos_profile_sensor_data)
-        watch.subscription(JointTrajectory, p.plan_topic, self._on_plan, reliable)
+            vo_sub = watch.subscription(Odometry, p.vo_topic, self._on_odometry,
+                                        qos_profile_sensor_data)
+        self._topic["vo_topic"] = vo_sub.topic_name
+        self._topic["plan_topic"] = watch.subscription(
+            JointTrajectory, p.plan_topic, self._on_plan, reliable).topic_name
         if p.override_topic.strip():
-            watch.subscription(Joy, p.override_topic, self._on_override,
-                               qos_profile_sensor_data)
+            self._topic["override_topic"] = watch.subscription(
+                Joy, p.override_topic, self._on_override, qos_profile_sensor_data).topic_name
         runtime.guard_sim_clock(self)
         pacing = runtime.pacing_clock(self)
         self.watchdog = self.create_timer(1.0 / rate, self._on_watchdog, clock=pacing)
@@ -460,8 +470,9 @@ class PredictorNode(Node):
         self.get_logger().info(
             f"model {p.model_path} ({self.model.kind}, lags {self.model.feature_config.lags}, "
             f"{rate:g} Hz); horizon {self.predictor.config.horizon_steps} steps; "
-            f"inputs {p.joy_topic}, {p.vo_topic} ({p.vo_type}), plan {p.plan_topic}; "
-            f"output {p.path_topic} in "
+            f"inputs {self._topic['joy_topic']}, {self._topic['vo_topic']} ({p.vo_type}), "
+            f"plan {self._topic['plan_topic']}; output {self._topic['path_topic']} (ellipses "
+            f"{self.marker_pub.topic_name}) in "
             f"{p.base_frame if p.path_frame == 'base' else p.odom_frame}"
         )
 
@@ -567,7 +578,7 @@ class PredictorNode(Node):
 
     def _on_joy(self, msg: Joy, arrival: Arrival) -> None:
         now = arrival.now
-        read = self._read_joy(msg, self.params.joy_topic, now)
+        read = self._read_joy(msg, self._topic["joy_topic"], now)
         if read is None:
             return
         t, command = read
@@ -583,7 +594,7 @@ class PredictorNode(Node):
     def _on_joy_applied(self, msg: Joy, arrival: Arrival) -> None:
         """What the board drives the chair with, measured: it feeds while it arrives."""
         now = arrival.now
-        read = self._read_joy(msg, self.params.applied_topic, now)
+        read = self._read_joy(msg, self._topic["applied_topic"], now)
         if read is None:
             return
         if joy_problem(*read[1]) is not None:  # no measurement (NaN, 3.0): refused and
@@ -625,7 +636,7 @@ class PredictorNode(Node):
             command = conv.joy_to_override(msg, self.joy_axes)
         except ValueError as exc:
             self._bad_messages += 1
-            self.get_logger().warning(f"ignoring {self.params.override_topic}: {exc}",
+            self.get_logger().warning(f"ignoring {self._topic['override_topic']}: {exc}",
                                       throttle_duration_sec=5.0)
             return
         stamp = conv.stamp_to_seconds(msg.header.stamp)
@@ -699,7 +710,7 @@ class PredictorNode(Node):
         problem = conv.pose_frame_problem(msg, self.params.odom_frame) if ok else None
         if problem is not None:
             self._poses_other_frame += 1
-            self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
+            self.get_logger().warning(f"{self._topic['vo_topic']}: {problem}",
                                       throttle_duration_sec=5.0)
         elif ok and not self.predictor.feed_pose(t, *pose):
             self._warn_rejected()
@@ -718,7 +729,7 @@ class PredictorNode(Node):
         except ValueError as exc:  # malformed message
             self._bad_messages += 1
             self._plan_problem = f"malformed plan: {exc}"
-            self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
+            self.get_logger().warning(f"ignoring {self._topic['plan_topic']}: {exc}",
                                       throttle_duration_sec=5.0)
             return
         try:
@@ -730,7 +741,7 @@ class PredictorNode(Node):
         except ValueError as exc:
             self._bad_messages += 1
             self._plan_problem = f"plan refused: {exc}"
-            self.get_logger().warning(f"ignoring {self.params.plan_topic}: {exc}",
+            self.get_logger().warning(f"ignoring {self._topic['plan_topic']}: {exc}",
                                       throttle_duration_sec=5.0)
 
     # ---- prediction ------------------------------------------------------------------

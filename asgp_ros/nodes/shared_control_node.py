@@ -524,27 +524,34 @@ class SharedControlNode(Node):
         # the joystick topics at the board's 100 Hz: read in batches (polled), and before
         # every override sent (a neutral stick read there stops it)
         self.polled = PolledInputs(self, watch, p.joy_poll_period_s)
-        self.polled.subscription(Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data)
+        # the topics as the node uses them (namespace and remaps applied), by parameter: what
+        # it says names these (the parameters' own names were said under a remap)
+        self._topic: dict[str, str] = {"override_topic": self.override_pub.topic_name}
+        self._topic["joy_topic"] = self.polled.subscription(
+            Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data).topic_name
         self._applied_sub = None
         if p.applied_topic.strip():
-            self._applied_sub = self.polled.subscription(Joy, p.applied_topic,
-                                                         self._on_joy_applied,
-                                                         qos_profile_sensor_data)
-        inputs: list[tuple[Any, str, Callable[[Any], None]]] = []
+            self._applied_sub = self.polled.subscription(
+                Joy, p.applied_topic, self._on_joy_applied, qos_profile_sensor_data)
+            self._topic["applied_topic"] = self._applied_sub.topic_name
+        inputs: list[tuple[Any, str, Callable[[Any], None], str]] = []
         if p.vo_type == "twist":
-            inputs.append((TwistStamped, p.vo_topic, self._on_twist))
+            inputs.append((TwistStamped, p.vo_topic, self._on_twist, "vo_topic"))
         else:
-            inputs.append((Odometry, p.vo_topic, self._on_odometry))
+            inputs.append((Odometry, p.vo_topic, self._on_odometry, "vo_topic"))
         if self.odometer is not None and p.memory_odom_topic:
-            inputs.append((Odometry, p.memory_odom_topic, self._on_memory_odom))
+            inputs.append((Odometry, p.memory_odom_topic, self._on_memory_odom,
+                           "memory_odom_topic"))
         if p.obstacles in ("laser", "both"):
-            inputs.append((LaserScan, p.scan_topic, self._on_scan))
-        for msg_type, topic, callback in inputs:
+            inputs.append((LaserScan, p.scan_topic, self._on_scan, "scan_topic"))
+        for msg_type, topic, callback, param in inputs:
             sub = watch.subscription(msg_type, topic, callback, qos_profile_sensor_data)
             self._inputs.append((sub, callback))
+            self._topic[param] = sub.topic_name
         self._decision_wanted = self.create_guard_condition(self._decide_wanted)
         if p.obstacles in ("grid", "both"):
-            watch.subscription(OccupancyGrid, p.map_topic, self._on_map, latched)
+            self._topic["map_topic"] = watch.subscription(
+                OccupancyGrid, p.map_topic, self._on_map, latched).topic_name
         runtime.guard_sim_clock(self)
         pacing = runtime.pacing_clock(self)
         self.create_timer(1.0 / p.override_rate_hz, self._send_override, clock=pacing)
@@ -556,8 +563,10 @@ class SharedControlNode(Node):
             self.get_logger().info(adapting)
         self.get_logger().info(
             f"model {p.model_path}; horizon {self.predictor.config.horizon_steps} steps; "
-            f"threshold {p.threshold}; obstacles from {p.obstacles}; overrides on "
-            f"{p.override_topic}")
+            f"threshold {p.threshold}; obstacles from {p.obstacles} ("
+            f"{', '.join(self._topic[k] for k in ('scan_topic', 'map_topic') if k in self._topic)}"
+            f"); inputs {self._topic['joy_topic']}, {self._topic['vo_topic']}; overrides on "
+            f"{self._topic['override_topic']}")
 
     # ---- time and input ---------------------------------------------------------------
 
@@ -587,7 +596,7 @@ class SharedControlNode(Node):
         now = arrival.now
         if now is None:
             return
-        read = self._read_joy(msg, self.params.joy_topic, now)
+        read = self._read_joy(msg, self._topic["joy_topic"], now)
         if read is None:
             return
         t, user = read
@@ -611,7 +620,7 @@ class SharedControlNode(Node):
         now = arrival.now
         if now is None:
             return
-        read = self._read_joy(msg, self.params.applied_topic, now)
+        read = self._read_joy(msg, self._topic["applied_topic"], now)
         if read is None:
             return
         if joy_problem(*read[1]) is not None:  # no measurement (3.0): refused, counted,
@@ -670,7 +679,7 @@ class SharedControlNode(Node):
         problem = conv.pose_frame_problem(msg, self.params.odom_frame) if ok else None
         if problem is not None:
             self._poses_other_frame += 1
-            self.get_logger().warning(f"{self.params.vo_topic}: {problem}",
+            self.get_logger().warning(f"{self._topic['vo_topic']}: {problem}",
                                       throttle_duration_sec=5.0)
         elif ok:
             self._note_pose_variance(msg, t)
@@ -767,7 +776,7 @@ class SharedControlNode(Node):
             # far may have been the other laser's (a rear laser's wall ahead of the chair)
             if frame == self._laser_frame:
                 self._scans_two_frames += 1
-            self._refuse_scan(f"scans in two frames on {self.params.scan_topic} "
+            self._refuse_scan(f"scans in two frames on {self._topic['scan_topic']} "
                               f"({self._laser_frame!r}, {self._second_frame!r}) and "
                               "laser_frame unset: laser_x/y/yaw describe one laser, which "
                               "is unknown, so none is used; set laser_frame")
@@ -802,7 +811,7 @@ class SharedControlNode(Node):
             self._scans_repeated += 1
             self._scan_problem = (f"a scan came again with the newest one's stamp "
                                   f"({self._scans_repeated} so far): a second publisher on "
-                                  f"{self.params.scan_topic}, or stamps that do not advance?")
+                                  f"{self._topic['scan_topic']}, or stamps that do not advance?")
             return
         if self._scan is not None \
                 and np.count_nonzero(np.isfinite(scan.ranges)) >= FROZEN_SCAN_RETURNS \
@@ -865,7 +874,7 @@ class SharedControlNode(Node):
     def _refuse_scan(self, problem: str) -> None:
         """A scan not taken: the diagnostics' ``scan`` value and the log say why."""
         self._scan_problem = problem
-        self.get_logger().warning(f"ignoring {self.params.scan_topic}: {problem}",
+        self.get_logger().warning(f"ignoring {self._topic['scan_topic']}: {problem}",
                                   throttle_duration_sec=5.0)
 
     def _feed_scan_velocity(self, stamp: float, now: float) -> None:

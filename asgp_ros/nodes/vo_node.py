@@ -95,8 +95,13 @@ class VONode(Node):
              self._on_color),
             (watch.subscription(Image, p.depth_topic, self._on_depth, qos_profile_sensor_data),
              self._on_depth))
-        watch.subscription(CameraInfo, p.camera_info_topic, self._on_info,
-                           qos_profile_sensor_data)
+        info_sub = watch.subscription(CameraInfo, p.camera_info_topic, self._on_info,
+                                      qos_profile_sensor_data)
+        # the topics as the node reads them (namespace and remaps applied), for everything
+        # that names them to the user: the parameters' names were said under a remap
+        self._color_topic = self._image_subs[0][0].topic_name
+        self._depth_topic = self._image_subs[1][0].topic_name
+        self._info_topic = info_sub.topic_name
         runtime.guard_sim_clock(self)
         self.create_timer(p.diagnostics_period_s, self._on_diagnostics_timer,
                           clock=runtime.pacing_clock(self))
@@ -127,7 +132,7 @@ class VONode(Node):
         self._frames = ("", "")  # frame_id of the last colour and depth image paired
         self._not_newer_since_processed = 0  # pairs not newer than the last processed one
         self.get_logger().info(
-            f"VO on {p.color_topic} + {p.depth_topic} ({p.camera_info_topic}); camera at "
+            f"VO on {self._color_topic} + {self._depth_topic} ({self._info_topic}); camera at "
             f"({p.extrinsic.x:.2f}, {p.extrinsic.y:.2f}, {p.extrinsic.z:.2f}) m, yaw "
             f"{p.extrinsic.yaw:.2f} rad, pitch {p.extrinsic.pitch:.2f} rad in {p.base_frame}")
 
@@ -375,17 +380,17 @@ class VONode(Node):
                     f"sync_tolerance_s {p.sync_tolerance_s:g} s)"
                     if self._evicted_since_pair else "")
         if self.vo is None and self._info_problem:
-            level, msg = "ERROR", (f"camera_info on {p.camera_info_topic} refused: "
+            level, msg = "ERROR", (f"camera_info on {self._info_topic} refused: "
                                    f"{self._info_problem}")
         elif self.vo is None:
-            level, msg = "WARN", f"waiting for camera_info on {p.camera_info_topic}"
+            level, msg = "WARN", f"waiting for camera_info on {self._info_topic}"
         elif (r is None or age is None) and self._last_problem:
             # every pair so far refused (a camera on its own clock, say): not "waiting"
             level, msg = "ERROR", (f"every colour/depth pair refused, the last one: "
                                    f"{self._last_problem}: no twist published")
         elif r is None or age is None:
-            level, msg = "WARN", (f"waiting for colour/depth pairs on {p.color_topic} "
-                                  f"({n['colour_images']} received), {p.depth_topic} "
+            level, msg = "WARN", (f"waiting for colour/depth pairs on {self._color_topic} "
+                                  f"({n['colour_images']} received), {self._depth_topic} "
                                   f"({n['depth_images']} received){unpaired}")
         elif age > p.stale_timeout_s and self._not_newer_since_processed:
             level, msg = "ERROR", (
@@ -407,7 +412,7 @@ class VONode(Node):
             if len(recent) > 1:  # two calibrations alternating on the topic restart it
                 msg += (f"; camera_info changed {len(recent)} times in the last "
                         f"{_INFO_CHANGES_WINDOW_S:g} s, each a restart: two cameras or "
-                        f"drivers on {p.camera_info_topic}?")
+                        f"drivers on {self._info_topic}?")
         else:
             level = _LEVEL[r.status]
             msg = f"tracking lost ({r.status.value}): {r.message}; no twist published"
@@ -440,7 +445,7 @@ class VONode(Node):
         level, msg = self.qos_watch.escalate(level, msg)
         status = conv.diagnostic_status(
             runtime.status_name(self, f"{self.get_name()}: tracking"), level, msg,
-            p.color_topic, values)
+            self._color_topic, values)
         self._diag_pub.publish(conv.diagnostic_array(
             self.get_clock().now().nanoseconds * 1e-9, [status]))
 
