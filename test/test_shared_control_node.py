@@ -2201,3 +2201,58 @@ def test_a_pose_said_lost_by_a_variance_that_is_no_number_drops_the_map(harness)
     assert unknown.node._grid is not None
     assert conv.diagnostic_values(unknown.node.diagnostic_status())[
         "odometry_reinitialised"] == "0"
+
+
+@pytest.mark.parametrize("restart", ["jump", "variance_falls"])
+def test_a_map_is_dropped_when_the_odometry_restarts(harness, restart):
+    """vo_node restarted starts its odometry again at (0, 0, 0) with no variance: only a
+    rise of the variance was a new alignment, and the map, placed with the poses before,
+    was kept: a wall judged clear (p 0) until the chair was 0.3 m into it. A pose that
+    jumps further than the chair can move, or a variance that falls at once, drops it."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(h, wall_map_msg(None))
+    offset = 0.0 if restart == "variance_falls" else -3.0  # (the pose 3 m ahead of x)
+    x = _drive_odometry(h, 100.0, 102.0, 0.0, offset, 2.0)
+    wall_x = x - offset + 0.5 + 0.6 + 1.2 + 10.0  # far ahead of the old alignment's chair
+    old_map = wall_map_msg(wall_x)
+    old_map.header.stamp = conv.seconds_to_stamp(102.0)
+    _publish_map(h, old_map)
+    x = _drive_odometry(h, 102.0, 102.5, x, offset, 2.0)
+    assert h.last()["why"] == "clear" and h.node._grid is not None
+    # restarted: its origin where the chair is now (the pose jumps back 3 m; or, in place,
+    # only its variance falls from 2.0 to 0)
+    x = _drive_odometry(h, 102.5, 103.1, x, x if restart == "jump" else offset, 1e-4)
+    assert h.node._grid is None, h.node._grid_problem
+    assert ("jumped" if restart == "jump" else "fell by") in h.node._grid_problem
+    assert h.last()["why"] == "no_obstacle_source", h.last()
+    values = conv.diagnostic_values(h.node.diagnostic_status())
+    assert values["odometry_reinitialised"] == "1"
+    _publish_map(h, old_map)  # sent again: refused
+    assert h.node._grid is None and "before the odometry re-initialised" in h.node._grid_problem
+
+
+def test_a_layer_started_after_a_re_initialisation_refuses_a_map_made_before(harness):
+    """A layer restarted after the odometry re-initialised took back the map (latched,
+    stamped before) that the layer before had dropped: clear until the chair was 0.4 m
+    into the wall. The first pose's variance of 0.25 or more says the odometry may have
+    re-initialised before: a map stamped before it is refused, one after it taken; with a
+    small variance the older map is taken."""
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    old_map = wall_map_msg(30.0)
+    old_map.header.stamp = conv.seconds_to_stamp(90.0)
+    _publish_map(h, old_map)  # latched: it arrives before any pose
+    assert h.node._grid is not None
+    _drive_odometry(h, 100.0, 100.5, 0.0, 0.0, 1.0 + 1e-4)
+    assert h.node._grid is None and "may have re-initialised before" in h.node._grid_problem
+    assert conv.diagnostic_values(h.node.diagnostic_status())["odometry_reinitialised"] == "0"
+    _publish_map(h, old_map)
+    assert h.node._grid is None
+    new_map = wall_map_msg(30.0)
+    new_map.header.stamp = conv.seconds_to_stamp(100.5)
+    _publish_map(h, new_map)
+    assert h.node._grid is not None
+
+    fresh = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    _publish_map(fresh, old_map)
+    _drive_odometry(fresh, 100.0, 100.5, 0.0, 0.0, 1e-4)
+    assert fresh.node._grid is not None, fresh.node._grid_problem

@@ -159,6 +159,14 @@ STICK_CHANGE = 0.05
 #: message to the next is a re-initialisation (vo_node adds 1.0 after a tracking loss):
 #: far above what one step of dead reckoning adds.
 POSE_JUMP_VARIANCE = 0.25
+#: An odometry pose that moved further from the last than POSE_JUMP_M + POSE_JUMP_SPEED x
+#: the time between them (m, m/s), or turned by more than POSE_JUMP_RAD + POSE_JUMP_RATE x
+#: that time (rad, rad/s), jumped: the odometry restarted (a chair drives under 3 m/s and
+#: turns under 4 rad/s; REP-105's odom frame is continuous).
+POSE_JUMP_M = 0.5
+POSE_JUMP_SPEED = 3.0
+POSE_JUMP_RAD = 0.5
+POSE_JUMP_RATE = 4.0
 #: Before a decision, at most this many messages of each of the VO, odometry and scan
 #: topics are read (their queues' depth, the sensor-data QoS's).
 INPUT_QUEUE = 5
@@ -499,6 +507,7 @@ class SharedControlNode(Node):
         self._pose_jumps = 0  # re-initialisations of the odometry seen (_note_pose_variance)
         self._reinitialised_t = -math.inf  # the stamp of the pose that showed the last one
         self._pose_lost = False  # the last pose's variance was not a number, after finite ones
+        self._pose_last: tuple[float, float, float, float] | None = None  # (t, x, y, yaw)
         self._scan_problem = ""
         self._deciding = False  # inside _decide (its override send must not decide again)
         self._decided_at = -math.inf  # monotonic time the last decision ended
@@ -682,26 +691,42 @@ class SharedControlNode(Node):
             self.get_logger().warning(f"{self._topic['vo_topic']}: {problem}",
                                       throttle_duration_sec=5.0)
         elif ok:
-            self._note_pose_variance(msg, t)
+            self._note_pose_variance(msg, t, pose)
             self.predictor.feed_pose(t, *pose)
         if self.odometer is not None and not self.params.memory_odom_topic:
             self._feed_odometer(t, vel, ok)
         if self.velocity.vo(t) and self.predictor.feed_vo(t, vel, ok=ok, now=now):
             self._want_decision(step=True)
 
-    def _note_pose_variance(self, msg: Odometry, t: float) -> None:
+    def _note_pose_variance(self, msg: Odometry, t: float,
+                            pose: tuple[float, float, float]) -> None:
         """A pose whose variance (x, y or yaw) rose at once by POSE_JUMP_VARIANCE or more
         is of a new alignment: the odometry re-initialised after a tracking loss (vo_node
         holds its pose through the gap while the chair moves, and adds 1 m^2 and 1 rad^2).
         The map held, placed with the poses before, would put its walls where the chair
         was (a wall 1.2 m ahead was judged clear): dropped, until a new map comes.
 
-        A source that marks the loss with a variance that is not a number (infinite, NaN or
-        negative) after finite ones has lost its pose: the map is dropped then, and the
-        first finite variance after is a new alignment (maps stamped before it refused). A
-        source that never gives a finite variance never drops a map by this rule."""
+        So is a pose whose variance fell by as much at once, or that jumped further than
+        the chair can move (POSE_JUMP_M + POSE_JUMP_SPEED x the time since the last, or the
+        same in yaw): the odometry restarted (vo_node restarted starts again at (0, 0, 0)
+        with no variance, and the map was kept, a wall judged clear until the chair was in
+        it); REP-105's odom frame never jumps otherwise. A source that marks the loss with
+        a variance that is not a number (infinite, NaN or negative) after finite ones has
+        lost its pose: the map is dropped then, and the first finite variance after is a new
+        alignment (maps stamped before it refused). A source that never gives a finite
+        variance never drops a map by the variance rules.
+
+        The first pose the layer sees: with a variance of POSE_JUMP_VARIANCE or more the
+        odometry may have re-initialised before the layer started (a layer restarted after
+        one took back the map the layer before had dropped): a map stamped before that pose
+        is refused. With less, a map made before it is off by less than that."""
         cov = msg.pose.covariance
         var = np.array([cov[0], cov[7], cov[35]], dtype=np.float64)
+        last, self._pose_last = self._pose_last, (t, *pose)
+        if last is not None and t > last[0] and self._pose_jumped(last, (t, *pose)):
+            self._new_alignment(t, f"the odometry's pose jumped from ({last[1]:.2f}, "
+                                   f"{last[2]:.2f}) to ({pose[0]:.2f}, {pose[1]:.2f}) m at once "
+                                   "(it restarted: its poses are of a new alignment)")
         if not np.all(np.isfinite(var) & (var >= 0.0)):
             if self._pose_variance is not None:
                 self._pose_variance, self._pose_lost = None, True
@@ -712,18 +737,39 @@ class SharedControlNode(Node):
         if before is None:
             if self._pose_lost:  # the first pose after a loss: a new alignment
                 self._pose_lost = False
-                self._pose_jumps += 1
-                self._reinitialised_t = t
-                self._drop_reinitialised("the odometry's pose came back after a loss (its "
-                                         "poses are of a new alignment)")
+                self._new_alignment(t, "the odometry's pose came back after a loss (its "
+                                       "poses are of a new alignment)")
+            elif last is None and np.any(var >= POSE_JUMP_VARIANCE):
+                self._reinitialised_t = t  # (not counted: not seen)
+                self._drop_reinitialised(
+                    f"the odometry's pose variance is {np.max(var):.2f} at the first pose "
+                    "this layer saw (it may have re-initialised before: a map made before "
+                    "may be of the poses before it)")
             return
-        if not np.any(var - before >= POSE_JUMP_VARIANCE):
-            return
+        if np.any(var - before >= POSE_JUMP_VARIANCE):
+            self._new_alignment(t, f"the odometry's pose variance rose by "
+                                   f"{np.max(var - before):.2f} at once (it re-initialised "
+                                   "after a tracking loss: its poses are of a new alignment)")
+        elif np.any(before - var >= POSE_JUMP_VARIANCE):
+            self._new_alignment(t, f"the odometry's pose variance fell by "
+                                   f"{np.max(before - var):.2f} at once (it restarted: its "
+                                   "poses are of a new alignment)")
+
+    @staticmethod
+    def _pose_jumped(last: tuple[float, ...], now: tuple[float, ...]) -> bool:
+        """Whether the pose moved further between two stamps than a chair can."""
+        dt = now[0] - last[0]
+        moved = math.hypot(now[1] - last[1], now[2] - last[2])
+        turned = abs(math.remainder(now[3] - last[3], math.tau))
+        return (moved > POSE_JUMP_M + POSE_JUMP_SPEED * dt
+                or turned > POSE_JUMP_RAD + POSE_JUMP_RATE * dt)
+
+    def _new_alignment(self, t: float, why: str) -> None:
+        if self._reinitialised_t == t:
+            return  # (one re-initialisation, seen by two rules)
         self._pose_jumps += 1
         self._reinitialised_t = t
-        self._drop_reinitialised(f"the odometry's pose variance rose by "
-                                 f"{np.max(var - before):.2f} at once (it re-initialised after "
-                                 "a tracking loss: its poses are of a new alignment)")
+        self._drop_reinitialised(why)
 
     def _drop_reinitialised(self, why: str) -> None:
         if self._grid is not None or self._map_reading:
