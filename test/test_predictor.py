@@ -642,6 +642,27 @@ def test_reason_codes_are_one_documented_enum():
     assert pred.predict(1.0).reason is Reason.NO_INPUT
 
 
+def test_no_input_names_the_input_that_is_missing():
+    """Without any joystick sample, VO at 10 Hz said "waiting for joystick and VO samples":
+    the detail names what has no sample, the joystick, the VO, or both."""
+    def detail(joy: bool, vo: bool) -> str:
+        pred = Predictor(linear_model())
+        for i in range(20):
+            t = 100.0 + 0.1 * i
+            if joy:
+                pred.feed_joy(t, (0.3, 0.0))
+            if vo:
+                pred.feed_vo(t, (0.2, 0.0))
+        status, got = pred.status(102.0), pred.predict(102.0)
+        assert status is not None and (status.reason, status.detail) == (got.reason, got.detail)
+        assert not got.ok and got.reason is Reason.NO_INPUT
+        return got.detail
+
+    assert detail(joy=False, vo=True) == "no joystick sample yet"
+    assert detail(joy=True, vo=False) == "no VO sample yet"
+    assert detail(joy=False, vo=False) == "no joystick sample and no VO sample yet"
+
+
 def test_the_sample_buffer_keeps_what_a_list_would():
     """The buffers keep their samples in one array that grows by replacement and is pruned
     from the front: against a plain list, through growth, pruning by the newest stamp (in

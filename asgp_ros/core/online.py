@@ -91,7 +91,8 @@ class Reason(StrEnum):
     OK = "ok"
     """A path was predicted."""
     NO_INPUT = "no_input"
-    """No joystick or no VO sample buffered yet (the node: also no clock yet)."""
+    """No joystick or no VO sample buffered yet, the detail names which (the node: also
+    no clock yet)."""
     STALE_JOYSTICK = "stale_joystick"
     """The newest joystick sample is older than ``joy_timeout_s``."""
     STALE_VO = "stale_vo"
@@ -130,6 +131,15 @@ class Reason(StrEnum):
     """An odometry pose beyond the range of :mod:`asgp_ros.core.streams`."""
     REJECT_PLAN = "plan_out_of_range"
     """A plan with a command out of range or more than ``MAX_PLAN_STEPS`` rows."""
+
+
+def no_input_detail(no_joystick: bool, no_vo: bool) -> str:
+    """The detail of :attr:`Reason.NO_INPUT`: which of the inputs has no sample yet (the
+    shared-control layer names a missing stick in the same words)."""
+    missing = " and no ".join(f"{name} sample" for name, gone
+                              in (("joystick", no_joystick), ("VO", no_vo)) if gone)
+    return f"no {missing} yet" if missing else "no input yet"
+
 
 _EPS_T = 1e-9
 PLAN_TOLERANCE_STEPS = 1e-3
@@ -949,7 +959,8 @@ class Predictor:
         if (reset := self._check_clock(now)) is not None:
             return reset
         if not self._joy or not self._vo:
-            return Prediction(False, Reason.NO_INPUT, "waiting for joystick and VO samples")
+            return Prediction(False, Reason.NO_INPUT, no_input_detail(not self._joy,
+                                                                      not self._vo))
         # the age of a stream: since its newest sample's stamp, or since that sample
         # arrived when it was stamped ahead of the clock (an unsynchronised sender's stick
         # gone silent drove paths for the lead's length more): ``_heard``
