@@ -208,6 +208,20 @@ def test_stale_inputs_or_no_obstacle_source_never_intervene():
     assert d.why is Why.STALE_INPUT and d.command is None and "stale" in d.detail
 
 
+def test_no_joystick_yet_is_said_so_not_a_nan_stick():
+    """A layer that has heard no joystick said "the user's command: forward deflection is
+    nan" (it passed NaN for the missing stick): it says there is no joystick sample yet,
+    in the predictor's words, and judges nothing."""
+    pred, now = driving()
+    d = decide(pred, now, None, wall_ahead(1.0), CONFIG)
+    assert d.why is Why.STALE_INPUT and d.command is None and d.prediction is None
+    assert d.detail == "the user's command: no joystick sample yet"
+    assert "nan" not in d.detail.lower()
+    vo_only = Predictor(linear_model())  # the predictor's words for the same
+    vo_only.feed_vo(now - 0.1, (0.5, 0.0))
+    assert d.detail.endswith(": " + vo_only.predict(now).detail)
+
+
 def test_a_failing_or_non_finite_check_never_intervenes():
     pred, now = driving()
     user = np.array([0.8, 0.0])

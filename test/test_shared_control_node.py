@@ -448,6 +448,30 @@ def test_stale_scan_or_vo_means_no_intervention_with_a_diagnostic(harness):
     assert len(h.overrides) == n
 
 
+def test_no_joystick_yet_is_said_so_not_a_nan_stick(harness):
+    """VO and scans, no joystick ever: the layer's status said "stale_input: the user's
+    command: forward deflection is nan" (the missing stick passed as NaN). It says there is
+    no joystick sample yet, as the predictor does, and sends nothing."""
+    h = harness()
+    rng = np.random.default_rng(3)
+    for i in range(40):  # 2 s: VO at 5 Hz, scans at 10 Hz, the layer's watchdog decides
+        t = 100.0 + 0.05 * (i + 1)
+        h.clock(t)
+        if i % 4 == 3:
+            n = h.node._vo_messages
+            h.vo_pub.publish(conv.twist_stamped_from_sample(t, rng.normal(0.0, 0.003), 0.0))
+            h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+        if i % 2 == 1:
+            h.scan_pub.publish(wall_scan_msg(t, 3.0))
+        h.executor.spin_once(timeout_sec=0.01)
+    h.spin_until(lambda: bool(h.status), what="a decision")
+    messages = {s.message for s in h.status}
+    assert messages == {"stale_input: the user's command: no joystick sample yet"}, messages
+    assert (h.last()["user_forward"], h.last()["user_turn"]) == ("", ""), h.last()
+    assert "nan" not in h.node.diagnostic_status().message.lower()
+    assert h.overrides == []
+
+
 def test_scans_stamped_ahead_of_the_clock_are_refused(harness):
     """A laser whose clock runs 5 s ahead: its scans would look fresh for 5 s after the
     laser stopped, placed with motion that has not happened. They are refused (counted,

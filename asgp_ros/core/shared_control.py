@@ -61,7 +61,7 @@ from numpy.typing import NDArray
 
 from asgp_ros.common.board import BOARD_NEUTRAL, OVERRIDE_TIMEOUT_S, WATCHDOG_MS
 from asgp_ros.core.collision import PathCheck
-from asgp_ros.core.online import Prediction, Predictor
+from asgp_ros.core.online import Prediction, Predictor, no_input_detail
 from asgp_ros.core.streams import joy_problem
 
 FloatArray = NDArray[np.float64]
@@ -264,7 +264,7 @@ def _least_deepening(check: CollisionCheck, pose: FloatArray, low: NDArray[np.in
     return int(low[pick]), user, float(deeper[pick])
 
 
-def decide(predictor: Predictor, now: float, user: FloatArray,
+def decide(predictor: Predictor, now: float, user: FloatArray | None,
            check: CollisionCheck | None, config: SharedControlConfig, *,
            check_for: Callable[[Prediction], CollisionCheck | None] | None = None,
            learn: bool = True) -> Decision:
@@ -273,7 +273,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
     Args:
         predictor: fed with the commands the chair actually received and the VO.
         now: current time on the predictor's clock.
-        user: [2] the user's newest command (forward, turn).
+        user: [2] the user's newest command (forward, turn), or None when no joystick
+            sample has arrived yet (nothing to judge: said so, as the predictor says it).
         check: the collision check of the fresh obstacle source, or None when there is none.
         config: the settings.
         check_for: instead of ``check``, builds it from the user's prediction (its t0,
@@ -282,6 +283,9 @@ def decide(predictor: Predictor, now: float, user: FloatArray,
             node that acts on the decision first passes False and calls
             ``predictor.learn()`` afterwards.
     """
+    if user is None:  # (the Decision's user: NaN, not a stick's reading)
+        return Decision(Why.STALE_INPUT, f"the user's command: {no_input_detail(True, False)}",
+                        np.full(2, np.nan))
     user = np.asarray(user, dtype=np.float64).reshape(2)
     problem = joy_problem(float(user[0]), float(user[1]))
     if problem is not None:  # not a stick's reading (a stray publisher): nothing to judge

@@ -1131,7 +1131,7 @@ class SharedControlNode(Node):
         return False
 
     def _decide_now(self, now: float) -> None:
-        user = self._user[1] if self._user is not None else np.full(2, np.nan)
+        user = self._user[1] if self._user is not None else None
         decision = decide(self.predictor, now, user, None, self.config,
                           check_for=self._check_for(now), learn=False)
         self._decision, self._decision_t = decision, now
@@ -1273,8 +1273,9 @@ class SharedControlNode(Node):
     def _status(self, d: Decision) -> DiagnosticStatus:
         values = {
             "why": d.why.value,
-            "user_forward": f"{d.user[0]:.3f}",
-            "user_turn": f"{d.user[1]:.3f}",
+            # (blank without a stick: no joystick sample yet)
+            "user_forward": f"{d.user[0]:.3f}" if np.isfinite(d.user[0]) else "",
+            "user_turn": f"{d.user[1]:.3f}" if np.isfinite(d.user[1]) else "",
             "command_forward": f"{d.command[0]:.3f}" if d.command is not None else "",
             "command_turn": f"{d.command[1]:.3f}" if d.command is not None else "",
             "p_before": f"{d.p_user:.4f}",
