@@ -5,6 +5,7 @@ validation."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 import os
@@ -26,7 +27,12 @@ from asgp_ros.nodes import conversions as conv  # noqa: E402
 from asgp_ros.nodes.serial_bridge_node import SerialBridgeNode  # noqa: E402
 from asgp_ros.serial import safety as fw  # noqa: E402
 from asgp_ros.serial.calibration import AxisCalibration  # noqa: E402
-from asgp_ros.serial.link import HANDSHAKE_ERROR_AFTER, SEQ_RESTART_AFTER  # noqa: E402
+from asgp_ros.serial.link import (  # noqa: E402
+    HANDSHAKE_ERROR_AFTER,
+    SEQ_RESTART_AFTER,
+    LinkState,
+)
+from asgp_ros.serial.protocol import Mode, Status  # noqa: E402
 from asgp_ros.sim.board import SimulatedBoard  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -308,6 +314,47 @@ def test_the_override_status_is_not_ok_while_nothing_reaches_the_board(harness):
                                                                      "board: the link is "
                                                                      "stale"), 5.0)
     h.board.set_silent(False)
+
+
+def test_an_old_or_previous_connections_sample_decides_no_override_verdict(harness):
+    """Reconnected after the bridge was suspended, the override status said OK "active:
+    the chair follows joy_override (board mode passthrough)" from the previous
+    connection's last sample, 10 s old, next to "no joystick sample for 10.00 s". A sample
+    older than sample_timeout, or from before the link's last handshake, decides nothing:
+    the status says what the bridge does (idle, or sending)."""
+    h = harness(lambda t: (0.5, 0.0), diagnostics_period=0.2)
+    assert h.spin_until(lambda: (st := h.link_status()) is not None
+                        and st.level == DiagnosticStatus.OK, 10.0)
+
+    def send() -> None:
+        now = h.node.get_clock().now().nanoseconds * 1e-9
+        h.override_pub.publish(conv.joy_from_sample(now, 0.2, 0.0))
+
+    def active() -> bool:
+        h.spin_for(0.05, each=send)
+        st = _override_status(h)
+        return st is not None and "active" in st.message
+
+    assert h.spin_until(active, 10.0)
+    node = h.node
+    live = node.link.stats()
+    assert live.state is LinkState.CONNECTED and node._last_sample is not None
+    assert Status.OVERRIDE_ACTIVE in node._last_sample.status
+    # the diagnostics timer after a suspension: connected, the last sample 10 s old
+    old = dataclasses.replace(live, last_sample_age=10.0, board_mode=Mode.PASSTHROUGH)
+    st = node._override_status(old)
+    assert st.message.startswith(("sending", "idle")), st.message
+    assert conv.diagnostic_values(st)["status"] == ""
+    # the link reconnects (a handshake in between): the previous connection's sample,
+    # however recent, decides nothing once connected again
+    h.board.unplug()
+    assert h.spin_until(lambda: node.link.stats().state is not LinkState.CONNECTED, 5.0)
+    again = dataclasses.replace(live, last_sample_age=0.05, board_mode=Mode.PASSTHROUGH,
+                                reconnects=live.reconnects + 1)
+    st = node._override_status(again)
+    assert st.message.startswith(("sending", "idle")), st.message
+    h.board.replug()
+    assert h.spin_until(active, 10.0)  # the new connection's samples decide again
 
 
 def test_parameters_are_validated_at_runtime(harness):

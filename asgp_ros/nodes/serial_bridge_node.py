@@ -192,6 +192,10 @@ class SerialBridgeNode(Node):
     def _on_state(self, state: LinkState, reason: str) -> None:  # reader thread
         self._last_state_reason = reason
         self._last_status_seen = None  # the first sample of a connection is judged afresh
+        if state not in (LinkState.CONNECTED, LinkState.STALE):
+            # a new connection or handshake (a board restarted, replugged): the last
+            # sample's flags are the previous connection's, not this board's state
+            self._last_sample = None
         with self._shutdown_guard():
             self._state_gc.trigger()
 
@@ -378,7 +382,10 @@ class SerialBridgeNode(Node):
         gate = self._gate
         fresh = gate.fresh(now, self._clock_s(), self.params.override_timeout) is not None
         board_mode = "override" if st.board_mode == Mode.OVERRIDE else "passthrough"
-        s = self._last_sample
+        # a sample older than sample_timeout says nothing of the board now: on reconnecting
+        # after the bridge was suspended, the previous connection's said OK "active: the
+        # chair follows joy_override" next to "no joystick sample for 10.00 s"
+        s = self._last_sample if st.last_sample_age <= self.params.sample_timeout else None
         flags = ""
         if st.state is not LinkState.CONNECTED:
             # nothing reaches the board, or nothing is heard of it: its last sample's
