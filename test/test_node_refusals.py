@@ -4,6 +4,7 @@ traceback and never a hang (every node starts through nodes.runtime.run)."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -321,3 +322,35 @@ def test_the_advice_to_read_odometry_names_its_topic_too(rclpy_context, repo_roo
         make(context=rclpy_context, parameter_overrides=[
             model, asked, Parameter("vo_type", value="odometry"),
             Parameter("vo_topic", value="vo/odom")]).destroy_node()
+
+
+def test_a_node_runs_where_its_log_file_cannot_be_written(repo_root, tmp_path):
+    """A disk remounted read-only or out of inodes (here a ROS_LOG_DIR that cannot be made):
+    rclpy.init raised ("failed to initialize logging") and every node refused to start, so
+    a chair whose disk filled had no bridge, predictor or layer after a restart. The node
+    runs without its log file and says so; the console has its messages."""
+    blocked = tmp_path / "a_file"
+    blocked.write_text("")
+    env = dict(os.environ, ROS_LOG_DIR=str(blocked / "log"))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "asgp_ros.nodes.vo_node", "--ros-args", "-p",
+         "diagnostics_period_s:=0.2"], cwd=repo_root, env=env,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and proc.poll() is None:
+            line = proc.stdout.readline()
+            lines.append(line)
+            if "vo_node" in line and "no log file" not in line and any(
+                    "no log file" in x for x in lines):
+                break  # (the warning, then the node's own start-up line)
+        assert proc.poll() is None, "".join(lines)
+        proc.send_signal(signal.SIGINT)
+        out = "".join(lines) + proc.communicate(timeout=30)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, out
+    assert f"no log file: {blocked / 'log'}" in out and "Traceback" not in out, out

@@ -84,7 +84,12 @@ def run(args: argparse.Namespace) -> int:
 
     # args=[]: not sys.argv, whose asgp options (e.g. --remap FROM:=TO) rcl would take as its
     # own. Its handlers turn SIGINT/SIGTERM into a shutdown the player polls.
-    rclpy.init(args=[])
+    from asgp_ros.nodes.runtime import log_file_arguments
+
+    extra, problem = log_file_arguments()  # (a read-only log directory: no file)
+    rclpy.init(args=extra)
+    if problem:
+        print(f"warning: {problem}")
     node = None
     try:
         node = rclpy.create_node("asgp_replay")

@@ -58,6 +58,7 @@ from asgp_ros.common.paramspec import ParamValue
 from asgp_ros.demo import camera
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware, Snapshot, look_ahead
 from asgp_ros.nodes import conversions as conv
+from asgp_ros.nodes.runtime import log_file_arguments
 from asgp_ros.sim.chair import ChairState
 from asgp_ros.sim.lidar import room_grid
 
@@ -424,7 +425,10 @@ def main(args: list[str] | None = None,
     executor is doing: a publication under way in a callback then fails (RCLError,
     "publisher's context is invalid"). After a shutdown that is the stop it looks like,
     not a crash (as in vo_node and predictor_node)."""
-    rclpy.init(args=args)
+    extra, problem = log_file_arguments()  # (a read-only log directory: no file)
+    rclpy.init(args=[*(sys.argv if args is None else args), *extra])
+    if problem:
+        rclpy.logging.get_logger("demo_hardware").warning(problem)
     # a stop held while the process started (the demo starts it with the stop signals
     # blocked, asgp_ros.demo.child) is taken now, by rclpy's handlers
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})

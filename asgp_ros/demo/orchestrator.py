@@ -662,9 +662,14 @@ def _start_monitor(domain: int, bag_tmp: Path, horizons: tuple[float, ...] = HOR
 
     if bag_tmp.exists():
         shutil.rmtree(bag_tmp)
+    from asgp_ros.nodes.runtime import log_file_arguments
+
     context = rclpy.context.Context()
-    rclpy.init(args=[], context=context, domain_id=domain,
+    extra, problem = log_file_arguments()  # (a read-only log directory: no file)
+    rclpy.init(args=extra, context=context, domain_id=domain,
                signal_handler_options=SignalHandlerOptions.NO)
+    if problem:
+        log.warning(problem)
     recorder = BagRecorder(bag_tmp)
     node = MonitorNode(recorder=recorder, score=OnlineScore(horizons), context=context)
     executor = SingleThreadedExecutor(context=context)

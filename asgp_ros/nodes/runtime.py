@@ -41,9 +41,11 @@ import signal
 import socket
 import stat
 import sys
+import tempfile
 import threading
 import types
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import rclpy
@@ -246,6 +248,35 @@ def _nothing() -> None:
     """The task that makes :meth:`Executor.spin_once` return after a stop signal."""
 
 
+def log_dir() -> Path:
+    """Where rcl writes a process's log file: ``ROS_LOG_DIR``, else ``ROS_HOME``/log, else
+    ~/.ros/log (rcl_logging_get_logging_directory's order)."""
+    if os.environ.get("ROS_LOG_DIR"):
+        return Path(os.path.expanduser(os.environ["ROS_LOG_DIR"]))
+    if os.environ.get("ROS_HOME"):
+        return Path(os.path.expanduser(os.environ["ROS_HOME"])) / "log"
+    return Path(os.path.expanduser("~")) / ".ros" / "log"
+
+
+def log_file_arguments() -> tuple[list[str], str]:
+    """rcl's arguments that keep ``rclpy.init`` from failing on its log file, and why: none
+    while the log directory takes a new file. A disk remounted read-only, or out of inodes,
+    or a ``ROS_LOG_DIR`` that cannot be made: rclpy.init raised ("failed to initialize
+    logging") and every node refused to start (no bridge, no predictor, no layer, on a
+    chair whose disk filled). Then the log file is left out (``--disable-external-lib-logs``):
+    the console and /rosout still have every message."""
+    where = log_dir()
+    try:
+        where.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=where, prefix=".asgp_log_check."):
+            pass
+    except OSError as exc:
+        return (["--ros-args", "--disable-external-lib-logs"],
+                f"no log file: {where}: {exc.strerror or exc} (the console and /rosout have "
+                "every message)")
+    return [], ""
+
+
 def init(args: list[str] | None = None) -> None:
     """``rclpy.init`` without rclpy's signal handlers (use inside :class:`StopSignals`).
 
@@ -258,11 +289,15 @@ def init(args: list[str] | None = None) -> None:
     times when the signal followed ``init`` at once. A signal that arrives meanwhile stays
     pending and is delivered when the mask is restored.
     """
+    extra, problem = log_file_arguments()
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
     try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        rclpy.init(args=[*(sys.argv if args is None else args), *extra],
+                   signal_handler_options=SignalHandlerOptions.NO)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+    if problem:
+        rclpy.logging.get_logger("asgp_ros").warning(problem)
 
 
 #: rcl's arguments that name a file it opens at ``rclpy.init``.
