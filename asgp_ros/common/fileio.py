@@ -426,55 +426,149 @@ def atomic_path(final: str | os.PathLike[str], *, directory: bool = False,
     parent = final.parent if str(final.parent) else Path(".")
     _refuse_other_kind(final, directory=directory, replace=replace)
     key = _output_key(final)
+    if key not in _approved:  # (check_output says it for the paths it approves)
+        _warn_stray_temporaries(final)
     expected = _approved.get(key, _identity(final))
     made = _make_parents(parent)
     tmpdir: Path | None = None
-    committed = False
+    committed = body = False
     try:
-        with signals_deferred():  # no signal between creating and owning tmpdir
-            tmpdir = _temporary_directory(parent, final)
-        tmp = tmpdir / final.name
-        yield tmp
-        if not tmp.exists():
-            raise FileNotFoundError(f"nothing was written to {tmp} for {final}")
-        if directory != tmp.is_dir():
-            raise FileExistsError(f"{tmp} is not the {'directory' if directory else 'file'} "
-                                  f"expected for {final}")
-        _fsync_tree(tmp)  # on the disk before it is published (and the old one removed)
-        # The commit, whole or not at all: a signal between the two renames of a
-        # replacement would leave the old directory in the temporary removed below.
-        with signals_deferred():
-            _refuse_other_kind(final, directory=directory, replace=replace)
-            if _identity(final) != expected:
-                raise FileExistsError(
-                    f"{final} appeared or changed while it was being written; it was not "
-                    "replaced")
-            if expected is None:  # nothing to replace: nor anything that appears now
-                _rename_no_replace(tmp, final)
-            elif directory:
-                old = tmpdir / _REPLACED
-                os.rename(final, old)
-                try:
-                    os.rename(tmp, final)
-                except BaseException:
-                    os.rename(old, final)
-                    raise
-            else:
-                os.replace(tmp, final)
-        committed = True
-        _fsync_directory(parent)  # the rename itself, before a replaced one is removed
+        try:
+            with signals_deferred():  # no signal between creating and owning tmpdir
+                tmpdir = _temporary_directory(parent, final)
+            tmp = tmpdir / final.name
+            body = True  # an error there that names no file is not this function's to name
+            yield tmp
+            body = False
+            if not tmp.exists():
+                raise FileNotFoundError(f"nothing was written to {tmp} for {final}")
+            if directory != tmp.is_dir():
+                raise FileExistsError(f"{tmp} is not the "
+                                      f"{'directory' if directory else 'file'} expected for "
+                                      f"{final}")
+            _fsync_tree(tmp)  # on the disk before it is published (and the old one removed)
+            # The commit, whole or not at all: a signal between the two renames of a
+            # replacement would leave the old directory in the temporary removed below.
+            with signals_deferred():
+                _refuse_other_kind(final, directory=directory, replace=replace)
+                if _identity(final) != expected:
+                    raise FileExistsError(
+                        f"{final} appeared or changed while it was being written; it was "
+                        "not replaced")
+                if expected is None:  # nothing to replace: nor anything that appears now
+                    _rename_no_replace(tmp, final)
+                elif directory:
+                    _replace_moving_aside(tmp, final, tmpdir / _REPLACED)
+                else:
+                    _replace_file(tmp, final, tmpdir / _REPLACED)
+                committed = True  # (before a signal deferred meanwhile is raised)
+            _fsync_directory(parent)  # the rename itself, before a replaced one is removed
+        except OSError as exc:
+            # the user knows the output, not its temporary (".m.npz.<hex>.tmp/m.npz")
+            raise _named_for_output(exc, tmpdir, final, unnamed=not body) from None
         if key in _approved:  # this command's own output now (it may write it again)
             _approved[key] = _identity(final)
     finally:
         if tmpdir is not None:
             with signals_deferred():  # raised once the temporary is gone
-                shutil.rmtree(tmpdir, ignore_errors=True)
+                if committed or not _stranded(tmpdir / _REPLACED, final):
+                    shutil.rmtree(tmpdir, ignore_errors=True)
                 if not committed:  # a failed write leaves no directory it made either
                     for d in reversed(made):
                         try:
                             os.rmdir(d)
                         except OSError:
                             break
+
+
+#: What a file system that cannot rename a file over an existing one says to
+#: ``os.replace``: EEXIST (a FUSE or SMB server without it), EPERM (sshfs without the
+#: posix-rename extension: SFTP's plain rename refuses an existing target), EACCES (SMB,
+#: the target open elsewhere), ENOTSUP, EBUSY. Where the error has another cause (a
+#: directory that takes no new entry, an immutable file), moving the old file aside fails
+#: the same way, with nothing changed.
+_NO_RENAME_OVER = frozenset({errno.EEXIST, errno.EPERM, errno.EACCES, errno.ENOTSUP,
+                             errno.EOPNOTSUPP, errno.EBUSY})
+
+
+def _replace_file(tmp: Path, final: Path, aside: Path) -> None:
+    """``os.replace(tmp, final)``; where the file system cannot rename over an existing
+    file (:data:`_NO_RENAME_OVER`), the old file is moved aside first, as a directory is
+    (:func:`_replace_moving_aside`): for a moment ``final`` is missing, both files kept."""
+    try:
+        os.replace(tmp, final)
+        return
+    except OSError as exc:
+        if exc.errno not in _NO_RENAME_OVER or not os.path.lexists(final):
+            raise
+        try:
+            os.rename(final, aside)
+        except OSError:
+            # not even moved aside (a directory that takes no new entry, an immutable
+            # file): nothing changed, and the first error is the one to tell
+            raise exc from None
+        _log.debug("%s: %s; replaced by moving the old file aside", final,
+                   os.strerror(exc.errno or 0))
+    _move_in(tmp, final, aside)
+
+
+def _replace_moving_aside(tmp: Path, final: Path, aside: Path) -> None:
+    """Move ``final`` to ``aside`` (inside the temporary), then ``tmp`` to ``final``."""
+    os.rename(final, aside)
+    _move_in(tmp, final, aside)
+
+
+def _move_in(tmp: Path, final: Path, aside: Path) -> None:
+    """Move ``tmp`` to ``final``, whose old content is at ``aside``; if that fails, move
+    ``aside`` back. If that fails too, ``aside`` stays, and the temporary holding it is
+    kept (:func:`_stranded`): both the old and the new, never neither."""
+    try:
+        os.rename(tmp, final)
+    except BaseException:
+        with contextlib.suppress(OSError):  # kept where it is otherwise (_stranded)
+            os.rename(aside, final)
+        raise
+
+
+def _stranded(aside: Path, final: Path) -> bool:
+    """Whether ``aside``, the output a failed commit had moved aside, is still there (and
+    must not be removed with its temporary). It is moved back once more if ``final`` is
+    free; if it stays, the error says where it is."""
+    if not os.path.lexists(aside):
+        return False
+    if not os.path.lexists(final):
+        with contextlib.suppress(OSError):
+            os.rename(aside, final)
+            return False
+    _log.error("%s: the output it held is kept at %s (it could not be moved back): move it "
+               "back by hand", final, aside)
+    return True
+
+
+def _named_for_output(exc: OSError, tmpdir: Path | None, final: Path, *,
+                      unnamed: bool) -> OSError:
+    """``exc`` naming the output (``final``, or the file inside it) where it names a path in
+    the temporary ``tmpdir``, and, with ``unnamed``, ``final`` where it names no file."""
+    if exc.errno is None:
+        return exc  # one of this module's own messages, which name ``final`` already
+
+    def shown(name: Any) -> Any:
+        if name is None or tmpdir is None:
+            return name
+        try:
+            rel = Path(os.path.abspath(os.fsdecode(name))).relative_to(os.path.abspath(tmpdir))
+        except (TypeError, ValueError):
+            return name
+        if rel.parts[:1] == (final.name,):
+            return str(final.joinpath(*rel.parts[1:]))
+        return str(final)  # the temporary itself, or the old output moved aside in it
+
+    first, second = shown(exc.filename), shown(exc.filename2)
+    if first is None and unnamed:
+        first = str(final)
+    if (first, second) == (exc.filename, exc.filename2):
+        return exc
+    return OSError(exc.errno, exc.strerror or str(exc), first, None, second)
 
 
 #: Longest output name: its temporary's (``.NAME.<12 hex>.tmp``) must fit in 255 bytes.
@@ -630,6 +724,8 @@ def _temporary_directory(parent: Path, final: Path) -> Path:
             os.mkdir(path, 0o700)
         except FileExistsError:
             continue
+        except OSError as exc:  # (the user knows the output, not its temporary)
+            raise OSError(exc.errno, exc.strerror or str(exc), str(final)) from exc
         return path
     raise FileExistsError(f"no free temporary name next to {final}")
 
@@ -684,7 +780,8 @@ def _sweep_ledger(ledger: Path) -> None:
                 continue
             with signals_deferred():
                 aside = tmp / _REPLACED
-                if aside.is_dir() and not aside.is_symlink() and not os.path.lexists(final):
+                if (not aside.is_symlink() and (aside.is_dir() or aside.is_file())
+                        and not os.path.lexists(final)):
                     with contextlib.suppress(OSError):
                         os.rename(aside, final)
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -926,13 +1023,17 @@ def check_output(path: str | os.PathLike[str], kind: OutputKind, *,
     """
     out = _check_output(path, kind, inputs, force, option)
     _approved[_output_key(out)] = _identity(out)  # all the commit may replace there
+    _warn_stray_temporaries(out)
+    return out
+
+
+def _warn_stray_temporaries(out: Path) -> None:
     for stray in stray_temporaries(out):
         aside = " (it holds the one it was replacing: move that back)" if os.path.lexists(
             stray / _REPLACED) else ""
         _log.warning("%s is the temporary of %s that a killed run left (SIGKILL, power) or a "
                      "run writing it now is using%s; it is kept: delete it if no run is",
                      stray, out, aside)
-    return out
 
 
 def stray_temporaries(final: str | os.PathLike[str]) -> list[Path]:
@@ -954,6 +1055,43 @@ def stray_temporaries(final: str | os.PathLike[str]) -> list[Path]:
 
 def _check_output(path: str | os.PathLike[str], kind: OutputKind,
                   inputs: Iterable[str | os.PathLike[str]], force: bool, option: str) -> Path:
+    out = _check_output_path(path, kind, inputs, force, option)
+    # Where the output will be made: its directory (the nearest that exists), or, for a
+    # resumable directory output that exists, that directory. Tried for real (a file made
+    # and removed): access() says yes to root, and on a read-only mount.
+    where = out.parent if str(out.parent) else Path(".")
+    if kind.resumable and out.is_dir() and not out.is_symlink():
+        where = out
+    while not os.path.lexists(where) and where != where.parent:
+        where = where.parent
+    problem = _new_file_problem(where)
+    if problem is not None:
+        raise OutputError(f"{option} {os.fspath(path)}: no file can be made in {where}: "
+                          f"{problem}")
+    return out
+
+
+def _new_file_problem(directory: Path) -> str | None:
+    """Why no new file can be made in ``directory`` (the system's words), or None."""
+    for _ in range(100):
+        probe = directory / f".asgp-probe.{os.urandom(6).hex()}"
+        with signals_deferred():  # no signal between making it and removing it
+            try:
+                fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            except FileExistsError:
+                continue
+            except OSError as exc:
+                return exc.strerror or str(exc)
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(probe)
+        return None
+    return None  # (a hundred names taken: the write itself will say what is wrong)
+
+
+def _check_output_path(path: str | os.PathLike[str], kind: OutputKind,
+                       inputs: Iterable[str | os.PathLike[str]], force: bool,
+                       option: str) -> Path:
     raw = os.fspath(path)
     if not raw or "\0" in raw:
         raise OutputError(f"{option}: empty or invalid path {raw!r}")
