@@ -9,6 +9,7 @@ import errno
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -263,3 +264,61 @@ def test_train_refuses_a_read_only_mount_before_any_work(tmp_path, capsys):
                        "system\n")
     finally:
         subprocess.run(["umount", str(ro)])
+
+
+# --------------------------------------------------- D7: write errors that name no file
+class _FullStream:
+    """A text stream on a full device."""
+
+    encoding = "utf-8"
+
+    def write(self, text):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def flush(self):
+        pass
+
+
+def test_a_full_standard_output_is_named(capsys, monkeypatch):
+    monkeypatch.setattr(sys, "stdout", _FullStream())
+    assert main(["info", str(MODEL)]) == 2
+    assert capsys.readouterr().err == ("error: standard output: No space left on device\n")
+    assert isinstance(sys.stdout, _FullStream)  # given back as it was
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="no /dev/full")
+def test_standard_output_on_dev_full_is_named():
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run([sys.executable, "-m", "asgp_ros.cli", "info", str(MODEL)],
+                              stdout=full, stderr=subprocess.PIPE, text=True, timeout=120,
+                              cwd=REPO)
+    assert proc.returncode == 2
+    assert proc.stderr == "error: standard output: No space left on device\n"
+
+
+def test_a_plot_on_a_full_disk_is_named_in_the_report(tmp_path, monkeypatch):
+    """``asgp reproduce`` on a full disk said only "error: No space left on device"
+    (matplotlib's savefig writes through a file object): it names the plot, in the
+    report directory the user asked for."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
+
+    from asgp_ros.learning.reproduce import plots
+
+    def savefig(self, fname, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Figure, "savefig", savefig)
+    out = tmp_path / "rep"
+    fig = plt.figure()
+    try:
+        with pytest.raises(OSError) as err, atomic_path(out, directory=True) as tmp:
+            tmp.mkdir()
+            plots._save(fig, tmp / "error_distributions.png", dpi=100)
+    finally:
+        plt.close(fig)
+    assert err.value.filename == str(out / "error_distributions.png")
+    assert _leftovers(tmp_path) == []

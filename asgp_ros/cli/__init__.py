@@ -18,8 +18,8 @@ import os
 import pkgutil
 import sys
 import threading
-from collections.abc import Sequence
-from typing import NoReturn, TextIO
+from collections.abc import Iterable, Sequence
+from typing import Any, NoReturn, TextIO, cast
 
 from asgp_ros import __version__
 from asgp_ros.common.fileio import (
@@ -59,6 +59,47 @@ def _silence(stream: TextIO) -> None:
         os.dup2(devnull, stream.fileno())
     except (OSError, ValueError, AttributeError):  # not a real file (tests, embedding)
         pass
+
+
+class _NamedStream:
+    """A text stream (standard output) whose write errors name it: a full disk or a
+    failing device under ``asgp ... > FILE`` said only "No space left on device", and the
+    user could not tell whether the model, a figure or the printout had failed. Everything
+    else is the stream's own."""
+
+    def __init__(self, stream: TextIO, name: str) -> None:
+        self._stream = stream
+        self._name = name
+
+    def _named(self, exc: OSError) -> OSError:
+        if isinstance(exc, BrokenPipeError) or exc.filename is not None or exc.errno is None:
+            return exc
+        return OSError(exc.errno, exc.strerror or str(exc), self._name)
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except OSError as exc:
+            raise self._named(exc) from None
+
+    def writelines(self, lines: Iterable[str]) -> None:
+        try:
+            self._stream.writelines(lines)
+        except OSError as exc:
+            raise self._named(exc) from None
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except OSError as exc:
+            raise self._named(exc) from None
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+#: How an error names standard output when writing to it failed.
+STDOUT_NAME = "standard output"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -105,6 +146,17 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    stdout = sys.stdout
+    if stdout is not None:  # (None: started with standard output closed)
+        sys.stdout = cast(TextIO, _NamedStream(stdout, STDOUT_NAME))
+    try:
+        return _main(argv)
+    finally:
+        if isinstance(sys.stdout, _NamedStream):
+            sys.stdout = stdout
+
+
+def _main(argv: Sequence[str] | None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     try:
         # a subcommand's imports take a few tenths of a second: Ctrl-C then is no traceback

@@ -571,6 +571,18 @@ def _named_for_output(exc: OSError, tmpdir: Path | None, final: Path, *,
     return OSError(exc.errno, exc.strerror or str(exc), first, None, second)
 
 
+@contextlib.contextmanager
+def naming(path: str | os.PathLike[str]) -> Iterator[None]:
+    """A block whose :class:`OSError` that names no file (a full disk while a figure or a
+    JSON file is written: "No space left on device") names ``path``."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is not None or exc.errno is None:
+            raise
+        raise OSError(exc.errno, exc.strerror or str(exc), os.fspath(path)) from exc
+
+
 #: Longest output name: its temporary's (``.NAME.<12 hex>.tmp``) must fit in 255 bytes.
 MAX_OUTPUT_NAME_BYTES = 255 - len("..") - 12 - len(".tmp")
 
@@ -804,14 +816,9 @@ def _refuse_other_kind(final: Path, *, directory: bool, replace: bool) -> None:
 
 
 def atomic_write_bytes(final: str | os.PathLike[str], data: bytes) -> None:
-    try:
-        with atomic_path(final) as tmp:
-            tmp.write_bytes(data)
-    except OSError as exc:
-        if exc.filename is not None:
-            raise
-        # (a full disk said only "No space left on device": the user needs the file)
-        raise OSError(exc.errno, exc.strerror or str(exc), os.fspath(final)) from exc
+    # (a full disk said only "No space left on device": the user needs the file)
+    with naming(final), atomic_path(final) as tmp:
+        tmp.write_bytes(data)
 
 
 def atomic_write_text(final: str | os.PathLike[str], text: str) -> None:

@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from asgp_ros.common import topics
-from asgp_ros.common.fileio import atomic_path, atomic_write_text
+from asgp_ros.common.fileio import atomic_path, atomic_write_text, naming
 from asgp_ros.core import metrics
 from asgp_ros.core.metrics import HORIZONS_S, THRESHOLD_M, horizon_key
 from asgp_ros.core.models import MotionModel, get_kind
@@ -407,7 +407,7 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     _zoom_panel(az, monitor, t, truth, paths)
     _error_panel(ae, t, paths, monitor.score.horizons)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, naming(tmp):
         fig.savefig(tmp, format="png")
     plt.close(fig)
 

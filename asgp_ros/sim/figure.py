@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from asgp_ros.common.fileio import atomic_path
+from asgp_ros.common.fileio import atomic_path, naming
 from asgp_ros.sim.chair import INTERNAL_RATE_HZ, Chair, ChairParams
 from asgp_ros.sim.sensors import SensorParams
 from asgp_ros.sim.simulate import simulate
@@ -104,7 +104,7 @@ def make_realism_figure(path: str | os.PathLike[str], seeds: int = 4) -> Path:
                  "is lost")
     ax.legend(loc="upper left", fontsize=8, ncol=5)
     path = Path(path)
-    with atomic_path(path) as tmp:
+    with atomic_path(path) as tmp, naming(tmp):
         fig.savefig(tmp, dpi=110, format="png")
     plt.close(fig)
     return path

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from asgp_ros.common.fileio import naming
 from asgp_ros.core.metrics import CHI2_2DOF_95
 from asgp_ros.core.modelfile import load_model
 from asgp_ros.learning.evaluation import rollout_cases
@@ -62,7 +63,7 @@ def _success_vs_horizon(out: Path, results: list[dict[str, Any]], hk: list[str],
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, fontsize=7, loc="center right")
     fig.tight_layout(rect=(0, 0, 0.84, 1))
-    fig.savefig(out / "success_vs_horizon.png", dpi=110)
+    _save(fig, out / "success_vs_horizon.png", dpi=110)
     plt.close(fig)
 
 
@@ -90,7 +91,7 @@ def _error_distributions(out: Path, results: list[dict[str, Any]], hk: list[str]
             ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "error_distributions.png", dpi=100)
+    _save(fig, out / "error_distributions.png", dpi=100)
     plt.close(fig)
 
 
@@ -117,7 +118,7 @@ def _example_paths(out: Path, results: list[dict[str, Any]], series: dict[str, S
                 ax.legend(fontsize=7)
     fig.suptitle("Predicted paths (trained on Both) over the VO-integrated recorded path")
     fig.tight_layout()
-    fig.savefig(out / "example_paths.png", dpi=100)
+    _save(fig, out / "example_paths.png", dpi=100)
     plt.close(fig)
 
 
@@ -194,5 +195,11 @@ def _adaptation_plot(out: Path, results: list[dict[str, Any]], h: str, plt: Any)
         axes[1, col].set_xlabel(f"minutes since the floor changed ({ADAPT_BIN_S:g} s bins, "
                                 "the test bags together)")
     fig.tight_layout()
-    fig.savefig(out / "adaptation.png", dpi=100)
+    _save(fig, out / "adaptation.png", dpi=100)
     plt.close(fig)
+
+
+def _save(fig: Any, path: Path, dpi: int) -> None:
+    """``fig.savefig(path)``; an error that names no file (a full disk) names ``path``."""
+    with naming(path):
+        fig.savefig(path, dpi=dpi)

@@ -24,6 +24,7 @@ from asgp_ros.common.fileio import (
     OutputError,
     atomic_path,
     check_output,
+    naming,
     read_marker,
     write_marker,
 )
@@ -197,6 +198,8 @@ def _train_and_evaluate(context: JobContext) -> tuple[JobContext, list[dict[str,
 
 def _write_results(tmp: Path, summary: dict[str, Any]) -> None:
     """results.json, tables.json and report.md into the report directory being written."""
-    (tmp / "results.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (tmp / "tables.json").write_text(json.dumps(summary["tables"], indent=2) + "\n")
-    (tmp / "report.md").write_text(markdown(summary))
+    for name, text in (("results.json", json.dumps(summary, indent=2) + "\n"),
+                       ("tables.json", json.dumps(summary["tables"], indent=2) + "\n"),
+                       ("report.md", markdown(summary))):
+        with naming(tmp / name):  # (a full disk named no file)
+            (tmp / name).write_text(text)
