@@ -566,3 +566,24 @@ def test_the_core_needs_numpy_and_scipy_alone(repo_root, blocked):
         assert out["exact"] and not out["cv2_used"], out
     else:
         assert out["cv2_used"], out
+
+
+def test_a_path_of_zero_steps_is_refused_never_read_as_clear():
+    # a Prediction that is not ok (a stale joystick) carries pose (0, 3) and pos_cov
+    # (0, 2, 2): every check read it as p = 0, "clear", against a map occupied everywhere
+    grid = C.Grid(np.full((40, 40), 100, dtype=np.int8), 0.05, (-1.0, -1.0, 0.0))
+    fld = C.DistanceField.from_grid(grid)
+    pose, cov = np.zeros((0, 3)), np.zeros((0, 2, 2))
+    for check in (C.scan_check(wall_scan(1.0)), C.grid_check(grid)):
+        for p, c in ((pose, cov), (pose[None], cov[None]), (np.zeros((3, 0, 3)),
+                                                             np.zeros((3, 0, 3, 3)))):
+            with pytest.raises(C.CollisionError, match="zero steps"):
+                check(p, c)
+            with pytest.raises(C.CollisionError, match="zero steps"):
+                check.deepening(p if p.ndim == 3 else p[None])
+    with pytest.raises(C.CollisionError, match="zero steps"):
+        C.contact_probability(fld, pose, cov)
+    with pytest.raises(C.CollisionError, match="zero steps"):
+        C.footprint_deepening(fld, pose)
+    # one step is a path, and the occupied map reads as touching
+    assert C.grid_check(grid)(*one(0.0))[1][0] == 1.0

@@ -76,7 +76,9 @@ touching.
 
 Refused (:class:`CollisionError`): paths or covariances with NaN or inf, coordinates beyond
 ``MAX_COORDINATE`` or covariance entries beyond ``MAX_VARIANCE`` (no prediction of a
-wheelchair looks like that), shapes that do not match.
+wheelchair looks like that), shapes that do not match, paths of zero steps (a
+:class:`~asgp_ros.core.online.Prediction` that is not ok has empty arrays: no path is never
+"clear").
 """
 
 from __future__ import annotations
@@ -1044,6 +1046,9 @@ def _check_inputs(pose: FloatArray, cov: FloatArray,
     if P.ndim != 3 or P.shape[-1] != 3 or d not in (2, 3) or C.shape != (*P.shape[:2], d, d):
         raise CollisionError(f"paths must be [B, k, 3] with covariances [B, k, 2, 2] or "
                              f"[B, k, 3, 3], got {P.shape} and {C.shape}")
+    if P.shape[1] == 0:  # a not-ok Prediction's empty path: no steps never read as clear
+        raise CollisionError("a path of zero steps cannot be checked (no prediction, e.g. "
+                             "a Prediction that is not ok): it never reads as clear")
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(C))):
         raise CollisionError("a path or its covariance holds NaN or inf")
     if P.size and np.abs(P).max() > MAX_COORDINATE:
@@ -1106,7 +1111,8 @@ def contact_probability(fld: DistanceField, pose: FloatArray, cov: FloatArray,
         heading_bin: width of the raster method's heading bins (rad).
 
     Raises:
-        CollisionError: shapes that do not match, NaN, inf or absurd magnitudes in the paths.
+        CollisionError: shapes that do not match, NaN, inf or absurd magnitudes in the paths,
+            paths of zero steps.
     """
     P, C = _check_inputs(pose, cov, transform)
     if samples < 2 or samples & (samples - 1):
@@ -1233,7 +1239,8 @@ def footprint_deepening(fld: DistanceField, pose: FloatArray,
         transform: pose (x, y, yaw) of the paths' frame in the field's frame.
 
     Raises:
-        CollisionError: a path with NaN, inf or absurd coordinates, or not [B, k, 3].
+        CollisionError: a path with NaN, inf or absurd coordinates, or not [B, k, 3], or of
+            zero steps.
     """
     P = np.asarray(pose, dtype=np.float64)
     if P.ndim == 2:
