@@ -711,8 +711,8 @@ def test_a_flood_of_samples_does_not_grow_the_buffers_without_bound():
     """A sender stuck on one stamp (or flooding) would keep every sample inside the time
     window: the buffers keep at most MAX_SAMPLE_RATE_HZ per second of buffer_s, the newest,
     and count what they dropped."""
-    pred = Predictor(linear_model(), PredictorConfig(buffer_s=2.0))
-    cap = math.ceil(2.0 * online.MAX_SAMPLE_RATE_HZ)
+    pred = Predictor(linear_model(), PredictorConfig(buffer_s=3.0))
+    cap = math.ceil(3.0 * online.MAX_SAMPLE_RATE_HZ)
     for i in range(cap + 500):
         assert pred.feed_joy(100.0, (0.001 * (i % 7), 0.0))
     stamps, values = pred._joy.arrays()
@@ -724,14 +724,14 @@ def test_a_longer_buffer_set_at_runtime_moves_the_cap():
     """buffer_s changed after the predictor was made (a node's parameter at runtime): the
     cap on rows stayed the first buffer_s's, so a 100 Hz stick over 300 s with buffer_s
     600 set from 2 dropped 10,000 samples counted as a flood, and the buffer kept 200 s."""
-    pred = Predictor(linear_model(), PredictorConfig(buffer_s=2.0))
+    pred = Predictor(linear_model(), PredictorConfig(buffer_s=3.0))
     pred.config = dataclasses.replace(pred.config, buffer_s=600.0)
     for i in range(30_000):
         assert pred.feed_joy(100.0 + 0.01 * i, (0.5, 0.0))
     assert len(pred._joy) == 30_000 and pred.stats.dropped_overflow == 0
-    pred.config = dataclasses.replace(pred.config, buffer_s=2.0)  # and back: capped again
+    pred.config = dataclasses.replace(pred.config, buffer_s=3.0)  # and back: capped again
     assert pred.feed_joy(400.0, (0.5, 0.0))
-    assert len(pred._joy) <= math.ceil(2.0 * online.MAX_SAMPLE_RATE_HZ)
+    assert len(pred._joy) <= math.ceil(3.0 * online.MAX_SAMPLE_RATE_HZ)
 
 
 def beyond_physics_predictors():
@@ -783,3 +783,48 @@ def test_a_clock_step_back_restarts_and_refuses_the_old_timeline():
     assert not pred.feed_joy(10.2, (0.3, 0.0), now=10.0)
     assert pred.feed_joy(10.0 + online.STEP_GUARD_S + 0.2, (0.3, 0.0),
                          now=10.0 + online.STEP_GUARD_S)
+
+
+def test_a_buffer_shorter_than_the_window_and_the_stale_look_back_is_refused():
+    """buffer_s 2 s was accepted (PredictorConfig takes 1 s, and min_buffer_s said 1.0 for
+    a predictor that does not adapt): the stale-VO rule saw a run of frozen readings cut
+    short by the buffer's edge, and stale VO drove paths the 10 s buffer refused. The
+    minimum is the model's lags x dt, the rules' look-back and two VO gaps, and named."""
+    model = linear_model(8)  # 8 lags at 5 Hz, as the committed tile model
+    with pytest.raises(ValueError, match=r"at least 3\.40 s, got 2 s: .*8 lags x 0\.2 s"):
+        Predictor(model, PredictorConfig(buffer_s=2.0))
+    need = 8 * 0.2 + 0.6 + 2 * 0.6
+    assert Predictor(model).min_buffer_s == pytest.approx(need)
+    assert Predictor.window_history_s(model) == pytest.approx(need)
+    pred = Predictor(model, PredictorConfig(buffer_s=10.0))
+    with pytest.raises(ValueError, match=r"at least 3\.40 s"):
+        pred.config = dataclasses.replace(pred.config, buffer_s=3.0)
+    assert pred.config.buffer_s == 10.0
+    assert Predictor.buffer_for(model, 10, None, 1.0) == pytest.approx(need)
+
+    # VO frozen at zero for 20 s while the stick pushes, then moving: at the minimum, every
+    # window gets the verdict of a 10 s buffer; with 2 s (forced past the check) some
+    # windows that hold stale steps drove paths
+    rng = np.random.default_rng(1)
+    t0, t1, end = 1000.0, 1020.0, 1026.0
+    jt = np.arange(t0, end, 1 / 30)
+    vt = t0 + np.cumsum(rng.uniform(0.15, 0.25, size=200))
+    vt = vt[vt < end]
+    vel = np.where((vt < t1)[:, None], 0.0,
+                   np.c_[0.5 + 0.1 * np.sin(vt), 0.05 * np.cos(vt)])
+    events = arrival_order(jt, np.tile([0.8, 0.0], (jt.size, 1)), vt, vel)
+    full = Predictor(model, PredictorConfig(buffer_s=10.0))
+    least = Predictor(model, PredictorConfig(buffer_s=need))
+    short = Predictor(model, PredictorConfig(buffer_s=10.0))
+    short._config = dataclasses.replace(short.config, buffer_s=2.0)
+    i, differ, differ_short = 0, 0, 0
+    for now in np.arange(t1 - 1.0, end, 0.02):
+        while i < len(events) and events[i][0] <= now:
+            for p in (full, least, short):
+                feed(p, (events[i][0], events[i][1], tuple(events[i][2])))
+            i += 1
+        want = full.predict(now)
+        got = least.predict(now)
+        differ += (want.ok, want.reason) != (got.ok, got.reason)
+        differ_short += short.predict(now).ok and not want.ok
+    assert differ == 0 and differ_short > 10

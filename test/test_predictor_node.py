@@ -1025,7 +1025,7 @@ def test_adaptation_learns_shows_itself_in_diagnostics_and_resets(rclpy_context,
         assert values["adapt_published"] in ("trained", "adapted")
         assert "nan" not in values["adapt_choice_t"]  # before the evidence: said in words
         short = h.node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
-        assert not short.successful and "adapting" in short.reason
+        assert not short.successful and "adaptation needs" in short.reason
         client = h.test.create_client(Trigger, "/predictor_node/reset_adaptation")
         h.spin_until(client.service_is_ready, what="reset service")
         future = client.call_async(Trigger.Request())
@@ -1431,7 +1431,7 @@ def test_a_long_horizon_raises_the_buffer_adaptation_needs(rclpy_context, model_
         assert node.set_parameters([Parameter("plan_timeout_s", value=0.4)])[0].successful
         assert node.predictor.config.buffer_s >= need
         short = node.set_parameters([Parameter("buffer_s", value=need - 1.0)])[0]
-        assert not short.successful and "adapting" in short.reason
+        assert not short.successful and "adaptation needs" in short.reason
         assert node.set_parameters([Parameter("buffer_s", value=need + 5.0)])[0].successful
         assert node.predictor.config.buffer_s == need + 5.0
     finally:
@@ -1442,6 +1442,29 @@ def test_a_long_horizon_raises_the_buffer_adaptation_needs(rclpy_context, model_
         Parameter("adapt.enabled", value=False)])
     try:
         assert node.predictor.config.buffer_s == 10.0
+    finally:
+        node.destroy_node()
+
+
+def test_a_buffer_too_short_for_the_window_is_refused_at_start_and_at_runtime(
+        rclpy_context, model_file):
+    """buffer_s 2 s let stale VO drive paths (the stale-VO rule's look-back cut by the
+    buffer): below the model's lags x dt, the rules' look-back and two VO gaps (2.6 s for
+    this 4-lag model) it is refused, at start-up and as a runtime change, the minimum
+    named; not adapting too (min_buffer_s said 1.0)."""
+    with pytest.raises(StartupError, match=r"at least 2\.60 s, got 2 s: .*4 lags"):
+        PredictorNode(context=rclpy_context, parameter_overrides=[
+            Parameter("model_path", value=model_file), Parameter("adapt.enabled", value=False),
+            Parameter("buffer_s", value=2.0)])
+    node = PredictorNode(context=rclpy_context, parameter_overrides=[
+        Parameter("model_path", value=model_file), Parameter("adapt.enabled", value=False)])
+    try:
+        assert node.predictor.min_buffer_s == pytest.approx(2.6)
+        short = node.set_parameters([Parameter("buffer_s", value=2.0)])[0]
+        assert not short.successful and "at least 2.60 s" in short.reason
+        assert "look-back" in short.reason and node.predictor.config.buffer_s == 10.0
+        assert node.set_parameters([Parameter("buffer_s", value=3.0)])[0].successful
+        assert node.predictor.config.buffer_s == 3.0
     finally:
         node.destroy_node()
 

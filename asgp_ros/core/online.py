@@ -203,8 +203,11 @@ class PredictorConfig:
         joy_timeout_s: no prediction when the newest joystick sample is older than this.
         vo_timeout_s: no prediction when the newest VO sample is older than this.
         plan_timeout_s: a planner's plan older than this is ignored (hold the command).
-        buffer_s: history kept in the buffers (must cover the lags and the resampler's
-            gap/staleness look-back).
+        buffer_s: history kept in the buffers, in [1, 600] s here; a :class:`Predictor`
+            also refuses one shorter than its model's lags and the resampler's gap and
+            stale/held-VO look-back need (:meth:`Predictor.window_history_s`: 3.4 s for
+            the committed tile ASGP), or than adaptation needs
+            (:attr:`Predictor.min_buffer_s`).
         reset_jump_s: a stamp or clock going back by more than this resets the buffers.
         uncertainty: "linear" (EKF-style), "mc" or "none", passed to the rollout.
     """
@@ -456,9 +459,9 @@ class Predictor:
         self._adapter: ModelAdapter | None = None
         if adapt is not None:
             self._adapter = ModelAdapter(model, adapt, horizon_steps=self.config.horizon_steps)
-            if self.config.buffer_s < self.min_buffer_s:
-                raise ValueError(f"buffer_s {self.config.buffer_s} s is shorter than the "
-                                 f"{self.min_buffer_s:.1f} s of history adaptation needs")
+        if (problem := self.buffer_problem(model, self.config.horizon_steps, adapt,
+                                           self.config.buffer_s)) is not None:
+            raise ValueError(problem)
         self.resample_config = model.resample_config
         # Adaptation learns under the held-chair rule even from a model that predicts
         # without it (a model file from before the rule, or trained with it off): a chair
@@ -494,18 +497,17 @@ class Predictor:
         """The settings; a new one (a node's parameters changed at runtime) also sizes the
         buffers' cap on rows for its ``buffer_s`` (``MAX_SAMPLE_RATE_HZ`` per second), and
         an adapting predictor's adaptation to its horizon (ValueError: a buffer shorter
-        than the history adaptation needs at that horizon, :meth:`buffer_for`)."""
+        than :meth:`buffer_for` at that horizon, :meth:`buffer_problem`)."""
         return self._config
 
     @config.setter
     def config(self, config: PredictorConfig) -> None:
+        if (problem := self.buffer_problem(self._model, config.horizon_steps,
+                                           self.adapt_settings, config.buffer_s)) is not None:
+            raise ValueError(problem)
         if self._adapter is not None:
             # the adaptation checks the predictions of the new horizon (at another it
             # checked none, and the ellipses went uncalibrated); its history grows with it
-            need = self._history_s(config.horizon_steps)
-            if config.buffer_s < need:
-                raise ValueError(f"buffer_s {config.buffer_s} s is shorter than the "
-                                 f"{need:.1f} s of history adaptation needs")
             self._adapter.set_horizon(config.horizon_steps)
         self._config = config
         rows = self._buffer_rows(config)
@@ -527,28 +529,59 @@ class Predictor:
         return None if self._adapter is None else self._adapter.settings
 
     @staticmethod
+    def window_history_s(model: MotionModel) -> float:
+        """The shortest buffer (s) that gives every window the verdict a full history
+        gives, as far as a bounded look-back can: the model's ``lags`` grid steps (the last
+        complete step up to one step behind the newest sample), the longest finite look-back
+        of the stale/held-VO rules (``stale_after_s``, ``stale_still_after_s``,
+        ``held_after_s``; the held-chair rule counted even when the model predicts without
+        it, as adaptation learns with it), and two VO intervals (``max_gap_vel_s``): the
+        sample bracketing the window's first step, and the buffer's first sample, which has
+        no predecessor for its midpoint stamp. 3.4 s for the committed tile ASGP (8 lags
+        at 5 Hz, 0.6 s, 0.6 s); with 2 s, stale VO drove paths a 10 s buffer refused (the
+        rules saw runs of frozen readings cut short by the buffer's edge)."""
+        cfg = learning_config(model.resample_config)
+        looks = [v for v in (cfg.stale_after_s, cfg.stale_still_after_s, cfg.held_after_s)
+                 if math.isfinite(v)]
+        return (int(model.feature_config.lags) / float(cfg.rate_hz) + max(looks, default=0.0)
+                + 2.0 * float(cfg.max_gap_vel_s))
+
+    @staticmethod
     def buffer_for(model: MotionModel, horizon_steps: int, adapt: AdaptSettings | None,
                    buffer_s: float = 10.0) -> float:
-        """``buffer_s``, or the longer history adaptation with these settings needs (see
+        """``buffer_s``, or the longer history this model's windows
+        (:meth:`window_history_s`) or adaptation with these settings need (see
         :attr:`min_buffer_s`): the buffer of a predictor that has no ``buffer_s`` of its own
         to set, such as the shared-control layer's."""
+        need = max(float(buffer_s), Predictor.window_history_s(model))
         if adapt is None:
-            return float(buffer_s)
+            return need
         steps = ModelAdapter.history_steps_for(model, adapt, horizon_steps)
-        return max(float(buffer_s), (steps + 2) / float(model.resample_config.rate_hz))
+        return max(need, (steps + 2) / float(model.resample_config.rate_hz))
+
+    @staticmethod
+    def buffer_problem(model: MotionModel, horizon_steps: int, adapt: AdaptSettings | None,
+                       buffer_s: float) -> str | None:
+        """Why ``buffer_s`` is too short for a predictor of ``model`` at ``horizon_steps``
+        adapting with ``adapt`` (None: not adapting), naming the minimum; None when it is
+        long enough (:meth:`buffer_for`)."""
+        need = Predictor.buffer_for(model, horizon_steps, adapt, 0.0)
+        if buffer_s >= need:
+            return None
+        window = Predictor.window_history_s(model)
+        cfg = model.resample_config
+        why = (f"the model's {int(model.feature_config.lags)} lags x {1.0 / cfg.rate_hz:g} s "
+               "and the stale/held-VO rules' look-back need"
+               if need <= window + 1e-9 else
+               f"adaptation needs at a horizon of {horizon_steps} steps")
+        return f"buffer_s must be at least {need:.2f} s, got {buffer_s:g} s: the history {why}"
 
     @property
     def min_buffer_s(self) -> float:
-        """The shortest ``config.buffer_s`` this predictor works with (longer to adapt)."""
-        if self._adapter is None:
-            return 1.0
-        return self._history_s()
-
-    def _history_s(self, horizon_steps: int | None = None) -> float:
-        """The buffer (s) adaptation needs, at its horizon or at ``horizon_steps``."""
-        assert self._adapter is not None
-        steps = self._adapter.history_steps(horizon_steps)
-        return (steps + 2) / float(self._model.resample_config.rate_hz)
+        """The shortest ``config.buffer_s`` this predictor works with: its model's
+        windows' (:meth:`window_history_s`), longer to adapt (:meth:`buffer_for`)."""
+        return self.buffer_for(self._model, self.config.horizon_steps, self.adapt_settings,
+                               0.0)
 
     @property
     def adaptation(self) -> AdapterStats | None:

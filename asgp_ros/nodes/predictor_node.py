@@ -292,7 +292,10 @@ PARAMS: tuple[ParamSpec, ...] = (
     _spec("vo_timeout_s", "no prediction when VO is older than this", 0.01, 60.0, runtime=True),
     _spec("plan_timeout_s", "ignore a plan older than this (hold the command)", 0.01, 60.0,
           runtime=True),
-    _spec("buffer_s", "history kept for resampling", 1.0, 600.0, runtime=True),
+    _spec("buffer_s", "history kept for resampling; at least the model's lags x dt, the "
+          "stale/held-VO rules' look-back and two VO gaps (3.4 s for the committed tile "
+          "model; a shorter one is refused), more while adapting at a long horizon",
+          1.0, 600.0, runtime=True),
     _spec("reset_jump_s", "a clock or stamp going back by more than this resets the buffers",
           0.01, 60.0, runtime=True),
     _spec("base_frame", "frame of the chair (paths in it are relative to the pose at t0); "
@@ -375,6 +378,10 @@ class PredictorNode(Node):
         try:
             self.every_n = p.decimation(rate)
             k = p.steps(rate)
+            # a buffer too short for the model's window and stale-VO rules is refused (a
+            # 2 s one let stale VO drive paths)
+            if (problem := Predictor.buffer_problem(self.model, k, None, p.buffer_s)):
+                raise ValueError(problem)
             # adapting, the buffer holds at least the history adaptation needs (a long
             # horizon needs more than the default buffer_s)
             self.predictor, self._adapt_unavailable = adapt_params.make_predictor(
@@ -524,11 +531,11 @@ class PredictorNode(Node):
                 changes[name] = check_value(SPECS[name], value)
             candidate = replace(self.params, **{_field(k): v for k, v in changes.items()})
             rate = self.model.resample_config.rate_hz
-            need = Predictor.buffer_for(self.model, candidate.steps(rate),
-                                        self.predictor.adapt_settings, 0.0)
-            if "buffer_s" in changes and candidate.buffer_s < need:
-                raise ValueError(f"buffer_s must be at least {need:.1f} s while adapting (at "
-                                 f"a horizon of {candidate.steps(rate)} steps)")
+            # the model's window and stale-VO look-back, and adaptation at the new horizon
+            if "buffer_s" in changes and (problem := Predictor.buffer_problem(
+                    self.model, candidate.steps(rate), self.predictor.adapt_settings,
+                    candidate.buffer_s)) is not None:
+                raise ValueError(problem)
             candidate.predictor_config(rate)
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
