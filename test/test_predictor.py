@@ -269,8 +269,9 @@ def test_stale_joystick_stops_prediction():
     assert not r.ok and r.reason == Reason.STALE_JOYSTICK
 
 
-def _ok_after_silence(silent: str, lead: float) -> float:
-    """Joystick at 20 Hz and VO at 5 Hz, fed with the clock at arrival, the stamps of the
+def _ok_after_silence(silent: str, lead: float, with_now: bool = True) -> float:
+    """Joystick at 20 Hz and VO at 5 Hz, fed with the clock at arrival (or without it,
+    ``with_now`` False: ``predict(now)`` alone knows the clock), the stamps of the
     ``silent`` stream ``lead`` s ahead of it; that stream falls silent at 110 s on the clock
     (the other goes on): how long predictions stayed ok after its last arrival."""
     pred = Predictor(linear_model(), PredictorConfig(horizon_steps=5))  # timeouts 0.5 s
@@ -279,11 +280,12 @@ def _ok_after_silence(silent: str, lead: float) -> float:
         now = 100.0 + 0.05 * i
         joy_lead, vo_lead = (lead, 0.0) if silent == "joy" else (0.0, lead)
         if not (silent == "joy" and now > 110.0):
-            assert pred.feed_joy(now + joy_lead, (0.5 + 0.3 * math.sin(now), 0.1), now=now)
+            assert pred.feed_joy(now + joy_lead, (0.5 + 0.3 * math.sin(now), 0.1),
+                                 now=now if with_now else None)
         if i % 4 == 1 and not (silent == "vo" and now > 110.0):
             assert pred.feed_vo(now + vo_lead, (0.4 + 0.2 * math.sin(now - 0.3), 0.05),
-                                now=now)
-        if now > 110.0 and pred.predict(now).ok:
+                                now=now if with_now else None)
+        if pred.predict(now).ok and now > 110.0:  # a planner's cycle, every 50 ms
             last_ok = now
     return last_ok - 110.0
 
@@ -295,6 +297,40 @@ def test_a_stream_stamped_ahead_of_the_clock_is_stale_a_timeout_after_it_fell_si
     was measured from its stamps. It ages from its last arrival now."""
     assert 0.0 < _ok_after_silence(silent, 0.0) <= 0.5 + 1e-9
     assert 0.0 < _ok_after_silence(silent, 0.9) <= 0.5 + 1e-9
+
+
+@pytest.mark.parametrize("silent", ["joy", "vo"])
+def test_a_stream_stamped_ahead_is_stale_a_timeout_after_it_fell_silent_without_now(silent):
+    """The same fed without ``now`` (README's in-process example did so): a joystick
+    stamped 0.9 s ahead kept paths coming 1.35 s after the stick fell silent. predict(now)
+    takes each sample as heard no later than the first ``now`` that sees it: it arrived by
+    then. Stamps behind the clock age from their stamps, as before."""
+    assert 0.0 < _ok_after_silence(silent, 0.0, with_now=False) <= 0.5 + 1e-9
+    assert 0.0 < _ok_after_silence(silent, 0.9, with_now=False) <= 0.5 + 1e-9
+    # the ages as predict counts them, without changing them
+    pred = Predictor(linear_model(), PredictorConfig(horizon_steps=5))
+    assert pred.feed_joy(101.0, (0.5, 0.0)) and pred.feed_vo(100.0, (0.4, 0.0))
+    assert pred.input_ages(100.2) == pytest.approx((0.0, 0.2))
+    assert pred.input_ages(100.5) == pytest.approx((0.0, 0.5))
+    pred.status(100.2)  # seen at 100.2: from then on it ages from 100.2
+    assert pred.input_ages(100.5) == pytest.approx((0.3, 0.5))
+
+
+def test_a_sample_of_more_than_two_values_or_an_ok_that_is_not_a_bool_is_refused():
+    """feed_joy / feed_vo took the first two values of a longer tuple, and feed_vo took
+    ok="False" (a string, truthy) as tracked."""
+    pred = Predictor(linear_model())
+    for bad in ((0.5, 0.0, 0.3), (0.5,), np.zeros((1, 2)), 0.5):
+        with pytest.raises(ValueError, match="two values"):
+            pred.feed_joy(100.0, bad)
+        with pytest.raises(ValueError, match="two values"):
+            pred.feed_vo(100.0, bad)
+    for ok in ("False", "True", 0, 1, None):
+        with pytest.raises(ValueError, match="ok must be a bool"):
+            pred.feed_vo(100.0, (0.1, 0.0), ok=ok)
+    assert pred.stats.vo_samples == 0 and pred.stats.joy_samples == 0
+    assert pred.feed_vo(100.0, np.array([0.1, 0.0]), ok=np.bool_(True))
+    assert pred.feed_vo(100.1, (0.1, 0.0), ok=False) and pred.feed_joy(100.0, [0.2, 0.0])
 
 
 def test_vo_tracking_loss_stops_prediction():
@@ -828,3 +864,4 @@ def test_a_buffer_shorter_than_the_window_and_the_stale_look_back_is_refused():
         differ += (want.ok, want.reason) != (got.ok, got.reason)
         differ_short += short.predict(now).ok and not want.ok
     assert differ == 0 and differ_short > 10
+

@@ -447,7 +447,8 @@ class Predictor:
     Typical use (a planner at 5 Hz)::
 
         pred = Predictor(load_model("chair.npz"), PredictorConfig(horizon_steps=10))
-        pred.feed_joy(t, (fwd, turn)); pred.feed_vo(t, (v, omega))   # as they arrive
+        pred.feed_joy(t, (fwd, turn), now=now)  # as they arrive, now: the clock then
+        pred.feed_vo(t, (v, omega), now=now)
         result = pred.predict(now)                                 # held command
         batch = pred.predict_batch(candidates, now)                # [B, k, 2] commands
     """
@@ -487,8 +488,11 @@ class Predictor:
         self._last_now = -math.inf
         # when each stream was last heard from: the newest of its samples' stamps, each
         # taken no later than the clock at its arrival (when known): a stream stamped ahead
-        # of the clock ages from its last arrival, not from its stamps
+        # of the clock ages from its last arrival, not from its stamps. Samples fed without
+        # ``now`` wait in ``_unseen`` (the newest stamp) until the next ``status(now)``, which
+        # takes them no later than its ``now``: they arrived by then
         self._heard = {"joystick": -math.inf, "VO": -math.inf}
+        self._unseen = dict.fromkeys(self._heard, -math.inf)
         self._stepped_until = -math.inf  # the clock before its last step back
         self.last_reset_detail = ""
 
@@ -618,6 +622,7 @@ class Predictor:
         self._overrides.clear()
         self._last_now = -math.inf
         self._heard = dict.fromkeys(self._heard, -math.inf)
+        self._unseen = dict.fromkeys(self._heard, -math.inf)
         self.stats.resets += 1
         self.last_reset_detail = detail
         if self._adapter is not None:
@@ -686,24 +691,54 @@ class Predictor:
         return True
 
     def _note_heard(self, what: str, t: float, now: float | None) -> None:
-        heard = t if now is None or not math.isfinite(now) else min(t, now)
-        self._heard[what] = max(self._heard[what], heard)
+        if now is None or not math.isfinite(now):  # arrived by the next status(now)
+            self._unseen[what] = max(self._unseen[what], t)
+        else:
+            self._heard[what] = max(self._heard[what], min(t, now))
+
+    def _heard_by(self, now: float, *, keep: bool) -> dict[str, float]:
+        """When each stream was last heard from, as of ``now``: samples fed without a
+        ``now`` of their own count as heard no later than the first ``now`` that sees them
+        (``keep``: remembered so, for the later calls; a status check keeps, a query of
+        the ages does not)."""
+        heard = {what: max(h, min(self._unseen[what], now)) for what, h in self._heard.items()}
+        if keep:
+            self._heard = heard
+            self._unseen = dict.fromkeys(self._heard, -math.inf)
+        return heard
+
+    @staticmethod
+    def _pair(what: str, values: tuple[float, float] | FloatArray) -> tuple[float, float]:
+        """(a, b) of a two-value sample; ValueError for any other shape (a longer tuple's
+        first two values were taken silently)."""
+        if np.shape(values) != (2,):
+            raise ValueError(f"{what} must be two values, got shape {np.shape(values)}")
+        return float(values[0]), float(values[1])
 
     def feed_joy(self, t: float, joy: tuple[float, float] | FloatArray,
                  now: float | None = None) -> bool:
         """Add a joystick sample (forward, turn) at time t.
 
         Args:
+            joy: (forward, turn), exactly two values.
             now: the clock at its arrival, if known: a sample stamped too far from it, or
                 too far behind the newest while the clock did not go back, is refused
-                (see ``_admit``); without it such a sample starts a new timeline.
+                (see ``_admit``); without it such a sample starts a new timeline. The
+                stream's age (``joy_timeout_s``) counts from the sample's stamp, or from
+                ``now`` when it is stamped ahead of it; without ``now``, from the ``now``
+                of the first :meth:`status` (:meth:`predict`, ...) after it when stamped
+                ahead of that: the sample arrived by then, and a sender whose stamps run
+                ahead of the predictor's clock (no common clock) cannot look fresher.
 
         Returns:
             False if refused (a stamp or a deflection not finite or out of range; see
             ``stats.last_rejected``).
+
+        Raises:
+            ValueError: ``joy`` is not two values.
         """
+        values = self._pair("a joystick sample", joy)
         t = float(t)
-        values = (float(joy[0]), float(joy[1]))
         if not self._time_ok(t, "joystick"):
             return False
         problem = joy_problem(*values)
@@ -723,7 +758,7 @@ class Predictor:
     def feed_vo(self, t: float, vel: tuple[float, float] | FloatArray, ok: bool = True,
                 now: float | None = None) -> bool:
         """Add a VO velocity (v, omega) at time t; ``ok`` False = VO reported tracking loss;
-        ``now`` as for :meth:`feed_joy`.
+        ``now`` (and the stream's age) as for :meth:`feed_joy`.
 
         A sample with tracking loss carries no velocity: it is kept (as a tracking
         failure, which the resampler invalidates) with zeros whatever its values.
@@ -731,9 +766,16 @@ class Predictor:
         Returns:
             False if refused (a stamp, or the velocity of a tracked sample, not finite or
             beyond the physical limits; see ``stats.last_rejected``).
+
+        Raises:
+            ValueError: ``vel`` is not two values, or ``ok`` not a bool (the string
+                "False" read as tracked).
         """
+        if not isinstance(ok, bool | np.bool_):
+            raise ValueError(f"ok must be a bool, got {ok!r}")
+        pair = self._pair("a VO sample", vel)
         t = float(t)
-        v, w = (float(vel[0]), float(vel[1])) if ok else (0.0, 0.0)
+        v, w = pair if ok else (0.0, 0.0)
         if not self._time_ok(t, "VO"):
             return False
         problem = vel_problem(v, w)
@@ -892,8 +934,9 @@ class Predictor:
     def input_ages(self, now: float) -> tuple[float, float]:
         """(joystick age, VO age) at ``now`` (s), as the staleness rule of :meth:`status`
         counts them: since the newest sample's stamp, or its arrival when it was stamped
-        ahead of the clock; inf before the first."""
-        return now - self._heard["joystick"], now - self._heard["VO"]
+        ahead of the clock (:meth:`feed_joy`); inf before the first."""
+        heard = self._heard_by(now, keep=False)
+        return now - heard["joystick"], now - heard["VO"]
 
     def newest_stamps(self) -> tuple[float, float]:
         """(newest joystick stamp, newest VO stamp); -inf when empty."""
@@ -991,17 +1034,19 @@ class Predictor:
             return Prediction(False, Reason.INVALID_TIME, f"now: {problem}")
         if (reset := self._check_clock(now)) is not None:
             return reset
+        # the age of a stream: since its newest sample's stamp, or since that sample
+        # arrived when it was stamped ahead of the clock (an unsynchronised sender's stick
+        # gone silent drove paths for the lead's length more): ``_heard``; a sample fed
+        # without its arrival time arrived by the first ``now`` that sees it
+        heard = self._heard_by(now, keep=True)
         if not self._joy or not self._vo:
             return Prediction(False, Reason.NO_INPUT, no_input_detail(not self._joy,
                                                                       not self._vo))
-        # the age of a stream: since its newest sample's stamp, or since that sample
-        # arrived when it was stamped ahead of the clock (an unsynchronised sender's stick
-        # gone silent drove paths for the lead's length more): ``_heard``
-        joy_age = now - self._heard["joystick"]
+        joy_age = now - heard["joystick"]
         if joy_age > cfg.joy_timeout_s:
             return Prediction(False, Reason.STALE_JOYSTICK,
                               f"joystick is {joy_age:.2f} s old (limit {cfg.joy_timeout_s} s)")
-        vo_age = now - self._heard["VO"]
+        vo_age = now - heard["VO"]
         if vo_age > cfg.vo_timeout_s:
             return Prediction(False, Reason.STALE_VO,
                               f"VO is {vo_age:.2f} s old (limit {cfg.vo_timeout_s} s)")
