@@ -865,3 +865,25 @@ def test_a_buffer_shorter_than_the_window_and_the_stale_look_back_is_refused():
         differ_short += short.predict(now).ok and not want.ok
     assert differ == 0 and differ_short > 10
 
+
+def test_a_prediction_holds_its_own_copy_of_the_commands_it_was_made_for():
+    """Prediction.joy_future was the caller's joy_future / candidates array (a planner that
+    refills one buffer each cycle changed the commands of the paths it kept), and
+    solve_inverse's window shared its joystick with the InverseResult."""
+    pred, (jt, _, vt, _) = _fed(1012.0, horizon_steps=6)
+    now = max(jt[-1], vt[-1])
+    cand = np.zeros((4, 6, 2))
+    cand[:, :, 0] = [[0.2], [0.4], [0.6], [0.8]]
+    kept = pred.predict_batch(cand, now)
+    cand[:] = -0.5  # the next cycle's candidates
+    np.testing.assert_array_equal(kept.joy_future[:, :, 0],
+                                  np.repeat([[0.2], [0.4], [0.6], [0.8]], 6, axis=1))
+    fut = np.tile([0.6, 0.0], (6, 1))
+    r = pred.predict(now, fut)
+    fut[:] = 0.0
+    np.testing.assert_array_equal(r.joy_future, np.tile([0.6, 0.0], (6, 1)))
+    window, res = pred.solve_inverse(r.pose[:, :2] * 0.5, now)
+    assert res is not None and not np.shares_memory(window.joy_future, res.joystick)
+    solved = res.joystick.copy()
+    res.joystick[:] = 0.0
+    np.testing.assert_array_equal(window.joy_future, solved)

@@ -65,6 +65,17 @@ def test_no_intervention_when_the_way_is_clear():
     assert d.prediction is not None and d.prediction.pose[-1, 0] > 1.0  # it does drive
 
 
+def test_a_decision_keeps_the_users_command_it_was_made_for():
+    """Decision.user was the caller's stick array: a node updating its buffer in place
+    changed the command a logged decision says it judged."""
+    pred, now = driving()
+    stick = np.array([0.8, 0.0])
+    d = decide(pred, now, stick, wall_ahead(50.0), CONFIG, learn=False)
+    stick[:] = (-0.8, 0.6)  # the hand moves; the buffer is updated in place
+    assert d.why is Why.CLEAR and not np.shares_memory(d.user, stick)
+    np.testing.assert_array_equal(d.user, [0.8, 0.0])
+
+
 def test_a_wall_ahead_gets_the_smallest_change_that_avoids_it():
     pred, now = driving()
     user = np.array([0.8, 0.0])

@@ -1238,6 +1238,9 @@ class Predictor:
         vel = np.asarray(out.vel, dtype=np.float64)
         vel_cov = np.asarray(out.vel_cov, dtype=np.float64)
         k = futures.shape[1]
+        # its own copy: the caller's joy_future or candidates (refilled by a planner each
+        # cycle), or an InverseResult's joystick, stay the caller's
+        futures = futures.copy()
         pose_t, pose_v = self._pose.arrays()
         origin = interpolate_pose(t0, pose_t[np.argsort(pose_t)], pose_v[np.argsort(pose_t)])
         if not batch:

@@ -286,7 +286,8 @@ def decide(predictor: Predictor, now: float, user: FloatArray | None,
     if user is None:  # (the Decision's user: NaN, not a stick's reading)
         return Decision(Why.STALE_INPUT, f"the user's command: {no_input_detail(True, False)}",
                         np.full(2, np.nan))
-    user = np.asarray(user, dtype=np.float64).reshape(2)
+    # a copy: Decision.user is the command decided on, not the caller's live stick buffer
+    user = np.array(user, dtype=np.float64).reshape(2)
     problem = joy_problem(float(user[0]), float(user[1]))
     if problem is not None:  # not a stick's reading (a stray publisher): nothing to judge
         return Decision(Why.STALE_INPUT, f"the user's command: {problem}", user)
