@@ -412,6 +412,52 @@ def test_bad_prediction_input_raises(small):
         gp.predict_with_grad(Xn)
 
 
+def test_finite_inputs_that_break_the_gp_are_refused_or_give_the_prior(small):
+    """y ~ 1e300 fitted and predicted NaN, X ~ 1e300 fitted infinite lengthscales, a
+    complex X or y was fitted on its real part with only a ComplexWarning, and a prediction
+    at +-1.7e308 was NaN. Training data beyond +-1e15 (a model file's bound) and complex
+    numbers are refused, naming the problem; a prediction far beyond the data is the
+    prior, with a zero gradient, never NaN."""
+    X, y = small
+    gp = SparseGP(num_inducing=5)
+    with pytest.raises(SparseGPError, match=r"y holds 50 value\(s\) beyond \+-1e\+15.*index 0"):
+        gp.fit(X, y * 1e300, max_iter=5)
+    Xb = X.copy()
+    Xb[4, 2] = -2e15
+    with pytest.raises(SparseGPError, match=r"X holds 1 value.*-2e\+15 at row 4, column 2"):
+        gp.fit(Xb, y, max_iter=5)
+    with pytest.raises(SparseGPError, match="beyond"):
+        gp.fit(X * 1e300, y, max_iter=5)
+    for bad in ({"X": X + 1j}, {"y": y + 0j}):
+        args = {"X": X, "y": y} | bad
+        with pytest.raises(SparseGPError, match=f"{next(iter(bad))} must be real"):
+            gp.fit(args["X"], args["y"], max_iter=5)
+    with pytest.raises(SparseGPError, match="Z must be real"):
+        SparseGP.from_params(X, y, X[:5] + 1j, np.ones(3), 1.0, 0.1)
+    with pytest.raises(SparseGPError, match="lengthscales must be real"):
+        SparseGP.from_params(X, y, X[:5], np.ones(3) + 1j, 1.0, 0.1)
+    fitted = gp.fit(X, y * 1e14, max_iter=5)  # within the bound: fitted and finite
+    assert np.all(np.isfinite(fitted.predict(X[:3])[0]))
+    gp = SparseGP(num_inducing=5).fit(X, y, max_iter=5)
+    with pytest.raises(SparseGPError, match="Xs must be real"):
+        gp.predict(X[:2] + 1j)
+    prior = (float(np.mean(y)), gp.signal_variance + gp.noise_variance)
+    for big in (1e30, 1e300, 1.7e308, -1.7e308):
+        far = np.array([[big, -big, 0.0], [big, big, big]])
+        for mean, var, *grad in (gp.predict(far), gp.predict_with_grad(far)):
+            np.testing.assert_allclose(mean, prior[0], rtol=1e-12)
+            np.testing.assert_allclose(var, prior[1], rtol=1e-12)
+            assert all(np.all(g == 0.0) for g in grad)
+    # near the data nothing is clipped: the posterior's own prediction, to the bit
+    from asgp_ros.core import posterior
+
+    inside = posterior.predict(gp._fitted().stacked, X[None, :5], True, with_grad=False)
+    np.testing.assert_array_equal(gp.predict(X[:5])[0], inside[0][0])
+    from asgp_ros.core import modelfile, sparse_gp
+
+    assert sparse_gp.MAX_ABS_VALUE == modelfile.MAX_ABS_VALUE
+
+
 def test_from_params_validates_parameters(small):
     X, y = small
     Z = X[:5]

@@ -51,6 +51,10 @@ Numerical notes:
   see :class:`_BestPoint`), and a run that still ends on a failure resumes from the best
   point.  Outside (``from_params``, the initial point, the final posterior) it raises
   :class:`SparseGPError` saying what to change.
+* Training inputs, targets and pseudo-inputs are real and within +-``MAX_ABS_VALUE``
+  (1e15, a model file's bound); a prediction's inputs are any finite reals, and far beyond
+  the data (``_PREDICT_REACH`` standardised units, where the kernel is 0 to the last bit)
+  it is the prior.
 * A negative predictive latent variance (cancellation in sf2 - k S k^T) is clipped to 0;
   beyond round-off level (below -1e-8 sf2) a RuntimeWarning says so.
 * FITC tends to underestimate the noise variance (its input-dependent Lambda absorbs part
@@ -87,6 +91,16 @@ _LOG = logging.getLogger(__name__)
 _LOG_LENGTHSCALE_BOUNDS = (math.log(1e-3), math.log(1e4))
 _LOG_SIGNAL_VAR_BOUNDS = (math.log(1e-4), math.log(1e2))
 _LOG_NOISE_VAR_BOUNDS = (math.log(1e-6), math.log(1e1))
+
+#: Largest |value| of the training inputs, targets and pseudo-inputs (fit, from_params): a
+#: model file's own bound (:data:`asgp_ros.core.modelfile.MAX_ABS_VALUE`), so that what is
+#: fitted can be saved. y ~ 1e300 gave NaN predictions and X ~ 1e300 infinite lengthscales.
+MAX_ABS_VALUE = 1e15
+#: Standardised inputs of a prediction are clipped to +- this: the kernel there is 0 to the
+#: last bit (|x|^2 / l^2 >= 1e170 for any lengthscale a model file can hold), so the
+#: prediction is the prior mean and variance, as the maths says; at 1.7e308 the kernel's
+#: inf - inf gave NaN.
+_PREDICT_REACH = 1e100
 
 # Keys of get_state() / from_state() besides the posterior's (posterior.STATE_NDIM), with
 # their expected number of dimensions.
@@ -137,7 +151,30 @@ def _blas_single_thread(rows: int) -> contextlib.AbstractContextManager[object]:
     return blas.single_thread()
 
 
-def _validate_inputs(X: ArrayLike, name: str, num_features: int | None = None) -> FloatArray:
+def _real(a: ArrayLike, name: str) -> None:
+    """Refuse complex numbers (numpy dropped their imaginary part with a ComplexWarning
+    alone, and fitted the real part)."""
+    if np.iscomplexobj(a):
+        raise SparseGPError(f"{name} must be real, got complex values")
+
+
+def _beyond(arr: FloatArray, name: str) -> None:
+    """Refuse a finite value beyond +-MAX_ABS_VALUE, naming where."""
+    big = np.abs(arr) > MAX_ABS_VALUE
+    if big.any():
+        where = np.unravel_index(int(np.argmax(big)), arr.shape)
+        at = (f"row {where[0]}, column {where[1]}" if arr.ndim == 2
+              else f"index {where[0]}")
+        raise SparseGPError(
+            f"{name} holds {int(big.sum())} value(s) beyond +-{MAX_ABS_VALUE:g}, the first "
+            f"{float(arr[where]):g} at {at} (a model file holds none)")
+
+
+def _validate_inputs(X: ArrayLike, name: str, num_features: int | None = None,
+                     bounded: bool = True) -> FloatArray:
+    """X as a finite real [N, D] float array; ``bounded``: within +-MAX_ABS_VALUE (training
+    data; a prediction's inputs are any finite values)."""
+    _real(X, name)
     arr = np.asarray(X, dtype=np.float64)
     if arr.ndim != 2:
         raise SparseGPError(f"{name} must be a 2-D array [N, D], got shape {arr.shape}")
@@ -154,10 +191,13 @@ def _validate_inputs(X: ArrayLike, name: str, num_features: int | None = None) -
             f"{name} contains {bad.sum()} NaN/inf value(s), first at row {rows[0]}, "
             f"column {cols[0]}"
         )
+    if bounded:
+        _beyond(arr, name)
     return np.ascontiguousarray(arr)
 
 
 def _validate_y(y: ArrayLike, n: int) -> FloatArray:
+    _real(y, "y")
     arr = np.asarray(y, dtype=np.float64)
     if arr.ndim == 2 and arr.shape[1] == 1:
         arr = arr[:, 0]
@@ -168,10 +208,12 @@ def _validate_y(y: ArrayLike, n: int) -> FloatArray:
         raise SparseGPError(
             f"y contains {bad.sum()} NaN/inf value(s), first at index {np.argmax(bad)}"
         )
+    _beyond(arr, "y")
     return np.ascontiguousarray(arr)
 
 
 def _positive(value: ArrayLike, name: str, shape: tuple[int, ...]) -> FloatArray:
+    _real(value, name)
     arr = np.asarray(value, dtype=np.float64)
     if arr.shape != shape:
         if arr.size == 1 and math.prod(shape) == 1:
@@ -732,7 +774,11 @@ class SparseGP:
         self, Xs: ArrayLike, include_noise: bool, with_grad: bool
     ) -> tuple[FloatArray, FloatArray, FloatArray | None]:
         post = self._fitted()
-        Xa = _validate_inputs(Xs, "Xs", post.num_features)
+        Xa = _validate_inputs(Xs, "Xs", post.num_features, bounded=False)
+        S = post.stacked
+        reach = _PREDICT_REACH * S.x_scale[0, 0]
+        if np.any(np.abs(Xa - S.x_mean[0, 0]) > reach):  # far beyond the data: the prior
+            Xa = np.clip(Xa, S.x_mean[0, 0] - reach, S.x_mean[0, 0] + reach)
         with _blas_single_thread(Xa.shape[0]):
             mean, var, grad = posterior.predict(post.stacked, Xa[None], include_noise,
                                                 with_grad, stacklevel=3)
