@@ -1068,3 +1068,49 @@ def test_a_hang_up_mutes_a_terminal_not_a_log_file(tmp_path):
         subprocess.run([sys.executable, "-c", probe], stdout=fh, stderr=subprocess.STDOUT,
                        check=True, timeout=60)
     assert "after the hang-up" in log.read_text()
+
+
+# ------------------------------------------------------------------ a full disk
+
+def test_a_demo_that_trains_on_a_full_disk_says_which_file_in_one_line(tmp_path, monkeypatch,
+                                                                      capsys):
+    """A demo that trains its own model on a full disk ended in a traceback, exit 1
+    (BagError: .../train/tile_seed1000: cannot write bag: [Errno 28] ...)."""
+    from rosbags.rosbag2 import Writer
+
+    from asgp_ros.cli import main
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Writer, "write", full)
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out), "--train-minutes", "0.5", "--minutes", "0.1",
+               "--domain-id", os.environ["ROS_DOMAIN_ID"]])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert err.count("\n") == 1 and err.startswith(
+        f"error: cannot write the training drive: {out}/train/tile_seed1000: cannot write "
+        "bag: "), err
+    assert "No space left on device" in err
+    assert not out.exists()  # nothing left of it
+
+
+def test_the_demo_figure_on_a_full_disk_names_its_file(tmp_path, monkeypatch):
+    """matplotlib's ENOSPC named no file (or the hidden temporary): the report said
+    "the report could not be written: OSError: [Errno 28] No space left on device"."""
+    from types import SimpleNamespace
+
+    from matplotlib.figure import Figure
+
+    from asgp_ros.demo import report
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Figure, "savefig", full)
+    monitor = SimpleNamespace(truth=TruthTrack(), score=OnlineScore(), overrides=[])
+    with pytest.raises(OSError, match="No space left on device") as err:
+        report.figure(tmp_path / "demo.png", monitor)  # type: ignore[arg-type]
+    assert err.value.filename == str(tmp_path / "demo.png")
+    assert not list(tmp_path.iterdir())

@@ -65,7 +65,7 @@ from asgp_ros.learning.training import (
     read_series,
     train_auto,
 )
-from asgp_ros.recording.bags import write_bag
+from asgp_ros.recording.bags import BagError, write_bag
 from asgp_ros.sim.simulate import simulate
 
 # rclpy (an optional dependency) and the monitor node built on it are imported when the
@@ -222,8 +222,11 @@ def train_model(out: Path, seed: int, minutes: float, surface: str, say: Printer
         shutil.rmtree(bag)
     say(f"training: simulating {minutes:g} min of driving on {surface} (seed {seed + 1000})")
     rec = simulate(surface, minutes, seed + 1000)
-    write_bag(bag, rec)
-    series = read_series([str(bag)])
+    try:
+        write_bag(bag, rec)
+        series = read_series([str(bag)])
+    except BagError as exc:  # (a full disk: it names the bag; it was a traceback)
+        raise DemoError(f"cannot write the training drive: {exc}") from exc
     say(f"training: ASGP, configuration chosen and variance calibrated on the last "
         f"{HOLDOUT_FRACTION:.0%} of the drive (as `asgp train` does), on {bag}")
     try:

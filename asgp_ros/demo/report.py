@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -42,6 +43,7 @@ from asgp_ros.demo.common import DemoError, RunState, evaluate_bag, evaluate_tim
 from asgp_ros.demo.monitor import OnlineScore, PathRecord
 from asgp_ros.demo.simhw import STEP_S, HardwareConfig, SimulatedHardware
 from asgp_ros.learning.training import read_series
+from asgp_ros.recording.bags import BagError
 from asgp_ros.sim.world import Room, room_for_surface
 
 # matplotlib (slow to import) is imported by figure() alone.
@@ -407,9 +409,11 @@ def figure(path: Path, monitor: MonitorNode, room: Room | None = None) -> None:
     _zoom_panel(az, monitor, t, truth, paths)
     _error_panel(ae, t, paths, monitor.score.horizons)
     fig.tight_layout()
-    with atomic_path(path) as tmp, naming(tmp):
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp, naming(tmp):
+            fig.savefig(tmp, format="png")
+    finally:
+        plt.close(fig)
 
 
 def _draw_paths(axis: Axes, monitor: MonitorNode, recs: list[PathRecord], ellipses: bool,
@@ -524,7 +528,7 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
             written["offline evaluation"] = out / "evaluate.json"
             cases = offline_cases(bag, model)
             held = offline_held(bag, model)
-        except (DemoError, OSError, ValueError) as exc:
+        except (DemoError, OSError, ValueError, BagError) as exc:
             problem = f"offline evaluation of {bag} failed: {exc}"
             if state.stopped_by:  # a run cut short may be too short to evaluate
                 say(f"note: {problem}")
