@@ -1072,6 +1072,153 @@ def test_a_hang_up_mutes_a_terminal_not_a_log_file(tmp_path):
 
 # ------------------------------------------------------------------ a full disk
 
+class _DiskOf:
+    """The recorder's storage file on a disk that fills: once armed, a write past ``room``
+    more bytes writes what fits and raises ENOSPC, as a full disk does."""
+
+    def __init__(self, inner, room: int | None = None) -> None:
+        self.inner = inner
+        self.limit: int | None = None
+        self.room = room
+        if room is not None:
+            self.arm()
+
+    def arm(self) -> None:
+        if self.limit is None:
+            self.limit = self.inner.tell() + self.room
+
+    def write(self, data) -> int:
+        data = bytes(data)
+        if self.limit is not None and self.inner.tell() + len(data) > self.limit:
+            self.inner.write(data[:max(self.limit - self.inner.tell(), 0)])
+            raise OSError(28, "No space left on device")
+        return self.inner.write(data)
+
+    def __getattr__(self, name: str):
+        return getattr(self.inner, name)
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("when", ["writing", "closing"])
+def test_a_recording_on_a_full_disk_stops_and_keeps_a_closed_bag(tmp_path, when):
+    """A full disk during the demo's drive: the recorder's write raised in the monitor's
+    callback (the demo aborted: `error: No space left on device`, no report, the bag left
+    unclosed in a hidden .run_bag.partial). The recording stops, says why, and the bag is
+    closed as it was at its last chunk on disk (the part-written chunk cut off)."""
+    pytest.importorskip("rclpy")
+    from rosbags.rosbag2 import Reader
+
+    from asgp_ros.demo.monitor_node import BagRecorder
+    from asgp_ros.recording.bags import recover_bag
+
+    rec = BagRecorder(tmp_path / "bag")
+    rec.add_topic("/joy", "sensor_msgs/msg/Joy")
+    # 2.5 MB of room: two chunks of 1 MB, the third fails; closing: 1.5 MB, the last fails
+    n, room = (400, 2_500_000) if when == "writing" else (150, 1_500_000)
+    disk = rec._writer.storage.bio = _DiskOf(rec._writer.storage.bio, room)
+    data = bytes(range(256)) * 40  # 10 kB a message
+    for i in range(n):
+        rec.write("/joy", 10**9 + i * 10**7, data)  # (raised OSError)
+    rec.close()
+    assert rec.failure == f"cannot write {rec.file}: No space left on device"
+    assert rec.cause == "No space left on device" and rec.closed, rec.close_problem
+    assert disk.inner.closed and rec.failed_closing == (when == "closing")
+    kept = rec.messages
+    per_chunk = 1 + 2**20 // (len(data) + 31)  # (a chunk is closed past 1 MiB)
+    assert kept == (2 if when == "writing" else 1) * per_chunk, kept
+    failed = 3 * per_chunk - 1 if when == "writing" else n - 1  # the write that failed
+    assert rec.failed_ns == 10**9 + failed * 10**7
+    assert rec.dropped == n - 1 - failed
+    with Reader(tmp_path / "bag") as reader:  # indexed, with its metadata.yaml
+        assert reader.message_count == kept
+        stamps = [t for _, t, _ in reader.messages()]
+    assert stamps == [10**9 + i * 10**7 for i in range(kept)]
+    assert rec.kept_ns == (stamps[0], stamps[-1])
+    assert recover_bag(tmp_path / "bag", topics=()).damage.intact
+    rec.write("/joy", 5 * 10**9, data)  # after the failure: dropped, the bag untouched
+    rec.close()
+    with Reader(tmp_path / "bag") as reader:
+        assert reader.message_count == kept
+
+
+#: ``asgp demo`` whose disk fills a few seconds into the drive (the recorder's storage file
+#: on a :class:`_DiskOf` armed by the first ground truth); prints the runtime directory.
+_FULL_DISK_DEMO = r"""
+import sys, tempfile
+sys.path.insert(0, TEST_DIR)
+from test_demo import _DiskOf
+from asgp_ros.cli import main
+from asgp_ros.demo.monitor_node import BagRecorder, MonitorNode
+
+disks = []
+init, on_truth, mkdtemp = (BagRecorder.__init__, MonitorNode._on_ground_truth_odom,
+                           tempfile.mkdtemp)
+
+def recorder(self, path):
+    init(self, path)
+    disks.append(_DiskOf(self._writer.storage.bio))
+    self._writer.storage.bio = disks[-1]
+
+def truth(self, msg, now):
+    on_truth(self, msg, now)
+    disks[-1].room = 1_600_000
+    disks[-1].arm()
+
+def made(*args, **kwargs):
+    path = mkdtemp(*args, **kwargs)
+    print("runtime:", path, flush=True)
+    return path
+
+BagRecorder.__init__, MonitorNode._on_ground_truth_odom = recorder, truth
+tempfile.mkdtemp = made
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.e2e
+@pytest.mark.slow
+def test_a_demo_whose_disk_fills_during_the_drive_stops_it_and_reports(tmp_path):
+    """The disk filled during the drive: `error: No space left on device` (no path), exit 2,
+    no report, the recorded seconds in a hidden OUT/.run_bag.partial nothing mentioned, and
+    the runtime directory (/tmp/asgp-demo-*) left behind. The recording stops, the drive
+    ends (the nodes stopped), the report is written and says the recording was cut short,
+    and why; exit 1; the bag is OUT/run_bag, closed; the runtime directory is removed."""
+    from asgp_ros.recording.bags import recover_bag
+
+    out = tmp_path / "demo"
+    script = _FULL_DISK_DEMO.replace("TEST_DIR", repr(str(REPO / "test")))
+    argv = [sys.executable, "-c", script, *_demo_argv(out, "--minutes", "0.5", "--model",
+                                                      str(REPO / "docs/reproduction/models/"
+                                                          "tile_asgp.npz"))[3:]]
+    proc = subprocess.run(argv, env=_env(), capture_output=True, text=True, timeout=170)
+    said = proc.stdout.splitlines()
+    assert proc.returncode == 1, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert proc.stderr == ""
+    runtime = [line.split(": ", 1)[1] for line in said if line.startswith("runtime: ")]
+    assert runtime and not os.path.exists(runtime[0])
+    partial = out / ".run_bag.partial"
+    assert not partial.exists()
+    assert any(line.startswith(f"the recording stopped: cannot write {partial}/") and
+               line.endswith("No space left on device; stopping the drive")
+               for line in said), proc.stdout[-3000:]
+    report = json.loads((out / "report.json").read_text())
+    cut = report["run"]["recording_cut"]
+    assert cut.startswith("the recording stopped at ") and \
+        f"s of the drive, and the drive with it: cannot write {out / 'run_bag'}: No space " \
+        "left on device; " in cut, cut
+    assert f"{out / 'run_bag'} keeps the drive's first " in cut and cut.endswith(", closed")
+    assert report["run"]["errors"] == [cut], report["run"]["errors"]
+    assert report["run"]["drive_seconds"] < 25.0  # stopped, not the 30 s asked
+    assert "**The recording was cut short**" in (out / "report.md").read_text()
+    assert "note: no offline evaluation: the recording was cut short" in said
+    assert f"error: {cut}" in said
+    damage = recover_bag(out / "run_bag", topics=()).damage
+    assert damage.intact and damage.messages > 0
+    assert not (out / "evaluate.json").exists()
+    # the nodes were stopped by the demo, none failed
+    assert set(report["run"]["returncodes"].values()) == {0}, report["run"]["returncodes"]
+
+
 def test_a_demo_that_trains_on_a_full_disk_says_which_file_in_one_line(tmp_path, monkeypatch,
                                                                       capsys):
     """A demo that trains its own model on a full disk ended in a traceback, exit 1
@@ -1114,3 +1261,37 @@ def test_the_demo_figure_on_a_full_disk_names_its_file(tmp_path, monkeypatch):
         report.figure(tmp_path / "demo.png", monitor)  # type: ignore[arg-type]
     assert err.value.filename == str(tmp_path / "demo.png")
     assert not list(tmp_path.iterdir())
+
+
+def test_what_a_cut_recording_kept_is_said():
+    """The words of a recording cut by a full disk: when, why, what run_bag keeps."""
+    from types import SimpleNamespace
+
+    from asgp_ros.demo import orchestrator
+
+    def said(cut_drive=False, **recorder):
+        rec = {"failure": "cannot write x: No space left on device",
+               "cause": "No space left on device", "failed_ns": 130 * 10**9,
+               "failed_closing": False, "messages": 5, "kept_ns": (99 * 10**9, 120 * 10**9),
+               "closed": True, "close_problem": "", **recorder}
+        state = orchestrator.RunState(options={}, domain_id=1, drive_start_wall=100.0)
+        orchestrator._note_recording_cut(SimpleNamespace(**rec), Path("o/run_bag"), state,
+                                         cut_drive)
+        assert state.errors == [state.recording_cut]
+        return state.recording_cut
+
+    assert said(True) == ("the recording stopped at 30.0 s of the drive, and the drive with "
+                          "it: cannot write o/run_bag: No space left on device; o/run_bag "
+                          "keeps the drive's first 20.0 s (5 messages), closed")
+    assert said(failed_closing=True).startswith("the recording was cut when it was closed: ")
+    assert said(failed_ns=50 * 10**9, kept_ns=(40 * 10**9, 45 * 10**9)) == (
+        "the recording stopped before the drive started: cannot write o/run_bag: No space "
+        "left on device; o/run_bag keeps what was recorded before the drive (5 messages), "
+        "closed")
+    assert said(messages=0, kept_ns=None).endswith("; nothing of it could be kept")
+    assert said(closed=False, close_problem="o/run_bag/metadata.yaml: No space").endswith(
+        ", not closed (o/run_bag/metadata.yaml: No space): a scan reads it, and `asgp bag "
+        "repair o/run_bag COPY` writes a clean copy where there is room")
+    state = orchestrator.RunState(options={}, domain_id=1)
+    orchestrator._note_recording_cut(SimpleNamespace(failure=""), Path("b"), state)
+    assert state.errors == [] and state.recording_cut == ""

@@ -27,6 +27,8 @@ class RunState:
     drive_start_wall: float | None = None
     drive_seconds: float = 0.0
     stopped_by: str = ""
+    #: the recording stopped before the drive's end (a full disk): when, why, what was kept
+    recording_cut: str = ""
     errors: list[str] = field(default_factory=list)
     cpu: dict[str, float] = field(default_factory=dict)
     lifetimes: dict[str, float] = field(default_factory=dict)

@@ -13,10 +13,14 @@ without loss and a best-effort one is still received. The figures are computed b
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import time
+from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
+from io import BytesIO
 from pathlib import Path
 from typing import Any
 
@@ -71,27 +75,125 @@ TOPICS: dict[str, tuple[type, str, bool]] = {
 
 
 class BagRecorder:
-    """Serialized messages into a ROS 2 bag (mcap) at ``path``; see ``close``."""
+    """Serialized messages into a ROS 2 bag (mcap) at ``path``; see ``close``.
+
+    A write that fails (a full disk: the rosbags writer raised in the monitor's callback,
+    which aborted the demo with the bag unclosed and no report) stops the recording instead:
+    ``failure`` says why, ``failed_ns`` when, and the bag is closed as it was after its last
+    chunk on disk (the chunk being written, a second or so, is dropped from the file, which
+    frees what it took for the bag's index and metadata). Should that close fail too,
+    ``closed`` is False: the file keeps every chunk written, readable by a scan (``asgp bag
+    repair`` writes a clean copy). Later messages are counted in ``dropped``.
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self._store = get_typestore(Stores.ROS2_JAZZY)
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self._writer.open()
+        try:
+            self._writer.open()
+            storage: Any = self._writer.storage
+            storage.bio.flush()  # (its header: the point a failure cuts back to at most)
+        except OSError as exc:
+            raise OSError(exc.errno, exc.strerror or str(exc),
+                          os.fspath(exc.filename or self.file)) from exc
         self._conns: dict[str, Connection] = {}
-        self.messages = 0
+        self.messages = 0  # recorded (after a failure: those the bag keeps)
+        self.failure = ""  # why the recording stopped ("": it did not)
+        self.cause = ""  # the same without the file's name
+        self.failed_ns: int | None = None
+        self.failed_closing = False  # the failure was the close's (the last chunk's write)
+        self.closed = False
+        self.close_problem = ""  # why a failed recording could not be closed
+        self.dropped = 0
+        self.kept_ns: tuple[int, int] | None = None  # first and last stamp the bag keeps
+        self._chunks = 0
+        self._saved = self._snapshot()
+
+    @property
+    def file(self) -> Path:
+        """The bag's storage file."""
+        return self.path / f"{self.path.name}.mcap"
 
     def add_topic(self, topic: str, msgtype: str) -> None:
-        if topic not in self._conns:
+        if topic not in self._conns and not self.failure:
             self._conns[topic] = self._writer.add_connection(topic, msgtype,
                                                              typestore=self._store)
 
     def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
-        self._writer.write(self._conns[topic], stamp_ns, data)
-        self.messages += 1
+        if self.failure:
+            self.dropped += 1
+            return
+        try:
+            self._writer.write(self._conns[topic], stamp_ns, data)
+            self.messages += 1
+            storage: Any = self._writer.storage  # (the mcap storage's chunks and file)
+            if storage is not None and len(storage.chunks) != self._chunks:
+                storage.bio.flush()  # the chunk is in the file: a failure keeps it
+                self._chunks = len(storage.chunks)
+                self._saved = self._snapshot()
+        except OSError as exc:
+            self._fail(exc, stamp_ns)
 
     def close(self) -> None:
-        self._writer.close()
+        """Close the bag (after a failure: nothing more to do); never raises OSError, a
+        failure of the close is one of the recording (``failure``)."""
+        if self.closed or self.failure:
+            return
+        try:
+            self._writer.close()
+        except OSError as exc:
+            self.failed_closing = True
+            self._fail(exc, self._writer.max_timestamp)
+        else:
+            self.closed = True
+            if self.messages:
+                self.kept_ns = (self._writer.min_timestamp, self._writer.max_timestamp)
+
+    def _snapshot(self) -> dict[str, Any]:
+        """What the bag holds up to its last chunk on disk (restored by ``_fail``)."""
+        w = self._writer
+        storage: Any = w.storage
+        return {"messages": self.messages, "counts": dict(w.counts),
+                "min": w.min_timestamp, "max": w.max_timestamp,
+                "end": storage.bio.tell() if storage is not None else 0,
+                "stats": dict(storage.channel_stats) if storage is not None else {},
+                "start_end": ((storage.message_start_time, storage.message_end_time)
+                              if storage is not None else (0, 0))}
+
+    def _fail(self, exc: OSError, stamp_ns: int) -> None:
+        """Stop recording: the bag cut back to its last chunk on disk and closed."""
+        self.cause = str(exc.strerror or exc)
+        self.failure = f"cannot write {exc.filename or self.file}: {self.cause}"
+        self.failed_ns = stamp_ns
+        saved = self._saved
+        self.messages = saved["messages"]
+        if self.messages:
+            self.kept_ns = (saved["min"], saved["max"])
+        storage: Any = self._writer.storage
+        if storage is None:  # the storage file was complete: its metadata.yaml failed
+            self.close_problem = f"its metadata.yaml: {exc.strerror or exc}"
+            return
+        try:
+            with contextlib.suppress(OSError):  # (what it still holds is cut off below)
+                storage.bio.close()
+            os.truncate(storage.path, saved["end"])  # frees the part-written chunk
+            storage.bio = open(storage.path, "r+b")  # noqa: SIM115 (the writer closes it)
+            storage.bio.seek(saved["end"])
+            # what was in the dropped chunk is forgotten: the index and metadata.yaml
+            # count what the file holds
+            del storage.chunks[self._chunks:]
+            storage.chunk = type(storage.chunk)(2**63 - 1, 0, BytesIO(), defaultdict(list))
+            storage.channel_stats = {c: saved["stats"].get(c, 0) for c in storage.channel_stats}
+            storage.message_start_time, storage.message_end_time = saved["start_end"]
+            w = self._writer
+            w.counts = {c: saved["counts"].get(c, 0) for c in w.counts}
+            w.min_timestamp, w.max_timestamp = saved["min"], saved["max"]
+            w.close()
+        except OSError as err:
+            self.close_problem = f"{err.filename or self.file}: {err.strerror or err}"
+        else:
+            self.closed = True
 
 
 @dataclass

@@ -14,8 +14,9 @@ Sequence:
    (:mod:`asgp_ros.demo.monitor_node`) runs in this process and records the bag.
 3. **Drive**: the hardware starts driving when the bridge, VO and predictor are there;
    the run lasts ``minutes`` from then, with a live status line.
-4. **Stop** (also on Ctrl-C or when a node dies): SIGINT to the nodes, deadlines, SIGTERM,
-   SIGKILL; the bag is closed and moved into place.
+4. **Stop** (also on Ctrl-C, when a node dies, or when the recording fails: a full disk):
+   SIGINT to the nodes, deadlines, SIGTERM, SIGKILL; the bag is closed and moved into place
+   (a recording cut short keeps what it wrote, closed if it can be, and the report says so).
 5. **Report** (:mod:`asgp_ros.demo.report`): ``asgp evaluate --truth`` on the recorded bag
    (:func:`asgp_ros.demo.common.evaluate_bag`),
    the figure, the tables, where the time went. The exit code is 0 only when every node
@@ -74,7 +75,7 @@ if TYPE_CHECKING:
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from asgp_ros.demo.monitor_node import MonitorNode
+    from asgp_ros.demo.monitor_node import BagRecorder, MonitorNode
 
 log = logging.getLogger(__name__)
 
@@ -562,6 +563,7 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
     bag_tmp = out / ".run_bag.partial"
     started: tuple[MonitorNode, SingleThreadedExecutor, Context] | None = None
     status = Status()
+    cut_drive = False  # the recording's failure stopped the drive
     cpu_before = _self_cpu()
     t_mon = time.monotonic()
     try:
@@ -577,22 +579,62 @@ def _run_nodes(opts: DemoOptions, out: Path, model: Path, env: dict[str, str], d
             group.start(name, entry, args)
         say(f"started {', '.join(c.name for c in group.children)} (logs in {out / 'logs'}); "
             f"board on {port}")
-        _drive(opts, monitor, executor, group, stop, status, state, say)
+        cut_drive = _drive(opts, monitor, executor, group, stop, status, state, say)
     finally:
-        status.end()
-        group.stop_all()
-        stop.restore()
-        for c in group.children:
-            state.cpu[c.name] = round(c.cpu_s, 3)
-            state.lifetimes[c.name] = round(c.lifetime_s, 3)
-            state.returncodes[c.name] = c.returncode
-            state.stop_signals[c.name] = c.signal_used
-        if started is not None:
-            _stop_monitor(*started, bag_tmp, bag_final)
-        state.cpu["asgp demo (monitor, recorder)"] = round(_self_cpu() - cpu_before, 3)
-        state.lifetimes["asgp demo (monitor, recorder)"] = round(time.monotonic() - t_mon, 3)
-        shutil.rmtree(runtime, ignore_errors=True)
+        try:
+            status.end()
+            group.stop_all()
+            stop.restore()
+            for c in group.children:
+                state.cpu[c.name] = round(c.cpu_s, 3)
+                state.lifetimes[c.name] = round(c.lifetime_s, 3)
+                state.returncodes[c.name] = c.returncode
+                state.stop_signals[c.name] = c.signal_used
+            if started is not None:
+                _stop_monitor(*started, bag_tmp, bag_final)
+                _note_recording_cut(started[0].recorder, bag_final, state, cut_drive)
+            state.cpu["asgp demo (monitor, recorder)"] = round(_self_cpu() - cpu_before, 3)
+            state.lifetimes["asgp demo (monitor, recorder)"] = round(
+                time.monotonic() - t_mon, 3)
+        finally:  # (the board's pty: left behind by every run that failed here)
+            shutil.rmtree(runtime, ignore_errors=True)
     return monitor, group
+
+
+def _note_recording_cut(recorder: BagRecorder | None, bag_final: Path, state: RunState,
+                        cut_drive: bool = False) -> None:
+    """A recording cut short by a write that failed (a full disk; :class:`BagRecorder`) in
+    ``state``: an error, and the report's words (when, why, what the bag kept);
+    ``cut_drive``: the failure stopped the drive."""
+    if recorder is None or not recorder.failure:
+        return
+    start = state.drive_start_wall
+    failed = (recorder.failed_ns or 0) * 1e-9
+    if recorder.failed_closing:
+        when = "was cut when it was closed"
+    elif start is None or failed < start:
+        when = "stopped before the drive started"
+    else:
+        when = f"stopped at {failed - start:.1f} s of the drive"
+    if cut_drive:
+        when += ", and the drive with it"
+    if recorder.messages and recorder.kept_ns is not None:
+        end = recorder.kept_ns[1] * 1e-9
+        kept = (f"{bag_final} keeps "
+                + ("what was recorded before the drive" if start is None or end < start
+                   else f"the drive's first {end - start:.1f} s")
+                + f" ({recorder.messages} messages)")
+        if recorder.closed:
+            kept += ", closed"
+        else:
+            kept += (f", not closed ({recorder.close_problem}): a scan reads it, and "
+                     f"`asgp bag repair {bag_final} COPY` writes a clean copy where there is "
+                     "room")
+    else:
+        kept = "nothing of it could be kept"
+    state.recording_cut = (f"the recording {when}: cannot write {bag_final}: "
+                           f"{recorder.cause}; {kept}")
+    state.errors.append(state.recording_cut)
 
 
 def _check_components(monitor: MonitorNode, group: ProcessGroup, state: RunState) -> None:
@@ -701,19 +743,25 @@ def _stop_monitor(node: MonitorNode, executor: SingleThreadedExecutor, context: 
 
 def _drive(opts: DemoOptions, mon: MonitorNode, executor: SingleThreadedExecutor,
            group: ProcessGroup, stop: _Stop,
-           status: Status, state: RunState, say: Printer) -> None:
-    """Spin the monitor until the drive has lasted ``minutes`` (or a stop / failure)."""
+           status: Status, state: RunState, say: Printer) -> bool:
+    """Spin the monitor until the drive has lasted ``minutes`` (or a stop / failure);
+    whether the recording's failure (a full disk) stopped it."""
     total = 60.0 * opts.minutes
     start_deadline = time.monotonic() + opts.startup_timeout_s
     t_start: float | None = None
     say("waiting for the nodes (bridge joy, camera, VO, predictor) before driving")
     last_wait = 0.0
     last_check = time.monotonic()
+    cut = False
     while True:
         executor.spin_once(timeout_sec=0.05)
         now = time.monotonic()
         if stop:
             state.stopped_by = stop.reason
+            break
+        if mon.recorder is not None and mon.recorder.failure:
+            say(f"the recording stopped: {mon.recorder.failure}; stopping the drive")
+            cut = True
             break
         if now - last_check > 2.0:
             last_check = now
@@ -755,6 +803,7 @@ def _drive(opts: DemoOptions, mon: MonitorNode, executor: SingleThreadedExecutor
         executor.spin_once(timeout_sec=0.05)
     if t_start is not None:
         status.show(_status_line(mon, time.monotonic() - t_start, total), force=True)
+    return cut
 
 
 def _waiting_for(mon: MonitorNode) -> str:

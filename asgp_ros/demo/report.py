@@ -182,6 +182,10 @@ def markdown(state: RunState, rows: list[dict[str, Any]], cpu: list[dict[str, An
            if state.train_info.get("configuration") else "") + ".")
     if state.stopped_by:
         lines.append(f"Stopped early by {state.stopped_by}.")
+    if state.recording_cut:
+        lines += ["", f"**The recording was cut short**: {state.recording_cut}. The bag was "
+                  "not evaluated offline (its columns below are empty): the figures are the "
+                  "online ones, of every path published during the drive."]
     plan = bool(o["plan"])
     same = "offline `--truth`" if plan else "offline, held command"
     lines += ["", "## Success rate (position error <= 10 cm at the horizon)", "",
@@ -519,7 +523,9 @@ def write_report(out: Path, state: RunState, monitor: MonitorNode, model: Motion
     evaluation = None
     cases = None
     held = None
-    if bag.exists() and monitor.counts.get(topics.PREDICTED_PATH, 0) and \
+    if state.recording_cut:  # (it stopped at an error, said: the figures are online)
+        say("note: no offline evaluation: the recording was cut short")
+    elif bag.exists() and monitor.counts.get(topics.PREDICTED_PATH, 0) and \
             monitor.counts.get(topics.VO_TWIST, 0):
         say("evaluating the recorded bag offline: asgp evaluate --truth ...")
         try:
