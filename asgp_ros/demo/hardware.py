@@ -240,6 +240,7 @@ class HardwareNode(Node):
             self.get_logger().info(f"simulated joystick board on {port}")
         except BaseException:
             self.hw.stop()
+            self.destroy_node()  # (off the graph: a later demo on the domain saw it there)
             raise
 
     # ---- start-up --------------------------------------------------------------------
