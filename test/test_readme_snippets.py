@@ -20,9 +20,15 @@ REPO = Path(__file__).resolve().parents[1]
 MODEL = REPO / "docs" / "reproduction" / "models" / "tile_asgp.npz"
 
 
+README = REPO / "README.md"
+
+
 def python_blocks() -> list[tuple[int, str]]:
-    """(line, code) of every ```python block of README.md."""
-    text = (REPO / "README.md").read_text()
+    """(line, code) of every ```python block of README.md (none in a copy of the package
+    without it: colcon's, test_package)."""
+    if not README.exists():
+        return []
+    text = README.read_text()
     return [(text[:m.start()].count("\n") + 1, m.group(1))
             for m in re.finditer(r"^```python\n(.*?)^```$", text, flags=re.M | re.S)]
 
@@ -53,6 +59,8 @@ BLOCKS = python_blocks()
 
 
 def test_readme_has_python_snippets():
+    if not README.exists():
+        pytest.skip("README.md is not beside this copy of the package")
     assert len(BLOCKS) >= 5
 
 

@@ -7,25 +7,14 @@ identity."""
 
 from __future__ import annotations
 
-import contextlib
-import io
 import itertools
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from test_bag_paths import run
 
-from asgp_ros.cli import main
 from asgp_ros.sim.simulate import simulate, write_recording
-
-
-def run(*args: str) -> SimpleNamespace:
-    """``asgp ARGS`` in this process: its exit code, stdout and stderr."""
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = main(list(args))
-    return SimpleNamespace(returncode=rc, stdout=out.getvalue(), stderr=err.getvalue())
 
 
 @pytest.fixture(scope="module")
