@@ -2280,3 +2280,53 @@ def test_a_layer_started_after_a_re_initialisation_refuses_a_map_made_before(har
     _publish_map(fresh, old_map)
     _drive_odometry(fresh, 100.0, 100.5, 0.0, 0.0, 1e-4)
     assert fresh.node._grid is not None, fresh.node._grid_problem
+
+
+def test_vo_nodes_own_pose_covariance_never_reads_as_a_re_initialisation(harness):
+    """vo_node's pose covariance over a drive with one tracking loss (its +1 rad^2 of yaw),
+    forward then reversing: the position's variance grows with the distance times the yaw's
+    (0.27 m^2 a pose 0.9 m after the loss) and falls when the chair reverses (2.28 at
+    once); the layer took either for a re-initialisation and dropped the map, at every pose
+    from then on. Only the yaw's variance counts: the map made after the loss is kept."""
+    from asgp_ros.vo.extrinsics import CameraExtrinsic
+    from asgp_ros.vo.odometry import Status, VOResult
+    from asgp_ros.vo.planar import PlanarOdometry
+
+    h = harness(obstacles="grid", vo_type="odometry", vo_topic="vo/odom")
+    ext = CameraExtrinsic()
+    planar = PlanarOdometry(ext)
+    Tbc = ext.T_base_optical
+    pose = np.eye(4)
+    stats = h.node.predictor.stats
+    k = 0
+    largest = 0.0
+    for i in range(int(16.0 / 0.05)):
+        t = 100.0 + 0.05 * (i + 1)
+        fwd = 0.8 if i < 160 else -0.8  # 8 s forward, then 8 s back
+        h.clock(t)
+        n = stats.joy_samples
+        h.joy_pub.publish(conv.joy_from_sample(t, fwd, 0.0))
+        h.spin_until(lambda n=n: stats.joy_samples > n, what="joy")
+        if i % 4 != 3:
+            continue
+        step = np.eye(4)
+        step[0, 3] = 0.2 * 0.9 * fwd
+        motion = np.linalg.inv(Tbc) @ step @ Tbc
+        pose = pose @ motion
+        k += 1
+        x, y, yaw, cov = planar.update(VOResult(
+            status=Status.OK, stamp=t, pose=pose.copy(), motion=motion,
+            covariance=np.diag([1e-6] * 3 + [1e-7] * 3), dt=0.2, reset=(k == 5)))
+        largest = max(largest, float(cov[1, 1]))
+        n = h.node._vo_messages
+        h.odom_pub.publish(conv.odometry_with_covariance(t, x, y, yaw, cov, 0.9 * fwd, 0.0,
+                                                         np.eye(6) * 1e-4))
+        h.spin_until(lambda n=n: h.node._vo_messages > n, what="vo")
+        if k == 8:  # a map of the alignment after the loss
+            new_map = wall_map_msg(None)
+            new_map.header.stamp = conv.seconds_to_stamp(t)
+            _publish_map(h, new_map)
+        if k >= 8:
+            assert h.node._grid is not None, (k, h.node._grid_problem)
+    assert largest > 10.0  # (the lateral variance did grow, with the yaw's 1 rad^2)
+    assert conv.diagnostic_values(h.node.diagnostic_status())["odometry_reinitialised"] == "1"

@@ -155,9 +155,10 @@ JOY_LEAD_S = 0.1
 #: forward push went on after the user pulled the stick back (0.05: above an ADC's noise
 #: and a steady hand's tremor, which would only cost a decision).
 STICK_CHANGE = 0.05
-#: A rise of an odometry pose's variance (x, y or yaw; m^2 or rad^2) by this much from one
-#: message to the next is a re-initialisation (vo_node adds 1.0 after a tracking loss):
-#: far above what one step of dead reckoning adds.
+#: A rise (or fall) of an odometry pose's yaw variance (rad^2) by this much from one message
+#: to the next is a re-initialisation (vo_node adds 1.0 after a tracking loss) or a restart:
+#: far above what one step of dead reckoning adds. At the first pose a layer sees, a
+#: variance this large (x, y or yaw) says the odometry may have re-initialised before.
 POSE_JUMP_VARIANCE = 0.25
 #: An odometry pose that moved further from the last than POSE_JUMP_M + POSE_JUMP_SPEED x
 #: the time between them (m, m/s), or turned by more than POSE_JUMP_RAD + POSE_JUMP_RATE x
@@ -700,13 +701,13 @@ class SharedControlNode(Node):
 
     def _note_pose_variance(self, msg: Odometry, t: float,
                             pose: tuple[float, float, float]) -> None:
-        """A pose whose variance (x, y or yaw) rose at once by POSE_JUMP_VARIANCE or more
+        """A pose whose yaw variance rose at once by POSE_JUMP_VARIANCE or more
         is of a new alignment: the odometry re-initialised after a tracking loss (vo_node
         holds its pose through the gap while the chair moves, and adds 1 m^2 and 1 rad^2).
         The map held, placed with the poses before, would put its walls where the chair
         was (a wall 1.2 m ahead was judged clear): dropped, until a new map comes.
 
-        So is a pose whose variance fell by as much at once, or that jumped further than
+        So is a pose whose yaw variance fell by as much at once, or that jumped further than
         the chair can move (POSE_JUMP_M + POSE_JUMP_SPEED x the time since the last, or the
         same in yaw): the odometry restarted (vo_node restarted starts again at (0, 0, 0)
         with no variance, and the map was kept, a wall judged clear until the chair was in
@@ -746,14 +747,18 @@ class SharedControlNode(Node):
                     "this layer saw (it may have re-initialised before: a map made before "
                     "may be of the poses before it)")
             return
-        if np.any(var - before >= POSE_JUMP_VARIANCE):
-            self._new_alignment(t, f"the odometry's pose variance rose by "
-                                   f"{np.max(var - before):.2f} at once (it re-initialised "
-                                   "after a tracking loss: its poses are of a new alignment)")
-        elif np.any(before - var >= POSE_JUMP_VARIANCE):
-            self._new_alignment(t, f"the odometry's pose variance fell by "
-                                   f"{np.max(before - var):.2f} at once (it restarted: its "
-                                   "poses are of a new alignment)")
+        # the yaw's variance (rad^2) alone: dead reckoning only adds to it, a little a step,
+        # while the position's grows with the distance times the yaw's (0.27 m^2 a pose,
+        # 0.9 m after one tracking loss of vo_node, and every pose after: the map dropped
+        # for the rest of the drive) and falls when the chair reverses (2.28 at once)
+        rise = float(var[2] - before[2])
+        if rise >= POSE_JUMP_VARIANCE:
+            self._new_alignment(t, f"the odometry's yaw variance rose by {rise:.2f} at once "
+                                   "(it re-initialised after a tracking loss: its poses are "
+                                   "of a new alignment)")
+        elif -rise >= POSE_JUMP_VARIANCE:
+            self._new_alignment(t, f"the odometry's yaw variance fell by {-rise:.2f} at once "
+                                   "(it restarted: its poses are of a new alignment)")
 
     @staticmethod
     def _pose_jumped(last: tuple[float, ...], now: tuple[float, ...]) -> bool:
