@@ -544,19 +544,25 @@ def test_overrides_are_refused_while_a_second_chair_shares_the_graph(harness):
     assert h.spin_until(lambda: len(h.joy) > 5, 10.0)
     push = lambda: h.override_pub.publish(Joy(axes=[-0.25, 0.6]))  # noqa: E731
     assert h.spin_until(lambda: h.board.output.override_active, 5.0, each=push)
-    for make in (lambda: create_node("serial_bridge_node", context=h.node.context),
-                 lambda: create_node("other_chair", context=h.node.context)):
-        other = make()
-        if other.get_name() == "other_chair":
+    said = {"serial_bridge_node": "other node(s) named /serial_bridge_node",
+            "other_chair": "other publisher(s) of /joy",
+            # a second chair's bridge in /chair2, its override topic remapped onto ours
+            "chair2_bridge": "another bridge reads /joy_override (/chair2/chair2_bridge"}
+    for name in said:
+        other = create_node(name, context=h.node.context,
+                            namespace="chair2" if name == "chair2_bridge" else "")
+        if name == "other_chair":
             other.create_publisher(Joy, "joy", qos_profile_sensor_data)
+        if name == "chair2_bridge":
+            other.create_publisher(Joy, "joy", qos_profile_sensor_data)  # (/chair2/joy)
+            other.create_subscription(Joy, "/joy_override", lambda _: None,
+                                      qos_profile_sensor_data)
         h.executor.add_node(other)
         assert h.spin_until(lambda: not h.board.output.override_active, 5.0, each=push)
         assert h.spin_until(lambda: (st := _override_status(h)) is not None
                             and st.level == DiagnosticStatus.ERROR, 5.0, each=push)
         message = _override_status(h).message
-        assert ("other node(s) named /serial_bridge_node" in message
-                if other.get_name() == "serial_bridge_node"
-                else "other publisher(s) of /joy" in message), message
+        assert said[name] in message, message
         sent = h.node.link.stats().overrides_sent
         h.spin_for(0.5, each=push)
         assert h.node.link.stats().overrides_sent == sent  # nothing written to the board

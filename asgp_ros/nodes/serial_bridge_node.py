@@ -105,7 +105,8 @@ class SerialBridgeNode(Node):
         self._board = default_calibration()  # the firmware's own (config.h)
         self._diag_pub = watch.publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                          QoSProfile(depth=10))
-        watch.subscription(Joy, topics.JOY_OVERRIDE, self._on_override, qos_profile_sensor_data)
+        self._override_sub = watch.subscription(Joy, topics.JOY_OVERRIDE, self._on_override,
+                                                qos_profile_sensor_data)
 
         self._state_gc = self.create_guard_condition(self._publish_diagnostics)
         self._diag_lock = threading.Lock()  # diagnostics come from two threads
@@ -247,8 +248,14 @@ class SerialBridgeNode(Node):
         twins = sum(1 for entry in self.get_node_names_and_namespaces() if entry == me) - 1
         joy = self._joy_pub.topic_name
         others = self.count_publishers(joy) - 1
+        override = self._override_sub.topic_name
+        bridges = self._other_bridges(override, me)
         was, self._crowd = self._crowd, ""
-        if twins > 0:
+        if bridges:
+            self._crowd = (f"another bridge reads {override} ({', '.join(bridges[:3])}: it "
+                           "subscribes to it and publishes a joystick): both chairs would "
+                           "follow these overrides; give each chair its own override topic")
+        elif twins > 0:
             self._crowd = (f"{twins} other node(s) named {self.get_fully_qualified_name()} on "
                            "this ROS domain (a second chair started without a namespace, or a "
                            "second bridge?): each would drive its chair with these overrides; "
@@ -261,6 +268,24 @@ class SerialBridgeNode(Node):
         elif was and not self._crowd:
             self.get_logger().info("overrides taken again: the graph is this chair's alone")
         return self._crowd
+
+    def _other_bridges(self, override: str, me: tuple[str, str]) -> list[str]:
+        """The other readers of ``override`` that publish a sensor_msgs/Joy, as a bridge
+        does (its joy and joy_applied): two bridges, one remapped onto the other's override
+        topic, both drove their chairs with one layer's overrides, every status OK. (The
+        predictor and a recorder read it too, and publish no Joy.)"""
+        found = []
+        for e in self.get_subscriptions_info_by_topic(override):
+            if (e.node_name, e.node_namespace) == me:
+                continue
+            try:
+                published = self.get_publisher_names_and_types_by_node(e.node_name,
+                                                                      e.node_namespace)
+            except Exception:  # (gone from the graph since)
+                continue
+            if any("sensor_msgs/msg/Joy" in types for _, types in published):
+                found.append(f"{e.node_namespace.rstrip('/')}/{e.node_name}")
+        return sorted(set(found))
 
     def _send_override(self) -> None:
         # the board's mode as its samples report it, not as we last asked: the board may
