@@ -126,3 +126,46 @@ def test_a_stall_before_the_reads_clock_does_not_clamp_the_next_backlog():
     assert (t_rx, t_before) == (1.5, 0.9)
     _, t_rx, t_before = link._drain(Port(), b"backlog")
     assert t_rx == 1.6 and t_before == 1.0  # not 1.5: the backlog came from 1.0 on
+
+
+def test_a_stall_between_a_read_and_the_drain_is_a_silence_too():
+    """The reader stopped after its read returned a byte and before the drain that follows
+    (a busy host stops it anywhere; CI caught it once, 2.5 s stopped): the silence was
+    judged on the time before the stall, and the stall's backlog was read as the present
+    instead of dropped. It is judged on the drain's own time now."""
+    from asgp_ros.serial.link import LinkConfig, LinkManager, LinkState
+
+    now = [100.0]
+    link = LinkManager(LinkConfig(port="unused"))
+    link._clock = lambda: now[0]
+
+    class Port:
+        checks = 0
+        reads = 0
+
+        def reset_input_buffer(self) -> None:
+            pass
+
+        def write(self, data: bytes) -> int:
+            return len(data)
+
+        def flush(self) -> None:
+            pass
+
+        @property
+        def in_waiting(self) -> int:
+            self.checks += 1
+            if self.checks == 2:  # the drain's first look: the reader was stopped 2.5 s
+                now[0] += 2.5
+            return 0
+
+        def read(self, n: int) -> bytes:
+            self.reads += 1
+            now[0] += 0.01
+            if self.reads > 5:
+                link._stop.set()  # (the code before: it went on reading, never reopened)
+            return b"\x00"
+
+    link._serve(Port())
+    assert link.stats().state == LinkState.CONNECTING
+    assert "this reader stalled" in link.stats().last_error

@@ -475,19 +475,21 @@ class LinkManager:
                 if self._parser.pending and self._clock() - self._last_rx_t >= RX_IDLE_S:
                     self._expire_partial()
                 continue
-            t_rx = self._clock()
-            if t_rx - self._last_rx_t > cfg.silence_reopen:
+            previous = self._last_rx_t
+            data, t_rx, t_before = self._drain(ser, data)
+            if t_rx - previous > cfg.silence_reopen:
                 # no byte for longer than a silent board may take: the board was silent, or
                 # this reader stalled (a busy host) and what waits is a backlog older than
-                # the limit; either way, reopened as after a silence (its input flushed)
-                quiet = t_rx - self._last_rx_t
+                # the limit; either way, reopened as after a silence (its input flushed).
+                # Judged on the drain's own time: a reader stopped after its read returned
+                # and before it took the time, read the stall's backlog as fresh
+                quiet = t_rx - previous
                 with self._lock:
                     self._last_error = (f"no byte read for {quiet:.1f} s (a silent board, or "
                                         "this reader stalled): the bytes waiting are dropped")
                 self._set_state(LinkState.CONNECTING, "silent board or stalled reader, "
                                                       "reopening")
                 return
-            data, t_rx, t_before = self._drain(ser, data)
             with self._lock:
                 frames = self._parser.feed(data)
             for frame, t in zip(frames, self._arrival_times(frames, t_rx, t_before),
