@@ -81,8 +81,8 @@ class Harness:
         self.status: list[DiagnosticStatus] = []
         self.x = 0.0  # the chair's odometry x (m), integrated by drive()
         t.create_subscription(Joy, "joy_override", self.overrides.append, QoSProfile(depth=100))
-        # (the bridge this node plays publishes what the board applied: the layer counts
-        # such a reader of its overrides as a bridge)
+        # (the bridge this node plays publishes a joystick, as serial_bridge_node does
+        # joy and joy_applied: the layer counts such a reader of its overrides as a bridge)
         self.bridge_applied = t.create_publisher(Joy, "joy_applied", qos_profile_sensor_data)
         t.create_subscription(DiagnosticStatus, "shared_control/status", self.status.append,
                               QoSProfile(depth=100))
@@ -2029,7 +2029,7 @@ def test_a_reader_of_the_overrides_that_is_no_bridge_is_not_counted_as_one(harne
     """The layer in /chair1, the bridge in / (its override topic left in the namespace):
     the predictor that the launch file starts beside it reads /chair1/joy_override too, and
     the layer counted it: OK, 'intervening', while no override reached the board. A reader
-    counts as a bridge when it also publishes joy_applied, as serial_bridge_node does."""
+    counts as a bridge when it also publishes a joystick, as serial_bridge_node does."""
     h = harness()
     h.drive(100.0, 103.0, wall=20.0)
     assert h.node.diagnostic_status().level == DiagnosticStatus.OK
@@ -2042,7 +2042,10 @@ def test_a_reader_of_the_overrides_that_is_no_bridge_is_not_counted_as_one(harne
     (sub,) = [s for s in h.test.subscriptions if s.topic_name == "/joy_override"]
     h.test.destroy_subscription(sub)  # the bridge's gone; the predictor still reads
     h.test.destroy_publisher(h.bridge_applied)
-    h.spin_until(lambda: h.node._override_readers()[:2] == (1, 0), what="the reader alone")
+    from asgp_ros.nodes.runtime import override_readers
+
+    h.spin_until(lambda: override_readers(h.node, "/joy_override")
+                 == ([], ["/chair1/predictor_node"]), what="the reader alone")
     status = h.node.diagnostic_status()
     assert status.level == DiagnosticStatus.WARN, status.message
     assert "no bridge subscribes" in status.message and "/chair1/predictor_node" in \

@@ -185,6 +185,32 @@ def status_name(node: Node, label: str) -> str:
     return f"{namespace}/{label}" if namespace else label
 
 
+def override_readers(node: Node, topic: str) -> tuple[list[str], list[str]]:
+    """The other nodes that read ``topic`` (an override topic), as (bridges, others), by
+    full name. A bridge is a reader that publishes a sensor_msgs/Joy, as serial_bridge_node
+    does (its joy and joy_applied); the predictor, which reads the overrides too, and a bag
+    recorder publish none. The layer counts on a bridge reading its overrides (it said OK
+    while only the predictor did); a bridge refuses overrides while another bridge reads
+    its topic (two chairs followed one layer)."""
+    me = (node.get_name(), node.get_namespace())
+    bridges: set[str] = set()
+    others: set[str] = set()
+    for e in node.get_subscriptions_info_by_topic(topic):
+        if (e.node_name, e.node_namespace) == me:
+            continue
+        name = f"{e.node_namespace.rstrip('/')}/{e.node_name}"
+        try:
+            published = node.get_publisher_names_and_types_by_node(e.node_name,
+                                                                   e.node_namespace)
+        except Exception:  # (gone from the graph since)
+            continue
+        if any("sensor_msgs/msg/Joy" in types for _, types in published):
+            bridges.add(name)
+        else:
+            others.add(name)
+    return sorted(bridges), sorted(others)
+
+
 def guard_sim_clock(node: Node) -> None:
     """Refuse a ``/clock`` message that is no time (negative seconds: a player of a bag
     with bogus stamps, a stray publisher) before rclpy's own clock subscription reads it:

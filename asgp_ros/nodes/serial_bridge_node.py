@@ -73,13 +73,14 @@ _LEVEL = {
 }
 
 
+#: How often (s, at most) the bridge looks at the graph for another bridge on its override
+#: topic, a second node of its name or a second publisher of its joy before taking an
+#: override (graph queries each time).
+CROWD_CHECK_S = 0.5
+
 #: Why the bridge never follows /clock: it drives a real board in real time, and an override
 #: is written to the chair only while fresh by its stamp; on a replay's clock, the overrides
 #: of a replayed bag (or of a layer judging replayed scans) would be fresh.
-#: How often (s, at most) the bridge looks at the graph for a second node of its name or a
-#: second publisher of its joy topic before taking an override (a graph query each time).
-CROWD_CHECK_S = 0.5
-
 SIM_TIME_REFUSED = ("use_sim_time must be false: the bridge drives a real board in real time, "
                     "and on a replayed /clock a replayed or replay-driven joy_override would "
                     "look fresh (replaying a bag into the other nodes: leave the bridge out, "
@@ -249,7 +250,7 @@ class SerialBridgeNode(Node):
         joy = self._joy_pub.topic_name
         others = self.count_publishers(joy) - 1
         override = self._override_sub.topic_name
-        bridges = self._other_bridges(override, me)
+        bridges, _ = runtime.override_readers(self, override)
         was, self._crowd = self._crowd, ""
         if bridges:
             self._crowd = (f"another bridge reads {override} ({', '.join(bridges[:3])}: it "
@@ -268,24 +269,6 @@ class SerialBridgeNode(Node):
         elif was and not self._crowd:
             self.get_logger().info("overrides taken again: the graph is this chair's alone")
         return self._crowd
-
-    def _other_bridges(self, override: str, me: tuple[str, str]) -> list[str]:
-        """The other readers of ``override`` that publish a sensor_msgs/Joy, as a bridge
-        does (its joy and joy_applied): two bridges, one remapped onto the other's override
-        topic, both drove their chairs with one layer's overrides, every status OK. (The
-        predictor and a recorder read it too, and publish no Joy.)"""
-        found = []
-        for e in self.get_subscriptions_info_by_topic(override):
-            if (e.node_name, e.node_namespace) == me:
-                continue
-            try:
-                published = self.get_publisher_names_and_types_by_node(e.node_name,
-                                                                      e.node_namespace)
-            except Exception:  # (gone from the graph since)
-                continue
-            if any("sensor_msgs/msg/Joy" in types for _, types in published):
-                found.append(f"{e.node_namespace.rstrip('/')}/{e.node_name}")
-        return sorted(set(found))
 
     def _send_override(self) -> None:
         # the board's mode as its samples report it, not as we last asked: the board may

@@ -539,11 +539,10 @@ class SharedControlNode(Node):
         self._topic: dict[str, str] = {"override_topic": self.override_pub.topic_name}
         self._topic["joy_topic"] = self.polled.subscription(
             Joy, p.joy_topic, self._on_joy, qos_profile_sensor_data).topic_name
-        self._applied_sub = None
         if p.applied_topic.strip():
-            self._applied_sub = self.polled.subscription(
-                Joy, p.applied_topic, self._on_joy_applied, qos_profile_sensor_data)
-            self._topic["applied_topic"] = self._applied_sub.topic_name
+            self._topic["applied_topic"] = self.polled.subscription(
+                Joy, p.applied_topic, self._on_joy_applied, qos_profile_sensor_data
+            ).topic_name
         inputs: list[tuple[Any, str, Callable[[Any], None], str]] = []
         if p.vo_type == "twist":
             inputs.append((TwistStamped, p.vo_topic, self._on_twist, "vo_topic"))
@@ -1354,10 +1353,11 @@ class SharedControlNode(Node):
         }
         message = "no decision yet" if d is None else f"{d.why.value}: {d.detail}"
         level = "WARN" if d is None else _level(d.why)
-        listeners, bridges, others = self._override_readers()
+        bridges, others = runtime.override_readers(self, self.override_pub.topic_name)
+        listeners = len(bridges) + len(others)
         values["override_subscribers"] = str(listeners)
-        values["override_bridges"] = str(bridges)
-        if bridges == 0:  # (a misspelt override_topic: OK, 'intervening', and no effect)
+        values["override_bridges"] = str(len(bridges))
+        if not bridges:  # (a misspelt override_topic: OK, 'intervening', and no effect)
             # ERROR while it would be intervening, else WARN at least
             level = "ERROR" if self._was_intervening or level == "ERROR" else "WARN"
             if listeners == 0:
@@ -1365,10 +1365,11 @@ class SharedControlNode(Node):
                            "reaches the board (the bridge not running, or override_topic "
                            f"misspelt?); {message}")
             else:
-                assert self._applied_sub is not None
+                named = ", ".join(others[:3]) + (f" and {len(others) - 3} more"
+                                                 if len(others) > 3 else "")
                 message = (f"no bridge subscribes to {self.override_pub.topic_name} (none of "
-                           f"its subscribers, {others}, publishes "
-                           f"{self._applied_sub.topic_name}, as the serial bridge does): no "
+                           f"its subscribers, {named}, publishes a joystick, as the serial "
+                           "bridge does its joy and joy_applied): no "
                            "override reaches the board (the bridge not running, or in another "
                            f"namespace, or override_topic misspelt?); {message}")
         if self._second_frame is not None:  # no laser until a restart: set laser_frame
@@ -1377,23 +1378,6 @@ class SharedControlNode(Node):
         return conv.diagnostic_status(
             runtime.status_name(self, f"{self.get_name()}: shared control"), level, message,
                                       hardware_id=self.params.model_path, values=values)
-
-    def _override_readers(self) -> tuple[int, int, str]:
-        """(the override topic's subscribers, those of them that are a bridge, the others'
-        names). A bridge is a subscriber that also publishes ``applied_topic``, what the
-        board applied, as serial_bridge_node does: any reader counted before (the predictor,
-        which reads the overrides too, a bag recorder), and the layer said OK while its
-        overrides reached no board. Without ``applied_topic`` every subscriber counts."""
-        readers = self.get_subscriptions_info_by_topic(self.override_pub.topic_name)
-        if self._applied_sub is None:
-            return len(readers), len(readers), ""
-        reporting = {(e.node_namespace, e.node_name) for e in
-                     self.get_publishers_info_by_topic(self._applied_sub.topic_name)}
-        bridges = [e for e in readers if (e.node_namespace, e.node_name) in reporting]
-        others = sorted({f"{e.node_namespace.rstrip('/')}/{e.node_name}" for e in readers
-                         if (e.node_namespace, e.node_name) not in reporting})
-        return len(readers), len(bridges), ", ".join(others[:3]) + (
-            f" and {len(others) - 3} more" if len(others) > 3 else "")
 
     def _publish_diagnostics(self) -> None:
         self.polled.drain()
